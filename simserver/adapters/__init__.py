@@ -1,0 +1,1 @@
+"""Adapters between the compiled core and the outside world (files, plots, network)."""
