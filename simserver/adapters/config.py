@@ -1,0 +1,346 @@
+"""Vehicle configuration: YAML files, one per subsystem, composed by path.
+
+A vehicle is a top-level YAML file naming its subsystem files (paths relative to it)::
+
+    name: paper_sedan
+    chassis: chassis.yaml          # mass, inertias, geometry, aero
+    suspension: suspension.yaml    # springs, dampers, anti-roll bars
+    steering: steering.yaml
+    brakes: brakes.yaml
+    powertrain: powertrain.yaml
+    tires: {front: ../../tires/paper_sti.yaml, rear: ../../tires/paper_sti.yaml}
+
+Each subsystem file holds exactly the keys listed for it in ``SUBSYSTEM_KEYS`` (units in
+the key names); every key is checked against ``PARAM_RANGES``. Tire files are described
+in ``load_tire``. Every error names the file and the key (``ConfigError``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from simserver.adapters.tir_file import TirError, load_tir, mf61_coefficients
+from simserver.core import params as P
+from simserver.core.damping import DAMPING_MODEL_NAMES, PAPER_DAMPING_RATIO, \
+    PAPER_TRIGGER_LATERAL_SPEED_MPS
+from simserver.core.slip import SLIP_MODEL_NAMES
+from simserver.core.tire_layout import (
+    TIRE_MODEL_MF61,
+    TIRE_MODEL_SIMPLE,
+    TP_MODEL,
+    TP_MODEL_BASE,
+    TP_RADIUS_M,
+    TP_RELAX_LAT_M,
+    TP_RELAX_LONG_M,
+)
+from simserver.core.tire import N_TIRE_PARAM
+from simserver.core.tire_mf61 import mf61_param_vector
+from simserver.core.tire_simple import SIMPLE_PARAM_NAMES, simple_param_vector
+
+
+class ConfigError(ValueError):
+    """A configuration file is missing, unreadable or invalid; the message names file and key."""
+
+
+# Which vehicle-parameter keys each subsystem file holds (names = core.params names).
+SUBSYSTEM_KEYS: dict[str, tuple[str, ...]] = {
+    "chassis": (
+        "mass_kg", "sprung_mass_kg", "yaw_inertia_kgm2", "roll_inertia_kgm2",
+        "pitch_inertia_kgm2", "cg_height_m", "cg_to_front_axle_m", "cg_to_rear_axle_m",
+        "track_front_m", "track_rear_m", "drag_area_m2", "air_density_kg_per_m3",
+    ),
+    "suspension": (
+        "spring_front_n_per_m", "spring_rear_n_per_m", "damper_front_n_s_per_m",
+        "damper_rear_n_s_per_m", "antiroll_front_n_per_m", "antiroll_rear_n_per_m",
+    ),
+    "steering": ("steering_ratio", "steering_wheel_max_rad"),
+    "brakes": ("brake_torque_max_nm", "brake_front_fraction", "parking_brake_torque_nm"),
+    "powertrain": (
+        "drive_torque_max_nm", "drive_power_max_w", "reverse_torque_max_nm", "driven_axle",
+        "drive_front_fraction", "wheel_inertia_front_kgm2", "wheel_inertia_rear_kgm2",
+    ),
+}
+
+# (min, max) of every numeric parameter; a value outside is a config error.
+PARAM_RANGES: dict[str, tuple[float, float]] = {
+    "mass_kg": (50.0, 60000.0),
+    "sprung_mass_kg": (10.0, 60000.0),
+    "yaw_inertia_kgm2": (1.0, 1e6),
+    "roll_inertia_kgm2": (1.0, 1e6),
+    "pitch_inertia_kgm2": (1.0, 1e6),
+    "cg_height_m": (0.05, 3.0),
+    "cg_to_front_axle_m": (0.1, 10.0),
+    "cg_to_rear_axle_m": (0.1, 10.0),
+    "track_front_m": (0.3, 4.0),
+    "track_rear_m": (0.3, 4.0),
+    "drag_area_m2": (0.0, 20.0),
+    "air_density_kg_per_m3": (0.0, 2.0),
+    "spring_front_n_per_m": (1e3, 1e7),
+    "spring_rear_n_per_m": (1e3, 1e7),
+    "damper_front_n_s_per_m": (0.0, 1e6),
+    "damper_rear_n_s_per_m": (0.0, 1e6),
+    "antiroll_front_n_per_m": (0.0, 1e7),
+    "antiroll_rear_n_per_m": (0.0, 1e7),
+    "steering_ratio": (1.0, 50.0),
+    "steering_wheel_max_rad": (0.05, 30.0),
+    "brake_torque_max_nm": (0.0, 1e6),
+    "brake_front_fraction": (0.0, 1.0),
+    "parking_brake_torque_nm": (0.0, 1e6),
+    "drive_torque_max_nm": (0.0, 1e6),
+    "drive_power_max_w": (1.0, 1e8),
+    "reverse_torque_max_nm": (0.0, 1e6),
+    "drive_front_fraction": (0.0, 1.0),
+    "wheel_inertia_front_kgm2": (0.05, 500.0),
+    "wheel_inertia_rear_kgm2": (0.05, 500.0),
+}
+
+# Model options (the scenario's or server's ``model:`` section) and their defaults.
+MODEL_OPTION_DEFAULTS: dict[str, Any] = {
+    "slip_model": "lagged_passive",
+    "damping_model": "patch",
+    "damping_ratio": PAPER_DAMPING_RATIO,
+    "damping_trigger_v_mps": PAPER_TRIGGER_LATERAL_SPEED_MPS,
+    "damping_fade_speed_mps": 1.0,
+    "kinematic_u_min_mps": 0.5,
+    "slide_widen_speed_mps": 0.5,
+    "gravity_mps2": 9.81,
+}
+MODEL_OPTION_RANGES: dict[str, tuple[float, float]] = {
+    "damping_ratio": (0.0, 5.0),
+    "damping_trigger_v_mps": (0.0, 10.0),
+    "damping_fade_speed_mps": (0.01, 50.0),
+    "kinematic_u_min_mps": (0.01, 50.0),
+    "slide_widen_speed_mps": (0.01, 100.0),
+    "gravity_mps2": (0.1, 30.0),
+}
+
+SIMPLE_TIRE_RANGES: dict[str, tuple[float, float]] = {
+    "cornering_stiffness_n_per_rad": (100.0, 1e7),
+    "longitudinal_stiffness_n": (100.0, 1e7),
+    "nominal_load_n": (10.0, 1e6),
+    "friction_coefficient": (0.01, 3.0),
+    "rolling_resistance_coefficient": (0.0, 0.5),
+    "pneumatic_trail_m": (0.0, 0.5),
+    "rolling_radius_m": (0.05, 2.0),
+}
+TIRE_COMMON_RANGES: dict[str, tuple[float, float]] = {
+    "relaxation_length_lat_m": (0.005, 5.0),
+    "relaxation_length_long_m": (0.005, 5.0),
+    "rolling_radius_m": (0.05, 2.0),
+}
+
+
+@dataclass
+class VehicleConfig:
+    """A loaded, validated vehicle: packed parameters plus where they came from."""
+
+    name: str
+    path: Path
+    vp: np.ndarray  # float64[N_VEHICLE_PARAM]
+    tp: np.ndarray  # float64[4, N_TIRE_PARAM]
+    tire_models: tuple[str, str]  # front, rear
+    sources: dict[str, str] = field(default_factory=dict)
+
+
+def read_yaml(path: Path) -> dict[str, Any]:
+    """Read a YAML mapping, with errors naming the file."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of keys to values at the top level")
+    return data
+
+
+def number(path: Path | str, key: str, value: Any, lo: float, hi: float) -> float:
+    """Validate one finite number within ``[lo, hi]``; errors name file and key."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ConfigError(f"{path}: key '{key}': expected a number, got {value!r}")
+    val = float(value)
+    if not math.isfinite(val):
+        raise ConfigError(f"{path}: key '{key}': must be finite, got {value!r}")
+    if not lo <= val <= hi:
+        raise ConfigError(f"{path}: key '{key}': {val:g} is outside [{lo:g}, {hi:g}]")
+    return val
+
+
+def choice(path: Path | str, key: str, value: Any, names: dict[str, int]) -> int:
+    """Validate a named choice; errors list the accepted names."""
+    if not isinstance(value, str) or value not in names:
+        raise ConfigError(
+            f"{path}: key '{key}': expected one of {sorted(names)}, got {value!r}"
+        )
+    return names[value]
+
+
+def check_keys(path: Path | str, data: dict[str, Any], allowed: tuple[str, ...] | set[str],
+               required: tuple[str, ...] | set[str] = ()) -> None:
+    """Reject unknown keys and report missing ones, naming the file."""
+    for key in data:
+        if key not in allowed:
+            raise ConfigError(f"{path}: unknown key '{key}' (allowed: {', '.join(sorted(allowed))})")
+    for key in required:
+        if key not in data:
+            raise ConfigError(f"{path}: missing key '{key}'")
+
+
+def model_option_values(options: dict[str, Any] | None, source: str) -> dict[str, float]:
+    """Validate a ``model:`` section against ``MODEL_OPTION_DEFAULTS``; returns slot values."""
+    merged = dict(MODEL_OPTION_DEFAULTS)
+    options = options or {}
+    if not isinstance(options, dict):
+        raise ConfigError(f"{source}: key 'model': expected a mapping")
+    check_keys(f"{source} (model)", options, tuple(MODEL_OPTION_DEFAULTS))
+    merged.update(options)
+    values: dict[str, float] = {
+        "slip_model": choice(source, "model.slip_model", merged["slip_model"], SLIP_MODEL_NAMES),
+        "damping_model": choice(
+            source, "model.damping_model", merged["damping_model"], DAMPING_MODEL_NAMES
+        ),
+    }
+    for key, (lo, hi) in MODEL_OPTION_RANGES.items():
+        values[key] = number(source, f"model.{key}", merged[key], lo, hi)
+    return values
+
+
+def apply_model_options(vp: np.ndarray, values: dict[str, float]) -> None:
+    """Write validated model options into the parameter vector."""
+    vp[P.VP_SLIP_MODEL] = values["slip_model"]
+    vp[P.VP_DAMPING_MODEL] = values["damping_model"]
+    vp[P.VP_DAMPING_RATIO] = values["damping_ratio"]
+    vp[P.VP_DAMPING_TRIGGER_V_MPS] = values["damping_trigger_v_mps"]
+    vp[P.VP_DAMPING_FADE_SPEED_MPS] = values["damping_fade_speed_mps"]
+    vp[P.VP_KINEMATIC_U_MIN_MPS] = values["kinematic_u_min_mps"]
+    vp[P.VP_SLIDE_WIDEN_SPEED_MPS] = values["slide_widen_speed_mps"]
+    vp[P.VP_GRAVITY_MPS2] = values["gravity_mps2"]
+
+
+def load_tire(path: Path) -> tuple[np.ndarray, str]:
+    """Load a tire file into a packed ``float64[N_TIRE_PARAM]`` vector.
+
+    Two forms::
+
+        model: simple                       # core.tire_simple
+        cornering_stiffness_n_per_rad: 51000
+        longitudinal_stiffness_n: 22500
+        nominal_load_n: 5005
+        friction_coefficient: 0.9
+        rolling_resistance_coefficient: 0.012
+        pneumatic_trail_m: 0.04
+        rolling_radius_m: 0.33
+        relaxation_length_lat_m: 0.91       # b, paper eq. 16
+        relaxation_length_long_m: 0.091     # B, paper eq. 26
+
+        model: mf61                         # core.tire_mf61
+        tir_file: ../../shared/.../x.tir    # relative to this file
+        rolling_radius_m: 0.305             # optional, default UNLOADED_RADIUS
+        relaxation_length_lat_m: 0.48       # optional, default from PTY1/PTY2 at FNOMIN
+        relaxation_length_long_m: 0.62      # optional, default from PTX1 at FNOMIN
+    """
+    path = Path(path)
+    data = read_yaml(path)
+    model = choice(path, "model", data.get("model"), {"simple": 0, "mf61": 1})
+    tp = np.zeros(N_TIRE_PARAM, dtype=np.float64)
+    common = ("relaxation_length_lat_m", "relaxation_length_long_m", "rolling_radius_m")
+    if model == 0:
+        keys = ("model", *SIMPLE_PARAM_NAMES, *common)
+        check_keys(path, data, keys, required=keys)
+        vals = {k: number(path, k, data[k], *SIMPLE_TIRE_RANGES[k]) for k in SIMPLE_PARAM_NAMES}
+        model_vec = simple_param_vector(vals)
+        tp[TP_MODEL] = TIRE_MODEL_SIMPLE
+        radius = vals["rolling_radius_m"]
+        relax_lat = number(path, common[0], data[common[0]], *TIRE_COMMON_RANGES[common[0]])
+        relax_long = number(path, common[1], data[common[1]], *TIRE_COMMON_RANGES[common[1]])
+        name = "simple"
+    else:
+        check_keys(path, data, ("model", "tir_file", *common), required=("model", "tir_file"))
+        if not isinstance(data["tir_file"], str):
+            raise ConfigError(f"{path}: key 'tir_file': expected a path string")
+        tir_path = (path.parent / data["tir_file"]).resolve()
+        try:
+            coeffs = mf61_coefficients(load_tir(tir_path))
+        except TirError as exc:
+            raise ConfigError(f"{path}: key 'tir_file': {exc}") from exc
+        model_vec = mf61_param_vector(coeffs)
+        tp[TP_MODEL] = TIRE_MODEL_MF61
+        r0 = coeffs["UNLOADED_RADIUS"]
+        # MF 6.1 relaxation lengths at the nominal load (Pacejka 2012, eqs. 4.E65 and 4.E67)
+        default_lat = coeffs.get("PTY1", 2.0) * r0 * math.sin(2.0 * math.atan(1.0 / coeffs.get("PTY2", 2.0)))
+        default_long = coeffs.get("PTX1", 1.0) * r0
+        radius = number(path, "rolling_radius_m", data.get("rolling_radius_m", r0),
+                        *TIRE_COMMON_RANGES["rolling_radius_m"])
+        relax_lat = number(path, common[0], data.get(common[0], default_lat),
+                           *TIRE_COMMON_RANGES[common[0]])
+        relax_long = number(path, common[1], data.get(common[1], default_long),
+                            *TIRE_COMMON_RANGES[common[1]])
+        name = "mf61"
+    tp[TP_RADIUS_M] = radius
+    tp[TP_RELAX_LAT_M] = relax_lat
+    tp[TP_RELAX_LONG_M] = relax_long
+    tp[TP_MODEL_BASE:TP_MODEL_BASE + model_vec.size] = model_vec
+    return tp, name
+
+
+def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
+                 options_source: str = "model options") -> VehicleConfig:
+    """Load and validate a vehicle file and its subsystem files.
+
+    The road starts flat with friction scale 1 (``core.params.set_road`` changes it).
+    """
+    path = Path(path)
+    top = read_yaml(path)
+    allowed = ("name", "description", "tires", *SUBSYSTEM_KEYS)
+    check_keys(path, top, allowed, required=("name", "tires", *SUBSYSTEM_KEYS))
+    vp = np.zeros(P.N_VEHICLE_PARAM, dtype=np.float64)
+    sources: dict[str, str] = {}
+    for subsystem, keys in SUBSYSTEM_KEYS.items():
+        ref = top[subsystem]
+        if not isinstance(ref, str):
+            raise ConfigError(f"{path}: key '{subsystem}': expected a file path")
+        sub_path = (path.parent / ref).resolve()
+        sources[subsystem] = str(sub_path)
+        data = read_yaml(sub_path)
+        check_keys(sub_path, data, keys, required=keys)
+        for key in keys:
+            slot = P.VEHICLE_PARAM_NAMES.index(key)
+            if key == "driven_axle":
+                vp[slot] = choice(sub_path, key, data[key], P.DRIVEN_AXLE_NAMES)
+            else:
+                vp[slot] = number(sub_path, key, data[key], *PARAM_RANGES[key])
+    if vp[P.VP_SPRUNG_MASS_KG] > vp[P.VP_MASS_KG]:
+        raise ConfigError(f"{sources['chassis']}: key 'sprung_mass_kg': exceeds mass_kg")
+
+    tires = top["tires"]
+    if not isinstance(tires, dict):
+        raise ConfigError(f"{path}: key 'tires': expected a mapping with 'front' and 'rear'")
+    check_keys(f"{path} (tires)", tires, ("front", "rear"), required=("front", "rear"))
+    tp = np.zeros((4, N_TIRE_PARAM), dtype=np.float64)
+    names = []
+    for axle, rows in (("front", (0, 1)), ("rear", (2, 3))):
+        if not isinstance(tires[axle], str):
+            raise ConfigError(f"{path}: key 'tires.{axle}': expected a file path")
+        tire_path = (path.parent / tires[axle]).resolve()
+        sources[f"tire_{axle}"] = str(tire_path)
+        vec, model_name = load_tire(tire_path)
+        for row in rows:
+            tp[row] = vec
+        names.append(model_name)
+
+    apply_model_options(vp, model_option_values(model_options, options_source))
+    P.set_road(vp, 0.0, 0.0, 1.0)
+    name = top["name"]
+    if not isinstance(name, str) or not name:
+        raise ConfigError(f"{path}: key 'name': expected a non-empty string")
+    return VehicleConfig(name=name, path=path, vp=vp, tp=tp,
+                         tire_models=(names[0], names[1]), sources=sources)

@@ -1,0 +1,113 @@
+"""Flat array layouts of the vehicle: state, driver inputs and per-step outputs.
+
+Every array the compiled core uses is a plain float64 vector indexed by the named
+constants below; the constants are the one definition of each layout (the column names of
+the output files and the wire payloads are derived from them).
+
+Wheel order everywhere: front-left, front-right, rear-left, rear-right.
+Frames (model.md section 2, ISO 8855): body x forward, y left, z up; the road is a plane,
+and ``X_M``/``Y_M``/``YAW_RAD`` are the pose within that plane (see ``core.road``).
+"""
+
+from __future__ import annotations
+
+N_WHEELS = 4
+WHEEL_NAMES = ("fl", "fr", "rl", "rr")
+FL, FR, RL, RR = 0, 1, 2, 3
+
+# ---------------------------------------------------------------- state vector
+# Integrated states (0 .. N_INTEGRATED-1)
+X_M = 0  # position along the road plane's first axis e1 (m)
+Y_M = 1  # position along e2 (m)
+YAW_RAD = 2  # heading in the road plane, from e1 toward e2 (rad)
+U_MPS = 3  # body longitudinal velocity (m/s)
+V_MPS = 4  # body lateral velocity (m/s)
+YAW_RATE_RADPS = 5  # (rad/s)
+HEAVE_M = 6  # sprung-mass displacement along the road normal from static (m)
+HEAVE_RATE_MPS = 7
+ROLL_RAD = 8  # sprung-mass roll, positive = left side up (rad)
+ROLL_RATE_RADPS = 9
+PITCH_RAD = 10  # sprung-mass pitch, positive = nose down (rad)
+PITCH_RATE_RADPS = 11
+OMEGA0 = 12  # wheel spin rates (rad/s), 4 slots
+TAN_ALPHA0 = 16  # lagged slip states tan a' (paper eq. 16), 4 slots
+KAPPA0 = 20  # lagged slip states k' (paper eq. 26), 4 slots
+N_INTEGRATED = 24
+# Discrete states, updated once per step (not integrated)
+DAMPING_ACTIVE0 = 24  # Appendix A damping latched on (0/1), 4 slots
+HUB_U_PREV0 = 28  # hub longitudinal speed at the previous step (sign-change trigger), 4 slots
+WHEEL_HELD0 = 32  # 1 when the brake held the wheel at zero spin over the last step, 4 slots
+TIME_S = 36  # simulated time (s)
+N_STATE = 37
+
+STATE_NAMES = (
+    ("x_m", "y_m", "yaw_rad", "u_mps", "v_mps", "yaw_rate_radps")
+    + ("heave_m", "heave_rate_mps", "roll_rad", "roll_rate_radps", "pitch_rad", "pitch_rate_radps")
+    + tuple(f"omega_{w}_radps" for w in WHEEL_NAMES)
+    + tuple(f"tan_alpha_lag_{w}" for w in WHEEL_NAMES)
+    + tuple(f"kappa_lag_{w}" for w in WHEEL_NAMES)
+    + tuple(f"damping_active_{w}" for w in WHEEL_NAMES)
+    + tuple(f"hub_u_prev_{w}_mps" for w in WHEEL_NAMES)
+    + tuple(f"wheel_held_{w}" for w in WHEEL_NAMES)
+    + ("time_s",)
+)
+
+# ---------------------------------------------------------------- driver inputs
+IN_STEER = 0  # normalised steering-wheel position [-1, 1], +1 = full left
+IN_THROTTLE = 1  # [0, 1]
+IN_BRAKE = 2  # [0, 1]
+IN_PARKING_BRAKE = 3  # 0 or 1
+IN_GEAR = 4  # GEAR_* below
+N_INPUT = 5
+INPUT_NAMES = ("steer", "throttle", "brake", "parking_brake", "gear")
+
+GEAR_P, GEAR_R, GEAR_N, GEAR_D = 0, 1, 2, 3
+GEAR_NAMES = ("P", "R", "N", "D")
+
+# ---------------------------------------------------------------- per-step outputs
+# Evaluated at the state at the start of the step (consistent with that state).
+O_AX_MPS2 = 0  # CG acceleration along body x (m/s^2)
+O_AY_MPS2 = 1  # CG acceleration along body y (m/s^2)
+O_YAW_ACC_RADPS2 = 2
+O_GRAVITY_X_MPS2 = 3  # gravity resolved into body x
+O_GRAVITY_Y_MPS2 = 4
+O_FX0 = 5  # tire Fx, wheel frame (N), incl. damping, 4 slots
+O_FY0 = 9  # tire Fy, wheel frame (N), incl. damping, 4 slots
+O_FZ0 = 13  # normal load (N), 4 slots
+O_MZ0 = 17  # aligning moment (N m), 4 slots
+O_HUB_U0 = 21  # hub velocity in the wheel frame (m/s), 4 slots
+O_HUB_V0 = 25
+O_STEER0 = 29  # road-wheel angle (rad), 4 slots
+O_DRIVE_TORQUE0 = 33  # (N m), 4 slots
+O_BRAKE_TORQUE0 = 37  # brake + rolling-resistance torque applied (N m, signed), 4 slots
+O_FRICTION_USE0 = 41  # |F_shear| / available friction, 4 slots
+O_DAMPING_FX0 = 45  # auxiliary damping share of Fx (N), 4 slots
+O_DAMPING_FY0 = 49  # auxiliary damping share of Fy (N), 4 slots
+O_KAPPA0 = 53  # slip fed to the tire model (k' or the kinematic slip), 4 slots
+O_TAN_ALPHA0 = 57
+O_FX_BODY_SUM_N = 61  # sum of tire forces along body x (N)
+O_FY_BODY_SUM_N = 62
+N_OUT = 63
+
+OUTPUT_NAMES = (
+    ("ax_mps2", "ay_mps2", "yaw_acc_radps2", "gravity_x_mps2", "gravity_y_mps2")
+    + tuple(f"fx_{w}_n" for w in WHEEL_NAMES)
+    + tuple(f"fy_{w}_n" for w in WHEEL_NAMES)
+    + tuple(f"fz_{w}_n" for w in WHEEL_NAMES)
+    + tuple(f"mz_{w}_nm" for w in WHEEL_NAMES)
+    + tuple(f"hub_u_{w}_mps" for w in WHEEL_NAMES)
+    + tuple(f"hub_v_{w}_mps" for w in WHEEL_NAMES)
+    + tuple(f"steer_{w}_rad" for w in WHEEL_NAMES)
+    + tuple(f"drive_torque_{w}_nm" for w in WHEEL_NAMES)
+    + tuple(f"brake_torque_{w}_nm" for w in WHEEL_NAMES)
+    + tuple(f"friction_use_{w}" for w in WHEEL_NAMES)
+    + tuple(f"damping_fx_{w}_n" for w in WHEEL_NAMES)
+    + tuple(f"damping_fy_{w}_n" for w in WHEEL_NAMES)
+    + tuple(f"kappa_{w}" for w in WHEEL_NAMES)
+    + tuple(f"tan_alpha_{w}" for w in WHEEL_NAMES)
+    + ("fx_body_sum_n", "fy_body_sum_n")
+)
+
+assert len(STATE_NAMES) == N_STATE
+assert len(OUTPUT_NAMES) == N_OUT
+assert len(INPUT_NAMES) == N_INPUT
