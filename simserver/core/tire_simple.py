@@ -65,6 +65,10 @@ SIMPLE_PARAM_NAMES = (
 
 FULL_SLIDE_S = 3.0
 """Normalised slip at which the brush model slides over the whole contact patch."""
+MU_NEGLIGIBLE = 1e-6
+"""Below this friction coefficient the surface transmits no shear force."""
+S_CLIP = 1e6
+"""Normalised slips are scaled down to this (deep in full sliding) to avoid overflow."""
 
 
 def simple_param_vector(values: dict[str, float]) -> np.ndarray:
@@ -91,12 +95,20 @@ def simple_forces(
     load_ratio = fz_n / p[SP_FZ_NOM]
     c_alpha = p[SP_C_ALPHA_NOM] * load_ratio
     c_kappa = p[SP_C_KAPPA_NOM] * load_ratio
-    f_max = p[SP_MU] * mu_scale * fz_n
-    if f_max <= 0.0:
-        f_max = 1e-9 * fz_n + 1e-12
+    mu = p[SP_MU] * mu_scale
+    f_max = mu * fz_n
 
-    s_x = c_kappa * kappa / f_max
-    s_y = c_alpha * tan_alpha / f_max
+    if mu < MU_NEGLIGIBLE:  # no friction: no shear force, and nothing to normalise by
+        s_x = 0.0
+        s_y = 0.0
+    else:
+        # Fz cancels in the normalised slips: s = (C_nom / Fz_nom) slip / mu
+        s_x = p[SP_C_KAPPA_NOM] * kappa / (mu * p[SP_FZ_NOM])
+        s_y = p[SP_C_ALPHA_NOM] * tan_alpha / (mu * p[SP_FZ_NOM])
+        big = max(abs(s_x), abs(s_y))
+        if big > S_CLIP:  # far into sliding: keep the direction, avoid overflow
+            s_x *= S_CLIP / big
+            s_y *= S_CLIP / big
     s = np.sqrt(s_x * s_x + s_y * s_y)
     if s < FULL_SLIDE_S:
         f_over_s = 1.0 - s / 3.0 + s * s / 27.0  # f(s)/s, regular at s = 0
@@ -114,7 +126,9 @@ def simple_forces(
     out[OUT_MY] = p[SP_ROLLING_RESISTANCE] * fz_n * p[SP_RADIUS_M]
     out[OUT_C_KAPPA] = c_kappa
     out[OUT_C_ALPHA] = c_alpha
-    out[OUT_KAPPA_SLIDE] = FULL_SLIDE_S * f_max / c_kappa
-    out[OUT_TAN_ALPHA_SLIDE] = FULL_SLIDE_S * f_max / c_alpha
+    # sliding limits: the slip at s = 3 (load cancels; floored so callers may divide)
+    mu_floor = max(mu, MU_NEGLIGIBLE)
+    out[OUT_KAPPA_SLIDE] = FULL_SLIDE_S * mu_floor * p[SP_FZ_NOM] / p[SP_C_KAPPA_NOM]
+    out[OUT_TAN_ALPHA_SLIDE] = FULL_SLIDE_S * mu_floor * p[SP_FZ_NOM] / p[SP_C_ALPHA_NOM]
     out[OUT_FX_PEAK] = f_max
     out[OUT_FY_PEAK] = f_max

@@ -1,0 +1,504 @@
+"""Output files of a headless run: the time history (Parquet) and a summary (JSON).
+
+``history.parquet``
+    One row per recorded step, one float64 column per quantity. The column names come
+    from ``core.layout`` (the one definition of every state, output and input slot):
+
+    - ``time_s`` first;
+    - every name of ``STATE_NAMES`` except the internal ``hub_u_prev_*`` slots (the hub
+      speed of the previous step, kept only for the damping trigger; it is ``hub_u_*`` of
+      the row before, so writing it would add four columns of noise);
+    - every name of ``OUTPUT_NAMES`` (forces and accelerations evaluated at the row's
+      state);
+    - every name of ``INPUT_NAMES`` prefixed with ``input_`` (the driver inputs applied
+      over the step that starts at the row's time; ``input_gear`` holds the code of
+      ``core.layout.GEAR_NAMES``: 0 P, 1 R, 2 N, 3 D).
+
+    Units are carried in the names (``_m``, ``_mps``, ``_n``, ...; no suffix means
+    dimensionless) and, with a description, in each Arrow field's metadata (keys
+    ``unit`` and ``description``; ``column_doc()`` yields the same text). The file is
+    deterministic: the same result gives the same bytes (no timestamps, no paths; the
+    writer's ``created_by`` string names the pyarrow version).
+
+``summary.json``
+    A small, sorted, rounded digest of the run (``summarize``). Everything in it is
+    deterministic except the ``timing`` section (wall time, real-time factor).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from simserver.core import layout as L
+
+if TYPE_CHECKING:  # scenario imports the compiled core; keep this module light to import
+    from simserver.scenario import ScenarioResult
+
+HISTORY_FILE = "history.parquet"
+SUMMARY_FILE = "summary.json"
+INPUT_PREFIX = "input_"
+SKIPPED_STATE_PREFIXES = ("hub_u_prev_",)
+"""State slots left out of the history (internal bookkeeping, see the module docstring)."""
+
+REST_SPEED_MPS = 1e-3
+"""``|u|`` below this counts as at rest in the summary (1 mm/s)."""
+
+SUMMARY_SIGNIFICANT_DIGITS = 7
+"""Floats in ``summary.json`` are rounded to this many significant digits."""
+
+# Unit of a column from its name's suffix; longest suffixes are tried first.
+_SUFFIX_UNITS = {
+    "_radps2": "rad/s^2",
+    "_mps2": "m/s^2",
+    "_radps": "rad/s",
+    "_mps": "m/s",
+    "_rad": "rad",
+    "_nm": "N m",
+    "_n": "N",
+    "_m": "m",
+    "_s": "s",
+}
+DIMENSIONLESS = "1"
+
+_WHEEL_LONG = {"fl": "front-left", "fr": "front-right", "rl": "rear-left", "rr": "rear-right"}
+
+# Descriptions keyed by the column name with the wheel replaced by ``{w}``.
+_DESCRIPTIONS: dict[str, str] = {
+    "time_s": "simulated time at the start of the step",
+    # --- states
+    "x_m": "position along the road plane's first axis e1 (uphill for a positive grade)",
+    "y_m": "position along the road plane's second axis e2 (left of e1)",
+    "yaw_rad": "heading in the road plane, from e1 toward e2 (unwrapped)",
+    "u_mps": "body longitudinal velocity u (forward +)",
+    "v_mps": "body lateral velocity v (left +)",
+    "yaw_rate_radps": "yaw rate r (counter-clockwise seen from above +)",
+    "heave_m": "sprung-mass displacement along the road normal from static (up +)",
+    "heave_rate_mps": "sprung-mass heave rate",
+    "roll_rad": "sprung-mass roll angle (left side up +)",
+    "roll_rate_radps": "sprung-mass roll rate",
+    "pitch_rad": "sprung-mass pitch angle (nose down +)",
+    "pitch_rate_radps": "sprung-mass pitch rate",
+    "omega_{w}_radps": "{W} wheel spin rate Omega (rolling forward +)",
+    "tan_alpha_lag_{w}": "{W} lagged slip state tan a' (SAE 950311 eq. 16; hub sliding to +y > 0)",
+    "kappa_lag_{w}": "{W} lagged slip state k' (SAE 950311 eq. 26 in ISO form; driving > 0)",
+    "damping_active_{w}": "{W} paper's Appendix A low-speed damping latched on (0 or 1)",
+    "hub_u_prev_{w}_mps": "{W} hub longitudinal speed at the previous step (damping trigger)",
+    "wheel_held_{w}": "{W} wheel held at zero spin by its brake over the step (0 or 1)",
+    # --- outputs
+    "ax_mps2": "CG acceleration along body x",
+    "ay_mps2": "CG acceleration along body y",
+    "yaw_acc_radps2": "yaw acceleration",
+    "gravity_x_mps2": "gravity resolved along body x",
+    "gravity_y_mps2": "gravity resolved along body y",
+    "fx_{w}_n": "{W} tire longitudinal force Fx, wheel frame, incl. auxiliary damping",
+    "fy_{w}_n": "{W} tire lateral force Fy, wheel frame, incl. auxiliary damping",
+    "fz_{w}_n": "{W} tire normal load Fz",
+    "mz_{w}_nm": "{W} tire aligning moment Mz",
+    "hub_u_{w}_mps": "{W} hub longitudinal velocity, wheel frame",
+    "hub_v_{w}_mps": "{W} hub lateral velocity, wheel frame",
+    "steer_{w}_rad": "{W} road-wheel steer angle (left +)",
+    "drive_torque_{w}_nm": "{W} drive torque at the wheel",
+    "brake_torque_{w}_nm": "{W} brake + rolling-resistance torque applied (signed)",
+    "friction_use_{w}": "{W} shear force over available friction |F| / (mu Fz)",
+    "damping_fx_{w}_n": "{W} auxiliary low-speed damping share of Fx",
+    "damping_fy_{w}_n": "{W} auxiliary low-speed damping share of Fy",
+    "kappa_{w}": "{W} longitudinal slip fed to the tire model (k', or the kinematic slip)",
+    "tan_alpha_{w}": "{W} tan of the slip angle fed to the tire model (tan a', or kinematic)",
+    "fx_body_sum_n": "sum of the tire forces along body x",
+    "fy_body_sum_n": "sum of the tire forces along body y",
+    # --- inputs
+    "input_steer": "driver steering-wheel position, normalised [-1, 1] (full left +1)",
+    "input_throttle": "driver throttle pedal [0, 1]",
+    "input_brake": "driver brake pedal [0, 1]",
+    "input_parking_brake": "parking brake (0 or 1)",
+    "input_gear": "gear code: 0 P, 1 R, 2 N, 3 D",
+}
+
+
+def _state_columns() -> tuple[tuple[str, int], ...]:
+    return tuple(
+        (name, idx)
+        for idx, name in enumerate(L.STATE_NAMES)
+        if name != "time_s" and not name.startswith(SKIPPED_STATE_PREFIXES)
+    )
+
+
+STATE_COLUMNS = _state_columns()
+"""(column name, state index) of the states written to the history."""
+
+HISTORY_COLUMNS: tuple[str, ...] = (
+    ("time_s",)
+    + tuple(name for name, _ in STATE_COLUMNS)
+    + L.OUTPUT_NAMES
+    + tuple(INPUT_PREFIX + name for name in L.INPUT_NAMES)
+)
+"""Every column of ``history.parquet``, in file order."""
+
+
+def column_unit(name: str) -> str:
+    """Unit of a history column, read from its name's suffix (``"1"`` if dimensionless).
+
+    Parameters
+    ----------
+    name : str
+        A column name such as ``"fx_fl_n"``.
+
+    Returns
+    -------
+    str
+        ``"N"``, ``"m/s"``, ... or ``"1"``.
+    """
+    for suffix in sorted(_SUFFIX_UNITS, key=len, reverse=True):
+        if name.endswith(suffix):
+            return _SUFFIX_UNITS[suffix]
+    return DIMENSIONLESS
+
+
+def column_description(name: str) -> str:
+    """One-line description of a history column.
+
+    Parameters
+    ----------
+    name : str
+        A column name; per-wheel names are matched by their ``{w}`` template.
+
+    Returns
+    -------
+    str
+        The description, or ``"(undocumented)"`` for a name this module does not know
+        (a test keeps that from happening for the layout's names).
+    """
+    if name in _DESCRIPTIONS:
+        return _DESCRIPTIONS[name]
+    for wheel, long_name in _WHEEL_LONG.items():
+        template = name.replace(f"_{wheel}", "_{w}", 1)
+        if template != name and template in _DESCRIPTIONS:
+            return _DESCRIPTIONS[template].replace("{W}", long_name)
+    return "(undocumented)"
+
+
+def column_doc(columns: tuple[str, ...] = HISTORY_COLUMNS) -> Iterator[tuple[str, str, str]]:
+    """Yield ``(name, unit, description)`` for every history column, in file order.
+
+    The README's column table and the Arrow field metadata are both generated from this.
+
+    Parameters
+    ----------
+    columns : tuple of str, optional
+        Column names; defaults to ``HISTORY_COLUMNS``.
+
+    Yields
+    ------
+    tuple of (str, str, str)
+        Column name, unit (``"1"`` = dimensionless), description.
+    """
+    for name in columns:
+        yield name, column_unit(name), column_description(name)
+
+
+def column_doc_markdown() -> str:
+    """The column documentation as a Markdown table (for the README)."""
+    lines = ["| column | unit | description |", "|---|---|---|"]
+    lines += [f"| `{n}` | {u} | {d} |" for n, u, d in column_doc()]
+    return "\n".join(lines) + "\n"
+
+
+def result_columns(result: ScenarioResult) -> dict[str, np.ndarray]:
+    """The history columns of a result as float64 arrays (views where possible).
+
+    Parameters
+    ----------
+    result : ScenarioResult
+        A finished run.
+
+    Returns
+    -------
+    dict of str to ndarray
+        Keyed by the names of ``HISTORY_COLUMNS``, in that order.
+    """
+    cols: dict[str, np.ndarray] = {"time_s": result.states[:, L.TIME_S]}
+    for name, idx in STATE_COLUMNS:
+        cols[name] = result.states[:, idx]
+    for idx, name in enumerate(L.OUTPUT_NAMES):
+        cols[name] = result.outputs[:, idx]
+    for idx, name in enumerate(L.INPUT_NAMES):
+        cols[INPUT_PREFIX + name] = result.inputs[:, idx]
+    return {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in cols.items()}
+
+
+def history_schema(extra_metadata: dict[str, str] | None = None) -> pa.Schema:
+    """Arrow schema of the history: float64 fields with ``unit``/``description`` metadata.
+
+    Parameters
+    ----------
+    extra_metadata : dict of str to str, optional
+        File-level key/value metadata (kept sorted for deterministic bytes).
+
+    Returns
+    -------
+    pyarrow.Schema
+    """
+    fields = [
+        pa.field(name, pa.float64(), nullable=False,
+                 metadata={"unit": unit, "description": desc})
+        for name, unit, desc in column_doc()
+    ]
+    meta = dict(sorted((extra_metadata or {}).items()))
+    return pa.schema(fields, metadata=meta or None)
+
+
+def _file_metadata(result: ScenarioResult) -> dict[str, str]:
+    sc = result.scenario
+    return {
+        "simserver.scenario": sc.name,
+        "simserver.vehicle": sc.vehicle.name,
+        "simserver.dt_s": repr(float(sc.dt_s)),
+        "simserver.record_every": str(int(sc.record_every)),
+        "simserver.columns": "time_s, states, outputs, input_*: see simserver.adapters.history",
+    }
+
+
+def write_history(result: ScenarioResult, path: str | Path) -> Path:
+    """Write the time history of a run as a Parquet file.
+
+    Parameters
+    ----------
+    result : ScenarioResult
+        A finished run.
+    path : str or Path
+        Target file, or a directory (then ``history.parquet`` inside it).
+
+    Returns
+    -------
+    Path
+        The file written.
+
+    Notes
+    -----
+    Written with zstd compression over the BYTE_STREAM_SPLIT encoding (a quarter smaller
+    than plain for these float columns; read by pyarrow, polars, DuckDB alike), no
+    dictionary encoding, one row group per million rows. No timestamp or path goes into the file, so the same
+    result gives the same bytes.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / HISTORY_FILE
+    cols = result_columns(result)
+    schema = history_schema(_file_metadata(result))
+    table = pa.Table.from_arrays([pa.array(cols[f.name]) for f in schema], schema=schema)
+    pq.write_table(
+        table,
+        path,
+        compression="zstd",
+        use_dictionary=False,
+        column_encoding="BYTE_STREAM_SPLIT",
+        write_statistics=True,
+        row_group_size=1 << 20,
+    )
+    return path
+
+
+def read_history(path: str | Path) -> dict[str, np.ndarray]:
+    """Read a history file back as float64 arrays.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``history.parquet`` or the directory holding it.
+
+    Returns
+    -------
+    dict of str to ndarray
+        Column name to array, in file order.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / HISTORY_FILE
+    table = pq.read_table(path)
+    return {
+        name: np.asarray(table.column(name).to_numpy(), dtype=np.float64)
+        for name in table.column_names
+    }
+
+
+# ----------------------------------------------------------------------------- summary
+def _round(value: float) -> float | None:
+    """Round to ``SUMMARY_SIGNIFICANT_DIGITS``; non-finite values become ``None``."""
+    value = float(value)
+    if not math.isfinite(value):
+        return None
+    if value == 0.0:
+        return 0.0  # also turns -0.0 into 0.0
+    return float(f"{value:.{SUMMARY_SIGNIFICANT_DIGITS}g}")
+
+
+def _rounded(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _rounded(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_rounded(v) for v in obj]
+    if isinstance(obj, bool | str) or obj is None:
+        return obj
+    if isinstance(obj, int | np.integer):
+        return int(obj)
+    if isinstance(obj, float | np.floating):
+        return _round(float(obj))
+    return str(obj)
+
+
+def _rest_times(time_s: np.ndarray, u: np.ndarray) -> tuple[float | None, float | None]:
+    """First time ``|u|`` is below ``REST_SPEED_MPS``, and the time from which it stays so."""
+    at_rest = np.abs(u) < REST_SPEED_MPS
+    if not at_rest.any():
+        return None, None
+    first = float(time_s[int(np.argmax(at_rest))])
+    if not at_rest[-1]:
+        return first, None
+    moving = np.flatnonzero(~at_rest)
+    settled = float(time_s[0] if moving.size == 0 else time_s[moving[-1] + 1])
+    return first, settled
+
+
+def summarize(result: ScenarioResult) -> dict[str, Any]:
+    """Digest of a run for ``summary.json`` (plain JSON types, rounded, keys unsorted).
+
+    Parameters
+    ----------
+    result : ScenarioResult
+        A finished run.
+
+    Returns
+    -------
+    dict
+        Sections ``scenario``, ``vehicle``, ``road``, ``model_options``, ``initial``,
+        ``run``, ``final``, ``extremes``, ``rest``, ``finite`` and ``timing`` (the only
+        non-deterministic one). ``final`` is the last recorded row of the history, the
+        same numbers as the last row of ``history.parquet`` (forces are only known at
+        recorded rows); its ``time_s`` says when that is.
+    """
+    # Imported here: the option defaults live with the config loader (which imports the
+    # compiled core); the history writer alone does not need it.
+    from simserver.adapters.config import MODEL_OPTION_DEFAULTS
+
+    sc = result.scenario
+    cols = result_columns(result)
+    n_rows = result.states.shape[0]
+    n_steps = sc.n_steps
+    options = dict(MODEL_OPTION_DEFAULTS)
+    options.update(sc.model_options)
+    simulated = n_steps * sc.dt_s
+    wall = float(result.wall_time_s)
+
+    summary: dict[str, Any] = {
+        "format": "simserver.summary/1",
+        "scenario": {"name": sc.name, "description": sc.description, "file": sc.path.name},
+        "vehicle": {
+            "name": sc.vehicle.name,
+            "tire_model_front": sc.vehicle.tire_models[0],
+            "tire_model_rear": sc.vehicle.tire_models[1],
+        },
+        "road": dict(sc.road),
+        "model_options": options,
+        "initial": dict(sc.initial),
+        "run": {
+            "duration_s": sc.duration_s,
+            "dt_s": sc.dt_s,
+            "steps": n_steps,
+            "record_every": sc.record_every,
+            "rows": n_rows,
+        },
+        "timing": {
+            "wall_time_s": wall,
+            "real_time_factor": simulated / wall if wall > 0.0 else None,
+            "us_per_step": 1e6 * wall / n_steps if n_steps else None,
+        },
+    }
+    finite = {
+        "states": bool(np.isfinite(result.states).all()),
+        "outputs": bool(np.isfinite(result.outputs).all()),
+        "final_state": bool(np.isfinite(result.final_state).all()),
+    }
+    finite["all"] = all(finite.values())
+    summary["finite"] = finite
+    if n_rows == 0:
+        return _rounded(summary)
+
+    last = {name: float(arr[-1]) for name, arr in cols.items()}
+    wheels = L.WHEEL_NAMES
+    final: dict[str, Any] = {
+        "time_s": last["time_s"],
+        "x_m": last["x_m"],
+        "y_m": last["y_m"],
+        "yaw_rad": last["yaw_rad"],
+        "yaw_deg": math.degrees(last["yaw_rad"]),
+        "u_mps": last["u_mps"],
+        "v_mps": last["v_mps"],
+        "speed_mps": math.hypot(last["u_mps"], last["v_mps"]),
+        "yaw_rate_radps": last["yaw_rate_radps"],
+        "gear": L.GEAR_NAMES[int(last["input_gear"])],
+    }
+    for quantity in ("fx", "fy", "fz"):
+        per_wheel = {w: last[f"{quantity}_{w}_n"] for w in wheels}
+        final[f"{quantity}_n"] = per_wheel
+        final[f"{quantity}_sum_n"] = sum(per_wheel.values())
+        final[f"{quantity}_front_n"] = per_wheel["fl"] + per_wheel["fr"]
+        final[f"{quantity}_rear_n"] = per_wheel["rl"] + per_wheel["rr"]
+    final["fx_body_sum_n"] = last["fx_body_sum_n"]
+    final["fy_body_sum_n"] = last["fy_body_sum_n"]
+    summary["final"] = final
+
+    fz = np.stack([cols[f"fz_{w}_n"] for w in wheels], axis=1)
+    with np.errstate(invalid="ignore"):
+        k_min = int(np.nanargmin(fz)) if np.isfinite(fz).any() else 0
+    row, wheel = divmod(k_min, len(wheels))
+    u = cols["u_mps"]
+    abs_u = np.abs(u)
+    summary["extremes"] = {
+        "max_abs_u_mps": float(np.nanmax(abs_u)) if np.isfinite(abs_u).any() else math.nan,
+        "min_fz_n": float(fz[row, wheel]),
+        "min_fz_wheel": wheels[wheel],
+        "min_fz_time_s": float(cols["time_s"][row]),
+    }
+    first, settled = _rest_times(cols["time_s"], u)
+    summary["rest"] = {
+        "threshold_mps": REST_SPEED_MPS,
+        "first_time_s": first,
+        "settled_time_s": settled,
+        "at_rest_at_end": bool(abs(last["u_mps"]) < REST_SPEED_MPS),
+    }
+    return _rounded(summary)
+
+
+def summary_json(summary: dict[str, Any]) -> str:
+    """Serialise a summary deterministically (sorted keys, two-space indent, final newline)."""
+    return json.dumps(summary, sort_keys=True, indent=2, allow_nan=False) + "\n"
+
+
+def write_summary(result: ScenarioResult, path: str | Path) -> Path:
+    """Write ``summary.json`` for a run.
+
+    Parameters
+    ----------
+    result : ScenarioResult
+        A finished run.
+    path : str or Path
+        Target file, or a directory (then ``summary.json`` inside it).
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / SUMMARY_FILE
+    path.write_text(summary_json(summarize(result)), encoding="utf-8")
+    return path

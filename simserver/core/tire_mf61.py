@@ -1,0 +1,586 @@
+"""Magic Formula 6.1 tire model (MF-Tyre 6.1 property files), compiled.
+
+Equations: H. B. Pacejka, *Tire and Vehicle Dynamics*, 3rd ed. (2012), section 4.3.2,
+"full set of equations" (4.E1) to (4.E78), in the ISO sign convention of MF-Tyre property
+files (``../shared/docs/model.md`` section 2). Equation numbers are quoted in the comments.
+No turn slip: every zeta factor is 1 (zeta0 = 1 as well, the pure camber path).
+
+Where the book and the MF-Tyre implementation differ, this module follows the latter, as
+established by the public MFeval implementation that was checked against TNO's MF-Tyre:
+
+- digressive friction factor ``A_mu = 1`` in (4.E8), so ``lambda'_mu = lambda*_mu``: the
+  road friction scale then multiplies the friction-proportional vertical shifts exactly
+  as it multiplies the peak, and ``mu_scale = 0.5`` halves every peak force;
+- (4.E40) uses ``(1 + QBZ4 gamma* + QBZ5 |gamma*|)`` (the book's QBZ6 is not a .tir key);
+- (4.E70) rolling resistance is ``R0 Fz0 (...) (Fz/Fz0)^QSY7 (p/p0)^QSY8`` with the
+  unprimed nominal load ``Fz0 = FNOMIN`` (the book prints ``Fz`` in front);
+- (4.E74) ``F'y = G_yk Fy0(gamma = 0)``: the pneumatic trail acts on the camber-free
+  side force; the camber moment is carried by the residual torque (QDZ8..QDZ11).
+
+Inputs follow :mod:`simserver.core.tire`: ``tan_alpha`` is MF's ``alpha*`` (4.E3), so
+``sgn(Vcx)`` never appears again; in (4.E42) and (4.E47) it multiplies ``cos'alpha``
+(4.E6), which carries the same sign, and the two cancel. ``cos'alpha`` is therefore
+``1 / sqrt(1 + tan_alpha^2)``.
+
+Load range: the coefficient polynomials in ``dfz`` are a fit over the file's
+``FZMIN..FZMAX``. Outside it (or below ``0.01 FNOMIN``) the model is evaluated at the
+clamped load ``Fz_c`` and every force, moment, stiffness and peak is multiplied by
+``Fz / Fz_c``: linear in load beyond the fitted range, and going to zero with ``Fz``.
+Inside the range this is exactly MF 6.1.
+
+Not modelled: turn slip and spin (zeta = 1), speed-dependent friction ``LMUV``,
+overturning moment ``Mx``, low-speed smoothing of ``My`` (the caller applies ``My``
+against wheel spin), transient (relaxation) behaviour, which the lagged slip states of
+SAE 950311 provide.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from simserver.core.tire_layout import (
+    OUT_C_ALPHA,
+    OUT_C_KAPPA,
+    OUT_FX,
+    OUT_FX_PEAK,
+    OUT_FY,
+    OUT_FY_PEAK,
+    OUT_KAPPA_SLIDE,
+    OUT_MY,
+    OUT_MZ,
+    OUT_TAN_ALPHA_SLIDE,
+)
+
+# --- packed parameters: one source of truth ------------------------------------------
+MF61_PARAM_NAMES: tuple[str, ...] = (
+    # operating point, dimensions, validity range
+    "FNOMIN", "UNLOADED_RADIUS", "LONGVL", "INFLPRES", "NOMPRES", "FZMIN", "FZMAX",
+    # scaling factors (lambda)
+    "LFZO", "LCX", "LMUX", "LEX", "LKX", "LHX", "LVX", "LXAL",
+    "LCY", "LMUY", "LEY", "LKY", "LKYC", "LKZC", "LHY", "LVY", "LYKA", "LVYKA",
+    "LTR", "LRES", "LS", "LMY",
+    # longitudinal: pure slip (4.E9-4.E18), combined (4.E50-4.E57)
+    "PCX1", "PDX1", "PDX2", "PDX3", "PEX1", "PEX2", "PEX3", "PEX4",
+    "PKX1", "PKX2", "PKX3", "PHX1", "PHX2", "PVX1", "PVX2",
+    "PPX1", "PPX2", "PPX3", "PPX4",
+    "RBX1", "RBX2", "RBX3", "RCX1", "REX1", "REX2", "RHX1",
+    # lateral: pure slip (4.E19-4.E30), combined (4.E58-4.E67)
+    "PCY1", "PDY1", "PDY2", "PDY3", "PEY1", "PEY2", "PEY3", "PEY4", "PEY5",
+    "PKY1", "PKY2", "PKY3", "PKY4", "PKY5", "PKY6", "PKY7",
+    "PHY1", "PHY2", "PVY1", "PVY2", "PVY3", "PVY4",
+    "PPY1", "PPY2", "PPY3", "PPY4", "PPY5",
+    "RBY1", "RBY2", "RBY3", "RBY4", "RCY1", "REY1", "REY2", "RHY1", "RHY2",
+    "RVY1", "RVY2", "RVY3", "RVY4", "RVY5", "RVY6",
+    # aligning moment (4.E31-4.E49, 4.E71-4.E78)
+    "QBZ1", "QBZ2", "QBZ3", "QBZ4", "QBZ5", "QBZ9", "QBZ10", "QCZ1",
+    "QDZ1", "QDZ2", "QDZ3", "QDZ4", "QDZ6", "QDZ7", "QDZ8", "QDZ9", "QDZ10", "QDZ11",
+    "QEZ1", "QEZ2", "QEZ3", "QEZ4", "QEZ5", "QHZ1", "QHZ2", "QHZ3", "QHZ4",
+    "SSZ1", "SSZ2", "SSZ3", "SSZ4", "PPZ1", "PPZ2",
+    # rolling resistance (4.E70)
+    "QSY1", "QSY2", "QSY3", "QSY4", "QSY5", "QSY6", "QSY7", "QSY8",
+)  # fmt: skip
+N_MF61_PARAM = len(MF61_PARAM_NAMES)
+
+
+def _slot(name: str) -> int:
+    return MF61_PARAM_NAMES.index(name)
+
+
+P_FNOMIN = _slot("FNOMIN")
+P_UNLOADED_RADIUS = _slot("UNLOADED_RADIUS")
+P_LONGVL = _slot("LONGVL")
+P_INFLPRES = _slot("INFLPRES")
+P_NOMPRES = _slot("NOMPRES")
+P_FZMIN = _slot("FZMIN")
+P_FZMAX = _slot("FZMAX")
+P_LFZO = _slot("LFZO")
+P_LCX = _slot("LCX")
+P_LMUX = _slot("LMUX")
+P_LEX = _slot("LEX")
+P_LKX = _slot("LKX")
+P_LHX = _slot("LHX")
+P_LVX = _slot("LVX")
+P_LXAL = _slot("LXAL")
+P_LCY = _slot("LCY")
+P_LMUY = _slot("LMUY")
+P_LEY = _slot("LEY")
+P_LKY = _slot("LKY")
+P_LKYC = _slot("LKYC")
+P_LKZC = _slot("LKZC")
+P_LHY = _slot("LHY")
+P_LVY = _slot("LVY")
+P_LYKA = _slot("LYKA")
+P_LVYKA = _slot("LVYKA")
+P_LTR = _slot("LTR")
+P_LRES = _slot("LRES")
+P_LS = _slot("LS")
+P_LMY = _slot("LMY")
+P_PCX1 = _slot("PCX1")
+P_PDX1 = _slot("PDX1")
+P_PDX2 = _slot("PDX2")
+P_PDX3 = _slot("PDX3")
+P_PEX1 = _slot("PEX1")
+P_PEX2 = _slot("PEX2")
+P_PEX3 = _slot("PEX3")
+P_PEX4 = _slot("PEX4")
+P_PKX1 = _slot("PKX1")
+P_PKX2 = _slot("PKX2")
+P_PKX3 = _slot("PKX3")
+P_PHX1 = _slot("PHX1")
+P_PHX2 = _slot("PHX2")
+P_PVX1 = _slot("PVX1")
+P_PVX2 = _slot("PVX2")
+P_PPX1 = _slot("PPX1")
+P_PPX2 = _slot("PPX2")
+P_PPX3 = _slot("PPX3")
+P_PPX4 = _slot("PPX4")
+P_RBX1 = _slot("RBX1")
+P_RBX2 = _slot("RBX2")
+P_RBX3 = _slot("RBX3")
+P_RCX1 = _slot("RCX1")
+P_REX1 = _slot("REX1")
+P_REX2 = _slot("REX2")
+P_RHX1 = _slot("RHX1")
+P_PCY1 = _slot("PCY1")
+P_PDY1 = _slot("PDY1")
+P_PDY2 = _slot("PDY2")
+P_PDY3 = _slot("PDY3")
+P_PEY1 = _slot("PEY1")
+P_PEY2 = _slot("PEY2")
+P_PEY3 = _slot("PEY3")
+P_PEY4 = _slot("PEY4")
+P_PEY5 = _slot("PEY5")
+P_PKY1 = _slot("PKY1")
+P_PKY2 = _slot("PKY2")
+P_PKY3 = _slot("PKY3")
+P_PKY4 = _slot("PKY4")
+P_PKY5 = _slot("PKY5")
+P_PKY6 = _slot("PKY6")
+P_PKY7 = _slot("PKY7")
+P_PHY1 = _slot("PHY1")
+P_PHY2 = _slot("PHY2")
+P_PVY1 = _slot("PVY1")
+P_PVY2 = _slot("PVY2")
+P_PVY3 = _slot("PVY3")
+P_PVY4 = _slot("PVY4")
+P_PPY1 = _slot("PPY1")
+P_PPY2 = _slot("PPY2")
+P_PPY3 = _slot("PPY3")
+P_PPY4 = _slot("PPY4")
+P_PPY5 = _slot("PPY5")
+P_RBY1 = _slot("RBY1")
+P_RBY2 = _slot("RBY2")
+P_RBY3 = _slot("RBY3")
+P_RBY4 = _slot("RBY4")
+P_RCY1 = _slot("RCY1")
+P_REY1 = _slot("REY1")
+P_REY2 = _slot("REY2")
+P_RHY1 = _slot("RHY1")
+P_RHY2 = _slot("RHY2")
+P_RVY1 = _slot("RVY1")
+P_RVY2 = _slot("RVY2")
+P_RVY3 = _slot("RVY3")
+P_RVY4 = _slot("RVY4")
+P_RVY5 = _slot("RVY5")
+P_RVY6 = _slot("RVY6")
+P_QBZ1 = _slot("QBZ1")
+P_QBZ2 = _slot("QBZ2")
+P_QBZ3 = _slot("QBZ3")
+P_QBZ4 = _slot("QBZ4")
+P_QBZ5 = _slot("QBZ5")
+P_QBZ9 = _slot("QBZ9")
+P_QBZ10 = _slot("QBZ10")
+P_QCZ1 = _slot("QCZ1")
+P_QDZ1 = _slot("QDZ1")
+P_QDZ2 = _slot("QDZ2")
+P_QDZ3 = _slot("QDZ3")
+P_QDZ4 = _slot("QDZ4")
+P_QDZ6 = _slot("QDZ6")
+P_QDZ7 = _slot("QDZ7")
+P_QDZ8 = _slot("QDZ8")
+P_QDZ9 = _slot("QDZ9")
+P_QDZ10 = _slot("QDZ10")
+P_QDZ11 = _slot("QDZ11")
+P_QEZ1 = _slot("QEZ1")
+P_QEZ2 = _slot("QEZ2")
+P_QEZ3 = _slot("QEZ3")
+P_QEZ4 = _slot("QEZ4")
+P_QEZ5 = _slot("QEZ5")
+P_QHZ1 = _slot("QHZ1")
+P_QHZ2 = _slot("QHZ2")
+P_QHZ3 = _slot("QHZ3")
+P_QHZ4 = _slot("QHZ4")
+P_SSZ1 = _slot("SSZ1")
+P_SSZ2 = _slot("SSZ2")
+P_SSZ3 = _slot("SSZ3")
+P_SSZ4 = _slot("SSZ4")
+P_PPZ1 = _slot("PPZ1")
+P_PPZ2 = _slot("PPZ2")
+P_QSY1 = _slot("QSY1")
+P_QSY2 = _slot("QSY2")
+P_QSY3 = _slot("QSY3")
+P_QSY4 = _slot("QSY4")
+P_QSY5 = _slot("QSY5")
+P_QSY6 = _slot("QSY6")
+P_QSY7 = _slot("QSY7")
+P_QSY8 = _slot("QSY8")
+
+# --- numerical guards (compile-time constants) -------------------------------------------
+FZ_FLOOR_FRAC = 0.01  # coefficients are never evaluated below 1 % of FNOMIN
+MU_SCALE_MIN = 1e-6  # mu_scale is clamped to [MU_SCALE_MIN, MU_SCALE_MAX]: lambda_mu
+MU_SCALE_MAX = 10.0  # divides Bt and Br (4.E40, 4.E45), so it may not reach zero
+VX_MY_MAX_MPS = 1000.0  # |vx| cap in the (Vx/V0)^4 rolling-resistance term
+SLIDE_MAX = 1.0e6  # cap of OUT_KAPPA_SLIDE / OUT_TAN_ALPHA_SLIDE (no peak: E = 1)
+SLIDE_FRACTION_NO_PEAK = 0.99  # C <= 1: "sliding" where the curve reaches 99 % of its limit
+_TINY = 1e-9  # floor of C*D (N) and |K_ya| (N/rad): never reached by a sane file
+
+
+@nb.njit(cache=True)
+def _mf_arg(y: float, e: float) -> float:
+    """Inner Magic Formula argument ``y - E (y - atan y)`` (4.E9), overflow-safe form."""
+    return (1.0 - e) * y + e * math.atan(y)
+
+
+@nb.njit(cache=True)
+def _cos_mf(b: float, c: float, e: float, x: float) -> float:
+    """Cosine-type weighting ``cos[C atan{B x - E (B x - atan(B x))}]`` (4.E51, 4.E59)."""
+    return math.cos(c * math.atan(_mf_arg(b * x, e)))
+
+
+@nb.njit(cache=True)
+def _peak_arg(c: float, e: float) -> float:
+    """Normalised slip ``u = B x`` at which ``D sin[C atan{u - E (u - atan u)}]`` peaks.
+
+    Parameters
+    ----------
+    c, e : float
+        Shape and curvature factors of the curve (``E <= 1``).
+
+    Returns
+    -------
+    float
+        ``u > 0``. For ``C > 1`` the root of ``u - E (u - atan u) = tan(pi / (2 C))``;
+        for ``C <= 1`` (no interior peak) the ``u`` at which the curve reaches
+        ``SLIDE_FRACTION_NO_PEAK`` of its asymptote ``D sin(C pi / 2)``.
+
+    Notes
+    -----
+    ``g(u) = (1 - E) u + E atan(u) - T`` is strictly increasing for ``E < 1``. Halley
+    steps start from the better of two bounds on the root, ``T`` and
+    ``(T - E pi / 2) / (1 - E)`` (both below the root if ``E > 0``, both above it if
+    ``E < 0``); two or three steps reach 1e-12 for the shapes found in .tir files.
+    """
+    c = max(c, 1e-3)
+    if c > 1.0:
+        target = math.tan(0.5 * math.pi / c)
+    else:
+        target = math.tan(math.asin(SLIDE_FRACTION_NO_PEAK * math.sin(0.5 * math.pi * c)) / c)
+    one_minus_e = max(1.0 - e, 1e-12)
+    u_bound = (target - e * 0.5 * math.pi) / one_minus_e
+    if e > 0.0:
+        u = max(target, u_bound)
+    else:
+        u = min(target, u_bound)
+    u = min(max(u, 1e-12), SLIDE_MAX)
+    for _ in range(8):
+        den = 1.0 + u * u
+        g = one_minus_e * u + e * math.atan(u) - target
+        g1 = one_minus_e + e / den
+        g2 = -2.0 * e * u / (den * den)
+        du = 2.0 * g * g1 / (2.0 * g1 * g1 - g * g2)
+        u_new = min(max(u - du, 0.5 * u), SLIDE_MAX)  # never jump past zero
+        step = abs(u_new - u)
+        u = u_new
+        if step <= 1e-5 * u:  # cubic convergence: the next step would be < 1e-14
+            break
+    return u
+
+
+@nb.njit(cache=True)
+def mf61_forces(
+    p: np.ndarray,
+    kappa: float,
+    tan_alpha: float,
+    gamma_rad: float,
+    fz_n: float,
+    mu_scale: float,
+    vx_mps: float,
+    out: np.ndarray,
+) -> None:
+    """Magic Formula 6.1 combined-slip forces and moments of one tire.
+
+    Parameters
+    ----------
+    p : float64[N_MF61_PARAM]
+        Coefficients packed by :func:`mf61_param_vector` (slots ``P_*``).
+    kappa : float
+        Longitudinal slip, positive when driving.
+    tan_alpha : float
+        ``alpha* = tan(alpha) sgn(Vcx)`` (4.E3), positive when the hub slides to +y.
+    gamma_rad : float
+        Inclination angle (rad); ``gamma* = sin(gamma)`` (4.E4).
+    fz_n : float
+        Normal load (N). At ``fz_n <= 0`` forces are zero and the stiffness / limit slots
+        are 1, as in the dispatcher.
+    mu_scale : float
+        Road friction scale, multiplies ``LMUX`` and ``LMUY``; clamped to
+        ``[MU_SCALE_MIN, MU_SCALE_MAX]``.
+    vx_mps : float
+        Hub longitudinal speed, used only as ``|vx|`` in the rolling resistance.
+    out : float64[N_TIRE_OUT]
+        Written in place, every ``OUT_*`` slot of :mod:`simserver.core.tire_layout`:
+        forces and moments (ISO: ``Fx > 0`` for ``kappa > 0``, ``Fy`` of the sign the file
+        encodes, ``Fy < 0`` for ``tan_alpha > 0`` with a negative ``PKY1``), ``OUT_MY``
+        the rolling-resistance magnitude, ``OUT_C_KAPPA = Kxk`` (4.E15),
+        ``OUT_C_ALPHA = |Kya|`` (4.E25), the sliding-limit slips (peak of the pure-slip
+        curve on the side of the current slip's sign, see :func:`_peak_arg`), and the
+        peak forces ``|Dx|``, ``|Dy|``.
+
+    Notes
+    -----
+    ``Kxk`` and ``Kya`` are the slopes at the curves' own origins ``kappa = -SHx`` and
+    ``tan_alpha = -SHy``. The slope at zero slip differs by ``O((B SH)^2)``: 6e-4 for
+    ``Fy`` of the sample file at ``FNOMIN``.
+    """
+    if not fz_n > 0.0:
+        for i in range(out.shape[0]):
+            out[i] = 0.0
+        out[OUT_C_KAPPA] = 1.0
+        out[OUT_C_ALPHA] = 1.0
+        out[OUT_KAPPA_SLIDE] = 1.0
+        out[OUT_TAN_ALPHA_SLIDE] = 1.0
+        return
+
+    # --- operating point ----------------------------------------------------------------
+    fnomin = p[P_FNOMIN]
+    r0 = p[P_UNLOADED_RADIUS]
+    fz0 = fnomin * p[P_LFZO]  # F'z0 (4.E1)
+    fz_lo = max(p[P_FZMIN], FZ_FLOOR_FRAC * fnomin)
+    fz = min(max(fz_n, fz_lo), max(p[P_FZMAX], fz_lo))
+    load_scale = fz_n / fz  # 1 inside FZMIN..FZMAX
+    dfz = (fz - fz0) / fz0  # (4.E2a)
+    dfz2 = dfz * dfz
+    p_nom = p[P_NOMPRES]
+    p_infl = p[P_INFLPRES]
+    if p_nom > 0.0 and p_infl > 0.0:
+        dpi = (p_infl - p_nom) / p_nom  # (4.E2b)
+    else:
+        dpi = 0.0  # file without pressure data
+    dpi2 = dpi * dpi
+    mu = min(max(mu_scale, MU_SCALE_MIN), MU_SCALE_MAX)
+    lmux = p[P_LMUX] * mu  # lambda*_mux = lambda'_mux (4.E7, 4.E8 with LMUV = 0, A_mu = 1)
+    lmuy = p[P_LMUY] * mu
+    gs = math.sin(gamma_rad) if gamma_rad != 0.0 else 0.0  # gamma* (4.E4)
+    gs2 = gs * gs
+    gs_abs = abs(gs)
+    cos_a = 1.0 / math.sqrt(1.0 + tan_alpha * tan_alpha)  # |cos'alpha| (4.E6)
+
+    # --- pure longitudinal slip (4.E9)-(4.E18) -------------------------------------------
+    cx = p[P_PCX1] * p[P_LCX]  # (4.E11)
+    mux = (
+        (p[P_PDX1] + p[P_PDX2] * dfz)
+        * (1.0 + p[P_PPX3] * dpi + p[P_PPX4] * dpi2)
+        * (1.0 - p[P_PDX3] * gamma_rad * gamma_rad)
+        * lmux
+    )  # (4.E13)
+    dx = mux * fz  # (4.E12)
+    kxk = (
+        fz
+        * (p[P_PKX1] + p[P_PKX2] * dfz)
+        * math.exp(p[P_PKX3] * dfz)
+        * (1.0 + p[P_PPX1] * dpi + p[P_PPX2] * dpi2)
+        * p[P_LKX]
+    )  # (4.E15)
+    bx = kxk / max(cx * dx, _TINY)  # (4.E16)
+    shx = (p[P_PHX1] + p[P_PHX2] * dfz) * p[P_LHX]  # (4.E17)
+    svx = fz * (p[P_PVX1] + p[P_PVX2] * dfz) * p[P_LVX] * lmux  # (4.E18)
+    kappa_x = kappa + shx  # (4.E10)
+    ex0 = (p[P_PEX1] + p[P_PEX2] * dfz + p[P_PEX3] * dfz2) * p[P_LEX]
+    sgn_kx = 1.0 if kappa_x >= 0.0 else -1.0
+    ex = min(ex0 * (1.0 - p[P_PEX4] * sgn_kx), 1.0)  # (4.E14)
+    fx0 = dx * math.sin(cx * math.atan(_mf_arg(bx * kappa_x, ex))) + svx  # (4.E9)
+
+    # --- pure lateral slip (4.E19)-(4.E30) -----------------------------------------------
+    ppy1 = 1.0 + p[P_PPY1] * dpi
+    ppy2 = 1.0 + p[P_PPY2] * dpi
+    kya_atan = math.atan(fz / fz0 / max((p[P_PKY2] + p[P_PKY5] * gs2) * ppy2, _TINY))
+    kya_sin = math.sin(p[P_PKY4] * kya_atan)
+    kya_nocamber = p[P_PKY1] * fz0 * ppy1 * kya_sin * p[P_LKY]
+    kya = kya_nocamber * (1.0 - p[P_PKY3] * gs_abs)  # (4.E25)
+    kya_safe = kya if abs(kya) > _TINY else math.copysign(_TINY, p[P_PKY1])  # K'ya (4.E39)
+    kyg0 = fz * (p[P_PKY6] + p[P_PKY7] * dfz) * (1.0 + p[P_PPY5] * dpi) * p[P_LKYC]  # (4.E30)
+    svyg = fz * (p[P_PVY3] + p[P_PVY4] * dfz) * gs * p[P_LKYC] * lmuy  # (4.E28)
+    svy_nocamber = fz * (p[P_PVY1] + p[P_PVY2] * dfz) * p[P_LVY] * lmuy
+    svy = svy_nocamber + svyg  # (4.E29)
+    shy_nocamber = (p[P_PHY1] + p[P_PHY2] * dfz) * p[P_LHY]
+    shy = shy_nocamber + (kyg0 * gs - svyg) / kya_safe  # (4.E27)
+    alpha_y = tan_alpha + shy  # (4.E20)
+    cy = p[P_PCY1] * p[P_LCY]  # (4.E21)
+    muy_nocamber = (p[P_PDY1] + p[P_PDY2] * dfz) * (1.0 + p[P_PPY3] * dpi + p[P_PPY4] * dpi2)
+    muy = muy_nocamber * (1.0 - p[P_PDY3] * gs2) * lmuy  # (4.E23)
+    dy = muy * fz  # (4.E22)
+    ey0 = (p[P_PEY1] + p[P_PEY2] * dfz) * p[P_LEY]
+    sgn_ay = 1.0 if alpha_y >= 0.0 else -1.0
+    ey = min(ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * sgn_ay), 1.0)  # (4.E24)
+    by = kya / max(cy * dy, _TINY)  # (4.E26)
+    fy0 = dy * math.sin(cy * math.atan(_mf_arg(by * alpha_y, ey))) + svy  # (4.E19)
+
+    # --- combined slip, longitudinal (4.E50)-(4.E57) -------------------------------------
+    rbx2k = p[P_RBX2] * kappa
+    bxa = (p[P_RBX1] + p[P_RBX3] * gs2) * p[P_LXAL] / math.sqrt(1.0 + rbx2k * rbx2k)  # (4.E54)
+    cxa = p[P_RCX1]  # (4.E55)
+    exa = min(p[P_REX1] + p[P_REX2] * dfz, 1.0)  # (4.E56)
+    shxa = p[P_RHX1]  # (4.E57)
+    gxa0 = _cos_mf(bxa, cxa, exa, shxa)  # (4.E52)
+    gxa = max(_cos_mf(bxa, cxa, exa, tan_alpha + shxa) / max(gxa0, _TINY), 0.0)  # (4.E51, 4.E53)
+    fx = gxa * fx0  # (4.E50)
+
+    # --- combined slip, lateral (4.E58)-(4.E67) ------------------------------------------
+    rvy4a = p[P_RVY4] * tan_alpha
+    dvyk = muy * fz * (p[P_RVY1] + p[P_RVY2] * dfz + p[P_RVY3] * gs) / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)
+    svyk = dvyk * math.sin(p[P_RVY5] * math.atan(p[P_RVY6] * kappa)) * p[P_LVYKA]  # (4.E66)
+    shyk = p[P_RHY1] + p[P_RHY2] * dfz  # (4.E65)
+    eyk = min(p[P_REY1] + p[P_REY2] * dfz, 1.0)  # (4.E64)
+    cyk = p[P_RCY1]  # (4.E63)
+    rby2a = p[P_RBY2] * (tan_alpha - p[P_RBY3])
+    byk = (p[P_RBY1] + p[P_RBY4] * gs2) * p[P_LYKA] / math.sqrt(1.0 + rby2a * rby2a)  # (4.E62)
+    gyk0 = _cos_mf(byk, cyk, eyk, shyk)  # (4.E60)
+    gyk = max(_cos_mf(byk, cyk, eyk, kappa + shyk) / max(gyk0, _TINY), 0.0)  # (4.E59, 4.E61)
+    fy = gyk * fy0 + svyk  # (4.E58)
+
+    # --- aligning moment (4.E31)-(4.E47), (4.E71)-(4.E78) --------------------------------
+    if gs == 0.0:
+        fy0_g0 = fy0
+        kya_g0 = kya
+    else:
+        # Fy0 at gamma = 0 for F'y (4.E74): same (4.E19)-(4.E29) without camber terms
+        if p[P_PKY5] == 0.0:
+            kya_g0 = kya_nocamber
+        else:
+            kya_g0 = (
+                p[P_PKY1] * fz0 * ppy1 * p[P_LKY]
+                * math.sin(p[P_PKY4] * math.atan(fz / fz0 / max(p[P_PKY2] * ppy2, _TINY)))
+            )  # fmt: skip
+        alpha_y0 = tan_alpha + shy_nocamber
+        dy0 = muy_nocamber * lmuy * fz
+        sgn_ay0 = 1.0 if alpha_y0 >= 0.0 else -1.0
+        ey_g0 = min(ey0 * (1.0 - p[P_PEY3] * sgn_ay0), 1.0)
+        by_g0 = kya_g0 / max(cy * dy0, _TINY)
+        fy0_g0 = dy0 * math.sin(cy * math.atan(_mf_arg(by_g0 * alpha_y0, ey_g0))) + svy_nocamber
+    fy_prime = gyk * fy0_g0  # (4.E74)
+
+    sht = p[P_QHZ1] + p[P_QHZ2] * dfz + (p[P_QHZ3] + p[P_QHZ4] * dfz) * gs  # (4.E35)
+    alpha_t = tan_alpha + sht  # (4.E34)
+    shf = shy + svy / kya_safe  # (4.E38)
+    alpha_r = tan_alpha + shf  # (4.E37)
+    bt = (
+        (p[P_QBZ1] + p[P_QBZ2] * dfz + p[P_QBZ3] * dfz2)
+        * (1.0 + p[P_QBZ4] * gs + p[P_QBZ5] * gs_abs)
+        * p[P_LKY]
+        / lmuy
+    )  # (4.E40)
+    ct = p[P_QCZ1]  # (4.E41)
+    dt = (
+        fz
+        * (r0 / fz0)
+        * (p[P_QDZ1] + p[P_QDZ2] * dfz)
+        * (1.0 - p[P_PPZ1] * dpi)
+        * p[P_LTR]
+        * (1.0 + p[P_QDZ3] * gs_abs + p[P_QDZ4] * gs2)
+    )  # (4.E42), (4.E43); sgn(Vcx) cancels against cos'alpha
+    et = (p[P_QEZ1] + p[P_QEZ2] * dfz + p[P_QEZ3] * dfz2) * (
+        1.0 + (p[P_QEZ4] + p[P_QEZ5] * gs) * (2.0 / math.pi) * math.atan(bt * ct * alpha_t)
+    )
+    et = min(et, 1.0)  # (4.E44)
+    br = p[P_QBZ9] * p[P_LKY] / lmuy + p[P_QBZ10] * by * cy  # (4.E45)
+    dr = (
+        fz
+        * r0
+        * (
+            (p[P_QDZ6] + p[P_QDZ7] * dfz) * p[P_LRES]
+            + ((p[P_QDZ8] + p[P_QDZ9] * dfz) * (1.0 + p[P_PPZ2] * dpi)
+               + (p[P_QDZ10] + p[P_QDZ11] * dfz) * gs_abs) * gs * p[P_LKZC]
+        )
+        * lmuy
+        * cos_a
+    )  # (4.E47); sgn(Vcx) cancels against cos'alpha  # fmt: skip
+    # (4.E77), (4.E78): the sign of alpha_eq is dropped because t and Mzr are even in it
+    k_ratio_kappa = kxk / kya_safe * kappa
+    alpha_t_eq = math.hypot(alpha_t, k_ratio_kappa)
+    alpha_r_eq = math.hypot(alpha_r, k_ratio_kappa)
+    t = dt * _cos_mf(bt, ct, et, alpha_t_eq) * cos_a  # (4.E73)
+    br_ar = br * alpha_r_eq
+    mzr = dr / math.sqrt(1.0 + br_ar * br_ar)  # (4.E75), C_r = 1: cos(atan x) = 1/sqrt(1+x^2)
+    s = r0 * (p[P_SSZ1] + p[P_SSZ2] * fy / fz0 + (p[P_SSZ3] + p[P_SSZ4] * dfz) * gs) * p[P_LS]  # (4.E76)
+    mz = -t * fy_prime + mzr + s * fx  # (4.E71), (4.E72)
+
+    # --- rolling resistance (4.E70, with Fz0 = FNOMIN in front) -------------------------
+    v0 = p[P_LONGVL]
+    vr = min(abs(vx_mps), VX_MY_MAX_MPS) / v0 if v0 > 0.0 else 0.0
+    vr2 = vr * vr
+    fz_ratio = fz / fnomin
+    my_bracket = (
+        p[P_QSY1]
+        + p[P_QSY2] * fx / fnomin
+        + p[P_QSY3] * vr
+        + p[P_QSY4] * vr2 * vr2
+        + (p[P_QSY5] + p[P_QSY6] * fz_ratio) * gamma_rad * gamma_rad
+    )
+    my = r0 * fnomin * p[P_LMY] * my_bracket * math.pow(fz_ratio, p[P_QSY7])
+    if dpi != 0.0:
+        my *= math.pow(1.0 + dpi, p[P_QSY8])
+
+    # --- sliding limits: peak of the pure-slip curves on the side of the current slip ---
+    side_x = 1.0 if kappa >= 0.0 else -1.0
+    ex_side = min(ex0 * (1.0 - p[P_PEX4] * side_x), 1.0)
+    kappa_slide = abs(side_x * _peak_arg(cx, ex_side) / max(abs(bx), _TINY) - shx)
+    side_y = 1.0 if tan_alpha >= 0.0 else -1.0
+    ey_side = min(ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * side_y), 1.0)
+    tan_alpha_slide = abs(side_y * _peak_arg(cy, ey_side) / max(abs(by), _TINY) - shy)
+
+    out[OUT_FX] = fx * load_scale
+    out[OUT_FY] = fy * load_scale
+    out[OUT_MZ] = mz * load_scale
+    out[OUT_MY] = max(my, 0.0) * load_scale
+    out[OUT_C_KAPPA] = kxk * load_scale
+    out[OUT_C_ALPHA] = abs(kya) * load_scale
+    out[OUT_KAPPA_SLIDE] = min(max(kappa_slide, _TINY), SLIDE_MAX)
+    out[OUT_TAN_ALPHA_SLIDE] = min(max(tan_alpha_slide, _TINY), SLIDE_MAX)
+    out[OUT_FX_PEAK] = abs(dx) * load_scale
+    out[OUT_FY_PEAK] = abs(dy) * load_scale
+
+
+def mf61_param_vector(coeffs: dict[str, float]) -> np.ndarray:
+    """Pack MF 6.1 coefficients into the kernel's parameter vector.
+
+    Parameters
+    ----------
+    coeffs : dict[str, float]
+        Every name of :data:`MF61_PARAM_NAMES` (upper case), for example the result of
+        :func:`simserver.adapters.tir_file.mf61_coefficients`. Extra keys are ignored.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, length :data:`N_MF61_PARAM`, slot ``P_<NAME>`` holding ``coeffs[NAME]``.
+
+    Raises
+    ------
+    ValueError
+        If a name is missing or a value is not a finite number.
+    """
+    missing = [name for name in MF61_PARAM_NAMES if name not in coeffs]
+    if missing:
+        raise ValueError(f"MF 6.1 coefficients missing: {', '.join(missing)}")
+    vec = np.empty(N_MF61_PARAM, dtype=np.float64)
+    for i, name in enumerate(MF61_PARAM_NAMES):
+        value = coeffs[name]
+        if isinstance(value, bool) or not isinstance(value, int | float | np.floating):
+            raise ValueError(f"MF 6.1 coefficient {name} is not a number: {value!r}")
+        if not math.isfinite(value):
+            raise ValueError(f"MF 6.1 coefficient {name} is not finite: {value!r}")
+        vec[i] = float(value)
+    return vec

@@ -1,0 +1,269 @@
+"""Headless scenarios: a vehicle, a road, an initial state and driver keyframes in time.
+
+Scenario YAML (paths relative to the scenario file)::
+
+    name: e2_stop_downslope_paper_damping
+    description: free text
+    vehicle: ../vehicles/paper_sedan/vehicle.yaml
+    road: {grade_pct: -5.0, cross_slope_pct: 0.0, friction_scale: 1.0}
+    initial: {x_m: 0, y_m: 0, yaw_rad: 0, u_mps: 25.0, v_mps: 0, yaw_rate_radps: 0}
+    duration_s: 12.0
+    dt_s: 0.001              # optional, default 0.001
+    record_every: 1          # optional: keep every n-th step in the output
+    model: {slip_model: lagged_paper, damping_model: paper}   # optional, see config
+    inputs:                  # keyframes
+      - {t: 0.0, gear: D}
+      - {t: 1.0, brake: 0.0}
+      - {t: 1.3, brake: 0.6}
+
+Each channel (``steer``, ``throttle``, ``brake``, ``parking_brake``, ``gear``) is defined
+by the keyframes that name it: ``steer``, ``throttle`` and ``brake`` are linear between
+them, ``parking_brake`` (0/1 or true/false) and ``gear`` (P, R, N, D) switch at the
+keyframe's time. Before a channel's first keyframe it holds its initial value (0, and
+gear ``D``), after its last keyframe it holds the last value.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from simserver.adapters.config import (
+    ConfigError,
+    VehicleConfig,
+    check_keys,
+    load_vehicle,
+    number,
+    read_yaml,
+)
+from simserver.core import layout as L
+from simserver.core.chassis import static_wheel_load
+from simserver.core.integrator import make_workspace, simulate
+from simserver.core.params import set_road
+from simserver.core.tire_layout import TP_RADIUS_M
+
+CONTINUOUS_CHANNELS = {"steer": (-1.0, 1.0), "throttle": (0.0, 1.0), "brake": (0.0, 1.0)}
+DISCRETE_CHANNELS = ("parking_brake", "gear")
+GEAR_CODES = {name: code for code, name in enumerate(L.GEAR_NAMES)}
+ROAD_RANGES = {"grade_pct": (-100.0, 100.0), "cross_slope_pct": (-100.0, 100.0),
+               "friction_scale": (0.0, 3.0)}
+INITIAL_RANGES = {"x_m": (-1e7, 1e7), "y_m": (-1e7, 1e7), "yaw_rad": (-1e3, 1e3),
+                  "u_mps": (-100.0, 100.0), "v_mps": (-100.0, 100.0),
+                  "yaw_rate_radps": (-10.0, 10.0)}
+
+
+@dataclass
+class Scenario:
+    """A validated scenario, ready to run."""
+
+    name: str
+    path: Path
+    description: str
+    vehicle: VehicleConfig
+    road: dict[str, float]
+    initial: dict[str, float]
+    duration_s: float
+    dt_s: float
+    record_every: int
+    keyframes: list[dict[str, Any]]
+    model_options: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_steps(self) -> int:
+        """Number of fixed steps in the run."""
+        return int(round(self.duration_s / self.dt_s))
+
+
+@dataclass
+class ScenarioResult:
+    """The time history of a run, one row per recorded step.
+
+    Row ``k`` is the state at ``time_s[k]`` (``core.layout.STATE_NAMES``), the forces and
+    accelerations evaluated at that state (``OUTPUT_NAMES``) and the inputs applied over
+    the step that starts there (``INPUT_NAMES``).
+    """
+
+    scenario: Scenario
+    time_s: np.ndarray
+    states: np.ndarray
+    outputs: np.ndarray
+    inputs: np.ndarray
+    final_state: np.ndarray
+    wall_time_s: float
+
+    def state(self, index: int) -> np.ndarray:
+        """Column ``index`` of the states (a ``core.layout`` constant)."""
+        return self.states[:, index]
+
+    def output(self, index: int) -> np.ndarray:
+        """Column ``index`` of the outputs (a ``core.layout`` ``O_*`` constant)."""
+        return self.outputs[:, index]
+
+
+def _parse_keyframes(path: Path, raw: Any) -> list[dict[str, Any]]:
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError(f"{path}: key 'inputs': expected a non-empty list of keyframes")
+    frames: list[dict[str, Any]] = []
+    last_t = -math.inf
+    allowed = ("t", *CONTINUOUS_CHANNELS, *DISCRETE_CHANNELS)
+    for k, frame in enumerate(raw):
+        where = f"inputs[{k}]"
+        if not isinstance(frame, dict):
+            raise ConfigError(f"{path}: key '{where}': expected a mapping")
+        check_keys(f"{path} ({where})", frame, allowed, required=("t",))
+        parsed: dict[str, Any] = {"t": number(path, f"{where}.t", frame["t"], 0.0, 1e7)}
+        if parsed["t"] < last_t:
+            raise ConfigError(f"{path}: key '{where}.t': keyframes must be in time order")
+        last_t = parsed["t"]
+        for ch, (lo, hi) in CONTINUOUS_CHANNELS.items():
+            if ch in frame:
+                parsed[ch] = number(path, f"{where}.{ch}", frame[ch], lo, hi)
+        if "parking_brake" in frame:
+            val = frame["parking_brake"]
+            if isinstance(val, bool):
+                val = int(val)
+            parsed["parking_brake"] = number(path, f"{where}.parking_brake", val, 0.0, 1.0)
+        if "gear" in frame:
+            gear = frame["gear"]
+            if gear not in GEAR_CODES:
+                raise ConfigError(
+                    f"{path}: key '{where}.gear': expected one of P, R, N, D, got {gear!r}"
+                )
+            parsed["gear"] = float(GEAR_CODES[gear])
+        frames.append(parsed)
+    return frames
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Load and validate a scenario file (errors name the file and the key)."""
+    path = Path(path)
+    data = read_yaml(path)
+    allowed = ("name", "description", "vehicle", "road", "initial", "duration_s", "dt_s",
+               "record_every", "model", "inputs")
+    check_keys(path, data, allowed, required=("name", "vehicle", "duration_s", "inputs"))
+    if not isinstance(data["vehicle"], str):
+        raise ConfigError(f"{path}: key 'vehicle': expected a file path")
+    model_options = data.get("model") or {}
+    vehicle = load_vehicle((path.parent / data["vehicle"]).resolve(), model_options,
+                           options_source=str(path))
+    road_raw = data.get("road") or {}
+    if not isinstance(road_raw, dict):
+        raise ConfigError(f"{path}: key 'road': expected a mapping")
+    check_keys(f"{path} (road)", road_raw, tuple(ROAD_RANGES))
+    road = {"grade_pct": 0.0, "cross_slope_pct": 0.0, "friction_scale": 1.0}
+    for key, (lo, hi) in ROAD_RANGES.items():
+        if key in road_raw:
+            road[key] = number(path, f"road.{key}", road_raw[key], lo, hi)
+    init_raw = data.get("initial") or {}
+    if not isinstance(init_raw, dict):
+        raise ConfigError(f"{path}: key 'initial': expected a mapping")
+    check_keys(f"{path} (initial)", init_raw, tuple(INITIAL_RANGES))
+    initial = {key: number(path, f"initial.{key}", init_raw.get(key, 0.0), lo, hi)
+               for key, (lo, hi) in INITIAL_RANGES.items()}
+    duration = number(path, "duration_s", data["duration_s"], 0.001, 1e6)
+    dt = number(path, "dt_s", data.get("dt_s", 0.001), 1e-5, 0.01)
+    record_every = data.get("record_every", 1)
+    if isinstance(record_every, bool) or not isinstance(record_every, int) or record_every < 1:
+        raise ConfigError(f"{path}: key 'record_every': expected a positive integer")
+    name = data["name"]
+    if not isinstance(name, str) or not name:
+        raise ConfigError(f"{path}: key 'name': expected a non-empty string")
+    return Scenario(
+        name=name, path=path, description=str(data.get("description", "")), vehicle=vehicle,
+        road=road, initial=initial, duration_s=duration, dt_s=dt, record_every=record_every,
+        keyframes=_parse_keyframes(path, data["inputs"]), model_options=dict(model_options),
+    )
+
+
+def input_table(keyframes: list[dict[str, Any]], times_s: np.ndarray) -> np.ndarray:
+    """Sample the keyframes at ``times_s`` into an ``(n, N_INPUT)`` array."""
+    table = np.zeros((times_s.size, L.N_INPUT), dtype=np.float64)
+    table[:, L.IN_GEAR] = GEAR_CODES["D"]
+    columns = {"steer": L.IN_STEER, "throttle": L.IN_THROTTLE, "brake": L.IN_BRAKE,
+               "parking_brake": L.IN_PARKING_BRAKE, "gear": L.IN_GEAR}
+    for channel, col in columns.items():
+        pts = [(f["t"], f[channel]) for f in keyframes if channel in f]
+        if not pts:
+            continue
+        t_k = np.array([p[0] for p in pts])
+        v_k = np.array([p[1] for p in pts])
+        if channel in CONTINUOUS_CHANNELS:
+            table[:, col] = np.interp(times_s, t_k, v_k)
+        else:
+            idx = np.searchsorted(t_k, times_s, side="right") - 1
+            held = idx >= 0
+            table[held, col] = v_k[idx[held]]
+    return table
+
+
+def initial_state(scenario: Scenario) -> np.ndarray:
+    """The state at t = 0: given pose and velocities, wheels rolling freely, springs static."""
+    x = np.zeros(L.N_STATE, dtype=np.float64)
+    init = scenario.initial
+    x[L.X_M] = init["x_m"]
+    x[L.Y_M] = init["y_m"]
+    x[L.YAW_RAD] = init["yaw_rad"]
+    x[L.U_MPS] = init["u_mps"]
+    x[L.V_MPS] = init["v_mps"]
+    x[L.YAW_RATE_RADPS] = init["yaw_rate_radps"]
+    tp = scenario.vehicle.tp
+    for i in range(L.N_WHEELS):
+        x[L.OMEGA0 + i] = init["u_mps"] / tp[i, TP_RADIUS_M]
+        x[L.HUB_U_PREV0 + i] = init["u_mps"]
+    return x
+
+
+def run_scenario(
+    scenario: Scenario,
+    progress: Callable[[int, int], None] | None = None,
+    chunk_steps: int = 2000,
+) -> ScenarioResult:
+    """Run a scenario headless as fast as the CPU allows.
+
+    Deterministic: the same scenario gives the same arrays bit for bit.
+    ``progress(done_steps, total_steps)`` is called after each chunk.
+    """
+    vp = scenario.vehicle.vp.copy()
+    tp = scenario.vehicle.tp
+    set_road(vp, scenario.road["grade_pct"], scenario.road["cross_slope_pct"],
+             scenario.road["friction_scale"])
+    n = scenario.n_steps
+    every = scenario.record_every
+    chunk_steps = max(every, chunk_steps - chunk_steps % every)
+    times = np.arange(n) * scenario.dt_s
+    inputs = input_table(scenario.keyframes, times)
+    n_rec = (n + every - 1) // every
+    states = np.zeros((n_rec, L.N_STATE))
+    outputs = np.zeros((n_rec, L.N_OUT))
+    x = initial_state(scenario)
+    ws = make_workspace()
+    t0 = time.perf_counter()
+    done = 0
+    while done < n:
+        m = min(chunk_steps, n - done)
+        r0 = done // every
+        r1 = r0 + (m + every - 1) // every
+        simulate(x, vp, tp, inputs[done:done + m], scenario.dt_s, ws, states[r0:r1],
+                 outputs[r0:r1], every)
+        done += m
+        if progress is not None:
+            progress(done, n)
+    wall = time.perf_counter() - t0
+    return ScenarioResult(
+        scenario=scenario, time_s=states[:, L.TIME_S].copy(), states=states, outputs=outputs,
+        inputs=inputs[::every].copy(), final_state=x.copy(), wall_time_s=wall,
+    )
+
+
+def static_loads(scenario: Scenario) -> np.ndarray:
+    """Static wheel loads (N) of the scenario's vehicle on its road."""
+    vp = scenario.vehicle.vp.copy()
+    set_road(vp, scenario.road["grade_pct"], scenario.road["cross_slope_pct"],
+             scenario.road["friction_scale"])
+    return np.array([static_wheel_load(vp, i) for i in range(L.N_WHEELS)])
