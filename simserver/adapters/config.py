@@ -106,7 +106,7 @@ MODEL_OPTION_DEFAULTS: dict[str, Any] = {
     "damping_model": "patch",
     "damping_ratio": PAPER_DAMPING_RATIO,
     "damping_trigger_v_mps": PAPER_TRIGGER_LATERAL_SPEED_MPS,
-    "damping_fade_speed_mps": 1.0,
+    "damping_fade_speed_mps": 2.0,
     "kinematic_u_min_mps": 0.5,
     "slide_widen_speed_mps": 0.5,
     "gravity_mps2": 9.81,

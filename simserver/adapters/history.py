@@ -285,8 +285,8 @@ def write_history(result: ScenarioResult, path: str | Path) -> Path:
     -----
     Written with zstd compression over the BYTE_STREAM_SPLIT encoding (a quarter smaller
     than plain for these float columns; read by pyarrow, polars, DuckDB alike), no
-    dictionary encoding, one row group per million rows. No timestamp or path goes into the file, so the same
-    result gives the same bytes.
+    dictionary encoding, one row group per million rows. No timestamp or path goes into
+    the file, so the same result gives the same bytes.
     """
     path = Path(path)
     if path.is_dir():

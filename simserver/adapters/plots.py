@@ -79,11 +79,14 @@ def signal_label(name: str) -> str:
     return name if unit == "1" else f"{name} ({unit})"
 
 
-def _figure(n_rows: int, n_cols: int = 1, height_per_row: float = 2.3,
-            width: float = 8.0) -> tuple[Figure, np.ndarray]:
-    fig = Figure(figsize=(width, 0.9 + height_per_row * n_rows), dpi=DPI,
+def _figure(n_rows: int, height_per_row: float = 2.3, width: float = 8.5,
+            height_ratios: Sequence[float] | None = None) -> tuple[Figure, np.ndarray]:
+    """A figure of ``n_rows`` stacked axes sharing the time axis (returned as (n, 1))."""
+    ratios = list(height_ratios) if height_ratios is not None else [1.0] * n_rows
+    fig = Figure(figsize=(width, 0.9 + height_per_row * sum(ratios)), dpi=DPI,
                  layout="constrained")
-    axes = fig.subplots(n_rows, n_cols, sharex=True, squeeze=False)
+    axes = fig.subplots(n_rows, 1, sharex=True, squeeze=False,
+                        gridspec_kw={"height_ratios": ratios})
     for ax in axes.flat:
         ax.grid(True, alpha=0.3)
     return fig, axes
@@ -106,6 +109,11 @@ def _title(fig: Figure, result: ScenarioResult, what: str) -> None:
 def _save(fig: Figure, path: Path) -> Path:
     fig.savefig(path, format="png", metadata=PNG_METADATA)
     return path
+
+
+def _legend_right(ax: Axes) -> None:
+    """Legend outside the axes, on the right, so that it never hides a trace."""
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0.0)
 
 
 def _wheel_lines(ax: Axes, t: np.ndarray, cols: dict[str, np.ndarray], template: str) -> None:
@@ -170,7 +178,7 @@ def plot_forces(result: ScenarioResult, path: str | Path) -> Path:
             ax.plot(t, cols[total], color="k", lw=0.8, label=total_label)
         ax.axhline(0.0, color="k", lw=0.5, alpha=0.5)
         ax.set_ylabel(ylabel)
-        ax.legend(loc="upper right", ncol=5, fontsize=8)
+        _legend_right(ax)
     axes[-1, 0].set_xlabel(signal_label("time_s"))
     _title(fig, result, "tire forces (ISO 8855: x forward, y left)")
     return _save(fig, Path(path))
@@ -245,7 +253,7 @@ def plot_trajectory(result: ScenarioResult, path: str | Path) -> Path:
     ax.plot(xf[0], yf[0], "o", color="tab:green", ms=9, label=f"start, t = {cols['time_s'][0]:g} s")
     ax.plot(xf[-1], yf[-1], "s", color="tab:red", ms=9,
             label=f"end, t = {cols['time_s'][finite][-1] if finite.any() else 0.0:g} s")
-    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_aspect("equal", adjustable="box")
     cx, cy = 0.5 * (xf.min() + xf.max()), 0.5 * (yf.min() + yf.max())
     half = 0.5 * span + arrow
     ax.set_xlim(cx - half, cx + half)
@@ -283,7 +291,7 @@ def plot_slip(result: ScenarioResult, path: str | Path) -> Path:
         _wheel_lines(ax, t, cols, template)
         ax.axhline(0.0, color="k", lw=0.5, alpha=0.5)
         ax.set_ylabel(ylabel)
-        ax.legend(loc="upper right", ncol=4, fontsize=8)
+        _legend_right(ax)
     axes[-1, 0].set_xlabel(signal_label("time_s"))
     _title(fig, result, "slip fed to the tire model (driving k' > 0; hub sliding left tan a' > 0)")
     return _save(fig, Path(path))
@@ -305,7 +313,7 @@ def plot_inputs(result: ScenarioResult, path: str | Path) -> Path:
     """
     cols = result_columns(result)
     t = cols["time_s"]
-    fig, axes = _figure(3, height_per_row=1.9)
+    fig, axes = _figure(3, height_per_row=2.0, height_ratios=(1.0, 1.0, 0.6))
     ax_steer, ax_pedal, ax_gear = axes[:, 0]
     ax_steer.plot(t, cols["input_steer"], color="tab:purple", lw=1.2)
     ax_steer.set_ylabel("steer (–1..1, left +)")
@@ -316,7 +324,7 @@ def plot_inputs(result: ScenarioResult, path: str | Path) -> Path:
                   label="parking brake")
     ax_pedal.set_ylim(-0.05, 1.05)
     ax_pedal.set_ylabel("pedal (0..1)")
-    ax_pedal.legend(loc="upper right", ncol=3, fontsize=8)
+    _legend_right(ax_pedal)
     ax_gear.step(t, cols["input_gear"], where="post", color="tab:blue", lw=1.2)
     ax_gear.set_yticks(range(len(L.GEAR_NAMES)), L.GEAR_NAMES)
     ax_gear.set_ylim(-0.4, len(L.GEAR_NAMES) - 0.6)
@@ -403,7 +411,7 @@ def plot_comparison(
     for ax, name in zip(axes[:, 0], signals, strict=True):
         ax.set_ylabel(signal_label(name))
         ax.axhline(0.0, color="k", lw=0.5, alpha=0.5)
-    axes[0, 0].legend(loc="best", fontsize=8)
+    _legend_right(axes[0, 0])
     axes[-1, 0].set_xlabel(signal_label("time_s"))
     if title is None:
         names = sorted({r.scenario.name for r in results.values()})

@@ -238,19 +238,137 @@ SLIDE_FRACTION_NO_PEAK = 0.99  # C <= 1: "sliding" where the curve reaches 99 % 
 _TINY = 1e-9  # floor of C*D (N) and |K_ya| (N/rad): never reached by a sane file
 
 
-@nb.njit(cache=True)
+# --- elementary functions, inlined -------------------------------------------------------
+# libm calls are not inlined, clobber every vector register and cost 10-20 ns each; the
+# kernel needs about 35 of them. These replacements are accurate to about 1 ulp (tested in
+# tests/test_tire_mf61.py against math.atan / math.sin / math.cos).
+#
+# atan: argument reduction at the centres 0, 1/2, 1, 3/2, inf (one division), then
+# atan(u) = u + u z P(z), z = u^2, |u| <= 7/16, P of degree 10: Chebyshev interpolation of
+# (atan(u) - u) / (u z) on z in [0, (7/16)^2] at 11 nodes in 60-digit arithmetic (mpmath),
+# relative error 1.7e-17 before rounding.
+_AT0 = -0.33333333333333323666
+_AT1 = 0.19999999999987767999
+_AT2 = -0.14285714283148639559
+_AT3 = 0.1111111090056047561
+_AT4 = -0.090909001955601480029
+_AT5 = 0.076920873487671681887
+_AT6 = -0.066632392991071364433
+_AT7 = 0.058477247206451062769
+_AT8 = -0.050339427764858483166
+_AT9 = 0.03782521866106712056
+_AT10 = -0.017547235157290004725
+_ATAN_HALF = 0.4636476090008061  # atan(1/2)
+_ATAN_3HALF = 0.982793723247329  # atan(3/2)
+_PI_4 = 0.7853981633974483
+_PI_2 = 1.5707963267948966
+# sin / cos: x = k pi/2 + r, |r| <= pi/4, pi/2 split in a 33-bit head (k * head exact for
+# |k| < 2^20) and a tail; Taylor polynomials to r^15 (sin) and r^16 (cos), truncation error
+# below 7e-17. |x| > 1e5 falls back to libm.
+_PIO2_HI = 1.5707963267341256
+_PIO2_LO = 6.077100506506192e-11
+_TWO_OVER_PI = 0.6366197723675814
+_S1 = -1.0 / 6.0
+_S2 = 1.0 / 120.0
+_S3 = -1.0 / 5040.0
+_S4 = 1.0 / 362880.0
+_S5 = -1.0 / 39916800.0
+_S6 = 1.0 / 6227020800.0
+_S7 = -1.0 / 1307674368000.0
+_C1 = -0.5
+_C2 = 1.0 / 24.0
+_C3 = -1.0 / 720.0
+_C4 = 1.0 / 40320.0
+_C5 = -1.0 / 3628800.0
+_C6 = 1.0 / 479001600.0
+_C7 = -1.0 / 87178291200.0
+_C8 = 1.0 / 20922789888000.0
+
+
+@nb.njit(cache=True, inline="always")
+def _atan(x: float) -> float:
+    """``atan(x)`` to about 1 ulp, inlinable (see the constants above)."""
+    ax = abs(x)
+    if ax < 0.4375:
+        num = ax
+        den = 1.0
+        base = 0.0
+    elif ax < 0.6875:
+        num = ax - 0.5
+        den = 1.0 + 0.5 * ax
+        base = _ATAN_HALF
+    elif ax < 1.1875:
+        num = ax - 1.0
+        den = ax + 1.0
+        base = _PI_4
+    elif ax < 2.4375:
+        num = ax - 1.5
+        den = 1.0 + 1.5 * ax
+        base = _ATAN_3HALF
+    else:
+        num = -1.0
+        den = ax
+        base = _PI_2
+    u = num / den  # atan(ax) = base + atan(u)
+    z = u * u
+    z2 = z * z
+    z4 = z2 * z2
+    q0 = (_AT0 + _AT1 * z) + (_AT2 + _AT3 * z) * z2
+    q1 = (_AT4 + _AT5 * z) + (_AT6 + _AT7 * z) * z2
+    q2 = (_AT8 + _AT9 * z) + _AT10 * z2
+    poly = q0 + (q1 + q2 * z4) * z4
+    return math.copysign(base + (u + u * z * poly), x)
+
+
+@nb.njit(cache=True, inline="always")
+def _sincos(x: float) -> tuple[float, float]:
+    """``(sin(x), cos(x))`` to about 1 ulp (absolute), inlinable."""
+    if not abs(x) < 1e5:
+        return math.sin(x), math.cos(x)
+    k = math.floor(x * _TWO_OVER_PI + 0.5)
+    r = (x - k * _PIO2_HI) - k * _PIO2_LO
+    z = r * r
+    z2 = z * z
+    z4 = z2 * z2
+    sp = (_S1 + _S2 * z) + (_S3 + _S4 * z) * z2 + ((_S5 + _S6 * z) + _S7 * z2) * z4
+    s = r + r * z * sp
+    cp = (_C2 + _C3 * z) + (_C4 + _C5 * z) * z2 + ((_C6 + _C7 * z) + _C8 * z2) * z4
+    c = 1.0 + z * (_C1 + z * cp)
+    q = int(k) & 3
+    if q == 0:
+        return s, c
+    if q == 1:
+        return c, -s
+    if q == 2:
+        return -s, -c
+    return -c, s
+
+
+@nb.njit(cache=True, inline="always")
+def _sin(x: float) -> float:
+    """``sin(x)``, see :func:`_sincos`."""
+    return _sincos(x)[0]
+
+
+@nb.njit(cache=True, inline="always")
+def _cos(x: float) -> float:
+    """``cos(x)``, see :func:`_sincos`."""
+    return _sincos(x)[1]
+
+
+@nb.njit(cache=True, inline="always")
 def _mf_arg(y: float, e: float) -> float:
     """Inner Magic Formula argument ``y - E (y - atan y)`` (4.E9), overflow-safe form."""
-    return (1.0 - e) * y + e * math.atan(y)
+    return (1.0 - e) * y + e * _atan(y)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _cos_mf(b: float, c: float, e: float, x: float) -> float:
     """Cosine-type weighting ``cos[C atan{B x - E (B x - atan(B x))}]`` (4.E51, 4.E59)."""
-    return math.cos(c * math.atan(_mf_arg(b * x, e)))
+    return _cos(c * _atan(_mf_arg(b * x, e)))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _peak_arg(c: float, e: float) -> float:
     """Normalised slip ``u = B x`` at which ``D sin[C atan{u - E (u - atan u)}]`` peaks.
 
@@ -275,9 +393,10 @@ def _peak_arg(c: float, e: float) -> float:
     """
     c = max(c, 1e-3)
     if c > 1.0:
-        target = math.tan(0.5 * math.pi / c)
+        s, co = _sincos(0.5 * math.pi / c)
     else:
-        target = math.tan(math.asin(SLIDE_FRACTION_NO_PEAK * math.sin(0.5 * math.pi * c)) / c)
+        s, co = _sincos(math.asin(SLIDE_FRACTION_NO_PEAK * _sin(0.5 * math.pi * c)) / c)
+    target = s / co  # tan, > 0
     one_minus_e = max(1.0 - e, 1e-12)
     u_bound = (target - e * 0.5 * math.pi) / one_minus_e
     if e > 0.0:
@@ -287,7 +406,7 @@ def _peak_arg(c: float, e: float) -> float:
     u = min(max(u, 1e-12), SLIDE_MAX)
     for _ in range(8):
         den = 1.0 + u * u
-        g = one_minus_e * u + e * math.atan(u) - target
+        g = one_minus_e * u + e * _atan(u) - target
         g1 = one_minus_e + e / den
         g2 = -2.0 * e * u / (den * den)
         du = 2.0 * g * g1 / (2.0 * g1 * g1 - g * g2)
@@ -373,7 +492,7 @@ def mf61_forces(
     mu = min(max(mu_scale, MU_SCALE_MIN), MU_SCALE_MAX)
     lmux = p[P_LMUX] * mu  # lambda*_mux = lambda'_mux (4.E7, 4.E8 with LMUV = 0, A_mu = 1)
     lmuy = p[P_LMUY] * mu
-    gs = math.sin(gamma_rad) if gamma_rad != 0.0 else 0.0  # gamma* (4.E4)
+    gs = _sin(gamma_rad) if gamma_rad != 0.0 else 0.0  # gamma* (4.E4)
     gs2 = gs * gs
     gs_abs = abs(gs)
     cos_a = 1.0 / math.sqrt(1.0 + tan_alpha * tan_alpha)  # |cos'alpha| (4.E6)
@@ -401,13 +520,13 @@ def mf61_forces(
     ex0 = (p[P_PEX1] + p[P_PEX2] * dfz + p[P_PEX3] * dfz2) * p[P_LEX]
     sgn_kx = 1.0 if kappa_x >= 0.0 else -1.0
     ex = min(ex0 * (1.0 - p[P_PEX4] * sgn_kx), 1.0)  # (4.E14)
-    fx0 = dx * math.sin(cx * math.atan(_mf_arg(bx * kappa_x, ex))) + svx  # (4.E9)
+    fx0 = dx * _sin(cx * _atan(_mf_arg(bx * kappa_x, ex))) + svx  # (4.E9)
 
     # --- pure lateral slip (4.E19)-(4.E30) -----------------------------------------------
     ppy1 = 1.0 + p[P_PPY1] * dpi
     ppy2 = 1.0 + p[P_PPY2] * dpi
-    kya_atan = math.atan(fz / fz0 / max((p[P_PKY2] + p[P_PKY5] * gs2) * ppy2, _TINY))
-    kya_sin = math.sin(p[P_PKY4] * kya_atan)
+    kya_atan = _atan(fz / fz0 / max((p[P_PKY2] + p[P_PKY5] * gs2) * ppy2, _TINY))
+    kya_sin = _sin(p[P_PKY4] * kya_atan)
     kya_nocamber = p[P_PKY1] * fz0 * ppy1 * kya_sin * p[P_LKY]
     kya = kya_nocamber * (1.0 - p[P_PKY3] * gs_abs)  # (4.E25)
     kya_safe = kya if abs(kya) > _TINY else math.copysign(_TINY, p[P_PKY1])  # K'ya (4.E39)
@@ -426,7 +545,7 @@ def mf61_forces(
     sgn_ay = 1.0 if alpha_y >= 0.0 else -1.0
     ey = min(ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * sgn_ay), 1.0)  # (4.E24)
     by = kya / max(cy * dy, _TINY)  # (4.E26)
-    fy0 = dy * math.sin(cy * math.atan(_mf_arg(by * alpha_y, ey))) + svy  # (4.E19)
+    fy0 = dy * _sin(cy * _atan(_mf_arg(by * alpha_y, ey))) + svy  # (4.E19)
 
     # --- combined slip, longitudinal (4.E50)-(4.E57) -------------------------------------
     rbx2k = p[P_RBX2] * kappa
@@ -441,7 +560,7 @@ def mf61_forces(
     # --- combined slip, lateral (4.E58)-(4.E67) ------------------------------------------
     rvy4a = p[P_RVY4] * tan_alpha
     dvyk = muy * fz * (p[P_RVY1] + p[P_RVY2] * dfz + p[P_RVY3] * gs) / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)
-    svyk = dvyk * math.sin(p[P_RVY5] * math.atan(p[P_RVY6] * kappa)) * p[P_LVYKA]  # (4.E66)
+    svyk = dvyk * _sin(p[P_RVY5] * _atan(p[P_RVY6] * kappa)) * p[P_LVYKA]  # (4.E66)
     shyk = p[P_RHY1] + p[P_RHY2] * dfz  # (4.E65)
     eyk = min(p[P_REY1] + p[P_REY2] * dfz, 1.0)  # (4.E64)
     cyk = p[P_RCY1]  # (4.E63)
@@ -462,14 +581,14 @@ def mf61_forces(
         else:
             kya_g0 = (
                 p[P_PKY1] * fz0 * ppy1 * p[P_LKY]
-                * math.sin(p[P_PKY4] * math.atan(fz / fz0 / max(p[P_PKY2] * ppy2, _TINY)))
+                * _sin(p[P_PKY4] * _atan(fz / fz0 / max(p[P_PKY2] * ppy2, _TINY)))
             )  # fmt: skip
         alpha_y0 = tan_alpha + shy_nocamber
         dy0 = muy_nocamber * lmuy * fz
         sgn_ay0 = 1.0 if alpha_y0 >= 0.0 else -1.0
         ey_g0 = min(ey0 * (1.0 - p[P_PEY3] * sgn_ay0), 1.0)
         by_g0 = kya_g0 / max(cy * dy0, _TINY)
-        fy0_g0 = dy0 * math.sin(cy * math.atan(_mf_arg(by_g0 * alpha_y0, ey_g0))) + svy_nocamber
+        fy0_g0 = dy0 * _sin(cy * _atan(_mf_arg(by_g0 * alpha_y0, ey_g0))) + svy_nocamber
     fy_prime = gyk * fy0_g0  # (4.E74)
 
     sht = p[P_QHZ1] + p[P_QHZ2] * dfz + (p[P_QHZ3] + p[P_QHZ4] * dfz) * gs  # (4.E35)
@@ -492,7 +611,7 @@ def mf61_forces(
         * (1.0 + p[P_QDZ3] * gs_abs + p[P_QDZ4] * gs2)
     )  # (4.E42), (4.E43); sgn(Vcx) cancels against cos'alpha
     et = (p[P_QEZ1] + p[P_QEZ2] * dfz + p[P_QEZ3] * dfz2) * (
-        1.0 + (p[P_QEZ4] + p[P_QEZ5] * gs) * (2.0 / math.pi) * math.atan(bt * ct * alpha_t)
+        1.0 + (p[P_QEZ4] + p[P_QEZ5] * gs) * (2.0 / math.pi) * _atan(bt * ct * alpha_t)
     )
     et = min(et, 1.0)  # (4.E44)
     br = p[P_QBZ9] * p[P_LKY] / lmuy + p[P_QBZ10] * by * cy  # (4.E45)

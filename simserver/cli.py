@@ -1,0 +1,399 @@
+"""The ``simserver`` command line.
+
+Subcommands are registered in ``SUBCOMMANDS`` (name -> ``Subcommand``: help text, an
+argument-adding function and a run function returning the exit code); add new ones there.
+
+Exit codes: 0 success; 1 the run finished but went non-finite, or an output file could
+not be written; 2 a bad command line or configuration (``error: <message>`` on stderr,
+naming the file and the key, without a traceback); 130 interrupted.
+
+Heavy modules (numba-compiled core, matplotlib, pyarrow) are imported inside the run
+functions, so ``simserver --help`` answers at once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from simserver.scenario import Scenario
+
+DT_RANGE_S = (1e-5, 0.01)
+"""Accepted ``--dt`` values (the same range as a scenario's ``dt_s``)."""
+
+DEFAULT_LOAD_FACTORS = (0.5, 1.0, 1.5, 2.0)
+"""``tire-curves`` loads, as multiples of the tire's nominal load."""
+
+COMBINED_SLIP_ANGLES_DEG = (0.0, 2.0, 5.0, 10.0)
+"""Fixed slip angles of the ``tire-curves`` combined-slip panel."""
+
+
+@dataclass(frozen=True)
+class Subcommand:
+    """One ``simserver`` subcommand.
+
+    Attributes
+    ----------
+    help : str
+        One line for ``simserver --help``.
+    add_arguments : callable
+        Adds the subcommand's arguments to its ``argparse`` parser.
+    run : callable
+        Runs it with the parsed arguments; returns the process exit code.
+    description : str
+        Longer text for ``simserver SUBCOMMAND --help``.
+    """
+
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+    description: str = ""
+
+
+class CliError(Exception):
+    """An error to report as ``error: <message>`` with the given exit code."""
+
+    def __init__(self, message: str, exit_code: int = 1) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+# ------------------------------------------------------------------------ run-scenario
+def _add_run_scenario_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scenario", type=Path, help="scenario YAML file")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
+                        help="output directory (created if missing)")
+    parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    parser.add_argument("--dt", type=float, default=None, metavar="S",
+                        help="override the scenario's step dt_s (s)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _with_dt(scenario: Scenario, dt_s: float | None) -> Scenario:
+    """The scenario with its step replaced by ``--dt`` (validated like ``dt_s``)."""
+    if dt_s is None:
+        return scenario
+    from simserver.adapters.config import ConfigError
+
+    lo, hi = DT_RANGE_S
+    if not (math.isfinite(dt_s) and lo <= dt_s <= hi):
+        raise ConfigError(f"--dt: {dt_s:g} is outside [{lo:g}, {hi:g}] s")
+    return dataclasses.replace(scenario, dt_s=float(dt_s))
+
+
+def run_scenario_command(args: argparse.Namespace) -> int:
+    """``simserver run-scenario``: run headless, write history, summary and plots.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``scenario``, ``out``, ``no_plots``, ``dt``, ``quiet``.
+
+    Returns
+    -------
+    int
+        0, or 1 if the run went non-finite (the files are still written).
+    """
+    from tqdm import tqdm
+
+    from simserver.adapters.history import (
+        HISTORY_FILE,
+        SUMMARY_FILE,
+        summarize,
+        summary_json,
+        write_history,
+    )
+    from simserver.scenario import load_scenario, run_scenario
+
+    scenario = _with_dt(load_scenario(args.scenario), args.dt)
+    out: Path = args.out
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(f"{out}: cannot create the output directory: {exc.strerror}") from exc
+
+    # Warm-up: load the compiled kernels from numba's cache (or compile them) before the
+    # clock starts, so that the reported real-time factor is the simulation's own.
+    run_scenario(dataclasses.replace(scenario, duration_s=scenario.dt_s, record_every=1))
+
+    show = not args.quiet and sys.stderr.isatty()
+    with tqdm(total=scenario.n_steps, desc=scenario.name, unit="step", unit_scale=True,
+              file=sys.stderr, disable=not show, leave=False) as bar:
+        result = run_scenario(scenario, progress=lambda done, total: bar.update(done - bar.n))
+
+    summary = summarize(result)
+    try:
+        write_history(result, out / HISTORY_FILE)
+        (out / SUMMARY_FILE).write_text(summary_json(summary), encoding="utf-8")
+        written = [HISTORY_FILE, SUMMARY_FILE]
+        if not args.no_plots:
+            from simserver.adapters.plots import plot_result
+
+            written += [p.name for p in plot_result(result, out)]
+    except OSError as exc:
+        raise CliError(f"{out}: cannot write the results: {exc.strerror or exc}") from exc
+
+    rtf = summary["timing"]["real_time_factor"]
+    rtf_text = f"{rtf:,.0f}x real time" if rtf is not None else "real time factor n/a"
+    print(f"{scenario.name}: {scenario.n_steps} steps of {scenario.dt_s * 1e3:g} ms "
+          f"({scenario.n_steps * scenario.dt_s:g} s simulated) in "
+          f"{result.wall_time_s:.3g} s, {rtf_text}; wrote {out}/ "
+          f"({', '.join(written)})")
+    if not summary["finite"]["all"]:
+        print(f"error: {scenario.path}: the run went non-finite (NaN or inf); "
+              f"see {out / HISTORY_FILE}", file=sys.stderr)
+        return 1
+    return 0
+
+
+# ------------------------------------------------------------------------- tire-curves
+def nominal_load_n(tp: np.ndarray) -> float:
+    """Nominal load of a packed tire vector: ``FNOMIN`` (mf61) or ``nominal_load_n`` (simple).
+
+    Parameters
+    ----------
+    tp : ndarray
+        ``float64[N_TIRE_PARAM]`` from ``adapters.config.load_tire``.
+
+    Returns
+    -------
+    float
+        Nominal wheel load (N).
+    """
+    from simserver.core.tire_layout import (
+        TIRE_MODEL_MF61,
+        TIRE_MODEL_SIMPLE,
+        TP_MODEL,
+        TP_MODEL_BASE,
+    )
+    from simserver.core.tire_mf61 import P_FNOMIN
+    from simserver.core.tire_simple import SP_FZ_NOM
+
+    model = int(tp[TP_MODEL])
+    if model == TIRE_MODEL_MF61:
+        return float(tp[TP_MODEL_BASE + P_FNOMIN])
+    if model == TIRE_MODEL_SIMPLE:
+        return float(tp[TP_MODEL_BASE + SP_FZ_NOM])
+    raise ValueError(f"unknown tire model id {model}")
+
+
+def tire_curve_data(
+    tp: np.ndarray,
+    loads_n: Sequence[float],
+    mu_scale: float = 1.0,
+    alpha_max_deg: float = 20.0,
+    kappa_max: float = 1.0,
+    n_points: int = 241,
+    combined_alpha_deg: Sequence[float] = COMBINED_SLIP_ANGLES_DEG,
+    combined_load_n: float | None = None,
+    vx_mps: float = 10.0,
+) -> dict[str, np.ndarray]:
+    """Evaluate a tire's steady-state curves with the compiled ``core.tire.tire_forces``.
+
+    Parameters
+    ----------
+    tp : ndarray
+        Packed tire vector (``adapters.config.load_tire``).
+    loads_n : sequence of float
+        Normal loads of the pure-slip curves (N).
+    mu_scale : float, optional
+        Road friction scale (1 = the surface the tire was measured on).
+    alpha_max_deg, kappa_max : float, optional
+        The slip angle runs over ``±alpha_max_deg``, kappa over ``±kappa_max``.
+    n_points : int, optional
+        Points per curve.
+    combined_alpha_deg : sequence of float, optional
+        Fixed slip angles of the combined-slip curves.
+    combined_load_n : float, optional
+        Load of the combined-slip curves; default the nominal load.
+    vx_mps : float, optional
+        Hub speed passed to the model (only rolling resistance depends on it).
+
+    Returns
+    -------
+    dict of str to ndarray
+        The arrays ``adapters.plots.plot_tire_curves`` draws; forces in N, Mz in N m,
+        ISO 8855 signs (``Fy < 0`` for a positive slip angle).
+    """
+    from simserver.core.tire import tire_forces
+    from simserver.core.tire_layout import N_TIRE_OUT, OUT_FX, OUT_FY, OUT_MZ
+
+    loads = np.asarray(loads_n, dtype=np.float64)
+    alpha_deg = np.linspace(-alpha_max_deg, alpha_max_deg, n_points)
+    tan_alpha = np.tan(np.radians(alpha_deg))
+    kappa = np.linspace(-kappa_max, kappa_max, n_points)
+    comb_alpha = np.asarray(combined_alpha_deg, dtype=np.float64)
+    comb_load = nominal_load_n(tp) if combined_load_n is None else float(combined_load_n)
+    out = np.zeros(N_TIRE_OUT)
+
+    def forces(k: float, ta: float, fz: float) -> tuple[float, float, float]:
+        tire_forces(tp, k, ta, 0.0, fz, mu_scale, vx_mps, out)
+        return out[OUT_FX], out[OUT_FY], out[OUT_MZ]
+
+    fy_alpha = np.zeros((loads.size, n_points))
+    mz_alpha = np.zeros((loads.size, n_points))
+    fx_kappa = np.zeros((loads.size, n_points))
+    for i, fz in enumerate(loads):
+        for j in range(n_points):
+            _, fy_alpha[i, j], mz_alpha[i, j] = forces(0.0, tan_alpha[j], fz)
+            fx_kappa[i, j], _, _ = forces(kappa[j], 0.0, fz)
+    fx_comb = np.zeros((comb_alpha.size, n_points))
+    fy_comb = np.zeros((comb_alpha.size, n_points))
+    for i, alpha in enumerate(comb_alpha):
+        ta = math.tan(math.radians(alpha))
+        for j in range(n_points):
+            fx_comb[i, j], fy_comb[i, j], _ = forces(kappa[j], ta, comb_load)
+    return {
+        "alpha_deg": alpha_deg, "kappa": kappa, "loads_n": loads,
+        "fy_alpha": fy_alpha, "mz_alpha": mz_alpha, "fx_kappa": fx_kappa,
+        "combined_alpha_deg": comb_alpha, "combined_load_n": np.asarray(comb_load),
+        "fx_combined": fx_comb, "fy_combined": fy_comb,
+    }
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0.0):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
+    return value
+
+
+def _load_list(text: str) -> list[float]:
+    parts = [p.strip() for p in text.split(",") if p.strip()]
+    if not parts:
+        raise argparse.ArgumentTypeError("expected loads in N, e.g. 2000,4000,6000")
+    return [_positive_float(p) for p in parts]
+
+
+def _add_tire_curves_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("tire", type=Path, help="tire YAML file (model: simple or mf61)")
+    parser.add_argument("--out", type=Path, required=True, metavar="FILE.png",
+                        help="PNG file to write")
+    parser.add_argument("--loads", type=_load_list, default=None, metavar="N1,N2,...",
+                        help="normal loads in N (default 0.5, 1, 1.5, 2 x nominal)")
+    parser.add_argument("--mu", type=_positive_float, default=1.0,
+                        help="road friction scale (default 1.0)")
+    parser.add_argument("--alpha-max-deg", type=_positive_float, default=20.0, metavar="DEG",
+                        help="slip-angle range ±deg (default 20)")
+    parser.add_argument("--kappa-max", type=_positive_float, default=1.0, metavar="K",
+                        help="longitudinal slip range ± (default 1.0)")
+
+
+def tire_curves_command(args: argparse.Namespace) -> int:
+    """``simserver tire-curves``: plot a tire's curves to a PNG.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``tire``, ``out``, ``loads``, ``mu``, ``alpha_max_deg``, ``kappa_max``.
+
+    Returns
+    -------
+    int
+        0.
+    """
+    from simserver.adapters.config import load_tire
+    from simserver.adapters.plots import plot_tire_curves
+
+    tp, model = load_tire(args.tire)
+    nominal = nominal_load_n(tp)
+    loads = args.loads or [f * nominal for f in DEFAULT_LOAD_FACTORS]
+    curves = tire_curve_data(tp, loads, mu_scale=args.mu, alpha_max_deg=args.alpha_max_deg,
+                             kappa_max=args.kappa_max)
+    out: Path = args.out
+    title = f"{args.tire.name} ({model}, nominal load {nominal:,.0f} N, friction x{args.mu:g})"
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        plot_tire_curves(curves, out, title)
+    except OSError as exc:
+        raise CliError(f"{out}: cannot write: {exc.strerror or exc}") from exc
+    print(f"{args.tire}: {model} tire, loads {', '.join(f'{x:,.0f}' for x in loads)} N; "
+          f"wrote {out}")
+    return 0
+
+
+# -------------------------------------------------------------------------- registry
+SUBCOMMANDS: dict[str, Subcommand] = {
+    "run-scenario": Subcommand(
+        help="run a scenario headless; write history.parquet, summary.json and plots",
+        add_arguments=_add_run_scenario_arguments,
+        run=run_scenario_command,
+        description="Run a scenario YAML as fast as the CPU allows (deterministic: the "
+                    "same file gives the same history bytes) and write DIR/history.parquet, "
+                    "DIR/summary.json and DIR/{speed,forces,trajectory,slip,inputs}.png.",
+    ),
+    "tire-curves": Subcommand(
+        help="plot a tire's force curves (Fy-alpha, Fx-kappa, combined slip, Mz) to a PNG",
+        add_arguments=_add_tire_curves_arguments,
+        run=tire_curves_command,
+        description="Plot Fy against slip angle at several loads (SAE 950311 Fig. 5), Fx "
+                    "against longitudinal slip (Fig. 6), Fx and Fy under combined slip and "
+                    "Mz against slip angle, for a simple or mf61 tire file.",
+    ),
+    # "serve", "soak", "replay": to be registered here.
+}
+"""Every subcommand, by name, in ``--help`` order."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser with every subcommand of ``SUBCOMMANDS``."""
+    from simserver import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="simserver",
+        description="Driving-simulator server with Bernard & Clover lagged-slip tires "
+                    "(SAE 950311).",
+    )
+    parser.add_argument("--version", action="version", version=f"simserver {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, command in SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=command.help,
+                           description=command.description or command.help)
+        command.add_arguments(p)
+        p.set_defaults(handler=command.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``simserver`` console script.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        Arguments without the program name; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        The exit code (see the module docstring).
+    """
+    args = build_parser().parse_args(argv)
+    from simserver.adapters.config import ConfigError
+
+    try:
+        return int(args.handler(args))
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except CliError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,269 @@
+"""The paper's four examples and the stop / hold / restart cases (issue 3: E1-E7).
+
+Every scenario is a file in configs/scenarios/ run headless exactly as
+``simserver run-scenario`` runs it. Tolerances are stated next to each assertion.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from scenario_checks import (
+    braked_speed_rebound,
+    first_stop_index,
+    shear_force_sums,
+    speed,
+    travel_along_heading,
+)
+from simserver.adapters.config import apply_model_options, model_option_values
+from simserver.core import layout as L
+from simserver.core.params import VP_GRAVITY_MPS2, VP_MASS_KG
+from simserver.scenario import load_scenario, run_scenario
+from tests.conftest import CONFIGS
+
+SCEN = CONFIGS / "scenarios"
+_cache: dict = {}
+
+
+def run(name: str, dt_s: float | None = None, **model):
+    """Run a scenario file (cached), optionally with other model options or step."""
+    key = (name, dt_s, tuple(sorted(model.items())))
+    if key not in _cache:
+        sc = load_scenario(SCEN / f"{name}.yaml")
+        if model:
+            opts = dict(sc.model_options)
+            opts.update(model)
+            apply_model_options(sc.vehicle.vp, model_option_values(opts, "test"))
+        if dt_s is not None:
+            sc.record_every = max(1, int(round(sc.record_every * sc.dt_s / dt_s)))
+            sc.dt_s = dt_s
+        result = run_scenario(sc)
+        assert np.all(np.isfinite(result.states)) and np.all(np.isfinite(result.outputs))
+        _cache[key] = result
+    return _cache[key]
+
+
+def weight(result) -> float:
+    vp = result.scenario.vehicle.vp
+    return vp[VP_MASS_KG] * vp[VP_GRAVITY_MPS2]
+
+
+# ---------------------------------------------------------------- E1
+def test_e1_oscillates_about_zero_at_the_tire_spring_frequency():
+    """Undamped, the stopped car rings on its tire springs: f = sqrt(sum C_kappa/(B m))/2 pi.
+
+    15 % tolerance (issue 3): the pitch and heave of the body on its suspension couple
+    into the fore-aft mode and lower it a few per cent.
+    """
+    r = run("e1_stop_downslope_no_damping")
+    stop = first_stop_index(r, after_s=1.0)
+    u = r.state(L.U_MPS)[stop:]
+    t = r.time_s[stop:]
+    crossings = t[np.nonzero(np.diff(np.signbit(u)))[0]]
+    assert crossings.size > 20  # it keeps oscillating: nothing damps it
+    measured = 1.0 / (2.0 * np.median(np.diff(crossings)))
+    vp = r.scenario.vehicle.vp
+    from simserver.core.tire_layout import TP_RELAX_LONG_M
+
+    c_kappa_sum = 4 * 22500.0  # configs/tires/paper_sti.yaml, linear in load: sum is fixed
+    expected = math.sqrt(c_kappa_sum / (r.scenario.vehicle.tp[0, TP_RELAX_LONG_M]
+                                        * vp[VP_MASS_KG])) / (2 * math.pi)
+    assert abs(measured / expected - 1.0) < 0.15, (measured, expected)
+    assert abs(expected - 3.5) < 0.05  # the paper's 3.5 Hz
+    assert np.abs(u).max() < 1.0  # an oscillation about zero, not a runaway
+
+
+# ---------------------------------------------------------------- E2
+def test_e2_paper_damping_stops_and_holds_with_the_papers_force():
+    r = run("e2_stop_downslope_paper_damping")
+    stop = first_stop_index(r, after_s=1.0)
+    t_stop = r.time_s[stop]
+    u = r.state(L.U_MPS)
+    after = r.time_s >= t_stop + 2.0
+    assert np.abs(u[after]).max() < 1e-3  # |u| < 1 mm/s within 2 s of the first stop
+    # residual tire forces along the slope hold the car: m g sin(atan 0.05), within 1 %
+    fx_sum, fy_sum, _ = shear_force_sums(r, -1)
+    expected = weight(r) * math.sin(math.atan(0.05))
+    assert abs(-fx_sum / expected - 1.0) < 0.01, (fx_sum, expected)
+    assert abs(fy_sum) < 1.0
+    # the paper's pattern with a 70/30 split: brake force in front, a slightly smaller
+    # tractive force at the rear (model.md 4b item 4)
+    o = r.outputs[-1]
+    front = o[L.O_FX0] + o[L.O_FX0 + 1]
+    rear = o[L.O_FX0 + 2] + o[L.O_FX0 + 3]
+    print(f"E2 at rest: front {front:.0f} N, rear {rear:.0f} N, sum {front + rear:.0f} N")
+    assert front < 0 < rear
+    # the damping was triggered by the sign change of u, on every wheel
+    assert np.all(r.final_state[L.DAMPING_ACTIVE0:L.DAMPING_ACTIVE0 + 4] == 1.0)
+    active = r.states[:, L.DAMPING_ACTIVE0]
+    assert not active[: stop - 1].any()  # never before the stop
+
+
+# ---------------------------------------------------------------- E3
+def test_e3_stop_from_a_steady_turn_leaves_no_net_force():
+    r = run("e3_stop_from_turn")
+    # the turn before braking is about 0.4 g
+    turning = (r.time_s > 4.0) & (r.time_s < 5.0)
+    ay_g = r.output(L.O_AY_MPS2)[turning].mean() / 9.81
+    assert 0.35 < ay_g < 0.5, ay_g
+    assert speed(r)[-1] < 1e-3
+    fx_sum, fy_sum, mz = shear_force_sums(r, -1)
+    w = weight(r)
+    vp = r.scenario.vehicle.vp
+    from simserver.core.params import VP_CG_TO_FRONT_AXLE_M, VP_CG_TO_REAR_AXLE_M
+
+    wheelbase = vp[VP_CG_TO_FRONT_AXLE_M] + vp[VP_CG_TO_REAR_AXLE_M]
+    assert math.hypot(fx_sum, fy_sum) < 0.01 * w
+    assert abs(mz) < 0.01 * w * wheelbase
+
+
+# ---------------------------------------------------------------- E4
+def test_e4_braked_spinout_on_a_sideslope_comes_to_rest():
+    r = run("e4_spinout_sideslope")
+    yaw = r.state(L.YAW_RAD)
+    assert abs(yaw.max() - yaw[0]) > math.radians(90)
+    u = r.state(L.U_MPS)
+    assert u.min() < 0.0 < u.max()  # u changes sign: the car slides backwards
+    assert speed(r)[-1] < 1e-3
+    assert speed(r)[r.time_s > r.time_s[-1] - 2.0].max() < 1e-3
+
+
+# ---------------------------------------------------------------- E5
+E5_CASES = {
+    "e5_hold_restart_uphill": +1.0,  # driving direction along the initial heading
+    "e5_hold_restart_downhill": +1.0,
+    "e5_hold_restart_reverse_uphill": -1.0,
+    "e5_hold_restart_reverse_downhill": -1.0,
+}
+RELEASE_S = 66.0
+
+
+def hold_and_restart(r, direction: float):
+    """(creep over the 60 s hold, rollback after release, time to 2 m/s after release)."""
+    s = travel_along_heading(r)
+    t = r.time_s
+    stop = first_stop_index(r, after_s=1.0)
+    hold = (t >= t[stop] + 2.0) & (t <= RELEASE_S)
+    assert t[hold][-1] - t[hold][0] >= 59.0  # held for at least 60 s
+    creep = np.ptp(s[hold])
+    after = t > RELEASE_S
+    s_rel = s[np.argmax(after)]
+    rollback = max(0.0, -direction * (s[after] - s_rel).min())
+    driving = direction * r.state(L.U_MPS)
+    reached = after & (driving >= 2.0)
+    t_2mps = t[np.argmax(reached)] - RELEASE_S if reached.any() else math.inf
+    return creep, rollback, t_2mps
+
+
+@pytest.mark.parametrize("name", list(E5_CASES))
+def test_e5_stop_hold_and_restart_on_a_10_percent_grade(name):
+    r = run(name)
+    creep, rollback, t_2mps = hold_and_restart(r, E5_CASES[name])
+    print(f"{name}: creep {creep * 1e3:.4f} mm, rollback {rollback:.4f} m, 2 m/s after {t_2mps:.2f} s")
+    assert creep < 1e-3
+    assert rollback < 0.15
+    assert t_2mps < 4.0
+
+
+def test_e5_parking_brake_alone_holds_on_10_percent():
+    r = run("e5_parking_brake_hold")
+    t = r.time_s
+    foot_off = t >= 5.3
+    assert np.all(r.inputs[foot_off, L.IN_BRAKE] == 0.0)
+    s = travel_along_heading(r)
+    window = t >= 7.0  # 28 s on the parking brake alone
+    assert np.ptp(s[window]) < 1e-3
+    assert speed(r)[window].max() < 1e-3
+
+
+@pytest.mark.parametrize("name", ["e2_stop_downslope_paper_damping", "e5_hold_restart_uphill"])
+def test_same_outcome_at_half_the_step(name):
+    """E2 and E5 at dt = 0.5 ms and 1 ms: a low-speed law that depends on the step would
+    change how the car stops and holds. Resting forces within 0.5 % of the weight share
+    they carry, the settling after the stop within 2 mm."""
+    a = run(name)
+    b = run(name, dt_s=0.0005)
+    # how far the car moves once it has stopped (the low-speed law at work); the stopping
+    # distance itself differs by the integration error of a 60 m stop (about 1e-4)
+    settle = [travel_along_heading(r)[-1] - travel_along_heading(r)[first_stop_index(r, 1.0)]
+              for r in (a, b)]
+    assert abs(settle[0] - settle[1]) < 2e-3, settle
+    if name.startswith("e2"):
+        fa = a.outputs[-1, L.O_FX0:L.O_FX0 + 4]
+        fb = b.outputs[-1, L.O_FX0:L.O_FX0 + 4]
+        assert np.all(np.abs(fa - fb) < 0.005 * weight(a) / 4), (fa, fb)
+    else:
+        ca = hold_and_restart(a, 1.0)
+        cb = hold_and_restart(b, 1.0)
+        assert ca[0] < 1e-3 and cb[0] < 1e-3
+        assert abs(ca[1] - cb[1]) < 0.01 and abs(ca[2] - cb[2]) < 0.05
+
+
+# ---------------------------------------------------------------- E6
+def test_e6_kinematic_baseline_cannot_hold_the_car():
+    """The eq. (1) baseline on E2 and E5: with u replaced by max(|u|, u_min) the tire sees
+    almost no slip at standstill, so the brakes cannot make it hold: the car creeps down
+    the slope where the lagged model holds to the micrometre."""
+    lagged = run("e2_stop_downslope_paper_damping")
+    kin = run("e6_kinematic_stop_downslope")
+    late = kin.time_s > kin.time_s[-1] - 3.0
+    s_kin = travel_along_heading(kin)
+    s_lag = travel_along_heading(lagged)
+    creep_kin = np.ptp(s_kin[late])
+    creep_lag = np.ptp(s_lag[late])
+    print(f"E6 downslope, last 3 s: kinematic creeps {creep_kin:.3f} m, lagged {creep_lag * 1e3:.4f} mm")
+    assert creep_lag < 1e-4
+    assert creep_kin > 100 * creep_lag and creep_kin > 0.01
+
+    kin5 = run("e6_kinematic_hold_restart_uphill")
+    t = kin5.time_s
+    s = travel_along_heading(kin5)
+    hold = (t > 10.0) & (t <= RELEASE_S)
+    print(f"E6 uphill hold: kinematic creeps {np.ptp(s[hold]):.3f} m over the hold")
+    assert np.ptp(s[hold]) > 1e-2  # no hold
+
+
+# ---------------------------------------------------------------- E7
+BRAKED_STOPS = ["e2_stop_downslope_paper_damping", "e3_stop_from_turn", "e4_spinout_sideslope",
+                "e5_hold_restart_uphill", "e5_hold_restart_reverse_uphill", "e7_brake_release_ringing"]
+DEFAULT = {"slip_model": "lagged_passive", "damping_model": "patch"}
+
+
+@pytest.mark.parametrize("name", BRAKED_STOPS)
+def test_e7_tires_never_feed_energy_into_a_braked_car(name):
+    r = run(name, **DEFAULT)
+    assert braked_speed_rebound(r) <= 0.5
+
+
+def test_e7_papers_plain_form_does_in_the_spinout():
+    """Beside it: the paper's plain form on the E4 spin-out picks the car up again after it
+    has slowed below 0.5 m/s under braking (the stored sliding deflection pays back)."""
+    plain = run("e4_spinout_sideslope", slip_model="lagged_paper", damping_model="paper")
+    rebound = braked_speed_rebound(plain)
+    print(f"E4 paper's plain form: speed back up to {rebound:.2f} m/s under braking")
+    assert rebound > 0.5
+
+
+def ringing(r, release_s: float, wheel: int) -> tuple[float, float]:
+    """First swing of Fx after the release and the largest swing after 0.3 s (N)."""
+    t = r.time_s
+    fx = r.output(L.O_FX0 + wheel)
+    final = fx[t > release_s + 1.5].mean()
+    first = np.abs(fx[(t > release_s) & (t <= release_s + 0.1)] - final).max()
+    late = np.abs(fx[(t > release_s + 0.3) & (t <= release_s + 1.5)] - final).max()
+    return first, late
+
+
+def test_e7_brake_release_ringing_decays_within_0_3_s():
+    r = run("e7_brake_release_ringing")
+    p = run("e7_brake_release_ringing", slip_model="lagged_paper", damping_model="paper")
+    for i in range(L.N_WHEELS):
+        first, late = ringing(r, 4.0, i)
+        pf, pl = ringing(p, 4.0, i)
+        print(f"wheel {L.WHEEL_NAMES[i]}: default {first:.0f} -> {late:.0f} N; "
+              f"paper's form {pf:.0f} -> {pl:.0f} N")
+        assert first > 100.0  # there was something to ring
+        assert late < 0.1 * first
