@@ -80,14 +80,17 @@ def _add_run_scenario_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _with_dt(scenario: Scenario, dt_s: float | None) -> Scenario:
     """The scenario with its step replaced by ``--dt`` (validated like ``dt_s``)."""
-    if dt_s is None:
-        return scenario
     from simserver.adapters.config import ConfigError
 
-    lo, hi = DT_RANGE_S
-    if not (math.isfinite(dt_s) and lo <= dt_s <= hi):
-        raise ConfigError(f"--dt: {dt_s:g} is outside [{lo:g}, {hi:g}] s")
-    return dataclasses.replace(scenario, dt_s=float(dt_s))
+    if dt_s is not None:
+        lo, hi = DT_RANGE_S
+        if not (math.isfinite(dt_s) and lo <= dt_s <= hi):
+            raise ConfigError(f"--dt: {dt_s:g} is outside [{lo:g}, {hi:g}] s")
+        scenario = dataclasses.replace(scenario, dt_s=float(dt_s))
+    if scenario.n_steps < 1:
+        raise ConfigError(f"{scenario.path}: key 'duration_s': {scenario.duration_s:g} s is "
+                          f"shorter than one step of {scenario.dt_s:g} s")
+    return scenario
 
 
 def run_scenario_command(args: argparse.Namespace) -> int:

@@ -172,3 +172,26 @@ def test_help_lists_the_subcommands():
                           env=dict(os.environ, PYTHONPATH=str(REPO)))
     assert proc.returncode == 0
     assert "run-scenario" in proc.stdout and "tire-curves" in proc.stdout
+
+
+def test_a_run_that_goes_non_finite_exits_1_but_writes_its_files(tmp_path, capsys,
+                                                                   monkeypatch):
+    import simserver.scenario
+    from simserver.cli import main
+    from simserver.core.layout import U_MPS
+
+    real_run = simserver.scenario.run_scenario
+
+    def run_then_break(scenario, **kwargs):
+        result = real_run(scenario, **kwargs)
+        result.states[-1, U_MPS] = float("nan")
+        return result
+
+    monkeypatch.setattr(simserver.scenario, "run_scenario", run_then_break)
+    path = write_scenario(tmp_path / "s.yaml", SCENARIO.replace("2.5", "0.2"))
+    out = tmp_path / "out"
+    assert main(["run-scenario", str(path), "--out", str(out), "--quiet"]) == 1
+    assert "non-finite" in capsys.readouterr().err
+    summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+    assert summary["finite"]["all"] is False and summary["final"]["u_mps"] is None
+    assert (out / "trajectory.png").exists()
