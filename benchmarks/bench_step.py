@@ -36,10 +36,10 @@ DT_S = 0.001
 
 
 def driving_cycle(n: int) -> np.ndarray:
-    """Inputs per step: 40 % accelerate and steer, 30 % brake to rest, 30 % hold."""
+    """Inputs per step: 40 % accelerate and steer, then brake to rest and hold."""
     table = np.zeros((n, L.N_INPUT))
     table[:, L.IN_GEAR] = L.GEAR_D
-    a, b = int(0.4 * n), int(0.7 * n)
+    a = int(0.4 * n)
     table[:a, L.IN_THROTTLE] = 0.6
     table[:a, L.IN_STEER] = 0.15 * np.sin(np.linspace(0, 6 * np.pi, a))
     table[a:, L.IN_BRAKE] = 0.5

@@ -23,7 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from simserver.adapters.tir_file import load_tir, mf61_coefficients  # noqa: E402
-from simserver.core.tire_layout import OUT_FX, OUT_FY, OUT_MZ, N_TIRE_OUT  # noqa: E402
+from simserver.core.tire_layout import N_TIRE_OUT, OUT_FX, OUT_FY, OUT_MZ  # noqa: E402
 from simserver.core.tire_mf61 import mf61_forces, mf61_param_vector  # noqa: E402
 
 DEFAULT_TIR = Path("/work/shared/data/tires/mf61_225_50R17_sample.tir")

@@ -15,8 +15,13 @@ from simserver.core.damping import (
     paper_trigger,
 )
 from simserver.core.tire import tire_forces
-from simserver.core.tire_layout import N_TIRE_OUT, OUT_C_ALPHA, OUT_C_KAPPA, TP_RELAX_LAT_M, \
-    TP_RELAX_LONG_M
+from simserver.core.tire_layout import (
+    N_TIRE_OUT,
+    OUT_C_ALPHA,
+    OUT_C_KAPPA,
+    TP_RELAX_LAT_M,
+    TP_RELAX_LONG_M,
+)
 
 
 def test_coefficients_at_the_reference_car(paper_tire):

@@ -1,10 +1,12 @@
 """The passive slip variant never returns energy the tire did not store (model.md 4b item 1).
 
-A single wheel on a locked hub (Omega = 0) is driven back and forth, u = U cos(w t), with a
-displacement amplitude several times its sliding deflection, at walking pace (0.3 m/s). Energy bookkeeping: the tire's elastic energy is E(k') = B * integral_0^k' Fx dk, and
-with the lagged state the power on the hub is P = Fx u = -dE/dt - |u| Fx k' <= -dE/dt
-(Fx k' >= 0). So over any interval the work on the hub is at most the elastic energy at
-its start; with the state held at the sliding limit that is at most
+A single wheel on a locked hub (Omega = 0) is driven back and forth at walking pace
+(0.3 m/s), along the wheel or sideways, with a displacement amplitude several times its
+sliding deflection. Energy bookkeeping: the tire's elastic energy is
+E(k') = B * integral_0^k' Fx dk, and with the lagged state the power on the hub is
+P = Fx u = -dE/dt - |u| Fx k' <= -dE/dt (Fx k' >= 0; likewise sideways with b and
+tan a'). So over any interval the work on the hub is at most the elastic energy at its
+start; with the state held at the sliding limit that is at most
 E_max = B * integral_0^k_slide Fx dk. The paper's plain form keeps integrating the
 displacement while the tire slides, so E is unbounded and is paid back on reversal.
 """

@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 import pytest
-
 from scenario_checks import (
     braked_speed_rebound,
     first_stop_index,
@@ -18,6 +17,7 @@ from scenario_checks import (
     speed,
     travel_along_heading,
 )
+
 from simserver.adapters.config import apply_model_options, model_option_values
 from simserver.core import layout as L
 from simserver.core.params import VP_GRAVITY_MPS2, VP_MASS_KG
@@ -162,7 +162,8 @@ def hold_and_restart(r, direction: float):
 def test_e5_stop_hold_and_restart_on_a_10_percent_grade(name):
     r = run(name)
     creep, rollback, t_2mps = hold_and_restart(r, E5_CASES[name])
-    print(f"{name}: creep {creep * 1e3:.4f} mm, rollback {rollback:.4f} m, 2 m/s after {t_2mps:.2f} s")
+    print(f"{name}: creep {creep * 1e3:.4f} mm, rollback {rollback:.4f} m, "
+          f"2 m/s after {t_2mps:.2f} s")
     assert creep < 1e-3
     assert rollback < 0.15
     assert t_2mps < 4.0
@@ -214,7 +215,8 @@ def test_e6_kinematic_baseline_cannot_hold_the_car():
     s_lag = travel_along_heading(lagged)
     creep_kin = np.ptp(s_kin[late])
     creep_lag = np.ptp(s_lag[late])
-    print(f"E6 downslope, last 3 s: kinematic creeps {creep_kin:.3f} m, lagged {creep_lag * 1e3:.4f} mm")
+    print(f"E6 downslope, last 3 s: kinematic creeps {creep_kin:.3f} m, "
+          f"lagged {creep_lag * 1e3:.4f} mm")
     assert creep_lag < 1e-4
     assert creep_kin > 100 * creep_lag and creep_kin > 0.01
 
@@ -228,7 +230,8 @@ def test_e6_kinematic_baseline_cannot_hold_the_car():
 
 # ---------------------------------------------------------------- E7
 BRAKED_STOPS = ["e2_stop_downslope_paper_damping", "e3_stop_from_turn", "e4_spinout_sideslope",
-                "e5_hold_restart_uphill", "e5_hold_restart_reverse_uphill", "e7_brake_release_ringing"]
+                "e5_hold_restart_uphill", "e5_hold_restart_reverse_uphill",
+                "e7_brake_release_ringing"]
 DEFAULT = {"slip_model": "lagged_passive", "damping_model": "patch"}
 
 

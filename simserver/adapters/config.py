@@ -27,11 +27,16 @@ import yaml
 
 from simserver.adapters.tir_file import TirError, load_tir, mf61_coefficients
 from simserver.core import params as P
-from simserver.core.damping import DAMPING_MODEL_NAMES, PAPER_DAMPING_RATIO, \
-    PAPER_TRIGGER_LATERAL_SPEED_MPS
+from simserver.core.damping import (
+    DAMPING_MODEL_NAMES,
+    PAPER_DAMPING_RATIO,
+    PAPER_TRIGGER_LATERAL_SPEED_MPS,
+)
 from simserver.core.slip import SLIP_MODEL_NAMES
+from simserver.core.tire import N_TIRE_PARAM
 from simserver.core.tire_layout import (
     TIRE_MODEL_MF61,
+    TIRE_MODEL_NAMES,
     TIRE_MODEL_SIMPLE,
     TP_MODEL,
     TP_MODEL_BASE,
@@ -39,7 +44,6 @@ from simserver.core.tire_layout import (
     TP_RELAX_LAT_M,
     TP_RELAX_LONG_M,
 )
-from simserver.core.tire import N_TIRE_PARAM
 from simserver.core.tire_mf61 import mf61_param_vector
 from simserver.core.tire_simple import SIMPLE_PARAM_NAMES, simple_param_vector
 
@@ -189,7 +193,9 @@ def check_keys(path: Path | str, data: dict[str, Any], allowed: tuple[str, ...] 
     """Reject unknown keys and report missing ones, naming the file."""
     for key in data:
         if key not in allowed:
-            raise ConfigError(f"{path}: unknown key '{key}' (allowed: {', '.join(sorted(allowed))})")
+            raise ConfigError(
+                f"{path}: unknown key '{key}' (allowed: {', '.join(sorted(allowed))})"
+            )
     for key in required:
         if key not in data:
             raise ConfigError(f"{path}: missing key '{key}'")
@@ -250,10 +256,10 @@ def load_tire(path: Path) -> tuple[np.ndarray, str]:
     """
     path = Path(path)
     data = read_yaml(path)
-    model = choice(path, "model", data.get("model"), {"simple": 0, "mf61": 1})
+    model = choice(path, "model", data.get("model"), TIRE_MODEL_NAMES)
     tp = np.zeros(N_TIRE_PARAM, dtype=np.float64)
     common = ("relaxation_length_lat_m", "relaxation_length_long_m", "rolling_radius_m")
-    if model == 0:
+    if model == TIRE_MODEL_SIMPLE:
         keys = ("model", *SIMPLE_PARAM_NAMES, *common)
         check_keys(path, data, keys, required=keys)
         vals = {k: number(path, k, data[k], *SIMPLE_TIRE_RANGES[k]) for k in SIMPLE_PARAM_NAMES}
@@ -276,7 +282,9 @@ def load_tire(path: Path) -> tuple[np.ndarray, str]:
         tp[TP_MODEL] = TIRE_MODEL_MF61
         r0 = coeffs["UNLOADED_RADIUS"]
         # MF 6.1 relaxation lengths at the nominal load (Pacejka 2012, eqs. 4.E65 and 4.E67)
-        default_lat = coeffs.get("PTY1", 2.0) * r0 * math.sin(2.0 * math.atan(1.0 / coeffs.get("PTY2", 2.0)))
+        pty1 = coeffs.get("PTY1", 2.0)
+        pty2 = coeffs.get("PTY2", 2.0)
+        default_lat = pty1 * r0 * math.sin(2.0 * math.atan(1.0 / pty2))
         default_long = coeffs.get("PTX1", 1.0) * r0
         radius = number(path, "rolling_radius_m", data.get("rolling_radius_m", r0),
                         *TIRE_COMMON_RANGES["rolling_radius_m"])

@@ -36,7 +36,6 @@ from simserver.core.layout import (
     HEAVE_M,
     HEAVE_RATE_MPS,
     KAPPA0,
-    N_WHEELS,
     O_AX_MPS2,
     O_AY_MPS2,
     O_BRAKE_TORQUE0,
@@ -247,7 +246,6 @@ def chassis_rhs(
 
     for axle in range(2):
         left = 2 * axle
-        right = left + 1
         px, py_left = wheel_position(vp, left)
         if axle == 0:
             k_s = vp[VP_SPRING_FRONT_NPM]

@@ -39,7 +39,6 @@ from simserver.core.chassis import (
     N_W,
     W_FX,
     W_HUB_U,
-    W_HUB_V,
     W_KAPPA_SLIDE,
     W_MY,
     W_TAN_ALPHA_SLIDE,

@@ -63,7 +63,11 @@ def axle_torque_shares(vp: np.ndarray, share: np.ndarray) -> None:
 
 @nb.njit(cache=True)
 def wheel_torques(
-    x: np.ndarray, vp: np.ndarray, inputs: np.ndarray, drive_nm: np.ndarray, brake_cap_nm: np.ndarray
+    x: np.ndarray,
+    vp: np.ndarray,
+    inputs: np.ndarray,
+    drive_nm: np.ndarray,
+    brake_cap_nm: np.ndarray,
 ) -> None:
     """Drive torque and brake capacity per wheel for the current pedals, gear and spin.
 

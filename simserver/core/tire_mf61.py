@@ -287,28 +287,17 @@ _C8 = 1.0 / 20922789888000.0
 
 @nb.njit(cache=True, inline="always")
 def _atan(x: float) -> float:
-    """``atan(x)`` to about 1 ulp, inlinable (see the constants above)."""
+    """``atan(x)`` to about 1 ulp, inlinable and branch-free (see the constants above)."""
     ax = abs(x)
-    if ax < 0.4375:
-        num = ax
-        den = 1.0
-        base = 0.0
-    elif ax < 0.6875:
-        num = ax - 0.5
-        den = 1.0 + 0.5 * ax
-        base = _ATAN_HALF
-    elif ax < 1.1875:
-        num = ax - 1.0
-        den = ax + 1.0
-        base = _PI_4
-    elif ax < 2.4375:
-        num = ax - 1.5
-        den = 1.0 + 1.5 * ax
-        base = _ATAN_3HALF
-    else:
-        num = -1.0
-        den = ax
-        base = _PI_2
+    # interval of ax among [0, 7/16), [7/16, 11/16), [11/16, 19/16), [19/16, 39/16), [39/16, inf)
+    i1 = ax >= 0.4375
+    i2 = ax >= 0.6875
+    i3 = ax >= 1.1875
+    i4 = ax >= 2.4375
+    c = (0.5 if i1 else 0.0) + (0.5 if i2 else 0.0) + (0.5 if i3 else 0.0)  # 0, 1/2, 1, 3/2
+    num = -1.0 if i4 else ax - c
+    den = ax if i4 else 1.0 + c * ax
+    base = _PI_2 if i4 else (_ATAN_3HALF if i3 else (_PI_4 if i2 else (_ATAN_HALF if i1 else 0.0)))
     u = num / den  # atan(ax) = base + atan(u)
     z = u * u
     z2 = z * z
@@ -335,13 +324,12 @@ def _sincos(x: float) -> tuple[float, float]:
     cp = (_C2 + _C3 * z) + (_C4 + _C5 * z) * z2 + ((_C6 + _C7 * z) + _C8 * z2) * z4
     c = 1.0 + z * (_C1 + z * cp)
     q = int(k) & 3
-    if q == 0:
-        return s, c
-    if q == 1:
-        return c, -s
-    if q == 2:
-        return -s, -c
-    return -c, s
+    odd = (q & 1) == 1
+    s_q = c if odd else s  # quadrant q: sin = +-s or +-c, cos = +-c or -+s, select-based
+    c_q = s if odd else c
+    s_sign = -1.0 if (q & 2) == 2 else 1.0
+    c_sign = -1.0 if ((q + 1) & 2) == 2 else 1.0
+    return s_sign * s_q, c_sign * c_q
 
 
 @nb.njit(cache=True, inline="always")
@@ -404,17 +392,13 @@ def _peak_arg(c: float, e: float) -> float:
     else:
         u = min(target, u_bound)
     u = min(max(u, 1e-12), SLIDE_MAX)
-    for _ in range(8):
+    for _ in range(2):
+        # Halley on g(u) = (1 - E) u + E atan(u) - T with n = g' (1 + u^2):
+        # u -= g n (1 + u^2) / (n^2 + E g u), one division per step
         den = 1.0 + u * u
         g = one_minus_e * u + e * _atan(u) - target
-        g1 = one_minus_e + e / den
-        g2 = -2.0 * e * u / (den * den)
-        du = 2.0 * g * g1 / (2.0 * g1 * g1 - g * g2)
-        u_new = min(max(u - du, 0.5 * u), SLIDE_MAX)  # never jump past zero
-        step = abs(u_new - u)
-        u = u_new
-        if step <= 1e-5 * u:  # cubic convergence: the next step would be < 1e-14
-            break
+        n = one_minus_e * den + e
+        u = min(max(u - g * n * den / (n * n + e * g * u), 0.5 * u), SLIDE_MAX)
     return u
 
 

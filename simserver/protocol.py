@@ -1,0 +1,1297 @@
+"""The wire contract of simserver: key expressions, binary payloads and control messages.
+
+This module is the single definition of everything that crosses the network between the
+server and its clients. It is pure Python and numpy (no zenoh), so that any client, test
+or tool can import it without the transport. ``docs/protocol.md`` is generated from the
+tables below (``python -m simserver.protocol --write docs/protocol.md``) and a test fails
+when the two drift apart.
+
+Overview
+--------
+- Key expressions: :func:`vehicle_keys` builds every key of one vehicle from a prefix
+  (default ``"simserver"``) and a vehicle id (default ``"car0"``).
+- Binary payloads (little-endian, packed, naturally aligned): :data:`COMMAND_FIELDS`,
+  :data:`STATE_FIELDS` and :data:`DIAGNOSTICS_FIELDS` are the field tables (type, unit,
+  range, description); :data:`COMMAND_DTYPE`, :data:`STATE_DTYPE` and
+  :data:`DIAGNOSTICS_DTYPE` are the numpy structured dtypes built from them.
+- Decoding a driver command (:func:`decode_command`) is the only gate between the network
+  and the physics: it rejects or clamps as documented per field and raises
+  :class:`ProtocolError` (and nothing else) on any malformed input.
+- Control requests and replies are UTF-8 JSON objects; :func:`validate_control` checks a
+  request against :data:`CONTROL_SPECS`.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import math
+import re
+import struct
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Final
+
+import numpy as np
+
+# ============================================================================ version
+
+PROTOCOL_VERSION: Final[int] = 1
+"""Carried in the first two bytes of every binary payload; bumped on any layout change."""
+
+DEFAULT_PREFIX: Final[str] = "simserver"
+DEFAULT_VEHICLE: Final[str] = "car0"
+
+CLAMP_TOLERANCE: Final[float] = 1e-3
+"""Normalised command inputs up to this far outside their range are clamped, not rejected."""
+
+MAX_CONTROL_PAYLOAD_BYTES: Final[int] = 65536
+"""Control requests larger than this are rejected before JSON parsing."""
+
+
+class ProtocolError(ValueError):
+    """A payload, key or argument that does not satisfy the contract.
+
+    Parameters
+    ----------
+    field : str
+        The offending field (``"steer"``, ``"pose.yaw_rad"``, ``"payload"``, ...). Always
+        named in the message too.
+    message : str
+        What is wrong with it.
+    """
+
+    def __init__(self, field: str, message: str) -> None:
+        self.field = field
+        super().__init__(f"{field}: {message}")
+
+
+# ============================================================================ keys
+
+CONTROL_NAMES: Final[tuple[str, ...]] = (
+    "reset",
+    "pause",
+    "resume",
+    "step",
+    "set_road",
+    "load",
+    "get_config",
+)
+
+_ID_CHUNK = re.compile(r"[A-Za-z0-9_.\-]+")
+_WILDCARDS = "*$?#"
+
+
+@dataclass(frozen=True)
+class KeySpec:
+    """One key expression of the contract (a row of the key table in docs/protocol.md)."""
+
+    suffix: str
+    direction: str
+    payload: str
+    encoding: str
+    qos: str
+    rate: str
+
+
+ENCODING_COMMAND: Final[str] = "application/octet-stream;simserver.DriverCommand.v1"
+ENCODING_STATE: Final[str] = "application/octet-stream;simserver.VehicleState.v1"
+ENCODING_DIAGNOSTICS: Final[str] = "application/octet-stream;simserver.Diagnostics.v1"
+ENCODING_CONTROL: Final[str] = "application/json"
+
+KEY_SPECS: Final[tuple[KeySpec, ...]] = (
+    KeySpec(
+        "cmd",
+        "client -> server (put)",
+        "DriverCommand (binary)",
+        ENCODING_COMMAND,
+        "REAL_TIME, express, BLOCK",
+        "any, up to 1 kHz; at least every watchdog period (default 200 ms)",
+    ),
+    KeySpec(
+        "state",
+        "server -> clients (put)",
+        "VehicleState (binary)",
+        ENCODING_STATE,
+        "REAL_TIME, express, BLOCK",
+        "every tick (1 kHz) by default; server-side decimation",
+    ),
+    KeySpec(
+        "diag",
+        "server -> clients (put)",
+        "Diagnostics (binary)",
+        ENCODING_DIAGNOSTICS,
+        "DATA, BLOCK",
+        "a few Hz (server config)",
+    ),
+    *(
+        KeySpec(
+            f"ctl/{name}",
+            "client -> server (get / queryable)",
+            f"JSON request `{name}` -> JSON reply",
+            ENCODING_CONTROL,
+            "default",
+            "on demand; answered within about one tick",
+        )
+        for name in CONTROL_NAMES
+    ),
+    KeySpec(
+        "alive",
+        "server (liveliness token)",
+        "none",
+        "-",
+        "-",
+        "present while the server runs",
+    ),
+)
+
+
+def validate_vehicle_id(vehicle: str) -> str:
+    """Check a vehicle id: one non-empty key chunk of ``[A-Za-z0-9_.-]``.
+
+    Parameters
+    ----------
+    vehicle : str
+        The id, for example ``"car0"``.
+
+    Returns
+    -------
+    str
+        The id, unchanged.
+
+    Raises
+    ------
+    ProtocolError
+        With ``field == "vehicle"`` when the id is empty, contains ``/``, a wildcard
+        (``* $ ? #``) or any other character outside the set above.
+    """
+    return _validate_chunk("vehicle", vehicle)
+
+
+def validate_prefix(prefix: str) -> str:
+    """Check a key prefix: one or more ``/``-separated chunks of ``[A-Za-z0-9_.-]``.
+
+    Raises
+    ------
+    ProtocolError
+        With ``field == "prefix"`` when the prefix is empty, starts or ends with ``/``,
+        has an empty chunk, a wildcard (``* $ ? #``) or any other character outside the set.
+    """
+    if not isinstance(prefix, str) or not prefix:
+        raise ProtocolError("prefix", f"must be a non-empty string, got {prefix!r}")
+    for chunk in prefix.split("/"):
+        if not chunk:
+            raise ProtocolError(
+                "prefix", f"{prefix!r} has an empty chunk (leading, trailing or double '/')"
+            )
+        _validate_chunk("prefix", chunk, whole=prefix)
+    return prefix
+
+
+def _validate_chunk(what: str, chunk: str, whole: str | None = None) -> str:
+    shown = whole if whole is not None else chunk
+    if not isinstance(chunk, str) or not chunk:
+        raise ProtocolError(what, f"must be a non-empty string, got {chunk!r}")
+    if _ID_CHUNK.fullmatch(chunk):
+        return chunk
+    for ch in chunk:
+        if ch in _WILDCARDS:
+            raise ProtocolError(
+                what, f"{shown!r} contains {ch!r}: wildcards and '$ ? #' are not allowed"
+            )
+        if ch == "/":
+            raise ProtocolError(what, f"{shown!r} contains '/': an id is one key chunk")
+        if not _ID_CHUNK.fullmatch(ch):
+            raise ProtocolError(
+                what, f"{shown!r} contains {ch!r}: use letters, digits, '_', '-' or '.'"
+            )
+    raise ProtocolError(what, f"{shown!r} is not a valid key chunk")  # pragma: no cover
+
+
+@dataclass(frozen=True)
+class VehicleKeys:
+    """Every key expression of one vehicle (built by :func:`vehicle_keys`).
+
+    Attributes
+    ----------
+    prefix, vehicle : str
+        The validated prefix and vehicle id.
+    base : str
+        ``"{prefix}/{vehicle}"``.
+    cmd, state, diag, alive : str
+        Driver commands in, state out, diagnostics out, liveliness token.
+    ctl : Mapping[str, str]
+        Control name -> queryable key (``"{base}/ctl/{name}"``) for every
+        :data:`CONTROL_NAMES`.
+    ctl_wildcard : str
+        ``"{base}/ctl/*"``: one queryable serving every control.
+    """
+
+    prefix: str
+    vehicle: str
+    base: str
+    cmd: str
+    state: str
+    diag: str
+    alive: str
+    ctl: Mapping[str, str]
+    ctl_wildcard: str
+
+    def control(self, name: str) -> str:
+        """Key of control ``name``; raises :class:`ProtocolError` for an unknown name."""
+        try:
+            return self.ctl[name]
+        except KeyError:
+            raise ProtocolError(
+                "control", f"unknown control {name!r}; known: {', '.join(CONTROL_NAMES)}"
+            ) from None
+
+    def control_name(self, key: str) -> str | None:
+        """The control named by a concrete key of this vehicle, or None if it is not one."""
+        head = self.base + "/ctl/"
+        if not key.startswith(head):
+            return None
+        name = key[len(head) :]
+        return name if name in self.ctl else None
+
+
+def vehicle_keys(prefix: str = DEFAULT_PREFIX, vehicle: str = DEFAULT_VEHICLE) -> VehicleKeys:
+    """Build every key expression of one vehicle: the one place keys are made.
+
+    Parameters
+    ----------
+    prefix : str, optional
+        Key prefix, one or more chunks (``"simserver"``, ``"lab1/simserver"``).
+    vehicle : str, optional
+        Vehicle id, one chunk. Servers with different ids never see each other's traffic.
+
+    Returns
+    -------
+    VehicleKeys
+
+    Raises
+    ------
+    ProtocolError
+        When the prefix or the id is invalid (see :func:`validate_prefix`,
+        :func:`validate_vehicle_id`).
+    """
+    validate_prefix(prefix)
+    validate_vehicle_id(vehicle)
+    base = f"{prefix}/{vehicle}"
+    return VehicleKeys(
+        prefix=prefix,
+        vehicle=vehicle,
+        base=base,
+        cmd=f"{base}/cmd",
+        state=f"{base}/state",
+        diag=f"{base}/diag",
+        alive=f"{base}/alive",
+        ctl={name: f"{base}/ctl/{name}" for name in CONTROL_NAMES},
+        ctl_wildcard=f"{base}/ctl/*",
+    )
+
+
+# ============================================================================ field tables
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """One field of a binary payload.
+
+    Attributes
+    ----------
+    name : str
+        Field name (numpy dtype field name).
+    dtype : str
+        Little-endian numpy type string (``"<u2"``, ``"<f4"``, ``"u1"``, ...).
+    count : int
+        1 for a scalar, 4 for a per-wheel array (FL, FR, RL, RR).
+    unit : str
+        SI unit, ``"1"`` for dimensionless, ``"-"`` for codes and counters.
+    lo, hi : float or None
+        Valid range (inclusive); None where any value of the type is valid.
+    description : str
+        Meaning and sign convention.
+    rule : str
+        What the receiver does with a value outside the range (commands only).
+    """
+
+    name: str
+    dtype: str
+    count: int
+    unit: str
+    lo: float | None
+    hi: float | None
+    description: str
+    rule: str = "-"
+
+
+_REJECT = "reject"
+_CLAMP = f"NaN/inf: reject; within {CLAMP_TOLERANCE:g} outside: clamp; further: reject"
+
+COMMAND_FIELDS: Final[tuple[FieldSpec, ...]] = (
+    FieldSpec("version", "<u2", 1, "-", PROTOCOL_VERSION, PROTOCOL_VERSION,
+              "protocol version, must equal PROTOCOL_VERSION", _REJECT),
+    FieldSpec("gear", "u1", 1, "-", 0, 3, "0 = P, 1 = R, 2 = N, 3 = D", _REJECT),
+    FieldSpec("flags", "u1", 1, "-", None, None,
+              "bit 0: parking (hand) brake applied; bits 1-7 must be 0",
+              "unknown bit set: reject"),
+    FieldSpec("seq", "<u4", 1, "-", None, None,
+              "sender's sequence number, +1 per command (wraps at 2^32)", "-"),
+    FieldSpec("sender_time_ns", "<u8", 1, "ns", None, None,
+              "sender's clock (any epoch, opaque to the server; echoed in "
+              "VehicleState.last_cmd_sender_time_ns)", "-"),
+    FieldSpec("steer", "<f4", 1, "1", -1.0, 1.0,
+              "normalised steering-wheel position, +1 = full left (ISO 8855: positive "
+              "steer turns left)", _CLAMP),
+    FieldSpec("throttle", "<f4", 1, "1", 0.0, 1.0, "accelerator pedal, 0 = released",
+              _CLAMP),
+    FieldSpec("brake", "<f4", 1, "1", 0.0, 1.0, "service brake pedal, 0 = released", _CLAMP),
+)
+
+_POSE = "world frame (ISO 8855: x forward/east, y left/north, z up)"
+_ATT = "body attitude R = Rz(yaw) Ry(pitch) Rx(roll), intrinsic z-y'-x''"
+_WHEELS = "per wheel FL, FR, RL, RR"
+
+STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
+    FieldSpec("version", "<u2", 1, "-", PROTOCOL_VERSION, PROTOCOL_VERSION,
+              "protocol version"),
+    FieldSpec("flags", "<u2", 1, "-", None, None,
+              "bit 0 watchdog engaged (no valid command: throttle off, brakes hold); "
+              "bit 1 paused; bit 2 a brake holds a wheel at zero spin; bit 3 tick run late "
+              "as part of a catch-up; bits 4-15 are 0"),
+    FieldSpec("last_cmd_seq", "<u4", 1, "-", None, None,
+              "seq of the last command applied (0 before the first)"),
+    FieldSpec("tick", "<u8", 1, "-", None, None,
+              "physics ticks stepped since start or reset"),
+    FieldSpec("last_cmd_sender_time_ns", "<u8", 1, "ns", None, None,
+              "sender_time_ns of the last command applied (0 before the first)"),
+    FieldSpec("sim_time_s", "<f8", 1, "s", 0.0, None, "simulated time = tick x period"),
+    FieldSpec("x_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}"),
+    FieldSpec("y_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}"),
+    FieldSpec("z_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}"),
+    FieldSpec("yaw_rad", "<f8", 1, "rad", None, None,
+              f"heading from world x toward y, continuous (not wrapped); {_ATT}"),
+    FieldSpec("pitch_rad", "<f8", 1, "rad", None, None,
+              f"pitch, positive = nose down; {_ATT}"),
+    FieldSpec("roll_rad", "<f8", 1, "rad", None, None,
+              f"roll, positive = left side up; {_ATT}"),
+    FieldSpec("cmd_age_s", "<f4", 1, "s", -1.0, None,
+              "wall time since the last valid command arrived; -1 before the first"),
+    FieldSpec("u_mps", "<f4", 1, "m/s", None, None, "body longitudinal velocity (x forward)"),
+    FieldSpec("v_mps", "<f4", 1, "m/s", None, None, "body lateral velocity (y left)"),
+    FieldSpec("w_mps", "<f4", 1, "m/s", None, None, "body vertical velocity (z up)"),
+    FieldSpec("roll_rate_radps", "<f4", 1, "rad/s", None, None, "body roll rate (about x)"),
+    FieldSpec("pitch_rate_radps", "<f4", 1, "rad/s", None, None, "body pitch rate (about y)"),
+    FieldSpec("yaw_rate_radps", "<f4", 1, "rad/s", None, None, "body yaw rate (about z)"),
+    FieldSpec("ax_mps2", "<f4", 1, "m/s^2", None, None, "CG acceleration along body x"),
+    FieldSpec("ay_mps2", "<f4", 1, "m/s^2", None, None, "CG acceleration along body y"),
+    FieldSpec("steer", "<f4", 1, "1", -1.0, 1.0,
+              "applied steer (after clamping and watchdog)"),
+    FieldSpec("throttle", "<f4", 1, "1", 0.0, 1.0, "applied throttle"),
+    FieldSpec("brake", "<f4", 1, "1", 0.0, 1.0, "applied service brake"),
+    FieldSpec("omega_radps", "<f4", 4, "rad/s", None, None,
+              f"wheel spin rate, positive = rolling forward; {_WHEELS}"),
+    FieldSpec("kappa_lag", "<f4", 4, "1", None, None,
+              f"lagged longitudinal slip k' (SAE 950311 eq. 26), + when driving; {_WHEELS}"),
+    FieldSpec("tan_alpha_lag", "<f4", 4, "1", None, None,
+              f"lagged lateral slip tan a' (eq. 16), + when the hub slides left; {_WHEELS}"),
+    FieldSpec("fx_n", "<f4", 4, "N", None, None,
+              f"longitudinal tire force, wheel frame; {_WHEELS}"),
+    FieldSpec("fy_n", "<f4", 4, "N", None, None, f"lateral tire force, wheel frame; {_WHEELS}"),
+    FieldSpec("fz_n", "<f4", 4, "N", 0.0, None, f"normal load; {_WHEELS}"),
+    FieldSpec("steer_rad", "<f4", 4, "rad", None, None,
+              f"road-wheel steer angle, + = left; {_WHEELS}"),
+    FieldSpec("damping_active", "u1", 4, "-", 0, 1,
+              f"low-speed auxiliary damping active (0/1); {_WHEELS}"),
+    FieldSpec("brake_held", "u1", 4, "-", 0, 1,
+              f"brake holds the wheel at zero spin (0/1); {_WHEELS}"),
+    FieldSpec("parking_brake", "u1", 1, "-", 0, 1, "applied parking brake (0/1)"),
+    FieldSpec("gear", "u1", 1, "-", 0, 3, "applied gear, 0 = P, 1 = R, 2 = N, 3 = D"),
+    FieldSpec("reserved", "u1", 6, "-", 0, 0, "zero (pads the payload to 256 bytes)"),
+)
+
+_WINDOW = "over the last window_ticks ticks"
+
+DIAGNOSTICS_FIELDS: Final[tuple[FieldSpec, ...]] = (
+    FieldSpec("version", "<u2", 1, "-", PROTOCOL_VERSION, PROTOCOL_VERSION,
+              "protocol version"),
+    FieldSpec("reserved", "<u2", 1, "-", 0, 0, "zero"),
+    FieldSpec("window_ticks", "<u4", 1, "-", None, None,
+              "ticks in the statistics window (the p50/p99/max fields)"),
+    FieldSpec("tick", "<u8", 1, "-", None, None, "physics tick at publication"),
+    FieldSpec("uptime_s", "<f8", 1, "s", 0.0, None, "wall time since the clock started"),
+    FieldSpec("lateness_p50_us", "<f4", 1, "us", 0.0, None,
+              f"median tick start lateness after its deadline, {_WINDOW}"),
+    FieldSpec("lateness_p99_us", "<f4", 1, "us", 0.0, None, f"99th percentile, {_WINDOW}"),
+    FieldSpec("lateness_max_us", "<f4", 1, "us", 0.0, None, f"maximum, {_WINDOW}"),
+    FieldSpec("period_p50_us", "<f4", 1, "us", 0.0, None,
+              f"median start-to-start tick period, {_WINDOW}"),
+    FieldSpec("period_p99_us", "<f4", 1, "us", 0.0, None, f"99th percentile, {_WINDOW}"),
+    FieldSpec("period_max_us", "<f4", 1, "us", 0.0, None, f"maximum, {_WINDOW}"),
+    FieldSpec("period_min_us", "<f4", 1, "us", 0.0, None, f"minimum, {_WINDOW}"),
+    FieldSpec("cpu_percent", "<f4", 1, "%", 0.0, None,
+              "process CPU time / wall time since the last diagnostics (100 = one core)"),
+    FieldSpec("overruns", "<u8", 1, "-", None, None,
+              "ticks whose deadline had passed before the loop asked for them (since start)"),
+    FieldSpec("skipped_ticks", "<u8", 1, "-", None, None,
+              "deadlines dropped by the overrun policy (sim time lags wall time by "
+              "skipped_ticks x period)"),
+    FieldSpec("late_ticks", "<u8", 1, "-", None, None,
+              "ticks started more than 1 ms after their deadline (since start)"),
+    FieldSpec("cmd_received", "<u8", 1, "-", None, None, "command payloads received"),
+    FieldSpec("cmd_rejected", "<u8", 1, "-", None, None,
+              "commands rejected by decode_command (never applied)"),
+    FieldSpec("cmd_clamped", "<u8", 1, "-", None, None,
+              "commands applied with a value clamped into range"),
+    FieldSpec("cmd_stale", "<u8", 1, "-", None, None,
+              "valid commands not applied: older seq than one already applied, or "
+              "superseded by a newer one in the same tick"),
+    FieldSpec("state_published", "<u8", 1, "-", None, None, "VehicleState messages published"),
+    FieldSpec("watchdog_trips", "<u8", 1, "-", None, None, "times the watchdog engaged"),
+)
+
+_STRUCT_CODES = {"u1": "B", "u2": "H", "u4": "I", "u8": "Q", "f4": "f", "f8": "d"}
+
+
+def _make_dtype(fields: Sequence[FieldSpec]) -> np.dtype:
+    return np.dtype(
+        [(f.name, f.dtype, (f.count,)) if f.count > 1 else (f.name, f.dtype) for f in fields]
+    )
+
+
+def _struct_format(fields: Sequence[FieldSpec]) -> str:
+    parts = []
+    for f in fields:
+        code = _STRUCT_CODES[f.dtype.lstrip("<")]
+        parts.append(f"{f.count}{code}" if f.count > 1 else code)
+    return "<" + "".join(parts)
+
+
+COMMAND_DTYPE: Final[np.dtype] = _make_dtype(COMMAND_FIELDS)
+STATE_DTYPE: Final[np.dtype] = _make_dtype(STATE_FIELDS)
+DIAGNOSTICS_DTYPE: Final[np.dtype] = _make_dtype(DIAGNOSTICS_FIELDS)
+
+_COMMAND_STRUCT = struct.Struct(_struct_format(COMMAND_FIELDS))
+_STATE_STRUCT = struct.Struct(_struct_format(STATE_FIELDS))
+_DIAGNOSTICS_STRUCT = struct.Struct(_struct_format(DIAGNOSTICS_FIELDS))
+
+COMMAND_SIZE: Final[int] = COMMAND_DTYPE.itemsize
+STATE_SIZE: Final[int] = STATE_DTYPE.itemsize
+DIAGNOSTICS_SIZE: Final[int] = DIAGNOSTICS_DTYPE.itemsize
+
+assert _COMMAND_STRUCT.size == COMMAND_SIZE == 28
+assert _STATE_STRUCT.size == STATE_SIZE == 256
+assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 128
+
+
+# ============================================================================ commands
+
+
+class Gear(enum.IntEnum):
+    """Gear selector codes (as ``core.layout.GEAR_*``)."""
+
+    P = 0
+    R = 1
+    N = 2
+    D = 3
+
+
+CMD_FLAG_PARKING_BRAKE: Final[int] = 0x01
+CMD_FLAGS_KNOWN: Final[int] = CMD_FLAG_PARKING_BRAKE
+
+
+class StateFlag(enum.IntFlag):
+    """Bits of ``VehicleState.flags``."""
+
+    WATCHDOG = 0x01
+    PAUSED = 0x02
+    BRAKE_HOLD = 0x04
+    CATCHUP = 0x08
+
+
+@dataclass(frozen=True, slots=True)
+class DriverCommand:
+    """A validated driver command, ready to apply (names as CARLA's VehicleControl).
+
+    Attributes
+    ----------
+    seq : int
+        Sender's sequence number (u32).
+    sender_time_ns : int
+        Sender's timestamp (u64, the sender's clock).
+    steer : float
+        [-1, 1], +1 = full left.
+    throttle, brake : float
+        [0, 1].
+    gear : int
+        A :class:`Gear` code.
+    parking_brake : bool
+        Hand brake applied.
+    clamped : tuple of str
+        Names of the fields that were clamped into range (empty almost always).
+    """
+
+    seq: int
+    sender_time_ns: int
+    steer: float
+    throttle: float
+    brake: float
+    gear: int
+    parking_brake: bool
+    clamped: tuple[str, ...] = ()
+
+
+_CMD_STEER = COMMAND_FIELDS[5]
+_CMD_THROTTLE = COMMAND_FIELDS[6]
+_CMD_BRAKE = COMMAND_FIELDS[7]
+
+
+def _unit_value(spec: FieldSpec, value: float) -> tuple[float, bool]:
+    """Validate a normalised float: returns (value within range, was clamped)."""
+    if not math.isfinite(value):
+        raise ProtocolError(spec.name, f"{value!r} is not finite: rejected")
+    lo, hi = spec.lo, spec.hi
+    if lo <= value <= hi:
+        return value, False
+    if lo - CLAMP_TOLERANCE <= value <= hi + CLAMP_TOLERANCE:
+        return (lo if value < lo else hi), True
+    raise ProtocolError(
+        spec.name,
+        f"{value!r} is outside [{lo:g}, {hi:g}] by more than the clamp tolerance "
+        f"{CLAMP_TOLERANCE:g}: rejected",
+    )
+
+
+def decode_command(payload: bytes | bytearray | memoryview) -> DriverCommand:
+    """Decode and validate one DriverCommand payload.
+
+    Parameters
+    ----------
+    payload : bytes-like
+        Exactly :data:`COMMAND_SIZE` bytes (``zenoh.ZBytes`` must be converted with
+        ``to_bytes()`` first).
+
+    Returns
+    -------
+    DriverCommand
+        Finite values within their ranges; ``clamped`` lists any field clamped.
+
+    Raises
+    ------
+    ProtocolError
+        Naming the field: wrong type or size (``payload``), wrong ``version``, unknown
+        ``gear``, unknown ``flags`` bits, a non-finite or out-of-range ``steer``,
+        ``throttle`` or ``brake``. No other exception escapes, whatever the input.
+    """
+    try:
+        size = len(payload)
+        version, gear, flags, seq, sender_time_ns, steer, throttle, brake = (
+            _COMMAND_STRUCT.unpack(payload)
+            if size == COMMAND_SIZE
+            else (None,) * 8
+        )
+    except (TypeError, struct.error, BufferError, ValueError) as exc:
+        raise ProtocolError("payload", f"not a {COMMAND_SIZE}-byte buffer ({exc})") from None
+    if version is None:
+        raise ProtocolError(
+            "payload", f"DriverCommand is {COMMAND_SIZE} bytes, got {size}: rejected"
+        )
+    if version != PROTOCOL_VERSION:
+        raise ProtocolError(
+            "version", f"{version} is not the supported version {PROTOCOL_VERSION}: rejected"
+        )
+    if gear > 3:
+        raise ProtocolError("gear", f"{gear} is not a gear (0 P, 1 R, 2 N, 3 D): rejected")
+    if flags & ~CMD_FLAGS_KNOWN:
+        raise ProtocolError(
+            "flags", f"unknown bits 0x{flags & ~CMD_FLAGS_KNOWN:02x} set: rejected"
+        )
+    steer, c_steer = _unit_value(_CMD_STEER, steer)
+    throttle, c_throttle = _unit_value(_CMD_THROTTLE, throttle)
+    brake, c_brake = _unit_value(_CMD_BRAKE, brake)
+    clamped: tuple[str, ...] = ()
+    if c_steer or c_throttle or c_brake:
+        clamped = tuple(
+            name
+            for name, c in (("steer", c_steer), ("throttle", c_throttle), ("brake", c_brake))
+            if c
+        )
+    return DriverCommand(
+        seq=seq,
+        sender_time_ns=sender_time_ns,
+        steer=steer,
+        throttle=throttle,
+        brake=brake,
+        gear=gear,
+        parking_brake=bool(flags & CMD_FLAG_PARKING_BRAKE),
+        clamped=clamped,
+    )
+
+
+def _check_int(name: str, value: Any, bits: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ProtocolError(name, f"must be an integer, got {value!r}")
+    if not 0 <= int(value) < (1 << bits):
+        raise ProtocolError(name, f"{value} does not fit in u{bits}")
+    return int(value)
+
+
+def encode_command(
+    steer: float = 0.0,
+    throttle: float = 0.0,
+    brake: float = 0.0,
+    *,
+    gear: int = Gear.D,
+    parking_brake: bool = False,
+    seq: int = 0,
+    sender_time_ns: int | None = None,
+    flags: int | None = None,
+    version: int = PROTOCOL_VERSION,
+    check: bool = True,
+) -> bytes:
+    """Encode a DriverCommand payload.
+
+    Parameters
+    ----------
+    steer, throttle, brake : float
+        Normalised inputs (see :data:`COMMAND_FIELDS`).
+    gear : int, optional
+        A :class:`Gear` code (default D).
+    parking_brake : bool, optional
+        Sets flags bit 0.
+    seq : int, optional
+        Sequence number (u32); increment it by one per command.
+    sender_time_ns : int, optional
+        Sender timestamp (u64); default ``time.monotonic_ns()``.
+    flags : int, optional
+        Raw flags byte, overriding ``parking_brake`` (for tests of malformed input).
+    version : int, optional
+        Protocol version to write (for tests of malformed input).
+    check : bool, optional
+        If True (default) the payload must pass :func:`decode_command`; False builds
+        malformed payloads for tests.
+
+    Returns
+    -------
+    bytes
+        :data:`COMMAND_SIZE` bytes.
+
+    Raises
+    ------
+    ProtocolError
+        When a value does not fit its wire type, or (with ``check``) would be rejected.
+    """
+    if sender_time_ns is None:
+        sender_time_ns = time.monotonic_ns()
+    if flags is None:
+        flags = CMD_FLAG_PARKING_BRAKE if parking_brake else 0
+    values = (
+        _check_int("version", version, 16),
+        _check_int("gear", gear, 8),
+        _check_int("flags", flags, 8),
+        _check_int("seq", seq, 32),
+        _check_int("sender_time_ns", sender_time_ns, 64),
+    )
+    floats = []
+    for name, v in (("steer", steer), ("throttle", throttle), ("brake", brake)):
+        try:
+            floats.append(struct.unpack("<f", struct.pack("<f", v))[0])
+        except (struct.error, OverflowError, TypeError) as exc:
+            raise ProtocolError(name, f"{v!r} is not representable as float32 ({exc})") from None
+    payload = _COMMAND_STRUCT.pack(*values, *floats)
+    if check:
+        decode_command(payload)
+    return payload
+
+
+def seq_newer(seq: int, last: int) -> bool:
+    """True if u32 sequence number ``seq`` is newer than ``last`` (RFC 1982 arithmetic).
+
+    Differences in (0, 2^31) count as newer, so the 49-day wrap of a 1 kHz counter is
+    handled.
+    """
+    diff = (seq - last) & 0xFFFFFFFF
+    return 0 < diff < 0x80000000
+
+
+# ============================================================================ state, diagnostics
+
+
+def _pack(kind: str, fields: Sequence[FieldSpec], st: struct.Struct, values: Mapping) -> bytes:
+    names = {f.name for f in fields}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ProtocolError(unknown[0], f"is not a {kind} field")
+    args: list[Any] = []
+    for f in fields:
+        if f.name in values:
+            v = values[f.name]
+        elif f.name == "version":
+            v = PROTOCOL_VERSION
+        elif f.name == "reserved":
+            v = [0] * f.count if f.count > 1 else 0
+        else:
+            raise ProtocolError(f.name, f"missing from the {kind}")
+        if f.count > 1:
+            try:
+                seq = list(np.asarray(v).reshape(-1).tolist())
+            except Exception as exc:  # noqa: BLE001 - any array-like failure is a field error
+                raise ProtocolError(f.name, f"not an array of {f.count}: {exc}") from None
+            if len(seq) != f.count:
+                raise ProtocolError(f.name, f"needs {f.count} values, got {len(seq)}")
+            args.extend(seq)
+        else:
+            args.append(v.item() if isinstance(v, np.generic) else v)
+    try:
+        return st.pack(*args)
+    except (struct.error, OverflowError, TypeError):
+        pass
+    # Locate the field that did not pack, for the message.
+    i = 0
+    for f in fields:
+        one = struct.Struct(_struct_format([f]))
+        try:
+            one.pack(*args[i : i + f.count])
+        except (struct.error, OverflowError, TypeError) as exc:
+            raise ProtocolError(f.name, f"does not fit {f.dtype} x {f.count}: {exc}") from None
+        i += f.count
+    raise ProtocolError(kind, "could not be packed")  # pragma: no cover
+
+
+def _unpack(kind: str, dtype: np.dtype, payload: bytes | bytearray | memoryview) -> np.void:
+    try:
+        size = len(payload)
+    except TypeError:
+        raise ProtocolError("payload", f"expected bytes, got {type(payload).__name__}") from None
+    if size != dtype.itemsize:
+        raise ProtocolError("payload", f"{kind} is {dtype.itemsize} bytes, got {size}")
+    try:
+        rec = np.frombuffer(payload, dtype=dtype, count=1)[0]
+    except (TypeError, ValueError, BufferError) as exc:
+        raise ProtocolError("payload", f"not a {kind} buffer ({exc})") from None
+    if rec["version"] != PROTOCOL_VERSION:
+        raise ProtocolError(
+            "version", f"{int(rec['version'])} is not the supported version {PROTOCOL_VERSION}"
+        )
+    return rec
+
+
+def encode_state(**values: Any) -> bytes:
+    """Encode a VehicleState payload from plain values and arrays.
+
+    Every field of :data:`STATE_FIELDS` is required except ``version`` and ``reserved``;
+    per-wheel fields take any array-like of 4 (FL, FR, RL, RR). Costs about 10-20 us; a
+    1 kHz loop may instead fill :func:`new_state_record` in place and send
+    ``record.tobytes()`` (same bytes).
+
+    Raises
+    ------
+    ProtocolError
+        Naming a missing, unknown or unrepresentable field.
+    """
+    return _pack("VehicleState", STATE_FIELDS, _STATE_STRUCT, values)
+
+
+def decode_state(payload: bytes | bytearray | memoryview) -> np.void:
+    """Decode a VehicleState payload into a numpy record (``rec["x_m"]``, ``rec["fz_n"]``).
+
+    Raises
+    ------
+    ProtocolError
+        Wrong size (``payload``) or ``version``.
+    """
+    return _unpack("VehicleState", STATE_DTYPE, payload)
+
+
+def new_state_record() -> np.ndarray:
+    """A zeroed 0-d VehicleState record with ``version`` set, to fill in place per tick.
+
+    ``rec["x_m"] = ...; rec["fz_n"][:] = ...; payload = rec.tobytes()``. A numba kernel can
+    also fill it (structured arrays are supported in nopython mode).
+    """
+    rec = np.zeros((), dtype=STATE_DTYPE)
+    rec["version"] = PROTOCOL_VERSION
+    return rec
+
+
+def encode_diagnostics(**values: Any) -> bytes:
+    """Encode a Diagnostics payload; every field but ``version``/``reserved`` is required.
+
+    Raises
+    ------
+    ProtocolError
+        Naming a missing, unknown or unrepresentable field.
+    """
+    return _pack("Diagnostics", DIAGNOSTICS_FIELDS, _DIAGNOSTICS_STRUCT, values)
+
+
+def decode_diagnostics(payload: bytes | bytearray | memoryview) -> np.void:
+    """Decode a Diagnostics payload into a numpy record.
+
+    Raises
+    ------
+    ProtocolError
+        Wrong size (``payload``) or ``version``.
+    """
+    return _unpack("Diagnostics", DIAGNOSTICS_DTYPE, payload)
+
+
+def record_to_dict(rec: np.void | np.ndarray) -> dict[str, Any]:
+    """Plain Python values of a decoded record (arrays become lists), e.g. for JSON logs."""
+    return {name: rec[name].tolist() for name in rec.dtype.names}
+
+
+# ============================================================================ controls
+
+
+@dataclass(frozen=True)
+class ArgSpec:
+    """One argument of a control request.
+
+    Attributes
+    ----------
+    name : str
+        JSON key.
+    kind : str
+        ``"number"`` (int or float, finite), ``"integer"``, ``"path"`` (a YAML file path
+        string) or ``"object"`` (with ``children``).
+    required : bool
+        Must be present.
+    unit : str
+        Unit of a number.
+    lo, hi : float or None
+        Inclusive range of a number or integer.
+    description : str
+        Meaning.
+    children : tuple of ArgSpec
+        Members of an object (all required unless marked otherwise).
+    """
+
+    name: str
+    kind: str
+    required: bool
+    unit: str
+    lo: float | None
+    hi: float | None
+    description: str
+    children: tuple[ArgSpec, ...] = ()
+
+
+@dataclass(frozen=True)
+class ControlSpec:
+    """A control queryable: its arguments and the fields of a successful reply."""
+
+    name: str
+    description: str
+    args: tuple[ArgSpec, ...] = ()
+    at_least_one: bool = False
+    reply: str = ""
+    defaults: Mapping[str, Any] = field(default_factory=dict)
+
+
+_MAX_PATH = 1024
+
+CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
+    spec.name: spec
+    for spec in (
+        ControlSpec(
+            "reset",
+            "Reset the vehicle to the scene's initial pose at rest, or to `pose` at rest. "
+            "Tick and sim time restart at 0; counters are kept.",
+            (
+                ArgSpec("pose", "object", False, "", None, None,
+                        "pose on the road plane, at rest",
+                        (
+                            ArgSpec("x_m", "number", True, "m", -1e6, 1e6, "position x"),
+                            ArgSpec("y_m", "number", True, "m", -1e6, 1e6, "position y"),
+                            ArgSpec("yaw_rad", "number", True, "rad", -2 * math.pi,
+                                    2 * math.pi, "heading, + = left of world x"),
+                        )),
+            ),
+            reply='"tick": 0, "pose": {x_m, y_m, yaw_rad}',
+        ),
+        ControlSpec("pause", "Stop stepping the physics; state is still published with "
+                    "flags bit 1 set. Idempotent.", reply='"tick", "paused": true'),
+        ControlSpec("resume", "Resume stepping at the wall-clock rate from the current tick "
+                    "(the clock is re-based: no catch-up of the paused time). Idempotent.",
+                    reply='"tick", "paused": false'),
+        ControlSpec(
+            "step",
+            "While paused: step `n` ticks, one per period at the normal rate, then stay "
+            "paused. Replies at once (before the steps run). Error if not paused.",
+            (ArgSpec("n", "integer", False, "ticks", 1, 100000, "ticks to step (default 1)"),),
+            reply='"tick" (now), "until_tick" (tick after the n steps)',
+            defaults={"n": 1},
+        ),
+        ControlSpec(
+            "set_road",
+            "Change the road plane and friction; omitted members keep their value. Takes "
+            "effect on the next tick.",
+            (
+                ArgSpec("grade_pct", "number", False, "%", -60.0, 60.0,
+                        "grade: the road rises grade_pct m per 100 m along world x"),
+                ArgSpec("cross_slope_pct", "number", False, "%", -30.0, 30.0,
+                        "cross slope: the road rises cross_slope_pct m per 100 m along world y"),
+                ArgSpec("friction_scale", "number", False, "1", 0.05, 2.0,
+                        "road friction scale (1 = the surface the tires were measured on)"),
+            ),
+            at_least_one=True,
+            reply='"road": {grade_pct, cross_slope_pct, friction_scale} (all, after change)',
+        ),
+        ControlSpec(
+            "load",
+            "Load another vehicle and/or scene YAML (paths resolved by the server; it may "
+            "restrict them to its config directories), compile it, then reset. The "
+            "physics is paused meanwhile.",
+            (
+                ArgSpec("vehicle", "path", False, "", None, None, "vehicle YAML path"),
+                ArgSpec("scene", "path", False, "", None, None, "scene YAML path"),
+            ),
+            at_least_one=True,
+            reply='"vehicle", "scene" (the active paths)',
+        ),
+        ControlSpec(
+            "get_config",
+            "Return the active configuration.",
+            reply='"protocol_version", "config" (server, vehicle, scene, road, keys)',
+        ),
+    )
+}
+assert tuple(CONTROL_SPECS) == CONTROL_NAMES
+
+
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not allowed (JSON numbers must be finite)")
+
+
+def _check_arg(spec: ArgSpec, value: Any, path: str) -> Any:
+    if spec.kind == "number":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ProtocolError(path, f"must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ProtocolError(path, f"{value!r} is not finite")
+        if not spec.lo <= value <= spec.hi:
+            raise ProtocolError(path, f"{value!r} is outside [{spec.lo:g}, {spec.hi:g}]")
+        return value
+    if spec.kind == "integer":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ProtocolError(path, f"must be an integer, got {value!r}")
+        if not spec.lo <= value <= spec.hi:
+            raise ProtocolError(path, f"{value} is outside [{spec.lo:g}, {spec.hi:g}]")
+        return value
+    if spec.kind == "path":
+        if not isinstance(value, str) or not value:
+            raise ProtocolError(path, f"must be a non-empty string, got {value!r}")
+        if len(value) > _MAX_PATH:
+            raise ProtocolError(path, f"is longer than {_MAX_PATH} characters")
+        if any(ord(ch) < 32 or ord(ch) == 127 for ch in value):
+            raise ProtocolError(path, "contains control characters")
+        if not value.endswith((".yaml", ".yml")):
+            raise ProtocolError(path, f"{value!r} is not a .yaml/.yml file")
+        return value
+    if spec.kind == "object":
+        return _check_object(spec.children, value, path, at_least_one=False)
+    raise AssertionError(spec.kind)  # pragma: no cover
+
+
+def _check_object(
+    specs: Sequence[ArgSpec], obj: Any, path: str, *, at_least_one: bool
+) -> dict[str, Any]:
+    where = path or "request"
+    if not isinstance(obj, dict):
+        raise ProtocolError(where, f"must be a JSON object, got {type(obj).__name__}")
+    known = {s.name: s for s in specs}
+    for key in obj:
+        if key not in known:
+            full = f"{path}.{key}" if path else str(key)
+            allowed = ", ".join(known) or "none"
+            raise ProtocolError(full, f"is not an argument here (allowed: {allowed})")
+    out: dict[str, Any] = {}
+    for s in specs:
+        full = f"{path}.{s.name}" if path else s.name
+        if s.name in obj:
+            out[s.name] = _check_arg(s, obj[s.name], full)
+        elif s.required:
+            raise ProtocolError(full, "is required")
+    if at_least_one and not out:
+        raise ProtocolError(where, f"give at least one of: {', '.join(known)}")
+    return out
+
+
+def validate_control(name: str, payload: bytes | bytearray | memoryview | None) -> dict:
+    """Validate a control request and return its arguments, defaults filled in.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`CONTROL_NAMES`.
+    payload : bytes-like or None
+        UTF-8 JSON object; empty or None means ``{}``.
+
+    Returns
+    -------
+    dict
+        Validated arguments: numbers as float, integers as int, defaults added.
+
+    Raises
+    ------
+    ProtocolError
+        Naming the field (``"n"``, ``"pose.yaw_rad"``, ...), or ``"control"`` for an
+        unknown control, ``"request"`` for a payload that is not a UTF-8 JSON object.
+    """
+    spec = CONTROL_SPECS.get(name)
+    if spec is None:
+        raise ProtocolError(
+            "control", f"unknown control {name!r}; known: {', '.join(CONTROL_NAMES)}"
+        )
+    if payload is None:
+        payload = b""
+    try:
+        raw = bytes(payload)
+    except TypeError:
+        raise ProtocolError("request", f"expected bytes, got {type(payload).__name__}") from None
+    if len(raw) > MAX_CONTROL_PAYLOAD_BYTES:
+        raise ProtocolError("request", f"{len(raw)} bytes exceeds {MAX_CONTROL_PAYLOAD_BYTES}")
+    if raw.strip() == b"":
+        obj: Any = {}
+    else:
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise ProtocolError("request", f"is not UTF-8 ({exc.reason})") from None
+        try:
+            obj = json.loads(text, parse_constant=_reject_constant)
+        except RecursionError:
+            raise ProtocolError("request", "JSON nested too deeply") from None
+        except ValueError as exc:
+            raise ProtocolError("request", f"is not valid JSON ({exc})") from None
+    args = _check_object(spec.args, obj, "", at_least_one=spec.at_least_one)
+    for key, default in spec.defaults.items():
+        args.setdefault(key, default)
+    return args
+
+
+def encode_control(name: str, args: Mapping[str, Any] | None = None) -> bytes:
+    """Encode a control request (client side); validated with :func:`validate_control`.
+
+    Raises
+    ------
+    ProtocolError
+        When the server would reject the request.
+    """
+    payload = json.dumps(dict(args or {}), allow_nan=False).encode() if args else b""
+    validate_control(name, payload)
+    return payload
+
+
+def reply_ok(**data: Any) -> bytes:
+    """A success reply: ``{"ok": true, ...data}`` as UTF-8 JSON."""
+    return json.dumps({"ok": True, **data}, allow_nan=False).encode()
+
+
+def reply_error(error: str | ProtocolError, field: str | None = None) -> bytes:
+    """A failure reply: ``{"ok": false, "error": "...", "field": "..."}`` as UTF-8 JSON.
+
+    ``field`` is taken from a :class:`ProtocolError` when not given.
+    """
+    if field is None and isinstance(error, ProtocolError):
+        field = error.field
+    body: dict[str, Any] = {"ok": False, "error": str(error)}
+    if field is not None:
+        body["field"] = field
+    return json.dumps(body).encode()
+
+
+def decode_reply(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
+    """Parse a control reply; it must be a JSON object with a boolean ``ok``.
+
+    Raises
+    ------
+    ProtocolError
+        When the reply is not such an object (``field == "reply"``).
+    """
+    try:
+        obj = json.loads(bytes(payload).decode("utf-8"))
+    except (TypeError, ValueError) as exc:
+        raise ProtocolError("reply", f"is not UTF-8 JSON ({exc})") from None
+    if not isinstance(obj, dict) or not isinstance(obj.get("ok"), bool):
+        raise ProtocolError("reply", f"has no boolean 'ok': {obj!r}"[:200])
+    if not obj["ok"] and not isinstance(obj.get("error"), str):
+        raise ProtocolError("reply", "an error reply has no 'error' string")
+    return obj
+
+
+# ============================================================================ docs
+
+
+def _range_text(f: FieldSpec) -> str:
+    if f.name == "version":
+        return f"= {PROTOCOL_VERSION}"
+    if f.lo is None and f.hi is None:
+        return "any" if f.dtype.lstrip("<").startswith("f") else "all"
+    lo = "-inf" if f.lo is None else f"{f.lo:g}"
+    hi = "+inf" if f.hi is None else f"{f.hi:g}"
+    if f.lo == f.hi:
+        return f"= {lo}"
+    return f"[{lo}, {hi}]"
+
+
+_TYPE_NAMES = {"u1": "u8", "u2": "u16", "u4": "u32", "u8": "u64", "f4": "f32", "f8": "f64"}
+
+
+def fields_markdown(fields: Sequence[FieldSpec], *, with_rule: bool = False) -> str:
+    """Markdown table of a payload: offset, field, type, unit, range (and decode rule)."""
+    dt = _make_dtype(fields)
+    head = "| offset | field | type | unit | range | description |"
+    sep = "|---:|---|---|---|---|---|"
+    if with_rule:
+        head = head[:-1] + " on decode |"
+        sep += "---|"
+    rows = [head, sep]
+    for f in fields:
+        t = _TYPE_NAMES[f.dtype.lstrip("<")]
+        if f.count > 1:
+            t = f"{t}[{f.count}]"
+        row = (f"| {dt.fields[f.name][1]} | `{f.name}` | {t} | {f.unit} | {_range_text(f)} "
+               f"| {f.description} |")
+        if with_rule:
+            row += f" {f.rule} |"
+        rows.append(row)
+    rows.append(f"\nTotal: **{dt.itemsize} bytes**, little-endian, no padding between fields.")
+    return "\n".join(rows)
+
+
+def keys_markdown() -> str:
+    """Markdown table of every key expression of a vehicle."""
+    rows = [
+        "| key | direction | payload | encoding | QoS | rate |",
+        "|---|---|---|---|---|---|",
+    ]
+    for k in KEY_SPECS:
+        rows.append(
+            f"| `{{prefix}}/{{vehicle}}/{k.suffix}` | {k.direction} | {k.payload} "
+            f"| `{k.encoding}` | {k.qos} | {k.rate} |"
+        )
+    return "\n".join(rows)
+
+
+def _arg_rows(args: Sequence[ArgSpec], prefix: str = "") -> list[str]:
+    rows = []
+    for a in args:
+        name = f"{prefix}{a.name}"
+        if a.kind in ("number", "integer"):
+            rng = f"[{a.lo:g}, {a.hi:g}]"
+        elif a.kind == "path":
+            rng = f"string ending .yaml/.yml, at most {_MAX_PATH} chars"
+        else:
+            rng = "object"
+        req = "required" if a.required else "optional"
+        rows.append(f"| `{name}` | {a.kind} | {req} | {a.unit or '-'} | {rng} | {a.description} |")
+        rows.extend(_arg_rows(a.children, prefix=f"{name}."))
+    return rows
+
+
+def controls_markdown() -> str:
+    """Markdown description of every control: arguments and reply fields."""
+    out = []
+    for spec in CONTROL_SPECS.values():
+        out.append(f"#### `ctl/{spec.name}`\n\n{spec.description}\n")
+        if spec.args:
+            extra = " At least one argument is required." if spec.at_least_one else ""
+            out.append(f"Arguments (unknown keys are rejected).{extra}\n")
+            out.append("| argument | type | presence | unit | range | description |")
+            out.append("|---|---|---|---|---|---|")
+            out.extend(_arg_rows(spec.args))
+            out.append("")
+        else:
+            out.append("Arguments: none (empty payload or `{}`).\n")
+        out.append(f'Reply on success: `{{"ok": true, {spec.reply}}}`\n')
+    return "\n".join(out).rstrip() + "\n"
+
+
+def constants_markdown() -> str:
+    """Markdown list of the protocol constants."""
+    return "\n".join(
+        [
+            f"- `PROTOCOL_VERSION` = {PROTOCOL_VERSION}",
+            f"- DriverCommand: {COMMAND_SIZE} bytes; VehicleState: {STATE_SIZE} bytes; "
+            f"Diagnostics: {DIAGNOSTICS_SIZE} bytes",
+            f"- clamp tolerance for normalised inputs: {CLAMP_TOLERANCE:g}",
+            f"- largest control request: {MAX_CONTROL_PAYLOAD_BYTES} bytes",
+            f"- default prefix `{DEFAULT_PREFIX}`, default vehicle id `{DEFAULT_VEHICLE}`",
+        ]
+    )
+
+
+def doc_sections() -> dict[str, str]:
+    """The generated sections of docs/protocol.md, by marker name."""
+    return {
+        "constants": constants_markdown(),
+        "keys": keys_markdown(),
+        "command": fields_markdown(COMMAND_FIELDS, with_rule=True),
+        "state": fields_markdown(STATE_FIELDS),
+        "diagnostics": fields_markdown(DIAGNOSTICS_FIELDS),
+        "controls": controls_markdown(),
+    }
+
+
+_SECTION = re.compile(
+    r"(<!-- BEGIN GENERATED: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- END GENERATED -->)",
+    re.DOTALL,
+)
+
+
+def update_doc(text: str) -> str:
+    """Return ``text`` with every generated section replaced by the current tables.
+
+    Raises
+    ------
+    ValueError
+        When a section marker names no known section or a section is missing.
+    """
+    sections = doc_sections()
+    seen = set()
+
+    def sub(m: re.Match) -> str:
+        name = m.group("name")
+        if name not in sections:
+            raise ValueError(f"unknown generated section {name!r}")
+        seen.add(name)
+        return f"{m.group(1)}{sections[name].rstrip()}\n{m.group(4)}"
+
+    new = _SECTION.sub(sub, text)
+    missing = set(sections) - seen
+    if missing:
+        raise ValueError(f"sections missing from the document: {sorted(missing)}")
+    return new
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m simserver.protocol [--check|--write] PATH``: check or regenerate a doc."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("path")
+    parser.add_argument("--write", action="store_true", help="rewrite the generated sections")
+    args = parser.parse_args(argv)
+    with open(args.path, encoding="utf-8") as fh:
+        text = fh.read()
+    new = update_doc(text)
+    if args.write:
+        if new != text:
+            with open(args.path, "w", encoding="utf-8") as fh:
+                fh.write(new)
+        return 0
+    if new != text:
+        print(f"{args.path} is out of date: run python -m simserver.protocol --write "
+              f"{args.path}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
