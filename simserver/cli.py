@@ -76,6 +76,10 @@ def _add_run_scenario_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dt", type=float, default=None, metavar="S",
                         help="override the scenario's step dt_s (s)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    # --- rerun scene (issue 5) ---
+    parser.add_argument("--rrd", type=Path, default=None, metavar="FILE",
+                        help="also write the Rerun scene to FILE.rrd (open with `rerun FILE`)")
+    # --- end rerun scene ---
 
 
 def _with_dt(scenario: Scenario, dt_s: float | None) -> Scenario:
@@ -99,7 +103,7 @@ def run_scenario_command(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        ``scenario``, ``out``, ``no_plots``, ``dt``, ``quiet``.
+        ``scenario``, ``out``, ``no_plots``, ``dt``, ``quiet``, ``rrd``.
 
     Returns
     -------
@@ -144,6 +148,21 @@ def run_scenario_command(args: argparse.Namespace) -> int:
             written += [p.name for p in plot_result(result, out)]
     except OSError as exc:
         raise CliError(f"{out}: cannot write the results: {exc.strerror or exc}") from exc
+
+    # --- rerun scene (issue 5): the same scene the live viewer shows, to a file ---
+    if args.rrd is not None:
+        from simserver.adapters.rerun_scene import log_result
+        from simserver.adapters.rerun_sink import RerunSinkError, open_recording
+
+        try:
+            rec = open_recording("save", args.rrd, announce=None)
+        except RerunSinkError as exc:
+            raise CliError(str(exc)) from exc
+        assert rec is not None
+        log_result(rec, result)
+        rec.disconnect()  # flushes and closes the file
+        written.append(str(args.rrd))
+    # --- end rerun scene ---
 
     rtf = summary["timing"]["real_time_factor"]
     rtf_text = f"{rtf:,.0f}x real time" if rtf is not None else "real time factor n/a"

@@ -349,9 +349,12 @@ COMMAND_FIELDS: Final[tuple[FieldSpec, ...]] = (
     FieldSpec("throttle", "<f4", 1, "1", 0.0, 1.0, "accelerator pedal, 0 = released",
               _CLAMP),
     FieldSpec("brake", "<f4", 1, "1", 0.0, 1.0, "service brake pedal, 0 = released", _CLAMP),
+    FieldSpec("reserved", "<u4", 1, "-", 0, 0,
+              "zero (pads to 32 bytes, the size of the naturally aligned C struct)",
+              "non-zero: reject"),
 )
 
-_POSE = "world frame (ISO 8855: x forward/east, y left/north, z up)"
+_POSE = "world frame, z up (ISO 8855 earth-fixed axes)"
 _ATT = "body attitude R = Rz(yaw) Ry(pitch) Rx(roll), intrinsic z-y'-x''"
 _WHEELS = "per wheel FL, FR, RL, RR"
 
@@ -482,7 +485,7 @@ COMMAND_SIZE: Final[int] = COMMAND_DTYPE.itemsize
 STATE_SIZE: Final[int] = STATE_DTYPE.itemsize
 DIAGNOSTICS_SIZE: Final[int] = DIAGNOSTICS_DTYPE.itemsize
 
-assert _COMMAND_STRUCT.size == COMMAND_SIZE == 28
+assert _COMMAND_STRUCT.size == COMMAND_SIZE == 32
 assert _STATE_STRUCT.size == STATE_SIZE == 256
 assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 128
 
@@ -583,15 +586,16 @@ def decode_command(payload: bytes | bytearray | memoryview) -> DriverCommand:
     ------
     ProtocolError
         Naming the field: wrong type or size (``payload``), wrong ``version``, unknown
-        ``gear``, unknown ``flags`` bits, a non-finite or out-of-range ``steer``,
-        ``throttle`` or ``brake``. No other exception escapes, whatever the input.
+        ``gear``, unknown ``flags`` bits, non-zero ``reserved``, a non-finite or
+        out-of-range ``steer``, ``throttle`` or ``brake``. No other exception escapes,
+        whatever the input.
     """
     try:
         size = len(payload)
-        version, gear, flags, seq, sender_time_ns, steer, throttle, brake = (
+        version, gear, flags, seq, sender_time_ns, steer, throttle, brake, reserved = (
             _COMMAND_STRUCT.unpack(payload)
             if size == COMMAND_SIZE
-            else (None,) * 8
+            else (None,) * 9
         )
     except (TypeError, struct.error, BufferError, ValueError) as exc:
         raise ProtocolError("payload", f"not a {COMMAND_SIZE}-byte buffer ({exc})") from None
@@ -609,6 +613,8 @@ def decode_command(payload: bytes | bytearray | memoryview) -> DriverCommand:
         raise ProtocolError(
             "flags", f"unknown bits 0x{flags & ~CMD_FLAGS_KNOWN:02x} set: rejected"
         )
+    if reserved:
+        raise ProtocolError("reserved", f"0x{reserved:08x} is not zero: rejected")
     steer, c_steer = _unit_value(_CMD_STEER, steer)
     throttle, c_throttle = _unit_value(_CMD_THROTTLE, throttle)
     brake, c_brake = _unit_value(_CMD_BRAKE, brake)
@@ -701,7 +707,7 @@ def encode_command(
             floats.append(struct.unpack("<f", struct.pack("<f", v))[0])
         except (struct.error, OverflowError, TypeError) as exc:
             raise ProtocolError(name, f"{v!r} is not representable as float32 ({exc})") from None
-    payload = _COMMAND_STRUCT.pack(*values, *floats)
+    payload = _COMMAND_STRUCT.pack(*values, *floats, 0)
     if check:
         decode_command(payload)
     return payload
@@ -721,30 +727,38 @@ def seq_newer(seq: int, last: int) -> bool:
 
 
 def _pack(kind: str, fields: Sequence[FieldSpec], st: struct.Struct, values: Mapping) -> bytes:
-    names = {f.name for f in fields}
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise ProtocolError(unknown[0], f"is not a {kind} field")
+    if len(values) > len(fields) or not values.keys() <= _FIELD_NAMES[id(fields)]:
+        unknown = sorted(set(values) - _FIELD_NAMES[id(fields)])
+        raise ProtocolError(unknown[0] if unknown else kind, f"is not a {kind} field")
     args: list[Any] = []
     for f in fields:
-        if f.name in values:
-            v = values[f.name]
-        elif f.name == "version":
-            v = PROTOCOL_VERSION
-        elif f.name == "reserved":
-            v = [0] * f.count if f.count > 1 else 0
-        else:
-            raise ProtocolError(f.name, f"missing from the {kind}")
+        v = values.get(f.name, _MISSING)
+        if v is _MISSING:
+            if f.name == "version":
+                v = PROTOCOL_VERSION
+            elif f.name == "reserved":
+                v = [0] * f.count if f.count > 1 else 0
+            else:
+                raise ProtocolError(f.name, f"missing from the {kind}")
         if f.count > 1:
             try:
-                seq = list(np.asarray(v).reshape(-1).tolist())
+                seq = v.tolist() if isinstance(v, np.ndarray) and v.ndim == 1 else (
+                    np.asarray(v).reshape(-1).tolist())
             except Exception as exc:  # noqa: BLE001 - any array-like failure is a field error
                 raise ProtocolError(f.name, f"not an array of {f.count}: {exc}") from None
             if len(seq) != f.count:
                 raise ProtocolError(f.name, f"needs {f.count} values, got {len(seq)}")
-            args.extend(seq)
         else:
-            args.append(v.item() if isinstance(v, np.generic) else v)
+            seq = [v.item() if isinstance(v, np.generic) else v]
+        if f.dtype[-2] == "u":
+            # Integer fields accept integral floats (the core keeps flags and gears in
+            # float64 arrays); anything else is an error, never a silent truncation.
+            for i, x in enumerate(seq):
+                if isinstance(x, float):
+                    if not x.is_integer():
+                        raise ProtocolError(f.name, f"{x!r} is not an integer")
+                    seq[i] = int(x)
+        args.extend(seq)
     try:
         return st.pack(*args)
     except (struct.error, OverflowError, TypeError):
@@ -759,6 +773,13 @@ def _pack(kind: str, fields: Sequence[FieldSpec], st: struct.Struct, values: Map
             raise ProtocolError(f.name, f"does not fit {f.dtype} x {f.count}: {exc}") from None
         i += f.count
     raise ProtocolError(kind, "could not be packed")  # pragma: no cover
+
+
+_MISSING = object()
+_FIELD_NAMES = {
+    id(fields): frozenset(f.name for f in fields)
+    for fields in (COMMAND_FIELDS, STATE_FIELDS, DIAGNOSTICS_FIELDS)
+}
 
 
 def _unpack(kind: str, dtype: np.dtype, payload: bytes | bytearray | memoryview) -> np.void:
@@ -911,19 +932,20 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
                                     2 * math.pi, "heading, + = left of world x"),
                         )),
             ),
-            reply='"tick": 0, "pose": {x_m, y_m, yaw_rad}',
+            reply='"tick": 0, "pose": {"x_m": number, "y_m": number, "yaw_rad": number}',
         ),
         ControlSpec("pause", "Stop stepping the physics; state is still published with "
-                    "flags bit 1 set. Idempotent.", reply='"tick", "paused": true'),
-        ControlSpec("resume", "Resume stepping at the wall-clock rate from the current tick "
-                    "(the clock is re-based: no catch-up of the paused time). Idempotent.",
-                    reply='"tick", "paused": false'),
+                    "flags bit 1 set. Idempotent.", reply='"tick": int, "paused": true'),
+        ControlSpec("resume", "Resume stepping at the wall-clock rate from the current tick. "
+                    "Sim time does not advance while paused and the paused time is not "
+                    "caught up. Idempotent.",
+                    reply='"tick": int, "paused": false'),
         ControlSpec(
             "step",
             "While paused: step `n` ticks, one per period at the normal rate, then stay "
             "paused. Replies at once (before the steps run). Error if not paused.",
             (ArgSpec("n", "integer", False, "ticks", 1, 100000, "ticks to step (default 1)"),),
-            reply='"tick" (now), "until_tick" (tick after the n steps)',
+            reply='"tick": int (now), "until_tick": int (tick after the n steps)',
             defaults={"n": 1},
         ),
         ControlSpec(
@@ -939,7 +961,8 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
                         "road friction scale (1 = the surface the tires were measured on)"),
             ),
             at_least_one=True,
-            reply='"road": {grade_pct, cross_slope_pct, friction_scale} (all, after change)',
+            reply='"road": {"grade_pct": number, "cross_slope_pct": number, '
+            '"friction_scale": number} (all three, after the change)',
         ),
         ControlSpec(
             "load",
@@ -951,12 +974,12 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
                 ArgSpec("scene", "path", False, "", None, None, "scene YAML path"),
             ),
             at_least_one=True,
-            reply='"vehicle", "scene" (the active paths)',
+            reply='"vehicle": string, "scene": string (the active paths)',
         ),
         ControlSpec(
             "get_config",
             "Return the active configuration.",
-            reply='"protocol_version", "config" (server, vehicle, scene, road, keys)',
+            reply='"protocol_version": 1, "config": object (server, vehicle, scene, road, keys)',
         ),
     )
 }
@@ -975,13 +998,13 @@ def _check_arg(spec: ArgSpec, value: Any, path: str) -> Any:
         if not math.isfinite(value):
             raise ProtocolError(path, f"{value!r} is not finite")
         if not spec.lo <= value <= spec.hi:
-            raise ProtocolError(path, f"{value!r} is outside [{spec.lo:g}, {spec.hi:g}]")
+            raise ProtocolError(path, f"{value!r} is outside [{_num(spec.lo)}, {_num(spec.hi)}]")
         return value
     if spec.kind == "integer":
         if isinstance(value, bool) or not isinstance(value, int):
             raise ProtocolError(path, f"must be an integer, got {value!r}")
         if not spec.lo <= value <= spec.hi:
-            raise ProtocolError(path, f"{value} is outside [{spec.lo:g}, {spec.hi:g}]")
+            raise ProtocolError(path, f"{value} is outside [{_num(spec.lo)}, {_num(spec.hi)}]")
         return value
     if spec.kind == "path":
         if not isinstance(value, str) or not value:
@@ -1128,13 +1151,18 @@ def decode_reply(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
 # ============================================================================ docs
 
 
+def _num(x: float) -> str:
+    """Format a range bound: integers in full, other numbers with up to 6 digits."""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:.6g}"
+
+
 def _range_text(f: FieldSpec) -> str:
     if f.name == "version":
         return f"= {PROTOCOL_VERSION}"
     if f.lo is None and f.hi is None:
         return "any" if f.dtype.lstrip("<").startswith("f") else "all"
-    lo = "-inf" if f.lo is None else f"{f.lo:g}"
-    hi = "+inf" if f.hi is None else f"{f.hi:g}"
+    lo = "-inf" if f.lo is None else _num(f.lo)
+    hi = "+inf" if f.hi is None else _num(f.hi)
     if f.lo == f.hi:
         return f"= {lo}"
     return f"[{lo}, {hi}]"
@@ -1149,7 +1177,7 @@ def fields_markdown(fields: Sequence[FieldSpec], *, with_rule: bool = False) -> 
     head = "| offset | field | type | unit | range | description |"
     sep = "|---:|---|---|---|---|---|"
     if with_rule:
-        head = head[:-1] + " on decode |"
+        head += " on decode |"
         sep += "---|"
     rows = [head, sep]
     for f in fields:
@@ -1184,7 +1212,7 @@ def _arg_rows(args: Sequence[ArgSpec], prefix: str = "") -> list[str]:
     for a in args:
         name = f"{prefix}{a.name}"
         if a.kind in ("number", "integer"):
-            rng = f"[{a.lo:g}, {a.hi:g}]"
+            rng = f"[{_num(a.lo)}, {_num(a.hi)}]"
         elif a.kind == "path":
             rng = f"string ending .yaml/.yml, at most {_MAX_PATH} chars"
         else:

@@ -228,20 +228,23 @@ P_QSY6 = _slot("QSY6")
 P_QSY7 = _slot("QSY7")
 P_QSY8 = _slot("QSY8")
 
-# --- numerical guards (compile-time constants) -------------------------------------------
+# --- input ranges and numerical guards (compile-time constants) ---------------------------
 FZ_FLOOR_FRAC = 0.01  # coefficients are never evaluated below 1 % of FNOMIN
-MU_SCALE_MIN = 1e-6  # mu_scale is clamped to [MU_SCALE_MIN, MU_SCALE_MAX]: lambda_mu
-MU_SCALE_MAX = 10.0  # divides Bt and Br (4.E40, 4.E45), so it may not reach zero
+FZ_INPUT_MAX_N = 1.0e9  # fz_n is clamped to this (forces stay finite)
+SLIP_INPUT_MAX = 1.0e6  # |kappa|, |tan_alpha| clamped to this (the curves are flat there)
+GAMMA_INPUT_MAX_RAD = 0.5 * math.pi  # |gamma| clamped to this
+MU_SCALE_MIN = 1e-6  # mu_scale clamped to [MU_SCALE_MIN, MU_SCALE_MAX]: lambda_mu divides
+MU_SCALE_MAX = 10.0  # Bt and Br (4.E40, 4.E45), so it may not reach zero
 VX_MY_MAX_MPS = 1000.0  # |vx| cap in the (Vx/V0)^4 rolling-resistance term
-SLIDE_MAX = 1.0e6  # cap of OUT_KAPPA_SLIDE / OUT_TAN_ALPHA_SLIDE (no peak: E = 1)
+SLIDE_MAX = 1.0e6  # cap of OUT_KAPPA_SLIDE / OUT_TAN_ALPHA_SLIDE (curve without peak)
 SLIDE_FRACTION_NO_PEAK = 0.99  # C <= 1: "sliding" where the curve reaches 99 % of its limit
-_TINY = 1e-9  # floor of C*D (N) and |K_ya| (N/rad): never reached by a sane file
+SERIES_MAX_ARG = 2e-3  # below this |B x| the cosine weighting uses its Taylor series
+_TINY = 1e-9  # floor of C*D (N), |K_ya| (N/rad), G0: never reached with a sane file
 
-
-# --- elementary functions, inlined -------------------------------------------------------
+# --- elementary functions, inlined ------------------------------------------------------
 # libm calls are not inlined, clobber every vector register and cost 10-20 ns each; the
 # kernel needs about 35 of them. These replacements are accurate to about 1 ulp (tested in
-# tests/test_tire_mf61.py against math.atan / math.sin / math.cos).
+# tests/test_tire_mf61.py against math.atan / math.sin / math.cos) and branch-free.
 #
 # atan: argument reduction at the centres 0, 1/2, 1, 3/2, inf (one division), then
 # atan(u) = u + u z P(z), z = u^2, |u| <= 7/16, P of degree 10: Chebyshev interpolation of
@@ -262,43 +265,36 @@ _ATAN_HALF = 0.4636476090008061  # atan(1/2)
 _ATAN_3HALF = 0.982793723247329  # atan(3/2)
 _PI_4 = 0.7853981633974483
 _PI_2 = 1.5707963267948966
-# sin / cos: x = k pi/2 + r, |r| <= pi/4, pi/2 split in a 33-bit head (k * head exact for
-# |k| < 2^20) and a tail; Taylor polynomials to r^15 (sin) and r^16 (cos), truncation error
-# below 7e-17. |x| > 1e5 falls back to libm.
-_PIO2_HI = 1.5707963267341256
-_PIO2_LO = 6.077100506506192e-11
-_TWO_OVER_PI = 0.6366197723675814
-_S1 = -1.0 / 6.0
-_S2 = 1.0 / 120.0
-_S3 = -1.0 / 5040.0
-_S4 = 1.0 / 362880.0
-_S5 = -1.0 / 39916800.0
-_S6 = 1.0 / 6227020800.0
-_S7 = -1.0 / 1307674368000.0
-_C1 = -0.5
-_C2 = 1.0 / 24.0
-_C3 = -1.0 / 720.0
-_C4 = 1.0 / 40320.0
-_C5 = -1.0 / 3628800.0
-_C6 = 1.0 / 479001600.0
-_C7 = -1.0 / 87178291200.0
-_C8 = 1.0 / 20922789888000.0
+# sin on [-pi/2, pi/2]: x + x z Q(z), Q of degree 7 fitted the same way on [0, (pi/2)^2],
+# absolute error 1.3e-18 before rounding. |x| <= pi is folded with pi = _PI_HI + _PI_LO
+# (cos with pi/2 = _PI_2 + _PI_2_LO); larger |x| (never in the model) goes to libm.
+_SN0 = -0.16666666666666666633
+_SN1 = 0.0083333333333333158688
+_SN2 = -0.00019841269841254973769
+_SN3 = 2.7557319219163233416e-6
+_SN4 = -2.5052107616996182891e-8
+_SN5 = 1.6058977312464087621e-10
+_SN6 = -7.6439702967985720524e-13
+_SN7 = 2.7314447669863993424e-15
+_PI_HI = 3.141592653589793
+_PI_LO = 1.2246467991473532e-16
+_PI_2_LO = 6.123233995736766e-17
 
 
 @nb.njit(cache=True, inline="always")
 def _atan(x: float) -> float:
-    """``atan(x)`` to about 1 ulp, inlinable and branch-free (see the constants above)."""
+    """``atan(x)`` to about 1 ulp, branch-free (see the constants above)."""
     ax = abs(x)
-    # interval of ax among [0, 7/16), [7/16, 11/16), [11/16, 19/16), [19/16, 39/16), [39/16, inf)
+    # interval of ax: [0, 7/16), [7/16, 11/16), [11/16, 19/16), [19/16, 39/16), [39/16, inf)
     i1 = ax >= 0.4375
     i2 = ax >= 0.6875
     i3 = ax >= 1.1875
     i4 = ax >= 2.4375
-    c = (0.5 if i1 else 0.0) + (0.5 if i2 else 0.0) + (0.5 if i3 else 0.0)  # 0, 1/2, 1, 3/2
+    c = (0.5 if i1 else 0.0) + (0.5 if i2 else 0.0) + (0.5 if i3 else 0.0)  # centre, exact
     num = -1.0 if i4 else ax - c
     den = ax if i4 else 1.0 + c * ax
     base = _PI_2 if i4 else (_ATAN_3HALF if i3 else (_PI_4 if i2 else (_ATAN_HALF if i1 else 0.0)))
-    u = num / den  # atan(ax) = base + atan(u)
+    u = num / den  # atan(ax) = base + atan(u), |u| <= 7/16
     z = u * u
     z2 = z * z
     z4 = z2 * z2
@@ -310,96 +306,102 @@ def _atan(x: float) -> float:
 
 
 @nb.njit(cache=True, inline="always")
-def _sincos(x: float) -> tuple[float, float]:
-    """``(sin(x), cos(x))`` to about 1 ulp (absolute), inlinable."""
-    if not abs(x) < 1e5:
-        return math.sin(x), math.cos(x)
-    k = math.floor(x * _TWO_OVER_PI + 0.5)
-    r = (x - k * _PIO2_HI) - k * _PIO2_LO
-    z = r * r
+def _sin_core(y: float) -> float:
+    """``sin(y)`` for ``|y| <= pi/2``."""
+    z = y * y
     z2 = z * z
     z4 = z2 * z2
-    sp = (_S1 + _S2 * z) + (_S3 + _S4 * z) * z2 + ((_S5 + _S6 * z) + _S7 * z2) * z4
-    s = r + r * z * sp
-    cp = (_C2 + _C3 * z) + (_C4 + _C5 * z) * z2 + ((_C6 + _C7 * z) + _C8 * z2) * z4
-    c = 1.0 + z * (_C1 + z * cp)
-    q = int(k) & 3
-    odd = (q & 1) == 1
-    s_q = c if odd else s  # quadrant q: sin = +-s or +-c, cos = +-c or -+s, select-based
-    c_q = s if odd else c
-    s_sign = -1.0 if (q & 2) == 2 else 1.0
-    c_sign = -1.0 if ((q + 1) & 2) == 2 else 1.0
-    return s_sign * s_q, c_sign * c_q
+    poly = ((_SN0 + _SN1 * z) + (_SN2 + _SN3 * z) * z2) + (
+        (_SN4 + _SN5 * z) + (_SN6 + _SN7 * z) * z2
+    ) * z4
+    return y + y * z * poly
 
 
 @nb.njit(cache=True, inline="always")
 def _sin(x: float) -> float:
-    """``sin(x)``, see :func:`_sincos`."""
-    return _sincos(x)[0]
+    """``sin(x)`` to about 1 ulp (absolute) for ``|x| <= pi``; libm beyond."""
+    ax = abs(x)
+    if not ax <= _PI_HI:
+        return math.sin(x)
+    folded = min(ax, (_PI_HI - ax) + _PI_LO)  # sin(pi - a) = sin(a)
+    return math.copysign(_sin_core(folded), x)
 
 
 @nb.njit(cache=True, inline="always")
 def _cos(x: float) -> float:
-    """``cos(x)``, see :func:`_sincos`."""
-    return _sincos(x)[1]
+    """``cos(x) = sin(pi/2 - |x|)`` to about 1 ulp (absolute) for ``|x| <= pi``."""
+    ax = abs(x)
+    if not ax <= _PI_HI:
+        return math.cos(x)
+    return _sin_core((_PI_2 - ax) + _PI_2_LO)
 
 
 @nb.njit(cache=True, inline="always")
 def _mf_arg(y: float, e: float) -> float:
-    """Inner Magic Formula argument ``y - E (y - atan y)`` (4.E9), overflow-safe form."""
+    """Inner Magic Formula argument ``y - E (y - atan y)`` (4.E9)."""
     return (1.0 - e) * y + e * _atan(y)
 
 
 @nb.njit(cache=True, inline="always")
-def _cos_mf(b: float, c: float, e: float, x: float) -> float:
-    """Cosine-type weighting ``cos[C atan{B x - E (B x - atan(B x))}]`` (4.E51, 4.E59)."""
-    return _cos(c * _atan(_mf_arg(b * x, e)))
+def _mf_sin(b: float, c: float, e: float, x: float) -> float:
+    """``sin[C atan{B x - E (B x - atan(B x))}]``, the Magic Formula (4.E9, 4.E19)."""
+    return _sin(c * _atan(_mf_arg(b * x, e)))
 
 
 @nb.njit(cache=True, inline="always")
-def _peak_arg(c: float, e: float) -> float:
-    """Normalised slip ``u = B x`` at which ``D sin[C atan{u - E (u - atan u)}]`` peaks.
+def _mf_cos(b: float, c: float, e: float, x: float) -> float:
+    """``cos[C atan{B x - E (B x - atan(B x))}]``, the cosine version (4.E51, 4.E73).
 
-    Parameters
-    ----------
-    c, e : float
-        Shape and curvature factors of the curve (``E <= 1``).
+    For ``|B x| <= SERIES_MAX_ARG`` (the normalising weights (4.E52) of files with a tiny
+    RHX1) its Taylor series in ``y = B x`` is used:
+    ``atan(y - E (y - atan y)) = y - (1 + E) y^3 / 3 + (3 + 8 E) y^5 / 15 + O(y^7)``,
+    then ``cos w = 1 - w^2/2 + w^4/24 - w^6/720``; the error is below 1e-19.
+    """
+    y = b * x
+    if abs(y) <= SERIES_MAX_ARG:
+        y2 = y * y
+        w = c * y * (1.0 - y2 * ((1.0 + e) / 3.0 - y2 * ((3.0 + 8.0 * e) / 15.0)))
+        w2 = w * w
+        return 1.0 - w2 * (0.5 - w2 * (1.0 / 24.0 - w2 * (1.0 / 720.0)))
+    return _cos(c * _atan(_mf_arg(y, e)))
 
-    Returns
-    -------
-    float
-        ``u > 0``. For ``C > 1`` the root of ``u - E (u - atan u) = tan(pi / (2 C))``;
-        for ``C <= 1`` (no interior peak) the ``u`` at which the curve reaches
-        ``SLIDE_FRACTION_NO_PEAK`` of its asymptote ``D sin(C pi / 2)``.
 
-    Notes
-    -----
-    ``g(u) = (1 - E) u + E atan(u) - T`` is strictly increasing for ``E < 1``. Halley
-    steps start from the better of two bounds on the root, ``T`` and
-    ``(T - E pi / 2) / (1 - E)`` (both below the root if ``E > 0``, both above it if
-    ``E < 0``); two or three steps reach 1e-12 for the shapes found in .tir files.
+@nb.njit(cache=True, inline="always")
+def _peak_start(c: float, e: float) -> tuple[float, float]:
+    """Target ``T`` and start ``u0`` of the peak search, see :func:`_peak_step`.
+
+    For ``C > 1`` the curve ``D sin[C atan{u - E (u - atan u)}]`` peaks where the
+    ``atan`` argument equals ``T = tan(pi / (2 C))``. For ``C <= 1`` it has no interior
+    peak; ``T`` is then where it reaches ``SLIDE_FRACTION_NO_PEAK`` of its asymptote
+    ``D sin(C pi / 2)``. ``g(u) = (1 - E) u + E atan(u) - T`` is strictly increasing for
+    ``E < 1``; ``T`` and ``(T - E pi / 2) / (1 - E)`` both bound its root from below if
+    ``E > 0`` and from above if ``E < 0``: the tighter one is the start.
     """
     c = max(c, 1e-3)
     if c > 1.0:
-        s, co = _sincos(0.5 * math.pi / c)
+        a = 0.5 * math.pi / c
     else:
-        s, co = _sincos(math.asin(SLIDE_FRACTION_NO_PEAK * _sin(0.5 * math.pi * c)) / c)
-    target = s / co  # tan, > 0
+        a = math.asin(SLIDE_FRACTION_NO_PEAK * math.sin(0.5 * math.pi * c)) / c
+    target = _sin(a) / _cos(a)
+    u_bound = (target - e * _PI_2) / max(1.0 - e, 1e-12)
+    u0 = max(target, u_bound) if e > 0.0 else min(target, u_bound)
+    return target, min(max(u0, 1e-12), SLIDE_MAX)
+
+
+@nb.njit(cache=True, inline="always")
+def _peak_step(u: float, e: float, target: float) -> float:
+    """One Halley step on ``g(u) = (1 - E) u + E atan(u) - T``.
+
+    With ``n = g' (1 + u^2) = (1 - E)(1 + u^2) + E`` and ``g'' = -2 E u / (1 + u^2)^2``
+    the step ``2 g g' / (2 g'^2 - g g'')`` is ``g n (1 + u^2) / (n^2 + E g u)``: one
+    division. Convergence is cubic: from :func:`_peak_start`, two steps leave a relative
+    error below 1e-9 for the (C, E) of real files (checked in the tests).
+    """
     one_minus_e = max(1.0 - e, 1e-12)
-    u_bound = (target - e * 0.5 * math.pi) / one_minus_e
-    if e > 0.0:
-        u = max(target, u_bound)
-    else:
-        u = min(target, u_bound)
-    u = min(max(u, 1e-12), SLIDE_MAX)
-    for _ in range(2):
-        # Halley on g(u) = (1 - E) u + E atan(u) - T with n = g' (1 + u^2):
-        # u -= g n (1 + u^2) / (n^2 + E g u), one division per step
-        den = 1.0 + u * u
-        g = one_minus_e * u + e * _atan(u) - target
-        n = one_minus_e * den + e
-        u = min(max(u - g * n * den / (n * n + e * g * u), 0.5 * u), SLIDE_MAX)
-    return u
+    den = 1.0 + u * u
+    g = one_minus_e * u + e * _atan(u) - target
+    n = one_minus_e * den + e
+    return min(max(u - g * n * den / (n * n + e * g * u), 0.5 * u), SLIDE_MAX)
 
 
 @nb.njit(cache=True)
@@ -426,27 +428,34 @@ def mf61_forces(
     gamma_rad : float
         Inclination angle (rad); ``gamma* = sin(gamma)`` (4.E4).
     fz_n : float
-        Normal load (N). At ``fz_n <= 0`` forces are zero and the stiffness / limit slots
-        are 1, as in the dispatcher.
+        Normal load (N). At ``fz_n <= 0`` every output is 0 except the stiffness and
+        sliding-limit slots, which are 1 (as in the dispatcher).
     mu_scale : float
-        Road friction scale, multiplies ``LMUX`` and ``LMUY``; clamped to
-        ``[MU_SCALE_MIN, MU_SCALE_MAX]``.
+        Road friction scale, multiplies ``LMUX`` and ``LMUY``.
     vx_mps : float
         Hub longitudinal speed, used only as ``|vx|`` in the rolling resistance.
     out : float64[N_TIRE_OUT]
         Written in place, every ``OUT_*`` slot of :mod:`simserver.core.tire_layout`:
-        forces and moments (ISO: ``Fx > 0`` for ``kappa > 0``, ``Fy`` of the sign the file
-        encodes, ``Fy < 0`` for ``tan_alpha > 0`` with a negative ``PKY1``), ``OUT_MY``
-        the rolling-resistance magnitude, ``OUT_C_KAPPA = Kxk`` (4.E15),
-        ``OUT_C_ALPHA = |Kya|`` (4.E25), the sliding-limit slips (peak of the pure-slip
-        curve on the side of the current slip's sign, see :func:`_peak_arg`), and the
-        peak forces ``|Dx|``, ``|Dy|``.
+
+        - ``OUT_FX``, ``OUT_FY``, ``OUT_MZ``: combined-slip forces and aligning moment
+          (4.E50, 4.E58, 4.E71) in the file's own sign convention (a negative ``PKY1``
+          gives ``Fy < 0`` for ``tan_alpha > 0``);
+        - ``OUT_MY``: rolling-resistance moment magnitude (4.E70), >= 0;
+        - ``OUT_C_KAPPA = Kxk`` (4.E15), ``OUT_C_ALPHA = |Kya|`` (4.E25);
+        - ``OUT_KAPPA_SLIDE``, ``OUT_TAN_ALPHA_SLIDE``: slip magnitude at the peak of the
+          pure-slip curve, on the side of the current slip's sign (+ at 0);
+        - ``OUT_FX_PEAK = |Dx|``, ``OUT_FY_PEAK = |Dy|`` (4.E12, 4.E22).
 
     Notes
     -----
-    ``Kxk`` and ``Kya`` are the slopes at the curves' own origins ``kappa = -SHx`` and
-    ``tan_alpha = -SHy``. The slope at zero slip differs by ``O((B SH)^2)``: 6e-4 for
-    ``Fy`` of the sample file at ``FNOMIN``.
+    Inputs are clamped to ``|kappa|, |tan_alpha| <= SLIP_INPUT_MAX``,
+    ``|gamma| <= GAMMA_INPUT_MAX_RAD``, ``fz_n <= FZ_INPUT_MAX_N`` and
+    ``MU_SCALE_MIN <= mu_scale <= MU_SCALE_MAX``, so that every output is finite for any
+    finite input. ``Kxk`` and ``Kya`` are the slopes at the curves' own origins
+    ``kappa = -SHx`` and ``tan_alpha = -SHy``; the slope at zero slip differs by
+    ``O((B SH)^2)`` (6e-4 for ``Fy`` of the sample file at ``FNOMIN``). The code is
+    ordered so that independent chains (the normalised weights, the two curves, the two
+    peak searches) sit next to each other for the out-of-order core.
     """
     if not fz_n > 0.0:
         for i in range(out.shape[0]):
@@ -456,129 +465,139 @@ def mf61_forces(
         out[OUT_KAPPA_SLIDE] = 1.0
         out[OUT_TAN_ALPHA_SLIDE] = 1.0
         return
+    kappa = min(max(kappa, -SLIP_INPUT_MAX), SLIP_INPUT_MAX)
+    tan_alpha = min(max(tan_alpha, -SLIP_INPUT_MAX), SLIP_INPUT_MAX)
+    gamma = min(max(gamma_rad, -GAMMA_INPUT_MAX_RAD), GAMMA_INPUT_MAX_RAD)
+    mu = min(max(mu_scale, MU_SCALE_MIN), MU_SCALE_MAX)
 
-    # --- operating point ----------------------------------------------------------------
+    # --- operating point (4.E1)-(4.E8) ---------------------------------------------------
     fnomin = p[P_FNOMIN]
     r0 = p[P_UNLOADED_RADIUS]
     fz0 = fnomin * p[P_LFZO]  # F'z0 (4.E1)
     fz_lo = max(p[P_FZMIN], FZ_FLOOR_FRAC * fnomin)
-    fz = min(max(fz_n, fz_lo), max(p[P_FZMAX], fz_lo))
-    load_scale = fz_n / fz  # 1 inside FZMIN..FZMAX
+    fz = min(max(fz_n, fz_lo), max(p[P_FZMAX], fz_lo))  # load the coefficients see
+    load_scale = min(fz_n, FZ_INPUT_MAX_N) / fz  # 1 inside FZMIN..FZMAX
     dfz = (fz - fz0) / fz0  # (4.E2a)
     dfz2 = dfz * dfz
+    fz_ratio = fz / fnomin
     p_nom = p[P_NOMPRES]
     p_infl = p[P_INFLPRES]
-    if p_nom > 0.0 and p_infl > 0.0:
-        dpi = (p_infl - p_nom) / p_nom  # (4.E2b)
-    else:
-        dpi = 0.0  # file without pressure data
+    dpi = (p_infl - p_nom) / p_nom if p_nom > 0.0 and p_infl > 0.0 else 0.0  # (4.E2b)
     dpi2 = dpi * dpi
-    mu = min(max(mu_scale, MU_SCALE_MIN), MU_SCALE_MAX)
-    lmux = p[P_LMUX] * mu  # lambda*_mux = lambda'_mux (4.E7, 4.E8 with LMUV = 0, A_mu = 1)
+    # the two libm calls first, while few values are live across them
+    pow_load = math.pow(fz_ratio, p[P_QSY7])  # (4.E70)
+    exp_kx = math.exp(p[P_PKX3] * dfz)  # (4.E15)
+    lmux = p[P_LMUX] * mu  # lambda*_mux = lambda'_mux (4.E7, 4.E8: LMUV = 0, A_mu = 1)
     lmuy = p[P_LMUY] * mu
-    gs = _sin(gamma_rad) if gamma_rad != 0.0 else 0.0  # gamma* (4.E4)
+    gs = _sin(gamma)  # gamma* (4.E4)
     gs2 = gs * gs
     gs_abs = abs(gs)
     cos_a = 1.0 / math.sqrt(1.0 + tan_alpha * tan_alpha)  # |cos'alpha| (4.E6)
 
-    # --- pure longitudinal slip (4.E9)-(4.E18) -------------------------------------------
+    # --- coefficients that need no stiffness ----------------------------------------------
     cx = p[P_PCX1] * p[P_LCX]  # (4.E11)
     mux = (
         (p[P_PDX1] + p[P_PDX2] * dfz)
         * (1.0 + p[P_PPX3] * dpi + p[P_PPX4] * dpi2)
-        * (1.0 - p[P_PDX3] * gamma_rad * gamma_rad)
+        * (1.0 - p[P_PDX3] * gamma * gamma)
         * lmux
     )  # (4.E13)
     dx = mux * fz  # (4.E12)
-    kxk = (
-        fz
-        * (p[P_PKX1] + p[P_PKX2] * dfz)
-        * math.exp(p[P_PKX3] * dfz)
-        * (1.0 + p[P_PPX1] * dpi + p[P_PPX2] * dpi2)
-        * p[P_LKX]
-    )  # (4.E15)
-    bx = kxk / max(cx * dx, _TINY)  # (4.E16)
     shx = (p[P_PHX1] + p[P_PHX2] * dfz) * p[P_LHX]  # (4.E17)
     svx = fz * (p[P_PVX1] + p[P_PVX2] * dfz) * p[P_LVX] * lmux  # (4.E18)
     kappa_x = kappa + shx  # (4.E10)
     ex0 = (p[P_PEX1] + p[P_PEX2] * dfz + p[P_PEX3] * dfz2) * p[P_LEX]
-    sgn_kx = 1.0 if kappa_x >= 0.0 else -1.0
-    ex = min(ex0 * (1.0 - p[P_PEX4] * sgn_kx), 1.0)  # (4.E14)
-    fx0 = dx * _sin(cx * _atan(_mf_arg(bx * kappa_x, ex))) + svx  # (4.E9)
+    ex = min(ex0 * (1.0 - p[P_PEX4] * (1.0 if kappa_x >= 0.0 else -1.0)), 1.0)  # (4.E14)
 
-    # --- pure lateral slip (4.E19)-(4.E30) -----------------------------------------------
-    ppy1 = 1.0 + p[P_PPY1] * dpi
-    ppy2 = 1.0 + p[P_PPY2] * dpi
-    kya_atan = _atan(fz / fz0 / max((p[P_PKY2] + p[P_PKY5] * gs2) * ppy2, _TINY))
-    kya_sin = _sin(p[P_PKY4] * kya_atan)
-    kya_nocamber = p[P_PKY1] * fz0 * ppy1 * kya_sin * p[P_LKY]
-    kya = kya_nocamber * (1.0 - p[P_PKY3] * gs_abs)  # (4.E25)
-    kya_safe = kya if abs(kya) > _TINY else math.copysign(_TINY, p[P_PKY1])  # K'ya (4.E39)
-    kyg0 = fz * (p[P_PKY6] + p[P_PKY7] * dfz) * (1.0 + p[P_PPY5] * dpi) * p[P_LKYC]  # (4.E30)
-    svyg = fz * (p[P_PVY3] + p[P_PVY4] * dfz) * gs * p[P_LKYC] * lmuy  # (4.E28)
-    svy_nocamber = fz * (p[P_PVY1] + p[P_PVY2] * dfz) * p[P_LVY] * lmuy
-    svy = svy_nocamber + svyg  # (4.E29)
-    shy_nocamber = (p[P_PHY1] + p[P_PHY2] * dfz) * p[P_LHY]
-    shy = shy_nocamber + (kyg0 * gs - svyg) / kya_safe  # (4.E27)
-    alpha_y = tan_alpha + shy  # (4.E20)
     cy = p[P_PCY1] * p[P_LCY]  # (4.E21)
-    muy_nocamber = (p[P_PDY1] + p[P_PDY2] * dfz) * (1.0 + p[P_PPY3] * dpi + p[P_PPY4] * dpi2)
-    muy = muy_nocamber * (1.0 - p[P_PDY3] * gs2) * lmuy  # (4.E23)
+    muy_g0 = (p[P_PDY1] + p[P_PDY2] * dfz) * (1.0 + p[P_PPY3] * dpi + p[P_PPY4] * dpi2) * lmuy
+    muy = muy_g0 * (1.0 - p[P_PDY3] * gs2)  # (4.E23)
     dy = muy * fz  # (4.E22)
     ey0 = (p[P_PEY1] + p[P_PEY2] * dfz) * p[P_LEY]
-    sgn_ay = 1.0 if alpha_y >= 0.0 else -1.0
-    ey = min(ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * sgn_ay), 1.0)  # (4.E24)
-    by = kya / max(cy * dy, _TINY)  # (4.E26)
-    fy0 = dy * _sin(cy * _atan(_mf_arg(by * alpha_y, ey))) + svy  # (4.E19)
+    ppy1 = 1.0 + p[P_PPY1] * dpi
+    ppy2 = 1.0 + p[P_PPY2] * dpi
+    kyg0 = fz * (p[P_PKY6] + p[P_PKY7] * dfz) * (1.0 + p[P_PPY5] * dpi) * p[P_LKYC]  # (4.E30)
+    svyg = fz * (p[P_PVY3] + p[P_PVY4] * dfz) * gs * p[P_LKYC] * lmuy  # (4.E28)
+    svy_g0 = fz * (p[P_PVY1] + p[P_PVY2] * dfz) * p[P_LVY] * lmuy
+    svy = svy_g0 + svyg  # (4.E29)
+    shy_g0 = (p[P_PHY1] + p[P_PHY2] * dfz) * p[P_LHY]
 
-    # --- combined slip, longitudinal (4.E50)-(4.E57) -------------------------------------
+    # combined-slip weights (4.E51)-(4.E57), (4.E59)-(4.E65): need no stiffness
     rbx2k = p[P_RBX2] * kappa
     bxa = (p[P_RBX1] + p[P_RBX3] * gs2) * p[P_LXAL] / math.sqrt(1.0 + rbx2k * rbx2k)  # (4.E54)
     cxa = p[P_RCX1]  # (4.E55)
     exa = min(p[P_REX1] + p[P_REX2] * dfz, 1.0)  # (4.E56)
-    shxa = p[P_RHX1]  # (4.E57)
-    gxa0 = _cos_mf(bxa, cxa, exa, shxa)  # (4.E52)
-    gxa = max(_cos_mf(bxa, cxa, exa, tan_alpha + shxa) / max(gxa0, _TINY), 0.0)  # (4.E51, 4.E53)
-    fx = gxa * fx0  # (4.E50)
-
-    # --- combined slip, lateral (4.E58)-(4.E67) ------------------------------------------
-    rvy4a = p[P_RVY4] * tan_alpha
-    dvyk = muy * fz * (p[P_RVY1] + p[P_RVY2] * dfz + p[P_RVY3] * gs) / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)
-    svyk = dvyk * _sin(p[P_RVY5] * _atan(p[P_RVY6] * kappa)) * p[P_LVYKA]  # (4.E66)
-    shyk = p[P_RHY1] + p[P_RHY2] * dfz  # (4.E65)
-    eyk = min(p[P_REY1] + p[P_REY2] * dfz, 1.0)  # (4.E64)
-    cyk = p[P_RCY1]  # (4.E63)
+    shxa = p[P_RHX1]  # (4.E57); alpha_s = tan_alpha + SHxa (4.E53)
     rby2a = p[P_RBY2] * (tan_alpha - p[P_RBY3])
     byk = (p[P_RBY1] + p[P_RBY4] * gs2) * p[P_LYKA] / math.sqrt(1.0 + rby2a * rby2a)  # (4.E62)
-    gyk0 = _cos_mf(byk, cyk, eyk, shyk)  # (4.E60)
-    gyk = max(_cos_mf(byk, cyk, eyk, kappa + shyk) / max(gyk0, _TINY), 0.0)  # (4.E59, 4.E61)
+    cyk = p[P_RCY1]  # (4.E63)
+    eyk = min(p[P_REY1] + p[P_REY2] * dfz, 1.0)  # (4.E64)
+    shyk = p[P_RHY1] + p[P_RHY2] * dfz  # (4.E65); kappa_s = kappa + SHyk (4.E61)
+    gxa0 = _mf_cos(bxa, cxa, exa, shxa)  # (4.E52)
+    gyk0 = _mf_cos(byk, cyk, eyk, shyk)  # (4.E60)
+    gxa_num = _mf_cos(bxa, cxa, exa, tan_alpha + shxa)
+    gyk_num = _mf_cos(byk, cyk, eyk, kappa + shyk)
+    gxa = max(gxa_num / max(gxa0, _TINY), 0.0)  # (4.E51), > 0
+    gyk = max(gyk_num / max(gyk0, _TINY), 0.0)  # (4.E59), > 0
+    rvy4a = p[P_RVY4] * tan_alpha
+    dvyk = muy * fz * (p[P_RVY1] + p[P_RVY2] * dfz + p[P_RVY3] * gs) / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)  # noqa: E501
+    svyk = dvyk * _sin(p[P_RVY5] * _atan(p[P_RVY6] * kappa)) * p[P_LVYKA]  # (4.E66)
+
+    # --- stiffnesses (4.E15), (4.E25) ---------------------------------------------------
+    kxk = fz * (p[P_PKX1] + p[P_PKX2] * dfz) * exp_kx * (1.0 + p[P_PPX1] * dpi + p[P_PPX2] * dpi2) * p[P_LKX]  # noqa: E501
+    kya_g0 = (
+        p[P_PKY1] * fz0 * ppy1 * p[P_LKY]
+        * _sin(p[P_PKY4] * _atan(fz / fz0 / max((p[P_PKY2] + p[P_PKY5] * gs2) * ppy2, _TINY)))
+    )  # fmt: skip
+    kya = kya_g0 * (1.0 - p[P_PKY3] * gs_abs)  # (4.E25)
+    if p[P_PKY5] != 0.0 and gs != 0.0:  # K_ya at gamma = 0 for F'y (4.E74)
+        kya_g0 = (
+            p[P_PKY1] * fz0 * ppy1 * p[P_LKY]
+            * _sin(p[P_PKY4] * _atan(fz / fz0 / max(p[P_PKY2] * ppy2, _TINY)))
+        )  # fmt: skip
+    kya_safe = kya if abs(kya) > _TINY else math.copysign(_TINY, p[P_PKY1])  # K'ya (4.E39)
+    shy = shy_g0 + (kyg0 * gs - svyg) / kya_safe  # (4.E27)
+    alpha_y = tan_alpha + shy  # (4.E20)
+    ey = min(
+        ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * (1.0 if alpha_y >= 0.0 else -1.0)),  # noqa: E501
+        1.0,
+    )  # (4.E24)
+    bx = kxk / max(cx * dx, _TINY)  # (4.E16)
+    by = kya / max(cy * dy, _TINY)  # (4.E26)
+
+    # --- pure slip (4.E9), (4.E19) and combined slip (4.E50), (4.E58) ---------------------
+    fx0 = dx * _mf_sin(bx, cx, ex, kappa_x) + svx  # (4.E9)
+    fy0 = dy * _mf_sin(by, cy, ey, alpha_y) + svy  # (4.E19)
+    fx = gxa * fx0  # (4.E50)
     fy = gyk * fy0 + svyk  # (4.E58)
+
+    # --- sliding limits: the two peak searches side by side -----------------------------
+    side_x = 1.0 if kappa >= 0.0 else -1.0
+    side_y = 1.0 if tan_alpha >= 0.0 else -1.0
+    ex_side = min(ex0 * (1.0 - p[P_PEX4] * side_x), 1.0)
+    ey_side = min(ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * side_y), 1.0)
+    tx, ux = _peak_start(cx, ex_side)
+    ty, uy = _peak_start(cy, ey_side)
+    ux = _peak_step(ux, ex_side, tx)
+    uy = _peak_step(uy, ey_side, ty)
+    ux = _peak_step(ux, ex_side, tx)
+    uy = _peak_step(uy, ey_side, ty)
+    kappa_slide = abs(side_x * ux / max(abs(bx), _TINY) - shx)  # peak at B |kappa_x| = u
+    tan_alpha_slide = abs(side_y * uy / max(abs(by), _TINY) - shy)
 
     # --- aligning moment (4.E31)-(4.E47), (4.E71)-(4.E78) --------------------------------
     if gs == 0.0:
         fy0_g0 = fy0
-        kya_g0 = kya
-    else:
-        # Fy0 at gamma = 0 for F'y (4.E74): same (4.E19)-(4.E29) without camber terms
-        if p[P_PKY5] == 0.0:
-            kya_g0 = kya_nocamber
-        else:
-            kya_g0 = (
-                p[P_PKY1] * fz0 * ppy1 * p[P_LKY]
-                * _sin(p[P_PKY4] * _atan(fz / fz0 / max(p[P_PKY2] * ppy2, _TINY)))
-            )  # fmt: skip
-        alpha_y0 = tan_alpha + shy_nocamber
-        dy0 = muy_nocamber * lmuy * fz
-        sgn_ay0 = 1.0 if alpha_y0 >= 0.0 else -1.0
-        ey_g0 = min(ey0 * (1.0 - p[P_PEY3] * sgn_ay0), 1.0)
+    else:  # Fy0 at gamma = 0 for F'y (4.E74): (4.E19)-(4.E29) without the camber terms
+        alpha_y0 = tan_alpha + shy_g0
+        dy0 = muy_g0 * fz
+        ey_g0 = min(ey0 * (1.0 - p[P_PEY3] * (1.0 if alpha_y0 >= 0.0 else -1.0)), 1.0)
         by_g0 = kya_g0 / max(cy * dy0, _TINY)
-        fy0_g0 = dy0 * _sin(cy * _atan(_mf_arg(by_g0 * alpha_y0, ey_g0))) + svy_nocamber
+        fy0_g0 = dy0 * _mf_sin(by_g0, cy, ey_g0, alpha_y0) + svy_g0
     fy_prime = gyk * fy0_g0  # (4.E74)
-
     sht = p[P_QHZ1] + p[P_QHZ2] * dfz + (p[P_QHZ3] + p[P_QHZ4] * dfz) * gs  # (4.E35)
     alpha_t = tan_alpha + sht  # (4.E34)
-    shf = shy + svy / kya_safe  # (4.E38)
-    alpha_r = tan_alpha + shf  # (4.E37)
+    alpha_r = tan_alpha + shy + svy / kya_safe  # (4.E37), (4.E38)
     bt = (
         (p[P_QBZ1] + p[P_QBZ2] * dfz + p[P_QBZ3] * dfz2)
         * (1.0 + p[P_QBZ4] * gs + p[P_QBZ5] * gs_abs)
@@ -587,62 +606,43 @@ def mf61_forces(
     )  # (4.E40)
     ct = p[P_QCZ1]  # (4.E41)
     dt = (
-        fz
-        * (r0 / fz0)
-        * (p[P_QDZ1] + p[P_QDZ2] * dfz)
-        * (1.0 - p[P_PPZ1] * dpi)
-        * p[P_LTR]
+        fz * (r0 / fz0) * (p[P_QDZ1] + p[P_QDZ2] * dfz) * (1.0 - p[P_PPZ1] * dpi) * p[P_LTR]
         * (1.0 + p[P_QDZ3] * gs_abs + p[P_QDZ4] * gs2)
-    )  # (4.E42), (4.E43); sgn(Vcx) cancels against cos'alpha
-    et = (p[P_QEZ1] + p[P_QEZ2] * dfz + p[P_QEZ3] * dfz2) * (
-        1.0 + (p[P_QEZ4] + p[P_QEZ5] * gs) * (2.0 / math.pi) * _atan(bt * ct * alpha_t)
-    )
-    et = min(et, 1.0)  # (4.E44)
+    )  # (4.E42), (4.E43); their sgn(Vcx) cancels that of cos'alpha  # fmt: skip
+    et = min(
+        (p[P_QEZ1] + p[P_QEZ2] * dfz + p[P_QEZ3] * dfz2)
+        * (1.0 + (p[P_QEZ4] + p[P_QEZ5] * gs) * (2.0 / math.pi) * _atan(bt * ct * alpha_t)),
+        1.0,
+    )  # (4.E44)
     br = p[P_QBZ9] * p[P_LKY] / lmuy + p[P_QBZ10] * by * cy  # (4.E45)
     dr = (
-        fz
-        * r0
-        * (
-            (p[P_QDZ6] + p[P_QDZ7] * dfz) * p[P_LRES]
-            + ((p[P_QDZ8] + p[P_QDZ9] * dfz) * (1.0 + p[P_PPZ2] * dpi)
-               + (p[P_QDZ10] + p[P_QDZ11] * dfz) * gs_abs) * gs * p[P_LKZC]
-        )
-        * lmuy
-        * cos_a
-    )  # (4.E47); sgn(Vcx) cancels against cos'alpha  # fmt: skip
-    # (4.E77), (4.E78): the sign of alpha_eq is dropped because t and Mzr are even in it
-    k_ratio_kappa = kxk / kya_safe * kappa
-    alpha_t_eq = math.hypot(alpha_t, k_ratio_kappa)
-    alpha_r_eq = math.hypot(alpha_r, k_ratio_kappa)
-    t = dt * _cos_mf(bt, ct, et, alpha_t_eq) * cos_a  # (4.E73)
+        fz * r0
+        * ((p[P_QDZ6] + p[P_QDZ7] * dfz) * p[P_LRES]
+           + ((p[P_QDZ8] + p[P_QDZ9] * dfz) * (1.0 + p[P_PPZ2] * dpi)
+              + (p[P_QDZ10] + p[P_QDZ11] * dfz) * gs_abs) * gs * p[P_LKZC])
+        * lmuy * cos_a
+    )  # (4.E47); sgn(Vcx) cancels that of cos'alpha  # fmt: skip
+    # (4.E77), (4.E78): sgn(alpha) dropped, t and Mzr are even in alpha_eq
+    kk = kxk / kya_safe * kappa
+    alpha_t_eq = math.sqrt(alpha_t * alpha_t + kk * kk)
+    alpha_r_eq = math.sqrt(alpha_r * alpha_r + kk * kk)
+    t = dt * _mf_cos(bt, ct, et, alpha_t_eq) * cos_a  # (4.E73)
     br_ar = br * alpha_r_eq
     mzr = dr / math.sqrt(1.0 + br_ar * br_ar)  # (4.E75), C_r = 1: cos(atan x) = 1/sqrt(1+x^2)
-    s = r0 * (p[P_SSZ1] + p[P_SSZ2] * fy / fz0 + (p[P_SSZ3] + p[P_SSZ4] * dfz) * gs) * p[P_LS]  # (4.E76)
+    s = r0 * (p[P_SSZ1] + p[P_SSZ2] * fy / fz0 + (p[P_SSZ3] + p[P_SSZ4] * dfz) * gs) * p[P_LS]  # (4.E76)  # noqa: E501
     mz = -t * fy_prime + mzr + s * fx  # (4.E71), (4.E72)
 
     # --- rolling resistance (4.E70, with Fz0 = FNOMIN in front) -------------------------
     v0 = p[P_LONGVL]
     vr = min(abs(vx_mps), VX_MY_MAX_MPS) / v0 if v0 > 0.0 else 0.0
     vr2 = vr * vr
-    fz_ratio = fz / fnomin
-    my_bracket = (
-        p[P_QSY1]
-        + p[P_QSY2] * fx / fnomin
-        + p[P_QSY3] * vr
-        + p[P_QSY4] * vr2 * vr2
-        + (p[P_QSY5] + p[P_QSY6] * fz_ratio) * gamma_rad * gamma_rad
-    )
-    my = r0 * fnomin * p[P_LMY] * my_bracket * math.pow(fz_ratio, p[P_QSY7])
+    my = (
+        r0 * fnomin * p[P_LMY] * pow_load
+        * (p[P_QSY1] + p[P_QSY2] * fx / fnomin + p[P_QSY3] * vr + p[P_QSY4] * vr2 * vr2
+           + (p[P_QSY5] + p[P_QSY6] * fz_ratio) * gamma * gamma)
+    )  # fmt: skip
     if dpi != 0.0:
         my *= math.pow(1.0 + dpi, p[P_QSY8])
-
-    # --- sliding limits: peak of the pure-slip curves on the side of the current slip ---
-    side_x = 1.0 if kappa >= 0.0 else -1.0
-    ex_side = min(ex0 * (1.0 - p[P_PEX4] * side_x), 1.0)
-    kappa_slide = abs(side_x * _peak_arg(cx, ex_side) / max(abs(bx), _TINY) - shx)
-    side_y = 1.0 if tan_alpha >= 0.0 else -1.0
-    ey_side = min(ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * side_y), 1.0)
-    tan_alpha_slide = abs(side_y * _peak_arg(cy, ey_side) / max(abs(by), _TINY) - shy)
 
     out[OUT_FX] = fx * load_scale
     out[OUT_FY] = fy * load_scale
@@ -673,7 +673,7 @@ def mf61_param_vector(coeffs: dict[str, float]) -> np.ndarray:
     Raises
     ------
     ValueError
-        If a name is missing or a value is not a finite number.
+        If a name is missing or a value is not a finite real number.
     """
     missing = [name for name in MF61_PARAM_NAMES if name not in coeffs]
     if missing:
@@ -681,7 +681,7 @@ def mf61_param_vector(coeffs: dict[str, float]) -> np.ndarray:
     vec = np.empty(N_MF61_PARAM, dtype=np.float64)
     for i, name in enumerate(MF61_PARAM_NAMES):
         value = coeffs[name]
-        if isinstance(value, bool) or not isinstance(value, int | float | np.floating):
+        if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
             raise ValueError(f"MF 6.1 coefficient {name} is not a number: {value!r}")
         if not math.isfinite(value):
             raise ValueError(f"MF 6.1 coefficient {name} is not finite: {value!r}")

@@ -1,0 +1,1016 @@
+"""The Rerun scene of a run: the car on its road, tire forces, and the engineer's plots.
+
+Everything is logged through an explicit ``rerun.RecordingStream`` (never the global one),
+on one timeline, ``sim_time`` (a duration: simulated seconds). Rerun's ``log_time``
+timeline is switched off, so a recording's only clock is the simulation's.
+
+Two entry points share the same (vectorised) per-frame math:
+
+- ``log_result(rec, result, fps=50)`` logs a whole ``ScenarioResult`` in column batches
+  (``rr.send_columns``), decimated to ``fps``: the headless ``run-scenario --rrd`` path.
+- ``SceneLogger(rec, vp, tp, ...)`` with ``log_frame(time_s, state, output, input)``: one
+  frame at a time (``rec.log``), for the live viewer process fed by the state topic.
+  It integrates the wheel spin on every call and logs at most ``fps`` frames per second.
+
+Entity paths (constants below; ``RESULT_ENTITY_PATHS`` lists what ``log_result`` writes)::
+
+    world                          view coordinates: right-handed, Z up (gravity is -Z)
+    world/origin                   world axes at the origin (static)
+    world/road                     the road plane through the origin (static):
+    world/road/surface               its surface, a rectangle around the run
+    world/road/grid                  a 10 m grid on it, bold every 50 m
+    world/road/axes                  the plane's axes e1, e2, n (core.params.road_axes)
+    world/trail                    the trajectory so far: a line strip on the road
+    world/car                      transform: the car's pose in the plane: origin on the
+                                   road below the CG (X e1 + Y e2), x forward along the
+                                   heading, z along the road normal n
+    world/car/body                 transform: the sprung mass at its CG, heave along n,
+                                   pitch then roll (nose down and left side up positive)
+    world/car/body/shell           the body's boxes (static)
+    world/car/wheel_{w}            transform: the hub (above the contact point by the
+                                   rolling radius), steered, spun by the integral of Omega
+    world/car/wheel_{w}/tire       a cylinder (static)
+    world/car/wheel_{w}/spokes     spokes that make the spin visible, one red (static)
+    world/car/forces/{w}           arrows Fx, Fy (wheel heading frame) and Fz from the
+                                   contact point, FORCE_SCALE_M_PER_N, coloured by the
+                                   friction use (green 0 -> yellow 0.5 -> red >= 1)
+    plots/speed/{u,v}              body velocities (m/s)
+    plots/yaw_rate/r               yaw rate (rad/s)
+    plots/slip/kappa/{w}           k', the longitudinal slip fed to the tire
+    plots/slip/tan_alpha/{w}       tan a', the lateral slip fed to the tire
+    plots/friction_use/{w}         |F_shear| over the available friction
+    plots/forces/{w}/{fx,fy,fz}    tire forces per wheel (N, wheel frame)
+    plots/damping/active/{w}       the Appendix A damping flag (0/1)
+    plots/damping/{fx,fy}/{w}      the auxiliary damping share of Fx, Fy (N)
+    plots/inputs/{steer,throttle,brake,parking_brake,gear}   driver inputs
+    plots/diagnostics/{tick_jitter_us,dropped_frames}        live server (log_diagnostics)
+    scene_info                     a text note: scales and colours (static)
+
+with ``{w}`` one of ``core.layout.WHEEL_NAMES`` (fl, fr, rl, rr). The road plane,
+positions and rotations follow ``core.params.road_axes`` and ``core.layout`` (ISO 8855).
+``scene_blueprint()`` declares the layout: a 3D view that tracks ``world/car`` beside
+tabs of time-series views grouped as speed and yaw; slips; forces per wheel; inputs;
+damping; server diagnostics.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from simserver.core import layout as L
+from simserver.core.chassis import wheel_position
+from simserver.core.params import (
+    VP_CG_HEIGHT_M,
+    VP_CG_TO_FRONT_AXLE_M,
+    VP_CG_TO_REAR_AXLE_M,
+    VP_TRACK_FRONT_M,
+    VP_TRACK_REAR_M,
+    road_axes,
+)
+from simserver.core.tire_layout import TP_RADIUS_M
+
+if TYPE_CHECKING:  # scenario imports the compiled core at run time only where needed
+    from simserver.scenario import ScenarioResult
+
+# ----------------------------------------------------------------------------- names
+TIMELINE = "sim_time"
+"""The one timeline: simulated time, a Rerun duration."""
+
+WORLD = "world"
+ORIGIN_AXES = "world/origin"
+ROAD = "world/road"
+ROAD_SURFACE = "world/road/surface"
+ROAD_GRID = "world/road/grid"
+ROAD_AXES = "world/road/axes"
+TRAIL = "world/trail"
+CAR = "world/car"
+BODY = "world/car/body"
+BODY_SHELL = "world/car/body/shell"
+WHEELS = tuple(f"world/car/wheel_{w}" for w in L.WHEEL_NAMES)
+WHEEL_TIRES = tuple(f"{p}/tire" for p in WHEELS)
+WHEEL_SPOKES = tuple(f"{p}/spokes" for p in WHEELS)
+FORCES = tuple(f"world/car/forces/{w}" for w in L.WHEEL_NAMES)
+
+PLOTS = "plots"
+PLOT_SPEED = "plots/speed"
+PLOT_YAW_RATE = "plots/yaw_rate"
+PLOT_KAPPA = "plots/slip/kappa"
+PLOT_TAN_ALPHA = "plots/slip/tan_alpha"
+PLOT_FRICTION_USE = "plots/friction_use"
+PLOT_FORCES = "plots/forces"
+PLOT_DAMPING_ACTIVE = "plots/damping/active"
+PLOT_DAMPING_FX = "plots/damping/fx"
+PLOT_DAMPING_FY = "plots/damping/fy"
+PLOT_INPUTS = "plots/inputs"
+PLOT_GEAR = "plots/inputs/gear"
+PLOT_DIAGNOSTICS = "plots/diagnostics"
+TICK_JITTER = "plots/diagnostics/tick_jitter_us"
+DROPPED_FRAMES = "plots/diagnostics/dropped_frames"
+SCENE_INFO = "scene_info"
+
+# ---------------------------------------------------------------------------- scales
+FORCE_SCALE_M_PER_N = 1.0 / 5000.0
+"""Force arrows: 1 m per 5 kN."""
+
+DEFAULT_FPS = 50.0
+"""3D frames (and plot samples) per simulated second."""
+
+TRAIL_HZ = 10.0
+"""Trail points per simulated second."""
+
+TRAIL_MAX_POINTS = 3000
+"""The trail keeps the newest points (5 min at ``TRAIL_HZ``)."""
+
+ROAD_MARGIN_M = 150.0
+"""The road surface extends this far beyond the run's extent (``log_result``)."""
+
+LIVE_ROAD_HALF_SIZE_M = 300.0
+"""Live: half size of the road square; it is re-centred when the car nears an edge."""
+
+GRID_SPACING_M = 10.0
+GRID_MAJOR_EVERY = 5
+
+TIRE_WIDTH_M = 0.22
+ARROW_RADIUS_M = 0.035
+SURFACE_OFFSET_M = -0.02  # the surface sits just below the contact plane, the grid on it
+GRID_OFFSET_M = -0.01
+TRAIL_OFFSET_M = 0.03
+
+WHEEL_COLORS = {"fl": (230, 80, 60), "fr": (60, 150, 230), "rl": (240, 170, 40),
+                "rr": (110, 190, 80)}
+"""One colour per wheel in every plot."""
+
+_GREEN = np.array([40.0, 200.0, 60.0])
+_YELLOW = np.array([250.0, 210.0, 40.0])
+_RED = np.array([230.0, 30.0, 30.0])
+
+
+# ---------------------------------------------------------------------- plotted series
+@dataclass(frozen=True)
+class PlotSeries:
+    """One plotted signal: its entity, legend, colour and source column.
+
+    Attributes
+    ----------
+    path : str
+        Entity path (under ``plots/``).
+    label : str
+        Legend name, with the unit.
+    source : str
+        ``"state"``, ``"output"`` or ``"input"``: which ``core.layout`` array.
+    index : int
+        Column in that array (a ``core.layout`` constant).
+    color : tuple of int
+        RGB.
+    """
+
+    path: str
+    label: str
+    source: str
+    index: int
+    color: tuple[int, int, int]
+
+
+def _build_series() -> tuple[PlotSeries, ...]:
+    s: list[PlotSeries] = [
+        PlotSeries(f"{PLOT_SPEED}/u", "u (m/s)", "state", L.U_MPS, (40, 110, 220)),
+        PlotSeries(f"{PLOT_SPEED}/v", "v (m/s)", "state", L.V_MPS, (230, 120, 30)),
+        PlotSeries(f"{PLOT_YAW_RATE}/r", "r (rad/s)", "state", L.YAW_RATE_RADPS,
+                   (150, 60, 190)),
+    ]
+    for i, w in enumerate(L.WHEEL_NAMES):
+        c = WHEEL_COLORS[w]
+        s += [
+            PlotSeries(f"{PLOT_KAPPA}/{w}", f"k' {w}", "output", L.O_KAPPA0 + i, c),
+            PlotSeries(f"{PLOT_TAN_ALPHA}/{w}", f"tan a' {w}", "output", L.O_TAN_ALPHA0 + i,
+                       c),
+            PlotSeries(f"{PLOT_FRICTION_USE}/{w}", f"friction use {w}", "output",
+                       L.O_FRICTION_USE0 + i, c),
+            PlotSeries(f"{PLOT_FORCES}/{w}/fx", f"Fx {w} (N)", "output", L.O_FX0 + i,
+                       (220, 60, 50)),
+            PlotSeries(f"{PLOT_FORCES}/{w}/fy", f"Fy {w} (N)", "output", L.O_FY0 + i,
+                       (50, 150, 60)),
+            PlotSeries(f"{PLOT_FORCES}/{w}/fz", f"Fz {w} (N)", "output", L.O_FZ0 + i,
+                       (60, 90, 220)),
+            PlotSeries(f"{PLOT_DAMPING_ACTIVE}/{w}", f"damping on {w}", "state",
+                       L.DAMPING_ACTIVE0 + i, c),
+            PlotSeries(f"{PLOT_DAMPING_FX}/{w}", f"damping Fx {w} (N)", "output",
+                       L.O_DAMPING_FX0 + i, c),
+            PlotSeries(f"{PLOT_DAMPING_FY}/{w}", f"damping Fy {w} (N)", "output",
+                       L.O_DAMPING_FY0 + i, c),
+        ]
+    s += [
+        PlotSeries(f"{PLOT_INPUTS}/steer", "steer [-1, 1]", "input", L.IN_STEER, (150, 60, 190)),
+        PlotSeries(f"{PLOT_INPUTS}/throttle", "throttle [0, 1]", "input", L.IN_THROTTLE,
+                   (50, 160, 60)),
+        PlotSeries(f"{PLOT_INPUTS}/brake", "brake [0, 1]", "input", L.IN_BRAKE, (220, 50, 40)),
+        PlotSeries(f"{PLOT_INPUTS}/parking_brake", "parking brake (0/1)", "input",
+                   L.IN_PARKING_BRAKE, (120, 120, 120)),
+        PlotSeries(PLOT_GEAR, "gear (0 P, 1 R, 2 N, 3 D)", "input", L.IN_GEAR, (40, 40, 40)),
+    ]
+    return tuple(s)
+
+
+PLOT_SERIES: tuple[PlotSeries, ...] = _build_series()
+"""Every plotted signal of a frame (the diagnostics are logged apart)."""
+
+DIAGNOSTIC_SERIES = {TICK_JITTER: ("tick jitter (us)", (200, 60, 60)),
+                     DROPPED_FRAMES: ("viewer frames dropped", (90, 90, 90))}
+
+RESULT_ENTITY_PATHS: tuple[str, ...] = (
+    WORLD, ORIGIN_AXES, ROAD_SURFACE, ROAD_GRID, ROAD_AXES, TRAIL, CAR, BODY, BODY_SHELL,
+    *WHEELS, *WHEEL_TIRES, *WHEEL_SPOKES, *FORCES, SCENE_INFO,
+    *(s.path for s in PLOT_SERIES),
+)
+"""Every entity ``log_result`` writes (``SceneLogger`` adds ``DIAGNOSTIC_SERIES``)."""
+
+
+# -------------------------------------------------------------------------- geometry
+@dataclass(frozen=True)
+class CarGeometry:
+    """What the scene needs of a vehicle, read from its packed parameters.
+
+    Attributes
+    ----------
+    wheel_xy_m : ndarray
+        ``(4, 2)`` contact points relative to the CG in body axes (``wheel_position``).
+    wheel_radius_m : ndarray
+        ``(4,)`` rolling radii.
+    cg_height_m : float
+        CG height above the road.
+    """
+
+    wheel_xy_m: np.ndarray
+    wheel_radius_m: np.ndarray
+    cg_height_m: float
+
+    @classmethod
+    def from_params(cls, vp: np.ndarray, tp: np.ndarray) -> CarGeometry:
+        """Geometry of the vehicle ``vp`` (``core.params``) on tires ``tp`` (4 rows)."""
+        xy = np.array([wheel_position(vp, i) for i in range(L.N_WHEELS)], dtype=np.float64)
+        radius = np.asarray(tp, dtype=np.float64)[:, TP_RADIUS_M].copy()
+        return cls(wheel_xy_m=xy, wheel_radius_m=radius, cg_height_m=float(vp[VP_CG_HEIGHT_M]))
+
+    def body_boxes(self, vp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Centres and half sizes of the body's boxes (lower body, cabin) in the body frame.
+
+        Styling only: overhangs of 0.85 m, width the track plus 0.2 m, clearance of
+        0.6 rolling radii, beltline 0.95 m and roof 1.42 m above the road.
+        """
+        front = float(vp[VP_CG_TO_FRONT_AXLE_M]) + 0.85
+        rear = float(vp[VP_CG_TO_REAR_AXLE_M]) + 0.85
+        half_w = 0.5 * max(float(vp[VP_TRACK_FRONT_M]), float(vp[VP_TRACK_REAR_M])) + 0.1
+        h = self.cg_height_m
+        bottom = 0.6 * float(self.wheel_radius_m.mean())
+        belt, roof = 0.95, 1.42
+        lower_c = [0.5 * (front - rear), 0.0, 0.5 * (bottom + belt) - h]
+        lower_h = [0.5 * (front + rear), half_w, 0.5 * (belt - bottom)]
+        cab_len = 0.5 * (front + rear)
+        cabin_c = [lower_c[0] - 0.12 * (front + rear), 0.0, 0.5 * (belt + roof) - h]
+        cabin_h = [0.5 * cab_len, half_w - 0.08, 0.5 * (roof - belt)]
+        return np.array([lower_c, cabin_c]), np.array([lower_h, cabin_h])
+
+
+# ----------------------------------------------------------------------- quaternions
+def quat_axis(axis: int, angle_rad: np.ndarray) -> np.ndarray:
+    """Quaternions ``(..., 4)`` (x, y, z, w) of rotations by ``angle_rad`` about axis 0/1/2."""
+    half = 0.5 * np.asarray(angle_rad, dtype=np.float64)
+    q = np.zeros((*half.shape, 4))
+    q[..., axis] = np.sin(half)
+    q[..., 3] = np.cos(half)
+    return q
+
+
+def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product ``a b`` of (x, y, z, w) quaternions: rotate by ``b``, then ``a``."""
+    ax, ay, az, aw = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
+    bx, by, bz, bw = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
+    return np.stack([
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    ], axis=-1)
+
+
+def quat_from_matrix(m: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) of a 3x3 rotation matrix (Shepperd's method)."""
+    m = np.asarray(m, dtype=np.float64)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0.0:
+        s = 2.0 * np.sqrt(1.0 + trace)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
+        q[i] = 0.25 * s
+        q[j] = (m[j, i] + m[i, j]) / s
+        q[k] = (m[k, i] + m[i, k]) / s
+    q_arr = np.array(q)
+    return q_arr / np.linalg.norm(q_arr)
+
+
+# --------------------------------------------------------------- per-frame quantities
+def car_pose(states: np.ndarray, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pose of ``world/car`` in the world: the plane point below the CG, heading frame.
+
+    Parameters
+    ----------
+    states : ndarray
+        ``(n, N_STATE)``.
+    axes : ndarray
+        ``road_axes(grade, cross)``: rows e1, e2, n.
+
+    Returns
+    -------
+    translation : ndarray
+        ``(n, 3)``: ``X e1 + Y e2``.
+    quaternion : ndarray
+        ``(n, 4)``: the road's rotation (columns e1, e2, n), then the yaw about n.
+    """
+    translation = states[:, L.X_M, None] * axes[0] + states[:, L.Y_M, None] * axes[1]
+    q_road = quat_from_matrix(axes.T)
+    return translation, quat_mul(q_road, quat_axis(2, states[:, L.YAW_RAD]))
+
+
+def body_pose(
+    states: np.ndarray, cg_height_m: float, motion_scale: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pose of ``world/car/body`` in the car frame: the CG, pitched then rolled.
+
+    ``motion_scale`` exaggerates heave, roll and pitch (1 = true to the simulation).
+    Positive pitch (nose down) and roll (left side up) are positive rotations about the
+    body's y and x axes (``core.chassis``: corner lift ``heave + y roll - x pitch``).
+    """
+    n = states.shape[0]
+    translation = np.zeros((n, 3))
+    translation[:, 2] = cg_height_m + motion_scale * states[:, L.HEAVE_M]
+    q = quat_mul(quat_axis(1, motion_scale * states[:, L.PITCH_RAD]),
+                 quat_axis(0, motion_scale * states[:, L.ROLL_RAD]))
+    return translation, q
+
+
+def integrate_spin(
+    time_s: np.ndarray,
+    omega_radps: np.ndarray,
+    t_prev: float | None = None,
+    omega_prev: np.ndarray | None = None,
+    angle_prev: np.ndarray | None = None,
+) -> np.ndarray:
+    """Wheel spin angles: the trapezoidal integral of Omega over time, wrapped to 2 pi.
+
+    Parameters
+    ----------
+    time_s : ndarray
+        ``(n,)`` sample times.
+    omega_radps : ndarray
+        ``(n, 4)`` spin rates.
+    t_prev, omega_prev, angle_prev : optional
+        The last sample already integrated (time, ``(4,)`` rates and angles); without
+        them the first sample has angle zero.
+
+    Returns
+    -------
+    ndarray
+        ``(n, 4)`` angles (rad) in ``[0, 2 pi)``.
+    """
+    t = np.asarray(time_s, dtype=np.float64)
+    om = np.asarray(omega_radps, dtype=np.float64)
+    if t_prev is None or omega_prev is None or angle_prev is None:
+        t_all, om_all, start = t, om, np.zeros(om.shape[1])
+    else:
+        t_all = np.concatenate([[t_prev], t])
+        om_all = np.vstack([omega_prev, om])
+        start = np.asarray(angle_prev, dtype=np.float64)
+    increments = 0.5 * (om_all[1:] + om_all[:-1]) * np.diff(t_all)[:, None]
+    angles = start + np.vstack([np.zeros((1, om.shape[1])), np.cumsum(increments, axis=0)])
+    if t_prev is not None and omega_prev is not None and angle_prev is not None:
+        angles = angles[1:]
+    return np.mod(angles, 2.0 * np.pi)
+
+
+def wheel_poses(
+    outputs: np.ndarray, spin_rad: np.ndarray, geometry: CarGeometry
+) -> tuple[np.ndarray, np.ndarray]:
+    """Hub poses in the car frame: ``(n, 4, 3)`` translations and ``(n, 4, 4)`` quaternions.
+
+    The hub sits a rolling radius above its contact point; the rotation is the steer
+    (road-wheel angle, about z) then the spin about the axle (y; positive rolls forward).
+    """
+    n = outputs.shape[0]
+    hub = np.column_stack([geometry.wheel_xy_m, geometry.wheel_radius_m])
+    translation = np.broadcast_to(hub, (n, L.N_WHEELS, 3)).copy()
+    steer = outputs[:, L.O_STEER0:L.O_STEER0 + L.N_WHEELS]
+    return translation, quat_mul(quat_axis(2, steer), quat_axis(1, spin_rad))
+
+
+def friction_colors(use: np.ndarray) -> np.ndarray:
+    """RGBA ``uint8`` colours for friction use: green at 0, yellow at 0.5, red at 1 and above."""
+    u = np.clip(np.nan_to_num(np.asarray(use, dtype=np.float64)), 0.0, 1.0)[..., None]
+    rgb = np.where(u < 0.5, _GREEN + (_YELLOW - _GREEN) * (2.0 * u),
+                   _YELLOW + (_RED - _YELLOW) * (2.0 * u - 1.0))
+    alpha = np.full((*rgb.shape[:-1], 1), 255.0)
+    return np.round(np.concatenate([rgb, alpha], axis=-1)).astype(np.uint8)
+
+
+def force_arrows(
+    outputs: np.ndarray, geometry: CarGeometry, scale_m_per_n: float = FORCE_SCALE_M_PER_N
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Force arrows at the contact points, in the car frame.
+
+    Returns
+    -------
+    origins, vectors : ndarray
+        ``(n, 4, 3, 3)``: per wheel the arrows Fx (along the steered wheel), Fy (to its
+        left) and Fz (along the road normal), scaled by ``scale_m_per_n``.
+    colors : ndarray
+        ``(n, 4, 3, 4)`` ``uint8``, from the wheel's friction use (``friction_colors``).
+    """
+    n = outputs.shape[0]
+    steer = outputs[:, L.O_STEER0:L.O_STEER0 + L.N_WHEELS]
+    fx = outputs[:, L.O_FX0:L.O_FX0 + L.N_WHEELS] * scale_m_per_n
+    fy = outputs[:, L.O_FY0:L.O_FY0 + L.N_WHEELS] * scale_m_per_n
+    fz = outputs[:, L.O_FZ0:L.O_FZ0 + L.N_WHEELS] * scale_m_per_n
+    c, s = np.cos(steer), np.sin(steer)
+    vectors = np.zeros((n, L.N_WHEELS, 3, 3))
+    vectors[:, :, 0, 0] = c * fx
+    vectors[:, :, 0, 1] = s * fx
+    vectors[:, :, 1, 0] = -s * fy
+    vectors[:, :, 1, 1] = c * fy
+    vectors[:, :, 2, 2] = fz
+    origins = np.zeros((n, L.N_WHEELS, 3, 3))
+    origins[:, :, :, :2] = geometry.wheel_xy_m[None, :, None, :]
+    use = outputs[:, L.O_FRICTION_USE0:L.O_FRICTION_USE0 + L.N_WHEELS]
+    colors = np.repeat(friction_colors(use)[:, :, None, :], 3, axis=2)
+    return origins, vectors, colors
+
+
+def series_values(
+    series: PlotSeries, states: np.ndarray, outputs: np.ndarray, inputs: np.ndarray
+) -> np.ndarray:
+    """The ``(n,)`` values of one plotted signal."""
+    source = {"state": states, "output": outputs, "input": inputs}[series.source]
+    return source[:, series.index]
+
+
+def decimate(time_s: np.ndarray, fps: float | None) -> np.ndarray:
+    """Row indices at most ``fps`` per second apart: the first row at or after each
+    ``t0 + k / fps``, always with the last row; every row if ``fps`` is None."""
+    t = np.asarray(time_s, dtype=np.float64)
+    n = t.size
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    if fps is None:
+        return np.arange(n)
+    if not fps > 0.0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    grid = t[0] + np.arange(int(np.floor((t[-1] - t[0]) * fps + 1e-9)) + 1) / fps
+    idx = np.searchsorted(t, grid - 1e-9, side="left")
+    idx = np.unique(np.append(idx[idx < n], n - 1))
+    return idx
+
+
+def time_ns(time_s: np.ndarray | float) -> np.ndarray:
+    """Seconds to ``timedelta64[ns]``, rounded (``rr.TimeColumn`` would truncate floats)."""
+    return np.round(np.asarray(time_s, dtype=np.float64) * 1e9).astype("int64").astype(
+        "timedelta64[ns]")
+
+
+# ------------------------------------------------------------------------ emitting
+@dataclass
+class _Batch:
+    """One entity's data for ``n`` rows: an archetype and its field arrays.
+
+    ``instances`` = 0: one instance per row (arrays ``(n, ...)``); k > 0: k instances per
+    row (arrays ``(n, k, ...)``); -1: ragged, ``fields`` hold lists of per-row arrays.
+    """
+
+    path: str
+    archetype: Any
+    fields: dict[str, Any]
+    instances: int = 0
+
+
+def _log_row(rec: rr.RecordingStream, batch: _Batch, row: int) -> None:
+    kwargs = {name: values[row] for name, values in batch.fields.items()}
+    rec.log(batch.path, batch.archetype(**kwargs))
+
+
+def _send(rec: rr.RecordingStream, batch: _Batch, times: np.ndarray) -> None:
+    n = times.size
+    if n == 0:
+        return
+    if batch.instances > 0:
+        k = batch.instances
+        flat = {name: np.asarray(v).reshape(n * k, *np.asarray(v).shape[2:])
+                for name, v in batch.fields.items()}
+        columns = batch.archetype.columns(**flat).partition([k] * n)
+    else:
+        columns = batch.archetype.columns(**batch.fields)
+    rr.send_columns(batch.path, indexes=[rr.TimeColumn(TIMELINE, duration=times)],
+                    columns=columns, recording=rec)
+
+
+def _frame_batches(
+    states: np.ndarray,
+    outputs: np.ndarray,
+    spin_rad: np.ndarray,
+    geometry: CarGeometry,
+    axes: np.ndarray,
+    force_scale_m_per_n: float,
+    motion_scale: float,
+) -> list[_Batch]:
+    """The 3D frame (car, body, wheels, force arrows) for ``n`` rows."""
+    car_t, car_q = car_pose(states, axes)
+    body_t, body_q = body_pose(states, geometry.cg_height_m, motion_scale)
+    wheel_t, wheel_q = wheel_poses(outputs, spin_rad, geometry)
+    origins, vectors, colors = force_arrows(outputs, geometry, force_scale_m_per_n)
+    batches = [
+        _Batch(CAR, rr.Transform3D, {"translation": car_t, "quaternion": car_q}),
+        _Batch(BODY, rr.Transform3D, {"translation": body_t, "quaternion": body_q}),
+    ]
+    for i in range(L.N_WHEELS):
+        batches.append(_Batch(WHEELS[i], rr.Transform3D,
+                              {"translation": wheel_t[:, i], "quaternion": wheel_q[:, i]}))
+        batches.append(_Batch(FORCES[i], rr.Arrows3D,
+                              {"origins": origins[:, i], "vectors": vectors[:, i],
+                               "colors": colors[:, i]}, instances=3))
+    return batches
+
+
+def _plot_batches(states: np.ndarray, outputs: np.ndarray, inputs: np.ndarray) -> list[_Batch]:
+    return [_Batch(s.path, rr.Scalars, {"scalars": series_values(s, states, outputs, inputs)})
+            for s in PLOT_SERIES]
+
+
+# --------------------------------------------------------------------- static scene
+def road_grid(
+    axes: np.ndarray, x_range: tuple[float, float], y_range: tuple[float, float],
+    spacing_m: float = GRID_SPACING_M,
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Grid lines on the road plane: world-frame strips and a major-line flag per strip."""
+    x0, x1 = x_range
+    y0, y1 = y_range
+    strips: list[np.ndarray] = []
+    major: list[bool] = []
+    lift = GRID_OFFSET_M * axes[2]
+    for a in np.arange(np.ceil(x0 / spacing_m), np.floor(x1 / spacing_m) + 1) * spacing_m:
+        strips.append(np.array([a * axes[0] + y0 * axes[1], a * axes[0] + y1 * axes[1]]) + lift)
+        major.append(round(a / spacing_m) % GRID_MAJOR_EVERY == 0)
+    for b in np.arange(np.ceil(y0 / spacing_m), np.floor(y1 / spacing_m) + 1) * spacing_m:
+        strips.append(np.array([x0 * axes[0] + b * axes[1], x1 * axes[0] + b * axes[1]]) + lift)
+        major.append(round(b / spacing_m) % GRID_MAJOR_EVERY == 0)
+    return strips, np.array(major, dtype=bool)
+
+
+def log_road(
+    rec: rr.RecordingStream, axes: np.ndarray, x_range: tuple[float, float],
+    y_range: tuple[float, float],
+) -> None:
+    """Log (static) the road surface and grid over ``x_range`` x ``y_range`` (along e1, e2)."""
+    x0, x1 = x_range
+    y0, y1 = y_range
+    lift = SURFACE_OFFSET_M * axes[2]
+    corners = np.array([x0 * axes[0] + y0 * axes[1], x1 * axes[0] + y0 * axes[1],
+                        x1 * axes[0] + y1 * axes[1], x0 * axes[0] + y1 * axes[1]]) + lift
+    rec.log(ROAD_SURFACE, rr.Mesh3D(vertex_positions=corners,
+                                    triangle_indices=[[0, 1, 2], [0, 2, 3]],
+                                    vertex_normals=np.repeat(axes[2][None], 4, axis=0),
+                                    albedo_factor=[118, 122, 128, 255]), static=True)
+    strips, major = road_grid(axes, x_range, y_range)
+    colors = np.where(major[:, None], [[235, 235, 235, 255]], [[175, 178, 182, 255]])
+    radii = np.where(major, -0.9, -0.45)  # negative: UI points, as thin far as near
+    rec.log(ROAD_GRID, rr.LineStrips3D(strips, colors=colors.astype(np.uint8), radii=radii),
+            static=True)
+
+
+def log_static_scene(
+    rec: rr.RecordingStream,
+    vp: np.ndarray,
+    geometry: CarGeometry,
+    axes: np.ndarray,
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+    force_scale_m_per_n: float = FORCE_SCALE_M_PER_N,
+    road_text: str = "",
+) -> None:
+    """Log what never changes: frames, road, the car's body and wheel geometry, a note.
+
+    Parameters
+    ----------
+    rec : rerun.RecordingStream
+        Where to log.
+    vp : ndarray
+        Vehicle parameters (body proportions).
+    geometry : CarGeometry
+        Wheel positions and radii.
+    axes : ndarray
+        ``road_axes(grade, cross)``.
+    x_range, y_range : tuple of float
+        The road rectangle along e1 and e2 (m).
+    force_scale_m_per_n : float
+        Stated in the note.
+    road_text : str
+        The road's description for the note.
+    """
+    rec.log(WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    rec.log(ORIGIN_AXES, rr.TransformAxes3D(5.0), static=True)
+    rec.log(ROAD_AXES, rr.Transform3D(mat3x3=axes.T), rr.TransformAxes3D(3.0), static=True)
+    log_road(rec, axes, x_range, y_range)
+    rec.log(TRAIL, rr.LineStrips3D.from_fields(colors=[[20, 60, 160, 255]], radii=[0.07]),
+            static=True)
+    centers, half_sizes = geometry.body_boxes(vp)
+    rec.log(BODY_SHELL, rr.Boxes3D(centers=centers, half_sizes=half_sizes,
+                                   colors=[[200, 205, 215, 255], [150, 170, 200, 255]],
+                                   fill_mode="majorwireframe", radii=0.02), static=True)
+    for i in range(L.N_WHEELS):
+        radius = float(geometry.wheel_radius_m[i])
+        rec.log(WHEEL_TIRES[i], rr.Cylinders3D(
+            lengths=[TIRE_WIDTH_M], radii=[radius],
+            rotation_axis_angles=[rr.RotationAxisAngle(axis=[1.0, 0.0, 0.0], degrees=90.0)],
+            colors=[[35, 35, 38, 255]], fill_mode="solid"), static=True)
+        side = 0.5 * TIRE_WIDTH_M + 0.01
+        strips = []
+        for k in range(3):
+            ang = k * np.pi / 3.0
+            d = 0.95 * radius * np.array([np.sin(ang), 0.0, np.cos(ang)])
+            for y in (side, -side):
+                strips.append(np.array([-d + [0.0, y, 0.0], d + [0.0, y, 0.0]]))
+        colors = [[230, 40, 40, 255]] * 2 + [[220, 220, 220, 255]] * 4
+        rec.log(WHEEL_SPOKES[i], rr.LineStrips3D(strips, colors=colors, radii=0.015),
+                static=True)
+        rec.log(FORCES[i], rr.Arrows3D.from_fields(radii=[ARROW_RADIUS_M]), static=True)
+    note = (
+        "### simserver scene\n\n"
+        f"- Road: {road_text or 'plane through the origin'}; grid {GRID_SPACING_M:g} m, "
+        f"bold every {GRID_SPACING_M * GRID_MAJOR_EVERY:g} m; axes: world (5 m) and "
+        "road e1, e2, n (3 m).\n"
+        f"- Force arrows at each contact point: Fx along the wheel, Fy to its left, Fz "
+        f"along the road normal; 1 m per {1.0 / force_scale_m_per_n / 1000.0:g} kN.\n"
+        "- Arrow colour: friction use |F_shear| / available, green 0 -> yellow 0.5 -> "
+        "red 1 and above.\n"
+        "- Wheels: steered by the road-wheel angle, spun by the integral of Omega (red "
+        "spoke).\n"
+        "- Timeline `sim_time`: simulated time.\n"
+    )
+    rec.log(SCENE_INFO, rr.TextDocument(note, media_type=rr.MediaType.MARKDOWN), static=True)
+    for s in PLOT_SERIES:
+        rec.log(s.path, rr.SeriesLines(names=s.label, colors=[s.color], widths=1.5),
+                static=True)
+
+
+def log_diagnostics_styles(rec: rr.RecordingStream) -> None:
+    """Log (static) the names and colours of the diagnostics series."""
+    for path, (label, color) in DIAGNOSTIC_SERIES.items():
+        rec.log(path, rr.SeriesLines(names=label, colors=[color], widths=1.5), static=True)
+
+
+def log_diagnostics(
+    rec: rr.RecordingStream,
+    time_s: float,
+    tick_jitter_us: float,
+    dropped_frames: int | None = None,
+) -> None:
+    """Log one diagnostics sample of the live server at ``time_s``.
+
+    Parameters
+    ----------
+    rec : rerun.RecordingStream
+        Where to log.
+    time_s : float
+        Simulated time of the sample.
+    tick_jitter_us : float
+        The tick's lateness (or period error) in microseconds.
+    dropped_frames : int, optional
+        Viewer frames dropped so far by the bounded queue.
+    """
+    rec.set_time(TIMELINE, duration=time_ns(time_s)[()])
+    rec.log(TICK_JITTER, rr.Scalars(float(tick_jitter_us)))
+    if dropped_frames is not None:
+        rec.log(DROPPED_FRAMES, rr.Scalars(float(dropped_frames)))
+
+
+# ------------------------------------------------------------------------- blueprint
+def scene_blueprint(
+    plot_window_s: float | None = None,
+    eye_position: Sequence[float] | None = None,
+    look_target: Sequence[float] | None = None,
+    play_state: str | None = None,
+) -> rrb.Blueprint:
+    """The layout: the 3D view tracking the car, beside tabs of grouped plots.
+
+    Parameters
+    ----------
+    plot_window_s : float, optional
+        Plots show the last ``plot_window_s`` seconds before the time cursor (live use);
+        None shows the whole run (recordings).
+    eye_position, look_target : sequence of float, optional
+        Initial camera position and target in world coordinates; the camera then follows
+        the car (``EyeControls3D.tracking_entity`` = ``BODY_SHELL``).
+    play_state : str, optional
+        ``"following"`` keeps the time cursor on the newest data (live use and
+        screenshots); ``"paused"``/``"playing"``; None leaves the viewer's default.
+    """
+    time_ranges = None
+    if plot_window_s is not None:
+        time_ranges = rrb.VisibleTimeRange(
+            TIMELINE,
+            start=rrb.TimeRangeBoundary.cursor_relative(seconds=-float(plot_window_s)),
+            end=rrb.TimeRangeBoundary.cursor_relative(),
+        )
+
+    def plot(name: str, origin: str, contents: str | list[str] = "$origin/**") -> rrb.View:
+        return rrb.TimeSeriesView(name=name, origin=origin, contents=contents,
+                                  time_ranges=time_ranges)
+
+    # The viewer tracks an entity by its visual bounds: ``world/car`` holds only a
+    # transform, so track the body's boxes (rerun 0.41 ignores an entity with nothing
+    # drawn).
+    eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, tracking_entity=BODY_SHELL,
+                            position=eye_position, look_target=look_target)
+    scene = rrb.Spatial3DView(name="car on the road", origin=WORLD, contents=f"{WORLD}/**",
+                              eye_controls=eye, line_grid=rrb.LineGrid3D(visible=False),
+                              background=[205, 215, 228])
+    speed_yaw = rrb.Vertical(plot("speed u, v", PLOT_SPEED),
+                             plot("yaw rate", PLOT_YAW_RATE), name="speed & yaw")
+    slips = rrb.Vertical(plot("k' (longitudinal slip)", PLOT_KAPPA),
+                         plot("tan a' (lateral slip)", PLOT_TAN_ALPHA),
+                         plot("friction use", PLOT_FRICTION_USE), name="slips")
+    forces = rrb.Grid(*(plot(f"forces {w}", f"{PLOT_FORCES}/{w}") for w in L.WHEEL_NAMES),
+                      grid_columns=2, name="forces per wheel")
+    inputs = rrb.Vertical(
+        plot("driver inputs", PLOT_INPUTS,
+             [f"{PLOT_INPUTS}/{c}" for c in ("steer", "throttle", "brake", "parking_brake")]),
+        plot("gear", PLOT_GEAR), row_shares=[3, 1], name="inputs")
+    damping = rrb.Vertical(plot("damping flag (Appendix A)", PLOT_DAMPING_ACTIVE),
+                           plot("damping share of Fx", PLOT_DAMPING_FX),
+                           plot("damping share of Fy", PLOT_DAMPING_FY), name="damping")
+    server = rrb.Vertical(plot("tick jitter", TICK_JITTER),
+                          plot("viewer frames dropped", DROPPED_FRAMES), name="server")
+    about = rrb.TextDocumentView(origin=SCENE_INFO, name="about")
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(scene, speed_yaw, row_shares=[3, 2]),
+            rrb.Tabs(slips, forces, inputs, damping, server, about, active_tab=0),
+            column_shares=[3, 2],
+        ),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="expanded", timeline=TIMELINE, play_state=play_state),
+    )
+
+
+# ------------------------------------------------------------------------ entry points
+def _road_text(grade_pct: float, cross_slope_pct: float) -> str:
+    return f"grade {grade_pct:+g} %, cross-slope {cross_slope_pct:+g} %"
+
+
+def _eye_for(translation: np.ndarray, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A chase position behind, to the left of and above a car at ``translation``."""
+    eye = translation - 7.0 * axes[0] + 4.5 * axes[1] + 3.0 * axes[2]
+    return eye, translation + 0.5 * axes[2]
+
+
+def log_result(
+    rec: rr.RecordingStream,
+    result: ScenarioResult,
+    fps: float = DEFAULT_FPS,
+    plot_fps: float | None = None,
+    trail_hz: float = TRAIL_HZ,
+    force_scale_m_per_n: float = FORCE_SCALE_M_PER_N,
+    motion_scale: float = 1.0,
+    send_blueprint: bool = True,
+) -> None:
+    """Log a whole run: static scene, frames decimated to ``fps``, plots, blueprint.
+
+    Parameters
+    ----------
+    rec : rerun.RecordingStream
+        Where to log (``adapters.rerun_sink.open_recording``).
+    result : ScenarioResult
+        The run (``simserver.scenario.run_scenario``).
+    fps : float
+        3D frames per simulated second.
+    plot_fps : float, optional
+        Plot samples per simulated second; default ``fps``; None-like 0 is rejected.
+    trail_hz : float
+        Trail points per simulated second.
+    force_scale_m_per_n : float
+        Arrow length per newton.
+    motion_scale : float
+        Exaggeration of heave, roll and pitch (1 = true).
+    send_blueprint : bool
+        Send ``scene_blueprint()`` with the recording (made active).
+    """
+    rec.set_log_time_enabled(False)
+    sc = result.scenario
+    vp, tp = sc.vehicle.vp, sc.vehicle.tp
+    grade, cross = sc.road["grade_pct"], sc.road["cross_slope_pct"]
+    axes = road_axes(grade, cross)
+    geometry = CarGeometry.from_params(vp, tp)
+    states, outputs, inputs, t = result.states, result.outputs, result.inputs, result.time_s
+    if t.size == 0:
+        return
+
+    x, y = states[:, L.X_M], states[:, L.Y_M]
+    x_range = (GRID_SPACING_M * np.floor((np.nanmin(x) - ROAD_MARGIN_M) / GRID_SPACING_M),
+               GRID_SPACING_M * np.ceil((np.nanmax(x) + ROAD_MARGIN_M) / GRID_SPACING_M))
+    y_range = (GRID_SPACING_M * np.floor((np.nanmin(y) - ROAD_MARGIN_M) / GRID_SPACING_M),
+               GRID_SPACING_M * np.ceil((np.nanmax(y) + ROAD_MARGIN_M) / GRID_SPACING_M))
+    log_static_scene(rec, vp, geometry, axes, x_range, y_range, force_scale_m_per_n,
+                     _road_text(grade, cross))
+    if send_blueprint:
+        start, _ = car_pose(states[:1], axes)
+        eye, target = _eye_for(start[0], axes)
+        rec.send_blueprint(scene_blueprint(eye_position=eye, look_target=target))
+
+    spin = integrate_spin(t, states[:, L.OMEGA0:L.OMEGA0 + L.N_WHEELS])
+    frames = decimate(t, fps)
+    for batch in _frame_batches(states[frames], outputs[frames], spin[frames], geometry, axes,
+                                force_scale_m_per_n, motion_scale):
+        _send(rec, batch, time_ns(t[frames]))
+    rows = decimate(t, plot_fps if plot_fps is not None else fps)
+    for batch in _plot_batches(states[rows], outputs[rows], inputs[rows]):
+        _send(rec, batch, time_ns(t[rows]))
+
+    trail_rows = decimate(t, trail_hz)
+    points, _ = car_pose(states[trail_rows], axes)
+    points = points + TRAIL_OFFSET_M * axes[2]
+    strips = [points[max(0, k + 1 - TRAIL_MAX_POINTS):k + 1].astype(np.float32)
+              for k in range(trail_rows.size)]
+    _send(rec, _Batch(TRAIL, rr.LineStrips3D, {"strips": strips}, instances=-1),
+          time_ns(t[trail_rows]))
+    rec.flush()
+
+
+@dataclass
+class _SpinState:
+    time_s: float | None = None
+    omega: np.ndarray | None = None
+    angle: np.ndarray = field(default_factory=lambda: np.zeros(L.N_WHEELS))
+
+
+class SceneLogger:
+    """Logs the scene frame by frame (the live viewer process).
+
+    Parameters
+    ----------
+    rec : rerun.RecordingStream
+        Where to log; ``log_time`` is switched off on it.
+    vp : ndarray
+        Vehicle parameters (``core.params``).
+    tp : ndarray
+        ``(4, N_TIRE_PARAM)`` tire parameters.
+    grade_pct, cross_slope_pct : float
+        The road plane.
+    fps : float, optional
+        At most this many frames per simulated second are logged (every call still
+        integrates the wheel spin); None logs every call.
+    trail_hz : float
+        Trail points per simulated second (at most ``TRAIL_MAX_POINTS`` are kept).
+    force_scale_m_per_n, motion_scale : float
+        As for ``log_result``.
+    plot_window_s : float, optional
+        Sent blueprint: plots show this many seconds before the cursor.
+    send_blueprint : bool
+        Send ``scene_blueprint`` when the first frame is logged.
+    """
+
+    def __init__(
+        self,
+        rec: rr.RecordingStream,
+        vp: np.ndarray,
+        tp: np.ndarray,
+        grade_pct: float = 0.0,
+        cross_slope_pct: float = 0.0,
+        fps: float | None = DEFAULT_FPS,
+        trail_hz: float = TRAIL_HZ,
+        force_scale_m_per_n: float = FORCE_SCALE_M_PER_N,
+        motion_scale: float = 1.0,
+        plot_window_s: float | None = 30.0,
+        send_blueprint: bool = True,
+    ) -> None:
+        if fps is not None and not fps > 0.0:
+            raise ValueError(f"fps must be positive or None, got {fps}")
+        self.rec = rec
+        self.vp = np.asarray(vp, dtype=np.float64)
+        self.geometry = CarGeometry.from_params(self.vp, tp)
+        self.grade_pct = float(grade_pct)
+        self.cross_slope_pct = float(cross_slope_pct)
+        self.axes = road_axes(self.grade_pct, self.cross_slope_pct)
+        self.fps = fps
+        self.trail_hz = trail_hz
+        self.force_scale_m_per_n = force_scale_m_per_n
+        self.motion_scale = motion_scale
+        self.plot_window_s = plot_window_s
+        self.send_blueprint = send_blueprint
+        self.frames_logged = 0
+        self._spin = _SpinState()
+        self._next_frame_s = -np.inf
+        self._next_trail_s = -np.inf
+        self._trail: deque[np.ndarray] = deque(maxlen=TRAIL_MAX_POINTS)
+        self._road_center: np.ndarray | None = None
+        rec.set_log_time_enabled(False)
+
+    def reset(self) -> None:
+        """Forget the trail, the spin and the frame clock (a new run; called on a time jump
+        backwards)."""
+        self._spin = _SpinState()
+        self._next_frame_s = -np.inf
+        self._next_trail_s = -np.inf
+        self._trail.clear()
+
+    def _ensure_road(self, x_m: float, y_m: float) -> None:
+        """Log the static scene once, and re-centre the road when the car nears its edge."""
+        half = LIVE_ROAD_HALF_SIZE_M
+        pos = np.array([x_m, y_m])
+        if self._road_center is not None and np.all(np.abs(pos - self._road_center)
+                                                    < half - ROAD_MARGIN_M / 3.0):
+            return
+        center = GRID_SPACING_M * np.round(pos / GRID_SPACING_M)
+        x_range = (center[0] - half, center[0] + half)
+        y_range = (center[1] - half, center[1] + half)
+        if self._road_center is None:
+            log_static_scene(self.rec, self.vp, self.geometry, self.axes, x_range, y_range,
+                             self.force_scale_m_per_n,
+                             _road_text(self.grade_pct, self.cross_slope_pct))
+            log_diagnostics_styles(self.rec)
+            if self.send_blueprint:
+                start, _ = car_pose(np.array([[x_m, y_m] + [0.0] * (L.N_STATE - 2)]),
+                                    self.axes)
+                eye, target = _eye_for(start[0], self.axes)
+                self.rec.send_blueprint(scene_blueprint(self.plot_window_s, eye, target,
+                                                        play_state="following"))
+        else:
+            log_road(self.rec, self.axes, x_range, y_range)
+        self._road_center = center
+
+    def log_frame(
+        self,
+        time_s: float,
+        state_row: np.ndarray,
+        output_row: np.ndarray,
+        input_row: np.ndarray,
+    ) -> bool:
+        """Integrate the wheel spin to ``time_s`` and log a frame if one is due.
+
+        Parameters
+        ----------
+        time_s : float
+            Simulated time of the row.
+        state_row, output_row, input_row : ndarray
+            ``(N_STATE,)``, ``(N_OUT,)``, ``(N_INPUT,)`` (``core.layout``).
+
+        Returns
+        -------
+        bool
+            True if a frame was logged.
+        """
+        states = np.asarray(state_row, dtype=np.float64)[None, :]
+        outputs = np.asarray(output_row, dtype=np.float64)[None, :]
+        inputs = np.asarray(input_row, dtype=np.float64)[None, :]
+        t = float(time_s)
+        sp = self._spin
+        if sp.time_s is not None and t < sp.time_s:
+            self.reset()
+            sp = self._spin
+        omega = states[:, L.OMEGA0:L.OMEGA0 + L.N_WHEELS]
+        spin = integrate_spin(np.array([t]), omega, sp.time_s, sp.omega, sp.angle)
+        sp.time_s, sp.omega, sp.angle = t, omega[0].copy(), spin[0].copy()
+
+        if t < self._next_frame_s:
+            return False
+        self._next_frame_s = t + 1.0 / self.fps if self.fps is not None else -np.inf
+        if self._next_frame_s <= t:
+            self._next_frame_s = t
+        self._ensure_road(float(states[0, L.X_M]), float(states[0, L.Y_M]))
+        rec = self.rec
+        rec.set_time(TIMELINE, duration=time_ns(t)[()])
+        batches = _frame_batches(states, outputs, spin, self.geometry, self.axes,
+                                 self.force_scale_m_per_n, self.motion_scale)
+        batches += _plot_batches(states, outputs, inputs)
+        for batch in batches:
+            _log_row(rec, batch, 0)
+        if t >= self._next_trail_s:
+            self._next_trail_s = t + 1.0 / self.trail_hz
+            point, _ = car_pose(states, self.axes)
+            self._trail.append(point[0] + TRAIL_OFFSET_M * self.axes[2])
+            rec.log(TRAIL, rr.LineStrips3D([np.array(self._trail, dtype=np.float32)]))
+        self.frames_logged += 1
+        return True
+
+    def log_diagnostics(
+        self, time_s: float, tick_jitter_us: float, dropped_frames: int | None = None
+    ) -> None:
+        """Log one diagnostics sample (``log_diagnostics``)."""
+        log_diagnostics(self.rec, time_s, tick_jitter_us, dropped_frames)
+

@@ -1,0 +1,529 @@
+"""Zenoh transport for the server and its clients.
+
+- :func:`make_zenoh_config`: the safe default (a peer listening on ``tcp/127.0.0.1:7447``
+  only, multicast scouting off, shared memory off) or any zenoh JSON5/YAML config file.
+- :class:`ZenohEndpoint`: one zenoh session bound to one vehicle's keys
+  (:func:`simserver.protocol.vehicle_keys`), with the few entities the server and the
+  clients declare. Every receiver uses a channel handler polled with ``try_recv()``:
+  nothing here blocks a real-time loop, and no Python callback keeps a process alive
+  (platform notes: a callback subscriber hangs the exit until the session is closed).
+
+Facts this relies on (``../shared/docs/platform-notes.md``): zenoh's defaults join UDP
+multicast 224.0.0.224:7446 and listen on every interface; shared memory (on for payloads of
+3 KiB and more) gave 13-110 ms spikes; congestion control DROP lost up to 0.5 % of a 1 kHz
+stream on loopback while BLOCK lost none.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from simserver.protocol import (
+    DEFAULT_PREFIX,
+    DEFAULT_VEHICLE,
+    ENCODING_COMMAND,
+    ENCODING_CONTROL,
+    ENCODING_DIAGNOSTICS,
+    ENCODING_STATE,
+    ProtocolError,
+    VehicleKeys,
+    decode_reply,
+    encode_control,
+    reply_error,
+    reply_ok,
+    validate_control,
+    vehicle_keys,
+)
+
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+"""The embedded default: a peer on loopback only."""
+
+DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US = 100_000
+"""Congestion control BLOCK waits at most this long for a full link before closing it.
+
+Zenoh's own default is 5 s: a client that stops reading would stall ``put()`` in the
+1 kHz loop for that long. 100 ms bounds the damage (about 100 ticks, then caught up) and
+drops the wedged peer's link instead.
+"""
+
+_RUST_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
+
+
+class ZenohConfigError(ValueError):
+    """A zenoh configuration that cannot be built; the message names the file or key."""
+
+
+class ZenohOpenError(RuntimeError):
+    """The zenoh session could not be opened (for example the listen port is in use)."""
+
+
+def _clean(exc: BaseException) -> str:
+    return _RUST_LOCATION.sub("", str(exc)).strip()
+
+
+def _endpoints(what: str, value: str | Sequence[str]) -> list[str]:
+    items = [value] if isinstance(value, str) else list(value)
+    for ep in items:
+        if not isinstance(ep, str) or "/" not in ep:
+            raise ZenohConfigError(
+                f"{what}: endpoint {ep!r} is not of the form <protocol>/<address> "
+                "(e.g. tcp/127.0.0.1:7447)"
+            )
+    return items
+
+
+def _insert(cfg: zenoh.Config, key: str, value: Any, origin: str) -> None:
+    try:
+        cfg.insert_json5(key, json.dumps(value))
+    except zenoh.ZError as exc:
+        raise ZenohConfigError(f"{origin}: {key} = {value!r}: {_clean(exc)}") from None
+
+
+def make_zenoh_config(
+    listen: str | Sequence[str] | None = None,
+    connect: str | Sequence[str] | None = None,
+    config_file: str | Path | None = None,
+    mode: str | None = None,
+) -> zenoh.Config:
+    """Build the zenoh configuration of a server or client.
+
+    Parameters
+    ----------
+    listen : str or sequence of str, optional
+        Endpoints to listen on. Without ``config_file``, defaults to
+        ``["tcp/127.0.0.1:7447"]`` for a peer or router and ``[]`` for a client.
+    connect : str or sequence of str, optional
+        Endpoints to connect to (default none).
+    config_file : str or Path, optional
+        A zenoh configuration file (``.json5``, ``.json`` or ``.yaml``), used as is:
+        routers, other hosts, TLS, access control. Its scouting and shared-memory
+        settings are respected; ``listen``, ``connect`` and ``mode`` override it only
+        when given.
+    mode : {"peer", "client", "router"}, optional
+        Default ``"peer"`` without a file.
+
+    Returns
+    -------
+    zenoh.Config
+        Without a file: ``mode``, the endpoints above, multicast scouting off, shared
+        memory off, and the BLOCK wait bounded to
+        :data:`DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US`.
+
+    Raises
+    ------
+    ZenohConfigError
+        Naming the file when it is missing or does not parse, or the key of a bad value.
+    """
+    if config_file is not None:
+        path = Path(config_file)
+        if not path.is_file():
+            raise ZenohConfigError(f"{path}: zenoh config file not found")
+        try:
+            cfg = zenoh.Config.from_file(str(path))
+        except zenoh.ZError as exc:
+            raise ZenohConfigError(f"{path}: not a valid zenoh config: {_clean(exc)}") from None
+        origin = str(path)
+        if mode is not None:
+            _insert(cfg, "mode", mode, origin)
+        if listen is not None:
+            _insert(cfg, "listen/endpoints", _endpoints("listen", listen), origin)
+        if connect is not None:
+            _insert(cfg, "connect/endpoints", _endpoints("connect", connect), origin)
+        return cfg
+
+    mode = mode or "peer"
+    if listen is None:
+        listen = [] if mode == "client" else [DEFAULT_LISTEN]
+    origin = "zenoh config"
+    cfg = zenoh.Config()
+    _insert(cfg, "mode", mode, origin)
+    _insert(cfg, "listen/endpoints", _endpoints("listen", listen), origin)
+    _insert(cfg, "connect/endpoints", _endpoints("connect", connect or []), origin)
+    _insert(cfg, "scouting/multicast/enabled", False, origin)
+    _insert(cfg, "transport/shared_memory/enabled", False, origin)
+    _insert(
+        cfg,
+        "transport/link/tx/queue/congestion_control/block/wait_before_close",
+        DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US,
+        origin,
+    )
+    return cfg
+
+
+def config_warnings(cfg: zenoh.Config) -> list[str]:
+    """Settings of a (user-given) config that the platform notes advise against.
+
+    Returns
+    -------
+    list of str
+        One sentence per concern (multicast scouting on, shared memory on, listening on
+        every interface); empty when none.
+    """
+    out = []
+    multicast = json.loads(cfg.get_json("scouting/multicast/enabled"))
+    if multicast is None or multicast:
+        out.append("multicast scouting is on (joins UDP 224.0.0.224:7446)")
+    if json.loads(cfg.get_json("transport/shared_memory/enabled")):
+        out.append("shared memory is on (13-110 ms latency spikes measured on this platform)")
+    listen = json.loads(cfg.get_json("listen/endpoints"))
+    eps = listen if isinstance(listen, list) else [e for v in listen.values() for e in v or []]
+    if any("0.0.0.0" in e or "[::]" in e for e in eps):
+        out.append(f"listening on every interface: {eps}")
+    return out
+
+
+class Inbox:
+    """A subscriber on a ring channel, drained without blocking.
+
+    The channel keeps the newest ``capacity`` samples; older ones are dropped by zenoh
+    when a tick's worth of input exceeds it (the newest always survive).
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, capacity: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {capacity}")
+        self.key = key
+        self.capacity = capacity
+        self.received = 0
+        self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(capacity))
+
+    def drain_newest(self) -> list[bytes]:
+        """All payloads received since the last call, oldest first (never blocks).
+
+        At most ``capacity`` items; ``received`` counts them.
+        """
+        out: list[bytes] = []
+        try_recv = self._sub.try_recv
+        sample = try_recv()
+        while sample is not None:
+            out.append(sample.payload.to_bytes())
+            sample = try_recv()
+        self.received += len(out)
+        return out
+
+    def wait_newest(self, timeout_s: float, poll_s: float = 0.0005) -> bytes | None:
+        """Block up to ``timeout_s`` for input and return the newest payload (clients only)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            got = self.drain_newest()
+            if got:
+                return got[-1]
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(poll_s)
+
+    def close(self) -> None:
+        """Undeclare the subscriber (idempotent)."""
+        if self._sub is not None:
+            try:
+                self._sub.undeclare()
+            except zenoh.ZError:
+                pass  # already gone with its session
+            self._sub = None
+
+
+class ControlRequest:
+    """One validated control request; answer it exactly once with a ``reply_*`` method."""
+
+    __slots__ = ("name", "args", "key", "_query")
+
+    def __init__(self, name: str, args: dict, key: str, query: zenoh.Query) -> None:
+        self.name = name
+        self.args = args
+        self.key = key
+        self._query = query
+
+    def reply(self, body: bytes) -> None:
+        """Send a JSON reply body and finalise the query."""
+        query, self._query = self._query, None
+        if query is None:
+            raise RuntimeError(f"control {self.name!r} was already answered")
+        try:
+            query.reply(self.key, body, encoding=zenoh.Encoding(ENCODING_CONTROL))
+        finally:
+            query.drop()
+
+    def reply_ok(self, **data: Any) -> None:
+        """Reply ``{"ok": true, ...data}``."""
+        self.reply(reply_ok(**data))
+
+    def reply_error(self, error: str | ProtocolError, field: str | None = None) -> None:
+        """Reply ``{"ok": false, "error": ..., "field": ...}``."""
+        self.reply(reply_error(error, field))
+
+
+class ControlInbox:
+    """One queryable on ``{prefix}/{vehicle}/ctl/*`` serving every control.
+
+    :meth:`poll` answers malformed requests itself (unknown control, wildcard key, bad
+    arguments: an error reply naming the field) and returns only valid ones.
+    """
+
+    def __init__(self, session: zenoh.Session, keys: VehicleKeys, capacity: int) -> None:
+        self.keys = keys
+        self.received = 0
+        self.rejected = 0
+        self._q = session.declare_queryable(
+            keys.ctl_wildcard, zenoh.handlers.RingChannel(capacity), complete=True
+        )
+
+    def poll(self) -> list[ControlRequest]:
+        """Valid requests received since the last call (never blocks; usually empty)."""
+        out: list[ControlRequest] = []
+        query = self._q.try_recv()
+        while query is not None:
+            self.received += 1
+            key = str(query.key_expr)
+            name = self.keys.control_name(key)
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                if name is None:
+                    raise ProtocolError(
+                        "control", f"{key!r} is not one control key of {self.keys.base}"
+                    )
+                args = validate_control(name, payload)
+            except ProtocolError as exc:
+                self.rejected += 1
+                try:
+                    if name is None:
+                        query.reply_err(reply_error(exc))
+                    else:
+                        query.reply(key, reply_error(exc),
+                                    encoding=zenoh.Encoding(ENCODING_CONTROL))
+                finally:
+                    query.drop()
+            else:
+                out.append(ControlRequest(name, args, key, query))
+            query = self._q.try_recv()
+        return out
+
+    def close(self) -> None:
+        """Undeclare the queryable (idempotent)."""
+        if self._q is not None:
+            try:
+                self._q.undeclare()
+            except zenoh.ZError:
+                pass
+            self._q = None
+
+
+class AliveWatch:
+    """Liveliness subscriber on a vehicle's (or a pattern's) token key."""
+
+    def __init__(self, session: zenoh.Session, key: str, capacity: int = 64) -> None:
+        self.key = key
+        self._sub = session.liveliness().declare_subscriber(
+            key, zenoh.handlers.FifoChannel(capacity), history=True
+        )
+
+    def poll(self) -> list[tuple[str, bool]]:
+        """Changes since the last call: ``(token key, True if it appeared)``, oldest first."""
+        out = []
+        sample = self._sub.try_recv()
+        while sample is not None:
+            out.append((str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT))
+            sample = self._sub.try_recv()
+        return out
+
+    def close(self) -> None:
+        """Undeclare the subscriber (idempotent)."""
+        if self._sub is not None:
+            try:
+                self._sub.undeclare()
+            except zenoh.ZError:
+                pass
+            self._sub = None
+
+
+class ZenohEndpoint:
+    """A zenoh session bound to one vehicle's keys, for the server and its clients.
+
+    Parameters
+    ----------
+    config : zenoh.Config, optional
+        Default :func:`make_zenoh_config` (loopback peer on port 7447).
+    prefix, vehicle : str, optional
+        Key prefix and vehicle id (validated).
+
+    Raises
+    ------
+    simserver.protocol.ProtocolError
+        For an invalid prefix or vehicle id.
+    ZenohOpenError
+        When the session cannot be opened (a listen port in use, a bad endpoint).
+
+    Notes
+    -----
+    Use it as a context manager or call :meth:`close`; every entity declared through it
+    is undeclared, then the session closed. Only channel handlers are used, so a process
+    exits even if it forgets to close.
+
+    Examples
+    --------
+    Server side, per tick::
+
+        for payload in inbox.drain_newest(): ...      # count, decode, keep newest valid
+        state_pub.put(state_bytes)
+        for req in controls.poll(): req.reply_ok(tick=tick)
+    """
+
+    def __init__(
+        self,
+        config: zenoh.Config | None = None,
+        *,
+        prefix: str = DEFAULT_PREFIX,
+        vehicle: str = DEFAULT_VEHICLE,
+    ) -> None:
+        self.keys = vehicle_keys(prefix, vehicle)
+        self._closeables: list[Any] = []
+        try:
+            self.session = zenoh.open(config if config is not None else make_zenoh_config())
+        except zenoh.ZError as exc:
+            raise ZenohOpenError(f"cannot open the zenoh session: {_clean(exc)}") from None
+
+    # ---------------------------------------------------------------- lifecycle
+
+    def __enter__(self) -> ZenohEndpoint:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        """True once :meth:`close` ran (or the session was closed)."""
+        return self.session.is_closed()
+
+    def close(self) -> None:
+        """Undeclare every entity (newest first), then close the session. Idempotent."""
+        while self._closeables:
+            obj = self._closeables.pop()
+            try:
+                if hasattr(obj, "close"):
+                    obj.close()
+                else:
+                    obj.undeclare()
+            except zenoh.ZError:
+                pass
+        if not self.session.is_closed():
+            self.session.close()
+
+    def _keep(self, obj: Any) -> Any:
+        self._closeables.append(obj)
+        return obj
+
+    def _publisher(
+        self, key: str, encoding: str, priority: zenoh.Priority, express: bool,
+        congestion_control: zenoh.CongestionControl,
+    ) -> zenoh.Publisher:
+        return self._keep(
+            self.session.declare_publisher(
+                key,
+                encoding=zenoh.Encoding(encoding),
+                congestion_control=congestion_control,
+                priority=priority,
+                express=express,
+            )
+        )
+
+    # ---------------------------------------------------------------- server side
+
+    def declare_command_inbox(self, capacity: int = 32) -> Inbox:
+        """Subscriber on ``cmd`` with a ring of ``capacity``; drain it every tick."""
+        return self._keep(Inbox(self.session, self.keys.cmd, capacity))
+
+    def declare_state_publisher(
+        self, congestion_control: zenoh.CongestionControl = zenoh.CongestionControl.BLOCK
+    ) -> zenoh.Publisher:
+        """Publisher on ``state``: REAL_TIME priority, express, BLOCK (lossless)."""
+        return self._publisher(self.keys.state, ENCODING_STATE, zenoh.Priority.REAL_TIME,
+                               True, congestion_control)
+
+    def declare_diag_publisher(self) -> zenoh.Publisher:
+        """Publisher on ``diag``: DATA priority, batched, BLOCK."""
+        return self._publisher(self.keys.diag, ENCODING_DIAGNOSTICS, zenoh.Priority.DATA,
+                               False, zenoh.CongestionControl.BLOCK)
+
+    def declare_control_inbox(self, capacity: int = 32) -> ControlInbox:
+        """Queryable serving every ``ctl/*`` key; poll it every tick."""
+        return self._keep(ControlInbox(self.session, self.keys, capacity))
+
+    def declare_alive_token(self) -> zenoh.LivelinessToken:
+        """Liveliness token on ``alive`` (gone when undeclared, closed, or the process dies)."""
+        return self._keep(self.session.liveliness().declare_token(self.keys.alive))
+
+    # ---------------------------------------------------------------- client side
+
+    def declare_command_publisher(
+        self, congestion_control: zenoh.CongestionControl = zenoh.CongestionControl.BLOCK
+    ) -> zenoh.Publisher:
+        """Publisher on ``cmd``: REAL_TIME priority, express, BLOCK."""
+        return self._publisher(self.keys.cmd, ENCODING_COMMAND, zenoh.Priority.REAL_TIME,
+                               True, congestion_control)
+
+    def declare_state_inbox(self, capacity: int = 1024) -> Inbox:
+        """Subscriber on ``state`` with a ring of ``capacity``."""
+        return self._keep(Inbox(self.session, self.keys.state, capacity))
+
+    def declare_diag_inbox(self, capacity: int = 64) -> Inbox:
+        """Subscriber on ``diag`` with a ring of ``capacity``."""
+        return self._keep(Inbox(self.session, self.keys.diag, capacity))
+
+    def declare_alive_watch(self, key: str | None = None) -> AliveWatch:
+        """Liveliness subscriber on this vehicle's token (or ``key``, e.g. ``prefix/*/alive``)."""
+        return self._keep(AliveWatch(self.session, key or self.keys.alive))
+
+    def alive_tokens(self, key: str | None = None, timeout_s: float = 1.0) -> list[str]:
+        """Keys of the liveliness tokens present now (this vehicle's, or matching ``key``)."""
+        replies = self.session.liveliness().get(key or self.keys.alive, timeout=timeout_s)
+        return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+    def request(
+        self,
+        name: str,
+        args: dict[str, Any] | None = None,
+        *,
+        payload: bytes | None = None,
+        timeout_s: float = 2.0,
+    ) -> dict[str, Any]:
+        """Send a control request and return the decoded reply.
+
+        Parameters
+        ----------
+        name : str
+            Control name (``"reset"``, ``"step"``, ...).
+        args : dict, optional
+            Arguments, validated locally first (:func:`simserver.protocol.encode_control`).
+        payload : bytes, optional
+            Raw request body sent as is, instead of ``args`` (for tests of bad input).
+        timeout_s : float, optional
+            Query timeout.
+
+        Returns
+        -------
+        dict
+            ``{"ok": True, ...}`` or ``{"ok": False, "error": ..., "field": ...}``.
+
+        Raises
+        ------
+        ProtocolError
+            When ``args`` are invalid (nothing is sent) or the reply is malformed.
+        TimeoutError
+            When no queryable answered within ``timeout_s``.
+        """
+        key = self.keys.control(name)
+        body = payload if payload is not None else encode_control(name, args)
+        replies = self.session.get(
+            key, payload=body, encoding=zenoh.Encoding(ENCODING_CONTROL), timeout=timeout_s
+        )
+        for reply in replies:
+            result = reply.ok if reply.ok is not None else reply.err
+            return decode_reply(result.payload.to_bytes())
+        raise TimeoutError(f"no reply on {key} within {timeout_s} s (is the server up?)")
