@@ -347,6 +347,73 @@ def tire_curves_command(args: argparse.Namespace) -> int:
 
 
 # -------------------------------------------------------------------------- registry
+# ------------------------------------------------------------------------ serve
+def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", type=Path, default=None, metavar="FILE",
+                        help="server YAML (default configs/server/default.yaml)")
+    parser.add_argument("--scene", type=Path, default=None, metavar="FILE",
+                        help="scene YAML (vehicle, road, initial pose), overrides the config")
+    parser.add_argument("--vehicle-id", default=None, help="vehicle id in the key expressions")
+    parser.add_argument("--prefix", default=None, help="key-expression prefix")
+    parser.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
+                        help="zenoh endpoint to listen on (repeatable), e.g. tcp/127.0.0.1:7447")
+    parser.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
+                        help="zenoh endpoint to connect to (a router), repeatable")
+    parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
+                        help="a standard zenoh JSON5 config (TLS, access control, routers)")
+    parser.add_argument("--command-log", type=Path, default=None, metavar="FILE",
+                        help="write every applied input to FILE for 'simserver replay'")
+    parser.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
+
+
+def serve_command(args: argparse.Namespace) -> int:
+    """``simserver serve``: the real-time server, until SIGINT/SIGTERM."""
+    import logging
+
+    from simserver.server import DEFAULT_SERVER_CONFIG, SimServer, load_server_config
+
+    logging.basicConfig(level=args.log_level.upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    cfg = load_server_config(
+        args.config or DEFAULT_SERVER_CONFIG, scene=args.scene, vehicle_id=args.vehicle_id,
+        prefix=args.prefix, listen=args.listen, connect=args.connect,
+        zenoh_config=args.zenoh_config, command_log=args.command_log)
+    from simserver.adapters.zenoh_io import ZenohConfigError, ZenohOpenError
+
+    try:
+        SimServer(cfg).run()
+    except (ZenohConfigError, ZenohOpenError) as exc:
+        raise CliError(str(exc), exit_code=2) from exc
+    return 0
+
+
+# ------------------------------------------------------------------------ replay
+def _add_replay_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("log", type=Path, help="command log written by 'simserver serve'")
+    parser.add_argument("--out", type=Path, default=None, metavar="FILE",
+                        help="write the replayed states to FILE (.npz: states, outputs)")
+
+
+def replay_command(args: argparse.Namespace) -> int:
+    """``simserver replay``: re-run a command log headless and check the final state."""
+    import numpy as np
+
+    from simserver.server import replay_command_log
+
+    rep = replay_command_log(args.log)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(args.out, states=rep.states, outputs=rep.outputs)
+    if rep.logged_final_state is None:
+        print(f"replayed {rep.steps} steps (the log has no end line: the server did not "
+              "stop cleanly, nothing to compare)")
+        return 0
+    same = np.array_equal(rep.final_state, rep.logged_final_state)
+    print(f"replayed {rep.steps} steps: final state "
+          f"{'identical to' if same else 'DIFFERS from'} the live run's, bit for bit")
+    return 0 if same else 1
+
+
 SUBCOMMANDS: dict[str, Subcommand] = {
     "run-scenario": Subcommand(
         help="run a scenario headless; write history.parquet, summary.json and plots",
@@ -364,7 +431,24 @@ SUBCOMMANDS: dict[str, Subcommand] = {
                     "against longitudinal slip (Fig. 6), Fx and Fy under combined slip and "
                     "Mz against slip angle, for a simple or mf61 tire file.",
     ),
-    # "serve", "soak", "replay": to be registered here.
+    "serve": Subcommand(
+        help="the real-time server: the car at a fixed 1 kHz, driven over zenoh",
+        add_arguments=_add_serve_arguments,
+        run=serve_command,
+        description="Load a server config, a vehicle and a scene, compile, then step the "
+                    "physics at a fixed wall-clock rate on absolute deadlines; commands, "
+                    "state, diagnostics and controls over zenoh (docs/protocol.md). Stops "
+                    "cleanly on SIGINT/SIGTERM and prints its statistics.",
+    ),
+    "replay": Subcommand(
+        help="re-run a server command log headless, bit for bit",
+        add_arguments=_add_replay_arguments,
+        run=replay_command,
+        description="Re-run the applied inputs and controls of a 'simserver serve "
+                    "--command-log' file with the same compiled step and compare the final "
+                    "state with the live run's (exit 1 if it differs).",
+    ),
+    # "soak": to be registered here.
 }
 """Every subcommand, by name, in ``--help`` order."""
 

@@ -140,18 +140,31 @@ def _parse_keyframes(path: Path, raw: Any) -> list[dict[str, Any]]:
     return frames
 
 
-def load_scenario(path: str | Path) -> Scenario:
-    """Load and validate a scenario file (errors name the file and the key)."""
-    path = Path(path)
-    data = read_yaml(path)
-    allowed = ("name", "description", "vehicle", "road", "initial", "duration_s", "dt_s",
-               "record_every", "model", "inputs")
-    check_keys(path, data, allowed, required=("name", "vehicle", "duration_s", "inputs"))
-    if not isinstance(data["vehicle"], str):
-        raise ConfigError(f"{path}: key 'vehicle': expected a file path")
+SCENE_KEYS = ("vehicle", "road", "initial", "model")
+
+
+@dataclass
+class Scene:
+    """A vehicle on a road at an initial state: what the live server starts from."""
+
+    path: Path
+    vehicle: VehicleConfig
+    road: dict[str, float]
+    initial: dict[str, float]
+    model_options: dict[str, Any] = field(default_factory=dict)
+
+
+def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = None) -> Scene:
+    """Validate the scene keys of a scene or scenario mapping read from ``path``.
+
+    ``vehicle_path`` overrides the file's ``vehicle`` key (the server's ``load`` control).
+    """
+    if vehicle_path is None:
+        if not isinstance(data.get("vehicle"), str):
+            raise ConfigError(f"{path}: key 'vehicle': expected a file path")
+        vehicle_path = (path.parent / data["vehicle"]).resolve()
     model_options = data.get("model") or {}
-    vehicle = load_vehicle((path.parent / data["vehicle"]).resolve(), model_options,
-                           options_source=str(path))
+    vehicle = load_vehicle(vehicle_path, model_options, options_source=str(path))
     road_raw = data.get("road") or {}
     if not isinstance(road_raw, dict):
         raise ConfigError(f"{path}: key 'road': expected a mapping")
@@ -166,6 +179,26 @@ def load_scenario(path: str | Path) -> Scenario:
     check_keys(f"{path} (initial)", init_raw, tuple(INITIAL_RANGES))
     initial = {key: number(path, f"initial.{key}", init_raw.get(key, 0.0), lo, hi)
                for key, (lo, hi) in INITIAL_RANGES.items()}
+    return Scene(path=path, vehicle=vehicle, road=road, initial=initial,
+                 model_options=dict(model_options))
+
+
+def load_scene(path: str | Path, vehicle_path: str | Path | None = None) -> Scene:
+    """Load a scene file: ``vehicle``, ``road``, ``initial`` and ``model`` as in a scenario."""
+    path = Path(path)
+    data = read_yaml(path)
+    check_keys(path, data, ("name", "description", *SCENE_KEYS), required=("vehicle",))
+    return parse_scene(path, data, None if vehicle_path is None else Path(vehicle_path))
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Load and validate a scenario file (errors name the file and the key)."""
+    path = Path(path)
+    data = read_yaml(path)
+    allowed = ("name", "description", *SCENE_KEYS, "duration_s", "dt_s", "record_every",
+               "inputs")
+    check_keys(path, data, allowed, required=("name", "vehicle", "duration_s", "inputs"))
+    scene = parse_scene(path, data)
     duration = number(path, "duration_s", data["duration_s"], 0.001, 1e6)
     dt = number(path, "dt_s", data.get("dt_s", 0.001), 1e-5, 0.01)
     record_every = data.get("record_every", 1)
@@ -175,9 +208,10 @@ def load_scenario(path: str | Path) -> Scenario:
     if not isinstance(name, str) or not name:
         raise ConfigError(f"{path}: key 'name': expected a non-empty string")
     return Scenario(
-        name=name, path=path, description=str(data.get("description", "")), vehicle=vehicle,
-        road=road, initial=initial, duration_s=duration, dt_s=dt, record_every=record_every,
-        keyframes=_parse_keyframes(path, data["inputs"]), model_options=dict(model_options),
+        name=name, path=path, description=str(data.get("description", "")),
+        vehicle=scene.vehicle, road=scene.road, initial=scene.initial, duration_s=duration,
+        dt_s=dt, record_every=record_every, keyframes=_parse_keyframes(path, data["inputs"]),
+        model_options=scene.model_options,
     )
 
 
@@ -202,7 +236,7 @@ def input_table(keyframes: list[dict[str, Any]], times_s: np.ndarray) -> np.ndar
     return table
 
 
-def initial_state(scenario: Scenario) -> np.ndarray:
+def initial_state(scenario: Scenario | Scene) -> np.ndarray:
     """The state at t = 0: given pose and velocities, wheels rolling freely, springs static."""
     x = np.zeros(L.N_STATE, dtype=np.float64)
     init = scenario.initial
@@ -261,7 +295,7 @@ def run_scenario(
     )
 
 
-def static_loads(scenario: Scenario) -> np.ndarray:
+def static_loads(scenario: Scenario | Scene) -> np.ndarray:
     """Static wheel loads (N) of the scenario's vehicle on its road."""
     vp = scenario.vehicle.vp.copy()
     set_road(vp, scenario.road["grade_pct"], scenario.road["cross_slope_pct"],

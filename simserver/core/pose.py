@@ -1,0 +1,58 @@
+"""The vehicle's pose in world axes, from its pose on the inclined road plane.
+
+The core integrates the motion in the road plane (``X_M``, ``Y_M`` along the plane's axes
+``e1``, ``e2``; ``YAW_RAD`` from ``e1`` toward ``e2``; roll and pitch of the body on its
+suspension). The wire protocol and the viewer want world axes: position of the CG and
+the body attitude as intrinsic z-y'-x'' angles, ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (ISO
+8855 signs: pitch positive nose down, roll positive left side up).
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from simserver.core.layout import HEAVE_M, PITCH_RAD, ROLL_RAD, X_M, Y_M, YAW_RAD
+
+
+@nb.njit(cache=True)
+def world_pose(x: np.ndarray, axes: np.ndarray, cg_height_m: float, pose: np.ndarray) -> None:
+    """Write ``(x, y, z, yaw, pitch, roll)`` of the CG in world axes into ``pose``.
+
+    Parameters
+    ----------
+    x : float64[N_STATE]
+        Vehicle state.
+    axes : float64[3, 3]
+        Rows ``e1``, ``e2``, ``n`` of the road plane in world axes
+        (``core.params.road_axes``).
+    cg_height_m : float
+        Static CG height above the road.
+    pose : float64[6]
+        Written. The yaw is continuous: it follows the road-plane yaw without wrapping.
+    """
+    lift = cg_height_m + x[HEAVE_M]
+    for k in range(3):
+        pose[k] = x[X_M] * axes[0, k] + x[Y_M] * axes[1, k] + lift * axes[2, k]
+    # body axes in the road frame: Rz(psi) Ry(theta) Rx(phi); columns = body x, y, z
+    psi = x[YAW_RAD]
+    cz, sz = np.cos(psi), np.sin(psi)
+    cy, sy = np.cos(x[PITCH_RAD]), np.sin(x[PITCH_RAD])
+    cx, sx = np.cos(x[ROLL_RAD]), np.sin(x[ROLL_RAD])
+    # columns of the road-frame rotation: body x, y and z axes in (e1, e2, n) components
+    bx0, bx1, bx2 = cz * cy, sz * cy, -sy
+    by0, by1, by2 = cz * sy * sx - sz * cx, sz * sy * sx + cz * cx, cy * sx
+    bz0, bz1, bz2 = cz * sy * cx + sz * sx, sz * sy * cx - cz * sx, cy * cx
+    # world components w = b0 e1 + b1 e2 + b2 n (only those the angles need)
+    wx0 = bx0 * axes[0, 0] + bx1 * axes[1, 0] + bx2 * axes[2, 0]
+    wx1 = bx0 * axes[0, 1] + bx1 * axes[1, 1] + bx2 * axes[2, 1]
+    wx2 = bx0 * axes[0, 2] + bx1 * axes[1, 2] + bx2 * axes[2, 2]
+    wy2 = by0 * axes[0, 2] + by1 * axes[1, 2] + by2 * axes[2, 2]
+    wz2 = bz0 * axes[0, 2] + bz1 * axes[1, 2] + bz2 * axes[2, 2]
+    yaw_wrapped = np.arctan2(wx1, wx0)
+    # continuous yaw: the road-plane yaw plus the wrapped difference
+    diff = yaw_wrapped - psi
+    diff = (diff + np.pi) % (2.0 * np.pi) - np.pi
+    pose[3] = psi + diff
+    pose[4] = np.arcsin(min(1.0, max(-1.0, -wx2)))
+    pose[5] = np.arctan2(wy2, wz2)
