@@ -1,0 +1,150 @@
+"""The live server's timing: tick lateness, overruns, drift, and command-to-state latency.
+
+Run from the repository root::
+
+    python -m benchmarks.bench_server [--seconds 60] [--cmd-hz 200]
+
+Starts ``simserver serve`` as a subprocess (state published every tick) on a free
+loopback port; this process is the client: it publishes driver commands at ``--cmd-hz``
+(a slow steer and throttle sweep, so the car drives) with ``sender_time_ns`` from the
+shared monotonic clock, and times the first published state whose ``last_cmd_seq``
+reflects each command (the server echoes the sender's timestamp). States are
+time-stamped on arrival in a zenoh callback, so the client's own polling does not add to
+the figure. Tick lateness comes from the server's diagnostics (windows of 4096 ticks:
+the median of the windows' p50 and p99 are quoted) and from its final statistics at
+SIGTERM (maximum and late ticks over the whole run). Drift: simulated time (ticks x
+1 ms) against the wall time between the first and last state received.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import subprocess
+import sys
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+from simserver import protocol as proto
+from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run(seconds: float, cmd_hz: float) -> dict:
+    port = free_port()
+    server = subprocess.Popen(
+        [sys.executable, "-m", "simserver", "serve", "--listen", f"tcp/127.0.0.1:{port}",
+         "--log-level", "WARNING"],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    t_launch = time.monotonic()
+    while True:
+        line = server.stdout.readline()
+        if not line:
+            raise RuntimeError("server exited early")
+        if "ready on" in line:
+            break
+    startup_s = time.monotonic() - t_launch
+    cfg = make_zenoh_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"])
+    latencies_us: list[float] = []
+    diags: list[np.ndarray] = []
+    first_state = last_state = None
+    with ZenohEndpoint(cfg, prefix="simserver", vehicle="car0") as ep:
+        pub = ep.declare_command_publisher()
+        arrivals: deque[tuple[int, bytes]] = deque()
+
+        def on_state(sample) -> None:  # zenoh's thread: stamp first, decode later
+            arrivals.append((time.monotonic_ns(), sample.payload.to_bytes()))
+
+        states = ep.session.declare_subscriber(ep.keys.state, on_state)
+        diag = ep.declare_diag_inbox()
+        sent: dict[int, int] = {}
+        seq = 0
+        period = 1.0 / cmd_hz
+        t_next = time.monotonic()
+        t_end = t_next + seconds
+        while time.monotonic() < t_end:
+            now = time.monotonic()
+            if now >= t_next:
+                seq += 1
+                phase = now % 20.0
+                t_ns = time.monotonic_ns()
+                sent[seq] = t_ns
+                pub.put(proto.encode_command(steer=0.2 * np.sin(phase / 3.0),
+                                             throttle=0.3 if phase < 10 else 0.0,
+                                             brake=0.0 if phase < 10 else 0.4,
+                                             seq=seq, sender_time_ns=t_ns))
+                t_next += period
+            while arrivals:
+                t_rx, payload = arrivals.popleft()
+                st = proto.decode_state(payload)
+                if first_state is None:
+                    first_state = (t_rx, int(st["tick"]))
+                last_state = (t_rx, int(st["tick"]))
+                s = int(st["last_cmd_seq"])
+                if s in sent:  # the first state reflecting command s
+                    latencies_us.append((t_rx - sent.pop(s)) / 1e3)
+            for payload in diag.drain_newest():
+                diags.append(proto.decode_diagnostics(payload))
+            time.sleep(0.0005)
+        states.undeclare()  # a callback subscriber would otherwise hold the exit
+    server.terminate()
+    out, _ = server.communicate(timeout=30)
+    final = json.loads(out.split("simserver: stopped ", 1)[1].splitlines()[0])
+    lat = np.array(latencies_us)
+    windows = [d for d in diags if int(d["window_ticks"]) >= 4096]
+    wall_s = (last_state[0] - first_state[0]) / 1e9
+    sim_s = (last_state[1] - first_state[1]) * 1e-3
+    return {
+        "seconds": seconds, "startup_s": startup_s,
+        "ticks": final["ticks"],
+        "lateness_p50_us": float(np.median([w["lateness_p50_us"] for w in windows])),
+        "lateness_p99_us": float(np.median([w["lateness_p99_us"] for w in windows])),
+        "lateness_p99_worst_window_us": float(max(w["lateness_p99_us"] for w in windows)),
+        "lateness_max_us": final["lateness_max_us"],
+        "late_ticks": final["late_ticks"], "late_fraction": final["late_ticks"] / final["ticks"],
+        "overruns": final["overruns"], "skipped_ticks": final["skipped_ticks"],
+        "drift_ms": 1e3 * (wall_s - sim_s), "wall_s": wall_s,
+        "cpu_percent": float(np.median([d["cpu_percent"] for d in diags])),
+        "commands": seq, "commands_acknowledged": int(lat.size),
+        "latency_p50_us": float(np.percentile(lat, 50)),
+        "latency_p99_us": float(np.percentile(lat, 99)),
+        "latency_max_us": float(lat.max()),
+        "cmd_rejected": final["cmd_rejected"], "cmd_stale": final["cmd_stale"],
+    }
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--cmd-hz", type=float, default=200.0)
+    args = parser.parse_args(argv)
+    r = run(args.seconds, args.cmd_hz)
+    print(f"server run {r['seconds']:.0f} s, {r['ticks']} ticks, state every tick; "
+          f"ready {r['startup_s']:.1f} s after launch")
+    print(f"tick lateness: p50 {r['lateness_p50_us']:.1f} us, p99 {r['lateness_p99_us']:.1f} us"
+          f" (worst 4096-tick window {r['lateness_p99_worst_window_us']:.0f} us), "
+          f"max {r['lateness_max_us'] / 1e3:.2f} ms")
+    print(f"ticks > 1 ms late: {r['late_ticks']} ({100 * r['late_fraction']:.2f} %), "
+          f"overruns {r['overruns']}, skipped {r['skipped_ticks']}")
+    print(f"drift of simulated from wall time over {r['wall_s']:.1f} s: {r['drift_ms']:+.2f} ms")
+    print(f"command-to-state latency over {r['commands_acknowledged']} of {r['commands']} "
+          f"commands: p50 {r['latency_p50_us']:.0f} us, p99 {r['latency_p99_us']:.0f} us, "
+          f"max {r['latency_max_us'] / 1e3:.2f} ms")
+    print(f"server CPU {r['cpu_percent']:.0f} % of a core; commands rejected "
+          f"{r['cmd_rejected']}, stale {r['cmd_stale']}")
+    return r
+
+
+if __name__ == "__main__":
+    main()
