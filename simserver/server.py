@@ -493,6 +493,7 @@ class SimServer:
         self.cpu = CpuMeter()
         self.catching_up = False
         diag_every = max(1, int(round(1.0 / (cfg.diag_hz * cfg.period_s))))
+        self.running = True  # before the handlers: a signal from now on ends the loop
         previous = {s: signal.signal(s, self.stop) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
             with ZenohEndpoint(zcfg, prefix=cfg.prefix, vehicle=cfg.vehicle_id) as ep:
@@ -506,7 +507,6 @@ class SimServer:
                          1e3 * cfg.period_s, compile_s)
                 print(f"simserver: ready on {self.keys.base} "
                       f"(listen {cfg.listen or 'tcp/127.0.0.1:7447'})", flush=True)
-                self.running = True
                 self.t0 = time.monotonic()
                 self.pacer.start()
                 loop_count = 0
