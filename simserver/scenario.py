@@ -183,11 +183,19 @@ def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = No
                  model_options=dict(model_options))
 
 
+SCENARIO_ONLY_KEYS = ("duration_s", "dt_s", "record_every", "inputs")
+
+
 def load_scene(path: str | Path, vehicle_path: str | Path | None = None) -> Scene:
-    """Load a scene file: ``vehicle``, ``road``, ``initial`` and ``model`` as in a scenario."""
+    """Load a scene file: ``vehicle``, ``road``, ``initial`` and ``model`` as in a scenario.
+
+    A scenario file is also a scene (its start): its timing and inputs are ignored here,
+    so the live server can start from any headless scenario.
+    """
     path = Path(path)
     data = read_yaml(path)
-    check_keys(path, data, ("name", "description", *SCENE_KEYS), required=("vehicle",))
+    check_keys(path, data, ("name", "description", *SCENE_KEYS, *SCENARIO_ONLY_KEYS),
+               required=("vehicle",))
     return parse_scene(path, data, None if vehicle_path is None else Path(vehicle_path))
 
 
@@ -195,8 +203,7 @@ def load_scenario(path: str | Path) -> Scenario:
     """Load and validate a scenario file (errors name the file and the key)."""
     path = Path(path)
     data = read_yaml(path)
-    allowed = ("name", "description", *SCENE_KEYS, "duration_s", "dt_s", "record_every",
-               "inputs")
+    allowed = ("name", "description", *SCENE_KEYS, *SCENARIO_ONLY_KEYS)
     check_keys(path, data, allowed, required=("name", "vehicle", "duration_s", "inputs"))
     scene = parse_scene(path, data)
     duration = number(path, "duration_s", data["duration_s"], 0.001, 1e6)

@@ -333,3 +333,27 @@ def test_replay_rejects_a_broken_log(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "simserver", "replay", str(bad)], cwd=REPO,
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "bad.jsonl:2" in proc.stderr
+
+
+def test_load_another_scene_and_vehicle(tmp_path):
+    server = ServerProcess(tmp_path, vehicle_id="car_load")
+    client = Client(server)
+    try:
+        reply = client.ep.request(
+            "load", {"scene": str(CONFIGS / "scenes" / "hill_10pct_paper_sedan.yaml"),
+                     "vehicle": str(CONFIGS / "vehicles" / "mf_hatchback" / "vehicle.yaml")})
+        assert reply["ok"], reply
+        config = client.ep.request("get_config")["config"]
+        assert config["vehicle"]["name"] == "mf_hatchback"
+        assert config["road"]["grade_pct"] == 10.0
+        state = client.drive(1.0, brake=0.6, gear=proto.Gear.D)
+        assert abs(state["u_mps"]) < 0.01 and state["pitch_rad"] < -0.05  # nose up the hill
+        # a scenario file is a scene too: the live run starts where the headless one does
+        reply = client.ep.request("load", {"scene": str(
+            CONFIGS / "scenarios" / "e2_stop_downslope_paper_damping.yaml")})
+        assert reply["ok"], reply
+        state = client.drive(0.2, gear=proto.Gear.N)
+        assert state["u_mps"] > 24.0
+    finally:
+        client.close()
+        server.stop()
