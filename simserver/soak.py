@@ -1,0 +1,236 @@
+"""Headless soak: hours of seeded, plausible random driving with invariants checked every tick.
+
+The driver is a sequence of manoeuvres drawn from a seeded generator (``manoeuvre_plan``):
+accelerate, cruise and weave, brake to a stop, hold on the slope, restart, reverse, hard
+cornering, handbrake spins, parking; the road (grade, cross-slope, friction) changes
+between manoeuvres while the car is held. The physics runs in compiled chunks as fast as
+the CPU allows; after each chunk the recorded ticks are checked (``check_invariants``):
+
+- every state and output is finite;
+- speeds are bounded (|u|, |v| < 80 m/s, |Omega| < 600 rad/s, |r| < 10 rad/s);
+- normal loads are never negative and never above 6 x static;
+- a car held by its brakes does not creep: over every hold (brake >= 0.4 or parking
+  brake, throttle 0, after 3 s of settling) it moves less than 1 mm.
+
+The first violation of each kind is reported with its tick and simulated time.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from simserver.core import layout as L
+from simserver.core.chassis import static_wheel_load
+from simserver.core.integrator import make_workspace, simulate
+from simserver.core.params import set_road
+from simserver.scenario import Scene, initial_state
+
+SPEED_LIMIT_MPS = 80.0
+SPIN_LIMIT_RADPS = 600.0
+YAW_RATE_LIMIT_RADPS = 10.0
+LOAD_LIMIT_X_STATIC = 6.0
+HOLD_SETTLE_S = 3.0
+HOLD_CREEP_LIMIT_M = 1e-3
+
+# manoeuvre kinds (columns of the plan)
+ACCELERATE, CRUISE, BRAKE_STOP, HOLD, REVERSE, CORNER, SPIN, PARK = range(8)
+MANOEUVRE_NAMES = ("accelerate", "cruise", "brake_stop", "hold", "reverse", "corner",
+                   "spin", "park")
+
+
+@dataclass
+class Segment:
+    """A stretch of constant driver intent: inputs ramp to these values, then hold."""
+
+    kind: int
+    duration_s: float
+    steer: float = 0.0
+    throttle: float = 0.0
+    brake: float = 0.0
+    parking_brake: float = 0.0
+    gear: float = L.GEAR_D
+    road: tuple[float, float, float] | None = None  # set at the segment start (car held)
+
+
+def manoeuvre_plan(rng: np.random.Generator, duration_s: float) -> list[Segment]:
+    """A seeded random drive of ``duration_s``: stop-and-go cycles with every manoeuvre."""
+    plan: list[Segment] = []
+    total = 0.0
+    while total < duration_s:
+        # a new road while the car is held
+        road = (float(rng.uniform(-12, 12)), float(rng.uniform(-8, 8)),
+                float(rng.choice([1.0, 1.0, 0.8, 0.5])))
+        plan.append(Segment(HOLD, 4.0, brake=0.6, road=road))
+        forward = rng.random() < 0.8
+        gear = L.GEAR_D if forward else L.GEAR_R
+        plan.append(Segment(ACCELERATE, float(rng.uniform(3, 10)), gear=gear,
+                            throttle=float(rng.uniform(0.3, 1.0))))
+        if forward:
+            kind = rng.choice([CRUISE, CORNER, SPIN])
+            if kind == CRUISE:
+                plan.append(Segment(CRUISE, float(rng.uniform(3, 10)), gear=gear,
+                                    throttle=0.25, steer=float(rng.uniform(-0.1, 0.1))))
+            elif kind == CORNER:
+                plan.append(Segment(CORNER, float(rng.uniform(3, 8)), gear=gear,
+                                    throttle=float(rng.uniform(0.1, 0.5)),
+                                    steer=float(rng.choice([-1, 1]) * rng.uniform(0.1, 0.6))))
+            else:
+                plan.append(Segment(CORNER, 1.5, gear=gear, throttle=0.3,
+                                    steer=float(rng.choice([-1, 1]) * rng.uniform(0.2, 0.5))))
+                plan.append(Segment(SPIN, float(rng.uniform(2, 4)), gear=gear, brake=0.3,
+                                    parking_brake=1.0,
+                                    steer=float(rng.choice([-1, 1]) * rng.uniform(0.3, 1.0))))
+        else:
+            plan.append(Segment(REVERSE, float(rng.uniform(2, 5)), gear=gear, throttle=0.3,
+                                steer=float(rng.uniform(-0.5, 0.5))))
+        plan.append(Segment(BRAKE_STOP, float(rng.uniform(6, 10)), gear=gear,
+                            brake=float(rng.uniform(0.4, 1.0))))
+        plan.append(Segment(HOLD, float(rng.uniform(4, 12)), gear=gear, brake=0.6))
+        if rng.random() < 0.3:
+            plan.append(Segment(PARK, float(rng.uniform(4, 8)), gear=L.GEAR_P,
+                                parking_brake=1.0))
+        total = sum(s.duration_s for s in plan)
+    return plan
+
+
+RAMP_S = 0.3  # pedals and steer move to a segment's values over this time
+
+
+def segment_inputs(seg: Segment, previous: np.ndarray, dt_s: float) -> np.ndarray:
+    """Per-step inputs for one segment, ramping the continuous channels from ``previous``."""
+    n = int(round(seg.duration_s / dt_s))
+    table = np.empty((n, L.N_INPUT))
+    ramp = np.clip((np.arange(n) + 1) * dt_s / RAMP_S, 0.0, 1.0)
+    for col, target in ((L.IN_STEER, seg.steer), (L.IN_THROTTLE, seg.throttle),
+                        (L.IN_BRAKE, seg.brake)):
+        table[:, col] = previous[col] + (target - previous[col]) * ramp
+    table[:, L.IN_PARKING_BRAKE] = seg.parking_brake
+    table[:, L.IN_GEAR] = seg.gear
+    return table
+
+
+@dataclass
+class Violation:
+    """The first breach of one invariant."""
+
+    invariant: str
+    step: int
+    time_s: float
+    detail: str
+
+
+@dataclass
+class SoakReport:
+    """What a soak did and found."""
+
+    seed: int
+    simulated_s: float
+    steps: int
+    wall_s: float
+    manoeuvres: dict[str, int]
+    holds_checked: int
+    max_hold_creep_m: float
+    max_speed_mps: float
+    min_fz_n: float
+    violations: list[Violation] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """No invariant was violated."""
+        return not self.violations
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-friendly summary."""
+        return {
+            "seed": self.seed, "simulated_s": self.simulated_s,
+            "simulated_h": self.simulated_s / 3600.0, "steps": self.steps,
+            "wall_s": round(self.wall_s, 2),
+            "real_time_factor": round(self.simulated_s / max(self.wall_s, 1e-9), 1),
+            "manoeuvres": self.manoeuvres, "holds_checked": self.holds_checked,
+            "max_hold_creep_m": self.max_hold_creep_m, "max_speed_mps": self.max_speed_mps,
+            "min_fz_n": self.min_fz_n, "ok": self.ok,
+            "violations": [v.__dict__ for v in self.violations],
+        }
+
+
+def check_invariants(states: np.ndarray, outputs: np.ndarray, static_max_n: float,
+                     first_step: int, dt_s: float, found: dict[str, Violation]) -> None:
+    """Check the per-tick invariants on a chunk; record the first breach of each kind."""
+    def report(name: str, bad: np.ndarray, detail: str) -> None:
+        if name not in found and bad.any():
+            k = int(np.argmax(bad))
+            found[name] = Violation(name, first_step + k, (first_step + k) * dt_s, detail)
+
+    finite = np.isfinite(states).all(axis=1) & np.isfinite(outputs).all(axis=1)
+    report("finite", ~finite, "a state or output is NaN or infinite")
+    speed = np.maximum(np.abs(states[:, L.U_MPS]), np.abs(states[:, L.V_MPS]))
+    report("speed", speed > SPEED_LIMIT_MPS, f"|u| or |v| above {SPEED_LIMIT_MPS} m/s")
+    spin = np.abs(states[:, L.OMEGA0:L.OMEGA0 + 4]).max(axis=1)
+    report("wheel_spin", spin > SPIN_LIMIT_RADPS, f"|Omega| above {SPIN_LIMIT_RADPS} rad/s")
+    report("yaw_rate", np.abs(states[:, L.YAW_RATE_RADPS]) > YAW_RATE_LIMIT_RADPS,
+           f"|r| above {YAW_RATE_LIMIT_RADPS} rad/s")
+    fz = outputs[:, L.O_FZ0:L.O_FZ0 + 4]
+    report("normal_load_negative", (fz < 0.0).any(axis=1), "a normal load below zero")
+    report("normal_load_bound", (fz > LOAD_LIMIT_X_STATIC * static_max_n).any(axis=1),
+           f"a normal load above {LOAD_LIMIT_X_STATIC} x static")
+
+
+def run_soak(scene: Scene, duration_s: float, seed: int = 0, dt_s: float = 0.001,
+             progress: Callable[[float, float], None] | None = None) -> SoakReport:
+    """Drive ``scene``'s car for ``duration_s`` of simulated time; check every tick."""
+    rng = np.random.default_rng(seed)
+    plan = manoeuvre_plan(rng, duration_s)
+    vp = scene.vehicle.vp.copy()
+    tp = scene.vehicle.tp
+    set_road(vp, scene.road["grade_pct"], scene.road["cross_slope_pct"],
+             scene.road["friction_scale"])
+    x = initial_state(scene)
+    ws = make_workspace()
+    found: dict[str, Violation] = {}
+    counts = dict.fromkeys(MANOEUVRE_NAMES, 0)
+    previous = np.zeros(L.N_INPUT)
+    step_no = 0
+    holds = 0
+    max_creep = 0.0
+    max_speed = 0.0
+    min_fz = np.inf
+    t0 = time.perf_counter()
+    for seg in plan:
+        if step_no * dt_s >= duration_s:
+            break
+        counts[MANOEUVRE_NAMES[seg.kind]] += 1
+        if seg.road is not None:
+            set_road(vp, *seg.road)
+        static_max = max(static_wheel_load(vp, i) for i in range(L.N_WHEELS))
+        inputs = segment_inputs(seg, previous, dt_s)
+        previous = inputs[-1].copy()
+        n = inputs.shape[0]
+        states = np.empty((n, L.N_STATE))
+        outputs = np.empty((n, L.N_OUT))
+        simulate(x, vp, tp, inputs, dt_s, ws, states, outputs, 1)
+        check_invariants(states, outputs, static_max, step_no, dt_s, found)
+        max_speed = max(max_speed, float(np.abs(states[:, L.U_MPS]).max()))
+        min_fz = min(min_fz, float(outputs[:, L.O_FZ0:L.O_FZ0 + 4].min()))
+        if seg.kind in (HOLD, PARK) and seg.duration_s > HOLD_SETTLE_S + 1.0:
+            settled = int(HOLD_SETTLE_S / dt_s)
+            pos = states[settled:, L.X_M:L.Y_M + 1]
+            creep = float(np.hypot(*(pos.max(axis=0) - pos.min(axis=0))))
+            holds += 1
+            max_creep = max(max_creep, creep)
+            if creep > HOLD_CREEP_LIMIT_M and "hold_creep" not in found:
+                found["hold_creep"] = Violation(
+                    "hold_creep", step_no + settled, (step_no + settled) * dt_s,
+                    f"held car moved {creep * 1e3:.3f} mm (road {seg.road}, "
+                    f"{MANOEUVRE_NAMES[seg.kind]})")
+        step_no += n
+        if progress is not None:
+            progress(min(step_no * dt_s, duration_s), duration_s)
+    return SoakReport(seed=seed, simulated_s=step_no * dt_s, steps=step_no,
+                      wall_s=time.perf_counter() - t0, manoeuvres=counts, holds_checked=holds,
+                      max_hold_creep_m=max_creep, max_speed_mps=max_speed, min_fz_n=min_fz,
+                      violations=sorted(found.values(), key=lambda v: v.step))
