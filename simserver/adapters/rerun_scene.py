@@ -8,9 +8,10 @@ Two entry points share the same (vectorised) per-frame math:
 
 - ``log_result(rec, result, fps=50)`` logs a whole ``ScenarioResult`` in column batches
   (``rr.send_columns``), decimated to ``fps``: the headless ``run-scenario --rrd`` path.
-- ``SceneLogger(rec, vp, tp, ...)`` with ``log_frame(time_s, state, output, input)``: one
-  frame at a time (``rec.log``), for the live viewer process fed by the state topic.
-  It integrates the wheel spin on every call and logs at most ``fps`` frames per second.
+- ``SceneLogger(rec, vp, tp, ...)`` with ``log_frame(time_s, state, output, input)``, for
+  the live viewer process fed by the state topic: it integrates the wheel spin on every
+  call, keeps at most ``fps`` frames per simulated second and sends them in small
+  batches through the same column path (0.1 s of latency by default).
 
 Entity paths (constants below; ``RESULT_ENTITY_PATHS`` lists what ``log_result`` writes)::
 
@@ -34,23 +35,28 @@ Entity paths (constants below; ``RESULT_ENTITY_PATHS`` lists what ``log_result``
     world/car/forces/{w}           arrows Fx, Fy (wheel heading frame) and Fz from the
                                    contact point, FORCE_SCALE_M_PER_N, coloured by the
                                    friction use (green 0 -> yellow 0.5 -> red >= 1)
-    plots/speed/{u,v}              body velocities (m/s)
-    plots/yaw_rate/r               yaw rate (rad/s)
-    plots/slip/kappa/{w}           k', the longitudinal slip fed to the tire
-    plots/slip/tan_alpha/{w}       tan a', the lateral slip fed to the tire
-    plots/friction_use/{w}         |F_shear| over the available friction
-    plots/forces/{w}/{fx,fy,fz}    tire forces per wheel (N, wheel frame)
-    plots/damping/active/{w}       the Appendix A damping flag (0/1)
-    plots/damping/{fx,fy}/{w}      the auxiliary damping share of Fx, Fy (N)
-    plots/inputs/{steer,throttle,brake,parking_brake,gear}   driver inputs
-    plots/diagnostics/{tick_jitter_us,dropped_frames}        live server (log_diagnostics)
+    plots/speed                    u, v: body velocities (m/s)
+    plots/yaw_rate                 r (rad/s)
+    plots/slip/kappa               k' per wheel: the longitudinal slip fed to the tire
+    plots/slip/tan_alpha           tan a' per wheel: the lateral slip fed to the tire
+    plots/friction_use             |F_shear| over the available friction, per wheel
+    plots/forces/{w}               Fx, Fy, Fz of one wheel (N, wheel frame)
+    plots/damping/active           the Appendix A damping flag per wheel (0/1)
+    plots/damping/{fx,fy}          the auxiliary damping share of Fx, Fy per wheel (N)
+    plots/inputs/driver            steer, throttle, brake, parking brake
+    plots/inputs/gear              gear code (0 P, 1 R, 2 N, 3 D)
+    plots/diagnostics/tick_jitter_us, plots/diagnostics/dropped_frames   live server
     scene_info                     a text note: scales and colours (static)
 
-with ``{w}`` one of ``core.layout.WHEEL_NAMES`` (fl, fr, rl, rr). The road plane,
+with ``{w}`` one of ``core.layout.WHEEL_NAMES`` (fl, fr, rl, rr). A plot entity holds one
+scalar instance per signal (``PLOT_GROUPS``: wheels in the order fl, fr, rl, rr), named
+and coloured by its static ``SeriesLines``: one entity per plot keeps the live logging
+cheap (rerun-sdk 0.41 costs about the same per entity for 1 or 4 scalars). The road plane,
 positions and rotations follow ``core.params.road_axes`` and ``core.layout`` (ISO 8855).
-``scene_blueprint()`` declares the layout: a 3D view that tracks ``world/car`` beside
-tabs of time-series views grouped as speed and yaw; slips; forces per wheel; inputs;
-damping; server diagnostics.
+``scene_blueprint()`` declares the layout: a 3D view whose eye follows the car (it
+tracks ``world/car/body/shell``) above the speed and yaw-rate plots, beside tabs of
+time-series views grouped as slips; forces per wheel; inputs; damping; server
+diagnostics; and the note.
 """
 
 from __future__ import annotations
@@ -58,7 +64,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import rerun as rr
@@ -109,6 +115,7 @@ PLOT_DAMPING_ACTIVE = "plots/damping/active"
 PLOT_DAMPING_FX = "plots/damping/fx"
 PLOT_DAMPING_FY = "plots/damping/fy"
 PLOT_INPUTS = "plots/inputs"
+PLOT_DRIVER = "plots/inputs/driver"
 PLOT_GEAR = "plots/inputs/gear"
 PLOT_DIAGNOSTICS = "plots/diagnostics"
 TICK_JITTER = "plots/diagnostics/tick_jitter_us"
@@ -154,72 +161,63 @@ _RED = np.array([230.0, 30.0, 30.0])
 
 # ---------------------------------------------------------------------- plotted series
 @dataclass(frozen=True)
-class PlotSeries:
-    """One plotted signal: its entity, legend, colour and source column.
+class PlotGroup:
+    """Signals plotted together: one entity, one scalar instance per signal.
 
     Attributes
     ----------
     path : str
         Entity path (under ``plots/``).
-    label : str
-        Legend name, with the unit.
     source : str
         ``"state"``, ``"output"`` or ``"input"``: which ``core.layout`` array.
-    index : int
-        Column in that array (a ``core.layout`` constant).
-    color : tuple of int
-        RGB.
+    indices : tuple of int
+        Columns in that array (``core.layout`` constants), one per instance.
+    labels : tuple of str
+        Legend names, with units.
+    colors : tuple of tuple of int
+        RGB per instance.
     """
 
     path: str
-    label: str
-    source: str
-    index: int
-    color: tuple[int, int, int]
+    source: Literal["state", "output", "input"]
+    indices: tuple[int, ...]
+    labels: tuple[str, ...]
+    colors: tuple[tuple[int, int, int], ...]
+
+    def values(self, states: np.ndarray, outputs: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        """The ``(n, len(indices))`` values of the group's signals for ``n`` rows."""
+        source = {"state": states, "output": outputs, "input": inputs}[self.source]
+        return source[:, list(self.indices)]
 
 
-def _build_series() -> tuple[PlotSeries, ...]:
-    s: list[PlotSeries] = [
-        PlotSeries(f"{PLOT_SPEED}/u", "u (m/s)", "state", L.U_MPS, (40, 110, 220)),
-        PlotSeries(f"{PLOT_SPEED}/v", "v (m/s)", "state", L.V_MPS, (230, 120, 30)),
-        PlotSeries(f"{PLOT_YAW_RATE}/r", "r (rad/s)", "state", L.YAW_RATE_RADPS,
-                   (150, 60, 190)),
-    ]
-    for i, w in enumerate(L.WHEEL_NAMES):
-        c = WHEEL_COLORS[w]
-        s += [
-            PlotSeries(f"{PLOT_KAPPA}/{w}", f"k' {w}", "output", L.O_KAPPA0 + i, c),
-            PlotSeries(f"{PLOT_TAN_ALPHA}/{w}", f"tan a' {w}", "output", L.O_TAN_ALPHA0 + i,
-                       c),
-            PlotSeries(f"{PLOT_FRICTION_USE}/{w}", f"friction use {w}", "output",
-                       L.O_FRICTION_USE0 + i, c),
-            PlotSeries(f"{PLOT_FORCES}/{w}/fx", f"Fx {w} (N)", "output", L.O_FX0 + i,
-                       (220, 60, 50)),
-            PlotSeries(f"{PLOT_FORCES}/{w}/fy", f"Fy {w} (N)", "output", L.O_FY0 + i,
-                       (50, 150, 60)),
-            PlotSeries(f"{PLOT_FORCES}/{w}/fz", f"Fz {w} (N)", "output", L.O_FZ0 + i,
-                       (60, 90, 220)),
-            PlotSeries(f"{PLOT_DAMPING_ACTIVE}/{w}", f"damping on {w}", "state",
-                       L.DAMPING_ACTIVE0 + i, c),
-            PlotSeries(f"{PLOT_DAMPING_FX}/{w}", f"damping Fx {w} (N)", "output",
-                       L.O_DAMPING_FX0 + i, c),
-            PlotSeries(f"{PLOT_DAMPING_FY}/{w}", f"damping Fy {w} (N)", "output",
-                       L.O_DAMPING_FY0 + i, c),
-        ]
-    s += [
-        PlotSeries(f"{PLOT_INPUTS}/steer", "steer [-1, 1]", "input", L.IN_STEER, (150, 60, 190)),
-        PlotSeries(f"{PLOT_INPUTS}/throttle", "throttle [0, 1]", "input", L.IN_THROTTLE,
-                   (50, 160, 60)),
-        PlotSeries(f"{PLOT_INPUTS}/brake", "brake [0, 1]", "input", L.IN_BRAKE, (220, 50, 40)),
-        PlotSeries(f"{PLOT_INPUTS}/parking_brake", "parking brake (0/1)", "input",
-                   L.IN_PARKING_BRAKE, (120, 120, 120)),
-        PlotSeries(PLOT_GEAR, "gear (0 P, 1 R, 2 N, 3 D)", "input", L.IN_GEAR, (40, 40, 40)),
-    ]
-    return tuple(s)
+def _per_wheel(path: str, source: Literal["state", "output", "input"], first: int,
+               label: str) -> PlotGroup:
+    return PlotGroup(path, source, tuple(first + i for i in range(L.N_WHEELS)),
+                     tuple(f"{label} {w}" for w in L.WHEEL_NAMES),
+                     tuple(WHEEL_COLORS[w] for w in L.WHEEL_NAMES))
 
 
-PLOT_SERIES: tuple[PlotSeries, ...] = _build_series()
-"""Every plotted signal of a frame (the diagnostics are logged apart)."""
+PLOT_GROUPS: tuple[PlotGroup, ...] = (
+    PlotGroup(PLOT_SPEED, "state", (L.U_MPS, L.V_MPS), ("u (m/s)", "v (m/s)"),
+              ((40, 110, 220), (230, 120, 30))),
+    PlotGroup(PLOT_YAW_RATE, "state", (L.YAW_RATE_RADPS,), ("r (rad/s)",), ((150, 60, 190),)),
+    _per_wheel(PLOT_KAPPA, "output", L.O_KAPPA0, "k'"),
+    _per_wheel(PLOT_TAN_ALPHA, "output", L.O_TAN_ALPHA0, "tan a'"),
+    _per_wheel(PLOT_FRICTION_USE, "output", L.O_FRICTION_USE0, "friction use"),
+    *(PlotGroup(f"{PLOT_FORCES}/{w}", "output", (L.O_FX0 + i, L.O_FY0 + i, L.O_FZ0 + i),
+                (f"Fx {w} (N)", f"Fy {w} (N)", f"Fz {w} (N)"),
+                ((220, 60, 50), (50, 150, 60), (60, 90, 220)))
+      for i, w in enumerate(L.WHEEL_NAMES)),
+    _per_wheel(PLOT_DAMPING_ACTIVE, "state", L.DAMPING_ACTIVE0, "damping on"),
+    _per_wheel(PLOT_DAMPING_FX, "output", L.O_DAMPING_FX0, "damping Fx (N)"),
+    _per_wheel(PLOT_DAMPING_FY, "output", L.O_DAMPING_FY0, "damping Fy (N)"),
+    PlotGroup(PLOT_DRIVER, "input", (L.IN_STEER, L.IN_THROTTLE, L.IN_BRAKE, L.IN_PARKING_BRAKE),
+              ("steer [-1, 1]", "throttle [0, 1]", "brake [0, 1]", "parking brake (0/1)"),
+              ((150, 60, 190), (50, 160, 60), (220, 50, 40), (120, 120, 120))),
+    PlotGroup(PLOT_GEAR, "input", (L.IN_GEAR,), ("gear (0 P, 1 R, 2 N, 3 D)",),
+              ((200, 200, 200),)),
+)
+"""Every plotted signal of a frame, by entity (the diagnostics are logged apart)."""
 
 DIAGNOSTIC_SERIES = {TICK_JITTER: ("tick jitter (us)", (200, 60, 60)),
                      DROPPED_FRAMES: ("viewer frames dropped", (90, 90, 90))}
@@ -227,7 +225,7 @@ DIAGNOSTIC_SERIES = {TICK_JITTER: ("tick jitter (us)", (200, 60, 60)),
 RESULT_ENTITY_PATHS: tuple[str, ...] = (
     WORLD, ORIGIN_AXES, ROAD_SURFACE, ROAD_GRID, ROAD_AXES, TRAIL, CAR, BODY, BODY_SHELL,
     *WHEELS, *WHEEL_TIRES, *WHEEL_SPOKES, *FORCES, SCENE_INFO,
-    *(s.path for s in PLOT_SERIES),
+    *(g.path for g in PLOT_GROUPS),
 )
 """Every entity ``log_result`` writes (``SceneLogger`` adds ``DIAGNOSTIC_SERIES``)."""
 
@@ -454,17 +452,12 @@ def force_arrows(
     return origins, vectors, colors
 
 
-def series_values(
-    series: PlotSeries, states: np.ndarray, outputs: np.ndarray, inputs: np.ndarray
-) -> np.ndarray:
-    """The ``(n,)`` values of one plotted signal."""
-    source = {"state": states, "output": outputs, "input": inputs}[series.source]
-    return source[:, series.index]
-
-
 def decimate(time_s: np.ndarray, fps: float | None) -> np.ndarray:
-    """Row indices at most ``fps`` per second apart: the first row at or after each
-    ``t0 + k / fps``, always with the last row; every row if ``fps`` is None."""
+    """Row indices of at most ``fps`` rows per simulated second.
+
+    The first row at or after each grid time ``t0 + k / fps`` (as ``RateGate`` passes
+    them one by one), and always the last row; every row if ``fps`` is None.
+    """
     t = np.asarray(time_s, dtype=np.float64)
     n = t.size
     if n == 0:
@@ -498,11 +491,6 @@ class _Batch:
     archetype: Any
     fields: dict[str, Any]
     instances: int = 0
-
-
-def _log_row(rec: rr.RecordingStream, batch: _Batch, row: int) -> None:
-    kwargs = {name: values[row] for name, values in batch.fields.items()}
-    rec.log(batch.path, batch.archetype(**kwargs))
 
 
 def _send(rec: rr.RecordingStream, batch: _Batch, times: np.ndarray) -> None:
@@ -548,8 +536,9 @@ def _frame_batches(
 
 
 def _plot_batches(states: np.ndarray, outputs: np.ndarray, inputs: np.ndarray) -> list[_Batch]:
-    return [_Batch(s.path, rr.Scalars, {"scalars": series_values(s, states, outputs, inputs)})
-            for s in PLOT_SERIES]
+    """The plotted signals for ``n`` rows, one batch per ``PLOT_GROUPS`` entity."""
+    return [_Batch(g.path, rr.Scalars, {"scalars": g.values(states, outputs, inputs)},
+                   instances=len(g.indices)) for g in PLOT_GROUPS]
 
 
 # --------------------------------------------------------------------- static scene
@@ -663,9 +652,9 @@ def log_static_scene(
         "- Timeline `sim_time`: simulated time.\n"
     )
     rec.log(SCENE_INFO, rr.TextDocument(note, media_type=rr.MediaType.MARKDOWN), static=True)
-    for s in PLOT_SERIES:
-        rec.log(s.path, rr.SeriesLines(names=s.label, colors=[s.color], widths=1.5),
-                static=True)
+    for g in PLOT_GROUPS:
+        rec.log(g.path, rr.SeriesLines(names=g.labels, colors=g.colors,
+                                       widths=[1.5] * len(g.indices)), static=True)
 
 
 def log_diagnostics_styles(rec: rr.RecordingStream) -> None:
@@ -728,9 +717,8 @@ def scene_blueprint(
             end=rrb.TimeRangeBoundary.cursor_relative(),
         )
 
-    def plot(name: str, origin: str, contents: str | list[str] = "$origin/**") -> rrb.View:
-        return rrb.TimeSeriesView(name=name, origin=origin, contents=contents,
-                                  time_ranges=time_ranges)
+    def plot(name: str, origin: str) -> rrb.View:
+        return rrb.TimeSeriesView(name=name, origin=origin, time_ranges=time_ranges)
 
     # The viewer tracks an entity by its visual bounds: ``world/car`` holds only a
     # transform, so track the body's boxes (rerun 0.41 ignores an entity with nothing
@@ -747,10 +735,8 @@ def scene_blueprint(
                          plot("friction use", PLOT_FRICTION_USE), name="slips")
     forces = rrb.Grid(*(plot(f"forces {w}", f"{PLOT_FORCES}/{w}") for w in L.WHEEL_NAMES),
                       grid_columns=2, name="forces per wheel")
-    inputs = rrb.Vertical(
-        plot("driver inputs", PLOT_INPUTS,
-             [f"{PLOT_INPUTS}/{c}" for c in ("steer", "throttle", "brake", "parking_brake")]),
-        plot("gear", PLOT_GEAR), row_shares=[3, 1], name="inputs")
+    inputs = rrb.Vertical(plot("driver inputs", PLOT_DRIVER), plot("gear", PLOT_GEAR),
+                          row_shares=[3, 1], name="inputs")
     damping = rrb.Vertical(plot("damping flag (Appendix A)", PLOT_DAMPING_ACTIVE),
                            plot("damping share of Fx", PLOT_DAMPING_FX),
                            plot("damping share of Fy", PLOT_DAMPING_FY), name="damping")
@@ -774,9 +760,17 @@ def _road_text(grade_pct: float, cross_slope_pct: float) -> str:
     return f"grade {grade_pct:+g} %, cross-slope {cross_slope_pct:+g} %"
 
 
+def _road_range(positions_m: np.ndarray) -> tuple[float, float]:
+    """The run's extent along one road axis plus ``ROAD_MARGIN_M``, on the grid."""
+    finite = positions_m[np.isfinite(positions_m)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
+    return (GRID_SPACING_M * np.floor((lo - ROAD_MARGIN_M) / GRID_SPACING_M),
+            GRID_SPACING_M * np.ceil((hi + ROAD_MARGIN_M) / GRID_SPACING_M))
+
+
 def _eye_for(translation: np.ndarray, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A chase position behind, to the left of and above a car at ``translation``."""
-    eye = translation - 7.0 * axes[0] + 4.5 * axes[1] + 3.0 * axes[2]
+    eye = translation - 10.0 * axes[0] + 6.5 * axes[1] + 4.5 * axes[2]
     return eye, translation + 0.5 * axes[2]
 
 
@@ -801,9 +795,10 @@ def log_result(
     fps : float
         3D frames per simulated second.
     plot_fps : float, optional
-        Plot samples per simulated second; default ``fps``; None-like 0 is rejected.
+        Plot samples per simulated second; default ``fps``.
     trail_hz : float
-        Trail points per simulated second.
+        Trail points per simulated second (fewer for runs longer than
+        ``TRAIL_MAX_POINTS / trail_hz``).
     force_scale_m_per_n : float
         Arrow length per newton.
     motion_scale : float
@@ -821,11 +816,7 @@ def log_result(
     if t.size == 0:
         return
 
-    x, y = states[:, L.X_M], states[:, L.Y_M]
-    x_range = (GRID_SPACING_M * np.floor((np.nanmin(x) - ROAD_MARGIN_M) / GRID_SPACING_M),
-               GRID_SPACING_M * np.ceil((np.nanmax(x) + ROAD_MARGIN_M) / GRID_SPACING_M))
-    y_range = (GRID_SPACING_M * np.floor((np.nanmin(y) - ROAD_MARGIN_M) / GRID_SPACING_M),
-               GRID_SPACING_M * np.ceil((np.nanmax(y) + ROAD_MARGIN_M) / GRID_SPACING_M))
+    x_range, y_range = (_road_range(states[:, col]) for col in (L.X_M, L.Y_M))
     log_static_scene(rec, vp, geometry, axes, x_range, y_range, force_scale_m_per_n,
                      _road_text(grade, cross))
     if send_blueprint:
@@ -842,14 +833,47 @@ def log_result(
     for batch in _plot_batches(states[rows], outputs[rows], inputs[rows]):
         _send(rec, batch, time_ns(t[rows]))
 
-    trail_rows = decimate(t, trail_hz)
+    # A long run gets a coarser trail, so that its strips stay within TRAIL_MAX_POINTS rows
+    # of at most TRAIL_MAX_POINTS points.
+    trail_rows = decimate(t, min(trail_hz, TRAIL_MAX_POINTS / max(t[-1] - t[0], 1e-9)))
     points, _ = car_pose(states[trail_rows], axes)
     points = points + TRAIL_OFFSET_M * axes[2]
     strips = [points[max(0, k + 1 - TRAIL_MAX_POINTS):k + 1].astype(np.float32)
               for k in range(trail_rows.size)]
     _send(rec, _Batch(TRAIL, rr.LineStrips3D, {"strips": strips}, instances=-1),
           time_ns(t[trail_rows]))
-    rec.flush()
+
+
+class RateGate:
+    """Lets through at most ``rate_hz`` samples per simulated second, one by one.
+
+    The grid is ``t0 + k / rate_hz`` (``t0``: the first sample); a sample passes if it is
+    the first at or after a grid point, as ``decimate`` picks rows of a whole run. A rate
+    of None passes everything.
+    """
+
+    def __init__(self, rate_hz: float | None) -> None:
+        if rate_hz is not None and not rate_hz > 0.0:
+            raise ValueError(f"rate must be positive or None, got {rate_hz}")
+        self.rate_hz = rate_hz
+        self.reset()
+
+    def reset(self) -> None:
+        """Start a new grid at the next sample."""
+        self._t0: float | None = None
+        self._next_s = -np.inf
+
+    def due(self, time_s: float) -> bool:
+        """True if ``time_s`` passes (and then advance to the next grid point)."""
+        if self.rate_hz is None:
+            return True
+        if self._t0 is None:
+            self._t0 = time_s
+        if time_s < self._next_s - 1e-9:
+            return False
+        k = np.floor((time_s - self._t0) * self.rate_hz + 1e-9) + 1.0
+        self._next_s = self._t0 + k / self.rate_hz
+        return True
 
 
 @dataclass
@@ -860,7 +884,14 @@ class _SpinState:
 
 
 class SceneLogger:
-    """Logs the scene frame by frame (the live viewer process).
+    """Logs the scene as it happens, for the live viewer process.
+
+    ``log_frame`` is called with every state row received (any rate); it integrates the
+    wheel spin on every call, keeps at most ``fps`` frames per simulated second and
+    sends them in batches of ``flush_every`` frames through the same column path as
+    ``log_result`` (``rr.send_columns``): one batch of 26 entities costs about as much as
+    one frame logged entity by entity, so the view lags by at most ``flush_every / fps``
+    seconds (0.1 s by default) for a fraction of the CPU.
 
     Parameters
     ----------
@@ -873,16 +904,17 @@ class SceneLogger:
     grade_pct, cross_slope_pct : float
         The road plane.
     fps : float, optional
-        At most this many frames per simulated second are logged (every call still
-        integrates the wheel spin); None logs every call.
+        At most this many frames per simulated second; None keeps every call.
+    flush_every : int
+        Frames per batch (1: send each frame at once).
     trail_hz : float
-        Trail points per simulated second (at most ``TRAIL_MAX_POINTS`` are kept).
+        Trail points per simulated second (the newest ``TRAIL_MAX_POINTS`` are kept).
     force_scale_m_per_n, motion_scale : float
         As for ``log_result``.
     plot_window_s : float, optional
         Sent blueprint: plots show this many seconds before the cursor.
     send_blueprint : bool
-        Send ``scene_blueprint`` when the first frame is logged.
+        Send ``scene_blueprint`` (following the newest data) with the first batch.
     """
 
     def __init__(
@@ -893,46 +925,52 @@ class SceneLogger:
         grade_pct: float = 0.0,
         cross_slope_pct: float = 0.0,
         fps: float | None = DEFAULT_FPS,
+        flush_every: int = 5,
         trail_hz: float = TRAIL_HZ,
         force_scale_m_per_n: float = FORCE_SCALE_M_PER_N,
         motion_scale: float = 1.0,
         plot_window_s: float | None = 30.0,
         send_blueprint: bool = True,
     ) -> None:
-        if fps is not None and not fps > 0.0:
-            raise ValueError(f"fps must be positive or None, got {fps}")
+        if flush_every < 1:
+            raise ValueError(f"flush_every must be at least 1, got {flush_every}")
         self.rec = rec
         self.vp = np.asarray(vp, dtype=np.float64)
         self.geometry = CarGeometry.from_params(self.vp, tp)
         self.grade_pct = float(grade_pct)
         self.cross_slope_pct = float(cross_slope_pct)
         self.axes = road_axes(self.grade_pct, self.cross_slope_pct)
-        self.fps = fps
-        self.trail_hz = trail_hz
+        self.flush_every = int(flush_every)
         self.force_scale_m_per_n = force_scale_m_per_n
         self.motion_scale = motion_scale
         self.plot_window_s = plot_window_s
         self.send_blueprint = send_blueprint
         self.frames_logged = 0
         self._spin = _SpinState()
-        self._next_frame_s = -np.inf
-        self._next_trail_s = -np.inf
+        self._frame_gate = RateGate(fps)
+        self._trail_gate = RateGate(trail_hz)
         self._trail: deque[np.ndarray] = deque(maxlen=TRAIL_MAX_POINTS)
         self._road_center: np.ndarray | None = None
+        self._rows: list[tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._trail_rows: list[tuple[float, np.ndarray]] = []
         rec.set_log_time_enabled(False)
+        log_diagnostics_styles(rec)
 
     def reset(self) -> None:
-        """Forget the trail, the spin and the frame clock (a new run; called on a time jump
-        backwards)."""
+        """Send what is pending, then forget the trail, the spin and the frame clock (a new
+        run; called by ``log_frame`` when time jumps backwards)."""
+        self.flush()
         self._spin = _SpinState()
-        self._next_frame_s = -np.inf
-        self._next_trail_s = -np.inf
+        self._frame_gate.reset()
+        self._trail_gate.reset()
         self._trail.clear()
 
     def _ensure_road(self, x_m: float, y_m: float) -> None:
         """Log the static scene once, and re-centre the road when the car nears its edge."""
         half = LIVE_ROAD_HALF_SIZE_M
         pos = np.array([x_m, y_m])
+        if not np.all(np.isfinite(pos)):
+            return
         if self._road_center is not None and np.all(np.abs(pos - self._road_center)
                                                     < half - ROAD_MARGIN_M / 3.0):
             return
@@ -943,11 +981,8 @@ class SceneLogger:
             log_static_scene(self.rec, self.vp, self.geometry, self.axes, x_range, y_range,
                              self.force_scale_m_per_n,
                              _road_text(self.grade_pct, self.cross_slope_pct))
-            log_diagnostics_styles(self.rec)
             if self.send_blueprint:
-                start, _ = car_pose(np.array([[x_m, y_m] + [0.0] * (L.N_STATE - 2)]),
-                                    self.axes)
-                eye, target = _eye_for(start[0], self.axes)
+                eye, target = _eye_for(x_m * self.axes[0] + y_m * self.axes[1], self.axes)
                 self.rec.send_blueprint(scene_blueprint(self.plot_window_s, eye, target,
                                                         play_state="following"))
         else:
@@ -961,56 +996,67 @@ class SceneLogger:
         output_row: np.ndarray,
         input_row: np.ndarray,
     ) -> bool:
-        """Integrate the wheel spin to ``time_s`` and log a frame if one is due.
+        """Integrate the wheel spin to ``time_s`` and keep a frame if one is due.
 
         Parameters
         ----------
         time_s : float
             Simulated time of the row.
         state_row, output_row, input_row : ndarray
-            ``(N_STATE,)``, ``(N_OUT,)``, ``(N_INPUT,)`` (``core.layout``).
+            ``(N_STATE,)``, ``(N_OUT,)``, ``(N_INPUT,)`` (``core.layout``); copied.
 
         Returns
         -------
         bool
-            True if a frame was logged.
+            True if the row became a frame (sent with the next batch).
         """
-        states = np.asarray(state_row, dtype=np.float64)[None, :]
-        outputs = np.asarray(output_row, dtype=np.float64)[None, :]
-        inputs = np.asarray(input_row, dtype=np.float64)[None, :]
         t = float(time_s)
         sp = self._spin
         if sp.time_s is not None and t < sp.time_s:
             self.reset()
             sp = self._spin
-        omega = states[:, L.OMEGA0:L.OMEGA0 + L.N_WHEELS]
-        spin = integrate_spin(np.array([t]), omega, sp.time_s, sp.omega, sp.angle)
-        sp.time_s, sp.omega, sp.angle = t, omega[0].copy(), spin[0].copy()
-
-        if t < self._next_frame_s:
+        state = np.array(state_row, dtype=np.float64)
+        omega = state[None, L.OMEGA0:L.OMEGA0 + L.N_WHEELS]
+        spin = integrate_spin(np.array([t]), omega, sp.time_s, sp.omega, sp.angle)[0]
+        sp.time_s, sp.omega, sp.angle = t, omega[0], spin
+        if not self._frame_gate.due(t):
             return False
-        self._next_frame_s = t + 1.0 / self.fps if self.fps is not None else -np.inf
-        if self._next_frame_s <= t:
-            self._next_frame_s = t
-        self._ensure_road(float(states[0, L.X_M]), float(states[0, L.Y_M]))
-        rec = self.rec
-        rec.set_time(TIMELINE, duration=time_ns(t)[()])
-        batches = _frame_batches(states, outputs, spin, self.geometry, self.axes,
-                                 self.force_scale_m_per_n, self.motion_scale)
-        batches += _plot_batches(states, outputs, inputs)
-        for batch in batches:
-            _log_row(rec, batch, 0)
-        if t >= self._next_trail_s:
-            self._next_trail_s = t + 1.0 / self.trail_hz
-            point, _ = car_pose(states, self.axes)
-            self._trail.append(point[0] + TRAIL_OFFSET_M * self.axes[2])
-            rec.log(TRAIL, rr.LineStrips3D([np.array(self._trail, dtype=np.float32)]))
-        self.frames_logged += 1
+        self._rows.append((t, state, np.array(output_row, dtype=np.float64),
+                           np.array(input_row, dtype=np.float64), spin))
+        if self._trail_gate.due(t):
+            point = state[L.X_M] * self.axes[0] + state[L.Y_M] * self.axes[1]
+            self._trail.append(point + TRAIL_OFFSET_M * self.axes[2])
+            self._trail_rows.append((t, np.array(self._trail, dtype=np.float32)))
+        if len(self._rows) >= self.flush_every:
+            self.flush()
         return True
+
+    def flush(self) -> None:
+        """Send the pending frames (``log_frame`` calls it every ``flush_every`` frames)."""
+        if not self._rows:
+            return
+        times = np.array([r[0] for r in self._rows])
+        states = np.stack([r[1] for r in self._rows])
+        outputs = np.stack([r[2] for r in self._rows])
+        inputs = np.stack([r[3] for r in self._rows])
+        spin = np.stack([r[4] for r in self._rows])
+        self._rows.clear()
+        self._ensure_road(float(states[-1, L.X_M]), float(states[-1, L.Y_M]))
+        stamps = time_ns(times)
+        for batch in _frame_batches(states, outputs, spin, self.geometry, self.axes,
+                                    self.force_scale_m_per_n, self.motion_scale):
+            _send(self.rec, batch, stamps)
+        for batch in _plot_batches(states, outputs, inputs):
+            _send(self.rec, batch, stamps)
+        if self._trail_rows:
+            _send(self.rec, _Batch(TRAIL, rr.LineStrips3D,
+                                   {"strips": [r[1] for r in self._trail_rows]}, instances=-1),
+                  time_ns(np.array([r[0] for r in self._trail_rows])))
+            self._trail_rows.clear()
+        self.frames_logged += times.size
 
     def log_diagnostics(
         self, time_s: float, tick_jitter_us: float, dropped_frames: int | None = None
     ) -> None:
-        """Log one diagnostics sample (``log_diagnostics``)."""
+        """Log one diagnostics sample at once (``log_diagnostics``)."""
         log_diagnostics(self.rec, time_s, tick_jitter_us, dropped_frames)
-

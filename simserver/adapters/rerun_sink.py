@@ -13,18 +13,23 @@ one) with Rerun's ``log_time`` timeline switched off, or None for ``off``. The m
     server binds to 127.0.0.1 unless another host is given (``0.0.0.0`` to let other
     machines connect). The web viewer (``rr.serve_web_viewer``, port ``web_port``,
     default 9090) serves only the viewer's HTML and wasm and always binds all
-    interfaces in rerun-sdk 0.41; pass ``web_port=None`` to skip it. From another
-    machine, tunnel both ports (``ssh -L 9090:127.0.0.1:9090 -L 9876:127.0.0.1:9876``).
-    Returns at once; a late viewer gets what is buffered (``server_memory_limit``).
+    interfaces in rerun-sdk 0.41, and runs until the process exits (there is no call to
+    stop it); pass ``web_port=None`` to skip it. From another machine, tunnel both ports
+    (``ssh -L 9090:127.0.0.1:9090 -L 9876:127.0.0.1:9876``). Returns at once; a late
+    viewer gets what is buffered (``server_memory_limit``); ``rec.disconnect()`` stops the
+    gRPC server.
 ``connect``
     Stream to a running viewer's gRPC URL (``target``, default
     ``rerun+http://127.0.0.1:9876/proxy``; start one with ``rerun``). Checked first with a
     short TCP connect: rerun-sdk 0.41's ``connect_grpc`` to an address where nothing
-    listens blocks 5 s, then buffers in memory until logging blocks for good.
+    listens blocks 5 s, then buffers in memory until logging blocks for good. A viewer
+    that goes away later has the same effect on the logging process (so log from a
+    process that the physics never waits on).
 ``spawn``
     Start a local viewer (``rerun`` on ``target`` port, default 9876) and stream to it.
     Refused without a display (``DISPLAY``/``WAYLAND_DISPLAY`` on Linux): rerun-sdk 0.41
-    blocks about 11 s there before giving up.
+    blocks about 11 s there before giving up. The spawned viewer's own gRPC server
+    listens on all interfaces (rerun's default).
 
 Errors are ``RerunSinkError`` with a message that names the mode and target.
 """
@@ -128,6 +133,15 @@ def _check_listening(url: str) -> None:
             f"with `rerun`, or use serve (the viewer connects to us) or save") from exc
 
 
+def _viewer_executable() -> str | None:
+    """The ``rerun`` viewer: on PATH, else beside this interpreter (a venv not activated)."""
+    found = shutil.which("rerun")
+    if found:
+        return found
+    beside = Path(sys.executable).parent / ("rerun.exe" if os.name == "nt" else "rerun")
+    return str(beside) if beside.is_file() else None
+
+
 def _has_display() -> bool:
     if not sys.platform.startswith("linux"):
         return True
@@ -220,8 +234,10 @@ def open_recording(
         if not _has_display():
             raise RerunSinkError("rerun spawn: no display (DISPLAY/WAYLAND_DISPLAY unset); "
                                  "use serve and open the printed URL, or save to a file")
-        if shutil.which("rerun") is None:
-            raise RerunSinkError("rerun spawn: the `rerun` viewer executable is not on PATH")
+        viewer_exe = _viewer_executable()
+        if viewer_exe is None:
+            raise RerunSinkError("rerun spawn: no `rerun` viewer executable on PATH or beside "
+                                 f"{sys.executable}")
 
     rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()))
     rec.set_log_time_enabled(False)
@@ -243,6 +259,7 @@ def open_recording(
         rec.connect_grpc(url, default_blueprint=default_blueprint)
         say(f"rerun: streaming to {url}")
     else:
-        rec.spawn(port=port, default_blueprint=default_blueprint)
-        say(f"rerun: spawned a viewer on port {port}")
+        rr.spawn(port=port, connect=True, default_blueprint=default_blueprint, recording=rec,
+                 executable_path=viewer_exe)
+        say(f"rerun: spawned a viewer on port {port} (it listens on all interfaces)")
     return rec
