@@ -363,6 +363,10 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a standard zenoh JSON5 config (TLS, access control, routers)")
     parser.add_argument("--command-log", type=Path, default=None, metavar="FILE",
                         help="write every applied input to FILE for 'simserver replay'")
+    parser.add_argument("--viewer", default=None, metavar="MODE[:TARGET]",
+                        help="live Rerun view in its own process: serve[:PORT] (loopback "
+                             "gRPC + web viewer), save:FILE.rrd, connect:URL, spawn, off "
+                             "(default: the config's 'viewer')")
     parser.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
 
 
@@ -377,7 +381,7 @@ def serve_command(args: argparse.Namespace) -> int:
     cfg = load_server_config(
         args.config or DEFAULT_SERVER_CONFIG, scene=args.scene, vehicle_id=args.vehicle_id,
         prefix=args.prefix, listen=args.listen, connect=args.connect,
-        zenoh_config=args.zenoh_config, command_log=args.command_log)
+        zenoh_config=args.zenoh_config, command_log=args.command_log, viewer=args.viewer)
     from simserver.adapters.zenoh_io import ZenohConfigError, ZenohOpenError
 
     try:
@@ -457,6 +461,48 @@ def soak_command(args: argparse.Namespace) -> int:
     return 0 if report.ok else 1
 
 
+# ------------------------------------------------------------------------ view
+def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--sink", default="serve", metavar="MODE[:TARGET]",
+                        help="serve[:PORT] (gRPC + web viewer on loopback, default), "
+                             "save:FILE.rrd, connect:URL, spawn[:PORT]")
+    parser.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
+                        help="the server's zenoh endpoint (default tcp/127.0.0.1:7447)")
+    parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
+                        help="a zenoh JSON5 client config instead of --connect")
+    parser.add_argument("--vehicle-id", default="car0")
+    parser.add_argument("--prefix", default="simserver")
+    parser.add_argument("--fps", type=float, default=50.0,
+                        help="frames drawn per simulated second (default 50)")
+    parser.add_argument("--web-port", type=int, default=None, metavar="PORT",
+                        help="serve: also host Rerun's web viewer on PORT (rerun-sdk 0.41 "
+                             "binds it to all interfaces; off by default)")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="stop after S wall seconds (default: until Ctrl-C)")
+    parser.add_argument("--no-listener-check", action="store_true",
+                        help="connect: do not first check that the viewer listens (to test "
+                             "a viewer that is gone: logging then buffers in this process)")
+
+
+def view_command(args: argparse.Namespace) -> int:
+    """``simserver view``: the live Rerun scene of a running server (its own process)."""
+    from simserver.adapters.rerun_sink import RerunSinkError
+    from simserver.viewer import run_viewer
+
+    connect = args.connect or ([] if args.zenoh_config else ["tcp/127.0.0.1:7447"])
+    try:
+        stats = run_viewer(args.sink, connect, args.prefix, args.vehicle_id, args.fps,
+                           duration_s=args.duration, config_file=args.zenoh_config,
+                           web_port=args.web_port, check_listener=not args.no_listener_check)
+    except RerunSinkError as exc:
+        raise CliError(str(exc), exit_code=2) from exc
+    except TimeoutError as exc:
+        raise CliError(f"no server answered: {exc}", exit_code=3) from exc
+    print(f"viewer: {stats.states_received} states, {stats.frames_logged} frames, "
+          f"{stats.states_dropped} dropped", flush=True)
+    return 0
+
+
 SUBCOMMANDS: dict[str, Subcommand] = {
     "run-scenario": Subcommand(
         help="run a scenario headless; write history.parquet, summary.json and plots",
@@ -482,6 +528,14 @@ SUBCOMMANDS: dict[str, Subcommand] = {
                     "physics at a fixed wall-clock rate on absolute deadlines; commands, "
                     "state, diagnostics and controls over zenoh (docs/protocol.md). Stops "
                     "cleanly on SIGINT/SIGTERM and prints its statistics.",
+    ),
+    "view": Subcommand(
+        help="the live Rerun scene of a running server (a separate process)",
+        add_arguments=_add_view_arguments,
+        run=view_command,
+        description="Subscribe to a server's state and diagnostics and log the scene to "
+                    "Rerun (serve, save, connect or spawn). The physics never waits for "
+                    "it: it is its own process behind a bounded queue.",
     ),
     "replay": Subcommand(
         help="re-run a server command log headless, bit for bit",

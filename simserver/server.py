@@ -25,6 +25,8 @@ import json
 import logging
 import math
 import signal
+import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -62,6 +64,7 @@ SERVER_KEYS: dict[str, tuple[float, float] | None] = {
     "max_catchup_ticks": (0, 100000),
     "command_log": None,
     "config_dirs": None,
+    "viewer": None,
 }
 
 
@@ -85,6 +88,7 @@ class ServerConfig:
     max_catchup_ticks: int = 100
     command_log: Path | None = None
     config_dirs: list[Path] = field(default_factory=list)
+    viewer: str = "off"
 
 
 def _string_list(path: Path, key: str, value: Any) -> list[str]:
@@ -122,7 +126,7 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
             setattr(cfg, key, _string_list(path, key, value))
         elif key == "config_dirs":
             cfg.config_dirs = [(path.parent / d).resolve() for d in _string_list(path, key, value)]
-        elif key in ("prefix", "vehicle_id", "mode"):
+        elif key in ("prefix", "vehicle_id", "mode", "viewer"):
             if not isinstance(value, str):
                 raise ConfigError(f"{path}: key '{key}': expected a string")
             setattr(cfg, key, value)
@@ -134,6 +138,13 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
         proto.vehicle_keys(cfg.prefix, cfg.vehicle_id)
     except proto.ProtocolError as exc:
         raise ConfigError(f"{path}: {exc}") from exc
+    if cfg.viewer != "off":
+        from simserver.adapters.rerun_sink import RerunSinkError, parse_sink
+
+        try:
+            parse_sink(cfg.viewer)
+        except RerunSinkError as exc:
+            raise ConfigError(f"{path}: key 'viewer': {exc}") from exc
     if not cfg.config_dirs:
         cfg.config_dirs = [REPO_CONFIGS, path.parent]
     return cfg
@@ -507,6 +518,7 @@ class SimServer:
                          1e3 * cfg.period_s, compile_s)
                 print(f"simserver: ready on {self.keys.base} "
                       f"(listen {cfg.listen or 'tcp/127.0.0.1:7447'})", flush=True)
+                viewer = self._start_viewer()
                 self.t0 = time.monotonic()
                 self.pacer.start()
                 loop_count = 0
@@ -537,6 +549,7 @@ class SimServer:
         finally:
             for s, h in previous.items():
                 signal.signal(s, h)
+            self._stop_viewer(locals().get("viewer"))
             if self.command_log is not None:
                 self.command_log.close(self.steps_total, self.physics.x)
         stats = self.pacer.stats()
@@ -549,6 +562,28 @@ class SimServer:
                  **self.counters}
         print("simserver: stopped " + json.dumps(final), flush=True)
         return final
+
+    def _start_viewer(self) -> subprocess.Popen | None:
+        """Start ``simserver view`` in its own process (the physics never waits on it)."""
+        cfg = self.cfg
+        if cfg.viewer == "off":
+            return None
+        endpoint = (cfg.listen or ["tcp/127.0.0.1:7447"])[0]
+        endpoint = endpoint.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
+        args = [sys.executable, "-m", "simserver", "view", "--sink", cfg.viewer,
+                "--connect", endpoint, "--prefix", cfg.prefix, "--vehicle-id", cfg.vehicle_id]
+        log.info("live view: %s", " ".join(args[2:]))
+        return subprocess.Popen(args)
+
+    @staticmethod
+    def _stop_viewer(viewer: subprocess.Popen | None) -> None:
+        if viewer is None:
+            return
+        viewer.terminate()
+        try:
+            viewer.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            viewer.kill()
 
     def _log_inputs(self) -> None:
         if self.command_log is None:

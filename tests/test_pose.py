@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from simserver.core import layout as L
 from simserver.core.params import road_axes
-from simserver.core.pose import world_pose
+from simserver.core.pose import road_pose, world_pose
 
 
 def rot(axis: int, a: float) -> np.ndarray:
@@ -42,6 +42,10 @@ def test_world_pose_matches_rotation_matrices(grade, cross, yaw, pitch, roll, px
     r_back = rot(2, pose[3]) @ rot(1, pose[4]) @ rot(0, pose[5])
     np.testing.assert_allclose(r_back, r_world, atol=1e-9)
     assert abs(pose[3] - yaw) < math.pi  # continuous with the road-plane heading
+    back = np.zeros(L.N_STATE)
+    road_pose(pose, axes, 0.5, back)  # and the inverse gives the road-plane pose again
+    for k in (L.X_M, L.Y_M, L.HEAVE_M, L.YAW_RAD, L.PITCH_RAD, L.ROLL_RAD):
+        assert abs(back[k] - x[k]) < 1e-8, k
 
 
 def test_flat_road_is_identity():

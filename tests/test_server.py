@@ -38,6 +38,7 @@ class ServerProcess:
         self.vehicle_id = vehicle_id
         self.log_path = tmp / f"{vehicle_id}_commands.jsonl" if command_log else None
         args = [sys.executable, "-m", "simserver", "serve", "--vehicle-id", vehicle_id,
+                "--viewer", "off",
                 "--listen", f"tcp/127.0.0.1:{self.port}",
                 "--scene", str(CONFIGS / "scenes" / f"{scene}.yaml")]
         if self.log_path:

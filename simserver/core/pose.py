@@ -56,3 +56,32 @@ def world_pose(x: np.ndarray, axes: np.ndarray, cg_height_m: float, pose: np.nda
     pose[3] = psi + diff
     pose[4] = np.arcsin(min(1.0, max(-1.0, -wx2)))
     pose[5] = np.arctan2(wy2, wz2)
+
+
+@nb.njit(cache=True)
+def road_pose(pose: np.ndarray, axes: np.ndarray, cg_height_m: float, x: np.ndarray) -> None:
+    """Inverse of ``world_pose``: write ``X_M``, ``Y_M``, ``YAW_RAD``, ``HEAVE_M``,
+    ``PITCH_RAD`` and ``ROLL_RAD`` of ``x`` from a world pose (for the live viewer, which
+    receives world poses on the wire)."""
+    px, py, pz = pose[0], pose[1], pose[2]
+    x[X_M] = px * axes[0, 0] + py * axes[0, 1] + pz * axes[0, 2]
+    x[Y_M] = px * axes[1, 0] + py * axes[1, 1] + pz * axes[1, 2]
+    x[HEAVE_M] = px * axes[2, 0] + py * axes[2, 1] + pz * axes[2, 2] - cg_height_m
+    cz, sz = np.cos(pose[3]), np.sin(pose[3])
+    cy, sy = np.cos(pose[4]), np.sin(pose[4])
+    cx, sx = np.cos(pose[5]), np.sin(pose[5])
+    # body x, y, z axes in world components (columns of Rz Ry Rx) ...
+    bx = (cz * cy, sz * cy, -sy)
+    by = (cz * sy * sx - sz * cx, sz * sy * sx + cz * cx, cy * sx)
+    bz = (cz * sy * cx + sz * sx, sz * sy * cx - cz * sx, cy * cx)
+    # ... then in road components (rows of axes are e1, e2, n)
+    r00 = bx[0] * axes[0, 0] + bx[1] * axes[0, 1] + bx[2] * axes[0, 2]
+    r10 = bx[0] * axes[1, 0] + bx[1] * axes[1, 1] + bx[2] * axes[1, 2]
+    r20 = bx[0] * axes[2, 0] + bx[1] * axes[2, 1] + bx[2] * axes[2, 2]
+    r21 = by[0] * axes[2, 0] + by[1] * axes[2, 1] + by[2] * axes[2, 2]
+    r22 = bz[0] * axes[2, 0] + bz[1] * axes[2, 1] + bz[2] * axes[2, 2]
+    yaw_wrapped = np.arctan2(r10, r00)
+    diff = (yaw_wrapped - pose[3] + np.pi) % (2.0 * np.pi) - np.pi
+    x[YAW_RAD] = pose[3] + diff
+    x[PITCH_RAD] = np.arcsin(min(1.0, max(-1.0, -r20)))
+    x[ROLL_RAD] = np.arctan2(r21, r22)

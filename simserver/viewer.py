@@ -1,0 +1,194 @@
+"""The live viewer: a separate process that turns the state topic into a Rerun scene.
+
+Logging one frame costs about a millisecond of Python (platform notes; measured again for
+``rerun_scene.SceneLogger``): in the 1 kHz process it would wreck the loop, even from a
+thread. So the server never logs: ``simserver serve --viewer SINK`` starts this process,
+which subscribes to the server's state and diagnostics like any client, through a bounded
+ring buffer (the oldest messages are dropped if it falls behind, and counted from the gaps
+in the tick numbers), and feeds
+``SceneLogger`` (decimated to ``fps`` frames per simulated second). A missing, slow or
+vanished viewer can only slow this process, never the physics.
+
+The wire state carries the world pose; the scene is drawn in the road's frame, so the road
+(from the ``get_config`` control, re-read once a second to follow ``set_road``) turns the
+pose back into road-plane coordinates (``core.pose.road_pose``). Quantities the wire does
+not carry (friction use, the damping share of the forces) are drawn as missing.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from simserver import protocol as proto
+from simserver.core import layout as L
+from simserver.core.params import VP_CG_HEIGHT_M, road_axes
+
+ROAD_POLL_S = 1.0
+
+
+@dataclass
+class ViewerStats:
+    """What the viewer process did."""
+
+    states_received: int = 0
+    states_dropped: int = 0
+    frames_logged: int = 0
+    diagnostics: int = 0
+
+
+def rows_from_state(rec: np.ndarray, axes: np.ndarray, cg_height_m: float,
+                    x: np.ndarray, out: np.ndarray, inputs: np.ndarray) -> None:
+    """Fill core-layout rows from one decoded VehicleState (missing quantities = NaN)."""
+    from simserver.core.pose import road_pose
+
+    pose = np.array([rec["x_m"], rec["y_m"], rec["z_m"], rec["yaw_rad"], rec["pitch_rad"],
+                     rec["roll_rad"]], dtype=np.float64)
+    road_pose(pose, axes, cg_height_m, x)
+    x[L.U_MPS] = rec["u_mps"]
+    x[L.V_MPS] = rec["v_mps"]
+    x[L.YAW_RATE_RADPS] = rec["yaw_rate_radps"]
+    x[L.OMEGA0:L.OMEGA0 + 4] = rec["omega_radps"]
+    x[L.KAPPA0:L.KAPPA0 + 4] = rec["kappa_lag"]
+    x[L.TAN_ALPHA0:L.TAN_ALPHA0 + 4] = rec["tan_alpha_lag"]
+    x[L.DAMPING_ACTIVE0:L.DAMPING_ACTIVE0 + 4] = rec["damping_active"]
+    x[L.WHEEL_HELD0:L.WHEEL_HELD0 + 4] = rec["brake_held"]
+    x[L.TIME_S] = rec["sim_time_s"]
+    out[:] = np.nan
+    out[L.O_AX_MPS2] = rec["ax_mps2"]
+    out[L.O_AY_MPS2] = rec["ay_mps2"]
+    out[L.O_FX0:L.O_FX0 + 4] = rec["fx_n"]
+    out[L.O_FY0:L.O_FY0 + 4] = rec["fy_n"]
+    out[L.O_FZ0:L.O_FZ0 + 4] = rec["fz_n"]
+    out[L.O_STEER0:L.O_STEER0 + 4] = rec["steer_rad"]
+    out[L.O_KAPPA0:L.O_KAPPA0 + 4] = rec["kappa_lag"]
+    out[L.O_TAN_ALPHA0:L.O_TAN_ALPHA0 + 4] = rec["tan_alpha_lag"]
+    inputs[L.IN_STEER] = rec["steer"]
+    inputs[L.IN_THROTTLE] = rec["throttle"]
+    inputs[L.IN_BRAKE] = rec["brake"]
+    inputs[L.IN_PARKING_BRAKE] = rec["parking_brake"]
+    inputs[L.IN_GEAR] = rec["gear"]
+
+
+def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
+               vehicle_id: str = "car0", fps: float = 50.0, queue: int = 2048,
+               duration_s: float | None = None, config_file: Path | None = None,
+               web_port: int | None = None, check_listener: bool = True) -> ViewerStats:
+    """Subscribe to a server and log its scene to ``sink`` until SIGINT/SIGTERM.
+
+    Parameters
+    ----------
+    sink : str
+        ``MODE[:TARGET]`` as ``rerun_sink.parse_sink`` takes it (``serve``, ``save:F.rrd``,
+        ``connect:URL``, ``spawn``).
+    connect : list of str
+        Zenoh endpoints of the server.
+    prefix, vehicle_id : str
+        Which vehicle.
+    fps : float
+        Frames per simulated second drawn.
+    queue : int
+        Ring-buffer capacity for states (older ones are dropped when full).
+    duration_s : float, optional
+        Stop after this many wall seconds (tests, benchmarks).
+    config_file : Path, optional
+        A zenoh JSON5 config instead of the defaults.
+    web_port : int, optional
+        ``serve``: also host Rerun's web viewer on this port. Off by default: rerun-sdk
+        0.41 binds it to all interfaces, and the server's defaults stay on loopback.
+    check_listener : bool
+        ``connect``: refuse at once when nothing listens at the URL.
+    """
+    from simserver.adapters.config import load_vehicle
+    from simserver.adapters.rerun_scene import SceneLogger, log_diagnostics
+    from simserver.adapters.rerun_sink import open_recording, parse_sink
+    from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
+
+    mode, target = parse_sink(sink)
+    rec_stream = open_recording(mode, target, application_id="simserver",
+                                recording_id=f"{prefix}/{vehicle_id}", web_port=web_port,
+                                check_listener=check_listener)
+    stats = ViewerStats()
+    if rec_stream is None:
+        return stats
+    running = [True]
+
+    def stop(*_: Any) -> None:
+        running[0] = False
+
+    previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    cfg = make_zenoh_config(listen=[], connect=connect, config_file=config_file)
+    x = np.zeros(L.N_STATE)
+    out = np.zeros(L.N_OUT)
+    inputs = np.zeros(L.N_INPUT)
+    try:
+        with ZenohEndpoint(cfg, prefix=prefix, vehicle=vehicle_id) as ep:
+            states = ep.declare_state_inbox(capacity=queue)
+            diags = ep.declare_diag_inbox()
+            config = ep.request("get_config", timeout_s=5.0)
+            if not config.get("ok"):
+                raise RuntimeError(f"get_config failed: {config}")
+            vehicle = load_vehicle(config["config"]["vehicle"]["path"])
+            road = config["config"]["road"]
+            logger = SceneLogger(rec_stream, vehicle.vp, vehicle.tp, road["grade_pct"],
+                                 road["cross_slope_pct"], fps=fps)
+            axes = road_axes(road["grade_pct"], road["cross_slope_pct"])
+            h_cg = float(vehicle.vp[VP_CG_HEIGHT_M])
+            state_every = int(config["config"]["server"]["state_every"])
+            last_tick: int | None = None
+            t_start = last_poll = time.monotonic()
+            while running[0]:
+                now = time.monotonic()
+                if duration_s is not None and now - t_start > duration_s:
+                    break
+                if now - last_poll > ROAD_POLL_S:  # follow set_road and load
+                    last_poll = now
+                    reply = ep.request("get_config", timeout_s=1.0)
+                    if reply.get("ok") and (reply["config"]["road"] != road
+                                            or reply["config"]["vehicle"]["path"]
+                                            != str(vehicle.path)):
+                        logger.flush()
+                        road = reply["config"]["road"]
+                        vehicle = load_vehicle(reply["config"]["vehicle"]["path"])
+                        logger = SceneLogger(rec_stream, vehicle.vp, vehicle.tp,
+                                             road["grade_pct"], road["cross_slope_pct"],
+                                             fps=fps, send_blueprint=False)
+                        axes = road_axes(road["grade_pct"], road["cross_slope_pct"])
+                        h_cg = float(vehicle.vp[VP_CG_HEIGHT_M])
+                payloads = states.drain_newest()
+                for payload in payloads:
+                    try:
+                        rec = proto.decode_state(payload)
+                    except proto.ProtocolError:
+                        continue
+                    stats.states_received += 1
+                    tick = int(rec["tick"])
+                    if last_tick is not None and tick > last_tick + state_every:
+                        # the ring dropped the oldest: count what never arrived
+                        stats.states_dropped += (tick - last_tick) // state_every - 1
+                    last_tick = tick
+                    rows_from_state(rec, axes, h_cg, x, out, inputs)
+                    if logger.log_frame(float(rec["sim_time_s"]), x, out, inputs):
+                        stats.frames_logged += 1
+                for payload in diags.drain_newest():
+                    try:
+                        d = proto.decode_diagnostics(payload)
+                    except proto.ProtocolError:
+                        continue
+                    stats.diagnostics += 1
+                    log_diagnostics(rec_stream, float(d["tick"]) * 1e-3,
+                                    float(d["lateness_p99_us"]), stats.states_dropped)
+                if not payloads:
+                    time.sleep(0.005)
+            logger.flush()
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+        rec_stream.flush()
+        rec_stream.disconnect()
+    return stats
