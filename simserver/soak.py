@@ -165,9 +165,12 @@ class SoakReport:
 
 
 def at_rest_index(states: np.ndarray, dt_s: float) -> int | None:
-    """Row from which a hold is checked: ``HOLD_SETTLE_S`` after the car first came to
-    rest (|u| and |v| below 1 mm/s) in it and the pedals reached their hold values; None if the car never came to rest, or too late
-    to leave ``HOLD_MIN_WINDOW_S`` (a car still sliding on a slippery road is not held yet).
+    """Row from which a hold is checked.
+
+    ``HOLD_SETTLE_S`` after the car first came to rest (|u| and |v| below 1 mm/s) in the
+    hold and the pedals reached their hold values; None if the car never came to rest, or
+    too late to leave ``HOLD_MIN_WINDOW_S`` (a car still sliding on a slippery road is not
+    held yet).
     """
     still = np.maximum(np.abs(states[:, L.U_MPS]), np.abs(states[:, L.V_MPS])) < REST_MPS
     if not still.any():
