@@ -41,11 +41,12 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def run(seconds: float, cmd_hz: float) -> dict:
+def run(seconds: float, cmd_hz: float, viewer: str = "off") -> dict:
+    """One server run of ``seconds`` with the live viewer ``viewer`` (a ``--viewer`` value)."""
     port = free_port()
     server = subprocess.Popen(
         [sys.executable, "-m", "simserver", "serve", "--listen", f"tcp/127.0.0.1:{port}",
-         "--log-level", "WARNING"],
+         "--log-level", "WARNING", "--viewer", viewer],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     t_launch = time.monotonic()
     while True:
@@ -128,9 +129,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--cmd-hz", type=float, default=200.0)
+    parser.add_argument("--viewer", default="off", help="the server's --viewer (default off)")
     args = parser.parse_args(argv)
-    r = run(args.seconds, args.cmd_hz)
-    print(f"server run {r['seconds']:.0f} s, {r['ticks']} ticks, state every tick; "
+    r = run(args.seconds, args.cmd_hz, args.viewer)
+    print(f"server run {r['seconds']:.0f} s (viewer {args.viewer}), {r['ticks']} ticks, "
+          f"state every tick; "
           f"ready {r['startup_s']:.1f} s after launch")
     print(f"tick lateness: p50 {r['lateness_p50_us']:.1f} us, p99 {r['lateness_p99_us']:.1f} us"
           f" (worst 4096-tick window {r['lateness_p99_worst_window_us']:.0f} us), "
