@@ -36,7 +36,9 @@ from simserver.core.tire_mf61 import mf61_forces, mf61_param_vector  # noqa: E40
 DEFAULT_TIR = Path("/work/shared/data/tires/mf61_225_50R17_sample.tir")
 
 
-@nb.njit(cache=True)
+# Not cached on purpose: numba's cache of a caller does not notice a change in a callee in
+# another file, and a cached loop would keep timing an old mf61_forces.
+@nb.njit(cache=False)
 def _loop(
     p: np.ndarray,
     kappa: np.ndarray,

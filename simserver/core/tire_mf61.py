@@ -17,6 +17,11 @@ established by the public MFeval implementation that was checked against TNO's M
 - (4.E74) ``F'y = G_yk Fy0(gamma = 0)``: the pneumatic trail acts on the camber-free
   side force; the camber moment is carried by the residual torque (QDZ8..QDZ11).
 
+The book's forms are kept for (4.E43) (``QDZ3 |gamma*|``; MFeval reads a signed gamma
+there) and (4.E77)-(4.E78) (``alpha_eq = sqrt(alpha^2 + (Kxk/Kya)^2 kappa^2)`` on the
+tangents, as everywhere in MF 6.1). ``gamma* = sin(gamma)`` throughout, except the
+``gamma^2`` of (4.E13) and (4.E70), which MF-Tyre takes on the angle itself.
+
 Inputs follow :mod:`simserver.core.tire`: ``tan_alpha`` is MF's ``alpha*`` (4.E3), so
 ``sgn(Vcx)`` never appears again; in (4.E42) and (4.E47) it multiplies ``cos'alpha``
 (4.E6), which carries the same sign, and the two cancel. ``cos'alpha`` is therefore
@@ -27,6 +32,11 @@ Load range: the coefficient polynomials in ``dfz`` are a fit over the file's
 clamped load ``Fz_c`` and every force, moment, stiffness and peak is multiplied by
 ``Fz / Fz_c``: linear in load beyond the fitted range, and going to zero with ``Fz``.
 Inside the range this is exactly MF 6.1.
+
+Speed: the kernel evaluates about forty atan / sin, each a 10-20 ns libm call that
+cannot be vectorised. Here they are branch-free polynomials (about 1 ulp), and the
+sixteen Magic Formula curves of one call are evaluated eight at a time in a loop the
+compiler turns into SIMD code (:func:`_mf_lanes`; its scratch is on the stack).
 
 Not modelled: turn slip and spin (zeta = 1), speed-dependent friction ``LMUV``,
 overturning moment ``Mx``, low-speed smoothing of ``My`` (the caller applies ``My``
@@ -40,6 +50,9 @@ import math
 
 import numba as nb
 import numpy as np
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from simserver.core.tire_layout import (
     OUT_C_ALPHA,
@@ -238,13 +251,18 @@ MU_SCALE_MAX = 10.0  # Bt and Br (4.E40, 4.E45), so it may not reach zero
 VX_MY_MAX_MPS = 1000.0  # |vx| cap in the (Vx/V0)^4 rolling-resistance term
 SLIDE_MAX = 1.0e6  # cap of OUT_KAPPA_SLIDE / OUT_TAN_ALPHA_SLIDE (curve without peak)
 SLIDE_FRACTION_NO_PEAK = 0.99  # C <= 1: "sliding" where the curve reaches 99 % of its limit
-SERIES_MAX_ARG = 2e-3  # below this |B x| the cosine weighting uses its Taylor series
 _TINY = 1e-9  # floor of C*D (N), |K_ya| (N/rad), G0: never reached with a sane file
 
-# --- elementary functions, inlined ------------------------------------------------------
-# libm calls are not inlined, clobber every vector register and cost 10-20 ns each; the
-# kernel needs about 35 of them. These replacements are accurate to about 1 ulp (tested in
-# tests/test_tire_mf61.py against math.atan / math.sin / math.cos) and branch-free.
+# Compilation: fused multiply-add allowed (and nothing else of fastmath: NaN and inf keep
+# their IEEE meaning); division by zero yields inf instead of raising, which removes a
+# test and a branch per division (every division here has a non-zero denominator).
+_JIT_OPTIONS = {"cache": True, "fastmath": {"contract"}, "error_model": "numpy"}
+
+# --- elementary functions ----------------------------------------------------------------
+# libm calls are not inlined, clobber every vector register and cost 10-20 ns each, and
+# they cannot be vectorised; the kernel needs about 35 of them. These replacements are
+# accurate to about 1 ulp (tested in tests/test_tire_mf61.py against math.atan / math.sin)
+# and branch-free, so that the compiler vectorises them (see _mf_lanes).
 #
 # atan: argument reduction at the centres 0, 1/2, 1, 3/2, inf (one division), then
 # atan(u) = u + u z P(z), z = u^2, |u| <= 7/16, P of degree 10: Chebyshev interpolation of
@@ -266,8 +284,8 @@ _ATAN_3HALF = 0.982793723247329  # atan(3/2)
 _PI_4 = 0.7853981633974483
 _PI_2 = 1.5707963267948966
 # sin on [-pi/2, pi/2]: x + x z Q(z), Q of degree 7 fitted the same way on [0, (pi/2)^2],
-# absolute error 1.3e-18 before rounding. |x| <= pi is folded with pi = _PI_HI + _PI_LO
-# (cos with pi/2 = _PI_2 + _PI_2_LO); larger |x| (never in the model) goes to libm.
+# absolute error 1.3e-18 before rounding. Other arguments are reduced by 2 pi (a 33-bit
+# head, exact for |n| < 2^20, and a tail) and folded with pi = _PI_HI + _PI_LO.
 _SN0 = -0.16666666666666666633
 _SN1 = 0.0083333333333333158688
 _SN2 = -0.00019841269841254973769
@@ -279,9 +297,13 @@ _SN7 = 2.7314447669863993424e-15
 _PI_HI = 3.141592653589793
 _PI_LO = 1.2246467991473532e-16
 _PI_2_LO = 6.123233995736766e-17
+_TWO_PI_HI = 6.2831853069365025
+_TWO_PI_LO = 2.430840202602477e-10
+_INV_TWO_PI = 0.15915494309189535
+_ROUND_MAGIC = 6755399441055744.0  # 1.5 * 2^52: (x + M) - M rounds x to an integer
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _atan(x: float) -> float:
     """``atan(x)`` to about 1 ulp, branch-free (see the constants above)."""
     ax = abs(x)
@@ -305,7 +327,7 @@ def _atan(x: float) -> float:
     return math.copysign(base + (u + u * z * poly), x)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _sin_core(y: float) -> float:
     """``sin(y)`` for ``|y| <= pi/2``."""
     z = y * y
@@ -317,94 +339,132 @@ def _sin_core(y: float) -> float:
     return y + y * z * poly
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _sin(x: float) -> float:
-    """``sin(x)`` to about 1 ulp (absolute) for ``|x| <= pi``; libm beyond."""
-    ax = abs(x)
-    if not ax <= _PI_HI:
+    """``sin(x)`` to about 1 ulp (absolute) for ``|x| < 2^20``; libm beyond (never here)."""
+    if not abs(x) < 1048576.0:
         return math.sin(x)
-    folded = min(ax, (_PI_HI - ax) + _PI_LO)  # sin(pi - a) = sin(a)
-    return math.copysign(_sin_core(folded), x)
+    n = (x * _INV_TWO_PI + _ROUND_MAGIC) - _ROUND_MAGIC  # nearest integer
+    r = (x - n * _TWO_PI_HI) - n * _TWO_PI_LO  # |r| <= pi
+    ar = abs(r)
+    return math.copysign(_sin_core(min(ar, (_PI_HI - ar) + _PI_LO)), r)  # sin(pi - a) = sin a
 
 
-@nb.njit(cache=True, inline="always")
-def _cos(x: float) -> float:
-    """``cos(x) = sin(pi/2 - |x|)`` to about 1 ulp (absolute) for ``|x| <= pi``."""
-    ax = abs(x)
-    if not ax <= _PI_HI:
-        return math.cos(x)
-    return _sin_core((_PI_2 - ax) + _PI_2_LO)
+# --- the Magic Formula, eight curves at a time ----------------------------------------------
+N_LANES = 8
 
 
-@nb.njit(cache=True, inline="always")
-def _mf_arg(y: float, e: float) -> float:
-    """Inner Magic Formula argument ``y - E (y - atan y)`` (4.E9)."""
-    return (1.0 - e) * y + e * _atan(y)
+@intrinsic
+def _stack_lanes(typingctx: object) -> tuple:
+    """Pointer to ``N_LANES`` float64 on the stack of the compiled caller (an alloca).
 
-
-@nb.njit(cache=True, inline="always")
-def _mf_sin(b: float, c: float, e: float, x: float) -> float:
-    """``sin[C atan{B x - E (B x - atan(B x))}]``, the Magic Formula (4.E9, 4.E19)."""
-    return _sin(c * _atan(_mf_arg(b * x, e)))
-
-
-@nb.njit(cache=True, inline="always")
-def _mf_cos(b: float, c: float, e: float, x: float) -> float:
-    """``cos[C atan{B x - E (B x - atan(B x))}]``, the cosine version (4.E51, 4.E73).
-
-    For ``|B x| <= SERIES_MAX_ARG`` (the normalising weights (4.E52) of files with a tiny
-    RHX1) its Taylor series in ``y = B x`` is used:
-    ``atan(y - E (y - atan y)) = y - (1 + E) y^3 / 3 + (3 + 8 E) y^5 / 15 + O(y^7)``,
-    then ``cos w = 1 - w^2/2 + w^4/24 - w^6/720``; the error is below 1e-19.
+    Stack scratch, not a heap allocation: it lets the compiler vectorise the lane loop of
+    :func:`_mf_lanes` (numba has no other allocation-free local array).
     """
-    y = b * x
-    if abs(y) <= SERIES_MAX_ARG:
-        y2 = y * y
-        w = c * y * (1.0 - y2 * ((1.0 + e) / 3.0 - y2 * ((3.0 + 8.0 * e) / 15.0)))
-        w2 = w * w
-        return 1.0 - w2 * (0.5 - w2 * (1.0 / 24.0 - w2 * (1.0 / 720.0)))
-    return _cos(c * _atan(_mf_arg(y, e)))
+    sig = types.CPointer(types.float64)()
+
+    def codegen(context: object, builder: object, signature: object, args: object) -> object:
+        return cgutils.alloca_once(builder, context.get_value_type(types.float64), size=N_LANES)
+
+    return sig, codegen
 
 
-@nb.njit(cache=True, inline="always")
-def _peak_start(c: float, e: float) -> tuple[float, float]:
-    """Target ``T`` and start ``u0`` of the peak search, see :func:`_peak_step`.
+@nb.njit(**_JIT_OPTIONS)
+def _mf_lanes(
+    y: tuple[float, ...], e: tuple[float, ...], c: tuple[float, ...], k: tuple[float, ...]
+) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Eight Magic Formula evaluations in one vectorised loop.
 
-    For ``C > 1`` the curve ``D sin[C atan{u - E (u - atan u)}]`` peaks where the
-    ``atan`` argument equals ``T = tan(pi / (2 C))``. For ``C <= 1`` it has no interior
-    peak; ``T`` is then where it reaches ``SLIDE_FRACTION_NO_PEAK`` of its asymptote
-    ``D sin(C pi / 2)``. ``g(u) = (1 - E) u + E atan(u) - T`` is strictly increasing for
-    ``E < 1``; ``T`` and ``(T - E pi / 2) / (1 - E)`` both bound its root from below if
-    ``E > 0`` and from above if ``E < 0``: the tighter one is the start.
+    For each lane ``i``: ``theta_i = atan{y_i - E_i (y_i - atan y_i)}`` (the argument of
+    (4.E9), (4.E19), (4.E51), (4.E59), (4.E73)) and ``s_i = sin(C_i theta_i + K_i)``: the
+    Magic Formula for ``K = 0``, its cosine version for ``K = pi/2``. ``E = 0`` gives a
+    plain ``theta = atan(y)``.
+
+    Parameters
+    ----------
+    y, e, c, k : tuple of N_LANES floats
+        ``B x``, ``E``, ``C``, ``K`` per lane.
+
+    Returns
+    -------
+    theta, s : tuple of N_LANES floats
+    """
+    yb = nb.carray(_stack_lanes(), (N_LANES,))
+    eb = nb.carray(_stack_lanes(), (N_LANES,))
+    cb = nb.carray(_stack_lanes(), (N_LANES,))
+    kb = nb.carray(_stack_lanes(), (N_LANES,))
+    tb = nb.carray(_stack_lanes(), (N_LANES,))
+    sb = nb.carray(_stack_lanes(), (N_LANES,))
+    for i in range(N_LANES):
+        yb[i] = y[i]
+        eb[i] = e[i]
+        cb[i] = c[i]
+        kb[i] = k[i]
+    for i in range(N_LANES):  # branch-free body: the compiler makes it one vector loop
+        yi = yb[i]
+        ei = eb[i]
+        theta = _atan((1.0 - ei) * yi + ei * _atan(yi))
+        w = cb[i] * theta + kb[i]
+        n = (w * _INV_TWO_PI + _ROUND_MAGIC) - _ROUND_MAGIC
+        r = (w - n * _TWO_PI_HI) - n * _TWO_PI_LO  # |r| <= pi
+        ar = abs(r)
+        tb[i] = theta
+        sb[i] = math.copysign(_sin_core(min(ar, (_PI_HI - ar) + _PI_LO)), r)
+    return (
+        (tb[0], tb[1], tb[2], tb[3], tb[4], tb[5], tb[6], tb[7]),
+        (sb[0], sb[1], sb[2], sb[3], sb[4], sb[5], sb[6], sb[7]),
+    )
+
+
+# --- peak of a Magic Formula curve ------------------------------------------------------------
+
+
+@nb.njit(inline="always", **_JIT_OPTIONS)
+def _peak_target(c: float) -> float:
+    """``T``: the curve ``D sin[C atan{u - E (u - atan u)}]`` peaks where ``atan{.} = T``.
+
+    ``T = tan(pi / (2 C))`` for ``C > 1``. For ``C <= 1`` there is no interior peak; ``T``
+    is then where the curve reaches ``SLIDE_FRACTION_NO_PEAK`` of its asymptote
+    ``D sin(C pi / 2)``.
     """
     c = max(c, 1e-3)
     if c > 1.0:
         a = 0.5 * math.pi / c
     else:
         a = math.asin(SLIDE_FRACTION_NO_PEAK * math.sin(0.5 * math.pi * c)) / c
-    target = _sin(a) / _cos(a)
+    return _sin_core(a) / _sin_core((_PI_2 - a) + _PI_2_LO)  # 0 < a < pi/2
+
+
+@nb.njit(inline="always", **_JIT_OPTIONS)
+def _peak_start(target: float, e: float) -> float:
+    """Start of the search for the root of ``g(u) = (1 - E) u + E atan(u) - T``.
+
+    ``g`` is strictly increasing for ``E < 1``; ``T`` and ``(T - E pi / 2) / (1 - E)`` both
+    bound the root from below if ``E > 0`` and from above if ``E < 0``: the tighter one.
+    """
     u_bound = (target - e * _PI_2) / max(1.0 - e, 1e-12)
     u0 = max(target, u_bound) if e > 0.0 else min(target, u_bound)
-    return target, min(max(u0, 1e-12), SLIDE_MAX)
+    return min(max(u0, 1e-12), SLIDE_MAX)
 
 
-@nb.njit(cache=True, inline="always")
-def _peak_step(u: float, e: float, target: float) -> float:
-    """One Halley step on ``g(u) = (1 - E) u + E atan(u) - T``.
+@nb.njit(inline="always", **_JIT_OPTIONS)
+def _peak_step(u: float, atan_u: float, e: float, target: float) -> float:
+    """One Halley step on ``g(u) = (1 - E) u + E atan(u) - T`` (``atan_u = atan(u)``).
 
     With ``n = g' (1 + u^2) = (1 - E)(1 + u^2) + E`` and ``g'' = -2 E u / (1 + u^2)^2``
     the step ``2 g g' / (2 g'^2 - g g'')`` is ``g n (1 + u^2) / (n^2 + E g u)``: one
     division. Convergence is cubic: from :func:`_peak_start`, two steps leave a relative
-    error below 1e-9 for the (C, E) of real files (checked in the tests).
+    error below 1e-5 for C in [1.05, 2.5] and E in [-3, 0.8], about 1e-8 for the sample
+    file's curves (checked in the tests).
     """
     one_minus_e = max(1.0 - e, 1e-12)
     den = 1.0 + u * u
-    g = one_minus_e * u + e * _atan(u) - target
+    g = one_minus_e * u + e * atan_u - target
     n = one_minus_e * den + e
-    return min(max(u - g * n * den / (n * n + e * g * u), 0.5 * u), SLIDE_MAX)
+    return min(max(u - g * n * den / max(n * n + e * g * u, _TINY), 0.5 * u), SLIDE_MAX)
 
 
-@nb.njit(cache=True)
+@nb.njit(**_JIT_OPTIONS)
 def mf61_forces(
     p: np.ndarray,
     kappa: float,
@@ -453,9 +513,10 @@ def mf61_forces(
     ``MU_SCALE_MIN <= mu_scale <= MU_SCALE_MAX``, so that every output is finite for any
     finite input. ``Kxk`` and ``Kya`` are the slopes at the curves' own origins
     ``kappa = -SHx`` and ``tan_alpha = -SHy``; the slope at zero slip differs by
-    ``O((B SH)^2)`` (6e-4 for ``Fy`` of the sample file at ``FNOMIN``). The code is
-    ordered so that independent chains (the normalised weights, the two curves, the two
-    peak searches) sit next to each other for the out-of-order core.
+    ``O((B SH)^2)`` (6e-4 for ``Fy`` of the sample file at ``FNOMIN``).
+
+    The Magic Formula curves (and the atan of the peak searches) are evaluated eight at a
+    time by :func:`_mf_lanes`, in two rounds: what needs no stiffness, then what does.
     """
     if not fz_n > 0.0:
         for i in range(out.shape[0]):
@@ -477,24 +538,27 @@ def mf61_forces(
     fz_lo = max(p[P_FZMIN], FZ_FLOOR_FRAC * fnomin)
     fz = min(max(fz_n, fz_lo), max(p[P_FZMAX], fz_lo))  # load the coefficients see
     load_scale = min(fz_n, FZ_INPUT_MAX_N) / fz  # 1 inside FZMIN..FZMAX
-    dfz = (fz - fz0) / fz0  # (4.E2a)
+    inv_fz0 = 1.0 / fz0
+    inv_fnomin = 1.0 / fnomin
+    dfz = (fz - fz0) * inv_fz0  # (4.E2a)
     dfz2 = dfz * dfz
-    fz_ratio = fz / fnomin
+    fz_ratio = fz * inv_fnomin
     p_nom = p[P_NOMPRES]
     p_infl = p[P_INFLPRES]
     dpi = (p_infl - p_nom) / p_nom if p_nom > 0.0 and p_infl > 0.0 else 0.0  # (4.E2b)
     dpi2 = dpi * dpi
-    # the two libm calls first, while few values are live across them
-    pow_load = math.pow(fz_ratio, p[P_QSY7])  # (4.E70)
+    # the two libm calls early, while few values are live across them
+    pow_load = math.pow(fz_ratio, p[P_QSY7])  # (Fz / Fz0)^QSY7 (4.E70)
     exp_kx = math.exp(p[P_PKX3] * dfz)  # (4.E15)
     lmux = p[P_LMUX] * mu  # lambda*_mux = lambda'_mux (4.E7, 4.E8: LMUV = 0, A_mu = 1)
-    lmuy = p[P_LMUY] * mu
-    gs = _sin(gamma)  # gamma* (4.E4)
+    lmuy = max(p[P_LMUY] * mu, _TINY)
+    inv_lmuy = 1.0 / lmuy  # Bt, Br (4.E40, 4.E45)
+    gs = _sin(gamma) if gamma != 0.0 else 0.0  # gamma* (4.E4)
     gs2 = gs * gs
     gs_abs = abs(gs)
     cos_a = 1.0 / math.sqrt(1.0 + tan_alpha * tan_alpha)  # |cos'alpha| (4.E6)
 
-    # --- coefficients that need no stiffness ----------------------------------------------
+    # --- longitudinal coefficients (4.E10)-(4.E18) ---------------------------------------
     cx = p[P_PCX1] * p[P_LCX]  # (4.E11)
     mux = (
         (p[P_PDX1] + p[P_PDX2] * dfz)
@@ -503,16 +567,21 @@ def mf61_forces(
         * lmux
     )  # (4.E13)
     dx = mux * fz  # (4.E12)
+    ppx = 1.0 + p[P_PPX1] * dpi + p[P_PPX2] * dpi2
+    kxk = fz * (p[P_PKX1] + p[P_PKX2] * dfz) * exp_kx * ppx * p[P_LKX]  # (4.E15)
+    bx = kxk / max(cx * dx, _TINY)  # (4.E16)
     shx = (p[P_PHX1] + p[P_PHX2] * dfz) * p[P_LHX]  # (4.E17)
     svx = fz * (p[P_PVX1] + p[P_PVX2] * dfz) * p[P_LVX] * lmux  # (4.E18)
     kappa_x = kappa + shx  # (4.E10)
     ex0 = (p[P_PEX1] + p[P_PEX2] * dfz + p[P_PEX3] * dfz2) * p[P_LEX]
     ex = min(ex0 * (1.0 - p[P_PEX4] * (1.0 if kappa_x >= 0.0 else -1.0)), 1.0)  # (4.E14)
 
+    # --- lateral coefficients that need no stiffness (4.E20)-(4.E30) ----------------------
     cy = p[P_PCY1] * p[P_LCY]  # (4.E21)
     muy_g0 = (p[P_PDY1] + p[P_PDY2] * dfz) * (1.0 + p[P_PPY3] * dpi + p[P_PPY4] * dpi2) * lmuy
     muy = muy_g0 * (1.0 - p[P_PDY3] * gs2)  # (4.E23)
     dy = muy * fz  # (4.E22)
+    dy_g0 = muy_g0 * fz
     ey0 = (p[P_PEY1] + p[P_PEY2] * dfz) * p[P_LEY]
     ppy1 = 1.0 + p[P_PPY1] * dpi
     ppy2 = 1.0 + p[P_PPY2] * dpi
@@ -521,8 +590,9 @@ def mf61_forces(
     svy_g0 = fz * (p[P_PVY1] + p[P_PVY2] * dfz) * p[P_LVY] * lmuy
     svy = svy_g0 + svyg  # (4.E29)
     shy_g0 = (p[P_PHY1] + p[P_PHY2] * dfz) * p[P_LHY]
+    kya_arg = fz * inv_fz0 / max((p[P_PKY2] + p[P_PKY5] * gs2) * ppy2, _TINY)
 
-    # combined-slip weights (4.E51)-(4.E57), (4.E59)-(4.E65): need no stiffness
+    # --- combined-slip weights (4.E51)-(4.E57), (4.E59)-(4.E67) ---------------------------
     rbx2k = p[P_RBX2] * kappa
     bxa = (p[P_RBX1] + p[P_RBX3] * gs2) * p[P_LXAL] / math.sqrt(1.0 + rbx2k * rbx2k)  # (4.E54)
     cxa = p[P_RCX1]  # (4.E55)
@@ -533,88 +603,25 @@ def mf61_forces(
     cyk = p[P_RCY1]  # (4.E63)
     eyk = min(p[P_REY1] + p[P_REY2] * dfz, 1.0)  # (4.E64)
     shyk = p[P_RHY1] + p[P_RHY2] * dfz  # (4.E65); kappa_s = kappa + SHyk (4.E61)
-    gxa0 = _mf_cos(bxa, cxa, exa, shxa)  # (4.E52)
-    gyk0 = _mf_cos(byk, cyk, eyk, shyk)  # (4.E60)
-    gxa_num = _mf_cos(bxa, cxa, exa, tan_alpha + shxa)
-    gyk_num = _mf_cos(byk, cyk, eyk, kappa + shyk)
-    gxa = max(gxa_num / max(gxa0, _TINY), 0.0)  # (4.E51), > 0
-    gyk = max(gyk_num / max(gyk0, _TINY), 0.0)  # (4.E59), > 0
     rvy4a = p[P_RVY4] * tan_alpha
-    dvyk = muy * fz * (p[P_RVY1] + p[P_RVY2] * dfz + p[P_RVY3] * gs) / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)  # noqa: E501
-    svyk = dvyk * _sin(p[P_RVY5] * _atan(p[P_RVY6] * kappa)) * p[P_LVYKA]  # (4.E66)
+    dvyk_num = muy * fz * (p[P_RVY1] + p[P_RVY2] * dfz + p[P_RVY3] * gs)
+    dvyk = dvyk_num / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)
 
-    # --- stiffnesses (4.E15), (4.E25) ---------------------------------------------------
-    kxk = fz * (p[P_PKX1] + p[P_PKX2] * dfz) * exp_kx * (1.0 + p[P_PPX1] * dpi + p[P_PPX2] * dpi2) * p[P_LKX]  # noqa: E501
-    kya_g0 = (
-        p[P_PKY1] * fz0 * ppy1 * p[P_LKY]
-        * _sin(p[P_PKY4] * _atan(fz / fz0 / max((p[P_PKY2] + p[P_PKY5] * gs2) * ppy2, _TINY)))
-    )  # fmt: skip
-    kya = kya_g0 * (1.0 - p[P_PKY3] * gs_abs)  # (4.E25)
-    if p[P_PKY5] != 0.0 and gs != 0.0:  # K_ya at gamma = 0 for F'y (4.E74)
-        kya_g0 = (
-            p[P_PKY1] * fz0 * ppy1 * p[P_LKY]
-            * _sin(p[P_PKY4] * _atan(fz / fz0 / max(p[P_PKY2] * ppy2, _TINY)))
-        )  # fmt: skip
-    kya_safe = kya if abs(kya) > _TINY else math.copysign(_TINY, p[P_PKY1])  # K'ya (4.E39)
-    shy = shy_g0 + (kyg0 * gs - svyg) / kya_safe  # (4.E27)
-    alpha_y = tan_alpha + shy  # (4.E20)
-    ey = min(
-        ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * (1.0 if alpha_y >= 0.0 else -1.0)),  # noqa: E501
-        1.0,
-    )  # (4.E24)
-    bx = kxk / max(cx * dx, _TINY)  # (4.E16)
-    by = kya / max(cy * dy, _TINY)  # (4.E26)
-
-    # --- pure slip (4.E9), (4.E19) and combined slip (4.E50), (4.E58) ---------------------
-    fx0 = dx * _mf_sin(bx, cx, ex, kappa_x) + svx  # (4.E9)
-    fy0 = dy * _mf_sin(by, cy, ey, alpha_y) + svy  # (4.E19)
-    fx = gxa * fx0  # (4.E50)
-    fy = gyk * fy0 + svyk  # (4.E58)
-
-    # --- sliding limits: the two peak searches side by side -----------------------------
-    side_x = 1.0 if kappa >= 0.0 else -1.0
-    side_y = 1.0 if tan_alpha >= 0.0 else -1.0
-    ex_side = min(ex0 * (1.0 - p[P_PEX4] * side_x), 1.0)
-    ey_side = min(ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * side_y), 1.0)
-    tx, ux = _peak_start(cx, ex_side)
-    ty, uy = _peak_start(cy, ey_side)
-    ux = _peak_step(ux, ex_side, tx)
-    uy = _peak_step(uy, ey_side, ty)
-    ux = _peak_step(ux, ex_side, tx)
-    uy = _peak_step(uy, ey_side, ty)
-    kappa_slide = abs(side_x * ux / max(abs(bx), _TINY) - shx)  # peak at B |kappa_x| = u
-    tan_alpha_slide = abs(side_y * uy / max(abs(by), _TINY) - shy)
-
-    # --- aligning moment (4.E31)-(4.E47), (4.E71)-(4.E78) --------------------------------
-    if gs == 0.0:
-        fy0_g0 = fy0
-    else:  # Fy0 at gamma = 0 for F'y (4.E74): (4.E19)-(4.E29) without the camber terms
-        alpha_y0 = tan_alpha + shy_g0
-        dy0 = muy_g0 * fz
-        ey_g0 = min(ey0 * (1.0 - p[P_PEY3] * (1.0 if alpha_y0 >= 0.0 else -1.0)), 1.0)
-        by_g0 = kya_g0 / max(cy * dy0, _TINY)
-        fy0_g0 = dy0 * _mf_sin(by_g0, cy, ey_g0, alpha_y0) + svy_g0
-    fy_prime = gyk * fy0_g0  # (4.E74)
+    # --- aligning-moment coefficients that need no stiffness (4.E34)-(4.E47) --------------
     sht = p[P_QHZ1] + p[P_QHZ2] * dfz + (p[P_QHZ3] + p[P_QHZ4] * dfz) * gs  # (4.E35)
     alpha_t = tan_alpha + sht  # (4.E34)
-    alpha_r = tan_alpha + shy + svy / kya_safe  # (4.E37), (4.E38)
     bt = (
         (p[P_QBZ1] + p[P_QBZ2] * dfz + p[P_QBZ3] * dfz2)
         * (1.0 + p[P_QBZ4] * gs + p[P_QBZ5] * gs_abs)
         * p[P_LKY]
-        / lmuy
+        * inv_lmuy
     )  # (4.E40)
     ct = p[P_QCZ1]  # (4.E41)
     dt = (
-        fz * (r0 / fz0) * (p[P_QDZ1] + p[P_QDZ2] * dfz) * (1.0 - p[P_PPZ1] * dpi) * p[P_LTR]
+        fz * r0 * inv_fz0 * (p[P_QDZ1] + p[P_QDZ2] * dfz) * (1.0 - p[P_PPZ1] * dpi) * p[P_LTR]
         * (1.0 + p[P_QDZ3] * gs_abs + p[P_QDZ4] * gs2)
     )  # (4.E42), (4.E43); their sgn(Vcx) cancels that of cos'alpha  # fmt: skip
-    et = min(
-        (p[P_QEZ1] + p[P_QEZ2] * dfz + p[P_QEZ3] * dfz2)
-        * (1.0 + (p[P_QEZ4] + p[P_QEZ5] * gs) * (2.0 / math.pi) * _atan(bt * ct * alpha_t)),
-        1.0,
-    )  # (4.E44)
-    br = p[P_QBZ9] * p[P_LKY] / lmuy + p[P_QBZ10] * by * cy  # (4.E45)
+    et_load = p[P_QEZ1] + p[P_QEZ2] * dfz + p[P_QEZ3] * dfz2
     dr = (
         fz * r0
         * ((p[P_QDZ6] + p[P_QDZ7] * dfz) * p[P_LRES]
@@ -622,14 +629,82 @@ def mf61_forces(
               + (p[P_QDZ10] + p[P_QDZ11] * dfz) * gs_abs) * gs * p[P_LKZC])
         * lmuy * cos_a
     )  # (4.E47); sgn(Vcx) cancels that of cos'alpha  # fmt: skip
+
+    # --- sliding limits: start of the two peak searches ---------------------------------
+    side_x = 1.0 if kappa >= 0.0 else -1.0
+    side_y = 1.0 if tan_alpha >= 0.0 else -1.0
+    ex_side = min(ex0 * (1.0 - p[P_PEX4] * side_x), 1.0)
+    ey_side = min(ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * side_y), 1.0)
+    tx = _peak_target(cx)
+    ty = _peak_target(cy)
+    ux = _peak_start(tx, ex_side)
+    uy = _peak_start(ty, ey_side)
+
+    # --- round 1: weights, K_ya, E_t, first peak steps ------------------------------------
+    th1, s1 = _mf_lanes(
+        (bxa * shxa, bxa * (tan_alpha + shxa), byk * shyk, byk * (kappa + shyk),
+         kya_arg, bt * ct * alpha_t, ux, uy),
+        (exa, exa, eyk, eyk, 0.0, 0.0, 0.0, 0.0),
+        (cxa, cxa, cyk, cyk, p[P_PKY4], 0.0, 0.0, 0.0),
+        (_PI_2, _PI_2, _PI_2, _PI_2, 0.0, 0.0, 0.0, 0.0),
+    )  # fmt: skip
+    gxa = max(s1[1] / max(s1[0], _TINY), 0.0)  # (4.E51), (4.E52), > 0
+    gyk = max(s1[3] / max(s1[2], _TINY), 0.0)  # (4.E59), (4.E60), > 0
+    kya_g0 = p[P_PKY1] * fz0 * ppy1 * p[P_LKY] * s1[4]
+    kya = kya_g0 * (1.0 - p[P_PKY3] * gs_abs)  # (4.E25)
+    if p[P_PKY5] != 0.0 and gs != 0.0:  # K_ya at gamma = 0 for F'y (4.E74)
+        kya_g0 = (
+            p[P_PKY1] * fz0 * ppy1 * p[P_LKY]
+            * _sin(p[P_PKY4] * _atan(fz * inv_fz0 / max(p[P_PKY2] * ppy2, _TINY)))
+        )  # fmt: skip
+    et_gamma = (p[P_QEZ4] + p[P_QEZ5] * gs) * (2.0 / math.pi)
+    et = min(et_load * (1.0 + et_gamma * th1[5]), 1.0)  # (4.E44)
+    ux = _peak_step(ux, th1[6], ex_side, tx)
+    uy = _peak_step(uy, th1[7], ey_side, ty)
+
+    # --- stiffness-dependent quantities (4.E16), (4.E20)-(4.E27), (4.E37)-(4.E39) ---------
+    kya_safe = kya if abs(kya) > _TINY else math.copysign(_TINY, p[P_PKY1])  # K'ya (4.E39)
+    inv_kya = 1.0 / kya_safe
+    shy = shy_g0 + (kyg0 * gs - svyg) * inv_kya  # (4.E27)
+    alpha_y = tan_alpha + shy  # (4.E20)
+    sgn_ay = 1.0 if alpha_y >= 0.0 else -1.0
+    ey = min(ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * sgn_ay), 1.0)  # (4.E24)
+    by = kya / max(cy * dy, _TINY)  # (4.E26)
+    # Fy0 at gamma = 0 for F'y (4.E74): the same curve without the camber terms
+    alpha_y0 = tan_alpha + shy_g0
+    ey_g0 = min(ey0 * (1.0 - p[P_PEY3] * (1.0 if alpha_y0 >= 0.0 else -1.0)), 1.0)
+    by_g0 = kya_g0 / max(cy * dy_g0, _TINY)
+    alpha_r = tan_alpha + shy + svy * inv_kya  # (4.E37), (4.E38)
     # (4.E77), (4.E78): sgn(alpha) dropped, t and Mzr are even in alpha_eq
-    kk = kxk / kya_safe * kappa
+    kk = kxk * inv_kya * kappa
     alpha_t_eq = math.sqrt(alpha_t * alpha_t + kk * kk)
     alpha_r_eq = math.sqrt(alpha_r * alpha_r + kk * kk)
-    t = dt * _mf_cos(bt, ct, et, alpha_t_eq) * cos_a  # (4.E73)
+
+    # --- round 2: pure-slip curves (4.E9), (4.E19), trail (4.E73), S_Vyk, peak steps ----
+    th2, s2 = _mf_lanes(
+        (bx * kappa_x, by * alpha_y, by_g0 * alpha_y0, bt * alpha_t_eq, p[P_RVY6] * kappa,
+         ux, uy, 0.0),
+        (ex, ey, ey_g0, et, 0.0, 0.0, 0.0, 0.0),
+        (cx, cy, cy, ct, p[P_RVY5], 0.0, 0.0, 0.0),
+        (0.0, 0.0, 0.0, _PI_2, 0.0, 0.0, 0.0, 0.0),
+    )  # fmt: skip
+    fx0 = dx * s2[0] + svx  # (4.E9)
+    fy0 = dy * s2[1] + svy  # (4.E19)
+    fy0_g0 = dy_g0 * s2[2] + svy_g0  # equals fy0 when gamma = 0
+    t = dt * s2[3] * cos_a  # (4.E73)
+    svyk = dvyk * s2[4] * p[P_LVYKA]  # (4.E66)
+    ux = _peak_step(ux, th2[5], ex_side, tx)
+    uy = _peak_step(uy, th2[6], ey_side, ty)
+
+    # --- combined forces (4.E50), (4.E58) and aligning moment (4.E71)-(4.E76) ------------
+    fx = gxa * fx0  # (4.E50)
+    fy = gyk * fy0 + svyk  # (4.E58)
+    fy_prime = gyk * fy0_g0  # (4.E74)
+    br = p[P_QBZ9] * p[P_LKY] * inv_lmuy + p[P_QBZ10] * by * cy  # (4.E45)
     br_ar = br * alpha_r_eq
     mzr = dr / math.sqrt(1.0 + br_ar * br_ar)  # (4.E75), C_r = 1: cos(atan x) = 1/sqrt(1+x^2)
-    s = r0 * (p[P_SSZ1] + p[P_SSZ2] * fy / fz0 + (p[P_SSZ3] + p[P_SSZ4] * dfz) * gs) * p[P_LS]  # (4.E76)  # noqa: E501
+    s_gamma = (p[P_SSZ3] + p[P_SSZ4] * dfz) * gs
+    s = r0 * (p[P_SSZ1] + p[P_SSZ2] * fy * inv_fz0 + s_gamma) * p[P_LS]  # (4.E76)
     mz = -t * fy_prime + mzr + s * fx  # (4.E71), (4.E72)
 
     # --- rolling resistance (4.E70, with Fz0 = FNOMIN in front) -------------------------
@@ -638,11 +713,15 @@ def mf61_forces(
     vr2 = vr * vr
     my = (
         r0 * fnomin * p[P_LMY] * pow_load
-        * (p[P_QSY1] + p[P_QSY2] * fx / fnomin + p[P_QSY3] * vr + p[P_QSY4] * vr2 * vr2
+        * (p[P_QSY1] + p[P_QSY2] * fx * inv_fnomin + p[P_QSY3] * vr + p[P_QSY4] * vr2 * vr2
            + (p[P_QSY5] + p[P_QSY6] * fz_ratio) * gamma * gamma)
     )  # fmt: skip
     if dpi != 0.0:
         my *= math.pow(1.0 + dpi, p[P_QSY8])
+
+    # --- sliding limits: the peak at B |x| = u, shifted back by SH -----------------------
+    kappa_slide = abs(side_x * ux / max(abs(bx), _TINY) - shx)
+    tan_alpha_slide = abs(side_y * uy / max(abs(by), _TINY) - shy)
 
     out[OUT_FX] = fx * load_scale
     out[OUT_FY] = fy * load_scale
