@@ -36,6 +36,7 @@ from simserver.core.layout import (
     HEAVE_M,
     HEAVE_RATE_MPS,
     KAPPA0,
+    N_WHEELS,
     O_AX_MPS2,
     O_AY_MPS2,
     O_BRAKE_TORQUE0,
@@ -157,16 +158,15 @@ def static_wheel_load(vp: np.ndarray, i: int) -> float:
 
 @nb.njit(cache=True)
 def hub_velocity(
-    x: np.ndarray, vp: np.ndarray, i: int, steer_rad: float
+    x: np.ndarray, vp: np.ndarray, i: int, cos_steer: float, sin_steer: float
 ) -> tuple[float, float]:
-    """Hub velocity of wheel ``i`` in its own heading frame (u along the wheel, v left)."""
+    """Hub velocity of wheel ``i`` in its own heading frame (u along the wheel, v left),
+    given the cosine and sine of its road-wheel angle."""
     px, py = wheel_position(vp, i)
     r = x[YAW_RATE_RADPS]
     u_c = x[U_MPS] - r * py
     v_c = x[V_MPS] + r * px
-    c = np.cos(steer_rad)
-    s = np.sin(steer_rad)
-    return c * u_c + s * v_c, -s * u_c + c * v_c
+    return cos_steer * u_c + sin_steer * v_c, -sin_steer * u_c + cos_steer * v_c
 
 
 @nb.njit(cache=True)
@@ -175,6 +175,7 @@ def chassis_rhs(
     vp: np.ndarray,
     tp: np.ndarray,
     steer_rad: np.ndarray,
+    steer_cs: np.ndarray,
     drive_nm: np.ndarray,
     brake_nm: np.ndarray,
     held: np.ndarray,
@@ -199,6 +200,8 @@ def chassis_rhs(
         Road-wheel angles, drive torques, applied brake torques (signed, incl. rolling
         resistance) and held flags (1 = wheel held at zero spin by its brake), frozen over
         the step by the integrator.
+    steer_cs : float64[8]
+        Cosines then sines of the road-wheel angles (computed once per step).
     dt_s : float
         The step, used only to limit the patch damping to what the step resolves.
     dx : float64[N_INTEGRATED]
@@ -277,8 +280,9 @@ def chassis_rhs(
             pitch_moment -= px * dyn
 
             # ---- tire
-            delta = steer_rad[i]
-            u_w, v_w = hub_velocity(x, vp, i, delta)
+            c_d = steer_cs[i]
+            s_d = steer_cs[N_WHEELS + i]
+            u_w, v_w = hub_velocity(x, vp, i, c_d, s_d)
             radius = tp[i, TP_RADIUS_M]
             relax_lat = tp[i, TP_RELAX_LAT_M]
             relax_long = tp[i, TP_RELAX_LONG_M]
@@ -341,8 +345,6 @@ def chassis_rhs(
             dx[KAPPA0 + i] = d_kappa
 
             # ---- into body axes
-            c_d = np.cos(delta)
-            s_d = np.sin(delta)
             fx_body = c_d * fx - s_d * fy
             fy_body = s_d * fx + c_d * fy
             fx_sum += fx_body
@@ -364,7 +366,7 @@ def chassis_rhs(
                 out[O_MZ0 + i] = tire_out[OUT_MZ]
                 out[O_HUB_U0 + i] = u_w
                 out[O_HUB_V0 + i] = v_w
-                out[O_STEER0 + i] = delta
+                out[O_STEER0 + i] = steer_rad[i]
                 out[O_DRIVE_TORQUE0 + i] = drive_nm[i]
                 out[O_BRAKE_TORQUE0 + i] = brake_nm[i]
                 fx_avail = max(tire_out[OUT_FX_PEAK], 1e-9)

@@ -92,8 +92,10 @@ _WS_K2 = _WS_K1 + N_INTEGRATED
 _WS_K3 = _WS_K2 + N_INTEGRATED
 _WS_K4 = _WS_K3 + N_INTEGRATED
 _WS_A = _WS_K4 + N_INTEGRATED  # frozen linear decay rates
-_WS_STEER = _WS_A + N_INTEGRATED
-_WS_DRIVE = _WS_STEER + N_WHEELS
+_WS_E_HALF = _WS_A + N_INTEGRATED  # exp(-A h / 2), once per step
+_WS_STEER = _WS_E_HALF + N_INTEGRATED
+_WS_STEER_CS = _WS_STEER + N_WHEELS  # cos, then sin of the road-wheel angles
+_WS_DRIVE = _WS_STEER_CS + 2 * N_WHEELS
 _WS_BRAKE_CAP = _WS_DRIVE + N_WHEELS
 _WS_BRAKE = _WS_BRAKE_CAP + N_WHEELS
 _WS_HELD = _WS_BRAKE + N_WHEELS
@@ -195,7 +197,9 @@ def step(
     k3 = ws[_WS_K3:_WS_K3 + N_INTEGRATED]
     k4 = ws[_WS_K4:_WS_K4 + N_INTEGRATED]
     decay = ws[_WS_A:_WS_A + N_INTEGRATED]
+    e_half = ws[_WS_E_HALF:_WS_E_HALF + N_INTEGRATED]
     steer = ws[_WS_STEER:_WS_STEER + N_WHEELS]
+    steer_cs = ws[_WS_STEER_CS:_WS_STEER_CS + 2 * N_WHEELS]
     drive = ws[_WS_DRIVE:_WS_DRIVE + N_WHEELS]
     brake_cap = ws[_WS_BRAKE_CAP:_WS_BRAKE_CAP + N_WHEELS]
     brake = ws[_WS_BRAKE:_WS_BRAKE + N_WHEELS]
@@ -207,13 +211,16 @@ def step(
 
     # 1. inputs frozen over the step
     road_wheel_angles(vp, inputs[IN_STEER], steer)
+    for i in range(N_WHEELS):
+        steer_cs[i] = np.cos(steer[i])
+        steer_cs[N_WHEELS + i] = np.sin(steer[i])
     wheel_torques(x, vp, inputs, drive, brake_cap)
 
     # 2. forces at the start state (free wheels), then the static-friction brakes
     for i in range(N_WHEELS):
         held[i] = 0.0
         brake[i] = 0.0
-    chassis_rhs(x, vp, tp, steer, drive, brake, held, h, k1, wheel, tire_out, out, True)
+    chassis_rhs(x, vp, tp, steer, steer_cs, drive, brake, held, h, k1, wheel, tire_out, out, True)
     resolve_brakes(x, vp, tp, h, drive, brake_cap, wheel, brake, held)
     for i in range(N_WHEELS):  # only the spin rates depend on the brakes
         if held[i] > 0.5:
@@ -224,37 +231,36 @@ def step(
     # 3. exponential (Lawson) RK4; decay rates |u|/b, |u|/B frozen at the start
     for j in range(N_INTEGRATED):
         decay[j] = 0.0
+        e_half[j] = 1.0
     if slip_model != SLIP_KINEMATIC:
         for i in range(N_WHEELS):
             speed = abs(wheel[i * N_W + W_HUB_U])
-            decay[TAN_ALPHA0 + i] = speed / tp[i, TP_RELAX_LAT_M]
-            decay[KAPPA0 + i] = speed / tp[i, TP_RELAX_LONG_M]
+            for j, length in ((TAN_ALPHA0 + i, tp[i, TP_RELAX_LAT_M]),
+                              (KAPPA0 + i, tp[i, TP_RELAX_LONG_M])):
+                decay[j] = speed / length
+                e_half[j] = np.exp(-0.5 * h * decay[j])
     _copy_discrete(x, y2)
     _copy_discrete(x, y3)
     _copy_discrete(x, y4)
     for j in range(N_INTEGRATED):
         k1[j] += decay[j] * x[j]
-        e_half = np.exp(-0.5 * h * decay[j])
-        y2[j] = e_half * (x[j] + 0.5 * h * k1[j])
-    chassis_rhs(y2, vp, tp, steer, drive, brake, held, h, k2, wheel, tire_out, out, False)
+        y2[j] = e_half[j] * (x[j] + 0.5 * h * k1[j])
+    chassis_rhs(y2, vp, tp, steer, steer_cs, drive, brake, held, h, k2, wheel, tire_out, out, False)
     for j in range(N_INTEGRATED):
         k2[j] += decay[j] * y2[j]
-        e_half = np.exp(-0.5 * h * decay[j])
-        y3[j] = e_half * x[j] + 0.5 * h * k2[j]
-    chassis_rhs(y3, vp, tp, steer, drive, brake, held, h, k3, wheel, tire_out, out, False)
+        y3[j] = e_half[j] * x[j] + 0.5 * h * k2[j]
+    chassis_rhs(y3, vp, tp, steer, steer_cs, drive, brake, held, h, k3, wheel, tire_out, out, False)
     for j in range(N_INTEGRATED):
         k3[j] += decay[j] * y3[j]
-        e_half = np.exp(-0.5 * h * decay[j])
-        y4[j] = e_half * e_half * x[j] + h * e_half * k3[j]
-    chassis_rhs(y4, vp, tp, steer, drive, brake, held, h, k4, wheel, tire_out, out, False)
+        y4[j] = e_half[j] * e_half[j] * x[j] + h * e_half[j] * k3[j]
+    chassis_rhs(y4, vp, tp, steer, steer_cs, drive, brake, held, h, k4, wheel, tire_out, out, False)
     for i in range(N_WHEELS):
         y2[OMEGA0 + i] = x[OMEGA0 + i]  # keep the start spins for the zero-crossing test
     for j in range(N_INTEGRATED):
         k4[j] += decay[j] * y4[j]
-        e_half = np.exp(-0.5 * h * decay[j])
-        e_full = e_half * e_half
+        e_full = e_half[j] * e_half[j]
         x[j] = e_full * x[j] + h / 6.0 * (
-            e_full * k1[j] + 2.0 * e_half * (k2[j] + k3[j]) + k4[j]
+            e_full * k1[j] + 2.0 * e_half[j] * (k2[j] + k3[j]) + k4[j]
         )
 
     # 4. brakes catch a wheel whose spin crossed zero; record the held flags
@@ -271,7 +277,7 @@ def step(
     damping_paper = int(vp[VP_DAMPING_MODEL]) == DAMPING_PAPER
     release = paper_release(inputs[IN_BRAKE], inputs[IN_PARKING_BRAKE], inputs[IN_THROTTLE])
     for i in range(N_WHEELS):
-        u_w, v_w = hub_velocity(x, vp, i, steer[i])
+        u_w, v_w = hub_velocity(x, vp, i, steer_cs[i], steer_cs[N_WHEELS + i])
         if slip_model == SLIP_LAGGED_PASSIVE:
             x[TAN_ALPHA0 + i], x[KAPPA0 + i] = project_to_sliding_limit(
                 x[TAN_ALPHA0 + i], x[KAPPA0 + i],
