@@ -21,6 +21,7 @@ optional command log, which ``replay_command_log`` re-runs headless bit for bit.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -218,14 +219,13 @@ class Physics:
         self.reset(None)
 
     def reset(self, pose: dict[str, float] | None) -> None:
-        """Back to the scene's initial state, or at rest at ``pose``."""
-        self.x = initial_state(self.scene)
+        """Back to the scene's initial state, or at rest at ``pose`` (x_m, y_m, yaw_rad)."""
+        scene = self.scene
         if pose is not None:
-            self.x = initial_state(Scene(path=self.scene.path, vehicle=self.scene.vehicle,
-                                         road=self.scene.road,
-                                         initial={**self.scene.initial, **pose, "u_mps": 0.0,
-                                                  "v_mps": 0.0, "yaw_rate_radps": 0.0},
-                                         model_options=self.scene.model_options))
+            at_rest = {**scene.initial, **pose, "u_mps": 0.0, "v_mps": 0.0,
+                       "yaw_rate_radps": 0.0}
+            scene = dataclasses.replace(scene, initial=at_rest)
+        self.x = initial_state(scene)
 
     def set_road(self, grade_pct: float, cross_slope_pct: float, friction_scale: float) -> None:
         """Change the road plane (takes effect at the next step)."""
