@@ -221,15 +221,9 @@ def model_option_values(options: dict[str, Any] | None, source: str) -> dict[str
 
 
 def apply_model_options(vp: np.ndarray, values: dict[str, float]) -> None:
-    """Write validated model options into the parameter vector."""
-    vp[P.VP_SLIP_MODEL] = values["slip_model"]
-    vp[P.VP_DAMPING_MODEL] = values["damping_model"]
-    vp[P.VP_DAMPING_RATIO] = values["damping_ratio"]
-    vp[P.VP_DAMPING_TRIGGER_V_MPS] = values["damping_trigger_v_mps"]
-    vp[P.VP_DAMPING_FADE_SPEED_MPS] = values["damping_fade_speed_mps"]
-    vp[P.VP_KINEMATIC_U_MIN_MPS] = values["kinematic_u_min_mps"]
-    vp[P.VP_SLIDE_WIDEN_SPEED_MPS] = values["slide_widen_speed_mps"]
-    vp[P.VP_GRAVITY_MPS2] = values["gravity_mps2"]
+    """Write validated model options into the parameter vector (same names as its slots)."""
+    for key, value in values.items():
+        vp[P.VEHICLE_PARAM_NAMES.index(key)] = value
 
 
 def load_tire(path: Path) -> tuple[np.ndarray, str]:
