@@ -1,0 +1,525 @@
+"""Every benchmark in one command, and the performance table.
+
+Run from the repository root::
+
+    python -m benchmarks                      # the full runs (about 12 minutes)
+    python -m benchmarks --quick              # short runs: a smoke test, not figures
+    python -m benchmarks --only startup --only memory
+
+In order:
+
+1. ``benchmarks.bench_step``: step cost per tire model and the headless real-time factor of
+   the compiled loop;
+2. ``benchmarks.bench_server``: the live server with its viewer off, driven over zenoh at
+   200 Hz: tick lateness p50/p99/max, ticks more than 1 ms late, overruns, drift, command-to-
+   state latency p50/p99. While it runs, this harness samples the server's peak resident
+   memory (``VmHWM`` in ``/proc/PID/status``);
+3. ``benchmarks.bench_viewer``: the same with the live viewer off, saving to a file and
+   streaming to a stalled viewer (also sampling the viewer process's peak memory);
+4. start-up: ``simserver serve`` from launch to its ``ready`` line (physics compiled or
+   loaded, zenoh session open, before the first tick), cold = ``NUMBA_CACHE_DIR`` an empty
+   temporary directory, warm = the same directory again; the median of the repeats;
+5. memory of a headless run: peak RSS (``ru_maxrss`` from ``wait4``) of the README's
+   ``simserver run-scenario`` example, which also reports its real-time factor.
+
+Then it prints a markdown table (figure, value, the command that reproduces it) with the
+machine's description, and writes it to ``--out`` (default ``docs/performance.md`` for a full
+run; a ``--quick`` run writes a file only when ``--out`` is given). ``--json FILE`` keeps
+every raw result.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import re
+import shutil
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_OUT = REPO / "docs" / "performance.md"
+HEADLESS_SCENARIO = "configs/scenarios/e2_stop_downslope_paper_damping.yaml"
+"""The README's headless example, run for the headless memory figure."""
+
+SECTIONS = ("step", "server", "viewer", "startup", "memory")
+"""Benchmarks in the order they run (``--only`` takes these names)."""
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Run lengths of one mode (full or quick)."""
+
+    step_args: tuple[str, ...]
+    server_seconds: float
+    viewer_seconds: float
+    viewer_rounds: int
+    startup_cold: int
+    startup_warm: int
+
+
+FULL = Settings(step_args=(), server_seconds=60.0, viewer_seconds=60.0, viewer_rounds=2,
+                startup_cold=3, startup_warm=5)
+QUICK = Settings(step_args=("--seconds", "5", "--repeats", "5"), server_seconds=8.0,
+                 viewer_seconds=6.0, viewer_rounds=1, startup_cold=1, startup_warm=3)
+"""Short runs: long enough for the server's 4096-tick statistics window, no longer."""
+
+
+@dataclass
+class Row:
+    """One line of the performance table."""
+
+    figure: str
+    value: str
+    command: str
+
+
+@dataclass
+class Report:
+    """Every row, every raw result, and the machine they came from."""
+
+    machine: dict[str, str]
+    mode: str
+    rows: list[Row] = field(default_factory=list)
+    raw: dict[str, Any] = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------ the machine
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith(("model name", "cpu model", "hardware")):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _mem_total_gib() -> str:
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal:"):
+                return f"{int(line.split()[1]) / 1024**2:.1f} GiB"
+    except OSError:
+        pass
+    return "unknown"
+
+
+def _version(dist: str) -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(dist)
+    except PackageNotFoundError:
+        return "not installed"
+
+
+def _git_commit() -> str:
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
+                              capture_output=True, text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=REPO, capture_output=True, text=True, timeout=10).stdout
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return f"{head}{' (with local changes)' if dirty.strip() else ''}" if head else "unknown"
+
+
+def machine_description() -> dict[str, str]:
+    """nproc, CPU model, RAM, OS, Python and library versions, load, commit, date."""
+    load = os.getloadavg()
+    return {
+        "nproc": str(len(os.sched_getaffinity(0))),
+        "CPU": _cpu_model(),
+        "RAM": _mem_total_gib(),
+        "OS": f"{platform.system()} {platform.release()} {platform.machine()}",
+        "Python": f"{platform.python_version()} ({platform.python_implementation()})",
+        "numpy": _version("numpy"),
+        "numba": f"{_version('numba')} (llvmlite {_version('llvmlite')})",
+        "eclipse-zenoh": _version("eclipse-zenoh"),
+        "rerun-sdk": _version("rerun-sdk"),
+        "load average at start": " / ".join(f"{x:.2f}" for x in load) + " (1/5/15 min)",
+        "commit": _git_commit(),
+        "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+    }
+
+
+# --------------------------------------------------------------------- peak memory
+def _vm_hwm_kib(pid: int) -> int | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1])
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+def _children(pid: int) -> list[int]:
+    kids: list[int] = []
+    try:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            kids += [int(k) for k in (task / "children").read_text().split()]
+    except OSError:
+        pass
+    return kids
+
+
+class PeakRss:
+    """Samples, once a second, the peak RSS (``VmHWM``) of every descendant process.
+
+    ``VmHWM`` is the kernel's own high-water mark, so a sample close to the end catches the
+    peak; sampling once a second costs next to nothing beside a 1 kHz loop. Each process is
+    kept with its command line and its parent, so a result can be told apart by role
+    (``serve`` and its ``--viewer``, or ``view``).
+    """
+
+    def __init__(self, interval_s: float = 1.0) -> None:
+        self.interval_s = interval_s
+        self.procs: dict[int, dict[str, Any]] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> PeakRss:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _sample(self) -> None:
+        todo = [(os.getpid(), 0)]
+        while todo:
+            parent, _ = todo.pop()
+            for pid in _children(parent):
+                todo.append((pid, parent))
+                hwm = _vm_hwm_kib(pid)
+                if hwm is None:
+                    continue
+                info = self.procs.get(pid)
+                if info is None:
+                    try:
+                        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+                    except OSError:
+                        continue
+                    info = {"argv": [a.decode(errors="replace") for a in argv if a],
+                            "ppid": parent, "hwm_kib": 0}
+                    self.procs[pid] = info
+                info["hwm_kib"] = max(info["hwm_kib"], hwm)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            self._sample()
+
+    def peaks(self, role: Callable[[list[str], list[str] | None], str | None]
+              ) -> dict[str, int]:
+        """The highest peak (KiB) per role; ``role(argv, parent_argv)`` names a process."""
+        out: dict[str, int] = {}
+        for info in self.procs.values():
+            parent = self.procs.get(info["ppid"], {}).get("argv")
+            name = role(info["argv"], parent)
+            if name is not None:
+                out[name] = max(out.get(name, 0), info["hwm_kib"])
+        return out
+
+
+def simserver_role(argv: list[str], parent: list[str] | None) -> str | None:
+    """``serve (viewer off|save|connect)`` or ``view (save|connect)`` for simserver processes."""
+    def viewer_mode(args: list[str]) -> str:
+        if "--viewer" in args:
+            return args[args.index("--viewer") + 1].split(":", 1)[0]
+        return "config"
+
+    # the subcommand follows `simserver` (python -m simserver ...) or the console script
+    sub = next((argv[i + 1] for i, a in enumerate(argv[:-1])
+                if a == "simserver" or a.endswith("/simserver")), None)
+    if sub == "serve":
+        return f"serve (viewer {viewer_mode(argv)})"
+    if sub == "view":
+        mode = viewer_mode(parent) if parent else "?"
+        return f"view (viewer {mode})"
+    return None
+
+
+def _mib(kib: int) -> str:
+    return f"{kib / 1024:.0f} MiB"
+
+
+# --------------------------------------------------------------------- start-up
+def free_port() -> int:
+    """A free loopback TCP port."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def time_to_ready(numba_cache_dir: Path, timeout_s: float = 300.0) -> float:
+    """Launch ``simserver serve`` (viewer off, free loopback port), return the seconds to its
+    ``ready`` line, then stop it with SIGTERM."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(numba_cache_dir)}
+    argv = [sys.executable, "-m", "simserver", "serve", "--listen",
+            f"tcp/127.0.0.1:{free_port()}", "--viewer", "off", "--log-level", "WARNING"]
+    t0 = time.monotonic()
+    proc = subprocess.Popen(argv, cwd=REPO, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    assert proc.stdout is not None
+    timer = threading.Timer(timeout_s, proc.kill)
+    timer.start()
+    ready_s = None
+    lines = []
+    try:
+        for line in proc.stdout:
+            lines.append(line)
+            if "simserver: ready on" in line:
+                ready_s = time.monotonic() - t0
+                break
+    finally:
+        timer.cancel()
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+    if ready_s is None:
+        raise RuntimeError("simserver serve never reported ready:\n" + "".join(lines))
+    return ready_s
+
+
+def startup(cold: int, warm: int) -> dict[str, Any]:
+    """Median launch-to-ready time with an empty and with a warm numba cache."""
+    cold_s: list[float] = []
+    warm_s: list[float] = []
+    dirs = [Path(tempfile.mkdtemp(prefix="simserver_numba_")) for _ in range(cold)]
+    try:
+        for d in dirs:
+            cold_s.append(time_to_ready(d))
+            print(f"start-up, cold numba cache: {cold_s[-1]:.2f} s", flush=True)
+        for _ in range(warm):
+            warm_s.append(time_to_ready(dirs[-1]))
+            print(f"start-up, warm numba cache: {warm_s[-1]:.2f} s", flush=True)
+    finally:
+        for d in dirs:
+            shutil.rmtree(d, ignore_errors=True)
+    return {"cold_s": cold_s, "warm_s": warm_s,
+            "cold_median_s": statistics.median(cold_s),
+            "warm_median_s": statistics.median(warm_s)}
+
+
+# --------------------------------------------------------------------- headless
+def headless_run() -> dict[str, Any]:
+    """Peak RSS and real-time factor of the README's ``run-scenario`` example."""
+    out = Path(tempfile.mkdtemp(prefix="simserver_headless_"))
+    argv = [sys.executable, "-m", "simserver", "run-scenario", HEADLESS_SCENARIO,
+            "--out", str(out / "e2"), "--quiet"]
+    try:
+        proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT)
+        assert proc.stdout is not None
+        text = proc.stdout.read().decode(errors="replace")
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        proc.stdout.close()
+    finally:
+        shutil.rmtree(out, ignore_errors=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"run-scenario exited {proc.returncode}:\n{text}")
+    print(text.strip(), flush=True)
+    rtf = re.search(r"([\d,]+) ?x real time", text)
+    return {"peak_rss_kib": usage.ru_maxrss, "output": text.strip(),
+            "real_time_factor": float(rtf.group(1).replace(",", "")) if rtf else None}
+
+
+# --------------------------------------------------------------------- the table
+def _us(x: float) -> str:
+    if x < 10:
+        return f"{x:.2f} us"
+    return f"{x:,.1f} us" if x < 1000 else f"{x / 1000:,.2f} ms"
+
+
+def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
+    """Run the chosen benchmarks in order; collect the rows of the table."""
+    from benchmarks import bench_server, bench_step, bench_viewer
+
+    report = Report(machine=machine_description(), mode="quick" if quick else "full")
+    rows, raw = report.rows, report.raw
+    suffix = " --quick" if quick else ""
+
+    if "step" in sections:
+        print("== bench_step", flush=True)
+        argv = list(settings.step_args)
+        cmd = " ".join(["python -m benchmarks.bench_step", *argv])
+        raw["step"] = results = bench_step.main(argv)
+        for r in results:
+            rows.append(Row(f"step cost, {r['tire_model']} tires",
+                            f"{r['ns_per_step_median'] / 1e3:.2f} us median "
+                            f"(p10 {r['p10'] / 1e3:.2f}, p90 {r['p90'] / 1e3:.2f})", cmd))
+        for r in results:
+            rows.append(Row(f"headless real-time factor, {r['tire_model']}",
+                            f"{r['real_time_factor']:,.0f} x", cmd))
+
+    if "server" in sections:
+        print("== bench_server", flush=True)
+        argv = ["--seconds", f"{settings.server_seconds:g}"]
+        cmd = " ".join(["python -m benchmarks.bench_server", *argv])
+        with PeakRss() as rss:
+            raw["server"] = r = bench_server.main(argv)
+        peaks = rss.peaks(simserver_role)
+        raw["server"]["peak_rss_kib"] = peaks
+        span = f"{settings.server_seconds:g} s, viewer off"
+        rows += [
+            Row(f"tick lateness p50 / p99 ({span})",
+                f"{_us(r['lateness_p50_us'])} / {_us(r['lateness_p99_us'])}", cmd),
+            Row("tick lateness max", _us(r["lateness_max_us"]), cmd),
+            Row("ticks > 1 ms late", f"{r['late_ticks']} of {r['ticks']} "
+                f"({100 * r['late_fraction']:.2f} %); overruns {r['overruns']}, "
+                f"skipped {r['skipped_ticks']}", cmd),
+            Row("drift of simulated from wall time",
+                f"{r['drift_ms']:+.2f} ms over {r['wall_s']:.0f} s", cmd),
+            Row("command-to-state latency p50 / p99 (200 Hz commands)",
+                f"{_us(r['latency_p50_us'])} / {_us(r['latency_p99_us'])} "
+                f"(max {_us(r['latency_max_us'])})", cmd),
+            Row("server CPU", f"{r['cpu_percent']:.0f} % of one core", cmd),
+        ]
+        if "serve (viewer off)" in peaks:
+            rows.append(Row(f"server peak RSS ({span})", _mib(peaks["serve (viewer off)"]),
+                            "python -m benchmarks --only server" + suffix))
+
+    if "viewer" in sections:
+        print("== bench_viewer", flush=True)
+        argv = ["--seconds", f"{settings.viewer_seconds:g}",
+                "--rounds", str(settings.viewer_rounds)]
+        cmd = " ".join(["python -m benchmarks.bench_viewer", *argv])
+        with PeakRss() as rss:
+            raw["viewer"] = summary = bench_viewer.main(argv)
+        peaks = rss.peaks(simserver_role)
+        raw["viewer_peak_rss_kib"] = peaks
+        for mode, s in summary.items():
+            rows.append(Row(f"tick lateness p50 / p99, live viewer: {mode}",
+                            f"{_us(s['p50_us'])} / {_us(s['p99_us'])} "
+                            f"({s['p99_vs_off']:.2f} x off); "
+                            f"{100 * s['late_fraction']:.2f} % ticks > 1 ms late", cmd))
+        for name, label in (("view (viewer save)", "viewer process peak RSS, saving to .rrd"),
+                            ("view (viewer connect)",
+                             "viewer process peak RSS, stalled viewer")):
+            if name in peaks:
+                rows.append(Row(f"{label} ({settings.viewer_seconds:g} s)",
+                                _mib(peaks[name]), "python -m benchmarks --only viewer" + suffix))
+
+    if "startup" in sections:
+        print("== start-up", flush=True)
+        raw["startup"] = s = startup(settings.startup_cold, settings.startup_warm)
+        cmd = "python -m benchmarks --only startup" + suffix
+        rows.append(Row(f"start-up to ready, cold numba cache (median of {len(s['cold_s'])})",
+                        f"{s['cold_median_s']:.2f} s", cmd))
+        rows.append(Row(f"start-up to ready, warm numba cache (median of {len(s['warm_s'])})",
+                        f"{s['warm_median_s']:.2f} s", cmd))
+
+    if "memory" in sections:
+        print("== headless run", flush=True)
+        raw["headless"] = h = headless_run()
+        cmd = "python -m benchmarks --only memory" + suffix
+        rows.append(Row("headless run peak RSS (README's E2 example, Parquet and plots)",
+                        _mib(h["peak_rss_kib"]), cmd))
+        if h["real_time_factor"] is not None:
+            rows.append(Row("headless run-scenario real-time factor (E2, 10 s simulated)",
+                            f"{h['real_time_factor']:,.0f} x",
+                            f"simserver run-scenario {HEADLESS_SCENARIO} --out out/e2"))
+    report.machine["load average at end"] = " / ".join(
+        f"{x:.2f}" for x in os.getloadavg()) + " (1/5/15 min)"
+    return report
+
+
+def render(report: Report, sections: list[str]) -> str:
+    """The markdown document: machine, table, method."""
+    lines = ["# Performance", ""]
+    if report.mode == "quick":
+        lines += ["> **Quick run** (`python -m benchmarks --quick`): short runs for a smoke "
+                  "test. These are not the published figures: regenerate with "
+                  "`python -m benchmarks` on a quiet machine.", ""]
+    lines += ["Generated by `python -m benchmarks"
+              + (" --quick" if report.mode == "quick" else "")
+              + "".join(f" --only {s}" for s in sections if len(sections) < len(SECTIONS))
+              + "`; every figure can be reproduced on its own by the command beside it.",
+              "", "## Machine", ""]
+    lines += [f"- **{k}**: {v}" for k, v in report.machine.items()]
+    lines += ["", "## Figures", "", "| figure | value | command |", "|---|---|---|"]
+    lines += [f"| {r.figure} | {r.value} | `{r.command}` |" for r in report.rows]
+    lines += [
+        "", "## Method", "",
+        "- Step cost: the compiled `simulate` loop over a driving cycle (accelerate and "
+        "steer, brake to rest, hold), after compilation; real-time factor = 1 ms / median "
+        "step cost.",
+        "- Server: `simserver serve` in its own process, state published every tick, driven "
+        "at 200 Hz over zenoh on loopback. Lateness p50/p99: median over the server's "
+        "4096-tick diagnostic windows; max, late ticks, overruns: the whole run. Latency: "
+        "command sent to the first state that reflects it, on the shared monotonic clock.",
+        "- Start-up: launch of `python -m simserver serve --viewer off` to its `ready` line "
+        "(kernels compiled or loaded, zenoh open, before the first tick). Cold: "
+        "`NUMBA_CACHE_DIR` an empty directory (Python bytecode already compiled); warm: the "
+        "same directory again.",
+        "- Memory: peak resident set (`VmHWM`, sampled once a second from "
+        "`/proc/PID/status`) of the server during the server run, and `ru_maxrss` of the "
+        "headless run.",
+        "- This is a shared VM: it stalls 0.3-0.7 % of 1 ms periods by itself "
+        "(`python -m benchmarks.bench_clock` measures that floor). Compare runs by their "
+        "medians, and look at the load average above.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Run the benchmarks, print the table, write it; return every raw result."""
+    parser = argparse.ArgumentParser(prog="python -m benchmarks",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="short runs for a smoke test (about 2 minutes)")
+    parser.add_argument("--only", action="append", choices=SECTIONS, default=None,
+                        help="run only this benchmark (repeatable)")
+    parser.add_argument("--out", type=Path, default=None, metavar="FILE",
+                        help=f"markdown file to write (default {DEFAULT_OUT.relative_to(REPO)} "
+                             "for a full run of every benchmark; none for --quick or --only)")
+    parser.add_argument("--json", type=Path, default=None, metavar="FILE",
+                        help="also write every raw result as JSON")
+    args = parser.parse_args(argv)
+    sections = [s for s in SECTIONS if args.only is None or s in args.only]
+    settings = QUICK if args.quick else FULL
+    t0 = time.monotonic()
+    report = run_all(settings, sections, args.quick)
+    text = render(report, sections)
+    print()
+    print(text)
+    out = args.out
+    if out is None and not args.quick and args.only is None:
+        out = DEFAULT_OUT
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text, encoding="utf-8")
+        print(f"wrote {out}")
+    result = {"machine": report.machine, "mode": report.mode, "rows": [vars(r) for r in
+              report.rows], "raw": report.raw, "wall_s": time.monotonic() - t0}
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2, default=str) + "\n", encoding="utf-8")
+        print(f"wrote {args.json}")
+    print(f"benchmarks: {time.monotonic() - t0:.0f} s", flush=True)
+    return result
+
+
+if __name__ == "__main__":
+    main()

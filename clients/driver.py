@@ -1,0 +1,624 @@
+"""``python -m clients.driver``: drive a simserver car from a keyboard, a gamepad or a wheel.
+
+The driver sends a DriverCommand at a steady rate (``--rate``, default 200 Hz: the
+server applies the newest one each 1 ms tick and holds the car with its watchdog if none
+arrives for 200 ms), each with the next ``seq`` and ``sender_time_ns`` on this process's
+monotonic clock, and shows what comes back: speed, gear, parking brake, slope (from the
+pose's pitch), the watchdog / paused / brake-hold flags, the command-to-state latency and
+the server's health from the diagnostics (tick lateness p99, overruns, rejected
+commands).
+
+Input modes
+-----------
+``--input keyboard`` (default)
+    Any terminal, local or over SSH: arrows or W/A/S/D, with pedal ramps and
+    auto-centring steering (:mod:`clients.keyboard`, tuned by
+    ``configs/clients/keyboard.yaml``).
+``--input joystick``
+    A game controller or steering wheel through pygame (SDL2), mapped by a profile
+    (``--profile configs/clients/wheel.yaml``). ``--list-joysticks`` shows the devices,
+    ``--probe`` the live raw axes and buttons and what the profile makes of them.
+    ``--virtual-joystick SCRIPT`` attaches SDL's virtual joystick and plays a timed
+    script on it (a demo without hardware; the end-to-end test uses it).
+
+Quitting (``q``, Ctrl-C, SIGTERM, a ``quit`` button, the end of a virtual-joystick
+script) stops the commands: the server's watchdog then holds the car.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import shutil
+import sys
+import time
+from collections import deque
+from collections.abc import Sequence
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any, Protocol, TextIO
+
+import numpy as np
+
+from clients.common import (
+    EXIT_FAILED,
+    EXIT_OK,
+    EXIT_USAGE,
+    ClientError,
+    Connection,
+    RatePacer,
+    ServerPresence,
+    StopFlag,
+    add_connection_args,
+    connect,
+    gear_name,
+    run_main,
+)
+from clients.joystick import (
+    ButtonEdges,
+    JoystickError,
+    PygameJoystick,
+    VirtualJoystick,
+    check_device,
+    list_joysticks,
+    load_joystick_profile,
+    load_joystick_script,
+    map_axes,
+)
+from clients.keyboard import (
+    HELD_ACTIONS,
+    KEY_BINDINGS,
+    KEY_HELP,
+    KEY_HELP_LINES,
+    KeyboardModel,
+    RawTerminal,
+    load_keyboard_profile,
+)
+from clients.profile import ProfileError
+from simserver import protocol as proto
+
+PROG = "simserver-driver"
+REPO_CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "clients"
+DEFAULT_KEYBOARD_PROFILE = REPO_CONFIGS / "keyboard.yaml"
+DEFAULT_JOYSTICK_PROFILE = REPO_CONFIGS / "gamepad.yaml"
+DEFAULT_RATE_HZ = 200.0
+DISPLAY_HZ = 10.0
+SERVER_SILENT_S = 2.0
+"""No state for this long: the status says so (the liveliness token decides exit)."""
+
+
+# ---------------------------------------------------------------------------- sources
+
+
+class InputSource(Protocol):
+    """Where the driver's inputs come from (keyboard or joystick)."""
+
+    label: str
+
+    def sample(self, now_s: float, dt_s: float, speed_mps: float) -> tuple[
+            float, float, float, list[str]]:
+        """``(steer, throttle, brake, one-shot actions)`` at ``now_s``."""
+
+    def reset(self) -> None:
+        """Return the continuous inputs to rest (after a server reset)."""
+
+
+class KeyboardSource:
+    """Keys from a raw terminal through :class:`KeyboardModel`.
+
+    Parameters
+    ----------
+    terminal : RawTerminal
+        The tty in cbreak mode.
+    model : KeyboardModel
+        Ramps and steering.
+    """
+
+    label = "keyboard"
+
+    def __init__(self, terminal: RawTerminal, model: KeyboardModel) -> None:
+        self.terminal = terminal
+        self.model = model
+
+    def sample(self, now_s: float, dt_s: float, speed_mps: float) -> tuple[
+            float, float, float, list[str]]:
+        """Read the keys typed since the last call and advance the model."""
+        actions = []
+        for key in self.terminal.read_keys():
+            action = KEY_BINDINGS.get(key)
+            if action is None:
+                continue
+            if action in HELD_ACTIONS:
+                self.model.press(action, now_s)
+            else:
+                actions.append(action)
+        self.model.update(now_s, dt_s, speed_mps)
+        m = self.model
+        return m.steer, m.throttle, m.brake, actions
+
+    def reset(self) -> None:
+        """Release every key and pedal."""
+        self.model.release_all()
+
+
+class JoystickSource:
+    """A joystick mapped by a profile; a terminal, when there is one, adds one-shot keys.
+
+    Parameters
+    ----------
+    profile : JoystickProfile
+    device : InputDevice
+        Opened and checked against the profile.
+    terminal : RawTerminal or None
+        For ``q``, space, ``x``, gear and parking-brake keys.
+    virtual : VirtualJoystick or None
+        With ``script``: the scripted SDL device to feed before each poll.
+    script : JoystickScript or None
+    """
+
+    def __init__(self, profile: Any, device: Any, terminal: RawTerminal | None = None,
+                 virtual: Any = None, script: Any = None) -> None:
+        self.profile = profile
+        self.device = device
+        self.terminal = terminal
+        self.virtual = virtual
+        self.script = script
+        self.edges = ButtonEdges(profile)
+        self._script_t = -1.0
+        self.label = f"joystick {device.name!r} ({profile.name})"
+
+    def sample(self, now_s: float, dt_s: float, speed_mps: float) -> tuple[
+            float, float, float, list[str]]:
+        """Feed the script (if any), poll the device, map axes and button edges."""
+        actions: list[str] = []
+        if self.script is not None:
+            for frame in self.script.due(self._script_t, now_s):
+                for i, v in frame.axes.items():
+                    self.virtual.set_axis(i, v)
+                for i, down in frame.buttons.items():
+                    self.virtual.set_button(i, down)
+            self._script_t = now_s
+            if now_s >= self.script.end_s:
+                actions.append("quit")
+        self.device.poll()
+        if getattr(self.device, "lost", False):
+            raise JoystickError(f"joystick {self.device.name!r} was disconnected")
+        steer, throttle, brake = map_axes(self.profile, self.device)
+        actions += self.edges.actions(self.device)
+        if self.terminal is not None:
+            for key in self.terminal.read_keys():
+                action = KEY_BINDINGS.get(key)
+                if action is not None and action not in HELD_ACTIONS:
+                    actions.append(action)
+        return steer, throttle, brake, actions
+
+    def reset(self) -> None:
+        """Nothing to do: a joystick's position is its own state."""
+
+
+# ---------------------------------------------------------------------------- status
+
+
+def road_slope_pct(road: dict[str, float], yaw_rad: float) -> float:
+    """Slope of the road plane along a heading, in per cent (+ = uphill ahead).
+
+    The plane rises ``grade_pct`` per 100 m along world x and ``cross_slope_pct`` along
+    world y (``ctl/set_road``); along the horizontal direction of ``yaw_rad`` it rises by
+    their projection. The pose's pitch would also show the body's pitch on its
+    suspension (about 1 degree under full throttle or braking), so it is shown apart.
+    """
+    return (float(road.get("grade_pct", 0.0)) * math.cos(yaw_rad)
+            + float(road.get("cross_slope_pct", 0.0)) * math.sin(yaw_rad))
+
+
+class StatusView:
+    """The live status block: redrawn in place on a terminal, a line a second otherwise.
+
+    Parameters
+    ----------
+    out : TextIO
+        Where to write (stdout).
+    header : str
+        First line (connection, mode, rate).
+    help_lines : sequence of str
+        Key help shown under the status.
+    """
+
+    def __init__(self, out: TextIO, header: str, help_lines: Sequence[str]) -> None:
+        self.out = out
+        self.header = header
+        self.help_lines = list(help_lines)
+        self.tty = out.isatty()
+        self._drawn = 0
+        self._last_plain = -math.inf
+
+    def lines(self, d: Driver) -> list[str]:
+        """The status text."""
+        s, g = d.state, d.diag
+        c = d.controls
+        drive = (f"driver  steer {c['steer']:+.2f}  throttle {c['throttle']:.2f}  "
+                 f"brake {c['brake']:.2f}  gear {gear_name(c['gear'])}  "
+                 f"park {'ON' if c['parking_brake'] else 'off'}  seq {d.seq}")
+        if s is None:
+            car = ["car     (no state received yet)", ""]
+            server = ["server  -", ""]
+        else:
+            u = float(s["u_mps"])
+            flags = int(s["flags"])
+            names = [n for n, bit in (("WATCHDOG", proto.StateFlag.WATCHDOG),
+                                      ("PAUSED", proto.StateFlag.PAUSED),
+                                      ("HOLD", proto.StateFlag.BRAKE_HOLD)) if flags & bit]
+            yaw = float(s["yaw_rad"])
+            heading = (math.degrees(yaw) + 180.0) % 360.0 - 180.0
+            slope = "?" if d.road is None else f"{road_slope_pct(d.road, yaw):+5.1f} %"
+            car = [f"car     speed {3.6 * u:+7.1f} km/h ({u:+7.2f} m/s)  gear "
+                   f"{gear_name(int(s['gear']))}  park "
+                   f"{'ON' if s['parking_brake'] else 'off'}",
+                   f"        slope {slope}  nose up {-math.degrees(float(s['pitch_rad'])):+5.1f}"
+                   f" deg  heading {heading:+6.1f} deg"]
+            age = float(s["cmd_age_s"])
+            silent = time.monotonic() - d.state_wall
+            server = [f"server  t {float(s['sim_time_s']):9.3f} s  [{' '.join(names) or 'ok'}]"
+                      + (f"  NO STATE FOR {silent:.0f} s" if silent > SERVER_SILENT_S else ""),
+                      f"        applied steer {float(s['steer']):+.2f} throttle "
+                      f"{float(s['throttle']):.2f} brake {float(s['brake']):.2f}  cmd age "
+                      f"{'-' if age < 0 else f'{1e3 * age:.0f} ms'}  cmd->state "
+                      f"{'-' if d.latency_ms is None else f'{d.latency_ms:.2f} ms'}"]
+        if g is None:
+            health = ["health  (no diagnostics yet)", ""]
+        else:
+            health = [f"health  tick late p99 {float(g['lateness_p99_us']):.0f} us  max "
+                      f"{float(g['lateness_max_us']):.0f} us  period p99 "
+                      f"{float(g['period_p99_us']):.0f} us  cpu {float(g['cpu_percent']):.0f} %",
+                      f"        overruns {int(g['overruns'])}  skipped "
+                      f"{int(g['skipped_ticks'])}  rejected {int(g['cmd_rejected'])}  stale "
+                      f"{int(g['cmd_stale'])}  watchdog trips {int(g['watchdog_trips'])}"]
+        return [self.header, *car, drive, *server, *health, f"note    {d.message}",
+                *self.help_lines]
+
+    def draw(self, d: Driver, now_s: float) -> None:
+        """Redraw (terminal) or print one line per second (pipe)."""
+        lines = self.lines(d)
+        if not self.tty:
+            if self._last_plain == -math.inf:
+                self.out.write(self.header + "\n")
+            if now_s - self._last_plain >= 1.0:
+                self._last_plain = now_s
+                self.out.write(" | ".join(x.strip() for x in lines[1:10]) + "\n")
+                self.out.flush()
+            return
+        width = max(20, shutil.get_terminal_size((120, 24)).columns - 1)
+        parts = []
+        if self._drawn:
+            parts.append(f"\x1b[{self._drawn}A\r")  # cursor up (VT100), column 0
+        for line in lines:
+            parts.append("\x1b[2K" + line[:width] + "\n")
+        self._drawn = len(lines)
+        self.out.write("".join(parts))
+        self.out.flush()
+
+
+# ---------------------------------------------------------------------------- driver
+
+
+class Driver:
+    """The command loop: sample the inputs, send a command, read state and diagnostics.
+
+    Parameters
+    ----------
+    conn : Connection
+        Checked connection to the server.
+    source : InputSource
+        Keyboard or joystick.
+    rate_hz : float
+        Command rate.
+    gear : int
+        Initial gear code.
+    out : TextIO
+        Status output.
+    """
+
+    def __init__(self, conn: Connection, source: InputSource, rate_hz: float, gear: int,
+                 out: TextIO) -> None:
+        self.conn = conn
+        self.source = source
+        self.rate_hz = rate_hz
+        self.controls: dict[str, Any] = {"steer": 0.0, "throttle": 0.0, "brake": 0.0,
+                                         "gear": gear, "parking_brake": False}
+        self.seq = 0
+        self.state: np.void | None = None
+        self.state_wall = time.monotonic()
+        self.diag: np.void | None = None
+        self._latencies: deque[float] = deque(maxlen=200)
+        self._seen_seq = -1
+        self.road: dict[str, float] | None = conn.config.get("road")
+        self.message = "connected"
+        self.sent = 0
+        ep = conn.ep
+        self.pub = ep.declare_command_publisher()
+        self.states = ep.declare_state_inbox(capacity=256)
+        self.diags = ep.declare_diag_inbox(capacity=16)
+        self.presence = ServerPresence(ep)
+        help_lines = list(KEY_HELP_LINES) if isinstance(source, KeyboardSource) else \
+            ["keys    q quit, space pause/resume, x reset, 1-4 gear P R N D, h parking brake"]
+        self.view = StatusView(out, f"simserver driver  {conn.where}  {source.label}  "
+                                    f"{rate_hz:g} Hz", help_lines)
+
+    # ------------------------------------------------------------------ actions
+    def _control(self, name: str) -> dict[str, Any] | None:
+        try:
+            reply = self.conn.ep.request(name, timeout_s=1.0)
+        except (TimeoutError, proto.ProtocolError) as exc:
+            self.message = f"{name}: {exc}"
+            return None
+        if not reply.get("ok"):
+            self.message = f"{name}: {reply.get('error')}"
+            return None
+        return reply
+
+    def act(self, action: str) -> bool:
+        """Run a one-shot action; returns False for ``quit``."""
+        c = self.controls
+        if action == "quit":
+            return False
+        if action.startswith("gear_") and action[5:] in proto.Gear.__members__:
+            c["gear"] = int(proto.Gear[action[5:]])
+            self.message = f"gear {action[5:]}"
+        elif action in ("gear_next", "gear_prev"):
+            step = 1 if action == "gear_next" else -1
+            c["gear"] = min(int(proto.Gear.D), max(int(proto.Gear.P), c["gear"] + step))
+            self.message = f"gear {gear_name(c['gear'])}"
+        elif action == "parking_brake":
+            c["parking_brake"] = not c["parking_brake"]
+            self.message = f"parking brake {'on' if c['parking_brake'] else 'off'}"
+        elif action == "reset":
+            if self._control("reset") is not None:
+                self.source.reset()
+                self.message = "reset to the scene's start"
+        elif action == "pause":
+            paused = self.state is not None and bool(int(self.state["flags"])
+                                                     & proto.StateFlag.PAUSED)
+            name = "resume" if paused else "pause"
+            if self._control(name) is not None:
+                self.message = "resumed" if paused else "paused (space resumes)"
+        return True
+
+    # ------------------------------------------------------------------ loop
+    def poll_states(self) -> None:
+        """Take the states received so far (called every ~0.5 ms while the loop waits).
+
+        The command-to-state latency is measured as the protocol describes it: the time
+        from a command's ``sender_time_ns`` to the arrival of the first state that
+        applied it (a new ``last_cmd_seq``), seen within this poll interval.
+        """
+        payloads = self.states.drain_newest()
+        if not payloads:
+            return
+        try:
+            state = proto.decode_state(payloads[-1])
+        except proto.ProtocolError as exc:
+            self.message = f"bad state: {exc}"
+            return
+        now_ns = time.monotonic_ns()
+        self.state = state
+        self.state_wall = now_ns / 1e9
+        seq = int(state["last_cmd_seq"])
+        sent_ns = int(state["last_cmd_sender_time_ns"])
+        if seq != self._seen_seq and sent_ns:
+            self._seen_seq = seq
+            self._latencies.append((now_ns - sent_ns) / 1e6)
+
+    def _read_diagnostics(self) -> None:
+        diags = self.diags.drain_newest()
+        if diags:
+            try:
+                self.diag = proto.decode_diagnostics(diags[-1])
+            except proto.ProtocolError as exc:
+                self.message = f"bad diagnostics: {exc}"
+
+    @property
+    def latency_ms(self) -> float | None:
+        """Median command-to-state latency of the last (up to) 200 commands."""
+        return float(np.median(self._latencies)) if self._latencies else None
+
+    def run(self, stop: StopFlag) -> int:
+        """Loop until quit, a signal, or the server going away; returns the exit code."""
+        pacer = RatePacer(self.rate_hz)
+        pacer.start()
+        last_t = 0.0
+        next_draw = 0.0
+        next_alive = 0.5
+        next_road = 2.0
+        c = self.controls
+        while not stop.stopped:
+            t = pacer.wait(self.poll_states)
+            speed = float(self.state["u_mps"]) if self.state is not None else 0.0
+            steer, throttle, brake, actions = self.source.sample(t, t - last_t, speed)
+            last_t = t
+            c["steer"], c["throttle"], c["brake"] = steer, throttle, brake
+            if not all(self.act(a) for a in actions):
+                self.message = "quit"
+                break
+            self.seq = (self.seq + 1) & 0xFFFFFFFF
+            now_ns = time.monotonic_ns()
+            self.pub.put(proto.encode_command(
+                steer, throttle, brake, gear=c["gear"], parking_brake=c["parking_brake"],
+                seq=self.seq, sender_time_ns=now_ns))
+            self.sent += 1
+            self._read_diagnostics()
+            if t >= next_road:
+                next_road = t + 2.0
+                reply = self._control("get_config")
+                if reply is not None:
+                    self.road = (reply.get("config") or {}).get("road", self.road)
+            if t >= next_alive:
+                next_alive = t + 0.25
+                was_present = self.presence.present
+                gone = self.presence.gone()
+                if not self.presence.present:
+                    self.message = "the server's liveliness token is gone: waiting for it"
+                elif not was_present:
+                    self.message = "the server's liveliness token is back"
+                if gone:
+                    self.message = "the server went away"
+                    self.view.draw(self, t)
+                    print(f"{PROG}: the server's liveliness token disappeared "
+                          f"({self.conn.where}): stopping", file=sys.stderr)
+                    return EXIT_FAILED
+            if t >= next_draw:
+                next_draw = t + 1.0 / DISPLAY_HZ
+                self.view.draw(self, t)
+        if stop.signal_name:
+            self.message = f"stopped by {stop.signal_name}"
+        self.view.draw(self, math.inf)
+        return EXIT_OK
+
+
+# ---------------------------------------------------------------------------- main
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m clients.driver``."""
+    parser = argparse.ArgumentParser(
+        prog="python -m clients.driver",
+        description="Drive a simserver car from a terminal keyboard (works over SSH) or a "
+        "game controller / steering wheel (pygame). Sends commands at a steady rate and "
+        "shows speed, gear, slope and the server's health. Keys: " + KEY_HELP,
+        epilog="Exit codes: 0 normal quit, 1 the server went away, 2 bad command line or "
+        "profile, 3 no server answered. docs/clients.md has the step-by-step guide.",
+    )
+    parser.add_argument("--input", choices=("keyboard", "joystick"), default="keyboard",
+                        help="input device (default keyboard)")
+    parser.add_argument("--profile", metavar="FILE", default=None,
+                        help="input profile YAML (default configs/clients/keyboard.yaml, or "
+                        "configs/clients/gamepad.yaml with --input joystick; "
+                        "configs/clients/wheel.yaml for a wheel)")
+    parser.add_argument("--rate", metavar="HZ", type=float, default=DEFAULT_RATE_HZ,
+                        help=f"command rate (default {DEFAULT_RATE_HZ:g} Hz; 10 to 1000)")
+    parser.add_argument("--gear", choices=tuple(g.name for g in proto.Gear), default="D",
+                        help="gear at start (default D)")
+    parser.add_argument("--list-joysticks", action="store_true",
+                        help="list the joysticks SDL sees and exit")
+    parser.add_argument("--probe", action="store_true",
+                        help="show the joystick's raw axes and buttons and the mapped "
+                        "inputs (no server needed); Ctrl-C ends")
+    parser.add_argument("--virtual-joystick", metavar="SCRIPT", default=None,
+                        help="attach SDL's virtual joystick and play SCRIPT on it "
+                        "(implies --input joystick; the driver quits at the script's end)")
+    add_connection_args(parser)
+    return parser
+
+
+def _joystick_setup(args: argparse.Namespace) -> JoystickSource:
+    """Load the profile (and script), open the device and check it against the profile."""
+
+    try:
+        profile = load_joystick_profile(args.profile or DEFAULT_JOYSTICK_PROFILE)
+        script = load_joystick_script(args.virtual_joystick) if args.virtual_joystick \
+            else None
+    except ProfileError as exc:
+        raise ClientError(str(exc)) from None
+    try:
+        if script is not None:
+            virtual = VirtualJoystick(max(profile.axes_needed, script.n_axes),
+                                      max(profile.buttons_needed, script.n_buttons))
+            device = PygameJoystick(virtual.device_index)
+        else:
+            virtual = None
+            device = PygameJoystick.open(profile)
+        check_device(profile, device)
+    except JoystickError as exc:
+        raise ClientError(str(exc)) from None
+    return JoystickSource(profile, device, None, virtual, script)
+
+
+def _probe(args: argparse.Namespace, stop: StopFlag) -> int:
+    try:
+        profile = load_joystick_profile(args.profile or DEFAULT_JOYSTICK_PROFILE)
+        device = PygameJoystick.open(profile)
+    except (ProfileError, JoystickError) as exc:
+        raise ClientError(str(exc)) from None
+    print(f"{device.name!r}: {device.num_axes()} axes, {device.num_buttons()} buttons; "
+          f"profile {profile.path} (Ctrl-C ends)", flush=True)
+    try:
+        check_device(profile, device)
+        usable = True
+    except JoystickError as exc:
+        print(f"warning: {exc}; showing raw values only", flush=True)
+        usable = False
+    while not stop.stopped:
+        device.poll()
+        axes = " ".join(f"{i}:{device.axis(i):+.2f}" for i in range(device.num_axes()))
+        down = [str(i) for i in range(device.num_buttons()) if device.button(i)]
+        mapped = ""
+        if usable:
+            steer, throttle, brake = map_axes(profile, device)
+            mapped = f" | steer {steer:+.2f} throttle {throttle:.2f} brake {brake:.2f}"
+        print(f"axes {axes} | buttons down [{' '.join(down)}]{mapped}", flush=True)
+        time.sleep(0.1)
+    return EXIT_OK
+
+
+def _run(args: argparse.Namespace) -> int:
+    if not 10.0 <= args.rate <= 1000.0:
+        raise ClientError(f"--rate {args.rate:g}: expected 10 to 1000 Hz")
+    if args.virtual_joystick:
+        args.input = "joystick"
+    with StopFlag() as stop:
+        if args.list_joysticks:
+            try:
+                names = list_joysticks()
+            except JoystickError as exc:
+                raise ClientError(str(exc)) from None
+            for i, name in enumerate(names):
+                print(f"{i}: {name}")
+            if not names:
+                print("no joystick found")
+            return EXIT_OK
+        if args.probe:
+            return _probe(args, stop)
+        has_tty = os.isatty(sys.stdin.fileno()) if sys.stdin is not None else False
+        if args.input == "keyboard":
+            if not has_tty:
+                raise ClientError("keyboard mode needs a terminal on stdin (run it in a "
+                                  "terminal, or use --input joystick)", EXIT_USAGE)
+            try:
+                kb_profile = load_keyboard_profile(args.profile or DEFAULT_KEYBOARD_PROFILE)
+            except ProfileError as exc:
+                raise ClientError(str(exc)) from None
+        with ExitStack() as stack:
+            joystick = _joystick_setup(args) if args.input == "joystick" else None
+            conn = connect(args, PROG)
+            stack.callback(conn.close)
+            scene = conn.config.get("scene", {}).get("path", "?")
+            vehicle = conn.config.get("vehicle", {}).get("name", "?")
+            print(f"{PROG}: connected to {conn.where}: vehicle {vehicle}, scene {scene}",
+                  flush=True)
+            terminal = stack.enter_context(RawTerminal()) if has_tty else None
+            if joystick is None:
+                assert terminal is not None
+                source: InputSource = KeyboardSource(terminal, KeyboardModel(kb_profile))
+            else:
+                joystick.terminal = terminal
+                source = joystick
+            driver = Driver(conn, source, args.rate, int(proto.Gear[args.gear]), sys.stdout)
+            try:
+                code = driver.run(stop)
+            except JoystickError as exc:  # a device lost mid-run
+                raise ClientError(f"{exc}; the server's watchdog holds the car",
+                                  EXIT_FAILED) from None
+            if code == EXIT_OK:
+                print(f"{PROG}: sent {driver.sent} commands; stopped sending, the server's "
+                      "watchdog now holds the car", flush=True)
+            return code
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``python -m clients.driver``; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    return run_main(PROG, lambda: _run(args))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

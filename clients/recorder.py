@@ -1,0 +1,663 @@
+"""``python -m clients.recorder``: record a live car's state and diagnostics to Parquet.
+
+Writes ``OUT/history.parquet`` (one row per VehicleState received) with the headless
+runner's column names (``simserver run-scenario``'s ``history.parquet``,
+``docs/history_columns.md``) wherever the state carries the quantity, plus state-only
+columns, and ``OUT/diagnostics.parquet`` (one row per Diagnostics message). Rows are
+buffered in preallocated chunks and streamed as Parquet row groups (``--flush-rows``);
+Ctrl-C, SIGTERM, ``--duration`` or the server's liveliness token staying away for 3 s
+stop the recording after a last drain of what zenoh already delivered, and the files are
+completed (nothing received is lost; a SIGKILL loses the unfinished file).
+
+Frames
+------
+The state's pose is in **world** axes (``x_m``, ``y_m``, ``z_m`` of the CG, yaw, pitch
+and roll of the body, z up). ``history.parquet`` of a headless run holds **road-plane**
+coordinates: ``x_m``, ``y_m`` along the road plane's axes ``e1``, ``e2``, ``yaw_rad`` in
+that plane, ``roll_rad`` and ``pitch_rad`` of the body relative to the road. On a flat
+road the two coincide (and the body angles are the same); on a slope they do not. The
+recorder writes the history's names in the **road-plane** frame, converted from the
+world pose with the road the server reports (``ctl/get_config``, read at start, after
+every reset or load, and every ``--road-poll`` seconds: a ``set_road`` between two polls
+is converted with the previous road for at most that long), and the world pose itself
+under distinct names: ``world_x_m``, ``world_y_m``, ``world_z_m``, ``world_yaw_rad``,
+``world_pitch_rad``, ``world_roll_rad``. The road plane is the one ``ctl/set_road``
+describes: it passes through the world origin and rises ``grade_pct`` % along world x
+and ``cross_slope_pct`` % along world y; ``e1`` is its direction above world x, ``n``
+its upward normal, ``e2 = n x e1`` (the server's convention; the tests check this
+inverse against it).
+
+Timing
+------
+Row ``time_s`` is the state's ``sim_time_s``. Pose, velocities, wheel spins and slip
+states are at that time, as in ``history.parquet``. The forces (``fx_*``, ``fy_*``,
+``fz_*``), accelerations, road-wheel steer angles and ``input_*`` (the inputs the server
+*applied*, after its watchdog) are those of the physics step that *ended* at the row's
+tick: in ``history.parquet`` they sit one row earlier (a headless row holds the inputs of
+the step that starts there and the forces at its start state). After a reset or a load
+(``segment`` increases, ``tick`` restarts) the tick-0 row's step quantities are from
+before it.
+
+An ``.rrd`` (``--rrd FILE``) is not drawn here: the recorder starts ``simserver view
+--sink save:FILE`` (the package's live viewer, which builds the 3D scene from the same
+state topic in its own process) beside itself and stops it with SIGTERM when the
+recording ends. The recorder itself imports only the protocol and the zenoh adapter.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from clients.common import (
+    DEFAULT_CONNECT,
+    EXIT_FAILED,
+    EXIT_OK,
+    ClientError,
+    Connection,
+    ServerPresence,
+    StopFlag,
+    add_connection_args,
+    connect,
+    run_main,
+)
+from simserver import protocol as proto
+
+PROG = "simserver-recorder"
+HISTORY_FILE = "history.parquet"
+DIAGNOSTICS_FILE = "diagnostics.parquet"
+WHEELS = ("fl", "fr", "rl", "rr")
+DEFAULT_FLUSH_ROWS = 10_000
+STATE_INBOX = 1 << 15
+"""Ring of received states: 32 s at 1 kHz before zenoh drops the oldest."""
+
+VIEWER_START_S = 60.0
+"""How long ``--rrd`` waits for ``simserver view`` to start writing."""
+
+_TICK_OFFSET = proto.STATE_DTYPE.fields["tick"][1]
+
+# ----------------------------------------------------------------------------- columns
+
+
+@dataclass(frozen=True)
+class Column:
+    """One column of the recorder's history file.
+
+    Attributes
+    ----------
+    name : str
+        Column name (a ``history.parquet`` name where it exists there).
+    arrow_type : pyarrow.DataType
+    unit : str
+    description : str
+    """
+
+    name: str
+    arrow_type: pa.DataType
+    unit: str
+    description: str
+
+
+_F64 = pa.float64()
+
+
+def _wheel_columns(template: str, unit: str, description: str) -> list[Column]:
+    long = {"fl": "front-left", "fr": "front-right", "rl": "rear-left", "rr": "rear-right"}
+    return [Column(template.format(w=w), _F64, unit, f"{long[w]} {description}")
+            for w in WHEELS]
+
+
+HISTORY_NAMED: tuple[Column, ...] = (
+    Column("time_s", _F64, "s", "simulated time of the state (sim_time_s)"),
+    Column("x_m", _F64, "m", "CG position along the road plane's e1 (road frame, from the "
+           "world pose)"),
+    Column("y_m", _F64, "m", "CG position along the road plane's e2 (road frame)"),
+    Column("yaw_rad", _F64, "rad", "heading in the road plane, from e1 toward e2 (road frame)"),
+    Column("u_mps", _F64, "m/s", "body longitudinal velocity u (forward +)"),
+    Column("v_mps", _F64, "m/s", "body lateral velocity v (left +)"),
+    Column("yaw_rate_radps", _F64, "rad/s", "yaw rate r"),
+    Column("roll_rad", _F64, "rad", "body roll relative to the road plane (left side up +)"),
+    Column("roll_rate_radps", _F64, "rad/s", "body roll rate"),
+    Column("pitch_rad", _F64, "rad", "body pitch relative to the road plane (nose down +)"),
+    Column("pitch_rate_radps", _F64, "rad/s", "body pitch rate"),
+    *_wheel_columns("omega_{w}_radps", "rad/s", "wheel spin rate (rolling forward +)"),
+    *_wheel_columns("tan_alpha_lag_{w}", "1", "lagged slip state tan a' (eq. 16)"),
+    *_wheel_columns("kappa_lag_{w}", "1", "lagged slip state k' (eq. 26)"),
+    *_wheel_columns("damping_active_{w}", "1", "low-speed damping active (0 or 1)"),
+    *_wheel_columns("wheel_held_{w}", "1", "wheel held at zero spin by its brake (0 or 1)"),
+    Column("ax_mps2", _F64, "m/s^2", "CG acceleration along body x (step ending at the row)"),
+    Column("ay_mps2", _F64, "m/s^2", "CG acceleration along body y (step ending at the row)"),
+    *_wheel_columns("fx_{w}_n", "N", "tire Fx, wheel frame (step ending at the row)"),
+    *_wheel_columns("fy_{w}_n", "N", "tire Fy, wheel frame (step ending at the row)"),
+    *_wheel_columns("fz_{w}_n", "N", "tire normal load Fz (step ending at the row)"),
+    *_wheel_columns("steer_{w}_rad", "rad", "road-wheel steer angle, left + (step ending at "
+                    "the row)"),
+    Column("input_steer", _F64, "1", "applied steer [-1, 1] (step ending at the row)"),
+    Column("input_throttle", _F64, "1", "applied throttle [0, 1] (step ending at the row)"),
+    Column("input_brake", _F64, "1", "applied brake [0, 1] (step ending at the row)"),
+    Column("input_parking_brake", _F64, "1", "applied parking brake (0 or 1)"),
+    Column("input_gear", _F64, "1", "applied gear code: 0 P, 1 R, 2 N, 3 D"),
+)
+"""Columns named as in the headless ``history.parquet``, in its column order."""
+
+STATE_ONLY: tuple[Column, ...] = (
+    Column("tick", pa.uint64(), "-", "physics ticks since start, reset or load"),
+    Column("segment", pa.int32(), "-", "0, then +1 at each reset or load (tick restarts)"),
+    Column("recv_time_s", _F64, "s", "recorder's monotonic clock at receipt, from its start"),
+    Column("flags", pa.uint16(), "-", "state flags: 1 watchdog, 2 paused, 4 brake hold, "
+           "8 catch-up tick"),
+    Column("last_cmd_seq", pa.uint32(), "-", "seq of the last command applied"),
+    Column("last_cmd_sender_time_ns", pa.uint64(), "ns", "its sender_time_ns"),
+    Column("cmd_age_s", _F64, "s", "wall time since the last valid command (-1 before any)"),
+    Column("w_mps", _F64, "m/s", "body vertical velocity"),
+    Column("road_grade_pct", _F64, "%", "road grade used for the road-frame columns"),
+    Column("road_cross_slope_pct", _F64, "%", "road cross slope used for the road-frame "
+           "columns"),
+    Column("cg_above_road_m", _F64, "m", "CG height above the road plane (along n)"),
+    Column("world_x_m", _F64, "m", "CG position, world x (the state's x_m)"),
+    Column("world_y_m", _F64, "m", "CG position, world y (the state's y_m)"),
+    Column("world_z_m", _F64, "m", "CG position, world z, up (the state's z_m)"),
+    Column("world_yaw_rad", _F64, "rad", "body yaw, world axes (the state's yaw_rad)"),
+    Column("world_pitch_rad", _F64, "rad", "body pitch, world axes, nose down + (the "
+           "state's pitch_rad)"),
+    Column("world_roll_rad", _F64, "rad", "body roll, world axes, left up + (the state's "
+           "roll_rad)"),
+)
+"""Columns the headless history does not have."""
+
+COLUMNS: tuple[Column, ...] = HISTORY_NAMED + STATE_ONLY
+
+FRAME_NOTE = (
+    "x_m, y_m, yaw_rad, roll_rad, pitch_rad: road-plane frame as in history.parquet, "
+    "converted from the VehicleState's world pose with the road of ctl/get_config "
+    "(road_grade_pct, road_cross_slope_pct per row); world_*: the VehicleState pose, "
+    "world axes (ISO 8855 earth-fixed, z up)")
+TIMING_NOTE = (
+    "one row per VehicleState; pose, velocities, wheel spins and slip states at time_s; "
+    "forces, accelerations, steer angles and input_* belong to the physics step that "
+    "ended at the row's tick (history.parquet holds them one row earlier)")
+
+
+def history_schema(metadata: dict[str, str]) -> pa.Schema:
+    """Arrow schema of the recorder's history file, with unit/description metadata."""
+    fields = [pa.field(c.name, c.arrow_type, nullable=False,
+                       metadata={"unit": c.unit, "description": c.description})
+              for c in COLUMNS]
+    return pa.schema(fields, metadata=dict(sorted(metadata.items())))
+
+
+def diagnostics_schema(metadata: dict[str, str]) -> pa.Schema:
+    """Arrow schema of ``diagnostics.parquet``: ``recv_time_s`` then every field."""
+    fields = [pa.field("recv_time_s", _F64, nullable=False,
+                       metadata={"unit": "s", "description": "recorder clock at receipt"})]
+    for f in proto.DIAGNOSTICS_FIELDS:
+        if f.name in ("version", "reserved"):
+            continue
+        kind = f.dtype.lstrip("<")
+        arrow = {"u1": pa.uint8(), "u2": pa.uint16(), "u4": pa.uint32(), "u8": pa.uint64(),
+                 "f4": pa.float64(), "f8": pa.float64()}[kind]
+        fields.append(pa.field(f.name, arrow, nullable=False,
+                               metadata={"unit": f.unit, "description": f.description}))
+    return pa.schema(fields, metadata=dict(sorted(metadata.items())))
+
+
+# ----------------------------------------------------------------------------- frames
+
+
+def road_axes(grade_pct: np.ndarray, cross_slope_pct: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit vectors ``e1``, ``e2``, ``n`` of the road plane in world axes, per row.
+
+    Parameters
+    ----------
+    grade_pct, cross_slope_pct : ndarray
+        The plane rises ``grade_pct`` % along world x and ``cross_slope_pct`` % along y.
+
+    Returns
+    -------
+    e1, e2, n : ndarray
+        ``(rows, 3)`` each: ``e1`` above world x, ``n`` the upward normal, ``e2 = n x e1``.
+    """
+    sx = np.asarray(grade_pct, dtype=np.float64) / 100.0
+    sy = np.asarray(cross_slope_pct, dtype=np.float64) / 100.0
+    one = np.ones_like(sx)
+    e1 = np.stack([one, np.zeros_like(sx), sx], axis=-1)
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
+    n = np.stack([-sx, -sy, one], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    e2 = np.cross(n, e1)
+    e2 /= np.linalg.norm(e2, axis=-1, keepdims=True)
+    return e1, e2, n
+
+
+def world_to_road(pos: np.ndarray, yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray,
+                  grade_pct: np.ndarray, cross_slope_pct: np.ndarray) -> dict[str, np.ndarray]:
+    """Road-plane coordinates and body angles from the world pose (vectorised).
+
+    Parameters
+    ----------
+    pos : ndarray
+        ``(rows, 3)`` CG positions, world axes.
+    yaw, pitch, roll : ndarray
+        World body attitude, ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+    grade_pct, cross_slope_pct : ndarray
+        The road plane of each row.
+
+    Returns
+    -------
+    dict of str to ndarray
+        ``x_m``, ``y_m`` (along ``e1``, ``e2``), ``cg_above_road_m`` (along ``n``),
+        ``yaw_rad`` (heading in the plane from ``e1`` toward ``e2``, continuous with the
+        world yaw), ``pitch_rad`` and ``roll_rad`` relative to the plane.
+    """
+    e1, e2, n = road_axes(grade_pct, cross_slope_pct)
+    cz, sz = np.cos(yaw), np.sin(yaw)
+    cy, sy = np.cos(pitch), np.sin(pitch)
+    cx, sx = np.cos(roll), np.sin(roll)
+    bx = np.stack([cz * cy, sz * cy, -sy], axis=-1)
+    by = np.stack([cz * sy * sx - sz * cx, sz * sy * sx + cz * cx, cy * sx], axis=-1)
+    bz = np.stack([cz * sy * cx + sz * sx, sz * sy * cx - cz * sx, cy * cx], axis=-1)
+
+    def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->i", a, b)
+
+    wrapped = np.arctan2(dot(bx, e2), dot(bx, e1))
+    diff = (wrapped - yaw + np.pi) % (2.0 * np.pi) - np.pi
+    return {
+        "x_m": dot(pos, e1),
+        "y_m": dot(pos, e2),
+        "cg_above_road_m": dot(pos, n),
+        "yaw_rad": yaw + diff,
+        "pitch_rad": np.arcsin(np.clip(-dot(bx, n), -1.0, 1.0)),
+        "roll_rad": np.arctan2(dot(by, n), dot(bz, n)),
+    }
+
+
+def state_columns(rec: np.ndarray, grade_pct: np.ndarray, cross_slope_pct: np.ndarray
+                  ) -> dict[str, np.ndarray]:
+    """Every history-named and world column of decoded states (``STATE_DTYPE`` rows)."""
+    pos = np.stack([rec["x_m"], rec["y_m"], rec["z_m"]], axis=-1).astype(np.float64)
+    yaw = rec["yaw_rad"].astype(np.float64)
+    pitch = rec["pitch_rad"].astype(np.float64)
+    roll = rec["roll_rad"].astype(np.float64)
+    road = world_to_road(pos, yaw, pitch, roll, grade_pct, cross_slope_pct)
+    f64 = np.float64
+    cols: dict[str, np.ndarray] = {
+        "time_s": rec["sim_time_s"].astype(f64),
+        "x_m": road["x_m"], "y_m": road["y_m"], "yaw_rad": road["yaw_rad"],
+        "u_mps": rec["u_mps"].astype(f64), "v_mps": rec["v_mps"].astype(f64),
+        "yaw_rate_radps": rec["yaw_rate_radps"].astype(f64),
+        "roll_rad": road["roll_rad"], "roll_rate_radps": rec["roll_rate_radps"].astype(f64),
+        "pitch_rad": road["pitch_rad"],
+        "pitch_rate_radps": rec["pitch_rate_radps"].astype(f64),
+        "ax_mps2": rec["ax_mps2"].astype(f64), "ay_mps2": rec["ay_mps2"].astype(f64),
+        "input_steer": rec["steer"].astype(f64), "input_throttle": rec["throttle"].astype(f64),
+        "input_brake": rec["brake"].astype(f64),
+        "input_parking_brake": rec["parking_brake"].astype(f64),
+        "input_gear": rec["gear"].astype(f64),
+        "tick": rec["tick"].astype(np.uint64), "flags": rec["flags"].astype(np.uint16),
+        "last_cmd_seq": rec["last_cmd_seq"].astype(np.uint32),
+        "last_cmd_sender_time_ns": rec["last_cmd_sender_time_ns"].astype(np.uint64),
+        "cmd_age_s": rec["cmd_age_s"].astype(f64), "w_mps": rec["w_mps"].astype(f64),
+        "road_grade_pct": np.asarray(grade_pct, dtype=f64),
+        "road_cross_slope_pct": np.asarray(cross_slope_pct, dtype=f64),
+        "cg_above_road_m": road["cg_above_road_m"],
+        "world_x_m": pos[:, 0], "world_y_m": pos[:, 1], "world_z_m": pos[:, 2],
+        "world_yaw_rad": yaw, "world_pitch_rad": pitch, "world_roll_rad": roll,
+    }
+    per_wheel = {"omega_{w}_radps": "omega_radps", "tan_alpha_lag_{w}": "tan_alpha_lag",
+                 "kappa_lag_{w}": "kappa_lag", "damping_active_{w}": "damping_active",
+                 "wheel_held_{w}": "brake_held", "fx_{w}_n": "fx_n", "fy_{w}_n": "fy_n",
+                 "fz_{w}_n": "fz_n", "steer_{w}_rad": "steer_rad"}
+    for template, field in per_wheel.items():
+        values = rec[field].astype(f64)
+        for i, w in enumerate(WHEELS):
+            cols[template.format(w=w)] = values[:, i]
+    return cols
+
+
+# ----------------------------------------------------------------------------- recorder
+
+
+class StateBuffer:
+    """Received states in a preallocated chunk, with per-row receive time, road, segment.
+
+    Parameters
+    ----------
+    rows : int
+        Chunk size; the owner flushes when :attr:`full`.
+    """
+
+    def __init__(self, rows: int) -> None:
+        self.raw = np.zeros((rows, proto.STATE_SIZE), dtype=np.uint8)
+        self.recv = np.zeros(rows)
+        self.grade = np.zeros(rows)
+        self.cross = np.zeros(rows)
+        self.segment = np.zeros(rows, dtype=np.int32)
+        self.n = 0
+
+    @property
+    def full(self) -> bool:
+        """True when no row is left."""
+        return self.n >= self.raw.shape[0]
+
+    def add(self, payload: bytes, recv_s: float, road: tuple[float, float],
+            segment: int) -> None:
+        """Append one state payload (``STATE_SIZE`` bytes, already checked)."""
+        i = self.n
+        self.raw[i] = np.frombuffer(payload, dtype=np.uint8)
+        self.recv[i] = recv_s
+        self.grade[i], self.cross[i] = road
+        self.segment[i] = segment
+        self.n += 1
+
+    def table(self, schema: pa.Schema) -> pa.Table:
+        """The buffered rows as an Arrow table (then :meth:`clear`)."""
+        n = self.n
+        rec = self.raw[:n].view(proto.STATE_DTYPE).reshape(n)
+        cols = state_columns(rec, self.grade[:n], self.cross[:n])
+        cols["recv_time_s"] = self.recv[:n].copy()
+        cols["segment"] = self.segment[:n].copy()
+        return pa.Table.from_arrays([pa.array(cols[f.name], type=f.type) for f in schema],
+                                    schema=schema)
+
+    def clear(self) -> None:
+        """Forget the rows (the arrays are reused)."""
+        self.n = 0
+
+
+class Recorder:
+    """Subscribes to state and diagnostics; writes Parquet row groups as chunks fill.
+
+    Parameters
+    ----------
+    conn : Connection
+        Checked connection.
+    out_dir : Path
+        Where ``history.parquet`` and ``diagnostics.parquet`` go (created).
+    flush_rows : int
+        Rows per row group.
+    keep_paused : bool
+        Keep every state (also the repeats of a frozen tick while paused).
+    road_poll_s : float
+        Seconds between ``get_config`` polls of the road.
+    """
+
+    def __init__(self, conn: Connection, out_dir: Path, flush_rows: int, keep_paused: bool,
+                 road_poll_s: float) -> None:
+        self.conn = conn
+        self.out_dir = out_dir
+        self.keep_paused = keep_paused
+        self.road_poll_s = road_poll_s
+        self.states = conn.ep.declare_state_inbox(capacity=STATE_INBOX)
+        self.diags = conn.ep.declare_diag_inbox(capacity=256)
+        self.presence = ServerPresence(conn.ep)
+        self.buffer = StateBuffer(flush_rows)
+        self.diag_rows: list[tuple[float, bytes]] = []
+        cfg = conn.config
+        self.state_every = int((cfg.get("server") or {}).get("state_every", 1)) or 1
+        self.road = self._road_of(cfg)
+        self.rows = 0
+        self.diag_count = 0
+        self.paused_repeats = 0
+        self.missed = 0
+        self.rejected = 0
+        self.segment = 0
+        self.last_tick: int | None = None
+        self.first_tick: int | None = None
+        self.t0 = time.monotonic()
+        meta = {
+            "simserver.recorder.keys": conn.ep.keys.base,
+            "simserver.recorder.protocol_version": str(proto.PROTOCOL_VERSION),
+            "simserver.recorder.vehicle": str((cfg.get("vehicle") or {}).get("name", "")),
+            "simserver.recorder.scene": str((cfg.get("scene") or {}).get("path", "")),
+            "simserver.recorder.frame": FRAME_NOTE,
+            "simserver.recorder.timing": TIMING_NOTE,
+            "simserver.columns": "history.parquet names (road frame) + state-only columns: "
+                                 "see clients.recorder",
+        }
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self.schema = history_schema(meta)
+        self.diag_schema = diagnostics_schema(meta)
+        self.writer = pq.ParquetWriter(out_dir / HISTORY_FILE, self.schema,
+                                       compression="zstd", use_dictionary=False)
+
+    @staticmethod
+    def _road_of(cfg: dict[str, Any]) -> tuple[float, float]:
+        road = cfg.get("road") or {}
+        return float(road.get("grade_pct", 0.0)), float(road.get("cross_slope_pct", 0.0))
+
+    def refresh_road(self) -> None:
+        """Ask the server for its road (``get_config``); keeps the old one on failure."""
+        try:
+            reply = self.conn.ep.request("get_config", timeout_s=1.0)
+        except (TimeoutError, proto.ProtocolError):
+            return
+        if reply.get("ok"):
+            self.road = self._road_of(reply.get("config") or {})
+
+    def take(self, payload: bytes, recv_s: float) -> None:
+        """File one state payload (dedupe frozen ticks, segment resets, count gaps)."""
+        if len(payload) != proto.STATE_SIZE or payload[:2] != proto.PROTOCOL_VERSION.to_bytes(
+                2, "little"):
+            self.rejected += 1
+            return
+        tick = int.from_bytes(payload[_TICK_OFFSET:_TICK_OFFSET + 8], "little")
+        last = self.last_tick
+        if last is not None:
+            if tick == last and not self.keep_paused:
+                self.paused_repeats += 1
+                return
+            if tick < last:
+                self.segment += 1
+                self.refresh_road()  # a load may have changed the road
+            elif tick > last + self.state_every:
+                self.missed += (tick - last) // self.state_every - 1
+        if self.first_tick is None:
+            self.first_tick = tick
+        self.last_tick = tick
+        self.buffer.add(payload, recv_s, self.road, self.segment)
+        self.rows += 1
+        if self.buffer.full:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write the buffered rows as one row group."""
+        if self.buffer.n:
+            self.writer.write_table(self.buffer.table(self.schema))
+            self.buffer.clear()
+
+    def drain(self) -> int:
+        """Take everything zenoh has delivered; returns the number of states."""
+        now = time.monotonic() - self.t0
+        payloads = self.states.drain_newest()
+        for p in payloads:
+            self.take(p, now)
+        for d in self.diags.drain_newest():
+            if len(d) == proto.DIAGNOSTICS_SIZE:
+                self.diag_rows.append((now, d))
+                self.diag_count += 1
+        return len(payloads)
+
+    def close(self) -> None:
+        """Flush and complete both files."""
+        self.flush()
+        self.writer.close()
+        n = len(self.diag_rows)
+        rec = np.frombuffer(b"".join(d for _, d in self.diag_rows),
+                            dtype=proto.DIAGNOSTICS_DTYPE, count=n)
+        arrays = [pa.array(np.array([t for t, _ in self.diag_rows], dtype=np.float64))]
+        for f in list(self.diag_schema)[1:]:
+            arrays.append(pa.array(rec[f.name].astype(f.type.to_pandas_dtype()), type=f.type))
+        pq.write_table(pa.Table.from_arrays(arrays, schema=self.diag_schema),
+                       self.out_dir / DIAGNOSTICS_FILE, compression="zstd")
+
+    def run(self, stop: StopFlag, duration_s: float | None, quiet: bool) -> str:
+        """Record until a signal, the duration, or the server leaving; returns why."""
+        next_report = 5.0
+        next_road = self.road_poll_s
+        reason = "stopped"
+        while True:
+            if stop.stopped:
+                reason = f"stopped by {stop.signal_name}"
+                break
+            t = time.monotonic() - self.t0
+            if duration_s is not None and t >= duration_s:
+                reason = f"--duration {duration_s:g} s reached"
+                break
+            got = self.drain()
+            if self.presence.gone():
+                reason = "the server's liveliness token disappeared"
+                break
+            if t >= next_road:
+                next_road = t + self.road_poll_s
+                self.refresh_road()
+            if not quiet and t >= next_report:
+                next_report += 5.0
+                print(f"{PROG}: {self.rows} rows, tick {self.last_tick}, segment "
+                      f"{self.segment}, missed {self.missed}", flush=True)
+            if not got:
+                time.sleep(0.002)
+        time.sleep(0.05)  # what zenoh has in flight still arrives
+        self.drain()
+        return reason
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m clients.recorder``."""
+    parser = argparse.ArgumentParser(
+        prog="python -m clients.recorder",
+        description="Record a live simserver car: OUT/history.parquet (one row per state, "
+        "the headless runner's column names in the road-plane frame, plus world_* and "
+        "state-only columns) and OUT/diagnostics.parquet. Ctrl-C or SIGTERM stops and "
+        "writes everything received.",
+        epilog="Exit codes: 0 recorded (stopped by a signal, --duration or the server "
+        "leaving), 1 a file could not be written, 2 bad command line, 3 no server answered.",
+    )
+    parser.add_argument("--out", metavar="DIR", type=Path, required=True,
+                        help="output directory (created; its two files are overwritten)")
+    parser.add_argument("--duration", metavar="S", type=float, default=None,
+                        help="stop after this many seconds of wall time")
+    parser.add_argument("--keep-paused", action="store_true",
+                        help="keep every state, also the repeats of a frozen tick while "
+                        "the server is paused (default: one row per tick)")
+    parser.add_argument("--flush-rows", metavar="N", type=int, default=DEFAULT_FLUSH_ROWS,
+                        help=f"rows per Parquet row group (default {DEFAULT_FLUSH_ROWS})")
+    parser.add_argument("--road-poll", metavar="S", type=float, default=1.0,
+                        help="seconds between get_config polls of the road (default 1)")
+    parser.add_argument("--rrd", metavar="FILE", type=Path, default=None,
+                        help="also save a Rerun recording: runs 'simserver view --sink "
+                        "save:FILE' beside the recorder (needs the server's vehicle files "
+                        "on this machine)")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_connection_args(parser)
+    return parser
+
+
+def start_rrd_viewer(args: argparse.Namespace) -> subprocess.Popen:
+    """Start ``simserver view --sink save:FILE`` for ``--rrd`` (its own process).
+
+    Raises
+    ------
+    ClientError
+        When the file name is not an ``.rrd`` or the viewer exits at once.
+    """
+    if args.rrd.suffix != ".rrd":
+        raise ClientError(f"--rrd {args.rrd}: expected a .rrd file name")
+    args.rrd.parent.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, "-m", "simserver", "view", "--sink", f"save:{args.rrd}",
+           "--prefix", args.prefix, "--vehicle-id", args.vehicle_id]
+    if args.zenoh_config:
+        cmd += ["--zenoh-config", args.zenoh_config]
+    for endpoint in args.connect or ([] if args.zenoh_config else [DEFAULT_CONNECT]):
+        cmd += ["--connect", endpoint]
+    if args.rrd.exists():
+        args.rrd.unlink()
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL)
+    # Ready once it has written to the file: by then it handles SIGTERM (a signal during
+    # its start-up, a few seconds of imports and compilation, would lose the file).
+    deadline = time.monotonic() + VIEWER_START_S
+    while not (args.rrd.exists() and args.rrd.stat().st_size > 0):
+        if proc.poll() is not None:
+            raise ClientError(f"--rrd: 'simserver view' exited (code {proc.returncode}) "
+                              "before writing", EXIT_FAILED)
+        if time.monotonic() > deadline:
+            stop_rrd_viewer(proc)
+            raise ClientError(f"--rrd: 'simserver view' wrote nothing to {args.rrd} within "
+                              f"{VIEWER_START_S:g} s", EXIT_FAILED)
+        time.sleep(0.05)
+    return proc
+
+
+def stop_rrd_viewer(proc: subprocess.Popen | None) -> None:
+    """Stop the ``--rrd`` viewer (SIGTERM: it flushes and closes the file)."""
+    if proc is None or proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.flush_rows < 1:
+        raise ClientError(f"--flush-rows {args.flush_rows}: expected at least 1")
+    if args.duration is not None and not args.duration > 0:
+        raise ClientError(f"--duration {args.duration:g}: expected a positive number of s")
+    if not args.road_poll > 0:
+        raise ClientError(f"--road-poll {args.road_poll:g}: expected a positive number of s")
+    with StopFlag() as stop:
+        conn = connect(args, PROG)
+        try:
+            try:
+                rec = Recorder(conn, args.out, args.flush_rows, args.keep_paused,
+                               args.road_poll)
+            except OSError as exc:
+                raise ClientError(f"{args.out}: cannot write: {exc}", EXIT_FAILED) from None
+            viewer = start_rrd_viewer(args) if args.rrd is not None else None
+            print(f"{PROG}: recording {conn.where} to {args.out}/{HISTORY_FILE} and "
+                  f"{DIAGNOSTICS_FILE}" + (f" and {args.rrd}" if viewer else "")
+                  + " (Ctrl-C stops)", flush=True)
+            try:
+                reason = rec.run(stop, args.duration, args.quiet)
+            finally:
+                stop_rrd_viewer(viewer)
+                try:
+                    rec.close()
+                except OSError as exc:
+                    raise ClientError(f"{args.out}: cannot write: {exc}", EXIT_FAILED) \
+                        from None
+        finally:
+            conn.close()
+    span = "" if rec.last_tick is None else f", last tick {rec.last_tick}"
+    print(f"{PROG}: {reason}: wrote {rec.rows} state rows{span} in {rec.segment + 1} "
+          f"segment(s), {rec.diag_count} diagnostics; missed {rec.missed} states, "
+          f"{rec.paused_repeats} paused repeats skipped, {rec.rejected} bad payloads",
+          flush=True)
+    if rec.rows == 0:
+        print(f"{PROG}: warning: no state was received", file=sys.stderr, flush=True)
+    return EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``python -m clients.recorder``; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    return run_main(PROG, lambda: _run(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+
