@@ -103,7 +103,9 @@ def run(seconds: float, cmd_hz: float, viewer: str = "off") -> dict:
     out, _ = server.communicate(timeout=30)
     final = json.loads(out.split("simserver: stopped ", 1)[1].splitlines()[0])
     lat = np.array(latencies_us)
-    windows = [d for d in diags if int(d["window_ticks"]) >= 4096]
+    windows = [d for d in diags if int(d["window_ticks"]) >= 4096] or diags[-1:]
+    if not windows:
+        raise RuntimeError("no diagnostics received: run for a few seconds at least")
     wall_s = (last_state[0] - first_state[0]) / 1e9
     sim_s = (last_state[1] - first_state[1]) * 1e-3
     return {

@@ -38,7 +38,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--rounds", type=int, default=2)
     args = parser.parse_args(argv)
-    tmp = Path(tempfile.mkdtemp(prefix="simserver_viewer_bench_"))
+    tmp_dir = tempfile.TemporaryDirectory(prefix="simserver_viewer_bench_")
+    tmp = Path(tmp_dir.name)
     stalled, url = stalled_viewer()
     modes = {"off": "off", "file": f"save:{tmp / 'live.rrd'}", "stalled viewer": f"connect:{url}"}
     results: dict[str, list[dict]] = {m: [] for m in modes}
@@ -46,6 +47,7 @@ def main(argv: list[str] | None = None) -> dict:
         for name, viewer in modes.items():
             results[name].append(run(args.seconds, 200.0, viewer))
     stalled.close()
+    tmp_dir.cleanup()
     summary = {}
     base = np.median([r["lateness_p99_us"] for r in results["off"]])
     for name, rs in results.items():
