@@ -43,6 +43,7 @@ import os
 import random
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -585,11 +586,15 @@ def role_flood(args: argparse.Namespace) -> None:
         t0 = time.monotonic()
         next_t = t0
         end = t0 + args.seconds
+        # a valid command, its seq patched in place (encoding each one would cap the rate)
+        template = bytearray(proto.encode_command(brake=0.3, gear=proto.Gear.D))
+        seq_offset = proto.COMMAND_DTYPE.fields["seq"][1]
+        put, pack_into = pub.put, struct.Struct("<I").pack_into
         while not stop.stopped and time.monotonic() < end:
             for _ in range(per_ms):
                 seq += 1
-                pub.put(proto.encode_command(seq=seq & 0xFFFFFFFF, brake=0.3,
-                                             gear=proto.Gear.D))
+                pack_into(template, seq_offset, seq & 0xFFFFFFFF)
+                put(bytes(template))
             sent += per_ms
             next_t += 0.001
             delay = next_t - time.monotonic()
@@ -611,7 +616,7 @@ def role_recorder(args: argparse.Namespace) -> None:
         ages: list[float] = []
         last_tick: int | None = None
         diags = 0
-        out = open(args.out, "wb") if args.out else None  # noqa: SIM115
+        out = open(args.out, "wb") if args.out else None
         print("READY", flush=True)
         end = time.monotonic() + args.seconds if args.seconds > 0 else math.inf
         try:
@@ -687,7 +692,8 @@ def role_router(args: argparse.Namespace) -> None:
     from simserver.adapters.zenoh_io import make_zenoh_config
 
     stop = _Stop()
-    cfg = make_zenoh_config(listen=args.listen, connect=args.connect or [], mode="router")
+    cfg = make_zenoh_config(listen=args.listen, connect=args.connect or [],
+                            config_file=args.zenoh_config, mode="router")
     with zenoh.open(cfg):
         print("READY", flush=True)
         end = time.monotonic() + args.seconds if args.seconds > 0 else math.inf

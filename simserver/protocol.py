@@ -994,7 +994,10 @@ def _check_arg(spec: ArgSpec, value: Any, path: str) -> Any:
     if spec.kind == "number":
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ProtocolError(path, f"must be a number, got {value!r}")
-        value = float(value)
+        try:
+            value = float(value)
+        except OverflowError:
+            raise ProtocolError(path, "is too large to be a number") from None
         if not math.isfinite(value):
             raise ProtocolError(path, f"{value!r} is not finite")
         if not spec.lo <= value <= spec.hi:
@@ -1013,6 +1016,10 @@ def _check_arg(spec: ArgSpec, value: Any, path: str) -> Any:
             raise ProtocolError(path, f"is longer than {_MAX_PATH} characters")
         if any(ord(ch) < 32 or ord(ch) == 127 for ch in value):
             raise ProtocolError(path, "contains control characters")
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            raise ProtocolError(path, "is not valid Unicode (a lone surrogate)") from None
         if not value.endswith((".yaml", ".yml")):
             raise ProtocolError(path, f"{value!r} is not a .yaml/.yml file")
         return value

@@ -38,7 +38,7 @@ import numpy as np
 from simserver import protocol as proto
 from simserver.adapters.config import ConfigError, check_keys, number, read_yaml
 from simserver.core import layout as L
-from simserver.core.integrator import make_workspace, step
+from simserver.core.integrator import forget_tire_loads, make_workspace, step
 from simserver.core.params import VP_CG_HEIGHT_M, road_axes, set_road
 from simserver.core.pose import world_pose
 from simserver.scenario import Scene, initial_state, load_scene
@@ -110,6 +110,11 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
     check_keys(path, data, tuple(SERVER_KEYS), required=("scene",))
     base = {k: (path.parent / v).resolve() if k in ("scene", "zenoh_config", "command_log")
             and isinstance(v, str) else v for k, v in data.items()}
+    if overrides.get("zenoh_config") is not None:
+        # a zenoh file given on the command line decides its own endpoints and mode,
+        # unless they are given on the command line too
+        for key in ("listen", "connect", "mode"):
+            base.pop(key, None)
     for k, v in overrides.items():
         if v is not None:
             if k not in SERVER_KEYS:
@@ -226,6 +231,8 @@ class Physics:
                        "yaw_rate_radps": 0.0}
             scene = dataclasses.replace(scene, initial=at_rest)
         self.x = initial_state(scene)
+        if hasattr(self, "ws"):
+            forget_tire_loads(self.ws)
 
     def set_road(self, grade_pct: float, cross_slope_pct: float, friction_scale: float) -> None:
         """Change the road plane (takes effect at the next step)."""
@@ -438,6 +445,9 @@ class SimServer:
             req.reply_error(exc)
         except ConfigError as exc:
             req.reply_error(f"{name}: {exc}", field=name)
+        except Exception as exc:  # a bug must not stop the 1 kHz loop: answer, log, go on
+            log.exception("control %s failed", name)
+            req.reply_error(f"{name}: internal error ({type(exc).__name__})", field=name)
 
     def _load(self, args: dict[str, Any]) -> None:
         """The ``load`` control: validate everything first, then swap; nothing changes on error."""

@@ -158,6 +158,8 @@ def read_yaml(path: Path) -> dict[str, Any]:
         text = Path(path).read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start})") from exc
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -171,7 +173,10 @@ def number(path: Path | str, key: str, value: Any, lo: float, hi: float) -> floa
     """Validate one finite number within ``[lo, hi]``; errors name file and key."""
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ConfigError(f"{path}: key '{key}': expected a number, got {value!r}")
-    val = float(value)
+    try:
+        val = float(value)
+    except OverflowError:
+        raise ConfigError(f"{path}: key '{key}': the number is too large") from None
     if not math.isfinite(val):
         raise ConfigError(f"{path}: key '{key}': must be finite, got {value!r}")
     if not lo <= val <= hi:

@@ -289,7 +289,9 @@ class ControlInbox:
                         "control", f"{key!r} is not one control key of {self.keys.base}"
                     )
                 args = validate_control(name, payload)
-            except ProtocolError as exc:
+            except Exception as exc:  # ProtocolError, or a validator bug: never escapes
+                if not isinstance(exc, ProtocolError):
+                    exc = ProtocolError("request", f"could not be validated ({type(exc).__name__})")
                 self.rejected += 1
                 try:
                     if name is None:

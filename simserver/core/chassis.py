@@ -104,8 +104,9 @@ from simserver.core.params import (
     VP_YAW_INERTIA_KGM2,
 )
 from simserver.core.slip import SLIP_KINEMATIC, kinematic_slip, lagged_slip_rates
-from simserver.core.tire import tire_forces
+from simserver.core.tire import tire_evaluate, tire_prepare
 from simserver.core.tire_layout import (
+    N_TIRE_COEF,
     OUT_C_ALPHA,
     OUT_C_KAPPA,
     OUT_FX,
@@ -185,6 +186,8 @@ def chassis_rhs(
     tire_out: np.ndarray,
     out: np.ndarray,
     record: bool,
+    tire_coef: np.ndarray,
+    prepare_tires: bool,
 ) -> None:
     """Time derivatives of the integrated states.
 
@@ -299,7 +302,12 @@ def chassis_rhs(
                 d_tan_alpha, d_kappa = lagged_slip_rates(
                     tan_alpha, kappa, u_w, v_w, omega, radius, relax_lat, relax_long
                 )
-            tire_forces(tp[i], kappa, tan_alpha, 0.0, fz, mu, u_w, tire_out)
+            if prepare_tires:
+                fz_prev = tire_coef[i, N_TIRE_COEF]
+                fz_pred = fz + 0.5 * (fz - fz_prev) if fz_prev >= 0.0 else fz
+                tire_prepare(tp[i], 0.0, fz_pred, mu, tire_coef[i])
+                tire_coef[i, N_TIRE_COEF] = fz
+            tire_evaluate(tp[i], tire_coef[i], kappa, tan_alpha, fz, u_w, tire_out)
             fx = tire_out[OUT_FX]
             fy = tire_out[OUT_FY]
 

@@ -9,6 +9,10 @@ Why this scheme (model.md section 6):
   at standstill (``w^2 = R^2 C_kappa / (I B)``, 150-300 rad/s on passenger tires, about
   950 rad/s with ``C_kappa = 200 kN`` and ``B = 0.02 m``). Explicit Euler diverges there;
   RK4's stability limit ``|lambda| h < 2.8`` covers it at ``h = 1 ms``.
+- The tires' load-dependent coefficients (Magic Formula B, C, D, E, stiffnesses, peaks)
+  are prepared once per step per wheel, at the load extrapolated to mid-step; every stage
+  evaluates only the slip-dependent part, scaled by its own load (``core.tire``). Within
+  1 ms the load moves by a fraction of a per cent (the suspension moves at 1-2 Hz).
 - At speed the slip states relax at ``|u|/B``: 3500 1/s at 70 m/s with ``B = 0.02 m``,
   beyond RK4's limit. That part of the equation is linear in the state, so it is
   integrated exactly: with ``A = |u|/B`` frozen at the step start, ``y' = -A y + g(y)``
@@ -81,7 +85,13 @@ from simserver.core.slip import (
     SLIP_LAGGED_PASSIVE,
     project_to_sliding_limit,
 )
-from simserver.core.tire_layout import N_TIRE_OUT, TP_RADIUS_M, TP_RELAX_LAT_M, TP_RELAX_LONG_M
+from simserver.core.tire_layout import (
+    N_TIRE_COEF,
+    N_TIRE_OUT,
+    TP_RADIUS_M,
+    TP_RELAX_LAT_M,
+    TP_RELAX_LONG_M,
+)
 
 # ---- workspace layout (offsets into ws)
 _WS_Y2 = 0
@@ -101,12 +111,24 @@ _WS_BRAKE = _WS_BRAKE_CAP + N_WHEELS
 _WS_HELD = _WS_BRAKE + N_WHEELS
 _WS_WHEEL = _WS_HELD + N_WHEELS
 _WS_TIRE = _WS_WHEEL + N_WHEELS * N_W
-N_WORKSPACE = _WS_TIRE + N_TIRE_OUT
+# Per wheel: the tire's load-dependent coefficients, prepared once per step at the load
+# extrapolated to mid-step (Fz + (Fz - Fz_prev)/2: RK4's symmetric stage weights then keep
+# the load coupling second order), followed by Fz_prev (-1: none yet).
+_WS_COEF = _WS_TIRE + N_TIRE_OUT
+N_WORKSPACE = _WS_COEF + N_WHEELS * (N_TIRE_COEF + 1)
+
+
+def forget_tire_loads(ws: np.ndarray) -> None:
+    """Forget the previous step's loads (a new run, a reset): no extrapolation next step."""
+    for i in range(N_WHEELS):
+        ws[_WS_COEF + (i + 1) * (N_TIRE_COEF + 1) - 1] = -1.0
 
 
 def make_workspace() -> np.ndarray:
     """Allocate the scratch array ``step`` needs (once, before the loop)."""
-    return np.zeros(N_WORKSPACE, dtype=np.float64)
+    ws = np.zeros(N_WORKSPACE, dtype=np.float64)
+    forget_tire_loads(ws)
+    return ws
 
 
 @nb.njit(cache=True)
@@ -206,6 +228,8 @@ def step(
     held = ws[_WS_HELD:_WS_HELD + N_WHEELS]
     wheel = ws[_WS_WHEEL:_WS_WHEEL + N_WHEELS * N_W]
     tire_out = ws[_WS_TIRE:_WS_TIRE + N_TIRE_OUT]
+    tire_coef = ws[_WS_COEF:_WS_COEF + N_WHEELS * (N_TIRE_COEF + 1)].reshape(
+        (N_WHEELS, N_TIRE_COEF + 1))
     slip_model = int(vp[VP_SLIP_MODEL])
     h = dt_s
 
@@ -220,7 +244,8 @@ def step(
     for i in range(N_WHEELS):
         held[i] = 0.0
         brake[i] = 0.0
-    chassis_rhs(x, vp, tp, steer, steer_cs, drive, brake, held, h, k1, wheel, tire_out, out, True)
+    chassis_rhs(x, vp, tp, steer, steer_cs, drive, brake, held, h, k1, wheel, tire_out, out, True,
+                tire_coef, True)
     resolve_brakes(x, vp, tp, h, drive, brake_cap, wheel, brake, held)
     for i in range(N_WHEELS):  # only the spin rates depend on the brakes
         if held[i] > 0.5:
@@ -245,15 +270,18 @@ def step(
     for j in range(N_INTEGRATED):
         k1[j] += decay[j] * x[j]
         y2[j] = e_half[j] * (x[j] + 0.5 * h * k1[j])
-    chassis_rhs(y2, vp, tp, steer, steer_cs, drive, brake, held, h, k2, wheel, tire_out, out, False)
+    chassis_rhs(y2, vp, tp, steer, steer_cs, drive, brake, held, h, k2, wheel, tire_out, out, False,
+                tire_coef, False)
     for j in range(N_INTEGRATED):
         k2[j] += decay[j] * y2[j]
         y3[j] = e_half[j] * x[j] + 0.5 * h * k2[j]
-    chassis_rhs(y3, vp, tp, steer, steer_cs, drive, brake, held, h, k3, wheel, tire_out, out, False)
+    chassis_rhs(y3, vp, tp, steer, steer_cs, drive, brake, held, h, k3, wheel, tire_out, out, False,
+                tire_coef, False)
     for j in range(N_INTEGRATED):
         k3[j] += decay[j] * y3[j]
         y4[j] = e_half[j] * e_half[j] * x[j] + h * e_half[j] * k3[j]
-    chassis_rhs(y4, vp, tp, steer, steer_cs, drive, brake, held, h, k4, wheel, tire_out, out, False)
+    chassis_rhs(y4, vp, tp, steer, steer_cs, drive, brake, held, h, k4, wheel, tire_out, out, False,
+                tire_coef, False)
     for i in range(N_WHEELS):
         y2[OMEGA0 + i] = x[OMEGA0 + i]  # keep the start spins for the zero-crossing test
     for j in range(N_INTEGRATED):

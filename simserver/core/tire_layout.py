@@ -1,8 +1,20 @@
-"""Slot layout shared by every tire model: the common parameter slots and the outputs.
+"""Slot layout shared by every tire model: common parameters, coefficients, outputs.
 
 Kept apart from :mod:`simserver.core.tire` so that each model kernel can import it
 without importing the dispatcher.
+
+Every model is split in two (see :mod:`simserver.core.tire`): ``prepare`` computes the
+load-dependent coefficients into a ``coef`` vector of ``N_TIRE_COEF`` floats (the slots
+are named in each model's module), ``evaluate`` the slip-dependent rest from them.
 """
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic, overload
 
 # --- model ids (tp[TP_MODEL]) -----------------------------------------------------
 TIRE_MODEL_SIMPLE = 0  # brush-type (Fiala) combined-slip model, explicit stiffnesses
@@ -28,3 +40,52 @@ OUT_TAN_ALPHA_SLIDE = 7  # |tan alpha| at the peak of pure-slip Fy: the sliding 
 OUT_FX_PEAK = 8  # peak pure-slip |Fx| at this load and friction (N)
 OUT_FY_PEAK = 9  # peak pure-slip |Fy| at this load and friction (N)
 N_TIRE_OUT = 10
+
+# --- load-dependent coefficients (prepare -> evaluate) -------------------------------
+# Slot names live in the model modules (SC_* in tire_simple, C_* in tire_mf61); each
+# checks at import that it uses exactly its count here.
+N_SIMPLE_COEF = 10
+N_MF61_COEF = 53
+N_TIRE_COEF = max(N_SIMPLE_COEF, N_MF61_COEF)
+
+# --- compilation of every tire kernel -------------------------------------------------
+# Fused multiply-add allowed (and nothing else of fastmath: NaN and inf keep their IEEE
+# meaning); division by zero yields inf instead of raising, which removes a test and a
+# branch per division. The model bodies are inlined (numba IR) into the dispatchers of
+# simserver.core.tire, and inlined code is compiled with the *caller's* options: every
+# function that inlines a model body must use exactly these.
+TIRE_JIT_OPTIONS = {"cache": True, "fastmath": {"contract"}, "error_model": "numpy"}
+
+# --- input ranges shared by the models (outputs stay finite for any finite input) ----
+FZ_INPUT_MAX_N = 1.0e9  # fz_n is clamped to this
+SLIP_INPUT_MAX = 1.0e6  # |kappa|, |tan_alpha| clamped to this (the curves are flat there)
+MU_SCALE_MAX = 10.0  # mu_scale clamped to at most this
+
+
+@intrinsic
+def _stack_coef(typingctx: object) -> tuple:
+    """Pointer to ``N_TIRE_COEF`` float64 on the stack of the compiled caller (an alloca)."""
+    sig = types.CPointer(types.float64)()
+
+    def codegen(context: object, builder: object, signature: object, args: object) -> object:
+        return cgutils.alloca_once(builder, context.get_value_type(types.float64), size=N_TIRE_COEF)
+
+    return sig, codegen
+
+
+def coef_scratch() -> np.ndarray:
+    """A ``float64[N_TIRE_COEF]`` scratch vector for ``prepare`` followed by ``evaluate``.
+
+    In compiled code it lives on the caller's stack (no heap allocation: the call is
+    inlined into the caller, see the overload below); called from Python it is a new
+    array. Its content is undefined until a ``prepare`` writes it.
+    """
+    return np.empty(N_TIRE_COEF, dtype=np.float64)
+
+
+@overload(coef_scratch, inline="always")
+def _coef_scratch_compiled() -> object:
+    def impl() -> np.ndarray:
+        return nb.carray(_stack_coef(), (N_TIRE_COEF,))
+
+    return impl

@@ -33,10 +33,26 @@ clamped load ``Fz_c`` and every force, moment, stiffness and peak is multiplied 
 ``Fz / Fz_c``: linear in load beyond the fitted range, and going to zero with ``Fz``.
 Inside the range this is exactly MF 6.1.
 
-Speed: the kernel evaluates about forty atan / sin, each a 10-20 ns libm call that
-cannot be vectorised. Here they are branch-free polynomials (about 1 ulp), and the
-sixteen Magic Formula curves of one call are evaluated eight at a time in a loop the
-compiler turns into SIMD code (:func:`_mf_lanes`; its scratch is on the stack).
+Split (see :mod:`simserver.core.tire`): :func:`mf61_prepare` computes everything that
+depends on load, camber, friction and pressure but not on slip (``B, C, D, E``, the
+shifts, ``Kxk``, ``Kya``, the slip-free factors of the combined-slip weights, the
+aligning-moment and rolling-resistance coefficients, both sides of the sliding limits)
+at ``Fz_c``; :func:`mf61_evaluate` the slip-dependent rest, scaled by
+``Fz / Fz_c`` for the current ``Fz``. At the prepared load the two are
+:func:`mf61_forces` exactly; at another load they keep the prepared load's curve per
+unit load ``F / Fz``, whose change with load is the only error.
+
+Speed: the model needs about forty atan / sin, each a 10-20 ns libm call that cannot be
+vectorised. Here they are branch-free polynomials (about 1 ulp), evaluated eight at a
+time in loops the compiler turns into SIMD code, their scratch on the stack. Per
+evaluation, one round of :func:`_mf_lanes` holds the eight slip-dependent curves
+(``G_xa`` and its value at zero slip, the same for ``G_yk``, ``Fx0``, ``Fy0``, the
+trail, ``S_Vyk``), after one scalar ``atan`` for ``E_t``; a non-zero camber adds the
+camber-free ``Fy0`` of (4.E74) as a scalar curve. Per preparation, two rounds of
+:func:`_atan_sin_lanes` hold ``Kya``'s ``sin(atan)`` and the four peak searches. The
+bodies are inlined (numba IR) into their callers; the dispatchers of
+:mod:`simserver.core.tire` are compiled with the same options
+(``tire_layout.TIRE_JIT_OPTIONS``).
 
 Not modelled: turn slip and spin (zeta = 1), speed-dependent friction ``LMUV``,
 overturning moment ``Mx``, low-speed smoothing of ``My`` (the caller applies ``My``
@@ -55,6 +71,9 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from simserver.core.tire_layout import (
+    FZ_INPUT_MAX_N,
+    MU_SCALE_MAX,
+    N_MF61_COEF,
     OUT_C_ALPHA,
     OUT_C_KAPPA,
     OUT_FX,
@@ -65,6 +84,9 @@ from simserver.core.tire_layout import (
     OUT_MY,
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
+    SLIP_INPUT_MAX,
+    TIRE_JIT_OPTIONS,
+    coef_scratch,
 )
 
 # --- packed parameters: one source of truth ------------------------------------------
@@ -241,22 +263,106 @@ P_QSY6 = _slot("QSY6")
 P_QSY7 = _slot("QSY7")
 P_QSY8 = _slot("QSY8")
 
+# --- load-dependent coefficients: the slots of coef (mf61_prepare -> mf61_evaluate) -------
+# Everything that depends only on Fz, gamma, mu_scale and pressure, at the clamped load
+# Fz_c. Where the book's quantity depends on the sign of a slip, both sides are kept.
+MF61_COEF_NAMES: tuple[str, ...] = (
+    "FZ_PREP",  # Fz_c: the load the coefficients were computed at (N, > 0)
+    # pure longitudinal slip (4.E10)-(4.E18)
+    "SHX", "BX", "CX", "DX", "SVX", "EX_POS", "EX_NEG",  # E_x for kappa_x >= 0, < 0
+    # pure lateral slip (4.E19)-(4.E30)
+    "SHY", "BY", "CY", "DY", "SVY", "EY_POS", "EY_NEG",  # E_y for alpha_y >= 0, < 0
+    # the same at gamma = 0, for F'y (4.E74); CAMBER = 0 when gamma* = 0 (then equal)
+    "CAMBER", "SHY_G0", "BY_G0", "DY_G0", "SVY_G0", "EY_G0_POS", "EY_G0_NEG",
+    # combined slip (4.E54)-(4.E57), (4.E62)-(4.E67) without their slip factors
+    "BXA0", "EXA", "BYK0", "EYK", "SHYK", "DVYK0",
+    # aligning moment (4.E35)-(4.E47), (4.E72)-(4.E78)
+    "SHT", "BT", "BT_CT", "ET_LOAD", "ET_GAMMA", "DT", "DR0", "BR",
+    "SVY_KYA",  # S_Vy / K'_ya (4.E38)
+    "KXK_KYA",  # K_xk / K'_ya (4.E77)
+    "S_GAMMA", "INV_FZ0",
+    # rolling resistance (4.E70)
+    "MY_SCALE", "MY_GAMMA", "MY_PRESSURE", "INV_V0", "INV_FNOMIN",
+    # load-only outputs: stiffnesses, peaks, sliding limits on either side
+    "KXK", "KYA_ABS", "DX_ABS", "DY_ABS",
+    "KAPPA_SLIDE_POS", "KAPPA_SLIDE_NEG", "TAN_ALPHA_SLIDE_POS", "TAN_ALPHA_SLIDE_NEG",
+)  # fmt: skip
+if len(MF61_COEF_NAMES) != N_MF61_COEF:
+    raise ImportError("simserver.core.tire_layout.N_MF61_COEF is out of date")
+
+
+def _coef_slot(name: str) -> int:
+    return MF61_COEF_NAMES.index(name)
+
+
+C_FZ_PREP = _coef_slot("FZ_PREP")
+C_SHX = _coef_slot("SHX")
+C_BX = _coef_slot("BX")
+C_CX = _coef_slot("CX")
+C_DX = _coef_slot("DX")
+C_SVX = _coef_slot("SVX")
+C_EX_POS = _coef_slot("EX_POS")
+C_EX_NEG = _coef_slot("EX_NEG")
+C_SHY = _coef_slot("SHY")
+C_BY = _coef_slot("BY")
+C_CY = _coef_slot("CY")
+C_DY = _coef_slot("DY")
+C_SVY = _coef_slot("SVY")
+C_EY_POS = _coef_slot("EY_POS")
+C_EY_NEG = _coef_slot("EY_NEG")
+C_CAMBER = _coef_slot("CAMBER")
+C_SHY_G0 = _coef_slot("SHY_G0")
+C_BY_G0 = _coef_slot("BY_G0")
+C_DY_G0 = _coef_slot("DY_G0")
+C_SVY_G0 = _coef_slot("SVY_G0")
+C_EY_G0_POS = _coef_slot("EY_G0_POS")
+C_EY_G0_NEG = _coef_slot("EY_G0_NEG")
+C_BXA0 = _coef_slot("BXA0")
+C_EXA = _coef_slot("EXA")
+C_BYK0 = _coef_slot("BYK0")
+C_EYK = _coef_slot("EYK")
+C_SHYK = _coef_slot("SHYK")
+C_DVYK0 = _coef_slot("DVYK0")
+C_SHT = _coef_slot("SHT")
+C_BT = _coef_slot("BT")
+C_BT_CT = _coef_slot("BT_CT")
+C_ET_LOAD = _coef_slot("ET_LOAD")
+C_ET_GAMMA = _coef_slot("ET_GAMMA")
+C_DT = _coef_slot("DT")
+C_DR0 = _coef_slot("DR0")
+C_BR = _coef_slot("BR")
+C_SVY_KYA = _coef_slot("SVY_KYA")
+C_KXK_KYA = _coef_slot("KXK_KYA")
+C_S_GAMMA = _coef_slot("S_GAMMA")
+C_INV_FZ0 = _coef_slot("INV_FZ0")
+C_MY_SCALE = _coef_slot("MY_SCALE")
+C_MY_GAMMA = _coef_slot("MY_GAMMA")
+C_MY_PRESSURE = _coef_slot("MY_PRESSURE")
+C_INV_V0 = _coef_slot("INV_V0")
+C_INV_FNOMIN = _coef_slot("INV_FNOMIN")
+C_KXK = _coef_slot("KXK")
+C_KYA_ABS = _coef_slot("KYA_ABS")
+C_DX_ABS = _coef_slot("DX_ABS")
+C_DY_ABS = _coef_slot("DY_ABS")
+C_KAPPA_SLIDE_POS = _coef_slot("KAPPA_SLIDE_POS")
+C_KAPPA_SLIDE_NEG = _coef_slot("KAPPA_SLIDE_NEG")
+C_TAN_ALPHA_SLIDE_POS = _coef_slot("TAN_ALPHA_SLIDE_POS")
+C_TAN_ALPHA_SLIDE_NEG = _coef_slot("TAN_ALPHA_SLIDE_NEG")
+
 # --- input ranges and numerical guards (compile-time constants) ---------------------------
+# (FZ_INPUT_MAX_N, SLIP_INPUT_MAX, MU_SCALE_MAX: simserver.core.tire_layout)
 FZ_FLOOR_FRAC = 0.01  # coefficients are never evaluated below 1 % of FNOMIN
-FZ_INPUT_MAX_N = 1.0e9  # fz_n is clamped to this (forces stay finite)
-SLIP_INPUT_MAX = 1.0e6  # |kappa|, |tan_alpha| clamped to this (the curves are flat there)
 GAMMA_INPUT_MAX_RAD = 0.5 * math.pi  # |gamma| clamped to this
 MU_SCALE_MIN = 1e-6  # mu_scale clamped to [MU_SCALE_MIN, MU_SCALE_MAX]: lambda_mu divides
-MU_SCALE_MAX = 10.0  # Bt and Br (4.E40, 4.E45), so it may not reach zero
+# Bt and Br (4.E40, 4.E45), so it may not reach zero
 VX_MY_MAX_MPS = 1000.0  # |vx| cap in the (Vx/V0)^4 rolling-resistance term
 SLIDE_MAX = 1.0e6  # cap of OUT_KAPPA_SLIDE / OUT_TAN_ALPHA_SLIDE (curve without peak)
 SLIDE_FRACTION_NO_PEAK = 0.99  # C <= 1: "sliding" where the curve reaches 99 % of its limit
 _TINY = 1e-9  # floor of C*D (N), |K_ya| (N/rad), G0: never reached with a sane file
 
-# Compilation: fused multiply-add allowed (and nothing else of fastmath: NaN and inf keep
-# their IEEE meaning); division by zero yields inf instead of raising, which removes a
-# test and a branch per division (every division here has a non-zero denominator).
-_JIT_OPTIONS = {"cache": True, "fastmath": {"contract"}, "error_model": "numpy"}
+# Compilation: tire_layout.TIRE_JIT_OPTIONS (FMA, division by zero gives inf; every
+# division here has a non-zero denominator anyway).
+_JIT_OPTIONS = TIRE_JIT_OPTIONS
 
 # --- elementary functions ----------------------------------------------------------------
 # libm calls are not inlined, clobber every vector register and cost 10-20 ns each, and
@@ -328,6 +434,34 @@ def _atan(x: float) -> float:
 
 
 @nb.njit(inline="always", **_JIT_OPTIONS)
+def _atan_flat(x: float) -> float:
+    """:func:`_atan` without a conditional expression (the same value for ``|x| <= 1e300``).
+
+    The interval flags are 0/1 factors and the blends are exact, so nothing branches even
+    before LLVM's optimisations: numba's reference-count pruning, which runs early, gives
+    up on functions with too many branch paths (see :func:`_mf_curve`).
+    """
+    ax = min(abs(x), 1e300)  # atan(1e300) = pi/2 in double; keeps c * ax finite
+    f1 = 1.0 * (ax >= 0.4375)
+    f2 = 1.0 * (ax >= 0.6875)
+    f3 = 1.0 * (ax >= 1.1875)
+    f4 = 1.0 * (ax >= 2.4375)
+    c = 0.5 * (f1 + f2 + f3)  # centre, exact
+    num = (ax - c) * (1.0 - f4) - f4  # -1 beyond 39/16
+    den = ax * f4 + (1.0 + c * ax) * (1.0 - f4)
+    base = max(f1 * _ATAN_HALF, f2 * _PI_4, f3 * _ATAN_3HALF, f4 * _PI_2)
+    u = num / den  # atan(ax) = base + atan(u), |u| <= 7/16
+    z = u * u
+    z2 = z * z
+    z4 = z2 * z2
+    q0 = (_AT0 + _AT1 * z) + (_AT2 + _AT3 * z) * z2
+    q1 = (_AT4 + _AT5 * z) + (_AT6 + _AT7 * z) * z2
+    q2 = (_AT8 + _AT9 * z) + _AT10 * z2
+    poly = q0 + (q1 + q2 * z4) * z4
+    return math.copysign(base + (u + u * z * poly), x)
+
+
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _sin_core(y: float) -> float:
     """``sin(y)`` for ``|y| <= pi/2``."""
     z = y * y
@@ -340,14 +474,20 @@ def _sin_core(y: float) -> float:
 
 
 @nb.njit(inline="always", **_JIT_OPTIONS)
-def _sin(x: float) -> float:
-    """``sin(x)`` to about 1 ulp (absolute) for ``|x| < 2^20``; libm beyond (never here)."""
-    if not abs(x) < 1048576.0:
-        return math.sin(x)
+def _sin_branch_free(x: float) -> float:
+    """``sin(x)`` to about 1 ulp (absolute) for ``|x| < 2^20``, without a branch."""
     n = (x * _INV_TWO_PI + _ROUND_MAGIC) - _ROUND_MAGIC  # nearest integer
     r = (x - n * _TWO_PI_HI) - n * _TWO_PI_LO  # |r| <= pi
     ar = abs(r)
     return math.copysign(_sin_core(min(ar, (_PI_HI - ar) + _PI_LO)), r)  # sin(pi - a) = sin a
+
+
+@nb.njit(inline="always", **_JIT_OPTIONS)
+def _sin(x: float) -> float:
+    """``sin(x)`` to about 1 ulp (absolute) for ``|x| < 2^20``; libm beyond (never here)."""
+    if not abs(x) < 1048576.0:
+        return math.sin(x)
+    return _sin_branch_free(x)
 
 
 # --- the Magic Formula, eight curves at a time ----------------------------------------------
@@ -369,7 +509,7 @@ def _stack_lanes(typingctx: object) -> tuple:
     return sig, codegen
 
 
-@nb.njit(**_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _mf_lanes(
     y: tuple[float, ...], e: tuple[float, ...], c: tuple[float, ...], k: tuple[float, ...]
 ) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -388,6 +528,13 @@ def _mf_lanes(
     Returns
     -------
     theta, s : tuple of N_LANES floats
+
+    Notes
+    -----
+    Inlined into its caller (numba IR), so that the lanes' scratch is on the caller's
+    stack, the tuples are not passed through memory, and no call between the caller's
+    array arguments lets their reference counting survive (an out-of-line call here
+    costs three atomic increments and decrements of ``p``, ``coef``, ``out``).
     """
     yb = nb.carray(_stack_lanes(), (N_LANES,))
     eb = nb.carray(_stack_lanes(), (N_LANES,))
@@ -404,12 +551,35 @@ def _mf_lanes(
         yi = yb[i]
         ei = eb[i]
         theta = _atan((1.0 - ei) * yi + ei * _atan(yi))
-        w = cb[i] * theta + kb[i]
-        n = (w * _INV_TWO_PI + _ROUND_MAGIC) - _ROUND_MAGIC
-        r = (w - n * _TWO_PI_HI) - n * _TWO_PI_LO  # |r| <= pi
-        ar = abs(r)
         tb[i] = theta
-        sb[i] = math.copysign(_sin_core(min(ar, (_PI_HI - ar) + _PI_LO)), r)
+        sb[i] = _sin_branch_free(cb[i] * theta + kb[i])
+    return (
+        (tb[0], tb[1], tb[2], tb[3], tb[4], tb[5], tb[6], tb[7]),
+        (sb[0], sb[1], sb[2], sb[3], sb[4], sb[5], sb[6], sb[7]),
+    )
+
+
+@nb.njit(inline="always", **_JIT_OPTIONS)
+def _atan_sin_lanes(
+    y: tuple[float, ...], c: tuple[float, ...]
+) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Eight ``theta_i = atan(y_i)``, ``s_i = sin(C_i theta_i)`` in one vectorised loop.
+
+    The load-only curves: ``sin(PKY4 atan(.))`` of ``K_ya`` (4.E25) and the ``atan`` of
+    the peak searches (:func:`_peak_step`); one ``atan`` per lane where
+    :func:`_mf_lanes` takes two. Inlined like :func:`_mf_lanes`.
+    """
+    yb = nb.carray(_stack_lanes(), (N_LANES,))
+    cb = nb.carray(_stack_lanes(), (N_LANES,))
+    tb = nb.carray(_stack_lanes(), (N_LANES,))
+    sb = nb.carray(_stack_lanes(), (N_LANES,))
+    for i in range(N_LANES):
+        yb[i] = y[i]
+        cb[i] = c[i]
+    for i in range(N_LANES):  # branch-free body: one vector loop
+        theta = _atan(yb[i])
+        tb[i] = theta
+        sb[i] = _sin_branch_free(cb[i] * theta)
     return (
         (tb[0], tb[1], tb[2], tb[3], tb[4], tb[5], tb[6], tb[7]),
         (sb[0], sb[1], sb[2], sb[3], sb[4], sb[5], sb[6], sb[7]),
@@ -464,6 +634,388 @@ def _peak_step(u: float, atan_u: float, e: float, target: float) -> float:
     return min(max(u - g * n * den / max(n * n + e * g * u, _TINY), 0.5 * u), SLIDE_MAX)
 
 
+@nb.njit(inline="always", **_JIT_OPTIONS)
+def _mf_curve(y: float, e: float, c: float) -> float:
+    """One Magic Formula ``sin[C atan{y - E (y - atan y)}]``, scalar; as a lane of _mf_lanes.
+
+    Used in a branch of :func:`_mf61_evaluate` (camber not zero). Without calls and
+    without conditional expressions (:func:`_atan_flat`, and no libm fallback of
+    :func:`_sin`: the argument is at most ``|C| pi / 2``), so that the branch does not
+    keep numba from pruning the reference counting of the arrays of the dispatchers of
+    :mod:`simserver.core.tire` (checked in ``tests/test_tire_split.py``; 20 ns a call).
+    """
+    return _sin_branch_free(c * _atan_flat((1.0 - e) * y + e * _atan_flat(y)))
+
+
+@nb.njit(inline="always", **_JIT_OPTIONS)
+def _mf61_prepare(
+    p: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
+) -> None:
+    """Load-dependent part of Magic Formula 6.1: every coefficient that needs no slip.
+
+    Parameters
+    ----------
+    p : float64[N_MF61_PARAM]
+        Coefficients packed by :func:`mf61_param_vector` (slots ``P_*``).
+    gamma_rad : float
+        Inclination angle (rad); ``gamma* = sin(gamma)`` (4.E4).
+    fz_n : float
+        Normal load (N). The coefficients are computed at the clamped load
+        ``Fz_c = clamp(fz_n, max(FZMIN, 0.01 FNOMIN), FZMAX)``, stored in ``C_FZ_PREP``;
+        so ``fz_n <= 0`` prepares at the floor, from which :func:`mf61_evaluate` scales
+        linearly (as :func:`mf61_forces` does below the floor).
+    mu_scale : float
+        Road friction scale, multiplies ``LMUX`` and ``LMUY``.
+    coef : float64[N_TIRE_COEF]
+        Written: every ``C_*`` slot (:data:`MF61_COEF_NAMES`).
+
+    Notes
+    -----
+    Computes (4.E1)-(4.E8) the operating point; (4.E11)-(4.E18) ``Cx, Dx, Kxk, Bx, SHx,
+    SVx`` and ``Ex`` for both signs of ``kappa_x``; (4.E21)-(4.E30) ``Cy, Dy, Kya, By,
+    SHy, SVy`` and ``Ey`` for both signs of ``alpha_y``, with their ``gamma = 0``
+    counterparts for (4.E74); the slip-free factors of the combined-slip weights
+    (4.E54)-(4.E57), (4.E62)-(4.E67); the aligning-moment coefficients (4.E35), (4.E40)-
+    (4.E47), (4.E45); the rolling-resistance factors of (4.E70); and the sliding limits:
+    the slip at the peak of each pure-slip curve on either side (two Halley steps from
+    a bracketing start, :func:`_peak_step`). Four peak searches and ``Kya``'s
+    ``sin(atan)`` are the two rounds of :func:`_atan_sin_lanes` here.
+
+    Inlined into its caller (numba IR), which must be compiled with ``_JIT_OPTIONS``;
+    :func:`mf61_prepare` is the same compiled on its own.
+    """
+    gamma = min(max(gamma_rad, -GAMMA_INPUT_MAX_RAD), GAMMA_INPUT_MAX_RAD)
+    mu = min(max(mu_scale, MU_SCALE_MIN), MU_SCALE_MAX)
+
+    # --- operating point (4.E1)-(4.E8) ---------------------------------------------------
+    fnomin = p[P_FNOMIN]
+    r0 = p[P_UNLOADED_RADIUS]
+    fz0 = fnomin * p[P_LFZO]  # F'z0 (4.E1)
+    fz_lo = max(p[P_FZMIN], FZ_FLOOR_FRAC * fnomin)
+    fz = min(max(fz_n, fz_lo), max(p[P_FZMAX], fz_lo))  # load the coefficients see
+    inv_fz0 = 1.0 / fz0
+    inv_fnomin = 1.0 / fnomin
+    dfz = (fz - fz0) * inv_fz0  # (4.E2a)
+    dfz2 = dfz * dfz
+    fz_ratio = fz * inv_fnomin
+    p_nom = p[P_NOMPRES]
+    p_infl = p[P_INFLPRES]
+    dpi = (p_infl - p_nom) / p_nom if p_nom > 0.0 and p_infl > 0.0 else 0.0  # (4.E2b)
+    dpi2 = dpi * dpi
+    pow_load = math.pow(fz_ratio, p[P_QSY7])  # (Fz / Fz0)^QSY7 (4.E70)
+    exp_kx = math.exp(p[P_PKX3] * dfz)  # (4.E15)
+    lmux = p[P_LMUX] * mu  # lambda*_mux = lambda'_mux (4.E7, 4.E8: LMUV = 0, A_mu = 1)
+    lmuy = max(p[P_LMUY] * mu, _TINY)
+    inv_lmuy = 1.0 / lmuy  # Bt, Br (4.E40, 4.E45)
+    gs = _sin(gamma) if gamma != 0.0 else 0.0  # gamma* (4.E4)
+    gs2 = gs * gs
+    gs_abs = abs(gs)
+
+    # --- longitudinal (4.E11)-(4.E18) -----------------------------------------------------
+    cx = p[P_PCX1] * p[P_LCX]  # (4.E11)
+    mux = (
+        (p[P_PDX1] + p[P_PDX2] * dfz)
+        * (1.0 + p[P_PPX3] * dpi + p[P_PPX4] * dpi2)
+        * (1.0 - p[P_PDX3] * gamma * gamma)
+        * lmux
+    )  # (4.E13)
+    dx = mux * fz  # (4.E12)
+    ppx = 1.0 + p[P_PPX1] * dpi + p[P_PPX2] * dpi2
+    kxk = fz * (p[P_PKX1] + p[P_PKX2] * dfz) * exp_kx * ppx * p[P_LKX]  # (4.E15)
+    bx = kxk / max(cx * dx, _TINY)  # (4.E16)
+    shx = (p[P_PHX1] + p[P_PHX2] * dfz) * p[P_LHX]  # (4.E17)
+    svx = fz * (p[P_PVX1] + p[P_PVX2] * dfz) * p[P_LVX] * lmux  # (4.E18)
+    ex0 = (p[P_PEX1] + p[P_PEX2] * dfz + p[P_PEX3] * dfz2) * p[P_LEX]
+    ex_pos = min(ex0 * (1.0 - p[P_PEX4]), 1.0)  # (4.E14), kappa_x >= 0
+    ex_neg = min(ex0 * (1.0 + p[P_PEX4]), 1.0)  # kappa_x < 0
+
+    # --- lateral, the parts that need no stiffness (4.E21)-(4.E30) ------------------------
+    cy = p[P_PCY1] * p[P_LCY]  # (4.E21)
+    muy_g0 = (p[P_PDY1] + p[P_PDY2] * dfz) * (1.0 + p[P_PPY3] * dpi + p[P_PPY4] * dpi2) * lmuy
+    muy = muy_g0 * (1.0 - p[P_PDY3] * gs2)  # (4.E23)
+    dy = muy * fz  # (4.E22)
+    dy_g0 = muy_g0 * fz
+    ey0 = (p[P_PEY1] + p[P_PEY2] * dfz) * p[P_LEY]
+    ey_cam = 1.0 + p[P_PEY5] * gs2
+    ey_sgn = p[P_PEY3] + p[P_PEY4] * gs
+    ey_pos = min(ey0 * (ey_cam - ey_sgn), 1.0)  # (4.E24), alpha_y >= 0
+    ey_neg = min(ey0 * (ey_cam + ey_sgn), 1.0)  # alpha_y < 0
+    ey_g0_pos = min(ey0 * (1.0 - p[P_PEY3]), 1.0)
+    ey_g0_neg = min(ey0 * (1.0 + p[P_PEY3]), 1.0)
+    ppy1 = 1.0 + p[P_PPY1] * dpi
+    ppy2 = 1.0 + p[P_PPY2] * dpi
+    kyg0 = fz * (p[P_PKY6] + p[P_PKY7] * dfz) * (1.0 + p[P_PPY5] * dpi) * p[P_LKYC]  # (4.E30)
+    svyg = fz * (p[P_PVY3] + p[P_PVY4] * dfz) * gs * p[P_LKYC] * lmuy  # (4.E28)
+    svy_g0 = fz * (p[P_PVY1] + p[P_PVY2] * dfz) * p[P_LVY] * lmuy
+    svy = svy_g0 + svyg  # (4.E29)
+    shy_g0 = (p[P_PHY1] + p[P_PHY2] * dfz) * p[P_LHY]
+    kya_arg = fz * inv_fz0 / max((p[P_PKY2] + p[P_PKY5] * gs2) * ppy2, _TINY)
+    kya_g0_arg = fz * inv_fz0 / max(p[P_PKY2] * ppy2, _TINY)
+
+    # --- aligning moment (4.E35)-(4.E47) ----------------------------------------------------
+    sht = p[P_QHZ1] + p[P_QHZ2] * dfz + (p[P_QHZ3] + p[P_QHZ4] * dfz) * gs  # (4.E35)
+    bt = (
+        (p[P_QBZ1] + p[P_QBZ2] * dfz + p[P_QBZ3] * dfz2)
+        * (1.0 + p[P_QBZ4] * gs + p[P_QBZ5] * gs_abs)
+        * p[P_LKY]
+        * inv_lmuy
+    )  # (4.E40)
+    ct = p[P_QCZ1]  # (4.E41)
+    dt = (
+        fz * r0 * inv_fz0 * (p[P_QDZ1] + p[P_QDZ2] * dfz) * (1.0 - p[P_PPZ1] * dpi) * p[P_LTR]
+        * (1.0 + p[P_QDZ3] * gs_abs + p[P_QDZ4] * gs2)
+    )  # (4.E42), (4.E43); their sgn(Vcx) cancels that of cos'alpha  # fmt: skip
+    dr0 = (
+        fz * r0
+        * ((p[P_QDZ6] + p[P_QDZ7] * dfz) * p[P_LRES]
+           + ((p[P_QDZ8] + p[P_QDZ9] * dfz) * (1.0 + p[P_PPZ2] * dpi)
+              + (p[P_QDZ10] + p[P_QDZ11] * dfz) * gs_abs) * gs * p[P_LKZC])
+        * lmuy
+    )  # (4.E47) without cos'alpha; sgn(Vcx) cancels that of cos'alpha  # fmt: skip
+
+    # --- sliding limits: start of the four peak searches (both sides of both curves) -----
+    tx = _peak_target(cx)
+    ty = _peak_target(cy)
+    ux_pos = _peak_start(tx, ex_pos)
+    ux_neg = _peak_start(tx, ex_neg)
+    uy_pos = _peak_start(ty, ey_pos)
+    uy_neg = _peak_start(ty, ey_neg)
+
+    # --- round 1: K_ya (4.E25) and at gamma = 0, first peak steps ------------------------
+    th1, s1 = _atan_sin_lanes(
+        (kya_arg, kya_g0_arg, ux_pos, ux_neg, uy_pos, uy_neg, 0.0, 0.0),
+        (p[P_PKY4], p[P_PKY4], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    )  # fmt: skip
+    kya_front = p[P_PKY1] * fz0 * ppy1 * p[P_LKY]
+    kya_g0 = kya_front * s1[0]
+    kya = kya_g0 * (1.0 - p[P_PKY3] * gs_abs)  # (4.E25)
+    if p[P_PKY5] != 0.0 and gs != 0.0:  # K_ya at gamma = 0 for F'y (4.E74)
+        kya_g0 = kya_front * s1[1]
+    ux_pos = _peak_step(ux_pos, th1[2], ex_pos, tx)
+    ux_neg = _peak_step(ux_neg, th1[3], ex_neg, tx)
+    uy_pos = _peak_step(uy_pos, th1[4], ey_pos, ty)
+    uy_neg = _peak_step(uy_neg, th1[5], ey_neg, ty)
+
+    # --- stiffness-dependent quantities (4.E26), (4.E27), (4.E38), (4.E39), (4.E45) -------
+    kya_safe = kya if abs(kya) > _TINY else math.copysign(_TINY, p[P_PKY1])  # K'ya (4.E39)
+    inv_kya = 1.0 / kya_safe
+    shy = shy_g0 + (kyg0 * gs - svyg) * inv_kya  # (4.E27)
+    by = kya / max(cy * dy, _TINY)  # (4.E26)
+    by_g0 = kya_g0 / max(cy * dy_g0, _TINY)
+    br = p[P_QBZ9] * p[P_LKY] * inv_lmuy + p[P_QBZ10] * by * cy  # (4.E45)
+
+    # --- round 2: second peak steps ----------------------------------------------------
+    th2, _ = _atan_sin_lanes(
+        (ux_pos, ux_neg, uy_pos, uy_neg, 0.0, 0.0, 0.0, 0.0),
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    )  # fmt: skip
+    ux_pos = _peak_step(ux_pos, th2[0], ex_pos, tx)
+    ux_neg = _peak_step(ux_neg, th2[1], ex_neg, tx)
+    uy_pos = _peak_step(uy_pos, th2[2], ey_pos, ty)
+    uy_neg = _peak_step(uy_neg, th2[3], ey_neg, ty)
+    # the peak at B |x| = u, shifted back by SH
+    inv_bx = 1.0 / max(abs(bx), _TINY)
+    inv_by = 1.0 / max(abs(by), _TINY)
+
+    # --- rolling resistance (4.E70, with Fz0 = FNOMIN in front) -------------------------
+    v0 = p[P_LONGVL]
+
+    coef[C_FZ_PREP] = fz
+    coef[C_SHX] = shx
+    coef[C_BX] = bx
+    coef[C_CX] = cx
+    coef[C_DX] = dx
+    coef[C_SVX] = svx
+    coef[C_EX_POS] = ex_pos
+    coef[C_EX_NEG] = ex_neg
+    coef[C_SHY] = shy
+    coef[C_BY] = by
+    coef[C_CY] = cy
+    coef[C_DY] = dy
+    coef[C_SVY] = svy
+    coef[C_EY_POS] = ey_pos
+    coef[C_EY_NEG] = ey_neg
+    coef[C_CAMBER] = 1.0 if gs != 0.0 else 0.0
+    coef[C_SHY_G0] = shy_g0
+    coef[C_BY_G0] = by_g0
+    coef[C_DY_G0] = dy_g0
+    coef[C_SVY_G0] = svy_g0
+    coef[C_EY_G0_POS] = ey_g0_pos
+    coef[C_EY_G0_NEG] = ey_g0_neg
+    coef[C_BXA0] = (p[P_RBX1] + p[P_RBX3] * gs2) * p[P_LXAL]  # (4.E54) / cos(atan(RBX2 k))
+    coef[C_EXA] = min(p[P_REX1] + p[P_REX2] * dfz, 1.0)  # (4.E56)
+    coef[C_BYK0] = (p[P_RBY1] + p[P_RBY4] * gs2) * p[P_LYKA]  # (4.E62) / cos(atan(.))
+    coef[C_EYK] = min(p[P_REY1] + p[P_REY2] * dfz, 1.0)  # (4.E64)
+    coef[C_SHYK] = p[P_RHY1] + p[P_RHY2] * dfz  # (4.E65)
+    coef[C_DVYK0] = muy * fz * (p[P_RVY1] + p[P_RVY2] * dfz + p[P_RVY3] * gs)  # (4.E67)
+    coef[C_SHT] = sht
+    coef[C_BT] = bt
+    coef[C_BT_CT] = bt * ct
+    coef[C_ET_LOAD] = p[P_QEZ1] + p[P_QEZ2] * dfz + p[P_QEZ3] * dfz2  # (4.E44)
+    coef[C_ET_GAMMA] = (p[P_QEZ4] + p[P_QEZ5] * gs) * (2.0 / math.pi)
+    coef[C_DT] = dt
+    coef[C_DR0] = dr0
+    coef[C_BR] = br
+    coef[C_SVY_KYA] = svy * inv_kya
+    coef[C_KXK_KYA] = kxk * inv_kya
+    coef[C_S_GAMMA] = (p[P_SSZ3] + p[P_SSZ4] * dfz) * gs  # (4.E76)
+    coef[C_INV_FZ0] = inv_fz0
+    coef[C_MY_SCALE] = r0 * fnomin * p[P_LMY] * pow_load
+    coef[C_MY_GAMMA] = (p[P_QSY5] + p[P_QSY6] * fz_ratio) * gamma * gamma
+    coef[C_MY_PRESSURE] = math.pow(1.0 + dpi, p[P_QSY8]) if dpi != 0.0 else 1.0
+    coef[C_INV_V0] = 1.0 / v0 if v0 > 0.0 else 0.0
+    coef[C_INV_FNOMIN] = inv_fnomin
+    coef[C_KXK] = kxk
+    coef[C_KYA_ABS] = abs(kya)
+    coef[C_DX_ABS] = abs(dx)
+    coef[C_DY_ABS] = abs(dy)
+    coef[C_KAPPA_SLIDE_POS] = min(max(abs(ux_pos * inv_bx - shx), _TINY), SLIDE_MAX)
+    coef[C_KAPPA_SLIDE_NEG] = min(max(abs(-ux_neg * inv_bx - shx), _TINY), SLIDE_MAX)
+    coef[C_TAN_ALPHA_SLIDE_POS] = min(max(abs(uy_pos * inv_by - shy), _TINY), SLIDE_MAX)
+    coef[C_TAN_ALPHA_SLIDE_NEG] = min(max(abs(-uy_neg * inv_by - shy), _TINY), SLIDE_MAX)
+
+
+@nb.njit(inline="always", **_JIT_OPTIONS)
+def _mf61_evaluate(
+    p: np.ndarray,
+    coef: np.ndarray,
+    kappa: float,
+    tan_alpha: float,
+    fz_n: float,
+    vx_mps: float,
+    out: np.ndarray,
+) -> None:
+    """Slip-dependent part of Magic Formula 6.1, from coefficients of :func:`mf61_prepare`.
+
+    Parameters
+    ----------
+    p : float64[N_MF61_PARAM]
+        Coefficients packed by :func:`mf61_param_vector` (slots ``P_*``).
+    coef : float64[N_TIRE_COEF]
+        Written by :func:`mf61_prepare` (at the load ``coef[C_FZ_PREP]``).
+    kappa : float
+        Longitudinal slip, positive when driving.
+    tan_alpha : float
+        ``alpha* = tan(alpha) sgn(Vcx)`` (4.E3), positive when the hub slides to +y.
+    fz_n : float
+        Current normal load (N). Forces, moments, stiffnesses and peaks are those at the
+        prepared load times ``fz_n / coef[C_FZ_PREP]`` (``fz_n`` clamped to
+        ``[0, FZ_INPUT_MAX_N]``): exact at the prepared load, and proportional to the
+        load around it. The sliding limits are taken as prepared.
+    vx_mps : float
+        Hub longitudinal speed, used only as ``|vx|`` in the rolling resistance.
+    out : float64[N_TIRE_OUT]
+        Written in place, every ``OUT_*`` slot of :mod:`simserver.core.tire_layout` (see
+        :func:`mf61_forces`).
+
+    Notes
+    -----
+    What is left per call: the pure-slip curves (4.E9), (4.E19) (and (4.E19) at
+    ``gamma = 0`` for (4.E74) when the camber is not zero), the combined-slip weights
+    (4.E51), (4.E52), (4.E59), (4.E60) with their slip factors (4.E54), (4.E62), (4.E67),
+    the kappa-induced side force (4.E66), the trail (4.E73) with ``E_t`` (4.E44), the
+    residual torque (4.E75), the arm ``s`` (4.E76) and ``My`` (4.E70). The eight Magic
+    Formula curves are one round of :func:`_mf_lanes`; the ``atan`` of ``E_t``, which
+    one of them needs, is computed before it.
+
+    Inlined into its caller (numba IR), which must be compiled with ``_JIT_OPTIONS``;
+    :func:`mf61_evaluate` is the same compiled on its own. Allocates nothing.
+    """
+    kappa = min(max(kappa, -SLIP_INPUT_MAX), SLIP_INPUT_MAX)
+    tan_alpha = min(max(tan_alpha, -SLIP_INPUT_MAX), SLIP_INPUT_MAX)
+    scale = max(min(fz_n, FZ_INPUT_MAX_N), 0.0) / coef[C_FZ_PREP]
+    cos_a = 1.0 / math.sqrt(1.0 + tan_alpha * tan_alpha)  # |cos'alpha| (4.E6)
+
+    # --- combined-slip weights: slip factors (4.E53), (4.E54), (4.E61), (4.E62), (4.E67) --
+    rbx2k = p[P_RBX2] * kappa
+    bxa = coef[C_BXA0] / math.sqrt(1.0 + rbx2k * rbx2k)  # (4.E54)
+    exa = coef[C_EXA]
+    cxa = p[P_RCX1]  # (4.E55)
+    shxa = p[P_RHX1]  # (4.E57); alpha_s = tan_alpha + SHxa (4.E53)
+    rby2a = p[P_RBY2] * (tan_alpha - p[P_RBY3])
+    byk = coef[C_BYK0] / math.sqrt(1.0 + rby2a * rby2a)  # (4.E62)
+    eyk = coef[C_EYK]
+    cyk = p[P_RCY1]  # (4.E63)
+    shyk = coef[C_SHYK]  # kappa_s = kappa + SHyk (4.E61)
+    rvy4a = p[P_RVY4] * tan_alpha
+    dvyk = coef[C_DVYK0] / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)
+
+    # --- pure-slip arguments (4.E10), (4.E14), (4.E20), (4.E24) --------------------------
+    kappa_x = kappa + coef[C_SHX]  # (4.E10)
+    ex = coef[C_EX_POS] if kappa_x >= 0.0 else coef[C_EX_NEG]  # (4.E14)
+    shy = coef[C_SHY]
+    alpha_y = tan_alpha + shy  # (4.E20)
+    ey = coef[C_EY_POS] if alpha_y >= 0.0 else coef[C_EY_NEG]  # (4.E24)
+
+    # --- trail and residual torque arguments (4.E34), (4.E37), (4.E44), (4.E77), (4.E78) ---
+    alpha_t = tan_alpha + coef[C_SHT]  # (4.E34)
+    et = min(coef[C_ET_LOAD] * (1.0 + coef[C_ET_GAMMA] * _atan(coef[C_BT_CT] * alpha_t)), 1.0)
+    ct = p[P_QCZ1]  # (4.E41)
+    alpha_r = tan_alpha + shy + coef[C_SVY_KYA]  # (4.E37), (4.E38)
+    # (4.E77), (4.E78): sgn(alpha) dropped, t and Mzr are even in alpha_eq
+    kk = coef[C_KXK_KYA] * kappa
+    alpha_t_eq = math.sqrt(alpha_t * alpha_t + kk * kk)
+    alpha_r_eq = math.sqrt(alpha_r * alpha_r + kk * kk)
+
+    # --- the eight curves: G_xa (4.E51)-(4.E52), G_yk (4.E59)-(4.E60), Fx0 (4.E9),
+    # Fy0 (4.E19), trail (4.E73), S_Vyk (4.E66) --------------------------------------------
+    _, s = _mf_lanes(
+        (bxa * shxa, bxa * (tan_alpha + shxa), byk * shyk, byk * (kappa + shyk),
+         coef[C_BX] * kappa_x, coef[C_BY] * alpha_y, coef[C_BT] * alpha_t_eq,
+         p[P_RVY6] * kappa),
+        (exa, exa, eyk, eyk, ex, ey, et, 0.0),
+        (cxa, cxa, cyk, cyk, coef[C_CX], coef[C_CY], ct, p[P_RVY5]),
+        (_PI_2, _PI_2, _PI_2, _PI_2, 0.0, 0.0, _PI_2, 0.0),
+    )  # fmt: skip
+    gxa = max(s[1] / max(s[0], _TINY), 0.0)  # (4.E51), (4.E52), > 0
+    gyk = max(s[3] / max(s[2], _TINY), 0.0)  # (4.E59), (4.E60), > 0
+    fx0 = coef[C_DX] * s[4] + coef[C_SVX]  # (4.E9)
+    fy0 = coef[C_DY] * s[5] + coef[C_SVY]  # (4.E19)
+    t = coef[C_DT] * s[6] * cos_a  # (4.E73)
+    svyk = dvyk * s[7] * p[P_LVYKA]  # (4.E66)
+    if coef[C_CAMBER] != 0.0:  # Fy0 at gamma = 0 for F'y (4.E74): the curve without camber
+        alpha_y0 = tan_alpha + coef[C_SHY_G0]
+        ey_g0 = coef[C_EY_G0_POS] if alpha_y0 >= 0.0 else coef[C_EY_G0_NEG]
+        s_g0 = _mf_curve(coef[C_BY_G0] * alpha_y0, ey_g0, coef[C_CY])
+        fy0_g0 = coef[C_DY_G0] * s_g0 + coef[C_SVY_G0]
+    else:  # gamma* = 0: every camber term vanishes and the two curves are the same
+        fy0_g0 = fy0
+
+    # --- combined forces (4.E50), (4.E58) and aligning moment (4.E71)-(4.E76) ------------
+    fx = gxa * fx0  # (4.E50)
+    fy = gyk * fy0 + svyk  # (4.E58)
+    fy_prime = gyk * fy0_g0  # (4.E74)
+    br_ar = coef[C_BR] * alpha_r_eq
+    dr = coef[C_DR0] * cos_a  # (4.E47)
+    mzr = dr / math.sqrt(1.0 + br_ar * br_ar)  # (4.E75), C_r = 1: cos(atan x) = 1/sqrt(1+x^2)
+    r0 = p[P_UNLOADED_RADIUS]
+    arm = r0 * (p[P_SSZ1] + p[P_SSZ2] * fy * coef[C_INV_FZ0] + coef[C_S_GAMMA]) * p[P_LS]
+    mz = -t * fy_prime + mzr + arm * fx  # (4.E71), (4.E72), (4.E76)
+
+    # --- rolling resistance (4.E70, with Fz0 = FNOMIN in front) -------------------------
+    vr = min(abs(vx_mps), VX_MY_MAX_MPS) * coef[C_INV_V0]
+    vr2 = vr * vr
+    my = (
+        coef[C_MY_SCALE]
+        * (p[P_QSY1] + p[P_QSY2] * fx * coef[C_INV_FNOMIN] + p[P_QSY3] * vr
+           + p[P_QSY4] * vr2 * vr2 + coef[C_MY_GAMMA])
+        * coef[C_MY_PRESSURE]
+    )  # fmt: skip
+
+    out[OUT_FX] = fx * scale
+    out[OUT_FY] = fy * scale
+    out[OUT_MZ] = mz * scale
+    out[OUT_MY] = max(my, 0.0) * scale
+    out[OUT_C_KAPPA] = coef[C_KXK] * scale
+    out[OUT_C_ALPHA] = coef[C_KYA_ABS] * scale
+    out[OUT_KAPPA_SLIDE] = coef[C_KAPPA_SLIDE_POS] if kappa >= 0.0 else coef[C_KAPPA_SLIDE_NEG]
+    out[OUT_TAN_ALPHA_SLIDE] = (
+        coef[C_TAN_ALPHA_SLIDE_POS] if tan_alpha >= 0.0 else coef[C_TAN_ALPHA_SLIDE_NEG]
+    )
+    out[OUT_FX_PEAK] = coef[C_DX_ABS] * scale
+    out[OUT_FY_PEAK] = coef[C_DY_ABS] * scale
+
+
 @nb.njit(**_JIT_OPTIONS)
 def mf61_forces(
     p: np.ndarray,
@@ -476,6 +1028,9 @@ def mf61_forces(
     out: np.ndarray,
 ) -> None:
     """Magic Formula 6.1 combined-slip forces and moments of one tire.
+
+    :func:`mf61_prepare` at ``fz_n``, then :func:`mf61_evaluate` at ``fz_n`` (the
+    coefficients live on the stack).
 
     Parameters
     ----------
@@ -514,9 +1069,6 @@ def mf61_forces(
     finite input. ``Kxk`` and ``Kya`` are the slopes at the curves' own origins
     ``kappa = -SHx`` and ``tan_alpha = -SHy``; the slope at zero slip differs by
     ``O((B SH)^2)`` (6e-4 for ``Fy`` of the sample file at ``FNOMIN``).
-
-    The Magic Formula curves (and the atan of the peak searches) are evaluated eight at a
-    time by :func:`_mf_lanes`, in two rounds: what needs no stiffness, then what does.
     """
     if not fz_n > 0.0:
         for i in range(out.shape[0]):
@@ -526,213 +1078,37 @@ def mf61_forces(
         out[OUT_KAPPA_SLIDE] = 1.0
         out[OUT_TAN_ALPHA_SLIDE] = 1.0
         return
-    kappa = min(max(kappa, -SLIP_INPUT_MAX), SLIP_INPUT_MAX)
-    tan_alpha = min(max(tan_alpha, -SLIP_INPUT_MAX), SLIP_INPUT_MAX)
-    gamma = min(max(gamma_rad, -GAMMA_INPUT_MAX_RAD), GAMMA_INPUT_MAX_RAD)
-    mu = min(max(mu_scale, MU_SCALE_MIN), MU_SCALE_MAX)
+    coef = coef_scratch()
+    _mf61_prepare(p, gamma_rad, fz_n, mu_scale, coef)
+    _mf61_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
-    # --- operating point (4.E1)-(4.E8) ---------------------------------------------------
-    fnomin = p[P_FNOMIN]
-    r0 = p[P_UNLOADED_RADIUS]
-    fz0 = fnomin * p[P_LFZO]  # F'z0 (4.E1)
-    fz_lo = max(p[P_FZMIN], FZ_FLOOR_FRAC * fnomin)
-    fz = min(max(fz_n, fz_lo), max(p[P_FZMAX], fz_lo))  # load the coefficients see
-    load_scale = min(fz_n, FZ_INPUT_MAX_N) / fz  # 1 inside FZMIN..FZMAX
-    inv_fz0 = 1.0 / fz0
-    inv_fnomin = 1.0 / fnomin
-    dfz = (fz - fz0) * inv_fz0  # (4.E2a)
-    dfz2 = dfz * dfz
-    fz_ratio = fz * inv_fnomin
-    p_nom = p[P_NOMPRES]
-    p_infl = p[P_INFLPRES]
-    dpi = (p_infl - p_nom) / p_nom if p_nom > 0.0 and p_infl > 0.0 else 0.0  # (4.E2b)
-    dpi2 = dpi * dpi
-    # the two libm calls early, while few values are live across them
-    pow_load = math.pow(fz_ratio, p[P_QSY7])  # (Fz / Fz0)^QSY7 (4.E70)
-    exp_kx = math.exp(p[P_PKX3] * dfz)  # (4.E15)
-    lmux = p[P_LMUX] * mu  # lambda*_mux = lambda'_mux (4.E7, 4.E8: LMUV = 0, A_mu = 1)
-    lmuy = max(p[P_LMUY] * mu, _TINY)
-    inv_lmuy = 1.0 / lmuy  # Bt, Br (4.E40, 4.E45)
-    gs = _sin(gamma) if gamma != 0.0 else 0.0  # gamma* (4.E4)
-    gs2 = gs * gs
-    gs_abs = abs(gs)
-    cos_a = 1.0 / math.sqrt(1.0 + tan_alpha * tan_alpha)  # |cos'alpha| (4.E6)
 
-    # --- longitudinal coefficients (4.E10)-(4.E18) ---------------------------------------
-    cx = p[P_PCX1] * p[P_LCX]  # (4.E11)
-    mux = (
-        (p[P_PDX1] + p[P_PDX2] * dfz)
-        * (1.0 + p[P_PPX3] * dpi + p[P_PPX4] * dpi2)
-        * (1.0 - p[P_PDX3] * gamma * gamma)
-        * lmux
-    )  # (4.E13)
-    dx = mux * fz  # (4.E12)
-    ppx = 1.0 + p[P_PPX1] * dpi + p[P_PPX2] * dpi2
-    kxk = fz * (p[P_PKX1] + p[P_PKX2] * dfz) * exp_kx * ppx * p[P_LKX]  # (4.E15)
-    bx = kxk / max(cx * dx, _TINY)  # (4.E16)
-    shx = (p[P_PHX1] + p[P_PHX2] * dfz) * p[P_LHX]  # (4.E17)
-    svx = fz * (p[P_PVX1] + p[P_PVX2] * dfz) * p[P_LVX] * lmux  # (4.E18)
-    kappa_x = kappa + shx  # (4.E10)
-    ex0 = (p[P_PEX1] + p[P_PEX2] * dfz + p[P_PEX3] * dfz2) * p[P_LEX]
-    ex = min(ex0 * (1.0 - p[P_PEX4] * (1.0 if kappa_x >= 0.0 else -1.0)), 1.0)  # (4.E14)
+@nb.njit(**_JIT_OPTIONS)
+def mf61_prepare(
+    p: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
+) -> None:
+    """Load-dependent coefficients of MF 6.1 into ``coef``: :func:`_mf61_prepare`.
 
-    # --- lateral coefficients that need no stiffness (4.E20)-(4.E30) ----------------------
-    cy = p[P_PCY1] * p[P_LCY]  # (4.E21)
-    muy_g0 = (p[P_PDY1] + p[P_PDY2] * dfz) * (1.0 + p[P_PPY3] * dpi + p[P_PPY4] * dpi2) * lmuy
-    muy = muy_g0 * (1.0 - p[P_PDY3] * gs2)  # (4.E23)
-    dy = muy * fz  # (4.E22)
-    dy_g0 = muy_g0 * fz
-    ey0 = (p[P_PEY1] + p[P_PEY2] * dfz) * p[P_LEY]
-    ppy1 = 1.0 + p[P_PPY1] * dpi
-    ppy2 = 1.0 + p[P_PPY2] * dpi
-    kyg0 = fz * (p[P_PKY6] + p[P_PKY7] * dfz) * (1.0 + p[P_PPY5] * dpi) * p[P_LKYC]  # (4.E30)
-    svyg = fz * (p[P_PVY3] + p[P_PVY4] * dfz) * gs * p[P_LKYC] * lmuy  # (4.E28)
-    svy_g0 = fz * (p[P_PVY1] + p[P_PVY2] * dfz) * p[P_LVY] * lmuy
-    svy = svy_g0 + svyg  # (4.E29)
-    shy_g0 = (p[P_PHY1] + p[P_PHY2] * dfz) * p[P_LHY]
-    kya_arg = fz * inv_fz0 / max((p[P_PKY2] + p[P_PKY5] * gs2) * ppy2, _TINY)
+    Compiled on its own, so it may be called from code compiled with any options.
+    """
+    _mf61_prepare(p, gamma_rad, fz_n, mu_scale, coef)
 
-    # --- combined-slip weights (4.E51)-(4.E57), (4.E59)-(4.E67) ---------------------------
-    rbx2k = p[P_RBX2] * kappa
-    bxa = (p[P_RBX1] + p[P_RBX3] * gs2) * p[P_LXAL] / math.sqrt(1.0 + rbx2k * rbx2k)  # (4.E54)
-    cxa = p[P_RCX1]  # (4.E55)
-    exa = min(p[P_REX1] + p[P_REX2] * dfz, 1.0)  # (4.E56)
-    shxa = p[P_RHX1]  # (4.E57); alpha_s = tan_alpha + SHxa (4.E53)
-    rby2a = p[P_RBY2] * (tan_alpha - p[P_RBY3])
-    byk = (p[P_RBY1] + p[P_RBY4] * gs2) * p[P_LYKA] / math.sqrt(1.0 + rby2a * rby2a)  # (4.E62)
-    cyk = p[P_RCY1]  # (4.E63)
-    eyk = min(p[P_REY1] + p[P_REY2] * dfz, 1.0)  # (4.E64)
-    shyk = p[P_RHY1] + p[P_RHY2] * dfz  # (4.E65); kappa_s = kappa + SHyk (4.E61)
-    rvy4a = p[P_RVY4] * tan_alpha
-    dvyk_num = muy * fz * (p[P_RVY1] + p[P_RVY2] * dfz + p[P_RVY3] * gs)
-    dvyk = dvyk_num / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)
 
-    # --- aligning-moment coefficients that need no stiffness (4.E34)-(4.E47) --------------
-    sht = p[P_QHZ1] + p[P_QHZ2] * dfz + (p[P_QHZ3] + p[P_QHZ4] * dfz) * gs  # (4.E35)
-    alpha_t = tan_alpha + sht  # (4.E34)
-    bt = (
-        (p[P_QBZ1] + p[P_QBZ2] * dfz + p[P_QBZ3] * dfz2)
-        * (1.0 + p[P_QBZ4] * gs + p[P_QBZ5] * gs_abs)
-        * p[P_LKY]
-        * inv_lmuy
-    )  # (4.E40)
-    ct = p[P_QCZ1]  # (4.E41)
-    dt = (
-        fz * r0 * inv_fz0 * (p[P_QDZ1] + p[P_QDZ2] * dfz) * (1.0 - p[P_PPZ1] * dpi) * p[P_LTR]
-        * (1.0 + p[P_QDZ3] * gs_abs + p[P_QDZ4] * gs2)
-    )  # (4.E42), (4.E43); their sgn(Vcx) cancels that of cos'alpha  # fmt: skip
-    et_load = p[P_QEZ1] + p[P_QEZ2] * dfz + p[P_QEZ3] * dfz2
-    dr = (
-        fz * r0
-        * ((p[P_QDZ6] + p[P_QDZ7] * dfz) * p[P_LRES]
-           + ((p[P_QDZ8] + p[P_QDZ9] * dfz) * (1.0 + p[P_PPZ2] * dpi)
-              + (p[P_QDZ10] + p[P_QDZ11] * dfz) * gs_abs) * gs * p[P_LKZC])
-        * lmuy * cos_a
-    )  # (4.E47); sgn(Vcx) cancels that of cos'alpha  # fmt: skip
+@nb.njit(**_JIT_OPTIONS)
+def mf61_evaluate(
+    p: np.ndarray,
+    coef: np.ndarray,
+    kappa: float,
+    tan_alpha: float,
+    fz_n: float,
+    vx_mps: float,
+    out: np.ndarray,
+) -> None:
+    """MF 6.1 forces from prepared coefficients at the load ``fz_n``: :func:`_mf61_evaluate`.
 
-    # --- sliding limits: start of the two peak searches ---------------------------------
-    side_x = 1.0 if kappa >= 0.0 else -1.0
-    side_y = 1.0 if tan_alpha >= 0.0 else -1.0
-    ex_side = min(ex0 * (1.0 - p[P_PEX4] * side_x), 1.0)
-    ey_side = min(ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * side_y), 1.0)
-    tx = _peak_target(cx)
-    ty = _peak_target(cy)
-    ux = _peak_start(tx, ex_side)
-    uy = _peak_start(ty, ey_side)
-
-    # --- round 1: weights, K_ya, E_t, first peak steps ------------------------------------
-    th1, s1 = _mf_lanes(
-        (bxa * shxa, bxa * (tan_alpha + shxa), byk * shyk, byk * (kappa + shyk),
-         kya_arg, bt * ct * alpha_t, ux, uy),
-        (exa, exa, eyk, eyk, 0.0, 0.0, 0.0, 0.0),
-        (cxa, cxa, cyk, cyk, p[P_PKY4], 0.0, 0.0, 0.0),
-        (_PI_2, _PI_2, _PI_2, _PI_2, 0.0, 0.0, 0.0, 0.0),
-    )  # fmt: skip
-    gxa = max(s1[1] / max(s1[0], _TINY), 0.0)  # (4.E51), (4.E52), > 0
-    gyk = max(s1[3] / max(s1[2], _TINY), 0.0)  # (4.E59), (4.E60), > 0
-    kya_g0 = p[P_PKY1] * fz0 * ppy1 * p[P_LKY] * s1[4]
-    kya = kya_g0 * (1.0 - p[P_PKY3] * gs_abs)  # (4.E25)
-    if p[P_PKY5] != 0.0 and gs != 0.0:  # K_ya at gamma = 0 for F'y (4.E74)
-        kya_g0 = (
-            p[P_PKY1] * fz0 * ppy1 * p[P_LKY]
-            * _sin(p[P_PKY4] * _atan(fz * inv_fz0 / max(p[P_PKY2] * ppy2, _TINY)))
-        )  # fmt: skip
-    et_gamma = (p[P_QEZ4] + p[P_QEZ5] * gs) * (2.0 / math.pi)
-    et = min(et_load * (1.0 + et_gamma * th1[5]), 1.0)  # (4.E44)
-    ux = _peak_step(ux, th1[6], ex_side, tx)
-    uy = _peak_step(uy, th1[7], ey_side, ty)
-
-    # --- stiffness-dependent quantities (4.E16), (4.E20)-(4.E27), (4.E37)-(4.E39) ---------
-    kya_safe = kya if abs(kya) > _TINY else math.copysign(_TINY, p[P_PKY1])  # K'ya (4.E39)
-    inv_kya = 1.0 / kya_safe
-    shy = shy_g0 + (kyg0 * gs - svyg) * inv_kya  # (4.E27)
-    alpha_y = tan_alpha + shy  # (4.E20)
-    sgn_ay = 1.0 if alpha_y >= 0.0 else -1.0
-    ey = min(ey0 * (1.0 + p[P_PEY5] * gs2 - (p[P_PEY3] + p[P_PEY4] * gs) * sgn_ay), 1.0)  # (4.E24)
-    by = kya / max(cy * dy, _TINY)  # (4.E26)
-    # Fy0 at gamma = 0 for F'y (4.E74): the same curve without the camber terms
-    alpha_y0 = tan_alpha + shy_g0
-    ey_g0 = min(ey0 * (1.0 - p[P_PEY3] * (1.0 if alpha_y0 >= 0.0 else -1.0)), 1.0)
-    by_g0 = kya_g0 / max(cy * dy_g0, _TINY)
-    alpha_r = tan_alpha + shy + svy * inv_kya  # (4.E37), (4.E38)
-    # (4.E77), (4.E78): sgn(alpha) dropped, t and Mzr are even in alpha_eq
-    kk = kxk * inv_kya * kappa
-    alpha_t_eq = math.sqrt(alpha_t * alpha_t + kk * kk)
-    alpha_r_eq = math.sqrt(alpha_r * alpha_r + kk * kk)
-
-    # --- round 2: pure-slip curves (4.E9), (4.E19), trail (4.E73), S_Vyk, peak steps ----
-    th2, s2 = _mf_lanes(
-        (bx * kappa_x, by * alpha_y, by_g0 * alpha_y0, bt * alpha_t_eq, p[P_RVY6] * kappa,
-         ux, uy, 0.0),
-        (ex, ey, ey_g0, et, 0.0, 0.0, 0.0, 0.0),
-        (cx, cy, cy, ct, p[P_RVY5], 0.0, 0.0, 0.0),
-        (0.0, 0.0, 0.0, _PI_2, 0.0, 0.0, 0.0, 0.0),
-    )  # fmt: skip
-    fx0 = dx * s2[0] + svx  # (4.E9)
-    fy0 = dy * s2[1] + svy  # (4.E19)
-    fy0_g0 = dy_g0 * s2[2] + svy_g0  # equals fy0 when gamma = 0
-    t = dt * s2[3] * cos_a  # (4.E73)
-    svyk = dvyk * s2[4] * p[P_LVYKA]  # (4.E66)
-    ux = _peak_step(ux, th2[5], ex_side, tx)
-    uy = _peak_step(uy, th2[6], ey_side, ty)
-
-    # --- combined forces (4.E50), (4.E58) and aligning moment (4.E71)-(4.E76) ------------
-    fx = gxa * fx0  # (4.E50)
-    fy = gyk * fy0 + svyk  # (4.E58)
-    fy_prime = gyk * fy0_g0  # (4.E74)
-    br = p[P_QBZ9] * p[P_LKY] * inv_lmuy + p[P_QBZ10] * by * cy  # (4.E45)
-    br_ar = br * alpha_r_eq
-    mzr = dr / math.sqrt(1.0 + br_ar * br_ar)  # (4.E75), C_r = 1: cos(atan x) = 1/sqrt(1+x^2)
-    s_gamma = (p[P_SSZ3] + p[P_SSZ4] * dfz) * gs
-    s = r0 * (p[P_SSZ1] + p[P_SSZ2] * fy * inv_fz0 + s_gamma) * p[P_LS]  # (4.E76)
-    mz = -t * fy_prime + mzr + s * fx  # (4.E71), (4.E72)
-
-    # --- rolling resistance (4.E70, with Fz0 = FNOMIN in front) -------------------------
-    v0 = p[P_LONGVL]
-    vr = min(abs(vx_mps), VX_MY_MAX_MPS) / v0 if v0 > 0.0 else 0.0
-    vr2 = vr * vr
-    my = (
-        r0 * fnomin * p[P_LMY] * pow_load
-        * (p[P_QSY1] + p[P_QSY2] * fx * inv_fnomin + p[P_QSY3] * vr + p[P_QSY4] * vr2 * vr2
-           + (p[P_QSY5] + p[P_QSY6] * fz_ratio) * gamma * gamma)
-    )  # fmt: skip
-    if dpi != 0.0:
-        my *= math.pow(1.0 + dpi, p[P_QSY8])
-
-    # --- sliding limits: the peak at B |x| = u, shifted back by SH -----------------------
-    kappa_slide = abs(side_x * ux / max(abs(bx), _TINY) - shx)
-    tan_alpha_slide = abs(side_y * uy / max(abs(by), _TINY) - shy)
-
-    out[OUT_FX] = fx * load_scale
-    out[OUT_FY] = fy * load_scale
-    out[OUT_MZ] = mz * load_scale
-    out[OUT_MY] = max(my, 0.0) * load_scale
-    out[OUT_C_KAPPA] = kxk * load_scale
-    out[OUT_C_ALPHA] = abs(kya) * load_scale
-    out[OUT_KAPPA_SLIDE] = min(max(kappa_slide, _TINY), SLIDE_MAX)
-    out[OUT_TAN_ALPHA_SLIDE] = min(max(tan_alpha_slide, _TINY), SLIDE_MAX)
-    out[OUT_FX_PEAK] = abs(dx) * load_scale
-    out[OUT_FY_PEAK] = abs(dy) * load_scale
+    Compiled on its own, so it may be called from code compiled with any options.
+    """
+    _mf61_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
 
 def mf61_param_vector(coeffs: dict[str, float]) -> np.ndarray:
