@@ -8,7 +8,11 @@ Starts ``simserver serve`` as a subprocess (state published every tick) on a fre
 loopback port; this process is the client: it publishes driver commands at ``--cmd-hz``
 (a slow steer and throttle sweep, so the car drives) with ``sender_time_ns`` from the
 shared monotonic clock, and times the first published state whose ``last_cmd_seq``
-reflects each command (the server echoes the sender's timestamp). States are
+reflects each command (the server echoes the sender's timestamp). Each command goes out
+at a random instant within its slot (uniform over one tick), as a driver's clock,
+independent of the server's, would: a sender at a fixed period on the same clock keeps a
+fixed phase to the server's ticks, and its latency would measure that one phase (any
+value from the transport time to a tick more) instead of the distribution. States are
 time-stamped on arrival in a zenoh callback, so the client's own polling does not add to
 the figure. Tick lateness comes from the server's diagnostics (windows of 4096 ticks:
 the median of the windows' p50 and p99 are quoted) and from its final statistics at
@@ -33,6 +37,8 @@ from simserver import protocol as proto
 from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
 
 REPO = Path(__file__).resolve().parents[1]
+TICK_S = 1e-3
+"""The server's default period: a command's send instant is uniform over one of these."""
 
 
 def free_port() -> int:
@@ -72,8 +78,10 @@ def run(seconds: float, cmd_hz: float, viewer: str = "off") -> dict:
         sent: dict[int, int] = {}
         seq = 0
         period = 1.0 / cmd_hz
-        t_next = time.monotonic()
-        t_end = t_next + seconds
+        rng = np.random.default_rng(7)
+        t_slot = time.monotonic()
+        t_end = t_slot + seconds
+        t_next = t_slot + rng.uniform(0.0, TICK_S)
         while time.monotonic() < t_end:
             now = time.monotonic()
             if now >= t_next:
@@ -85,7 +93,8 @@ def run(seconds: float, cmd_hz: float, viewer: str = "off") -> dict:
                                              throttle=0.3 if phase < 10 else 0.0,
                                              brake=0.0 if phase < 10 else 0.4,
                                              seq=seq, sender_time_ns=t_ns))
-                t_next += period
+                t_slot += period
+                t_next = t_slot + rng.uniform(0.0, TICK_S)
             while arrivals:
                 t_rx, payload = arrivals.popleft()
                 st = proto.decode_state(payload)

@@ -482,6 +482,9 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-listener-check", action="store_true",
                         help="connect: do not first check that the viewer listens (to test "
                              "a viewer that is gone: logging then buffers in this process)")
+    parser.add_argument("--normal-priority", action="store_true",
+                        help="keep normal CPU priority (default: idle priority, so the view "
+                             "only uses CPU time a server on the same machine does not want)")
 
 
 def view_command(args: argparse.Namespace) -> int:
@@ -493,7 +496,8 @@ def view_command(args: argparse.Namespace) -> int:
     try:
         stats = run_viewer(args.sink, connect, args.prefix, args.vehicle_id, args.fps,
                            duration_s=args.duration, config_file=args.zenoh_config,
-                           web_port=args.web_port, check_listener=not args.no_listener_check)
+                           web_port=args.web_port, check_listener=not args.no_listener_check,
+                           idle_priority=not args.normal_priority)
     except RerunSinkError as exc:
         raise CliError(str(exc), exit_code=2) from exc
     except TimeoutError as exc:

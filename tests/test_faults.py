@@ -328,6 +328,10 @@ def test_vanishing_viewer_leaves_the_server_unaffected(tmp_path):
             viewers = server.children()
             probe.drive(0.2, throttle=0.2)
         assert viewers and rrd.exists(), server.text()
+        for pid in viewers:  # the view only takes CPU time the physics does not want
+            threads = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+            assert len(threads) > 1  # its own, zenoh's and Rerun's threads
+            assert {os.sched_getscheduler(t) for t in threads} == {os.SCHED_IDLE}
         d0 = probe.diagnostics()
         for pid in viewers:
             os.kill(pid, signal.SIGKILL)

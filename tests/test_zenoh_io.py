@@ -103,6 +103,8 @@ def test_default_config_is_loopback_only():
     assert _json(cfg, "transport/shared_memory/enabled") is False
     block = _json(cfg, "transport/link/tx/queue/congestion_control/block")
     assert block["wait_before_close"] == DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US
+    assert _json(cfg, "transport/unicast/lowlatency") is True
+    assert _json(cfg, "transport/unicast/qos/enabled") is False
     assert config_warnings(cfg) == []
     # zenoh's own defaults are what the platform notes warn about.
     assert len(config_warnings(zenoh.Config())) == 3
@@ -235,6 +237,36 @@ def test_state_and_diagnostics_reach_a_client():
         state_pub.put(rec.tobytes())
         got = P.decode_state(eventually(lambda: states.wait_newest(0.1)))
         assert got["tick"] == 42 and got["fz_n"].tolist() == [4000.0, 4100.0, 3900.0, 3800.0]
+
+
+@pytest.mark.parametrize("ours", ["listens", "connects"])
+def test_low_latency_default_talks_to_a_peer_with_zenohs_defaults(ours):
+    """The default's low-latency transport falls back for a peer that does not have it
+    (zenoh's own defaults: QoS on, low latency off), whichever side opens the link."""
+    port = free_port()
+    plain = zenoh.Config()
+    plain.insert_json5("scouting/multicast/enabled", "false")
+    plain.insert_json5("transport/shared_memory/enabled", "false")
+    if ours == "listens":
+        first = make_zenoh_config(listen=[loopback(port)])
+        plain.insert_json5("connect/endpoints", json.dumps([loopback(port)]))
+        plain.insert_json5("listen/endpoints", "[]")
+        second = plain
+    else:
+        plain.insert_json5("listen/endpoints", json.dumps([loopback(port)]))
+        first, second = plain, make_zenoh_config(listen=[], connect=[loopback(port)])
+    with ZenohEndpoint(first, prefix="simserver", vehicle="car0") as srv, \
+            ZenohEndpoint(second, prefix="simserver", vehicle="car0") as cli:
+        inbox = srv.declare_command_inbox()
+        pub = cli.declare_command_publisher()
+
+        def exchange():
+            pub.put(P.encode_command(throttle=0.5, seq=7))
+            time.sleep(0.01)
+            return inbox.drain_newest()
+
+        got = eventually(exchange, what="a command across the mixed link")
+        assert P.decode_command(got[-1]).throttle == 0.5
 
 
 # ============================================================================ controls
