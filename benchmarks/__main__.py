@@ -22,10 +22,12 @@ In order:
 5. memory of a headless run: peak RSS (``ru_maxrss`` from ``wait4``) of the README's
    ``simserver run-scenario`` example, which also reports its real-time factor.
 
-Then it prints a markdown table (figure, value, the command that reproduces it) with the
-machine's description, and writes it to ``--out`` (default ``docs/performance.md`` for a full
-run; a ``--quick`` run writes a file only when ``--out`` is given). ``--json FILE`` keeps
-every raw result.
+Then it prints a markdown table (figure, value, the target the issues set, the command that
+reproduces it) with the machine's description, and writes it to ``--out`` (default
+``docs/performance.md`` for a full run; a ``--quick`` run writes a file only when ``--out`` is
+given). A full run also rewrites the README's performance block (between the
+``README_BEGIN`` and ``README_END`` markers) from the same report, so the two never
+disagree (``tests/test_readme.py`` checks it). ``--json FILE`` keeps every raw result.
 """
 
 from __future__ import annotations
@@ -52,6 +54,10 @@ from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "docs" / "performance.md"
+README = REPO / "README.md"
+README_BEGIN = "<!-- BEGIN GENERATED: performance (python -m benchmarks) -->"
+README_END = "<!-- END GENERATED: performance -->"
+TABLE_HEADER = ("| figure | value | target | command |", "|---|---|---|---|")
 HEADLESS_SCENARIO = "configs/scenarios/e2_stop_downslope_paper_damping.yaml"
 """The README's headless example, run for the headless memory figure."""
 
@@ -85,6 +91,12 @@ class Row:
     figure: str
     value: str
     command: str
+    target: str = ""
+    """The issue's target for this figure, if it sets one."""
+
+    def markdown(self) -> str:
+        """The row as a line of the table (``TABLE_HEADER``)."""
+        return f"| {self.figure} | {self.value} | {self.target} | `{self.command}` |"
 
 
 @dataclass
@@ -365,12 +377,16 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
         cmd = " ".join(["python -m benchmarks.bench_step", *argv])
         raw["step"] = results = bench_step.main(argv)
         for r in results:
+            mf61 = r["tire_model"].startswith("mf61")
             rows.append(Row(f"step cost, {r['tire_model']} tires",
                             f"{r['ns_per_step_median'] / 1e3:.2f} us median "
-                            f"(p10 {r['p10'] / 1e3:.2f}, p90 {r['p90'] / 1e3:.2f})", cmd))
+                            f"(p10 {r['p10'] / 1e3:.2f}, p90 {r['p90'] / 1e3:.2f})", cmd,
+                            "< 5 us" if mf61 else ""))
         for r in results:
+            mf61 = r["tire_model"].startswith("mf61")
             rows.append(Row(f"headless real-time factor, {r['tire_model']}",
-                            f"{r['real_time_factor']:,.0f} x", cmd))
+                            f"{r['real_time_factor']:,.0f} x", cmd,
+                            ">= 200 x" if mf61 else ""))
 
     if "server" in sections:
         print("== bench_server", flush=True)
@@ -383,16 +399,18 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
         span = f"{settings.server_seconds:g} s, viewer off"
         rows += [
             Row(f"tick lateness p50 / p99 ({span})",
-                f"{_us(r['lateness_p50_us'])} / {_us(r['lateness_p99_us'])}", cmd),
+                f"{_us(r['lateness_p50_us'])} / {_us(r['lateness_p99_us'])}", cmd,
+                "p99 < 100 us"),
             Row("tick lateness max", _us(r["lateness_max_us"]), cmd),
             Row("ticks > 1 ms late", f"{r['late_ticks']} of {r['ticks']} "
                 f"({100 * r['late_fraction']:.2f} %); overruns {r['overruns']}, "
-                f"skipped {r['skipped_ticks']}", cmd),
+                f"skipped {r['skipped_ticks']}", cmd, "< 1 %"),
             Row("drift of simulated from wall time",
-                f"{r['drift_ms']:+.2f} ms over {r['wall_s']:.0f} s", cmd),
-            Row("command-to-state latency p50 / p99 (200 Hz commands)",
+                f"{r['drift_ms']:+.2f} ms over {r['wall_s']:.0f} s", cmd,
+                "none (within a tick)"),
+            Row("command-to-state latency p50 / p99 (200 Hz commands, random phase)",
                 f"{_us(r['latency_p50_us'])} / {_us(r['latency_p99_us'])} "
-                f"(max {_us(r['latency_max_us'])})", cmd),
+                f"(max {_us(r['latency_max_us'])})", cmd, "< 1 ms / < 2 ms"),
             Row("server CPU", f"{r['cpu_percent']:.0f} % of one core", cmd),
         ]
         if "serve (viewer off)" in peaks:
@@ -412,7 +430,8 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
             rows.append(Row(f"tick lateness p50 / p99, live viewer: {mode}",
                             f"{_us(s['p50_us'])} / {_us(s['p99_us'])} "
                             f"({s['p99_vs_off']:.2f} x off); "
-                            f"{100 * s['late_fraction']:.2f} % ticks > 1 ms late", cmd))
+                            f"{100 * s['late_fraction']:.2f} % ticks > 1 ms late", cmd,
+                            "" if mode == "off" else "p99 <= 1.10 x off"))
         for name, label in (("view (viewer save)", "viewer process peak RSS, saving to .rrd"),
                             ("view (viewer connect)",
                              "viewer process peak RSS, stalled viewer")):
@@ -457,8 +476,8 @@ def render(report: Report, sections: list[str]) -> str:
               + "`; every figure can be reproduced on its own by the command beside it.",
               "", "## Machine", ""]
     lines += [f"- **{k}**: {v}" for k, v in report.machine.items()]
-    lines += ["", "## Figures", "", "| figure | value | command |", "|---|---|---|"]
-    lines += [f"| {r.figure} | {r.value} | `{r.command}` |" for r in report.rows]
+    lines += ["", "## Figures", "", *TABLE_HEADER]
+    lines += [r.markdown() for r in report.rows]
     lines += [
         "", "## Method", "",
         "- Step cost: the compiled `simulate` loop over a driving cycle (accelerate and "
@@ -481,6 +500,28 @@ def render(report: Report, sections: list[str]) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def readme_block(report: Report) -> str:
+    """The README's performance section body: the machine in one line, then the table."""
+    m = report.machine
+    lines = [README_BEGIN, "",
+             f"Measured {m['date']} on {m['nproc']} vCPUs ({m['CPU']}, {m['RAM']}), "
+             f"Python {m['Python'].split()[0]}, commit {m['commit']}; load average "
+             f"{m['load average at start'].split(' (')[0]} at the start. The whole table, "
+             "with the method: [docs/performance.md](docs/performance.md).", "",
+             *TABLE_HEADER, *(r.markdown() for r in report.rows), "", README_END]
+    return "\n".join(lines)
+
+
+def update_readme(text: str, block: str) -> str:
+    """``text`` with its performance block replaced by ``block``."""
+    try:
+        head, rest = text.split(README_BEGIN, 1)
+        _, tail = rest.split(README_END, 1)
+    except ValueError:
+        raise SystemExit(f"{README}: the performance markers are missing") from None
+    return head + block + tail
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -511,6 +552,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(text, encoding="utf-8")
         print(f"wrote {out}")
+    if out == DEFAULT_OUT:
+        README.write_text(update_readme(README.read_text(encoding="utf-8"),
+                                        readme_block(report)), encoding="utf-8")
+        print(f"wrote the performance block of {README}")
     result = {"machine": report.machine, "mode": report.mode, "rows": [vars(r) for r in
               report.rows], "raw": report.raw, "wall_s": time.monotonic() - t0}
     if args.json is not None:

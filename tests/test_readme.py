@@ -70,3 +70,29 @@ def test_history_column_doc_is_current():
     from simserver.adapters.history import column_doc_markdown
 
     assert column_doc_markdown() in (REPO / "docs" / "history_columns.md").read_text()
+
+
+def test_performance_table_is_the_benchmark_report():
+    """The README's performance block is the one ``python -m benchmarks`` wrote into
+    docs/performance.md (the same rows, the same run), not figures typed by hand."""
+    from benchmarks.__main__ import DEFAULT_OUT, README_BEGIN, README_END, TABLE_HEADER
+
+    readme = (REPO / "README.md").read_text()
+    block = readme.split(README_BEGIN, 1)[1].split(README_END, 1)[0]
+    report = DEFAULT_OUT.read_text()
+    assert "Quick run" not in report, "docs/performance.md must come from a full run"
+
+    def table(text: str) -> list[str]:
+        lines = text.splitlines()
+        start = lines.index(TABLE_HEADER[0])
+        rows = []
+        for line in lines[start:]:
+            if not line.startswith("|"):
+                break
+            rows.append(line)
+        return rows
+
+    rows = table(block)
+    assert len(rows) > 10 and rows == table(report)
+    commit = next(ln for ln in report.splitlines() if ln.startswith("- **commit**"))
+    assert commit.split(": ", 1)[1].split()[0] in block

@@ -1,0 +1,233 @@
+"""Every command the README gives, run as written, or named here with why it is not.
+
+One server runs the README's main job as written (``simserver serve``: the default
+loopback endpoint ``tcp/127.0.0.1:7447``, the default config); the README's client
+commands and its Python driver then run against it, word for word, with ``.venv/bin/``
+meaning the environment running these tests and relative output paths landing in a
+temporary directory. ``test_every_readme_command_is_accounted_for`` fails when the README
+gains a command that is neither run here nor listed in ``NOT_RUN_HERE``.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from types import SimpleNamespace
+
+import pyarrow.parquet as pq
+import pytest
+
+from tests.conftest import REPO
+from tests.serverproc import Watcher, client_env
+from tests.test_clients import PtyProcess
+
+README = (REPO / "README.md").read_text()
+BIN = Path(sys.executable).parent
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+RUN_HERE = {
+    ".venv/bin/simserver-driver": "test_keyboard_driver_as_written",
+    ".venv/bin/simserver-recorder --out out/live": "test_recorder_and_python_driver_as_written",
+    ".venv/bin/simserver-player configs/scenarios/e5_hold_restart_uphill.yaml --load":
+        "test_player_as_written",
+    "simserver soak --duration 3600 --seed 11": "test_soak_as_written",
+}
+"""README command -> the test below that runs it."""
+
+RUN_ELSEWHERE = {
+    "python3 -m venv .venv && .venv/bin/pip install -e . && .venv/bin/simserver serve":
+        "test_readme.py::test_main_command_job_runs (and the server of this module)",
+    "simserver serve": "the server of this module",
+    'python3 -m venv .venv && .venv/bin/pip install -q -e ".[test]" && '
+    '.venv/bin/python -m pytest -q': "CI: .ci/run runs it verbatim (test_readme.py)",
+    ".venv/bin/simserver run-scenario configs/scenarios/e2_stop_downslope_paper_damping.yaml"
+    " --out out/e2": "test_readme.py::test_scenario_command_runs",
+    "python -m pytest tests/test_scenarios.py -s": "the default suite runs that file",
+}
+
+NOT_RUN_HERE = {
+    '.venv/bin/pip install -e ".[joystick]"': "an install step; the test extra has pygame",
+    ".venv/bin/simserver-driver --input joystick --profile configs/clients/wheel.yaml":
+        "needs a device: test_clients.py drives it with that profile on SDL's virtual "
+        "joystick",
+    "docker build -t simserver .": "no container engine here: test_dockerfile.py runs the "
+                                   "image's steps",
+    "docker run --rm -p 127.0.0.1:7447:7447 simserver": "no container engine here",
+    "simserver serve --config /etc/simserver/server/default.yaml --listen tcp/0.0.0.0:7447 "
+    "--viewer off": "the image's command, on all interfaces: test_dockerfile.py runs it on "
+                    "loopback",
+    "rerun --connect rerun+http://127.0.0.1:9876/proxy": "the native viewer needs a display",
+    "rerun DIR/scene.rrd": "a placeholder, and a display",
+    "simserver run-scenario SCENARIO.yaml --out DIR --rrd DIR/scene.rrd":
+        "a placeholder: test_rerun.py runs it on a scenario",
+    "simserver tire-curves TIRE.yaml --out FILE.png": "a placeholder: test_cli.py runs it on "
+                                                      "both tires",
+    "simserver serve --command-log run.jsonl": "a second server on the default port: "
+                                               "test_server.py logs and replays a run",
+    "simserver replay run.jsonl": "the same",
+    "simserver view": "the main command already runs the view on its default port",
+    "simserver view --sink serve --web-port 9090": "Rerun binds the web viewer to every "
+                                                   "interface; tests listen on loopback only",
+    "python -m benchmarks": "minutes long, run by hand; test_readme.py checks the README's "
+                            "table is its report",
+    "python -m benchmarks.bench_step": "the same",
+    "python -m benchmarks.bench_server": "the same",
+    "python -m benchmarks.bench_clock": "the same",
+    "python benchmarks/bench_tire.py": "the same",
+    "python docs/figures.py": "regenerates the README's figures (minutes)",
+}
+
+
+def readme_commands() -> set[str]:
+    """Every command of the README: indented command lines, fenced Python excluded, and
+    inline code that starts like a command."""
+    prose = re.sub(r"```.*?```", "", README, flags=re.S)
+    found = {ln.strip() for ln in prose.splitlines()
+             if re.match(r" {4}(\.venv/bin/|python3? |docker |simserver |rerun )", ln)}
+    flat = re.sub(r"\n\s*", " ", prose)
+    found |= {m.group(1).strip() for m in
+              re.finditer(r"`((?:\.venv/bin/|simserver |rerun |python )[^`]*)`", flat)}
+    found.discard(".venv/bin/python")  # "run it with .venv/bin/python": not a command
+    return found
+
+
+def as_written(command: str) -> list[str]:
+    """argv of a README command, ``.venv/bin/X`` being this environment's ``X``."""
+    argv = shlex.split(command)
+    if argv[0].startswith(".venv/bin/"):
+        argv[0] = str(BIN / argv[0].removeprefix(".venv/bin/"))
+    elif argv[0] == "simserver":
+        argv[0] = str(BIN / "simserver")
+    return argv
+
+
+def test_every_readme_command_is_accounted_for():
+    accounted = set(RUN_HERE) | set(RUN_ELSEWHERE) | set(NOT_RUN_HERE)
+    found = readme_commands()
+    assert found - accounted == set(), "README commands no test runs or explains"
+    assert accounted - found == set(), "listed here but no longer in the README"
+
+
+@pytest.fixture(scope="module")
+def readme_server() -> Iterator[SimpleNamespace]:
+    """The README's main job as written, on its default endpoint."""
+    with socket.socket() as probe:
+        if probe.connect_ex(("127.0.0.1", 7447)) == 0:
+            pytest.skip("something already listens on 127.0.0.1:7447")
+    proc = subprocess.Popen(as_written("simserver serve"), cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        line = ""
+        end = time.monotonic() + 120
+        while "ready on" not in line and time.monotonic() < end and proc.poll() is None:
+            line = proc.stdout.readline()
+        assert "ready on simserver/car0" in line, line
+        yield SimpleNamespace(endpoint=DEFAULT_ENDPOINT, vehicle_id="car0", proc=proc)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0 and "simserver: stopped" in out, out
+
+
+def python_driver_snippet() -> str:
+    """The README's minimal Python driver."""
+    blocks = re.findall(r"```python\n(.*?)```", README, flags=re.S)
+    (snippet,) = [b for b in blocks if "encode_command" in b]
+    return snippet
+
+
+def test_recorder_and_python_driver_as_written(readme_server, tmp_path):
+    """The recorder records while the README's Python driver drives (10 s at throttle 0.3):
+    the file holds the car speeding up; Ctrl-C closes it."""
+    watcher = Watcher(readme_server)
+    assert watcher.ep.request("reset")["ok"]
+    recorder = subprocess.Popen(as_written(".venv/bin/simserver-recorder --out out/live"),
+                                cwd=tmp_path, env=client_env(), stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True)
+    try:
+        time.sleep(1.0)
+        driver = subprocess.run([sys.executable, "-c", python_driver_snippet()], cwd=REPO,
+                                capture_output=True, text=True, timeout=120)
+        assert driver.returncode == 0, driver.stderr
+    finally:
+        recorder.send_signal(signal.SIGINT)
+        out, _ = recorder.communicate(timeout=60)
+        states = watcher.poll()
+        watcher.close()
+    assert recorder.returncode == 0, out
+    table = pq.read_table(tmp_path / "out" / "live" / "history.parquet")
+    u = table.column("u_mps").to_numpy()
+    throttle = table.column("input_throttle").to_numpy()
+    print(f"\nREADME driver: {table.num_rows} rows recorded, u up to {u.max():.2f} m/s")
+    assert table.num_rows > 5000  # > 5 s of 1 kHz states
+    assert throttle.max() == pytest.approx(0.3, abs=1e-6)  # the snippet's throttle
+    assert u.max() > 1.0 and max(float(s["u_mps"]) for s in states) > 1.0
+
+
+def test_keyboard_driver_as_written(readme_server):
+    watcher = Watcher(readme_server)
+    drv = PtyProcess(as_written(".venv/bin/simserver-driver"))
+    try:
+        drv.wait_for("connected to simserver/car0", 30)
+        drv.wait_for("health", 10)
+        end = time.monotonic() + 10
+        while time.monotonic() < end:  # hold the throttle key until the car answers
+            drv.send(b"w")
+            time.sleep(0.03)
+            if any(float(s["throttle"]) > 0.1 for s in watcher.poll()):
+                break
+        drv.send(b"q")
+        assert drv.wait(15) == 0, drv.text()
+    finally:
+        drv.close()
+        states = watcher.poll()
+        watcher.close()
+    assert max(float(s["throttle"]) for s in states) > 0.1
+
+
+def test_player_as_written(readme_server):
+    """The player loads the E5 scenario (10 % uphill) and plays it; the first seconds are
+    the brake-to-a-stop: it must be the scenario's scene and the car must be braked.
+    Ctrl-C ends it cleanly."""
+    watcher = Watcher(readme_server)
+    player = subprocess.Popen(
+        as_written(".venv/bin/simserver-player configs/scenarios/e5_hold_restart_uphill.yaml "
+                   "--load"), cwd=REPO, env=client_env(), stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT, text=True)
+    try:
+        end = time.monotonic() + 60
+        config = None
+        while time.monotonic() < end:
+            reply = watcher.ep.request("get_config", timeout_s=2.0)
+            if reply.get("ok") and reply["config"]["road"]["grade_pct"] == 10.0:
+                config = reply["config"]
+                break
+            time.sleep(0.2)
+        assert config is not None, "the scenario's scene was not loaded"
+        watcher.watch(4.0)
+    finally:
+        player.send_signal(signal.SIGINT)
+        out, _ = player.communicate(timeout=30)
+        states = watcher.poll()
+        watcher.close()
+    assert player.returncode in (0, 130), out
+    played = [s for s in states if int(s["last_cmd_seq"]) > 0]
+    assert played and max(float(s["brake"]) for s in played) > 0.1, out
+
+
+def test_soak_as_written(tmp_path):
+    """One simulated hour of seeded random driving, as the README quotes it."""
+    proc = subprocess.run(as_written("simserver soak --duration 3600 --seed 11"),
+                          cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr  # exit 1 on any violation
+    summary = json.loads(proc.stdout)
+    print(f"\nsoak: {summary}")
+    assert summary["violations"] == []
