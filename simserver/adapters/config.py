@@ -351,3 +351,136 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
         raise ConfigError(f"{path}: key 'name': expected a non-empty string")
     return VehicleConfig(name=name, path=path, vp=vp, tp=tp,
                          tire_models=(names[0], names[1]), sources=sources)
+
+
+# ----------------------------------------------------------------- the reference doc
+PARAM_MEANING: dict[str, str] = {
+    "mass_kg": "total mass, wheels included",
+    "sprung_mass_kg": "mass on the springs (body); at most mass_kg",
+    "yaw_inertia_kgm2": "whole car about the vertical axis through the CG",
+    "roll_inertia_kgm2": "sprung mass about its own CG, roll axis",
+    "pitch_inertia_kgm2": "sprung mass about its own CG, pitch axis",
+    "cg_height_m": "CG height above the ground",
+    "cg_to_front_axle_m": "CG to front axle, along x",
+    "cg_to_rear_axle_m": "CG to rear axle, along x",
+    "track_front_m": "front track width",
+    "track_rear_m": "rear track width",
+    "drag_area_m2": "aerodynamic drag area Cd A",
+    "air_density_kg_per_m3": "air density (0 switches drag off)",
+    "spring_front_n_per_m": "suspension spring rate at each front wheel",
+    "spring_rear_n_per_m": "suspension spring rate at each rear wheel",
+    "damper_front_n_s_per_m": "damper rate at each front wheel",
+    "damper_rear_n_s_per_m": "damper rate at each rear wheel",
+    "antiroll_front_n_per_m": "front anti-roll bar, as a rate at the wheel (0: none)",
+    "antiroll_rear_n_per_m": "rear anti-roll bar, as a rate at the wheel (0: none)",
+    "steering_ratio": "steering-wheel angle / road-wheel angle (parallel steer)",
+    "steering_wheel_max_rad": "steering-wheel angle at steer = 1",
+    "brake_torque_max_nm": "brake torque of all four wheels together at pedal = 1",
+    "brake_front_fraction": "share of the brake torque on the front axle (70/30 is the "
+                            "paper's pattern at rest, model.md 4b item 4)",
+    "parking_brake_torque_nm": "parking-brake torque per rear wheel",
+    "drive_torque_max_nm": "drive torque at the wheels, all driven wheels together, gear D",
+    "drive_power_max_w": "power cap: torque <= P / |mean driven-wheel spin| above 1 rad/s",
+    "reverse_torque_max_nm": "drive torque at the wheels in gear R",
+    "driven_axle": "front, rear or both (open differential on each driven axle)",
+    "drive_front_fraction": "torque share of the front axle when both are driven",
+    "wheel_inertia_front_kgm2": "spin inertia of a front wheel with disc and driveline share",
+    "wheel_inertia_rear_kgm2": "spin inertia of a rear wheel with disc and driveline share",
+}
+TIRE_MEANING: dict[str, str] = {
+    "cornering_stiffness_n_per_rad": "C_alpha at nominal_load_n, linear in the load",
+    "longitudinal_stiffness_n": "C_kappa (N per unit slip) at nominal_load_n, linear in "
+                                "the load",
+    "nominal_load_n": "load at which the stiffnesses are given",
+    "friction_coefficient": "peak friction mu (times the road's friction scale)",
+    "rolling_resistance_coefficient": "rolling-resistance force / Fz",
+    "pneumatic_trail_m": "pneumatic trail at zero slip (Mz = -t Fy, t falls to 0 at full "
+                         "sliding)",
+    "rolling_radius_m": "effective rolling radius R (mf61: default UNLOADED_RADIUS)",
+    "relaxation_length_lat_m": "b of paper eq. 16 (mf61: default from PTY1, PTY2 at FNOMIN)",
+    "relaxation_length_long_m": "B of paper eq. 26 (mf61: default from PTX1 at FNOMIN)",
+}
+MODEL_OPTION_MEANING: dict[str, str] = {
+    "slip_model": f"slip states: {', '.join(SLIP_MODEL_NAMES)} (core/slip.py)",
+    "damping_model": f"low-speed damping: {', '.join(DAMPING_MODEL_NAMES)} (core/damping.py)",
+    "damping_ratio": "zeta of Appendix A",
+    "damping_trigger_v_mps": "eps of Appendix A: the paper's trigger needs |v| below it",
+    "damping_fade_speed_mps": "the patch damping fades out by this hub speed",
+    "kinematic_u_min_mps": "u_min of the eq. (1) patch (kinematic baseline only)",
+    "slide_widen_speed_mps": "passive slip states: the sliding limit widens above this "
+                             "hub speed",
+    "gravity_mps2": "gravitational acceleration",
+}
+
+
+def _range_text(lo: float, hi: float) -> str:
+    return f"{lo:g} .. {hi:g}"
+
+
+def config_reference_markdown() -> str:
+    """The configuration reference (docs/configuration.md), from the tables above."""
+    lines = [
+        "# Configuration reference",
+        "",
+        "Generated from `simserver/adapters/config.py` (`python -m simserver.adapters.config "
+        "--write docs/configuration.md`; a test fails when it drifts). Every key is required "
+        "unless marked optional; a key that is unknown, missing, not a number, not finite or "
+        "out of range is rejected with the file and the key named. Units are in the key "
+        "names.",
+        "",
+        "## The vehicle file",
+        "",
+        "`name` (string), `description` (optional), one path per subsystem file (relative to "
+        "the vehicle file): " + ", ".join(f"`{s}`" for s in SUBSYSTEM_KEYS)
+        + ", and `tires: {front: PATH, rear: PATH}`.",
+    ]
+    for subsystem, keys in SUBSYSTEM_KEYS.items():
+        lines += ["", f"## `{subsystem}` file", "", "| key | range | meaning |", "|---|---|---|"]
+        for key in keys:
+            rng = ("`" + "`, `".join(P.DRIVEN_AXLE_NAMES) + "`" if key == "driven_axle"
+                   else _range_text(*PARAM_RANGES[key]))
+            lines.append(f"| `{key}` | {rng} | {PARAM_MEANING[key]} |")
+    lines += ["", "## Tire files", "",
+              f"`model`: one of {', '.join(f'`{m}`' for m in TIRE_MODEL_NAMES)}.", "",
+              "`model: simple` (the brush combined-slip tire, `core/tire_simple.py`) takes "
+              "every key below; `model: mf61` (Magic Formula 6.1, `core/tire_mf61.py`) takes "
+              "`tir_file` (an MF-Tyre .tir property file, relative to the tire file) and, "
+              "optionally, the last three.", "",
+              "| key | range | meaning |", "|---|---|---|"]
+    tire_keys = {**SIMPLE_TIRE_RANGES, **TIRE_COMMON_RANGES}
+    for key, (lo, hi) in tire_keys.items():
+        lines.append(f"| `{key}` | {_range_text(lo, hi)} | {TIRE_MEANING[key]} |")
+    lines += ["", "## Model options", "",
+              "The `model:` section of a scenario or scene; every key is optional.", "",
+              "| key | default | range | meaning |", "|---|---|---|---|"]
+    for key, default in MODEL_OPTION_DEFAULTS.items():
+        rng = ("choice" if key not in MODEL_OPTION_RANGES
+               else _range_text(*MODEL_OPTION_RANGES[key]))
+        lines.append(f"| `{key}` | `{default}` | {rng} | {MODEL_OPTION_MEANING[key]} |")
+    lines += ["", "Scenario files (road, initial state, duration, input keyframes) are "
+              "described in the README; the server's own config, key by key, in "
+              "`configs/server/default.yaml`.", ""]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m simserver.adapters.config [--write] PATH``: check or write the reference."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("path", type=Path)
+    parser.add_argument("--write", action="store_true", help="rewrite the file")
+    args = parser.parse_args(argv)
+    text = config_reference_markdown()
+    if args.write:
+        args.path.write_text(text, encoding="utf-8")
+        return 0
+    if not args.path.is_file() or args.path.read_text(encoding="utf-8") != text:
+        print(f"{args.path} is out of date: run python -m simserver.adapters.config --write "
+              f"{args.path}")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
