@@ -65,7 +65,7 @@ from simserver.core.tire_mf61 import (  # noqa: E402
     mf61_param_vector,
 )
 
-DEFAULT_TIR = Path("/work/shared/data/tires/mf61_225_50R17_sample.tir")
+DEFAULT_TIR = Path(__file__).resolve().parents[1] / "configs/tires/data/mf61_225_50R17_sample.tir"
 
 # The loops are not cached on purpose: numba's cache of a caller does not notice a change
 # in a callee in another file, and a cached loop would keep timing an old kernel.

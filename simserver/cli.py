@@ -503,7 +503,7 @@ def view_command(args: argparse.Namespace) -> int:
     except TimeoutError as exc:
         raise CliError(f"no server answered: {exc}", exit_code=3) from exc
     print(f"viewer: {stats.states_received} states, {stats.frames_logged} frames, "
-          f"{stats.states_dropped} dropped", flush=True)
+          f"{stats.states_dropped} dropped; CPU priority {stats.cpu_priority}", flush=True)
     return 0
 
 

@@ -16,9 +16,10 @@ tick lateness p99 about tenfold):
   the ``fps`` states per simulated second that become frames go through the Python-heavy
   path (road pose, rows, spin, batching). The wheels' spin angles are then integrated at
   the frame rate, which is what the picture shows;
-- it asks the kernel for idle scheduling priority (``SCHED_IDLE`` on Linux, else the
-  lowest ``nice``) before it starts any thread, so its threads and Rerun's run only on
-  CPU time the server does not want (``lower_priority``).
+- it puts all its threads at idle scheduling priority (``SCHED_IDLE`` on Linux, else the
+  lowest ``nice``) before it opens its zenoh session and its recording, whose threads
+  inherit it; so they and Rerun's run only on CPU time the server does not want
+  (``lower_priority``).
 
 The wire state carries the world pose; the scene is drawn in the road's frame, so the road
 (from the ``get_config`` control, re-read once a second to follow ``set_road``) turns the
@@ -52,6 +53,7 @@ class ViewerStats:
     states_dropped: int = 0
     frames_logged: int = 0
     diagnostics: int = 0
+    cpu_priority: str = "normal"
 
 
 def rows_from_state(rec: np.ndarray, axes: np.ndarray, cg_height_m: float,
@@ -145,8 +147,9 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
         Run at idle CPU priority (``lower_priority``), the default: on the server's
         machine the view must only use CPU time the physics does not want.
     """
+    stats = ViewerStats()
     if idle_priority:  # before the sessions: the threads they start inherit it
-        lower_priority()
+        stats.cpu_priority = lower_priority()
     from simserver.adapters.config import load_vehicle
     from simserver.adapters.rerun_scene import RateGate, SceneLogger, log_diagnostics
     from simserver.adapters.rerun_sink import open_recording, parse_sink
@@ -156,7 +159,6 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
     rec_stream = open_recording(mode, target, application_id="simserver",
                                 recording_id=f"{prefix}/{vehicle_id}", web_port=web_port,
                                 check_listener=check_listener)
-    stats = ViewerStats()
     if rec_stream is None:
         return stats
     running = [True]
@@ -179,7 +181,7 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
             vehicle = load_vehicle(config["config"]["vehicle"]["path"])
             road = config["config"]["road"]
             logger = SceneLogger(rec_stream, vehicle.vp, vehicle.tp, road["grade_pct"],
-                                 road["cross_slope_pct"], fps=fps)
+                                 road["cross_slope_pct"], fps=None)  # decimated here
             axes = road_axes(road["grade_pct"], road["cross_slope_pct"])
             h_cg = float(vehicle.vp[VP_CG_HEIGHT_M])
             state_every = int(config["config"]["server"]["state_every"])
@@ -202,7 +204,7 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
                         vehicle = load_vehicle(reply["config"]["vehicle"]["path"])
                         logger = SceneLogger(rec_stream, vehicle.vp, vehicle.tp,
                                              road["grade_pct"], road["cross_slope_pct"],
-                                             fps=fps, send_blueprint=False)
+                                             fps=None, send_blueprint=False)
                         axes = road_axes(road["grade_pct"], road["cross_slope_pct"])
                         h_cg = float(vehicle.vp[VP_CG_HEIGHT_M])
                 payloads = states.drain_newest()

@@ -27,7 +27,7 @@ import pytest
 
 from tests.conftest import REPO
 from tests.serverproc import Watcher, client_env
-from tests.test_clients import PtyProcess
+from tests.test_clients import PtyProcess, hold_until
 
 README = (REPO / "README.md").read_text()
 BIN = Path(sys.executable).parent
@@ -178,19 +178,13 @@ def test_keyboard_driver_as_written(readme_server):
     try:
         drv.wait_for("connected to simserver/car0", 30)
         drv.wait_for("health", 10)
-        end = time.monotonic() + 10
-        while time.monotonic() < end:  # hold the throttle key until the car answers
-            drv.send(b"w")
-            time.sleep(0.03)
-            if any(float(s["throttle"]) > 0.1 for s in watcher.poll()):
-                break
+        pressed = hold_until(drv, b"w", watcher, lambda s: float(s["throttle"]) > 0.1, 10.0)
         drv.send(b"q")
         assert drv.wait(15) == 0, drv.text()
     finally:
         drv.close()
-        states = watcher.poll()
         watcher.close()
-    assert max(float(s["throttle"]) for s in states) > 0.1
+    assert float(pressed["throttle"]) > 0.1
 
 
 def test_player_as_written(readme_server):

@@ -19,8 +19,9 @@ from simserver.adapters.tir_file import (
     mf61_coefficients,
 )
 from simserver.core.tire_mf61 import MF61_PARAM_NAMES
+from tests.conftest import SAMPLE_TIR, SHARED_TIR
 
-SAMPLE = Path("/work/shared/data/tires/mf61_225_50R17_sample.tir")
+SAMPLE = SAMPLE_TIR
 SAMPLE_TEXT = SAMPLE.read_text().rstrip("\n") + "\n"
 
 
@@ -331,3 +332,9 @@ def test_string_for_coefficient_in_flat_view(tmp_path: Path) -> None:
     with pytest.raises(TirError) as exc:
         load_tir(path)
     _assert_error(exc, path, "QSY1", f":{_line_of('QSY1')}:")
+
+
+@pytest.mark.skipif(not SHARED_TIR.is_file(), reason="the team's reference file is not here")
+def test_the_shipped_sample_is_the_reference_file_unchanged():
+    """The repository's copy is the third-party file byte for byte (loaded unchanged)."""
+    assert SAMPLE_TIR.read_bytes() == SHARED_TIR.read_bytes()

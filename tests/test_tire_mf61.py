@@ -30,8 +30,9 @@ from simserver.core.tire_layout import (
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
 )
+from tests.conftest import SAMPLE_TIR
 
-SAMPLE = Path("/work/shared/data/tires/mf61_225_50R17_sample.tir")
+SAMPLE = SAMPLE_TIR
 C = mf61_coefficients(load_tir(SAMPLE))
 P = mf.mf61_param_vector(C)
 # the sample, and a variant that takes the other branches: off-nominal pressure (dpi != 0,

@@ -74,9 +74,9 @@ from simserver.core.tire_layout import (
     TIRE_JIT_OPTIONS,
     TP_MODEL_BASE,
 )
-from tests.conftest import CONFIGS, SHARED_TIR
+from tests.conftest import CONFIGS, SAMPLE_TIR
 
-C = mf61_coefficients(load_tir(SHARED_TIR))
+C = mf61_coefficients(load_tir(SAMPLE_TIR))
 VARIANT = dict(
     C, INFLPRES=1.15 * C["NOMPRES"], PKY5=0.4, LFZO=1.1, FZMIN=0.0, FZMAX=3.0 * C["FNOMIN"]
 )
