@@ -486,7 +486,9 @@ def render(report: Report, sections: list[str]) -> str:
         "- Server: `simserver serve` in its own process, state published every tick, driven "
         "at 200 Hz over zenoh on loopback. Lateness p50/p99: median over the server's "
         "4096-tick diagnostic windows; max, late ticks, overruns: the whole run. Latency: "
-        "command sent to the first state that reflects it, on the shared monotonic clock.",
+        "command sent to the first state that reflects it, on the shared monotonic clock, "
+        "each command sent at a random offset (uniform over one tick) in its 5 ms slot: a "
+        "driver's clock has no fixed phase to the server's ticks.",
         "- Start-up: launch of `python -m simserver serve --viewer off` to its `ready` line "
         "(kernels compiled or loaded, zenoh open, before the first tick). Cold: "
         "`NUMBA_CACHE_DIR` an empty directory (Python bytecode already compiled); warm: the "
