@@ -1,7 +1,7 @@
 """Every command the README gives, run as written, or named here with why it is not.
 
-One server runs the README's main job as written (``simserver serve``: the default
-loopback endpoint ``tcp/127.0.0.1:7447``, the default config); the README's client
+One server runs the README's main job as written (``readme_server`` of conftest: the
+default loopback endpoint ``tcp/127.0.0.1:7447``, the default config); the README's client
 commands and its Python driver then run against it, word for word, with ``.venv/bin/``
 meaning the environment running these tests and relative output paths landing in a
 temporary directory. ``test_every_readme_command_is_accounted_for`` fails when the README
@@ -12,26 +12,19 @@ from __future__ import annotations
 
 import json
 import re
-import shlex
 import signal
-import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
-from pathlib import Path
-from types import SimpleNamespace
 
 import pyarrow.parquet as pq
 import pytest
 
-from tests.conftest import REPO
+from tests.conftest import REPO, as_written
 from tests.serverproc import Watcher, client_env
 from tests.test_clients import PtyProcess, hold_until
 
 README = (REPO / "README.md").read_text()
-BIN = Path(sys.executable).parent
-DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 RUN_HERE = {
     ".venv/bin/simserver-driver": "test_keyboard_driver_as_written",
@@ -45,7 +38,7 @@ RUN_HERE = {
 RUN_ELSEWHERE = {
     "python3 -m venv .venv && .venv/bin/pip install -e . && .venv/bin/simserver serve":
         "test_readme.py::test_main_command_job_runs (and the server of this module)",
-    "simserver serve": "the server of this module",
+    "simserver serve": "readme_server, the server of this module",
     'python3 -m venv .venv && .venv/bin/pip install -q -e ".[test]" && '
     '.venv/bin/python -m pytest -q': "CI: .ci/run runs it verbatim (test_readme.py)",
     ".venv/bin/simserver run-scenario configs/scenarios/e2_stop_downslope_paper_damping.yaml"
@@ -105,42 +98,11 @@ def readme_commands() -> set[str]:
     return found
 
 
-def as_written(command: str) -> list[str]:
-    """argv of a README command, ``.venv/bin/X`` being this environment's ``X``."""
-    argv = shlex.split(command)
-    if argv[0].startswith(".venv/bin/"):
-        argv[0] = str(BIN / argv[0].removeprefix(".venv/bin/"))
-    elif argv[0] == "simserver":
-        argv[0] = str(BIN / "simserver")
-    return argv
-
-
 def test_every_readme_command_is_accounted_for():
     accounted = set(RUN_HERE) | set(RUN_ELSEWHERE) | set(NOT_RUN_HERE)
     found = readme_commands()
     assert found - accounted == set(), "README commands no test runs or explains"
     assert accounted - found == set(), "listed here but no longer in the README"
-
-
-@pytest.fixture(scope="module")
-def readme_server() -> Iterator[SimpleNamespace]:
-    """The README's main job as written, on its default endpoint."""
-    with socket.socket() as probe:
-        if probe.connect_ex(("127.0.0.1", 7447)) == 0:
-            pytest.skip("something already listens on 127.0.0.1:7447")
-    proc = subprocess.Popen(as_written("simserver serve"), cwd=REPO, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    try:
-        line = ""
-        end = time.monotonic() + 120
-        while "ready on" not in line and time.monotonic() < end and proc.poll() is None:
-            line = proc.stdout.readline()
-        assert "ready on simserver/car0" in line, line
-        yield SimpleNamespace(endpoint=DEFAULT_ENDPOINT, vehicle_id="car0", proc=proc)
-    finally:
-        proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=30)
-    assert proc.returncode == 0 and "simserver: stopped" in out, out
 
 
 def python_driver_snippet() -> str:
