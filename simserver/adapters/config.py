@@ -250,7 +250,8 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
                  options_source: str = "model options") -> VehicleConfig:
     """Load and validate a vehicle file and its subsystem files.
 
-    The road starts flat with friction scale 1 (``core.params.set_road`` changes it).
+    The road starts at the ``road:`` defaults, flat with friction scale 1
+    (``core.params.set_road`` changes it).
     """
     path = Path(path)
     top = read_yaml(path)
@@ -286,7 +287,8 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
         names.append(model_name)
 
     apply_model_options(vp, model_option_values(model_options, options_source))
-    P.set_road(vp, 0.0, 0.0, 1.0)
+    road = P.ROAD.defaults  # flat, friction scale 1
+    P.set_road(vp, road["grade_pct"], road["cross_slope_pct"], road["friction_scale"])
     name = top["name"]
     if not isinstance(name, str) or not name:
         raise ConfigError(f"{path}: key 'name': expected a non-empty string")
