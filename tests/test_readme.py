@@ -72,16 +72,3 @@ def test_performance_table_is_the_benchmark_report():
     assert len(rows) > 10 and rows == table(report)
     commit = next(ln for ln in report.splitlines() if ln.startswith("- **commit**"))
     assert commit.split(": ", 1)[1].split()[0] in block
-
-
-def test_configuration_reference_is_current_and_complete():
-    """docs/configuration.md is generated from the key tables, and every key has a meaning."""
-    from simserver.adapters import config as C
-
-    assert set(C.PARAM_MEANING) == set(C.PARAM_RANGES) | {"driven_axle"}
-    assert set(C.TIRE_MEANING) == set(C.SIMPLE_TIRE_RANGES) | set(C.TIRE_COMMON_RANGES)
-    assert set(C.MODEL_OPTION_MEANING) == set(C.MODEL_OPTION_DEFAULTS)
-    doc = (REPO / "docs" / "configuration.md").read_text()
-    assert doc == C.config_reference_markdown(), (
-        "docs/configuration.md drifted: run python -m simserver.adapters.config --write "
-        "docs/configuration.md")

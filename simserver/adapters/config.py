@@ -10,9 +10,10 @@ A vehicle is a top-level YAML file naming its subsystem files (paths relative to
     powertrain: powertrain.yaml
     tires: {front: ../../tires/paper_sti.yaml, rear: ../../tires/paper_sti.yaml}
 
-Each subsystem file holds exactly the keys listed for it in ``SUBSYSTEM_KEYS`` (units in
-the key names); every key is checked against ``PARAM_RANGES``. Tire files are described
-in ``load_tire``. Every error names the file and the key (``ConfigError``).
+Each subsystem file holds exactly the keys of its parameter table in ``core/params.py``
+(units in the key names), each checked against the range or the named choices given there
+(``read_params``). Tire files are described in ``load_tire``. Every error names the file
+and the key (``ConfigError``).
 """
 
 from __future__ import annotations
@@ -27,12 +28,7 @@ import yaml
 
 from simserver.adapters.tir_file import TirError, load_tir, mf61_coefficients
 from simserver.core import params as P
-from simserver.core.damping import (
-    DAMPING_MODEL_NAMES,
-    PAPER_DAMPING_RATIO,
-    PAPER_TRIGGER_LATERAL_SPEED_MPS,
-)
-from simserver.core.slip import SLIP_MODEL_NAMES
+from simserver.core.param_table import ParamTable, slot_constants_source, with_slot_constants
 from simserver.core.tire import N_TIRE_PARAM
 from simserver.core.tire_layout import (
     TIRE_MODEL_MF61,
@@ -52,77 +48,10 @@ class ConfigError(ValueError):
     """A configuration file is missing, unreadable or invalid; the message names file and key."""
 
 
-# Which vehicle-parameter keys each subsystem file holds (names = core.params names).
-SUBSYSTEM_KEYS: dict[str, tuple[str, ...]] = {
-    "chassis": (
-        "mass_kg", "sprung_mass_kg", "yaw_inertia_kgm2", "roll_inertia_kgm2",
-        "pitch_inertia_kgm2", "cg_height_m", "cg_to_front_axle_m", "cg_to_rear_axle_m",
-        "track_front_m", "track_rear_m", "drag_area_m2", "air_density_kg_per_m3",
-    ),
-    "suspension": (
-        "spring_front_n_per_m", "spring_rear_n_per_m", "damper_front_n_s_per_m",
-        "damper_rear_n_s_per_m", "antiroll_front_n_per_m", "antiroll_rear_n_per_m",
-    ),
-    "steering": ("steering_ratio", "steering_wheel_max_rad"),
-    "brakes": ("brake_torque_max_nm", "brake_front_fraction", "parking_brake_torque_nm"),
-    "powertrain": (
-        "drive_torque_max_nm", "drive_power_max_w", "reverse_torque_max_nm", "driven_axle",
-        "drive_front_fraction", "wheel_inertia_front_kgm2", "wheel_inertia_rear_kgm2",
-    ),
-}
-
-# (min, max) of every numeric parameter; a value outside is a config error.
-PARAM_RANGES: dict[str, tuple[float, float]] = {
-    "mass_kg": (50.0, 60000.0),
-    "sprung_mass_kg": (10.0, 60000.0),
-    "yaw_inertia_kgm2": (1.0, 1e6),
-    "roll_inertia_kgm2": (1.0, 1e6),
-    "pitch_inertia_kgm2": (1.0, 1e6),
-    "cg_height_m": (0.05, 3.0),
-    "cg_to_front_axle_m": (0.1, 10.0),
-    "cg_to_rear_axle_m": (0.1, 10.0),
-    "track_front_m": (0.3, 4.0),
-    "track_rear_m": (0.3, 4.0),
-    "drag_area_m2": (0.0, 20.0),
-    "air_density_kg_per_m3": (0.0, 2.0),
-    "spring_front_n_per_m": (1e3, 1e7),
-    "spring_rear_n_per_m": (1e3, 1e7),
-    "damper_front_n_s_per_m": (0.0, 1e6),
-    "damper_rear_n_s_per_m": (0.0, 1e6),
-    "antiroll_front_n_per_m": (0.0, 1e7),
-    "antiroll_rear_n_per_m": (0.0, 1e7),
-    "steering_ratio": (1.0, 50.0),
-    "steering_wheel_max_rad": (0.05, 30.0),
-    "brake_torque_max_nm": (0.0, 1e6),
-    "brake_front_fraction": (0.0, 1.0),
-    "parking_brake_torque_nm": (0.0, 1e6),
-    "drive_torque_max_nm": (0.0, 1e6),
-    "drive_power_max_w": (1.0, 1e8),
-    "reverse_torque_max_nm": (0.0, 1e6),
-    "drive_front_fraction": (0.0, 1.0),
-    "wheel_inertia_front_kgm2": (0.05, 500.0),
-    "wheel_inertia_rear_kgm2": (0.05, 500.0),
-}
-
-# Model options (the scenario's or server's ``model:`` section) and their defaults.
-MODEL_OPTION_DEFAULTS: dict[str, Any] = {
-    "slip_model": "lagged_passive",
-    "damping_model": "patch",
-    "damping_ratio": PAPER_DAMPING_RATIO,
-    "damping_trigger_v_mps": PAPER_TRIGGER_LATERAL_SPEED_MPS,
-    "damping_fade_speed_mps": 2.0,
-    "kinematic_u_min_mps": 0.5,
-    "slide_widen_speed_mps": 0.5,
-    "gravity_mps2": 9.81,
-}
-MODEL_OPTION_RANGES: dict[str, tuple[float, float]] = {
-    "damping_ratio": (0.0, 5.0),
-    "damping_trigger_v_mps": (0.0, 10.0),
-    "damping_fade_speed_mps": (0.01, 50.0),
-    "kinematic_u_min_mps": (0.01, 50.0),
-    "slide_widen_speed_mps": (0.01, 100.0),
-    "gravity_mps2": (0.1, 30.0),
-}
+# The vehicle file's subsystem keys, one file each, and the ``model:`` section's defaults,
+# from the parameter tables (core/params.py).
+SUBSYSTEMS: tuple[str, ...] = tuple(table.name for table in P.VEHICLE_SUBSYSTEMS)
+MODEL_OPTION_DEFAULTS: dict[str, Any] = P.MODEL_OPTIONS.defaults
 
 SIMPLE_TIRE_RANGES: dict[str, tuple[float, float]] = {
     "cornering_stiffness_n_per_rad": (100.0, 1e7),
@@ -206,29 +135,47 @@ def check_keys(path: Path | str, data: dict[str, Any], allowed: tuple[str, ...] 
             raise ConfigError(f"{path}: missing key '{key}'")
 
 
-def model_option_values(options: dict[str, Any] | None, source: str) -> dict[str, float]:
-    """Validate a ``model:`` section against ``MODEL_OPTION_DEFAULTS``; returns slot values."""
-    merged = dict(MODEL_OPTION_DEFAULTS)
-    options = options or {}
-    if not isinstance(options, dict):
-        raise ConfigError(f"{source}: key 'model': expected a mapping")
-    check_keys(f"{source} (model)", options, tuple(MODEL_OPTION_DEFAULTS))
-    merged.update(options)
-    values: dict[str, float] = {
-        "slip_model": choice(source, "model.slip_model", merged["slip_model"], SLIP_MODEL_NAMES),
-        "damping_model": choice(
-            source, "model.damping_model", merged["damping_model"], DAMPING_MODEL_NAMES
-        ),
-    }
-    for key, (lo, hi) in MODEL_OPTION_RANGES.items():
-        values[key] = number(source, f"model.{key}", merged[key], lo, hi)
+def read_params(path: Path | str, data: dict[str, Any], table: ParamTable,
+                section: str | None = None) -> dict[str, float]:
+    """Validate one section against its parameter table: YAML key -> number.
+
+    Unknown keys and missing required keys are errors; optional keys take their defaults;
+    a named choice becomes the number stored for it. ``section`` names a section inside
+    the file (``model``, ``road``) so that errors say ``model.damping_ratio``.
+    """
+    check_keys(path if section is None else f"{path} ({section})", data, table.keys,
+               required=table.required_keys)
+    values: dict[str, float] = {}
+    for param in table:
+        if param.derived:
+            continue
+        key = param.yaml_key
+        label = key if section is None else f"{section}.{key}"
+        value = data.get(key, param.default)
+        if param.choices is not None:
+            values[key] = choice(path, label, value, param.choices)
+        else:
+            values[key] = number(path, label, value, param.lo, param.hi)
     return values
 
 
-def apply_model_options(vp: np.ndarray, values: dict[str, float]) -> None:
-    """Write validated model options into the parameter vector (same names as its slots)."""
+def pack_params(vp: np.ndarray, table: ParamTable, values: dict[str, float]) -> None:
+    """Write values keyed as ``read_params`` returns them into their slots of ``vp``."""
     for key, value in values.items():
-        vp[P.VEHICLE_PARAM_NAMES.index(key)] = value
+        vp[table.by_key(key).slot] = value
+
+
+def model_option_values(options: dict[str, Any] | None, source: str) -> dict[str, float]:
+    """Validate a ``model:`` section against ``core.params.MODEL_OPTIONS``: key -> value."""
+    options = options or {}
+    if not isinstance(options, dict):
+        raise ConfigError(f"{source}: key 'model': expected a mapping")
+    return read_params(source, options, P.MODEL_OPTIONS, section="model")
+
+
+def apply_model_options(vp: np.ndarray, values: dict[str, float]) -> None:
+    """Write validated model options into the parameter vector."""
+    pack_params(vp, P.MODEL_OPTIONS, values)
 
 
 def load_tire(path: Path) -> tuple[np.ndarray, str]:
@@ -303,28 +250,23 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
                  options_source: str = "model options") -> VehicleConfig:
     """Load and validate a vehicle file and its subsystem files.
 
-    The road starts flat with friction scale 1 (``core.params.set_road`` changes it).
+    The road starts at the ``road:`` defaults, flat with friction scale 1
+    (``core.params.set_road`` changes it).
     """
     path = Path(path)
     top = read_yaml(path)
-    allowed = ("name", "description", "tires", *SUBSYSTEM_KEYS)
-    check_keys(path, top, allowed, required=("name", "tires", *SUBSYSTEM_KEYS))
+    allowed = ("name", "description", "tires", *SUBSYSTEMS)
+    check_keys(path, top, allowed, required=("name", "tires", *SUBSYSTEMS))
     vp = np.zeros(P.N_VEHICLE_PARAM, dtype=np.float64)
     sources: dict[str, str] = {}
-    for subsystem, keys in SUBSYSTEM_KEYS.items():
+    for table in P.VEHICLE_SUBSYSTEMS:
+        subsystem = table.name
         ref = top[subsystem]
         if not isinstance(ref, str):
             raise ConfigError(f"{path}: key '{subsystem}': expected a file path")
         sub_path = (path.parent / ref).resolve()
         sources[subsystem] = str(sub_path)
-        data = read_yaml(sub_path)
-        check_keys(sub_path, data, keys, required=keys)
-        for key in keys:
-            slot = P.VEHICLE_PARAM_NAMES.index(key)
-            if key == "driven_axle":
-                vp[slot] = choice(sub_path, key, data[key], P.DRIVEN_AXLE_NAMES)
-            else:
-                vp[slot] = number(sub_path, key, data[key], *PARAM_RANGES[key])
+        pack_params(vp, table, read_params(sub_path, read_yaml(sub_path), table))
     if vp[P.VP_SPRUNG_MASS_KG] > vp[P.VP_MASS_KG]:
         raise ConfigError(f"{sources['chassis']}: key 'sprung_mass_kg': exceeds mass_kg")
 
@@ -345,7 +287,8 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
         names.append(model_name)
 
     apply_model_options(vp, model_option_values(model_options, options_source))
-    P.set_road(vp, 0.0, 0.0, 1.0)
+    road = P.ROAD.defaults  # flat, friction scale 1
+    P.set_road(vp, road["grade_pct"], road["cross_slope_pct"], road["friction_scale"])
     name = top["name"]
     if not isinstance(name, str) or not name:
         raise ConfigError(f"{path}: key 'name': expected a non-empty string")
@@ -354,39 +297,6 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
 
 
 # ----------------------------------------------------------------- the reference doc
-PARAM_MEANING: dict[str, str] = {
-    "mass_kg": "total mass, wheels included",
-    "sprung_mass_kg": "mass on the springs (body); at most mass_kg",
-    "yaw_inertia_kgm2": "whole car about the vertical axis through the CG",
-    "roll_inertia_kgm2": "sprung mass about its own CG, roll axis",
-    "pitch_inertia_kgm2": "sprung mass about its own CG, pitch axis",
-    "cg_height_m": "CG height above the ground",
-    "cg_to_front_axle_m": "CG to front axle, along x",
-    "cg_to_rear_axle_m": "CG to rear axle, along x",
-    "track_front_m": "front track width",
-    "track_rear_m": "rear track width",
-    "drag_area_m2": "aerodynamic drag area Cd A",
-    "air_density_kg_per_m3": "air density (0 switches drag off)",
-    "spring_front_n_per_m": "suspension spring rate at each front wheel",
-    "spring_rear_n_per_m": "suspension spring rate at each rear wheel",
-    "damper_front_n_s_per_m": "damper rate at each front wheel",
-    "damper_rear_n_s_per_m": "damper rate at each rear wheel",
-    "antiroll_front_n_per_m": "front anti-roll bar, as a rate at the wheel (0: none)",
-    "antiroll_rear_n_per_m": "rear anti-roll bar, as a rate at the wheel (0: none)",
-    "steering_ratio": "steering-wheel angle / road-wheel angle (parallel steer)",
-    "steering_wheel_max_rad": "steering-wheel angle at steer = 1",
-    "brake_torque_max_nm": "brake torque of all four wheels together at pedal = 1",
-    "brake_front_fraction": "share of the brake torque on the front axle (70/30 is the "
-                            "paper's pattern at rest, model.md 4b item 4)",
-    "parking_brake_torque_nm": "parking-brake torque per rear wheel",
-    "drive_torque_max_nm": "drive torque at the wheels, all driven wheels together, gear D",
-    "drive_power_max_w": "power cap: torque <= P / |mean driven-wheel spin| above 1 rad/s",
-    "reverse_torque_max_nm": "drive torque at the wheels in gear R",
-    "driven_axle": "front, rear or both (open differential on each driven axle)",
-    "drive_front_fraction": "torque share of the front axle when both are driven",
-    "wheel_inertia_front_kgm2": "spin inertia of a front wheel with disc and driveline share",
-    "wheel_inertia_rear_kgm2": "spin inertia of a rear wheel with disc and driveline share",
-}
 TIRE_MEANING: dict[str, str] = {
     "cornering_stiffness_n_per_rad": "C_alpha at nominal_load_n, linear in the load",
     "longitudinal_stiffness_n": "C_kappa (N per unit slip) at nominal_load_n, linear in "
@@ -400,46 +310,43 @@ TIRE_MEANING: dict[str, str] = {
     "relaxation_length_lat_m": "b of paper eq. 16 (mf61: default from PTY1, PTY2 at FNOMIN)",
     "relaxation_length_long_m": "B of paper eq. 26 (mf61: default from PTX1 at FNOMIN)",
 }
-MODEL_OPTION_MEANING: dict[str, str] = {
-    "slip_model": f"slip states: {', '.join(SLIP_MODEL_NAMES)} (core/slip.py)",
-    "damping_model": f"low-speed damping: {', '.join(DAMPING_MODEL_NAMES)} (core/damping.py)",
-    "damping_ratio": "zeta of Appendix A",
-    "damping_trigger_v_mps": "eps of Appendix A: the paper's trigger needs |v| below it",
-    "damping_fade_speed_mps": "the patch damping fades out by this hub speed",
-    "kinematic_u_min_mps": "u_min of the eq. (1) patch (kinematic baseline only)",
-    "slide_widen_speed_mps": "passive slip states: the sliding limit widens above this "
-                             "hub speed",
-    "gravity_mps2": "gravitational acceleration",
-}
-
-
-def _range_text(lo: float, hi: float) -> str:
-    return f"{lo:g} .. {hi:g}"
+def _param_rows(table: ParamTable, with_default: bool) -> list[str]:
+    """A markdown table of a section's keys, from its parameter table."""
+    if with_default:
+        lines = ["| key | unit | default | accepted | meaning |", "|---|---|---|---|---|"]
+    else:
+        lines = ["| key | unit | accepted | meaning |", "|---|---|---|---|"]
+    for param in table:
+        if param.derived:
+            continue
+        default = f" `{param.default}` |" if with_default else ""
+        meaning = param.meaning.replace("|", "\\|")  # |v| would end the markdown cell
+        lines.append(f"| `{param.yaml_key}` | {param.unit} |{default} {param.range_text()} | "
+                     f"{meaning} |")
+    return lines
 
 
 def config_reference_markdown() -> str:
-    """The configuration reference (docs/configuration.md), from the tables above."""
+    """The configuration reference (docs/configuration.md), from the parameter tables."""
     lines = [
         "# Configuration reference",
         "",
-        "Generated from `simserver/adapters/config.py` (`python -m simserver.adapters.config "
-        "--write docs/configuration.md`; a test fails when it drifts). Every key is required "
-        "unless marked optional; a key that is unknown, missing, not a number, not finite or "
-        "out of range is rejected with the file and the key named. Units are in the key "
-        "names.",
+        "Generated from the parameter tables in `simserver/core/params.py` (`python -m "
+        "simserver.adapters.config --write docs/configuration.md`; a test fails when it "
+        "drifts). Every key is required unless it has a default; a key that is unknown, "
+        "missing, not a number, not finite, out of range or not one of the named choices is "
+        "rejected with the file and the key named. Units are in the key names, and in the "
+        "unit column (`-`: a pure number).",
         "",
         "## The vehicle file",
         "",
         "`name` (string), `description` (optional), one path per subsystem file (relative to "
-        "the vehicle file): " + ", ".join(f"`{s}`" for s in SUBSYSTEM_KEYS)
+        "the vehicle file): " + ", ".join(f"`{s}`" for s in SUBSYSTEMS)
         + ", and `tires: {front: PATH, rear: PATH}`.",
     ]
-    for subsystem, keys in SUBSYSTEM_KEYS.items():
-        lines += ["", f"## `{subsystem}` file", "", "| key | range | meaning |", "|---|---|---|"]
-        for key in keys:
-            rng = ("`" + "`, `".join(P.DRIVEN_AXLE_NAMES) + "`" if key == "driven_axle"
-                   else _range_text(*PARAM_RANGES[key]))
-            lines.append(f"| `{key}` | {rng} | {PARAM_MEANING[key]} |")
+    for table in P.VEHICLE_SUBSYSTEMS:
+        lines += ["", f"## `{table.name}` file", "", f"{table.title.capitalize()}.", ""]
+        lines += _param_rows(table, with_default=False)
     lines += ["", "## Tire files", "",
               f"`model`: one of {', '.join(f'`{m}`' for m in TIRE_MODEL_NAMES)}.", "",
               "`model: simple` (the brush combined-slip tire, `core/tire_simple.py`) takes "
@@ -449,34 +356,50 @@ def config_reference_markdown() -> str:
               "| key | range | meaning |", "|---|---|---|"]
     tire_keys = {**SIMPLE_TIRE_RANGES, **TIRE_COMMON_RANGES}
     for key, (lo, hi) in tire_keys.items():
-        lines.append(f"| `{key}` | {_range_text(lo, hi)} | {TIRE_MEANING[key]} |")
-    lines += ["", "## Model options", "",
-              "The `model:` section of a scenario or scene; every key is optional.", "",
-              "| key | default | range | meaning |", "|---|---|---|---|"]
-    for key, default in MODEL_OPTION_DEFAULTS.items():
-        rng = ("choice" if key not in MODEL_OPTION_RANGES
-               else _range_text(*MODEL_OPTION_RANGES[key]))
-        lines.append(f"| `{key}` | `{default}` | {rng} | {MODEL_OPTION_MEANING[key]} |")
-    lines += ["", "Scenario files (road, initial state, duration, input keyframes) are "
-              "described in the README; the server's own config, key by key, in "
+        lines.append(f"| `{key}` | {lo:g} .. {hi:g} | {TIRE_MEANING[key]} |")
+    for table, where in ((P.ROAD, "road"), (P.MODEL_OPTIONS, "model")):
+        lines += ["", f"## `{where}:` section of a scenario or scene", "",
+                  f"{table.title.capitalize()}; every key is optional.", ""]
+        lines += _param_rows(table, with_default=True)
+    lines += ["", "Scenario files (initial state, duration, input keyframes) are described in "
+              "the README; the server's own config, key by key, in "
               "`configs/server/default.yaml`.", ""]
     return "\n".join(lines)
 
 
+def slot_constants() -> str:
+    """The generated ``VP_*`` block of ``core/params.py``, from the parameter tables."""
+    return slot_constants_source(P.VEHICLE_PARAM_TABLES, "VP_")
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``python -m simserver.adapters.config [--write] PATH``: check or write the reference."""
+    """``python -m simserver.adapters.config [--write] [--slots] PATH``: check or write.
+
+    PATH is the configuration reference (docs/configuration.md) or, with ``--slots``, the
+    module holding the generated slot constants (simserver/core/params.py).
+    """
     import argparse
 
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument("path", type=Path)
     parser.add_argument("--write", action="store_true", help="rewrite the file")
+    parser.add_argument("--slots", action="store_true",
+                        help="PATH is core/params.py: its generated VP_* slot constants")
     args = parser.parse_args(argv)
-    text = config_reference_markdown()
+    current = args.path.read_text(encoding="utf-8") if args.path.is_file() else None
+    if args.slots:
+        if current is None:
+            print(f"{args.path}: no such file")
+            return 1
+        text = with_slot_constants(current, slot_constants())
+    else:
+        text = config_reference_markdown()
     if args.write:
         args.path.write_text(text, encoding="utf-8")
         return 0
-    if not args.path.is_file() or args.path.read_text(encoding="utf-8") != text:
-        print(f"{args.path} is out of date: run python -m simserver.adapters.config --write "
+    if current != text:
+        flags = "--write --slots" if args.slots else "--write"
+        print(f"{args.path} is out of date: run python -m simserver.adapters.config {flags} "
               f"{args.path}")
         return 1
     return 0

@@ -1,9 +1,17 @@
-"""The vehicle's packed parameter vector: named slots, one float64 array.
+"""The vehicle's packed parameter vector: one table per subsystem, named slots, one array.
+
+Every vehicle parameter is a row of one ``ParamTable`` below (core/param_table.py): its
+YAML key (units in the name), unit, accepted range or named choices, default and meaning,
+and its slot in the packed float64 vector. The slot constants (``VP_*``), the config
+loader's keys and checks (``simserver.adapters.config``) and ``docs/configuration.md`` are
+all derived from these tables.
 
 Parameters are packed once (by ``simserver.adapters.config``) and handed to the compiled
 kernels. The road and the model options live in the same vector so that one array
 describes "what is being simulated"; ``set_road`` updates the road slots and the gravity
-components derived from them at run time.
+components derived from them at run time. The slot order is historical (slots are grouped
+as the kernels were written, not as the files are); it is kept so that packed vectors stay
+bit-identical.
 """
 
 from __future__ import annotations
@@ -11,110 +19,183 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-# --- mass and geometry
-VP_MASS_KG = 0  # total mass
-VP_SPRUNG_MASS_KG = 1
-VP_YAW_INERTIA_KGM2 = 2  # total, about the CG
-VP_ROLL_INERTIA_KGM2 = 3  # sprung mass, about its CG
-VP_PITCH_INERTIA_KGM2 = 4  # sprung mass, about its CG
-VP_CG_HEIGHT_M = 5  # above ground
-VP_CG_TO_FRONT_AXLE_M = 6
-VP_CG_TO_REAR_AXLE_M = 7
-VP_TRACK_FRONT_M = 8
-VP_TRACK_REAR_M = 9
-# --- suspension (rates at the wheel)
-VP_SPRING_FRONT_NPM = 10
-VP_SPRING_REAR_NPM = 11
-VP_DAMPER_FRONT_NSPM = 12
-VP_DAMPER_REAR_NSPM = 13
-VP_ANTIROLL_FRONT_NPM = 14
-VP_ANTIROLL_REAR_NPM = 15
-# --- wheels and steering
-VP_WHEEL_INERTIA_FRONT_KGM2 = 16  # wheel + brake disc + share of driveline
-VP_WHEEL_INERTIA_REAR_KGM2 = 17
-VP_STEERING_RATIO = 18  # steering-wheel angle / road-wheel angle
-VP_STEERING_WHEEL_MAX_RAD = 19  # steering-wheel angle at steer = 1
-# --- brakes
-VP_BRAKE_TORQUE_MAX_NM = 20  # all four wheels together, pedal = 1
-VP_BRAKE_FRONT_FRACTION = 21
-VP_PARKING_BRAKE_TORQUE_NM = 22  # per rear wheel
-# --- powertrain
-VP_DRIVE_TORQUE_MAX_NM = 23  # at the wheels, all driven wheels together, first gear
-VP_DRIVE_POWER_MAX_W = 24
-VP_REVERSE_TORQUE_MAX_NM = 25
-VP_DRIVEN_AXLE = 26  # DRIVEN_FRONT / DRIVEN_REAR / DRIVEN_BOTH
-VP_DRIVE_FRONT_FRACTION = 27  # torque share of the front axle when both are driven
-# --- aerodynamics
-VP_DRAG_AREA_M2 = 28  # Cd * A
-VP_AIR_DENSITY_KGPM3 = 29
-# --- road (set_road keeps the derived gravity slots consistent)
-VP_ROAD_GRADE_PCT = 30  # rise along e1, per cent
-VP_ROAD_CROSS_SLOPE_PCT = 31  # rise along e2, per cent
-VP_ROAD_FRICTION_SCALE = 32
-VP_GRAVITY_MPS2 = 33
-VP_GRAVITY_E1_MPS2 = 34  # derived: gravity resolved along the road plane's axes
-VP_GRAVITY_E2_MPS2 = 35
-VP_GRAVITY_N_MPS2 = 36  # derived: component pressing the car onto the road (> 0)
-# --- model options
-VP_SLIP_MODEL = 37  # core.slip.SLIP_*
-VP_DAMPING_MODEL = 38  # core.damping.DAMPING_*
-VP_DAMPING_RATIO = 39  # zeta, Appendix A
-VP_DAMPING_TRIGGER_V_MPS = 40  # eps, Appendix A
-VP_DAMPING_FADE_SPEED_MPS = 41  # patch damping fades out by this hub speed
-VP_KINEMATIC_U_MIN_MPS = 42  # u_min of the paper's eq. (1) patch (kinematic baseline)
-VP_SLIDE_WIDEN_SPEED_MPS = 43  # passive slip: sliding limit widens above this hub speed
-N_VEHICLE_PARAM = 44
+from simserver.core.damping import (
+    DAMPING_MODEL_NAMES,
+    PAPER_DAMPING_RATIO,
+    PAPER_TRIGGER_LATERAL_SPEED_MPS,
+)
+from simserver.core.param_table import Param, ParamTable, slot_layout
+from simserver.core.slip import SLIP_MODEL_NAMES
 
 DRIVEN_FRONT, DRIVEN_REAR, DRIVEN_BOTH = 0, 1, 2
 DRIVEN_AXLE_NAMES = {"front": DRIVEN_FRONT, "rear": DRIVEN_REAR, "both": DRIVEN_BOTH}
 
-VEHICLE_PARAM_NAMES = (
-    "mass_kg",
-    "sprung_mass_kg",
-    "yaw_inertia_kgm2",
-    "roll_inertia_kgm2",
-    "pitch_inertia_kgm2",
-    "cg_height_m",
-    "cg_to_front_axle_m",
-    "cg_to_rear_axle_m",
-    "track_front_m",
-    "track_rear_m",
-    "spring_front_n_per_m",
-    "spring_rear_n_per_m",
-    "damper_front_n_s_per_m",
-    "damper_rear_n_s_per_m",
-    "antiroll_front_n_per_m",
-    "antiroll_rear_n_per_m",
-    "wheel_inertia_front_kgm2",
-    "wheel_inertia_rear_kgm2",
-    "steering_ratio",
-    "steering_wheel_max_rad",
-    "brake_torque_max_nm",
-    "brake_front_fraction",
-    "parking_brake_torque_nm",
-    "drive_torque_max_nm",
-    "drive_power_max_w",
-    "reverse_torque_max_nm",
-    "driven_axle",
-    "drive_front_fraction",
-    "drag_area_m2",
-    "air_density_kg_per_m3",
-    "road_grade_pct",
-    "road_cross_slope_pct",
-    "road_friction_scale",
-    "gravity_mps2",
-    "gravity_e1_mps2",
-    "gravity_e2_mps2",
-    "gravity_n_mps2",
-    "slip_model",
-    "damping_model",
-    "damping_ratio",
-    "damping_trigger_v_mps",
-    "damping_fade_speed_mps",
-    "kinematic_u_min_mps",
-    "slide_widen_speed_mps",
-)
-assert len(VEHICLE_PARAM_NAMES) == N_VEHICLE_PARAM
+# --- the vehicle's subsystem files (every key required)
+CHASSIS = ParamTable("chassis", "mass, inertias, geometry, aerodynamics", (
+    Param("mass_kg", "kg", 50.0, 60000.0, "total mass, wheels included", slot=0),
+    Param("sprung_mass_kg", "kg", 10.0, 60000.0,
+          "mass on the springs (body); at most mass_kg", slot=1),
+    Param("yaw_inertia_kgm2", "kg m^2", 1.0, 1e6,
+          "whole car about the vertical axis through the CG", slot=2),
+    Param("roll_inertia_kgm2", "kg m^2", 1.0, 1e6,
+          "sprung mass about its own CG, roll axis", slot=3),
+    Param("pitch_inertia_kgm2", "kg m^2", 1.0, 1e6,
+          "sprung mass about its own CG, pitch axis", slot=4),
+    Param("cg_height_m", "m", 0.05, 3.0, "CG height above the ground", slot=5),
+    Param("cg_to_front_axle_m", "m", 0.1, 10.0, "CG to front axle, along x", slot=6),
+    Param("cg_to_rear_axle_m", "m", 0.1, 10.0, "CG to rear axle, along x", slot=7),
+    Param("track_front_m", "m", 0.3, 4.0, "front track width", slot=8),
+    Param("track_rear_m", "m", 0.3, 4.0, "rear track width", slot=9),
+    Param("drag_area_m2", "m^2", 0.0, 20.0, "aerodynamic drag area Cd A", slot=28),
+    Param("air_density_kg_per_m3", "kg/m^3", 0.0, 2.0, "air density (0 switches drag off)",
+          slot=29, const="VP_AIR_DENSITY_KGPM3"),
+))
+SUSPENSION = ParamTable("suspension", "springs, dampers, anti-roll bars (rates at the wheel)", (
+    Param("spring_front_n_per_m", "N/m", 1e3, 1e7,
+          "suspension spring rate at each front wheel", slot=10, const="VP_SPRING_FRONT_NPM"),
+    Param("spring_rear_n_per_m", "N/m", 1e3, 1e7,
+          "suspension spring rate at each rear wheel", slot=11, const="VP_SPRING_REAR_NPM"),
+    Param("damper_front_n_s_per_m", "N s/m", 0.0, 1e6, "damper rate at each front wheel",
+          slot=12, const="VP_DAMPER_FRONT_NSPM"),
+    Param("damper_rear_n_s_per_m", "N s/m", 0.0, 1e6, "damper rate at each rear wheel",
+          slot=13, const="VP_DAMPER_REAR_NSPM"),
+    Param("antiroll_front_n_per_m", "N/m", 0.0, 1e7,
+          "front anti-roll bar, as a rate at the wheel (0: none)", slot=14,
+          const="VP_ANTIROLL_FRONT_NPM"),
+    Param("antiroll_rear_n_per_m", "N/m", 0.0, 1e7,
+          "rear anti-roll bar, as a rate at the wheel (0: none)", slot=15,
+          const="VP_ANTIROLL_REAR_NPM"),
+))
+STEERING = ParamTable("steering", "steering ratio and range", (
+    Param("steering_ratio", "-", 1.0, 50.0,
+          "steering-wheel angle / road-wheel angle (parallel steer)", slot=18),
+    Param("steering_wheel_max_rad", "rad", 0.05, 30.0, "steering-wheel angle at steer = 1",
+          slot=19),
+))
+BRAKES = ParamTable("brakes", "service and parking brakes", (
+    Param("brake_torque_max_nm", "N m", 0.0, 1e6,
+          "brake torque of all four wheels together at pedal = 1", slot=20),
+    Param("brake_front_fraction", "-", 0.0, 1.0,
+          "share of the brake torque on the front axle (70/30 is the paper's pattern at "
+          "rest, docs/model.md section 4b item 4)", slot=21),
+    Param("parking_brake_torque_nm", "N m", 0.0, 1e6, "parking-brake torque per rear wheel",
+          slot=22),
+))
+POWERTRAIN = ParamTable("powertrain", "drive torque and power, driven axles, wheel inertias", (
+    Param("drive_torque_max_nm", "N m", 0.0, 1e6,
+          "drive torque at the wheels, all driven wheels together, gear D", slot=23),
+    Param("drive_power_max_w", "W", 1.0, 1e8,
+          "power cap: torque <= P / |mean driven-wheel spin| above 1 rad/s", slot=24),
+    Param("reverse_torque_max_nm", "N m", 0.0, 1e6, "drive torque at the wheels in gear R",
+          slot=25),
+    Param("driven_axle", "-", None, None,
+          "front, rear or both (open differential on each driven axle)",
+          choices=DRIVEN_AXLE_NAMES, slot=26),
+    Param("drive_front_fraction", "-", 0.0, 1.0,
+          "torque share of the front axle when both are driven", slot=27),
+    Param("wheel_inertia_front_kgm2", "kg m^2", 0.05, 500.0,
+          "spin inertia of a front wheel with disc and driveline share", slot=16),
+    Param("wheel_inertia_rear_kgm2", "kg m^2", 0.05, 500.0,
+          "spin inertia of a rear wheel with disc and driveline share", slot=17),
+))
+VEHICLE_SUBSYSTEMS = (CHASSIS, SUSPENSION, STEERING, BRAKES, POWERTRAIN)
+
+# --- the scenario's or scene's ``road:`` section (set_road keeps the gravity slots in step)
+ROAD = ParamTable("road", "the road plane under the car", (
+    Param("road_grade_pct", "%", -100.0, 100.0,
+          "the road rises grade_pct m per 100 m along world x", default=0.0, slot=30,
+          key="grade_pct"),
+    Param("road_cross_slope_pct", "%", -100.0, 100.0,
+          "the road rises cross_slope_pct m per 100 m along world y", default=0.0, slot=31,
+          key="cross_slope_pct"),
+    Param("road_friction_scale", "-", 0.0, 3.0, "scales every tire's friction", default=1.0,
+          slot=32, key="friction_scale"),
+    Param("gravity_e1_mps2", "m/s^2", None, None,
+          "gravity resolved along the road plane's e1", slot=34),
+    Param("gravity_e2_mps2", "m/s^2", None, None,
+          "gravity resolved along the road plane's e2", slot=35),
+    Param("gravity_n_mps2", "m/s^2", None, None,
+          "gravity component pressing the car onto the road (> 0)", slot=36),
+))
+
+# --- the ``model:`` section of a scenario or scene (every key optional)
+MODEL_OPTIONS = ParamTable("model", "slip and damping variants, gravity", (
+    Param("slip_model", "-", None, None, "slip states (core/slip.py)",
+          default="lagged_passive", choices=SLIP_MODEL_NAMES, slot=37),
+    Param("damping_model", "-", None, None, "low-speed damping (core/damping.py)",
+          default="patch", choices=DAMPING_MODEL_NAMES, slot=38),
+    Param("damping_ratio", "-", 0.0, 5.0,
+          "zeta of the paper's Appendix A (docs/model.md section 4)",
+          default=PAPER_DAMPING_RATIO, slot=39),
+    Param("damping_trigger_v_mps", "m/s", 0.0, 10.0,
+          "eps of the paper's Appendix A: its trigger needs |v| below it",
+          default=PAPER_TRIGGER_LATERAL_SPEED_MPS, slot=40),
+    Param("damping_fade_speed_mps", "m/s", 0.01, 50.0,
+          "the patch damping (docs/model.md section 4b item 2) fades out by this hub speed",
+          default=2.0, slot=41),
+    Param("kinematic_u_min_mps", "m/s", 0.01, 50.0,
+          "u_min of the paper's eq. (1) patch (docs/model.md section 1; kinematic only)",
+          default=0.5, slot=42),
+    Param("slide_widen_speed_mps", "m/s", 0.01, 100.0,
+          "passive slip states (docs/model.md section 4b item 1): the sliding limit widens "
+          "above this hub speed", default=0.5, slot=43),
+    Param("gravity_mps2", "m/s^2", 0.1, 30.0, "gravitational acceleration", default=9.81,
+          slot=33),
+))
+
+VEHICLE_PARAM_TABLES = (*VEHICLE_SUBSYSTEMS, ROAD, MODEL_OPTIONS)
+VEHICLE_PARAMS = slot_layout(VEHICLE_PARAM_TABLES)  # every parameter, in slot order
+VEHICLE_PARAM_NAMES = tuple(p.name for p in VEHICLE_PARAMS)
+N_VEHICLE_PARAM = len(VEHICLE_PARAMS)
+
+# The slot constants, generated from the tables above (a test fails when they drift):
+# python -m simserver.adapters.config --write --slots simserver/core/params.py
+# --- generated slot constants
+VP_MASS_KG = 0  # kg, chassis
+VP_SPRUNG_MASS_KG = 1  # kg, chassis
+VP_YAW_INERTIA_KGM2 = 2  # kg m^2, chassis
+VP_ROLL_INERTIA_KGM2 = 3  # kg m^2, chassis
+VP_PITCH_INERTIA_KGM2 = 4  # kg m^2, chassis
+VP_CG_HEIGHT_M = 5  # m, chassis
+VP_CG_TO_FRONT_AXLE_M = 6  # m, chassis
+VP_CG_TO_REAR_AXLE_M = 7  # m, chassis
+VP_TRACK_FRONT_M = 8  # m, chassis
+VP_TRACK_REAR_M = 9  # m, chassis
+VP_SPRING_FRONT_NPM = 10  # N/m, suspension
+VP_SPRING_REAR_NPM = 11  # N/m, suspension
+VP_DAMPER_FRONT_NSPM = 12  # N s/m, suspension
+VP_DAMPER_REAR_NSPM = 13  # N s/m, suspension
+VP_ANTIROLL_FRONT_NPM = 14  # N/m, suspension
+VP_ANTIROLL_REAR_NPM = 15  # N/m, suspension
+VP_WHEEL_INERTIA_FRONT_KGM2 = 16  # kg m^2, powertrain
+VP_WHEEL_INERTIA_REAR_KGM2 = 17  # kg m^2, powertrain
+VP_STEERING_RATIO = 18  # -, steering
+VP_STEERING_WHEEL_MAX_RAD = 19  # rad, steering
+VP_BRAKE_TORQUE_MAX_NM = 20  # N m, brakes
+VP_BRAKE_FRONT_FRACTION = 21  # -, brakes
+VP_PARKING_BRAKE_TORQUE_NM = 22  # N m, brakes
+VP_DRIVE_TORQUE_MAX_NM = 23  # N m, powertrain
+VP_DRIVE_POWER_MAX_W = 24  # W, powertrain
+VP_REVERSE_TORQUE_MAX_NM = 25  # N m, powertrain
+VP_DRIVEN_AXLE = 26  # -, powertrain
+VP_DRIVE_FRONT_FRACTION = 27  # -, powertrain
+VP_DRAG_AREA_M2 = 28  # m^2, chassis
+VP_AIR_DENSITY_KGPM3 = 29  # kg/m^3, chassis
+VP_ROAD_GRADE_PCT = 30  # %, road
+VP_ROAD_CROSS_SLOPE_PCT = 31  # %, road
+VP_ROAD_FRICTION_SCALE = 32  # -, road
+VP_GRAVITY_MPS2 = 33  # m/s^2, model
+VP_GRAVITY_E1_MPS2 = 34  # m/s^2, road
+VP_GRAVITY_E2_MPS2 = 35  # m/s^2, road
+VP_GRAVITY_N_MPS2 = 36  # m/s^2, road
+VP_SLIP_MODEL = 37  # -, model
+VP_DAMPING_MODEL = 38  # -, model
+VP_DAMPING_RATIO = 39  # -, model
+VP_DAMPING_TRIGGER_V_MPS = 40  # m/s, model
+VP_DAMPING_FADE_SPEED_MPS = 41  # m/s, model
+VP_KINEMATIC_U_MIN_MPS = 42  # m/s, model
+VP_SLIDE_WIDEN_SPEED_MPS = 43  # m/s, model
+# --- end of generated slot constants
 
 
 @nb.njit(cache=True)
