@@ -1,6 +1,6 @@
 """The live viewer: a separate process that turns the state topic into a Rerun scene.
 
-Logging one frame costs about a millisecond of Python (platform notes; measured again for
+Logging one frame costs about a millisecond of Python (measured for
 ``rerun_scene.SceneLogger``): in the 1 kHz process it would wreck the loop, even from a
 thread. So the server never logs: ``simserver serve --viewer SINK`` starts this process,
 which subscribes to the server's state and diagnostics like any client, through a bounded
