@@ -4,8 +4,8 @@ They use only the published contract: :mod:`simserver.protocol` (the codec of
 ``docs/protocol.md``) and :mod:`simserver.adapters.zenoh_io` (sessions with safe
 defaults). They never import the server, its physics core or its configuration loaders,
 so they prove that the contract is enough to drive a car (the player also reads the
-scenario *file format* through :mod:`simserver.scenario`, which is the headless runner's
-keyframe parser, not the server).
+scenario *file format* through :mod:`simserver.keyframes`, the headless runner's keyframe
+parser and sampler, which loads neither numba nor the compiled core).
 
 Modules
 -------

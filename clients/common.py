@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from types import FrameType
-from typing import Any, NoReturn
+from typing import Any
 
 from simserver import protocol as proto
 from simserver.adapters.zenoh_io import (
@@ -210,11 +210,6 @@ def run_main(prog: str, body: Callable[[], int]) -> int:
     except ClientError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr, flush=True)
         return exc.code
-
-
-def fail(message: str, code: int = EXIT_USAGE) -> NoReturn:
-    """Raise :class:`ClientError` (a shorthand)."""
-    raise ClientError(message, code)
 
 
 class StopFlag:

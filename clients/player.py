@@ -1,13 +1,14 @@
 """``python -m clients.player``: play a scenario's input keyframes live, in real time.
 
-The scenario file is the headless runner's (``configs/scenarios/*.yaml``), parsed by
-:func:`simserver.scenario.load_scenario`, the same keyframe parser as ``simserver
-run-scenario`` (the file format, not the server). The channels are sampled exactly as
-the headless input table does (:func:`sample_keyframes`: steer, throttle and brake
-linear between their keyframes, gear and parking brake switching at theirs, each
-holding its first value before and its last value after) and sent as DriverCommands at
-a steady rate (``--rate``, default 1000 Hz, on absolute deadlines of this process's
-monotonic clock).
+The scenario file is the headless runner's (``configs/scenarios/*.yaml``); its name,
+duration and keyframes are read by :mod:`simserver.keyframes`, the keyframe parser and
+sampler of ``simserver run-scenario`` (the file format, not the server, and without the
+compiled core). The channels are sampled by the same function as the headless input
+table (:func:`simserver.keyframes.sample_keyframes`: steer, throttle and brake linear
+between their keyframes, gear and parking brake switching at theirs) and sent as
+DriverCommands at a steady rate (``--rate``, default 1000 Hz, on absolute deadlines of
+this process's monotonic clock). The rest of the file (vehicle, road, initial state) is
+the server's to validate, when ``--load`` asks it to load the file as its scene.
 
 With ``--load`` (the usual way to compare with a headless run) the player first pauses
 the server, asks it to ``load`` the scenario file as its scene (vehicle, road, initial
@@ -50,17 +51,12 @@ from clients.common import (
     run_main,
 )
 from simserver import protocol as proto
+from simserver.adapters.validate import ConfigError
+from simserver.keyframes import load_keyframe_file, sample_keyframes
 
 PROG = "simserver-player"
 DEFAULT_RATE_HZ = 1000.0
 DEFAULT_PREROLL_S = 0.3
-CHANNEL_DEFAULTS: Mapping[str, float] = {
-    "steer": 0.0, "throttle": 0.0, "brake": 0.0, "parking_brake": 0.0,
-    "gear": float(proto.Gear.D),
-}
-"""A channel's value before its first keyframe (the scenario format's rule)."""
-LINEAR_CHANNELS = ("steer", "throttle", "brake")
-SWITCHED_CHANNELS = ("parking_brake", "gear")
 
 
 @dataclass(frozen=True)
@@ -99,41 +95,6 @@ class InputTrack:
             sender_time_ns=sender_time_ns)
 
 
-def sample_keyframes(keyframes: Sequence[Mapping[str, Any]], times_s: np.ndarray
-                     ) -> dict[str, np.ndarray]:
-    """Sample parsed keyframes at ``times_s`` (the headless input table's rule).
-
-    Parameters
-    ----------
-    keyframes : sequence of mapping
-        As parsed by :func:`simserver.scenario.load_scenario` (``t`` and any channels;
-        ``gear`` as its code 0 P, 1 R, 2 N, 3 D).
-    times_s : ndarray
-        Sample times (s).
-
-    Returns
-    -------
-    dict of str to ndarray
-        ``steer``, ``throttle``, ``brake``, ``parking_brake``, ``gear`` (float64).
-    """
-    times_s = np.asarray(times_s, dtype=np.float64)
-    out: dict[str, np.ndarray] = {}
-    for channel, default in CHANNEL_DEFAULTS.items():
-        column = np.full(times_s.size, default)
-        pts = [(float(f["t"]), float(f[channel])) for f in keyframes if channel in f]
-        if pts:
-            t_k = np.array([p[0] for p in pts])
-            v_k = np.array([p[1] for p in pts])
-            if channel in LINEAR_CHANNELS:
-                column = np.interp(times_s, t_k, v_k)
-            else:
-                idx = np.searchsorted(t_k, times_s, side="right") - 1
-                held = idx >= 0
-                column[held] = v_k[idx[held]]
-        out[channel] = column
-    return out
-
-
 def make_track(keyframes: Sequence[Mapping[str, Any]], duration_s: float,
                rate_hz: float) -> InputTrack:
     """Sample keyframes from 0 to ``duration_s`` inclusive at ``rate_hz``."""
@@ -154,13 +115,12 @@ def load_track(path: Path, rate_hz: float, duration_s: float | None) -> tuple[In
     Raises
     ------
     ClientError
-        When the file is not a valid scenario (the message names the file and key).
+        When the file's name, duration or keyframes are invalid (the message names the
+        file and key).
     """
-    from simserver.scenario import load_scenario
-
     try:
-        scenario = load_scenario(path)
-    except ValueError as exc:  # the loader's ConfigError: names the file and the key
+        scenario = load_keyframe_file(path)
+    except ConfigError as exc:  # names the file and the key
         raise ClientError(str(exc)) from None
     end = scenario.duration_s if duration_s is None else duration_s
     return make_track(scenario.keyframes, end, rate_hz), scenario.name

@@ -116,8 +116,8 @@ def run_scenario_command(args: argparse.Namespace) -> int:
         HISTORY_FILE,
         SUMMARY_FILE,
         summarize,
-        summary_json,
         write_history,
+        write_summary,
     )
     from simserver.scenario import load_scenario, run_scenario
 
@@ -140,7 +140,7 @@ def run_scenario_command(args: argparse.Namespace) -> int:
     summary = summarize(result)
     try:
         write_history(result, out / HISTORY_FILE)
-        (out / SUMMARY_FILE).write_text(summary_json(summary), encoding="utf-8")
+        write_summary(summary, out / SUMMARY_FILE)
         written = [HISTORY_FILE, SUMMARY_FILE]
         if not args.no_plots:
             from simserver.adapters.plots import plot_result

@@ -25,7 +25,6 @@ gear ``D``), after its last keyframe it holds the last value.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -47,10 +46,8 @@ from simserver.core.chassis import static_wheel_load
 from simserver.core.integrator import make_workspace, simulate
 from simserver.core.params import set_road
 from simserver.core.tire_layout import TP_RADIUS_M
+from simserver.keyframes import input_table, parse_keyframes
 
-CONTINUOUS_CHANNELS = {"steer": (-1.0, 1.0), "throttle": (0.0, 1.0), "brake": (0.0, 1.0)}
-DISCRETE_CHANNELS = ("parking_brake", "gear")
-GEAR_CODES = {name: code for code, name in enumerate(L.GEAR_NAMES)}
 ROAD_RANGES = {"grade_pct": (-100.0, 100.0), "cross_slope_pct": (-100.0, 100.0),
                "friction_scale": (0.0, 3.0)}
 INITIAL_RANGES = {"x_m": (-1e7, 1e7), "y_m": (-1e7, 1e7), "yaw_rad": (-1e3, 1e3),
@@ -104,40 +101,6 @@ class ScenarioResult:
     def output(self, index: int) -> np.ndarray:
         """Column ``index`` of the outputs (a ``core.layout`` ``O_*`` constant)."""
         return self.outputs[:, index]
-
-
-def _parse_keyframes(path: Path, raw: Any) -> list[dict[str, Any]]:
-    if not isinstance(raw, list) or not raw:
-        raise ConfigError(f"{path}: key 'inputs': expected a non-empty list of keyframes")
-    frames: list[dict[str, Any]] = []
-    last_t = -math.inf
-    allowed = ("t", *CONTINUOUS_CHANNELS, *DISCRETE_CHANNELS)
-    for k, frame in enumerate(raw):
-        where = f"inputs[{k}]"
-        if not isinstance(frame, dict):
-            raise ConfigError(f"{path}: key '{where}': expected a mapping")
-        check_keys(f"{path} ({where})", frame, allowed, required=("t",))
-        parsed: dict[str, Any] = {"t": number(path, f"{where}.t", frame["t"], 0.0, 1e7)}
-        if parsed["t"] < last_t:
-            raise ConfigError(f"{path}: key '{where}.t': keyframes must be in time order")
-        last_t = parsed["t"]
-        for ch, (lo, hi) in CONTINUOUS_CHANNELS.items():
-            if ch in frame:
-                parsed[ch] = number(path, f"{where}.{ch}", frame[ch], lo, hi)
-        if "parking_brake" in frame:
-            val = frame["parking_brake"]
-            if isinstance(val, bool):
-                val = int(val)
-            parsed["parking_brake"] = number(path, f"{where}.parking_brake", val, 0.0, 1.0)
-        if "gear" in frame:
-            gear = frame["gear"]
-            if gear not in GEAR_CODES:
-                raise ConfigError(
-                    f"{path}: key '{where}.gear': expected one of P, R, N, D, got {gear!r}"
-                )
-            parsed["gear"] = float(GEAR_CODES[gear])
-        frames.append(parsed)
-    return frames
 
 
 SCENE_KEYS = ("vehicle", "road", "initial", "model")
@@ -217,30 +180,9 @@ def load_scenario(path: str | Path) -> Scenario:
     return Scenario(
         name=name, path=path, description=str(data.get("description", "")),
         vehicle=scene.vehicle, road=scene.road, initial=scene.initial, duration_s=duration,
-        dt_s=dt, record_every=record_every, keyframes=_parse_keyframes(path, data["inputs"]),
+        dt_s=dt, record_every=record_every, keyframes=parse_keyframes(path, data["inputs"]),
         model_options=scene.model_options,
     )
-
-
-def input_table(keyframes: list[dict[str, Any]], times_s: np.ndarray) -> np.ndarray:
-    """Sample the keyframes at ``times_s`` into an ``(n, N_INPUT)`` array."""
-    table = np.zeros((times_s.size, L.N_INPUT), dtype=np.float64)
-    table[:, L.IN_GEAR] = GEAR_CODES["D"]
-    columns = {"steer": L.IN_STEER, "throttle": L.IN_THROTTLE, "brake": L.IN_BRAKE,
-               "parking_brake": L.IN_PARKING_BRAKE, "gear": L.IN_GEAR}
-    for channel, col in columns.items():
-        pts = [(f["t"], f[channel]) for f in keyframes if channel in f]
-        if not pts:
-            continue
-        t_k = np.array([p[0] for p in pts])
-        v_k = np.array([p[1] for p in pts])
-        if channel in CONTINUOUS_CHANNELS:
-            table[:, col] = np.interp(times_s, t_k, v_k)
-        else:
-            idx = np.searchsorted(t_k, times_s, side="right") - 1
-            held = idx >= 0
-            table[held, col] = v_k[idx[held]]
-    return table
 
 
 def initial_state(scenario: Scenario | Scene) -> np.ndarray:

@@ -1,6 +1,6 @@
 """The live viewer: a separate process that turns the state topic into a Rerun scene.
 
-Logging one frame costs about a millisecond of Python (platform notes; measured again for
+Logging one frame costs about a millisecond of Python (measured for
 ``rerun_scene.SceneLogger``): in the 1 kHz process it would wreck the loop, even from a
 thread. So the server never logs: ``simserver serve --viewer SINK`` starts this process,
 which subscribes to the server's state and diagnostics like any client, through a bounded
@@ -114,6 +114,39 @@ def lower_priority() -> str:
         return f"normal (could not lower: {exc})"
 
 
+def log_diagnostics_payload(rec_stream: Any, payload: bytes, period_s: float,
+                            states_dropped: int) -> bool:
+    """Log one Diagnostics payload on the ``sim_time`` timeline of the scene.
+
+    Parameters
+    ----------
+    rec_stream : rerun.RecordingStream
+        Where to log.
+    payload : bytes
+        A Diagnostics message of the wire protocol.
+    period_s : float
+        The server's tick period (its ``get_config`` reply, ``server.period_s``): the
+        sample's simulated time is its tick times the period, as the state's
+        ``sim_time_s`` is, so the diagnostics line up with the frames at any period.
+    states_dropped : int
+        States the viewer's ring buffer has dropped so far.
+
+    Returns
+    -------
+    bool
+        False (nothing logged) when the payload does not decode.
+    """
+    from simserver.adapters.rerun_scene import log_diagnostics
+
+    try:
+        d = proto.decode_diagnostics(payload)
+    except proto.ProtocolError:
+        return False
+    log_diagnostics(rec_stream, float(d["tick"]) * period_s, float(d["lateness_p99_us"]),
+                    states_dropped)
+    return True
+
+
 def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
                vehicle_id: str = "car0", fps: float = 50.0, queue: int = 2048,
                duration_s: float | None = None, config_file: Path | None = None,
@@ -151,7 +184,7 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
     if idle_priority:  # before the sessions: the threads they start inherit it
         stats.cpu_priority = lower_priority()
     from simserver.adapters.config import load_vehicle
-    from simserver.adapters.rerun_scene import RateGate, SceneLogger, log_diagnostics
+    from simserver.adapters.rerun_scene import RateGate, SceneLogger
     from simserver.adapters.rerun_sink import open_recording, parse_sink
     from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
 
@@ -185,6 +218,7 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
             axes = road_axes(road["grade_pct"], road["cross_slope_pct"])
             h_cg = float(vehicle.vp[VP_CG_HEIGHT_M])
             state_every = int(config["config"]["server"]["state_every"])
+            period_s = float(config["config"]["server"]["period_s"])
             last_tick: int | None = None
             last_time_s = -np.inf
             frame_gate = RateGate(fps)  # decimate before the Python-heavy path
@@ -229,13 +263,9 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
                     if logger.log_frame(time_s, x, out, inputs):
                         stats.frames_logged += 1
                 for payload in diags.drain_newest():
-                    try:
-                        d = proto.decode_diagnostics(payload)
-                    except proto.ProtocolError:
-                        continue
-                    stats.diagnostics += 1
-                    log_diagnostics(rec_stream, float(d["tick"]) * 1e-3,
-                                    float(d["lateness_p99_us"]), stats.states_dropped)
+                    if log_diagnostics_payload(rec_stream, payload, period_s,
+                                               stats.states_dropped):
+                        stats.diagnostics += 1
                 if not payloads:
                     time.sleep(0.005)
             logger.flush()

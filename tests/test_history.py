@@ -102,7 +102,7 @@ def test_same_result_same_bytes(result, tmp_path):
 
 
 def test_summary_agrees_with_the_history(result, tmp_path):
-    s = json.loads(H.write_summary(result, tmp_path).read_text(encoding="utf-8"))
+    s = json.loads(H.write_summary(H.summarize(result), tmp_path).read_text(encoding="utf-8"))
     cols = H.read_history(H.write_history(result, tmp_path))
     final = s["final"]
     approx = {"rel": 1e-6, "abs": 1e-9}

@@ -482,13 +482,13 @@ def summary_json(summary: dict[str, Any]) -> str:
     return json.dumps(summary, sort_keys=True, indent=2, allow_nan=False) + "\n"
 
 
-def write_summary(result: ScenarioResult, path: str | Path) -> Path:
-    """Write ``summary.json`` for a run.
+def write_summary(summary: dict[str, Any], path: str | Path) -> Path:
+    """Write a run's summary (:func:`summarize`) as ``summary.json`` (:func:`summary_json`).
 
     Parameters
     ----------
-    result : ScenarioResult
-        A finished run.
+    summary : dict
+        ``summarize(result)`` of a finished run.
     path : str or Path
         Target file, or a directory (then ``summary.json`` inside it).
 
@@ -500,5 +500,5 @@ def write_summary(result: ScenarioResult, path: str | Path) -> Path:
     path = Path(path)
     if path.is_dir():
         path = path / SUMMARY_FILE
-    path.write_text(summary_json(summarize(result)), encoding="utf-8")
+    path.write_text(summary_json(summary), encoding="utf-8")
     return path
