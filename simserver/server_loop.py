@@ -16,10 +16,11 @@ One thread, one loop; every tick (:meth:`ServerLoop.tick`), for each vehicle slo
 7. check the state is finite.
 
 What the loop talks to is injected: the clock and sleep of its pacer, and per slot a
-:class:`SlotPorts` (a command inbox, a control inbox, a publisher). The zenoh adapter
-(:meth:`simserver.adapters.zenoh_io.ZenohEndpoint.declare_server_ports`) is one
-implementation; ``tests/test_server_logic.py`` drives the same loop with a fake clock,
-list inboxes and a recording publisher. The rules are those of ``docs/protocol.md``.
+:class:`SlotPorts` (a command inbox, a control inbox, a publisher). The zenoh adapter is
+one implementation (:mod:`simserver.adapters.zenoh_io`: ``Inbox``, ``ControlInbox`` with
+``validate=False``, ``VehiclePublisher``; wired by ``simserver.server.SimServer``);
+``tests/test_server_logic.py`` drives the same loop with a fake clock, list inboxes and a
+recording publisher. The rules are those of ``docs/protocol.md``.
 """
 
 from __future__ import annotations
@@ -179,6 +180,7 @@ class ServerLoop:
     def start(self) -> None:
         """Start the clock: tick 0 is due now."""
         self.t0_ns = self.clock()
+        self.cpu.percent()  # the first diagnostics' CPU reading starts here, not at compile
         self.pacer.start()
         self.loop_count = 0
 

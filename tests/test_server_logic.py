@@ -455,7 +455,7 @@ def test_a_load_that_fails_changes_nothing(flat_scene, tmp_path):
         ({"scene": "/etc/simserver.yaml"}, "path", "outside the server's config directories"),
         ({"scene": "scenes/no_such_scene.yaml"}, "path", "no such file"),
         ({"vehicle": "vehicles/none.yml"}, "path", "no such file"),
-        ({"scene": str(bad)}, "load", "load: "),
+        ({"scene": str(bad)}, "load", f"load: {bad}: missing key 'vehicle'"),
         ({"scene": "scenes/flat.txt"}, "scene", "not a .yaml/.yml file"),
         ({}, "request", "give at least one of"),
     ]
@@ -571,15 +571,19 @@ def test_one_loop_serves_several_vehicles_apart(flat_scene):
     car1_cfg = load_server_config(vehicle_id="car1")
     car1, inbox1, controls1, out1 = rig.add(flat_scene, car1_cfg)
     rig.send(seq=7, throttle=0.5, gear=proto.Gear.D)
+    rig.send(seq=3, throttle=0.2, gear=proto.Gear.R, inbox=inbox1)
+    rig.send(seq=4, throttle=0.3, gear=proto.Gear.R, inbox=inbox1)
     rig.run()
     assert rig.control("pause", controls=controls1)["paused"] is True
     rig.run(10)
     car0_state, car1_state = rig.out.states[-1], out1.states[-1]
-    assert car0_state["last_cmd_seq"] == 7 and not car0_state["flags"] & WATCHDOG
-    assert car1_state["last_cmd_seq"] == 0 and car1_state["flags"] & WATCHDOG
+    assert car0_state["last_cmd_seq"] == 7 and car0_state["throttle"] == approx32(0.5)
+    assert car1_state["last_cmd_seq"] == 4 and car1_state["throttle"] == approx32(0.3)
+    assert car0_state["gear"] == proto.Gear.D and car1_state["gear"] == proto.Gear.R
     assert car1_state["flags"] & PAUSED and not car0_state["flags"] & PAUSED
     assert car0_state["tick"] == 12 and car1_state["tick"] == 2
-    assert car1.counters["cmd_received"] == 0 and rig.counters["cmd_received"] == 1
+    assert rig.counters["cmd_received"] == 1 and rig.counters["cmd_stale"] == 0
+    assert car1.counters["cmd_received"] == 2 and car1.counters["cmd_stale"] == 1
     config = rig.control("get_config", controls=controls1)["config"]
     assert config["keys"]["cmd"] == "simserver/car1/cmd"
     final = rig.loop.final_stats()
