@@ -339,15 +339,24 @@ class VehicleSlot:
     def ctl_load(self, args: dict[str, Any]) -> dict[str, Any]:
         """``load``: validate everything first, then swap; nothing changes on error.
 
-        Compiles before it returns (from the cache: same array types), so the loop
-        rebases its pacer afterwards.
+        Two halves: :meth:`prepare_load` reads and validates the files (touches nothing
+        of the slot), :meth:`apply_load` swaps the result in and compiles (from the
+        cache: same array types), so the loop rebases its pacer afterwards.
         """
+        return self.apply_load(*self.prepare_load(args))
+
+    def prepare_load(self, args: dict[str, Any]) -> tuple[Scene, Path, Path | None]:
+        """The scene a ``load`` asks for, read and validated: (scene, its path, vehicle path)."""
         base = self.cfg.path.parent
         scene_path = self._resolve_config_path(args["scene"], base) if "scene" in args \
             else self.scene_path
         vehicle_path = self._resolve_config_path(args["vehicle"], base) \
             if "vehicle" in args else None
-        scene = load_scene(scene_path, vehicle_path=vehicle_path)
+        return load_scene(scene_path, vehicle_path=vehicle_path), scene_path, vehicle_path
+
+    def apply_load(self, scene: Scene, scene_path: Path,
+                   vehicle_path: Path | None) -> dict[str, Any]:
+        """Swap a prepared scene in: the simulation reset to it, tick 0, logged."""
         self.sim.load(scene)
         self.sim.warm_up()
         self.scene_path = scene_path

@@ -554,10 +554,14 @@ def test_the_command_log_replays_the_live_run_bit_for_bit(flat_scene, tmp_path):
     rig.run(20)
     rig.control("step", {"n": 5})
     rig.run(10)
+    rig.control("resume")
+    rig.control("load", {"scene": "../scenes/hill_10pct_paper_sedan.yaml"})
+    rig.run(30)
     log.close(rig.slot.steps_total, rig.slot.sim.x)
     entries = read_command_log(path)
     kinds = [next(k for k in e if k != "step") for e in entries[1:]]
-    assert kinds == ["inputs", "inputs", "set_road", "inputs", "reset", "end"]
+    assert kinds == ["inputs", "inputs", "set_road", "inputs", "reset", "load", "end"]
+    assert entries[-2]["load"] == {"scene": str(HILL), "vehicle": None}
     assert entries[1]["step"] == 0 and entries[1]["inputs"][L.IN_BRAKE] == 0.6  # watchdog
     replay = replay_command_log(path)
     assert replay.steps == rig.slot.steps_total
