@@ -119,7 +119,7 @@ def serve_control(slot: VehicleSlot, request: ControlRequest) -> Control | None:
     """
     name = request.name
     try:
-        args = proto.validate_control(name, request.payload)
+        args = _validated(name, request.payload)
         control = CONTROLS[name]
         body = proto.reply_ok(**control.handler(slot, args))
     except proto.ProtocolError as exc:
@@ -135,6 +135,16 @@ def serve_control(slot: VehicleSlot, request: ControlRequest) -> Control | None:
         return None
     request.reply(body)
     return control
+
+
+def _validated(name: str, payload: bytes) -> dict[str, Any]:
+    try:
+        return proto.validate_control(name, payload)
+    except proto.ProtocolError:
+        raise
+    except Exception as exc:  # a validator bug: answered like bad input, never escapes
+        raise proto.ProtocolError(
+            "request", f"could not be validated ({type(exc).__name__})") from exc
 
 
 # ---------------------------------------------------------------------- the loop

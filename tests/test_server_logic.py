@@ -490,6 +490,17 @@ def test_a_failing_handler_is_answered_and_the_loop_goes_on(rig, monkeypatch, ca
     assert rig.run(3)["tick"] == tick + 3
 
 
+def test_a_validator_bug_is_answered_as_a_bad_request(rig, monkeypatch):
+    def broken(name, payload):
+        raise OverflowError("int too large")
+
+    monkeypatch.setattr(proto, "validate_control", broken)
+    reply = rig.control("set_road", {"grade_pct": 1})
+    assert reply == {"ok": False, "error": "request: could not be validated (OverflowError)",
+                     "field": "request"}
+    assert rig.slot.sim.road["grade_pct"] == 0.0
+
+
 def test_the_control_table_serves_every_control_of_the_protocol():
     assert tuple(CONTROLS) == proto.CONTROL_NAMES
     assert [n for n, c in CONTROLS.items() if c.stalls_loop] == ["load"]
@@ -630,3 +641,4 @@ def test_slots_keep_their_own_keys(flat_scene):
     cfg = load_server_config(prefix="lab1/simserver", vehicle_id="cockpit-a")
     slot = VehicleSlot(cfg, new_simulation(flat_scene, cfg.period_s))
     assert slot.keys.base == "lab1/simserver/cockpit-a"
+
