@@ -114,8 +114,8 @@ assert tuple(CONTROLS) == proto.CONTROL_NAMES, "one handler per control of the p
 def serve_control(slot: VehicleSlot, request: ControlRequest) -> Control | None:
     """Validate ``request``, run its handler on ``slot`` and answer it exactly once.
 
-    Returns the control when it succeeded, None when it was answered with an error: an
-    error reply names the field (``docs/protocol.md`` section 3) and nothing changed.
+    Returns the control when it succeeded, None when it was answered with an error
+    naming the field (``docs/protocol.md`` section 3; bad arguments change nothing).
     """
     name = request.name
     try:
