@@ -1,19 +1,13 @@
 """The real-time server: the car at a fixed 1 kHz of wall-clock time, driven over zenoh.
 
-One thread, one loop, in this order every tick (``SimServer.run``):
+This module holds the server's configuration (``load_server_config``), the command log
+(``CommandLog``), the simulation both the server and the replay step (``Physics``), the
+zenoh wiring (``SimServer``) and the replay (``replay_command_log``). The logic is apart:
 
-1. wait for the tick's absolute deadline (``realtime.Pacer``: no drift; overrun policy:
-   up to ``max_catchup_ticks`` late ticks run back to back, beyond that the passed
-   deadlines are skipped and counted);
-2. drain every command received since the last tick without blocking; decode and
-   validate each (``protocol.decode_command``); the newest valid one wins, the rest are
-   counted as rejected or stale. Nothing unvalidated reaches the physics;
-3. the watchdog: with no valid command for ``watchdog_s`` the applied throttle is 0 and
-   the brake at least ``watchdog_brake`` (steer and gear kept), flagged in the state;
-4. step the compiled physics once (``core.integrator.step``), unless paused;
-5. publish the state (every ``state_every`` ticks) and, a few times a second, the
-   diagnostics;
-6. answer control requests (reset, pause, resume, step, set_road, load, get_config).
+- :mod:`simserver.server_loop`: the fixed-rate loop (pacer, inbox drain, publish,
+  controls dispatched through a table), with the clock, inboxes and publisher injected;
+- :mod:`simserver.vehicle_slot`: one car (command arbitration, watchdog, pause and step,
+  the state record, the controls' handlers).
 
 Every applied input change and every control that changes the physics is written to an
 optional command log, which ``replay_command_log`` re-runs headless bit for bit.
@@ -24,7 +18,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
 import signal
 import subprocess
 import sys
@@ -42,6 +35,8 @@ from simserver.core.integrator import forget_tire_loads, make_workspace, step
 from simserver.core.params import VP_CG_HEIGHT_M, road_axes, set_road
 from simserver.core.pose import world_pose
 from simserver.scenario import Scene, initial_state, load_scene
+from simserver.server_loop import ServerLoop, SlotPorts
+from simserver.vehicle_slot import VehicleSlot
 
 log = logging.getLogger("simserver.server")
 
@@ -169,35 +164,23 @@ class CommandLog:
     def __init__(self, path: Path, header: dict[str, Any]) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         self._file = path.open("w", encoding="utf-8", buffering=1 << 16)
+        self._logged_inputs = np.full(L.N_INPUT, np.nan)
         self.write({"simserver_command_log": 1, **header})
 
     def write(self, entry: dict[str, Any]) -> None:
         """Append one line."""
         self._file.write(json.dumps(entry, separators=(",", ":")) + "\n")
 
+    def log_inputs(self, step: int, inputs: np.ndarray) -> None:
+        """The inputs applied at physics step ``step``, if they changed since the last line."""
+        if not np.array_equal(inputs, self._logged_inputs):
+            self._logged_inputs[:] = inputs
+            self.write({"step": step, "inputs": [float(v) for v in inputs]})
+
     def close(self, steps: int, state: np.ndarray) -> None:
         """Write the end line with the exact final state and close."""
         self.write({"end": steps, "state": [float(v).hex() for v in state]})
         self._file.close()
-
-
-class RateLimitedLog:
-    """Log a recurring warning at most once per ``interval_s``, with the count in between."""
-
-    def __init__(self, interval_s: float = 1.0) -> None:
-        self.interval_s = interval_s
-        self._last = -math.inf
-        self._suppressed = 0
-
-    def warn(self, message: str) -> None:
-        now = time.monotonic()
-        if now - self._last >= self.interval_s:
-            extra = f" ({self._suppressed} more since the last report)" if self._suppressed else ""
-            log.warning("%s%s", message, extra)
-            self._last = now
-            self._suppressed = 0
-        else:
-            self._suppressed += 1
 
 
 class Physics:
@@ -252,324 +235,77 @@ class Physics:
         world_pose(self.x, self.axes, self.vp[VP_CG_HEIGHT_M], self.pose)
 
 
+def new_simulation(scene: Scene, dt_s: float) -> Physics:
+    """The simulation a vehicle slot steps (the one place the server builds it)."""
+    return Physics(scene, dt_s)
+
+
 class SimServer:
-    """The live server. ``run()`` blocks until SIGINT/SIGTERM or ``stop()``."""
+    """The live server over zenoh: one vehicle slot, the loop, the viewer, the signals.
+
+    ``run()`` blocks until SIGINT/SIGTERM or ``stop()``. The logic lives in
+    :class:`simserver.vehicle_slot.VehicleSlot` and :class:`simserver.server_loop.ServerLoop`;
+    this class only wires them to zenoh (:mod:`simserver.adapters.zenoh_io`).
+    """
 
     def __init__(self, cfg: ServerConfig) -> None:
         self.cfg = cfg
-        self.keys = proto.vehicle_keys(cfg.prefix, cfg.vehicle_id)
-        self.scene_path = cfg.scene
-        self.physics = Physics(load_scene(cfg.scene), cfg.period_s)
-        self.running = False
-        self.paused = False
-        self.steps_to_run = 0  # ticks left of a 'step' control while paused
-        self.tick = 0  # ticks since start or reset (the protocol's tick)
-        self.steps_total = 0  # physics steps since start (the command log's clock)
-        self.counters = {k: 0 for k in ("cmd_received", "cmd_rejected", "cmd_clamped",
-                                        "cmd_stale", "state_published", "watchdog_trips")}
-        self.last_seq: int | None = None
-        self.last_cmd_wall: float | None = None
-        self.last_cmd_sender_ns = 0
-        self.commanded = self.physics.inputs.copy()  # what the driver asked for
-        self.watchdog = True  # no command yet: hold the car
-        self.reject_log = RateLimitedLog()
-        self.record = proto.new_state_record()
-        self.command_log: CommandLog | None = None
-        self._logged_inputs = np.full(L.N_INPUT, np.nan)
-        self.catching_up = False
+        self.slots = [VehicleSlot(cfg, new_simulation(load_scene(cfg.scene), cfg.period_s))]
+        self.loop = ServerLoop(cfg)
 
-    # ------------------------------------------------------------------ commands
-    def _take_commands(self, payloads: list[bytes], now: float) -> None:
-        newest: proto.DriverCommand | None = None
-        for payload in payloads:
-            self.counters["cmd_received"] += 1
-            try:
-                cmd = proto.decode_command(payload)
-            except proto.ProtocolError as exc:
-                self.counters["cmd_rejected"] += 1
-                self.reject_log.warn(f"rejected command: {exc}")
-                continue
-            if cmd.clamped:
-                self.counters["cmd_clamped"] += 1
-            if self.last_seq is not None and not proto.seq_newer(cmd.seq, self.last_seq):
-                self.counters["cmd_stale"] += 1
-                continue
-            if newest is None or proto.seq_newer(cmd.seq, newest.seq):
-                if newest is not None:
-                    self.counters["cmd_stale"] += 1  # superseded within the same tick
-                newest = cmd
-            else:
-                self.counters["cmd_stale"] += 1
-        if newest is None:
-            return
-        self.last_seq = newest.seq
-        self.last_cmd_wall = now
-        self.last_cmd_sender_ns = newest.sender_time_ns
-        c = self.commanded
-        c[L.IN_STEER] = newest.steer
-        c[L.IN_THROTTLE] = newest.throttle
-        c[L.IN_BRAKE] = newest.brake
-        c[L.IN_PARKING_BRAKE] = 1.0 if newest.parking_brake else 0.0
-        c[L.IN_GEAR] = float(newest.gear)
+    @property
+    def physics(self) -> Physics:
+        """The first (default: only) vehicle's simulation."""
+        return self.slots[0].sim
 
-    def _apply_inputs(self, now: float) -> None:
-        """Commanded inputs through the watchdog into the physics' input vector."""
-        expired = self.last_cmd_wall is None or now - self.last_cmd_wall > self.cfg.watchdog_s
-        if expired and not self.watchdog:
-            self.counters["watchdog_trips"] += 1
-            self.last_seq = None  # a restarted client may begin its sequence anew
-            log.warning("watchdog: no valid command for %.0f ms, holding the car",
-                        1e3 * self.cfg.watchdog_s)
-        elif not expired and self.watchdog:
-            log.info("watchdog released: commands resumed")
-        self.watchdog = expired
-        inputs = self.physics.inputs
-        inputs[:] = self.commanded
-        if expired:
-            inputs[L.IN_THROTTLE] = 0.0
-            inputs[L.IN_BRAKE] = max(inputs[L.IN_BRAKE], self.cfg.watchdog_brake)
-
-    # ------------------------------------------------------------------ state out
-    def _fill_state(self, now: float) -> bytes:
-        p = self.physics
-        x, out, rec = p.x, p.out, self.record
-        world_pose(x, p.axes, p.vp[VP_CG_HEIGHT_M], p.pose)
-        flags = 0
-        if self.watchdog:
-            flags |= proto.StateFlag.WATCHDOG
-        if self.paused:
-            flags |= proto.StateFlag.PAUSED
-        held = x[L.WHEEL_HELD0:L.WHEEL_HELD0 + 4]
-        if held.any():
-            flags |= proto.StateFlag.BRAKE_HOLD
-        if self.catching_up:
-            flags |= proto.StateFlag.CATCHUP
-        rec["flags"] = flags
-        rec["tick"] = self.tick
-        rec["sim_time_s"] = self.tick * p.dt_s
-        rec["last_cmd_seq"] = self.last_seq or 0
-        rec["last_cmd_sender_time_ns"] = self.last_cmd_sender_ns
-        rec["cmd_age_s"] = -1.0 if self.last_cmd_wall is None else now - self.last_cmd_wall
-        rec["x_m"], rec["y_m"], rec["z_m"] = p.pose[0], p.pose[1], p.pose[2]
-        rec["yaw_rad"], rec["pitch_rad"], rec["roll_rad"] = p.pose[3], p.pose[4], p.pose[5]
-        rec["u_mps"] = x[L.U_MPS]
-        rec["v_mps"] = x[L.V_MPS]
-        rec["w_mps"] = x[L.HEAVE_RATE_MPS]
-        rec["roll_rate_radps"] = x[L.ROLL_RATE_RADPS]
-        rec["pitch_rate_radps"] = x[L.PITCH_RATE_RADPS]
-        rec["yaw_rate_radps"] = x[L.YAW_RATE_RADPS]
-        rec["ax_mps2"] = out[L.O_AX_MPS2]
-        rec["ay_mps2"] = out[L.O_AY_MPS2]
-        rec["omega_radps"] = x[L.OMEGA0:L.OMEGA0 + 4]
-        rec["kappa_lag"] = x[L.KAPPA0:L.KAPPA0 + 4]
-        rec["tan_alpha_lag"] = x[L.TAN_ALPHA0:L.TAN_ALPHA0 + 4]
-        rec["fx_n"] = out[L.O_FX0:L.O_FX0 + 4]
-        rec["fy_n"] = out[L.O_FY0:L.O_FY0 + 4]
-        rec["fz_n"] = out[L.O_FZ0:L.O_FZ0 + 4]
-        rec["steer_rad"] = out[L.O_STEER0:L.O_STEER0 + 4]
-        rec["damping_active"] = x[L.DAMPING_ACTIVE0:L.DAMPING_ACTIVE0 + 4]
-        rec["brake_held"] = held
-        inputs = p.inputs
-        rec["steer"] = inputs[L.IN_STEER]
-        rec["throttle"] = inputs[L.IN_THROTTLE]
-        rec["brake"] = inputs[L.IN_BRAKE]
-        rec["parking_brake"] = inputs[L.IN_PARKING_BRAKE]
-        rec["gear"] = inputs[L.IN_GEAR]
-        return rec.tobytes()
-
-    def _diagnostics(self) -> bytes:
-        st = self.pacer.stats()
-        return proto.encode_diagnostics(
-            window_ticks=st.window_ticks, tick=self.tick, uptime_s=time.monotonic() - self.t0,
-            lateness_p50_us=st.lateness_p50_us, lateness_p99_us=st.lateness_p99_us,
-            lateness_max_us=st.lateness_max_us, period_p50_us=st.period_p50_us,
-            period_p99_us=st.period_p99_us, period_max_us=st.period_max_us,
-            period_min_us=st.period_min_us, cpu_percent=self.cpu.percent(),
-            overruns=st.overruns, skipped_ticks=st.skipped_ticks, late_ticks=st.late_ticks,
-            **self.counters,
-        )
-
-    # ------------------------------------------------------------------ controls
-    def _road_dict(self) -> dict[str, float]:
-        return dict(self.physics.road)
-
-    def _resolve_config_path(self, value: str, base: Path) -> Path:
-        path = (base / value).resolve() if not Path(value).is_absolute() else Path(value)
-        path = path.resolve()
-        if not any(path.is_relative_to(d) for d in self.cfg.config_dirs):
-            raise proto.ProtocolError(
-                "path", f"{path} is outside the server's config directories "
-                        f"({', '.join(str(d) for d in self.cfg.config_dirs)})")
-        if not path.is_file():
-            raise proto.ProtocolError("path", f"{path}: no such file")
-        return path
-
-    def _handle_control(self, req: Any) -> None:
-        name, args = req.name, req.args
-        p = self.physics
-        try:
-            if name == "reset":
-                pose = args.get("pose")
-                p.reset(pose)
-                self.tick = 0
-                self._log({"step": self.steps_total, "reset": pose})
-                req.reply_ok(tick=0, pose={"x_m": p.x[L.X_M], "y_m": p.x[L.Y_M],
-                                           "yaw_rad": p.x[L.YAW_RAD]})
-            elif name == "pause":
-                self.paused = True
-                self.steps_to_run = 0
-                req.reply_ok(tick=self.tick, paused=True)
-            elif name == "resume":
-                self.paused = False
-                self.steps_to_run = 0
-                req.reply_ok(tick=self.tick, paused=False)
-            elif name == "step":
-                if not self.paused:
-                    req.reply_error("n: the server is not paused (pause first)", field="n")
-                    return
-                self.steps_to_run += int(args["n"])
-                req.reply_ok(tick=self.tick, until_tick=self.tick + self.steps_to_run)
-            elif name == "set_road":
-                road = {**self._road_dict(), **args}
-                p.set_road(**road)
-                self._log({"step": self.steps_total, "set_road": road})
-                req.reply_ok(road=road)
-            elif name == "load":
-                self._load(args)
-                req.reply_ok(vehicle=str(p.scene.vehicle.path), scene=str(self.scene_path))
-            elif name == "get_config":
-                req.reply_ok(protocol_version=proto.PROTOCOL_VERSION, config=self._config_dict())
-            else:  # validate_control knows every name; this is a programming error
-                req.reply_error(f"control: {name!r} is not implemented", field="control")
-        except proto.ProtocolError as exc:
-            req.reply_error(exc)
-        except ConfigError as exc:
-            req.reply_error(f"{name}: {exc}", field=name)
-        except Exception as exc:  # a bug must not stop the 1 kHz loop: answer, log, go on
-            log.exception("control %s failed", name)
-            req.reply_error(f"{name}: internal error ({type(exc).__name__})", field=name)
-
-    def _load(self, args: dict[str, Any]) -> None:
-        """The ``load`` control: validate everything first, then swap; nothing changes on error."""
-        base = self.cfg.path.parent
-        scene_path = self._resolve_config_path(args["scene"], base) if "scene" in args \
-            else self.scene_path
-        vehicle_path = self._resolve_config_path(args["vehicle"], base) \
-            if "vehicle" in args else None
-        scene = load_scene(scene_path, vehicle_path=vehicle_path)
-        was_paused = self.paused
-        self.paused = True
-        self.physics.load(scene)
-        self.physics.warm_up()  # same array types: served from the compiled cache
-        self.scene_path = scene_path
-        self.tick = 0
-        self._log({"step": self.steps_total, "load": {
-            "scene": str(scene_path), "vehicle": None if vehicle_path is None
-            else str(vehicle_path)}})
-        self.paused = was_paused
-        self.pacer.rebase()
-
-    def _config_dict(self) -> dict[str, Any]:
-        p = self.physics
-        return {
-            "server": {"path": str(self.cfg.path), "period_s": self.cfg.period_s,
-                       "state_every": self.cfg.state_every, "diag_hz": self.cfg.diag_hz,
-                       "watchdog_s": self.cfg.watchdog_s,
-                       "watchdog_brake": self.cfg.watchdog_brake},
-            "vehicle": {"name": p.scene.vehicle.name, "path": str(p.scene.vehicle.path),
-                        "tire_models": list(p.scene.vehicle.tire_models)},
-            "scene": {"path": str(self.scene_path), "initial": p.scene.initial,
-                      "model": p.scene.model_options},
-            "road": self._road_dict(),
-            "keys": {"cmd": self.keys.cmd, "state": self.keys.state, "diag": self.keys.diag,
-                     "alive": self.keys.alive},
-        }
-
-    def _log(self, entry: dict[str, Any]) -> None:
-        if self.command_log is not None:
-            self.command_log.write(entry)
-
-    # ------------------------------------------------------------------ the loop
     def stop(self, *_: Any) -> None:
         """Ask the loop to finish (signal handler)."""
-        self.running = False
+        self.loop.stop()
 
     def run(self) -> dict[str, Any]:
         """Serve until stopped; returns the final statistics."""
         from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
-        from simserver.realtime import CpuMeter, Pacer
 
         cfg = self.cfg
         t_compile = time.perf_counter()
-        self.physics.warm_up()
-        self._fill_state(0.0)
+        for slot in self.slots:
+            slot.warm_up()
         compile_s = time.perf_counter() - t_compile
         zcfg = make_zenoh_config(listen=cfg.listen, connect=cfg.connect,
                                  config_file=cfg.zenoh_config, mode=cfg.mode)
-        if cfg.command_log is not None:
-            self.command_log = CommandLog(cfg.command_log, {
-                "scene": str(self.scene_path), "dt_s": cfg.period_s, "step": 0})
-        period_ns = int(round(cfg.period_s * 1e9))
-        self.pacer = Pacer(period_ns=period_ns, max_catchup_ticks=cfg.max_catchup_ticks)
-        self.cpu = CpuMeter()
-        self.catching_up = False
-        diag_every = max(1, int(round(1.0 / (cfg.diag_hz * cfg.period_s))))
-        self.running = True  # before the handlers: a signal from now on ends the loop
+        for slot in self.slots:
+            if slot.cfg.command_log is not None:
+                slot.command_log = CommandLog(slot.cfg.command_log, {
+                    "scene": str(slot.scene_path), "dt_s": cfg.period_s, "step": 0})
+        loop = self.loop
+        loop.running = True  # before the handlers: a signal from now on ends the loop
         previous = {s: signal.signal(s, self.stop) for s in (signal.SIGINT, signal.SIGTERM)}
+        viewer = None
         try:
             with ZenohEndpoint(zcfg, prefix=cfg.prefix, vehicle=cfg.vehicle_id) as ep:
-                inbox = ep.declare_command_inbox(capacity=256)
-                state_pub = ep.declare_state_publisher()
-                diag_pub = ep.declare_diag_publisher()
-                controls = ep.declare_control_inbox()
-                ep.declare_alive_token()
+                for slot in self.slots:
+                    keys = slot.keys
+                    commands = ep.declare_command_inbox(capacity=256, keys=keys)
+                    publisher = ep.declare_vehicle_publisher(keys=keys)
+                    controls = ep.declare_control_inbox(keys=keys, validate=False)
+                    ep.declare_alive_token(keys=keys)
+                    loop.add(slot, SlotPorts(commands, controls, publisher))
+                first = self.slots[0]
                 log.info("serving %s (vehicle %s) every %.3f ms; compiled in %.2f s",
-                         self.keys.base, self.physics.scene.vehicle.name,
+                         first.keys.base, first.sim.scene.vehicle.name,
                          1e3 * cfg.period_s, compile_s)
-                print(f"simserver: ready on {self.keys.base} "
+                print(f"simserver: ready on {first.keys.base} "
                       f"(listen {cfg.listen or 'tcp/127.0.0.1:7447'})", flush=True)
                 viewer = self._start_viewer()
-                self.t0 = time.monotonic()
-                self.pacer.start()
-                loop_count = 0
-                while self.running:
-                    self.pacer.wait()
-                    self.catching_up = self.pacer.catching_up
-                    now = time.monotonic()
-                    self._take_commands(inbox.drain_newest(), now)
-                    self._apply_inputs(now)
-                    if not self.paused or self.steps_to_run > 0:
-                        self._log_inputs()
-                        self.physics.step()
-                        self.tick += 1
-                        self.steps_total += 1
-                        if self.paused:
-                            self.steps_to_run -= 1
-                    if loop_count % cfg.state_every == 0:
-                        state_pub.put(self._fill_state(now))
-                        self.counters["state_published"] += 1
-                    if loop_count % diag_every == 0:
-                        diag_pub.put(self._diagnostics())
-                    for req in controls.poll():
-                        self._handle_control(req)
-                    loop_count += 1
-                    if not np.isfinite(self.physics.x).all():  # never expected; be loud
-                        log.error("non-finite state at tick %d: resetting", self.tick)
-                        self.physics.reset(None)
+                loop.run()
         finally:
             for s, h in previous.items():
                 signal.signal(s, h)
-            self._stop_viewer(locals().get("viewer"))
-            if self.command_log is not None:
-                self.command_log.close(self.steps_total, self.physics.x)
-        stats = self.pacer.stats()
-        final = {"ticks": self.tick, "steps_total": self.steps_total,
-                 "uptime_s": round(time.monotonic() - self.t0, 3),
-                 "lateness_p50_us": stats.lateness_p50_us,
-                 "lateness_p99_us": stats.lateness_p99_us,
-                 "lateness_max_us": stats.max_lateness_us, "overruns": stats.overruns,
-                 "skipped_ticks": stats.skipped_ticks, "late_ticks": stats.late_ticks,
-                 **self.counters}
+            self._stop_viewer(viewer)
+            for slot in self.slots:
+                if slot.command_log is not None:
+                    slot.command_log.close(slot.steps_total, slot.sim.x)
+        final = loop.final_stats()
         print("simserver: stopped " + json.dumps(final), flush=True)
         return final
 
@@ -594,15 +330,6 @@ class SimServer:
             viewer.wait(timeout=10)
         except subprocess.TimeoutExpired:
             viewer.kill()
-
-    def _log_inputs(self) -> None:
-        if self.command_log is None:
-            return
-        inputs = self.physics.inputs
-        if not np.array_equal(inputs, self._logged_inputs):
-            self._logged_inputs[:] = inputs
-            self.command_log.write({"step": self.steps_total,
-                                    "inputs": [float(v) for v in inputs]})
 
 
 # ---------------------------------------------------------------------- replay

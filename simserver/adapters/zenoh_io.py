@@ -8,10 +8,15 @@
   nothing here blocks a real-time loop, and no Python callback keeps a process alive
   (platform notes: a callback subscriber hangs the exit until the session is closed).
 
-Facts this relies on (``../shared/docs/platform-notes.md``): zenoh's defaults join UDP
-multicast 224.0.0.224:7446 and listen on every interface; shared memory (on for payloads of
-3 KiB and more) gave 13-110 ms spikes; congestion control DROP lost up to 0.5 % of a 1 kHz
-stream on loopback while BLOCK lost none.
+Facts this relies on (measured on the development machine, see ``docs/protocol.md``
+sections 1 and 5): zenoh's defaults join UDP multicast 224.0.0.224:7446 and listen on every
+interface; shared memory (on for payloads of 3 KiB and more) gave 13-110 ms spikes;
+congestion control DROP lost up to 0.5 % of a 1 kHz stream on loopback while BLOCK lost
+none.
+
+For the server this module is the adapter of the loop's ports
+(:class:`simserver.server_loop.SlotPorts`): :class:`Inbox` is its command inbox,
+:class:`ControlInbox` its control inbox and :class:`VehiclePublisher` its publisher.
 """
 
 from __future__ import annotations
@@ -237,13 +242,19 @@ class Inbox:
 
 
 class ControlRequest:
-    """One validated control request; answer it exactly once with a ``reply_*`` method."""
+    """One control request; answer it exactly once with a ``reply*`` method.
 
-    __slots__ = ("name", "args", "key", "_query")
+    ``args`` are the validated arguments, or None when its inbox leaves validation to the
+    server (``validate=False``); ``payload`` is the raw JSON body either way.
+    """
 
-    def __init__(self, name: str, args: dict, key: str, query: zenoh.Query) -> None:
+    __slots__ = ("name", "args", "payload", "key", "_query")
+
+    def __init__(self, name: str, args: dict | None, key: str, query: zenoh.Query,
+                 payload: bytes = b"") -> None:
         self.name = name
         self.args = args
+        self.payload = payload
         self.key = key
         self._query = query
 
@@ -269,12 +280,15 @@ class ControlRequest:
 class ControlInbox:
     """One queryable on ``{prefix}/{vehicle}/ctl/*`` serving every control.
 
-    :meth:`poll` answers malformed requests itself (unknown control, wildcard key, bad
-    arguments: an error reply naming the field) and returns only valid ones.
+    :meth:`poll` answers malformed requests itself (unknown control, wildcard key, and
+    with ``validate`` bad arguments: an error reply naming the field) and returns the
+    others. The server passes ``validate=False``: its control table validates.
     """
 
-    def __init__(self, session: zenoh.Session, keys: VehicleKeys, capacity: int) -> None:
+    def __init__(self, session: zenoh.Session, keys: VehicleKeys, capacity: int,
+                 validate: bool = True) -> None:
         self.keys = keys
+        self.validate = validate
         self.received = 0
         self.rejected = 0
         self._q = session.declare_queryable(
@@ -295,7 +309,7 @@ class ControlInbox:
                     raise ProtocolError(
                         "control", f"{key!r} is not one control key of {self.keys.base}"
                     )
-                args = validate_control(name, payload)
+                args = validate_control(name, payload) if self.validate else None
             except Exception as exc:  # ProtocolError, or a validator bug: never escapes
                 if not isinstance(exc, ProtocolError):
                     exc = ProtocolError("request", f"could not be validated ({type(exc).__name__})")
@@ -309,7 +323,7 @@ class ControlInbox:
                 finally:
                     query.drop()
             else:
-                out.append(ControlRequest(name, args, key, query))
+                out.append(ControlRequest(name, args, key, query, payload))
             query = self._q.try_recv()
         return out
 
@@ -321,6 +335,22 @@ class ControlInbox:
             except zenoh.ZError:
                 pass
             self._q = None
+
+
+class VehiclePublisher:
+    """A vehicle's state and diagnostics publishers: the server loop's publisher port."""
+
+    def __init__(self, state: zenoh.Publisher, diagnostics: zenoh.Publisher) -> None:
+        self.state = state
+        self.diagnostics = diagnostics
+
+    def publish_state(self, payload: bytes) -> None:
+        """Put one VehicleState."""
+        self.state.put(payload)
+
+    def publish_diagnostics(self, payload: bytes) -> None:
+        """Put one Diagnostics."""
+        self.diagnostics.put(payload)
 
 
 class AliveWatch:
@@ -444,29 +474,42 @@ class ZenohEndpoint:
 
     # ---------------------------------------------------------------- server side
 
-    def declare_command_inbox(self, capacity: int = 32) -> Inbox:
+    # ``keys`` (default this endpoint's) lets one session serve several vehicles.
+    def declare_command_inbox(self, capacity: int = 32, keys: VehicleKeys | None = None
+                              ) -> Inbox:
         """Subscriber on ``cmd`` with a ring of ``capacity``; drain it every tick."""
-        return self._keep(Inbox(self.session, self.keys.cmd, capacity))
+        return self._keep(Inbox(self.session, (keys or self.keys).cmd, capacity))
 
     def declare_state_publisher(
-        self, congestion_control: zenoh.CongestionControl = zenoh.CongestionControl.BLOCK
+        self, congestion_control: zenoh.CongestionControl = zenoh.CongestionControl.BLOCK,
+        keys: VehicleKeys | None = None,
     ) -> zenoh.Publisher:
         """Publisher on ``state``: REAL_TIME priority, express, BLOCK (lossless)."""
-        return self._publisher(self.keys.state, ENCODING_STATE, zenoh.Priority.REAL_TIME,
-                               True, congestion_control)
+        return self._publisher((keys or self.keys).state, ENCODING_STATE,
+                               zenoh.Priority.REAL_TIME, True, congestion_control)
 
-    def declare_diag_publisher(self) -> zenoh.Publisher:
+    def declare_diag_publisher(self, keys: VehicleKeys | None = None) -> zenoh.Publisher:
         """Publisher on ``diag``: DATA priority, batched, BLOCK."""
-        return self._publisher(self.keys.diag, ENCODING_DIAGNOSTICS, zenoh.Priority.DATA,
-                               False, zenoh.CongestionControl.BLOCK)
+        return self._publisher((keys or self.keys).diag, ENCODING_DIAGNOSTICS,
+                               zenoh.Priority.DATA, False, zenoh.CongestionControl.BLOCK)
 
-    def declare_control_inbox(self, capacity: int = 32) -> ControlInbox:
-        """Queryable serving every ``ctl/*`` key; poll it every tick."""
-        return self._keep(ControlInbox(self.session, self.keys, capacity))
+    def declare_vehicle_publisher(self, keys: VehicleKeys | None = None) -> VehiclePublisher:
+        """The ``state`` and ``diag`` publishers above, as the server loop's publisher."""
+        return VehiclePublisher(self.declare_state_publisher(keys=keys),
+                                self.declare_diag_publisher(keys=keys))
 
-    def declare_alive_token(self) -> zenoh.LivelinessToken:
+    def declare_control_inbox(self, capacity: int = 32, keys: VehicleKeys | None = None,
+                              validate: bool = True) -> ControlInbox:
+        """Queryable serving every ``ctl/*`` key; poll it every tick.
+
+        With ``validate=False`` requests come with their raw payload only (``args`` None)
+        for a caller that validates them itself (the server's control table).
+        """
+        return self._keep(ControlInbox(self.session, keys or self.keys, capacity, validate))
+
+    def declare_alive_token(self, keys: VehicleKeys | None = None) -> zenoh.LivelinessToken:
         """Liveliness token on ``alive`` (gone when undeclared, closed, or the process dies)."""
-        return self._keep(self.session.liveliness().declare_token(self.keys.alive))
+        return self._keep(self.session.liveliness().declare_token((keys or self.keys).alive))
 
     # ---------------------------------------------------------------- client side
 
