@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
 import signal
@@ -20,6 +21,16 @@ SAMPLE_TIR = CONFIGS / "tires" / "data" / "mf61_225_50R17_sample.tir"
 ``SHARED_TIR`` (``tests/test_tir_file.py`` checks it where that exists), so that a clone
 on any machine tests the same file."""
 SHARED_TIR = REPO.parent / "shared" / "data" / "tires" / "mf61_225_50R17_sample.tir"
+
+
+def slow_enabled(markexpr: str | None) -> bool:
+    """Whether the long (``slow``) tests should run.
+
+    They run with ``SIMSERVER_SLOW=1`` in the environment or when pytest's ``-m``
+    expression selects ``slow`` (``-m slow``); the default suite runs their short forms.
+    """
+    expr = markexpr or ""
+    return os.environ.get("SIMSERVER_SLOW") == "1" or ("slow" in expr and "not slow" not in expr)
 
 
 @pytest.fixture(scope="session")

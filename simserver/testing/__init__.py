@@ -632,6 +632,18 @@ class Client:
         """A control request (see ``ZenohEndpoint.request``)."""
         return self.ep.request(name, args, payload=payload, timeout_s=timeout_s)
 
+    def wait_controls(self, timeout_s: float = 10.0) -> dict[str, Any]:
+        """Ask ``get_config`` until the server's queryable is known to this client (through
+        a router that may take a moment); its reply."""
+        def ask() -> dict[str, Any] | None:
+            try:
+                return self.request("get_config", timeout_s=1.0)
+            except TimeoutError:
+                return None
+
+        return wait_until(ask, lambda r: r is not None, timeout_s=timeout_s,
+                          what="the server's controls", interval_s=0.1)
+
     def wait_alive(self, predicate: Callable[[list[str]], bool], timeout_s: float = 10.0,
                    what: str = "the liveliness tokens") -> list[str]:
         """Query the liveliness tokens until ``predicate`` holds for their list; the list."""
