@@ -111,7 +111,7 @@ def python_driver_snippet() -> str:
 def test_recorder_and_python_driver_as_written(readme_server, tmp_path):
     """The recorder records while the README's Python driver drives (10 s at throttle 0.3):
     the file holds the car speeding up; Ctrl-C closes it."""
-    watcher = Client(readme_server, keep_history=True)
+    watcher = Client(readme_server, state_capacity=1 << 15, keep_history=True)
     assert watcher.ep.request("reset")["ok"]
     recorder = OutputProcess(as_written(".venv/bin/simserver-recorder --out out/live"),
                              ready="recording simserver/car0", env=client_env(), cwd=tmp_path)
@@ -154,7 +154,7 @@ def test_player_as_written(readme_server):
     """The player loads the E5 scenario (10 % uphill) and plays it; the first seconds are
     the brake-to-a-stop: it must be the scenario's scene and the car must be braked.
     Ctrl-C ends it cleanly."""
-    watcher = Client(readme_server, keep_history=True)
+    watcher = Client(readme_server, state_capacity=1 << 15, keep_history=True)
     player = subprocess.Popen(
         as_written(".venv/bin/simserver-player configs/scenarios/e5_hold_restart_uphill.yaml "
                    "--load"), cwd=REPO, env=client_env(), stdout=subprocess.PIPE,

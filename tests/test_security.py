@@ -24,6 +24,7 @@ import secrets
 import shutil
 import subprocess
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -134,6 +135,18 @@ def materialize(example: str, pki_root: Path, out_name: str | None = None,
 def passwords(pki_root: Path) -> dict[str, str]:
     """The random passwords of the module's users."""
     return json.loads((pki_root / "passwords.json").read_text(encoding="ascii"))
+
+
+@contextmanager
+def driver_and_viewer(endpoint: str, driver_cfg: Path,
+                      viewer_cfg: Path) -> Iterator[tuple[Client, Client]]:
+    """A driver and a viewer client (their own credentials), the server's controls known
+    to both (``get_config`` is open to viewers too)."""
+    with Client(endpoint, zenoh_config=driver_cfg) as driver, \
+            Client(endpoint, zenoh_config=viewer_cfg) as viewer:
+        assert driver.wait_controls()["ok"]
+        assert viewer.wait_controls()["ok"]
+        yield driver, viewer
 
 
 def no_reply(probe: Client, name: str, args: dict | None = None) -> bool:
@@ -287,10 +300,7 @@ def test_no_session_without_valid_credentials(acl_server):
 
 def test_viewer_reads_state_but_cannot_command_or_control(acl_server):
     server, endpoint, configs = acl_server
-    with Client(endpoint, zenoh_config=configs["driver"]) as driver, \
-            Client(endpoint, zenoh_config=configs["viewer"]) as viewer:
-        driver.wait_controls()
-        assert viewer.wait_controls()["ok"]  # get_config is open to viewers
+    with driver_and_viewer(endpoint, configs["driver"], configs["viewer"]) as (driver, viewer):
         assert viewer.ep.alive_tokens() == ["simserver/car0/alive"]
         assert driver.request("reset")["ok"]
         moved = driver.drive(1.5, throttle=0.4)
@@ -347,10 +357,7 @@ def test_driver_commands_resets_and_controls(acl_server):
 def test_nobody_but_the_server_can_publish_the_state(acl_server):
     """A client publishing fake states on the state key reaches no other client."""
     _, endpoint, configs = acl_server
-    with Client(endpoint, zenoh_config=configs["driver"]) as driver, \
-            Client(endpoint, zenoh_config=configs["viewer"]) as viewer:
-        driver.wait_controls()
-        viewer.wait_controls()
+    with driver_and_viewer(endpoint, configs["driver"], configs["viewer"]) as (driver, viewer):
         fake_v = viewer.ep.session.declare_publisher(viewer.ep.keys.state)
         fake_d = driver.ep.session.declare_publisher(driver.ep.keys.state)
         driver.states.drain_newest()
@@ -399,10 +406,8 @@ def test_mutual_tls_rights_follow_the_certificate_name(pki):
             Client(endpoint, zenoh_config=no_cert)
         with pytest.raises(ZenohOpenError):  # CN "driver", but signed by another CA
             Client(endpoint, zenoh_config=clients["rogue"])
-        with Client(endpoint, zenoh_config=clients["driver"]) as driver, \
-                Client(endpoint, zenoh_config=clients["viewer"]) as viewer:
-            driver.wait_controls()
-            assert viewer.wait_controls()["ok"]
+        with driver_and_viewer(endpoint, clients["driver"], clients["viewer"]) as (driver,
+                                                                                   viewer):
             # the viewer's declarations (its command publisher first) reached the server
             viewer.fresh_state()
             before = driver.diagnostics()
@@ -456,10 +461,7 @@ def test_router_access_control_separates_servers_drivers_and_viewers(pki, tmp_pa
         server = ServerProcess(listen=[], config=server_yaml("server.yaml", server_zenoh, "car0"),
                             extra_args=["--connect", router_ep])
         assert not [s for s in process_sockets(server.pid) if s.listening]
-        with Client(router_ep, zenoh_config=driver_cfg) as driver, \
-                Client(router_ep, zenoh_config=viewer_cfg) as viewer:
-            assert driver.wait_controls()["ok"]
-            assert viewer.wait_controls()["ok"]
+        with driver_and_viewer(router_ep, driver_cfg, viewer_cfg) as (driver, viewer):
             state = driver.drive(1.0, throttle=0.5)
             assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
             assert driver.request("reset")["ok"]

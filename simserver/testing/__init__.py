@@ -188,7 +188,9 @@ class OutputProcess:
     ready : str
         Marker of its ready line: ``start`` waits for a line containing it.
     env : dict, optional
-        Environment (default this one, with ``PYTHONUNBUFFERED=1``).
+        Environment, as given (default this one, with ``PYTHONUNBUFFERED=1``).
+    cwd : Path
+        Working directory (default the repository).
     """
 
     def __init__(self, argv: Sequence[str], ready: str, env: dict[str, str] | None = None,
@@ -203,7 +205,8 @@ class OutputProcess:
         self.t_launch = time.monotonic()
         self.proc = subprocess.Popen(self.argv, cwd=cwd, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, text=True,
-                                     env=dict(env or os.environ, PYTHONUNBUFFERED="1"))
+                                     env=dict(os.environ, PYTHONUNBUFFERED="1")
+                                     if env is None else env)
         self._reader = threading.Thread(target=self._pump, daemon=True)
         self._reader.start()
 
@@ -270,15 +273,13 @@ class OutputProcess:
         """Send ``sig`` (default SIGTERM), wait, SIGKILL if it hangs; the exit code."""
         if self.proc.poll() is None:
             self.proc.send_signal(sig)
-            try:
-                self.proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        return self._ended()
+        return self._wait_or_kill(timeout_s)
 
     def wait(self, timeout_s: float) -> int:
         """Wait for it to end by itself (SIGKILL after ``timeout_s``); the exit code."""
+        return self._wait_or_kill(timeout_s)
+
+    def _wait_or_kill(self, timeout_s: float) -> int:
         try:
             self.proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
@@ -345,7 +346,9 @@ class ServerProcess(OutputProcess):
         A command line of its own instead (a README command, say); ``listen[0]`` must
         then be its endpoint.
     env : dict, optional
-        Its environment.
+        Its environment (as given).
+    cwd : Path
+        Its working directory (default the repository).
     ready_timeout_s : float
         How long to wait for ``ready on`` (the numba core may compile first).
 
@@ -361,7 +364,7 @@ class ServerProcess(OutputProcess):
                  viewer: str = "off", log_level: str = "INFO",
                  command_log: Path | None = None, config: Path | None = None,
                  argv: Sequence[str] | None = None, env: dict[str, str] | None = None,
-                 ready_timeout_s: float = 120.0) -> None:
+                 cwd: Path = REPO, ready_timeout_s: float = 120.0) -> None:
         self.vehicle_id = vehicle_id
         if listen is None:
             self.port: int | None = free_port()
@@ -374,11 +377,21 @@ class ServerProcess(OutputProcess):
             argv = serve_args(vehicle_id=vehicle_id, scene=scene, listen=listen,
                               viewer=viewer, log_level=log_level, command_log=command_log,
                               config=config, extra_args=extra_args)
-        super().__init__(argv, ready="ready on", env=env)
+        super().__init__(argv, ready="ready on", env=env, cwd=cwd)
         if not self.wait_ready(ready_timeout_s) or not self.alive():
             self.kill()
             raise RuntimeError("server did not become ready:\n" + self.text())
         self.ready_s = time.monotonic() - self.t_launch
+
+    def crash_report(self, timeout_s: float = 10.0) -> str:
+        """Whether it still runs and the tail of its output, for a failure message; a
+        server that crashes takes a moment to exit, so this waits up to ``timeout_s`` for
+        that first."""
+        try:
+            self.proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            pass
+        return f"server alive: {self.alive()}\n" + self.text()[-3000:]
 
     def client_args(self) -> list[str]:
         """The connection flags of a client program of this server."""
@@ -432,7 +445,7 @@ class RoleProcess(OutputProcess):
 
     def wait(self, timeout_s: float) -> dict[str, Any] | None:
         """Wait for the role to end by itself (SIGKILL after ``timeout_s``); the result."""
-        super().wait(timeout_s)
+        self._wait_or_kill(timeout_s)
         return self.result()
 
 
