@@ -17,7 +17,7 @@ Each test injects one fault into a running ``simserver serve`` and checks what m
   vehicle and scene stay, the server keeps running;
 - SIGTERM mid-drive: a clean exit with the final statistics, a complete command log,
   and ``simserver replay`` reproduces it bit for bit;
-- a short real-time soak (``benchmarks/bench_realtime_soak.py``): no command lost,
+- a short real-time soak (``simserver/testing/realtime_soak.py``): no command lost,
   server alive, bounded memory growth.
 
 Figures are printed (``pytest -s``); ``docs/reliability.md`` quotes them.

@@ -43,6 +43,7 @@ from simserver.testing import (
     RoleProcess,
     ServerProcess,
     free_port,
+    loopback_endpoint,
     process_sockets,
     state_is_finite,
     wait_until,
@@ -264,7 +265,7 @@ def acl_server(pki) -> Iterator[tuple[ServerProcess, str, dict[str, Path]]]:
                                              pw["driver"]}),
         "no_credentials": materialize("client_tls.json5", pki),
     }
-    endpoint = f"tls/127.0.0.1:{free_port()}"
+    endpoint = loopback_endpoint("tls")
     server = ServerProcess(listen=[endpoint], extra_args=["--zenoh-config",
                                                        str(configs["server"])])
     try:
@@ -400,7 +401,7 @@ def test_mutual_tls_rights_follow_the_certificate_name(pki):
         for name in ("driver", "viewer", "rogue")
     }
     no_cert = materialize("client_tls.json5", pki)
-    endpoint = f"tls/127.0.0.1:{free_port()}"
+    endpoint = loopback_endpoint("tls")
     with ServerProcess(listen=[endpoint], extra_args=["--zenoh-config", str(server_cfg)]) as srv:
         with pytest.raises(ZenohOpenError):  # no client certificate
             Client(endpoint, zenoh_config=no_cert)
@@ -445,7 +446,7 @@ def test_router_access_control_separates_servers_drivers_and_viewers(pki, tmp_pa
         "REPLACE-WITH-THE-DRIVER-PASSWORD": pw["driver"]})
     viewer_cfg = materialize("client_viewer.json5", pki, "router_viewer.json5", replace={
         "REPLACE-WITH-THE-VIEWER-PASSWORD": pw["viewer"]})
-    router_ep = f"tls/127.0.0.1:{free_port()}"
+    router_ep = loopback_endpoint("tls")
 
     def server_yaml(name: str, zenoh_file: Path, vehicle: str) -> Path:
         # listen: null, so the zenoh file decides (no listener: the server is a client)

@@ -49,7 +49,8 @@ import numpy as np
 from simserver import protocol as proto
 
 REPO = Path(__file__).resolve().parents[2]
-"""The repository (the servers and client programs are started from here)."""
+"""The source checkout (the servers and client programs are started from here; scene
+names are looked up in its ``configs/scenes``: from an installed package, pass paths)."""
 CONFIGS = REPO / "configs"
 ROLES_MODULE = "simserver.testing.roles"
 
@@ -537,16 +538,8 @@ class Client:
         TimeoutError
             If none does within ``timeout_s``.
         """
-        end = time.monotonic() + timeout_s
-        while True:
-            self.send(**kw)
-            for st in self.drain_states():
-                if predicate(st):
-                    return st
-            if time.monotonic() >= end:
-                raise TimeoutError(f"timed out after {timeout_s} s driving {kw} until "
-                                   f"{what}; last state: {self.last}")
-            time.sleep(1.0 / rate_hz)  # the pace of the command stream
+        return self._first_state(predicate, timeout_s, f"{what} (driving {kw})",
+                                 each=lambda: self.send(**kw), interval_s=1.0 / rate_hz)
 
     # ------------------------------------------------------------------ state
     def poll(self) -> np.void | None:
@@ -581,15 +574,22 @@ class Client:
             If none does within ``timeout_s``.
         """
         self.drain_states()
-        end = time.monotonic() + timeout_s
-        while True:
-            for st in self.drain_states():
-                if predicate(st):
-                    return st
-            if time.monotonic() >= end:
-                raise TimeoutError(f"timed out after {timeout_s} s waiting for {what}; "
-                                   f"last state: {self.last}")
-            time.sleep(0.002)
+        return self._first_state(predicate, timeout_s, what)
+
+    def _first_state(self, predicate: Callable[[np.void], bool], timeout_s: float, what: str,
+                     each: Callable[[], None] = lambda: None,
+                     interval_s: float = 0.002) -> np.void:
+        """Run ``each`` and drain the states every ``interval_s`` until one satisfies
+        ``predicate``; that state (TimeoutError after ``timeout_s``)."""
+        def poll() -> np.void | None:
+            each()
+            return next((st for st in self.drain_states() if predicate(st)), None)
+
+        try:
+            return wait_until(poll, lambda st: st is not None, timeout_s=timeout_s,
+                              what=what, interval_s=interval_s)
+        except TimeoutError as exc:
+            raise TimeoutError(f"{exc}; last state received: {self.last}") from None
 
     def next_states(self, n: int, timeout_s: float = 10.0) -> list[np.void]:
         """The next ``n`` states received from now on (the server publishes one a loop,
