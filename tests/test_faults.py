@@ -223,7 +223,9 @@ def test_command_flood_far_above_1khz(slot):
         # a normal driver takes over again (its seq restarts after the watchdog reset)
         probe.wait_state(lambda s: s["flags"] & proto.StateFlag.WATCHDOG, 5.0, "watchdog")
         probe.seq = 0
-        st = probe.drive(0.5, throttle=0.3)
+        st = probe.drive_until(lambda s: s["throttle"] > 0.29
+                               and not s["flags"] & proto.StateFlag.WATCHDOG, throttle=0.3,
+                               what="a driver taking over")
         assert st["throttle"] > 0.29 and not st["flags"] & proto.StateFlag.WATCHDOG
 
 
@@ -348,15 +350,9 @@ def test_router_restart_between_client_and_server():
     try:
         server = ServerProcess(extra_args=["--connect", router_ep])
         probe = Client(router_ep)  # client mode, through the router only
-        end = time.monotonic() + 15
-        while True:  # the server's declarations reach the client through the router
-            try:
-                assert probe.request("get_config", timeout_s=1.0)["ok"]
-                break
-            except TimeoutError:
-                if time.monotonic() > end:
-                    raise
-        st = probe.drive(1.0, throttle=0.3)
+        # the server's declarations reach the client through the router
+        assert probe.wait_controls(15.0)["ok"]
+        st = probe.drive_until(lambda s: s["throttle"] > 0.29, throttle=0.3, what="driving")
         assert st is not None and st["throttle"] > 0.29
         router.kill()
         killed = time.monotonic()
@@ -470,7 +466,7 @@ def test_load_of_a_broken_file_is_rejected_and_the_old_one_stays(slot, case):
         after = probe.request("get_config")["config"]
         for key in ("vehicle", "scene", "road"):
             assert after[key] == before[key], key
-        st = probe.drive(0.3, brake=0.4)
+        st = probe.drive_until(lambda s: s["brake"] > 0.39, brake=0.4, what="braking")
         assert st["brake"] > 0.39 and state_is_finite(st)
         assert not st["flags"] & proto.StateFlag.PAUSED
 

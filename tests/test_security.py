@@ -220,7 +220,9 @@ def test_tls_client_that_trusts_the_ca_drives_and_plain_tcp_cannot_talk(pki):
         with Client(tls_ep, zenoh_config=client_cfg) as client:
             assert client.wait_controls()["ok"]
             assert client.request("reset")["ok"]
-            state = client.drive(1.0, throttle=0.5, gear=proto.Gear.D)
+            state = client.drive_until(lambda s: s["u_mps"] > 1.0 and s["throttle"] > 0.49
+                                       and not s["flags"] & proto.StateFlag.WATCHDOG,
+                                       throttle=0.5, gear=proto.Gear.D, what="driving")
             assert state is not None and state_is_finite(state)
             assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
             assert not state["flags"] & proto.StateFlag.WATCHDOG
@@ -304,7 +306,7 @@ def test_viewer_reads_state_but_cannot_command_or_control(acl_server):
     with driver_and_viewer(endpoint, configs["driver"], configs["viewer"]) as (driver, viewer):
         assert viewer.ep.alive_tokens() == ["simserver/car0/alive"]
         assert driver.request("reset")["ok"]
-        moved = driver.drive(1.5, throttle=0.4)
+        moved = driver.drive_until(lambda s: s["u_mps"] > 1.0, throttle=0.4, what="moving")
         assert moved["u_mps"] > 1.0
         road = driver.request("get_config")["config"]["road"]
         driver.wait_state(lambda s: s["flags"] & proto.StateFlag.WATCHDOG,
@@ -340,7 +342,9 @@ def test_driver_commands_resets_and_controls(acl_server):
     with Client(endpoint, zenoh_config=configs["driver"]) as driver:
         driver.wait_controls()
         before = driver.diagnostics()
-        state = driver.drive(1.5, throttle=0.5, gear=proto.Gear.D)
+        state = driver.drive_until(lambda s: s["u_mps"] > 1.0 and s["throttle"] > 0.49
+                                   and not s["flags"] & proto.StateFlag.WATCHDOG,
+                                   throttle=0.5, gear=proto.Gear.D, what="driving")
         assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
         assert not state["flags"] & proto.StateFlag.WATCHDOG
         after = driver.diagnostics()
@@ -416,7 +420,8 @@ def test_mutual_tls_rights_follow_the_certificate_name(pki):
             assert no_reply(viewer, "reset")
             after = driver.diagnostics()
             assert after["cmd_received"] == before["cmd_received"]
-            state = driver.drive(1.0, throttle=0.5)
+            state = driver.drive_until(lambda s: s["u_mps"] > 1.0 and s["throttle"] > 0.49,
+                                       throttle=0.5, what="driving")
             assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
             assert driver.request("reset")["ok"]
         assert srv.alive()
@@ -463,7 +468,8 @@ def test_router_access_control_separates_servers_drivers_and_viewers(pki, tmp_pa
                             extra_args=["--connect", router_ep])
         assert not [s for s in process_sockets(server.pid) if s.listening]
         with driver_and_viewer(router_ep, driver_cfg, viewer_cfg) as (driver, viewer):
-            state = driver.drive(1.0, throttle=0.5)
+            state = driver.drive_until(lambda s: s["u_mps"] > 1.0 and s["throttle"] > 0.49,
+                                       throttle=0.5, what="driving")
             assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
             assert driver.request("reset")["ok"]
             driver.wait_state(lambda s: s["flags"] & proto.StateFlag.WATCHDOG,

@@ -139,7 +139,8 @@ def test_malformed_commands_are_rejected_counted_and_harmless(served):
         what=f"{sent} more rejected commands counted")
     rejected = int(after["cmd_rejected"]) - int(before["cmd_rejected"])
     assert rejected == 20 * len(MALFORMED)
-    state = client.drive(0.3, brake=0.3)
+    state = client.drive_until(lambda s: abs(s["u_mps"]) < 0.01 and s["throttle"] == 0.0,
+                               brake=0.3, what="braked, no throttle")
     values = [state[name] for name in state.dtype.names]
     assert all(np.all(np.isfinite(v)) for v in values)
     assert abs(state["u_mps"]) < 0.01 and state["throttle"] == 0.0
@@ -148,14 +149,16 @@ def test_malformed_commands_are_rejected_counted_and_harmless(served):
 def test_watchdog_engages_and_releases(served):
     _, client = served
     assert client.ep.request("reset")["ok"]
-    state = client.drive(1.0, throttle=0.3)
+    state = client.drive_until(lambda s: not s["flags"] & WATCHDOG and s["throttle"] > 0.29,
+                               throttle=0.3, what="driving")
     assert not state["flags"] & proto.StateFlag.WATCHDOG and state["throttle"] > 0.29
     # the client goes silent: within the 200 ms timeout (and the time a loaded machine adds)
     state = client.wait_state(lambda s: s["flags"] & WATCHDOG, timeout_s=5.0,
                               what="the watchdog engaged")
     assert state["flags"] & proto.StateFlag.WATCHDOG
     assert state["throttle"] == 0.0 and state["brake"] >= 0.6 - 1e-6
-    state = client.drive(0.3, throttle=0.3)
+    state = client.drive_until(lambda s: not s["flags"] & WATCHDOG and s["throttle"] > 0.29,
+                               throttle=0.3, what="the watchdog released")
     assert not state["flags"] & proto.StateFlag.WATCHDOG and state["throttle"] > 0.29
 
 
@@ -261,13 +264,15 @@ def test_load_another_scene_and_vehicle():
         config = client.ep.request("get_config")["config"]
         assert config["vehicle"]["name"] == "mf_hatchback"
         assert config["road"]["grade_pct"] == 10.0
-        state = client.drive(1.0, brake=0.6, gear=proto.Gear.D)
+        state = client.drive_until(lambda s: abs(s["u_mps"]) < 0.01 and s["pitch_rad"] < -0.05,
+                                   brake=0.6, gear=proto.Gear.D, what="held on the hill")
         assert abs(state["u_mps"]) < 0.01 and state["pitch_rad"] < -0.05  # nose up the hill
         # a scenario file is a scene too: the live run starts where the headless one does
         reply = client.ep.request("load", {"scene": str(
             CONFIGS / "scenarios" / "e2_stop_downslope_paper_damping.yaml")})
         assert reply["ok"], reply
-        state = client.drive(0.2, gear=proto.Gear.N)
+        state = client.drive_until(lambda s: s["u_mps"] > 24.0, gear=proto.Gear.N,
+                                   what="the scenario's initial speed")
         assert state["u_mps"] > 24.0
     finally:
         client.close()
