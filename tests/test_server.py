@@ -147,19 +147,23 @@ def test_malformed_commands_are_rejected_counted_and_harmless(served):
 
 
 def test_watchdog_engages_and_releases(served):
-    _, client = served
+    server, client = served
     assert client.ep.request("reset")["ok"]
     state = client.drive_until(lambda s: not s["flags"] & WATCHDOG and s["throttle"] > 0.29,
                                throttle=0.3, what="driving")
     assert not state["flags"] & proto.StateFlag.WATCHDOG and state["throttle"] > 0.29
+    logged = len(server.output)
     # the client goes silent: within the 200 ms timeout (and the time a loaded machine adds)
     state = client.wait_state(lambda s: s["flags"] & WATCHDOG, timeout_s=5.0,
                               what="the watchdog engaged")
     assert state["flags"] & proto.StateFlag.WATCHDOG
     assert state["throttle"] == 0.0 and state["brake"] >= 0.6 - 1e-6
+    # and the server says so in its log, and again when commands resume
+    server.wait_for_line("watchdog: no valid command for 200 ms", start=logged)
     state = client.drive_until(lambda s: not s["flags"] & WATCHDOG and s["throttle"] > 0.29,
                                throttle=0.3, what="the watchdog released")
     assert not state["flags"] & proto.StateFlag.WATCHDOG and state["throttle"] > 0.29
+    server.wait_for_line("watchdog released: commands resumed", start=logged)
 
 
 def test_two_servers_are_isolated():
