@@ -39,8 +39,6 @@ import os
 import platform
 import re
 import shutil
-import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -51,6 +49,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from simserver.testing import ServerProcess
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "docs" / "performance.md"
@@ -272,44 +272,13 @@ def _mib(kib: int) -> str:
 
 
 # --------------------------------------------------------------------- start-up
-def free_port() -> int:
-    """A free loopback TCP port."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def time_to_ready(numba_cache_dir: Path, timeout_s: float = 300.0) -> float:
     """Launch ``simserver serve`` (viewer off, free loopback port), return the seconds to its
     ``ready`` line, then stop it with SIGTERM."""
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(numba_cache_dir)}
-    argv = [sys.executable, "-m", "simserver", "serve", "--listen",
-            f"tcp/127.0.0.1:{free_port()}", "--viewer", "off", "--log-level", "WARNING"]
-    t0 = time.monotonic()
-    proc = subprocess.Popen(argv, cwd=REPO, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    assert proc.stdout is not None
-    timer = threading.Timer(timeout_s, proc.kill)
-    timer.start()
-    ready_s = None
-    lines = []
-    try:
-        for line in proc.stdout:
-            lines.append(line)
-            if "simserver: ready on" in line:
-                ready_s = time.monotonic() - t0
-                break
-    finally:
-        timer.cancel()
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.communicate()
-    if ready_s is None:
-        raise RuntimeError("simserver serve never reported ready:\n" + "".join(lines))
-    return ready_s
+    server = ServerProcess(scene=None, log_level="WARNING", ready_timeout_s=timeout_s,
+                           env={**os.environ, "NUMBA_CACHE_DIR": str(numba_cache_dir)})
+    server.stop()
+    return server.ready_s
 
 
 def startup(cold: int, warm: int) -> dict[str, Any]:

@@ -23,58 +23,34 @@ SIGTERM (maximum and late ticks over the whole run). Drift: simulated time (tick
 from __future__ import annotations
 
 import argparse
-import json
-import socket
-import subprocess
-import sys
 import time
 from collections import deque
-from pathlib import Path
 
 import numpy as np
 
 from simserver import protocol as proto
-from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
+from simserver.testing import Client, ServerProcess
 
-REPO = Path(__file__).resolve().parents[1]
 TICK_S = 1e-3
 """The server's default period: a command's send instant is uniform over one of these."""
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def run(seconds: float, cmd_hz: float, viewer: str = "off") -> dict:
     """One server run of ``seconds`` with the live viewer ``viewer`` (a ``--viewer`` value)."""
-    port = free_port()
-    server = subprocess.Popen(
-        [sys.executable, "-m", "simserver", "serve", "--listen", f"tcp/127.0.0.1:{port}",
-         "--log-level", "WARNING", "--viewer", viewer],
-        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    t_launch = time.monotonic()
-    while True:
-        line = server.stdout.readline()
-        if not line:
-            raise RuntimeError("server exited early")
-        if "ready on" in line:
-            break
-    startup_s = time.monotonic() - t_launch
-    cfg = make_zenoh_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"])
+    server = ServerProcess(scene=None, log_level="WARNING", viewer=viewer)
+    startup_s = server.ready_s
     latencies_us: list[float] = []
     diags: list[np.ndarray] = []
     first_state = last_state = None
-    with ZenohEndpoint(cfg, prefix="simserver", vehicle="car0") as ep:
-        pub = ep.declare_command_publisher()
+    with Client(server, state_capacity=0) as client:
+        ep, pub = client.ep, client.pub
         arrivals: deque[tuple[int, bytes]] = deque()
 
         def on_state(sample) -> None:  # zenoh's thread: stamp first, decode later
             arrivals.append((time.monotonic_ns(), sample.payload.to_bytes()))
 
         states = ep.session.declare_subscriber(ep.keys.state, on_state)
-        diag = ep.declare_diag_inbox()
+        diag = client.diag
         sent: dict[int, int] = {}
         seq = 0
         period = 1.0 / cmd_hz
@@ -108,9 +84,8 @@ def run(seconds: float, cmd_hz: float, viewer: str = "off") -> dict:
                 diags.append(proto.decode_diagnostics(payload))
             time.sleep(0.0005)
         states.undeclare()  # a callback subscriber would otherwise hold the exit
-    server.terminate()
-    out, _ = server.communicate(timeout=30)
-    final = json.loads(out.split("simserver: stopped ", 1)[1].splitlines()[0])
+    server.stop()
+    final = server.final_stats()
     lat = np.array(latencies_us)
     windows = [d for d in diags if int(d["window_ticks"]) >= 4096] or diags[-1:]
     if not windows:

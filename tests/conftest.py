@@ -2,26 +2,35 @@
 
 from __future__ import annotations
 
+import os
+import re
 import shlex
 import signal
 import socket
-import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-CONFIGS = REPO / "configs"
+from simserver.testing import CONFIGS, REPO, ServerProcess
+
 SAMPLE_TIR = CONFIGS / "tires" / "data" / "mf61_225_50R17_sample.tir"
 """The MF 6.1 sample property file, as shipped with the repository (the one the
 ``mf61_sample`` tire uses): a byte-for-byte copy of the team's reference file
 ``SHARED_TIR`` (``tests/test_tir_file.py`` checks it where that exists), so that a clone
 on any machine tests the same file."""
 SHARED_TIR = REPO.parent / "shared" / "data" / "tires" / "mf61_225_50R17_sample.tir"
+
+
+def slow_enabled(markexpr: str | None) -> bool:
+    """Whether the long (``slow``) tests should run.
+
+    They run with ``SIMSERVER_SLOW=1`` in the environment or when pytest's ``-m``
+    expression selects ``slow`` (``-m slow``); the default suite runs their short forms.
+    """
+    expr = markexpr or ""
+    return os.environ.get("SIMSERVER_SLOW") == "1" or ("slow" in expr and "not slow" not in expr)
 
 
 @pytest.fixture(scope="session")
@@ -48,6 +57,20 @@ def as_written(command: str) -> list[str]:
     return argv
 
 
+PERFORMANCE_BLOCK = re.compile(
+    r"(<!-- BEGIN GENERATED: performance\b[^>]*-->)(.*?)(<!-- END GENERATED: performance -->)",
+    re.S)
+"""The README's generated performance block (``python -m benchmarks`` writes it between
+these markers): groups ``begin, block, end``."""
+
+
+def readme_without_performance_block(readme: str) -> tuple[str, str]:
+    """``(the README without its generated performance block, that block)``."""
+    m = PERFORMANCE_BLOCK.search(readme)
+    assert m, "the README has no generated performance block"
+    return readme[:m.start()] + readme[m.end():], m.group(2)
+
+
 def readme_main_job() -> str:
     """The job of the README's first command, after its install steps."""
     lines = (REPO / "README.md").read_text().splitlines()
@@ -56,22 +79,22 @@ def readme_main_job() -> str:
 
 
 @pytest.fixture(scope="module")
-def readme_server() -> Iterator[SimpleNamespace]:
+def readme_server() -> Iterator[ServerProcess]:
     """The README's main job as written, on its default endpoint (tcp/127.0.0.1:7447);
-    at the end it must stop cleanly on SIGINT with its final statistics."""
+    at the end it must stop cleanly on SIGINT with its final statistics.
+
+    The README's commands use the default port: if something else holds it, the tests of
+    those commands cannot run, and that is a failure to fix (stop the other server), not
+    a reason to skip them."""
     with socket.socket() as probe:
         if probe.connect_ex(("127.0.0.1", 7447)) == 0:
-            pytest.skip("something already listens on 127.0.0.1:7447")
-    proc = subprocess.Popen(as_written(readme_main_job()), cwd=REPO, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+            pytest.fail("something already listens on 127.0.0.1:7447, the README's default "
+                        "endpoint: stop it (another simserver?) to run the README's commands",
+                        pytrace=False)
+    server = ServerProcess(argv=as_written(readme_main_job()), listen=["tcp/127.0.0.1:7447"])
     try:
-        line = ""
-        end = time.monotonic() + 120
-        while "ready on" not in line and time.monotonic() < end and proc.poll() is None:
-            line = proc.stdout.readline()
-        assert "ready on simserver/car0" in line, line
-        yield SimpleNamespace(endpoint="tcp/127.0.0.1:7447", vehicle_id="car0", proc=proc)
+        assert "ready on simserver/car0" in server.ready_line, server.ready_line
+        yield server
     finally:
-        proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=30)
-    assert proc.returncode == 0 and "simserver: stopped" in out, out
+        code = server.stop(signal.SIGINT)
+    assert code == 0 and server.final_stats() is not None, server.text()

@@ -15,6 +15,7 @@ The clients must not import the server's internals: a test checks their imports.
 from __future__ import annotations
 
 import ast
+import contextlib
 import dataclasses
 import fcntl
 import importlib.util
@@ -37,14 +38,15 @@ from clients import player, recorder
 from clients.common import EXIT_NO_SERVER
 from clients.profile import ProfileError
 from simserver import protocol as proto
-from tests.serverproc import (
+from simserver.testing import (
     CONFIGS,
     REPO,
+    Client,
     ServerProcess,
-    Watcher,
     client_command,
     client_env,
     free_port,
+    wait_until,
 )
 
 pytestmark = pytest.mark.timeout(240)
@@ -94,11 +96,13 @@ class PtyProcess:
 
     def wait_for(self, needle: str, timeout_s: float) -> None:
         """Wait until ``needle`` appears in the output."""
-        end = time.monotonic() + timeout_s
-        while needle not in self.text():
-            if self.proc.poll() is not None or time.monotonic() > end:
-                raise AssertionError(f"{needle!r} not seen; output:\n{self.text()}")
-            time.sleep(0.02)
+        try:
+            wait_until(lambda: needle in self.text() or self.proc.poll() is not None,
+                       timeout_s=timeout_s, what=repr(needle), interval_s=0.02)
+        except TimeoutError:
+            pass
+        if needle not in self.text():
+            raise AssertionError(f"{needle!r} not seen; output:\n{self.text()}")
 
     def send(self, data: bytes) -> None:
         """Type bytes."""
@@ -109,7 +113,7 @@ class PtyProcess:
         end = time.monotonic() + seconds
         while time.monotonic() < end:
             self.send(key)
-            time.sleep(repeat_s)
+            time.sleep(repeat_s)  # the subject: a held key, as a terminal repeats it
 
     def wait(self, timeout_s: float) -> int:
         """Wait for the exit code (killing the process on timeout)."""
@@ -601,23 +605,13 @@ def test_player_and_recorder_reproduce_the_headless_e2_stop(tmp_path):
         / math.sqrt(1.0 + 0.05**2), abs=1e-6)
 
 
-def hold_until(drv: PtyProcess, key: bytes, watcher: Watcher, done, timeout_s: float
+def hold_until(drv: PtyProcess, key: bytes, watcher: Client, done, timeout_s: float
                ) -> np.void:
     """Hold a key (press + repeats) until ``done(newest state)`` or the timeout."""
     end = time.monotonic() + timeout_s
     state = watcher.newest()
     while not done(state) and time.monotonic() < end:
         drv.hold(key, 0.1)
-        state = watcher.newest()
-    return state
-
-
-def wait_state(watcher: Watcher, done, timeout_s: float) -> np.void:
-    """Poll until ``done(newest state)`` or the timeout; returns the newest state."""
-    end = time.monotonic() + timeout_s
-    state = watcher.newest()
-    while not done(state) and time.monotonic() < end:
-        time.sleep(0.02)
         state = watcher.newest()
     return state
 
@@ -629,7 +623,7 @@ def test_keyboard_driver_in_a_pseudo_terminal(flat_server):
     them) until the car responds, with generous time limits for a loaded machine
     (about 2 s, 1 s, 0.5 s each when it is idle).
     """
-    watcher = Watcher(flat_server)
+    watcher = Client(flat_server, state_capacity=1 << 15, keep_history=True)
     drv = PtyProcess(client_command("driver", "--rate", "200", *flat_server.client_args()))
     try:
         drv.wait_for("connected to simserver/drv", 20)
@@ -645,17 +639,19 @@ def test_keyboard_driver_in_a_pseudo_terminal(flat_server):
                           lambda s: abs(float(s["u_mps"])) < 0.05, 10.0)
         drv.send(b"2")  # gear R
         drv.send(b"h")  # parking brake on
-        geared = wait_state(watcher, lambda s: int(s["gear"]) == proto.Gear.R
-                            and int(s["parking_brake"]) == 1, 5.0)
+        geared = watcher.wait_state(lambda s: int(s["gear"]) == proto.Gear.R
+                                    and int(s["parking_brake"]) == 1, 5.0, "gear R, park on")
         steered = hold_until(drv, b"\x1b[D", watcher,  # steer left while standing
                              lambda s: float(s["steer"]) > 0.3, 5.0)
-        centred = wait_state(watcher, lambda s: float(s["steer"]) == 0.0, 5.0)  # let go
+        centred = watcher.wait_state(lambda s: float(s["steer"]) == 0.0, 5.0,
+                                     "the wheel centred")  # let go
         screen = drv.text()
         drv.send(b"q")
         assert drv.wait(15) == 0, drv.text()
     finally:
         drv.close()
-        states = watcher.poll()
+        watcher.poll()
+        states = watcher.history
         watcher.close()
     print(f"\nkeyboard: u {float(start['u_mps']):.2f} -> {float(fast['u_mps']):.2f} (after "
           f"{t_throttle:.1f} s of w) -> {float(slow['u_mps']):.3f} m/s, gear "
@@ -687,7 +683,7 @@ frames:
   - {t: 4.0, buttons: {5: 1}}
   - {t: 4.2, buttons: {5: 0}}
 """)
-    watcher = Watcher(flat_server)
+    watcher = Client(flat_server, state_capacity=1 << 15, keep_history=True)
     flat = watcher.ep.request("reset")
     assert flat["ok"]
     proc = subprocess.run(
@@ -695,7 +691,8 @@ frames:
                        str(CONFIGS / "clients" / "wheel.yaml"), *flat_server.client_args()),
         cwd=REPO, env=client_env(), stdin=subprocess.DEVNULL, capture_output=True, text=True,
         timeout=60)
-    states = watcher.poll()
+    watcher.poll()
+    states = watcher.history
     watcher.close()
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "joystick 'Virtual Wheel' (wheel)" in proc.stdout
@@ -730,10 +727,13 @@ def test_recorder_row_groups_rrd_and_a_clean_sigterm(flat_server, tmp_path):
     try:
         line = proc.stdout.readline()
         assert "run.rrd" in line, line + proc.stderr.read()
-        time.sleep(2.0)
-        end = time.monotonic() + 30  # and the viewer has drawn frames (a loaded machine)
-        while (out / "run.rrd").stat().st_size < 200_000 and time.monotonic() < end:
-            time.sleep(0.1)
+        with Client(flat_server) as watcher:  # 2 s of states to record
+            start = int(watcher.fresh_state()["tick"])
+            watcher.wait_state(lambda s: int(s["tick"]) >= start + 2000, 60.0, "2000 ticks")
+        # and the viewer has drawn frames (given 30 s on a loaded machine)
+        with contextlib.suppress(TimeoutError):
+            wait_until(lambda: (out / "run.rrd").stat().st_size >= 200_000, timeout_s=30,
+                       what="frames in the .rrd", interval_s=0.1)
         proc.terminate()
         stdout, stderr = proc.communicate(timeout=60)
     finally:

@@ -27,20 +27,19 @@ from __future__ import annotations
 
 import json
 import os
-import queue
 import re
 import shlex
 import shutil
 import signal
-import socket
 import subprocess
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+
+from simserver.testing import ServerProcess, free_port
 
 REPO = Path(__file__).resolve().parents[1]
 DOCKERFILE = REPO / "Dockerfile"
@@ -398,13 +397,6 @@ class ImageRoot:
         return IMAGE_PATH.sub(lambda m: str(self.path(m.group(1))), text)
 
 
-def free_port() -> int:
-    """A free loopback TCP port."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def clean_env(extra: dict[str, str]) -> dict[str, str]:
     """This process's environment without anything that would leak the repository or its
     venv into the image's processes, plus ``extra``."""
@@ -484,43 +476,6 @@ def run_dockerfile(stages: list[Stage], root: ImageRoot, context: Path,
     return Emulation(env=env, cwd=cwd, log=log)
 
 
-class LineReader:
-    """Lines of a process's output, read in a thread, with a deadline per wait."""
-
-    def __init__(self, proc: subprocess.Popen[str]) -> None:
-        self.lines: list[str] = []
-        self._queue: queue.Queue[str | None] = queue.Queue()
-        assert proc.stdout is not None
-        stream = proc.stdout
-
-        def pump() -> None:
-            for line in stream:
-                self._queue.put(line)
-            self._queue.put(None)
-
-        threading.Thread(target=pump, daemon=True).start()
-
-    def wait_for(self, text: str, timeout_s: float) -> str | None:
-        """The first line containing ``text`` within ``timeout_s``, else None."""
-        deadline = time.monotonic() + timeout_s
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                line = self._queue.get(timeout=left)
-            except queue.Empty:
-                return None
-            if line is None:
-                return None
-            self.lines.append(line)
-            if text in line:
-                return line
-        return None
-
-    def rest(self, timeout_s: float) -> str:
-        """Everything until the end of the output (or ``timeout_s``)."""
-        self.wait_for("\0never\0", timeout_s)
-        return "".join(self.lines)
-
-
 def test_image_steps_in_fresh_venv(stages: list[Stage], final: Stage, tmp_path: Path) -> None:
     root = ImageRoot(tmp_path / "root")
     context = tmp_path / "context"
@@ -561,16 +516,12 @@ def test_image_steps_in_fresh_venv(stages: list[Stage], final: Stage, tmp_path: 
     argv[listen] = f"tcp/127.0.0.1:{port}"
     exe = shutil.which(argv[0], path=emu.env["PATH"])
     assert exe is not None and Path(exe).is_relative_to(venv)
-    t0 = time.monotonic()
-    server = subprocess.Popen([exe, *argv[1:]], cwd=emu.cwd, env=emu.env,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    server = ServerProcess(argv=[exe, *argv[1:]], listen=[argv[listen]], cwd=emu.cwd,
+                           env=emu.env, ready_timeout_s=READY_WITHIN_S)
     try:
-        out = LineReader(server)
-        ready = out.wait_for("simserver: ready on", READY_WITHIN_S)
-        ready_s = time.monotonic() - t0
-        assert ready is not None, (f"not ready within {READY_WITHIN_S} s:\n"
-                                   + "".join(out.lines))
-        print(f"\nimage serve: ready {ready_s:.1f} s after launch ({ready.strip()})")
+        ready = server.ready_line
+        assert "simserver: ready on" in ready, server.text()
+        print(f"\nimage serve: ready {server.ready_s:.1f} s after launch ({ready.strip()})")
 
         # the image's HEALTHCHECK, pointed at this port
         health = [root.remap(w) for w in final.all("HEALTHCHECK")[-1].healthcheck()[1]]
@@ -584,17 +535,10 @@ def test_image_steps_in_fresh_venv(stages: list[Stage], final: Stage, tmp_path: 
             proc.stdout + proc.stderr
         print(f"image healthcheck: {proc.stdout.strip()}")
     finally:
-        server.send_signal(signal.SIGTERM)
-        try:
-            rc = server.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait()
-            raise
-    text = out.rest(5)
+        rc = server.stop(signal.SIGTERM, timeout_s=15)
+    text = server.text()
     assert rc == 0, text
-    stopped = [ln for ln in text.splitlines() if ln.startswith("simserver: stopped ")]
-    assert stopped, text
-    final_stats = json.loads(stopped[0].split("simserver: stopped ", 1)[1])
+    final_stats = server.final_stats()
+    assert final_stats is not None, text
     assert final_stats["ticks"] > 0
     shutil.rmtree(root.root, ignore_errors=True)  # 1.1 GB; kept only when the test fails

@@ -17,7 +17,7 @@ Each test injects one fault into a running ``simserver serve`` and checks what m
   vehicle and scene stay, the server keeps running;
 - SIGTERM mid-drive: a clean exit with the final statistics, a complete command log,
   and ``simserver replay`` reproduces it bit for bit;
-- a short real-time soak (``benchmarks/bench_realtime_soak.py``): no command lost,
+- a short real-time soak (``simserver/testing/realtime_soak.py``): no command lost,
   server alive, bounded memory growth.
 
 Figures are printed (``pytest -s``); ``docs/reliability.md`` quotes them.
@@ -38,18 +38,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks.bench_realtime_soak import (
-    LiveServer,
-    Probe,
+from simserver import protocol as proto
+from simserver.testing import (
+    CONFIGS,
+    REPO,
+    Client,
     RoleProcess,
-    format_report,
-    free_port,
-    run_realtime_soak,
-    slow_enabled,
+    ServerProcess,
+    loopback_endpoint,
     state_is_finite,
 )
-from simserver import protocol as proto
-from tests.conftest import CONFIGS, REPO
+from simserver.testing.realtime_soak import format_report, run_realtime_soak
+from tests.conftest import slow_enabled
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -75,17 +75,17 @@ class ServerSlot:
             f"scene: {CONFIGS / 'scenes' / 'flat_paper_sedan.yaml'}\n"
             f"config_dirs: [{CONFIGS}, {workdir}]\n"
             "viewer: 'off'\n", encoding="utf-8")
-        self.server: LiveServer | None = None
+        self.server: ServerProcess | None = None
         self.crashes: list[str] = []
 
-    def get(self) -> LiveServer:
+    def get(self) -> ServerProcess:
         """A running server."""
         if self.server is not None and not self.server.alive():
             self.crashes.append(self.server.text())
             self.server.kill()
             self.server = None
         if self.server is None:
-            self.server = LiveServer(config=self.config)
+            self.server = ServerProcess(config=self.config)
         return self.server
 
     def close(self) -> None:
@@ -104,17 +104,6 @@ def slot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerSlot]:
         s.close()
 
 
-def wait_until(probe: Probe, predicate, timeout_s: float, what: str) -> np.void:
-    """Drain states until one satisfies ``predicate``; that state."""
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        for st in probe.drain_states():
-            if predicate(st):
-                return st
-        time.sleep(0.005)
-    raise AssertionError(f"timed out waiting for {what}; last state: {probe.last}")
-
-
 def diag_delta(before: np.void, after: np.void, *names: str) -> dict[str, int]:
     """Counter increments between two diagnostics."""
     return {n: int(after[n]) - int(before[n]) for n in names}
@@ -125,17 +114,17 @@ def diag_delta(before: np.void, after: np.void, *names: str) -> dict[str, int]:
 
 def test_client_killed_mid_drive_trips_the_watchdog_and_the_car_holds(slot):
     server = slot.get()
-    with Probe(server.endpoint) as probe:
+    with Client(server) as probe:
         assert probe.request("reset")["ok"]
         driver = RoleProcess("driver", ["--connect", server.endpoint, "--rate", "500",
                                         "--profile", "throttle:0.3"])
         try:
-            moving = wait_until(probe, lambda s: s["u_mps"] > 1.5 and s["throttle"] > 0.29,
+            moving = probe.wait_state(lambda s: s["u_mps"] > 1.5 and s["throttle"] > 0.29,
                                 15.0, "the car to drive")
             assert not moving["flags"] & proto.StateFlag.WATCHDOG
             driver.kill()  # SIGKILL: no goodbye, the session just vanishes
             killed_at = time.monotonic()
-            trip = wait_until(probe, lambda s: s["flags"] & proto.StateFlag.WATCHDOG, 5.0,
+            trip = probe.wait_state(lambda s: s["flags"] & proto.StateFlag.WATCHDOG, 5.0,
                               "the watchdog")
             seen_after_s = time.monotonic() - killed_at
             age = float(trip["cmd_age_s"])
@@ -143,14 +132,15 @@ def test_client_killed_mid_drive_trips_the_watchdog_and_the_car_holds(slot):
             # (plus any VM stall of this shared machine, hence the margin)
             assert 0.2 <= age < 0.2 + 0.25, age
             assert trip["throttle"] == 0.0 and trip["brake"] >= 0.6 - 1e-6
-            held = wait_until(probe, lambda s: abs(s["u_mps"]) < 0.01
+            held = probe.wait_state(lambda s: abs(s["u_mps"]) < 0.01
                               and s["flags"] & proto.StateFlag.BRAKE_HOLD, 10.0,
                               "the car to stop and hold")
             stop_s = (int(held["tick"]) - int(trip["tick"])) * 0.001
-            time.sleep(1.5)  # the tire springs settle onto the new balance first
-            settled = probe.fresh_state()
-            time.sleep(1.0)
-            later = probe.fresh_state()
+            # the tire springs settle onto the new balance first (1.5 s), then 1 s of hold
+            settled = probe.wait_state(lambda s: s["tick"] >= held["tick"] + 1500, 30.0,
+                                       "1.5 s more of simulation")
+            later = probe.wait_state(lambda s: s["tick"] >= settled["tick"] + 1000, 30.0,
+                                     "1 s more of simulation")
             creep = float(np.hypot(later["x_m"] - settled["x_m"],
                                    later["y_m"] - settled["y_m"]))
             assert creep < 1e-3 and later["flags"] & proto.StateFlag.WATCHDOG
@@ -166,21 +156,21 @@ def test_client_killed_mid_drive_trips_the_watchdog_and_the_car_holds(slot):
 def test_reconnected_client_restarting_at_seq_1_is_accepted(slot):
     server = slot.get()
     conn = ["--connect", server.endpoint, "--rate", "500"]
-    with Probe(server.endpoint) as probe:
+    with Client(server) as probe:
         assert probe.request("reset")["ok"]
         first = RoleProcess("driver", [*conn, "--profile", "brake:0.5",
                                        "--seq-start", "1000000"])
         second = None
         try:
-            wait_until(probe, lambda s: s["last_cmd_seq"] >= 1_000_000
+            probe.wait_state(lambda s: s["last_cmd_seq"] >= 1_000_000
                        and not s["flags"] & proto.StateFlag.WATCHDOG, 15.0,
                        "the first driver")
             first.kill()
-            wait_until(probe, lambda s: s["flags"] & proto.StateFlag.WATCHDOG, 5.0,
+            probe.wait_state(lambda s: s["flags"] & proto.StateFlag.WATCHDOG, 5.0,
                        "the watchdog")
             before = probe.diagnostics()
             second = RoleProcess("driver", [*conn, "--profile", "throttle:0.4"])
-            st = wait_until(probe, lambda s: s["throttle"] > 0.39
+            st = probe.wait_state(lambda s: s["throttle"] > 0.39
                             and not s["flags"] & proto.StateFlag.WATCHDOG, 15.0,
                             "the reconnected driver to take over")
             assert 1 <= int(st["last_cmd_seq"]) < 1_000_000  # seq restarted and accepted
@@ -198,15 +188,15 @@ def test_reconnected_client_restarting_at_seq_1_is_accepted(slot):
 def test_command_flood_far_above_1khz(slot):
     """20 kHz of valid commands for 5 s from another process; figures are printed."""
     server = slot.get()
-    with Probe(server.endpoint) as probe:
+    with Client(server) as probe:
         base0 = probe.diagnostics()
-        time.sleep(2.0)
-        base1 = probe.diagnostics()
+        base1 = probe.wait_diagnostics(lambda d: d["uptime_s"] >= base0["uptime_s"] + 2.0,
+                                       what="a 2 s baseline")
         flood = RoleProcess("flood", ["--connect", server.endpoint, "--rate", "20000",
                                       "--seconds", "5"])
         res = flood.wait(60.0)
         assert res is not None, flood.text()
-        time.sleep(0.5)
+        probe.next_states(500)  # the last commands of the flood are taken
         after = probe.diagnostics()
         assert server.alive()
         state = probe.fresh_state()
@@ -231,20 +221,22 @@ def test_command_flood_far_above_1khz(slot):
               f"{base['skipped_ticks']} vs {during['skipped_ticks']}; CPU "
               f"{float(after['cpu_percent']):.0f} %")
         # a normal driver takes over again (its seq restarts after the watchdog reset)
-        wait_until(probe, lambda s: s["flags"] & proto.StateFlag.WATCHDOG, 5.0, "watchdog")
+        probe.wait_state(lambda s: s["flags"] & proto.StateFlag.WATCHDOG, 5.0, "watchdog")
         probe.seq = 0
-        st = probe.drive(0.5, throttle=0.3)
+        st = probe.drive_until(lambda s: s["throttle"] > 0.29
+                               and not s["flags"] & proto.StateFlag.WATCHDOG, throttle=0.3,
+                               what="a driver taking over")
         assert st["throttle"] > 0.29 and not st["flags"] & proto.StateFlag.WATCHDOG
 
 
-def _subscriber_faults(server: LiveServer, workdir: Path, seconds: float) -> dict:
+def _subscriber_faults(server: ServerProcess, workdir: Path, seconds: float) -> dict:
     """A never-draining subscriber and a SIGSTOPped one for ``seconds``; figures."""
     tiny = workdir / "tiny_rcvbuf.json5"
     tiny.write_text('{ mode: "client", scouting: { multicast: { enabled: false } }, '
                     'transport: { shared_memory: { enabled: false }, '
                     'link: { tcp: { so_rcvbuf: 4096 } } } }\n', encoding="utf-8")
     conn = ["--connect", server.endpoint]
-    with Probe(server.endpoint) as probe:
+    with Client(server) as probe:
         d0 = probe.diagnostics()
         slow = RoleProcess("slowsub", [*conn, "--capacity", "1", "--zenoh-config", str(tiny)])
         frozen = RoleProcess("joiner", [*conn, "--seconds", "600"])
@@ -267,7 +259,7 @@ def _subscriber_faults(server: LiveServer, workdir: Path, seconds: float) -> dic
                     now = time.monotonic()
                     max_wall_gap = max(max_wall_gap, now - t_last)
                     t_last = now
-                time.sleep(0.005)
+                time.sleep(0.005)  # the subject: the frozen subscribers stay so for `seconds`
             d2 = probe.diagnostics()
             alive = server.alive()
         finally:
@@ -320,7 +312,7 @@ def test_frozen_subscriber_long_enough_to_fill_the_socket_buffers(slot):
 
 def test_vanishing_viewer_leaves_the_server_unaffected(tmp_path):
     rrd = tmp_path / "view.rrd"
-    with LiveServer(viewer=f"save:{rrd}") as server, Probe(server.endpoint) as probe:
+    with ServerProcess(viewer=f"save:{rrd}") as server, Client(server) as probe:
         end = time.monotonic() + 60
         viewers: list[int] = []
         while time.monotonic() < end and not (viewers and rrd.exists()
@@ -352,21 +344,15 @@ def test_vanishing_viewer_leaves_the_server_unaffected(tmp_path):
 
 def test_router_restart_between_client_and_server():
     """Server and client both connect to a router process; kill it and start it again."""
-    router_ep = f"tcp/127.0.0.1:{free_port()}"
+    router_ep = loopback_endpoint()
     router = RoleProcess("router", ["--listen", router_ep])
     server = probe = None
     try:
-        server = LiveServer(extra_args=["--connect", router_ep])
-        probe = Probe(router_ep)  # client mode, through the router only
-        end = time.monotonic() + 15
-        while True:  # the server's declarations reach the client through the router
-            try:
-                assert probe.request("get_config", timeout_s=1.0)["ok"]
-                break
-            except TimeoutError:
-                if time.monotonic() > end:
-                    raise
-        st = probe.drive(1.0, throttle=0.3)
+        server = ServerProcess(extra_args=["--connect", router_ep])
+        probe = Client(router_ep)  # client mode, through the router only
+        # the server's declarations reach the client through the router
+        assert probe.wait_controls(15.0)["ok"]
+        st = probe.drive_until(lambda s: s["throttle"] > 0.29, throttle=0.3, what="driving")
         assert st is not None and st["throttle"] > 0.29
         router.kill()
         killed = time.monotonic()
@@ -468,31 +454,26 @@ BROKEN_CASES = ["scene_yaml_syntax", "scene_empty", "scene_top_level_list", "sce
 def test_load_of_a_broken_file_is_rejected_and_the_old_one_stays(slot, case):
     server = slot.get()
     kind, path, named = _broken_case(slot.workdir, case)
-    with Probe(server.endpoint) as probe:
+    with Client(server) as probe:
         before = probe.request("get_config")["config"]
         try:
             reply = probe.request("load", {kind: str(path)}, timeout_s=15.0)
         except TimeoutError:
-            try:
-                server.proc.wait(timeout=10)  # a crashing server takes a moment to exit
-            except subprocess.TimeoutExpired:
-                pass
-            pytest.fail(f"load of {case} got no reply; server alive: {server.alive()}\n"
-                        + server.text()[-3000:])
+            pytest.fail(f"load of {case} got no reply; {server.crash_report()}")
         assert server.alive(), server.text()[-3000:]
         assert reply["ok"] is False, reply
         assert named in reply["error"], reply
         after = probe.request("get_config")["config"]
         for key in ("vehicle", "scene", "road"):
             assert after[key] == before[key], key
-        st = probe.drive(0.3, brake=0.4)
+        st = probe.drive_until(lambda s: s["brake"] > 0.39, brake=0.4, what="braking")
         assert st["brake"] > 0.39 and state_is_finite(st)
         assert not st["flags"] & proto.StateFlag.PAUSED
 
 
 def test_a_good_load_still_works_after_the_broken_ones(slot):
     server = slot.get()
-    with Probe(server.endpoint) as probe:
+    with Client(server) as probe:
         hatch = CONFIGS / "vehicles" / "mf_hatchback" / "vehicle.yaml"
         reply = probe.request("load", {"vehicle": str(hatch)}, timeout_s=30.0)
         assert reply["ok"], reply
@@ -506,18 +487,17 @@ def test_a_good_load_still_works_after_the_broken_ones(slot):
 
 def test_sigterm_mid_drive_exits_cleanly_with_a_complete_replayable_log(tmp_path):
     log = tmp_path / "run.jsonl"
-    server = LiveServer(command_log=log)
+    server = ServerProcess(command_log=log)
     driver = None
     try:
-        with Probe(server.endpoint) as probe:
+        with Client(server) as probe:
             driver = RoleProcess("driver", ["--connect", server.endpoint, "--rate", "500"])
-            probe.fresh_state()
-            time.sleep(1.0)
+            probe.next_states(1000)  # 1 s of driving
             assert probe.request("set_road", {"grade_pct": 4.0})["ok"]
-            time.sleep(1.0)
+            probe.next_states(1000)
             assert probe.request("reset", {"pose": {"x_m": 1.0, "y_m": 2.0,
                                                     "yaw_rad": 0.3}})["ok"]
-            time.sleep(1.5)
+            probe.next_states(1500)
             mid = probe.fresh_state()
             assert not mid["flags"] & proto.StateFlag.WATCHDOG  # commanded when stopped
         code = server.stop(signal.SIGTERM)

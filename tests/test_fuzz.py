@@ -27,7 +27,6 @@ import json
 import math
 import random
 import struct
-import subprocess
 import time
 from collections import Counter
 from collections.abc import Iterator
@@ -38,7 +37,6 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from benchmarks.bench_realtime_soak import LiveServer, Probe, state_is_finite
 from simserver import protocol as proto
 from simserver.protocol import (
     CLAMP_TOLERANCE,
@@ -50,7 +48,7 @@ from simserver.protocol import (
     decode_command,
     validate_control,
 )
-from tests.conftest import CONFIGS
+from simserver.testing import CONFIGS, Client, ServerProcess, state_is_finite
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -395,10 +393,6 @@ def test_validate_control_size_and_depth_limits():
                 validate_control(name, payload)
 
 
-def test_in_process_total_is_at_least_10000():
-    assert sum(IN_PROCESS_EXAMPLES.values()) >= 10_000
-
-
 # ============================================================================ live
 
 
@@ -512,7 +506,7 @@ def expected_command_counts(payloads: list[bytes]) -> tuple[int, int]:
     return rejected, clamped
 
 
-def _send_queries(probe: Probe, requests: list[tuple[str, bytes]],
+def _send_queries(probe: Client, requests: list[tuple[str, bytes]],
                   in_flight: int = 8) -> list[tuple[str, bytes, list[dict]]]:
     """Send every query (at most ``in_flight`` outstanding); each one's decoded replies."""
     import zenoh
@@ -551,7 +545,7 @@ def test_live_server_survives_10000_fuzzed_payloads(tmp_path):
     commands = live_command_payloads(rnd, LIVE_COMMANDS)
     requests = live_control_requests(rnd, LIVE_QUERIES)
     exp_rejected, exp_clamped = expected_command_counts(commands)
-    with LiveServer(log_level="WARNING") as server, Probe(server.endpoint) as probe:
+    with ServerProcess(log_level="WARNING") as server, Client(server) as probe:
         probe.fresh_state()
         d0 = probe.diagnostics()
         t0 = time.monotonic()
@@ -560,31 +554,27 @@ def test_live_server_survives_10000_fuzzed_payloads(tmp_path):
         # every payload must be counted
         for payload in commands:
             probe.pub.put(payload)
-            time.sleep(0.001)
+            time.sleep(0.001)  # the subject: a paced stream, about one command a tick
         t_cmd = time.monotonic() - t0
         results = _send_queries(probe, requests)
         t_all = time.monotonic() - t0
         unanswered = [(n, p[:80], replies) for n, p, replies in results
                       if len(replies) != 1 or "not_json" in replies[0]]
         if unanswered:
-            try:
-                server.proc.wait(timeout=10)  # a crashed server takes a moment to exit
-            except subprocess.TimeoutExpired:
-                pass
             pytest.fail(f"{len(unanswered)} queries without exactly one server reply, first "
-                        f"{unanswered[:3]}; server alive: {server.alive()}\n"
-                        + server.text()[-3000:])
+                        f"{unanswered[:3]}; {server.crash_report()}")
         assert server.alive(), server.text()[-3000:]
         # leave the car in a known state, then check it still ticks and is finite
         for name, args in (("resume", None), ("reset", None),
                            ("set_road", {"grade_pct": 0.0, "cross_slope_pct": 0.0,
                                          "friction_scale": 1.0})):
             assert probe.request(name, args, timeout_s=10.0)["ok"], name
-        time.sleep(0.5)
-        d1 = probe.diagnostics()
+        d1 = probe.wait_diagnostics(
+            lambda d: int(d["cmd_received"] - d0["cmd_received"]) >= len(commands),
+            what=f"the {len(commands)} commands counted")
         a = probe.fresh_state()
-        time.sleep(1.0)
-        b = probe.fresh_state()
+        b = probe.wait_state(lambda s: int(s["tick"]) > int(a["tick"]) + 500, timeout_s=10.0,
+                             what="500 more ticks")
         assert int(b["tick"]) > int(a["tick"]) + 500  # ticking
         assert state_is_finite(a) and state_is_finite(b)
         assert server.alive()
@@ -595,7 +585,6 @@ def test_live_server_survives_10000_fuzzed_payloads(tmp_path):
     # every command counted: received == sent, and rejected/clamped exactly as predicted
     assert received == len(commands)
     assert rejected == exp_rejected and clamped == exp_clamped
-    assert rejected + (received - rejected) == len(commands)
     # every query got exactly one reply; errors name the field the validator names
     outcomes = Counter()
     for name, payload, replies in results:
@@ -620,7 +609,6 @@ def test_live_server_survives_10000_fuzzed_payloads(tmp_path):
           f"{int(d1['late_ticks'] - d0['late_ticks'])}, skipped "
           f"{int(d1['skipped_ticks'] - d0['skipped_ticks'])} over "
           f"{float(d1['uptime_s'] - d0['uptime_s']):.1f} s")
-    assert len(commands) + len(results) >= 10_000
 
 
 def test_command_oracle_agrees_on_known_cases():

@@ -15,13 +15,12 @@ import re
 import signal
 import subprocess
 import sys
-import time
 
 import pyarrow.parquet as pq
 import pytest
 
-from tests.conftest import REPO, as_written
-from tests.serverproc import Watcher, client_env
+from simserver.testing import Client, OutputProcess, client_env, wait_until
+from tests.conftest import REPO, as_written, readme_without_performance_block
 from tests.test_clients import PtyProcess, hold_until
 
 README = (REPO / "README.md").read_text()
@@ -84,10 +83,7 @@ def readme_commands() -> set[str]:
     inline code that starts like a command. The generated performance table is left out:
     its commands are the ones ``python -m benchmarks`` runs to write it, and
     ``test_readme.py`` checks the table is that report."""
-    from benchmarks.__main__ import README_BEGIN, README_END
-
-    head, rest = README.split(README_BEGIN, 1)
-    prose = head + rest.split(README_END, 1)[1]
+    prose, _ = readme_without_performance_block(README)
     prose = re.sub(r"```.*?```", "", prose, flags=re.S)
     found = {ln.strip() for ln in prose.splitlines()
              if re.match(r" {4}(\.venv/bin/|python3? |docker |simserver |rerun )", ln)}
@@ -115,22 +111,21 @@ def python_driver_snippet() -> str:
 def test_recorder_and_python_driver_as_written(readme_server, tmp_path):
     """The recorder records while the README's Python driver drives (10 s at throttle 0.3):
     the file holds the car speeding up; Ctrl-C closes it."""
-    watcher = Watcher(readme_server)
+    watcher = Client(readme_server, state_capacity=1 << 15, keep_history=True)
     assert watcher.ep.request("reset")["ok"]
-    recorder = subprocess.Popen(as_written(".venv/bin/simserver-recorder --out out/live"),
-                                cwd=tmp_path, env=client_env(), stdout=subprocess.PIPE,
-                                stderr=subprocess.STDOUT, text=True)
+    recorder = OutputProcess(as_written(".venv/bin/simserver-recorder --out out/live"),
+                             ready="recording simserver/car0", env=client_env(), cwd=tmp_path)
     try:
-        time.sleep(1.0)
+        assert recorder.wait_ready(60), recorder.text()
         driver = subprocess.run([sys.executable, "-c", python_driver_snippet()], cwd=REPO,
                                 capture_output=True, text=True, timeout=120)
         assert driver.returncode == 0, driver.stderr
     finally:
-        recorder.send_signal(signal.SIGINT)
-        out, _ = recorder.communicate(timeout=60)
-        states = watcher.poll()
+        code = recorder.stop(signal.SIGINT, timeout_s=60)
+        watcher.poll()
+        states = watcher.history
         watcher.close()
-    assert recorder.returncode == 0, out
+    assert code == 0, recorder.text()
     table = pq.read_table(tmp_path / "out" / "live" / "history.parquet")
     u = table.column("u_mps").to_numpy()
     throttle = table.column("input_throttle").to_numpy()
@@ -141,7 +136,7 @@ def test_recorder_and_python_driver_as_written(readme_server, tmp_path):
 
 
 def test_keyboard_driver_as_written(readme_server):
-    watcher = Watcher(readme_server)
+    watcher = Client(readme_server)
     drv = PtyProcess(as_written(".venv/bin/simserver-driver"))
     try:
         drv.wait_for("connected to simserver/car0", 30)
@@ -159,26 +154,22 @@ def test_player_as_written(readme_server):
     """The player loads the E5 scenario (10 % uphill) and plays it; the first seconds are
     the brake-to-a-stop: it must be the scenario's scene and the car must be braked.
     Ctrl-C ends it cleanly."""
-    watcher = Watcher(readme_server)
+    watcher = Client(readme_server, state_capacity=1 << 15, keep_history=True)
     player = subprocess.Popen(
         as_written(".venv/bin/simserver-player configs/scenarios/e5_hold_restart_uphill.yaml "
                    "--load"), cwd=REPO, env=client_env(), stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT, text=True)
     try:
-        end = time.monotonic() + 60
-        config = None
-        while time.monotonic() < end:
-            reply = watcher.ep.request("get_config", timeout_s=2.0)
-            if reply.get("ok") and reply["config"]["road"]["grade_pct"] == 10.0:
-                config = reply["config"]
-                break
-            time.sleep(0.2)
-        assert config is not None, "the scenario's scene was not loaded"
-        watcher.watch(4.0)
+        wait_until(lambda: watcher.request("get_config", timeout_s=2.0),
+                   lambda r: r.get("ok") and r["config"]["road"]["grade_pct"] == 10.0,
+                   timeout_s=60, what="the scenario's scene loaded", interval_s=0.2)
+        watcher.wait_state(lambda s: int(s["last_cmd_seq"]) > 0 and float(s["brake"]) > 0.1,
+                           timeout_s=30, what="the player braking")
     finally:
         player.send_signal(signal.SIGINT)
         out, _ = player.communicate(timeout=30)
-        states = watcher.poll()
+        watcher.poll()
+        states = watcher.history
         watcher.close()
     assert player.returncode in (0, 130), out
     played = [s for s in states if int(s["last_cmd_seq"]) > 0]

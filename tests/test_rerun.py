@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from simserver.testing import free_port, wait_until
+
 REPO = Path(__file__).resolve().parents[1]
 VEHICLE = REPO / "configs" / "vehicles" / "paper_sedan" / "vehicle.yaml"
 DURATION_S = 3.0
@@ -254,12 +256,6 @@ def test_spin_integrated_incrementally_equals_the_batch_integral():
 
 
 # ---------------------------------------------------------------------------- sinks
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_sink_off_and_bad_options():
     from simserver.adapters.rerun_sink import RerunSinkError, open_recording, parse_sink
 
@@ -289,7 +285,7 @@ def test_save_to_an_unwritable_place_fails_clearly(tmp_path):
 def test_connect_to_a_missing_viewer_fails_at_once():
     from simserver.adapters.rerun_sink import RerunSinkError, open_recording
 
-    url = f"rerun+http://127.0.0.1:{_free_port()}/proxy"
+    url = f"rerun+http://127.0.0.1:{free_port()}/proxy"
     t0 = time.perf_counter()
     with pytest.raises(RerunSinkError, match="no viewer listens"):
         open_recording("connect", url, announce=None)
@@ -312,20 +308,21 @@ def test_spawn_without_a_display_is_refused(monkeypatch):
 def test_serve_binds_loopback_and_refuses_a_taken_port():
     from simserver.adapters.rerun_sink import RerunSinkError, open_recording
 
-    port = _free_port()
+    port = free_port()
     lines: list[str] = []
     rec = open_recording("serve", str(port), web_port=None, announce=lines.append)
     try:
         assert rec is not None
         assert f"rerun+http://127.0.0.1:{port}/proxy" in lines[0]
-        deadline = time.monotonic() + 5.0
-        while True:  # the server starts on a background thread
+        def accepts() -> bool:
             try:
                 socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
-                break
             except OSError:
-                assert time.monotonic() < deadline, "the gRPC server did not start"
-                time.sleep(0.05)
+                return False
+            return True
+
+        # the server starts on a background thread
+        wait_until(accepts, timeout_s=5.0, what="the gRPC server", interval_s=0.05)
         with pytest.raises(RerunSinkError, match="in use"):
             open_recording("serve", str(port), web_port=None, announce=None)
     finally:

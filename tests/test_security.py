@@ -23,20 +23,12 @@ import json
 import secrets
 import shutil
 import subprocess
-import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 
-from benchmarks.bench_realtime_soak import (
-    LiveServer,
-    Probe,
-    RoleProcess,
-    free_port,
-    process_sockets,
-    state_is_finite,
-)
 from simserver import protocol as proto
 from simserver.adapters.zenoh_io import (
     DEFAULT_LISTEN,
@@ -45,7 +37,17 @@ from simserver.adapters.zenoh_io import (
     make_zenoh_config,
 )
 from simserver.server import DEFAULT_SERVER_CONFIG, load_server_config
-from tests.conftest import CONFIGS
+from simserver.testing import (
+    CONFIGS,
+    Client,
+    RoleProcess,
+    ServerProcess,
+    free_port,
+    loopback_endpoint,
+    process_sockets,
+    state_is_finite,
+    wait_until,
+)
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -136,19 +138,19 @@ def passwords(pki_root: Path) -> dict[str, str]:
     return json.loads((pki_root / "passwords.json").read_text(encoding="ascii"))
 
 
-def wait_for_controls(probe: Probe, timeout_s: float = 10.0) -> dict:
-    """Ask ``get_config`` until the server's queryable is known to this client."""
-    end = time.monotonic() + timeout_s
-    while True:
-        try:
-            return probe.request("get_config", timeout_s=1.0)
-        except TimeoutError:
-            if time.monotonic() > end:
-                raise
-            time.sleep(0.1)
+@contextmanager
+def driver_and_viewer(endpoint: str, driver_cfg: Path,
+                      viewer_cfg: Path) -> Iterator[tuple[Client, Client]]:
+    """A driver and a viewer client (their own credentials), the server's controls known
+    to both (``get_config`` is open to viewers too)."""
+    with Client(endpoint, zenoh_config=driver_cfg) as driver, \
+            Client(endpoint, zenoh_config=viewer_cfg) as viewer:
+        assert driver.wait_controls()["ok"]
+        assert viewer.wait_controls()["ok"]
+        yield driver, viewer
 
 
-def no_reply(probe: Probe, name: str, args: dict | None = None) -> bool:
+def no_reply(probe: Client, name: str, args: dict | None = None) -> bool:
     """True if a control request got no reply at all (denied, or nobody serving)."""
     try:
         probe.request(name, args, timeout_s=1.0)
@@ -185,18 +187,16 @@ def test_default_server_holds_only_a_loopback_listener_and_no_udp_socket():
     one, so the test never collides with a server already on 7447).
     """
     view_port = free_port()
-    with LiveServer(viewer=f"serve:{view_port}") as server:
+    with ServerProcess(viewer=f"serve:{view_port}") as server:
         socks = process_sockets(server.pid)
         listeners = [s for s in socks if s.listening]
         assert [(s.local_ip, s.local_port) for s in listeners] == [("127.0.0.1", server.port)]
         assert not [s for s in socks if s.proto.startswith("udp")], socks
         # the live viewer (its own process) serves Rerun on loopback only
-        end = time.monotonic() + 60
-        viewer_listeners: list = []
-        while time.monotonic() < end and not viewer_listeners:
-            for pid in server.children():
-                viewer_listeners = [s for s in process_sockets(pid) if s.listening]
-            time.sleep(0.3)
+        viewer_listeners = wait_until(
+            lambda: [s for pid in server.children() for s in process_sockets(pid)
+                     if s.listening], timeout_s=60, what="the viewer listening",
+            interval_s=0.3)
         assert viewer_listeners, "the viewer did not start listening"
         assert all(s.local_ip == "127.0.0.1" for s in viewer_listeners), viewer_listeners
         assert view_port in [s.local_port for s in viewer_listeners]
@@ -212,27 +212,29 @@ def test_tls_client_that_trusts_the_ca_drives_and_plain_tcp_cannot_talk(pki):
     client_cfg = materialize("client_tls.json5", pki)
     port = free_port()
     tls_ep, tcp_ep = f"tls/127.0.0.1:{port}", f"tcp/127.0.0.1:{port}"
-    with LiveServer(listen=[tls_ep], extra_args=["--zenoh-config", str(server_cfg)]) as server:
+    with ServerProcess(listen=[tls_ep], extra_args=["--zenoh-config", str(server_cfg)]) as server:
         socks = process_sockets(server.pid)
         assert [(s.local_ip, s.local_port) for s in socks if s.listening] == \
             [("127.0.0.1", port)]
         assert not [s for s in socks if s.proto.startswith("udp")]
-        with Probe(tls_ep, zenoh_config=client_cfg) as client:
-            assert wait_for_controls(client)["ok"]
+        with Client(tls_ep, zenoh_config=client_cfg) as client:
+            assert client.wait_controls()["ok"]
             assert client.request("reset")["ok"]
-            state = client.drive(1.0, throttle=0.5, gear=proto.Gear.D)
+            state = client.drive_until(lambda s: s["u_mps"] > 1.0 and s["throttle"] > 0.49
+                                       and not s["flags"] & proto.StateFlag.WATCHDOG,
+                                       throttle=0.5, gear=proto.Gear.D, what="driving")
             assert state is not None and state_is_finite(state)
             assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
             assert not state["flags"] & proto.StateFlag.WATCHDOG
             before = client.diagnostics()
             # plain tcp to the TLS port: no session (client mode fails to open) ...
             with pytest.raises(ZenohOpenError):
-                Probe(tcp_ep)
+                Client(tcp_ep)
             # ... nor a TLS client that does not trust the CA (system roots only) ...
             with pytest.raises(ZenohOpenError):
-                Probe(tls_ep)
+                Client(tls_ep)
             # ... and a peer, which opens anyway, reaches nothing: no command arrives
-            with Probe(tcp_ep, mode="peer") as intruder:
+            with Client(tcp_ep, mode="peer") as intruder:
                 intruder.drive(0.5, brake=1.0)
                 assert no_reply(intruder, "reset")
                 assert intruder.received == 0
@@ -247,7 +249,7 @@ def test_tls_client_that_trusts_the_ca_drives_and_plain_tcp_cannot_talk(pki):
 
 
 @pytest.fixture(scope="module")
-def acl_server(pki) -> Iterator[tuple[LiveServer, str, dict[str, Path]]]:
+def acl_server(pki) -> Iterator[tuple[ServerProcess, str, dict[str, Path]]]:
     """server_auth_acl.json5 (TLS + user/password + access control) and client configs."""
     pw = passwords(pki)
     configs = {
@@ -265,8 +267,8 @@ def acl_server(pki) -> Iterator[tuple[LiveServer, str, dict[str, Path]]]:
                                              pw["driver"]}),
         "no_credentials": materialize("client_tls.json5", pki),
     }
-    endpoint = f"tls/127.0.0.1:{free_port()}"
-    server = LiveServer(listen=[endpoint], extra_args=["--zenoh-config",
+    endpoint = loopback_endpoint("tls")
+    server = ServerProcess(listen=[endpoint], extra_args=["--zenoh-config",
                                                        str(configs["server"])])
     try:
         yield server, endpoint, configs
@@ -278,13 +280,13 @@ def test_no_session_without_valid_credentials(acl_server):
     server, endpoint, configs = acl_server
     for name in ("no_credentials", "wrong_password", "unknown_user"):
         with pytest.raises(ZenohOpenError):
-            Probe(endpoint, zenoh_config=configs[name])
-    with Probe(endpoint, zenoh_config=configs["driver"]) as driver:
-        wait_for_controls(driver)
+            Client(endpoint, zenoh_config=configs[name])
+    with Client(endpoint, zenoh_config=configs["driver"]) as driver:
+        driver.wait_controls()
         driver.drive(0.5, throttle=0.3)
         before = driver.diagnostics()
         # a peer opens a session anyway; without credentials it never gets a link
-        with Probe(endpoint, zenoh_config=configs["no_credentials"], mode="peer") as peer:
+        with Client(endpoint, zenoh_config=configs["no_credentials"], mode="peer") as peer:
             peer.drive(0.5, brake=1.0, gear=proto.Gear.R)
             assert no_reply(peer, "reset") and no_reply(peer, "pause")
             assert peer.received == 0  # and it reads nothing either
@@ -301,16 +303,14 @@ def test_no_session_without_valid_credentials(acl_server):
 
 def test_viewer_reads_state_but_cannot_command_or_control(acl_server):
     server, endpoint, configs = acl_server
-    with Probe(endpoint, zenoh_config=configs["driver"]) as driver, \
-            Probe(endpoint, zenoh_config=configs["viewer"]) as viewer:
-        wait_for_controls(driver)
-        assert wait_for_controls(viewer)["ok"]  # get_config is open to viewers
+    with driver_and_viewer(endpoint, configs["driver"], configs["viewer"]) as (driver, viewer):
         assert viewer.ep.alive_tokens() == ["simserver/car0/alive"]
         assert driver.request("reset")["ok"]
-        moved = driver.drive(1.5, throttle=0.4)
+        moved = driver.drive_until(lambda s: s["u_mps"] > 1.0, throttle=0.4, what="moving")
         assert moved["u_mps"] > 1.0
         road = driver.request("get_config")["config"]["road"]
-        time.sleep(0.4)  # the driver is silent: the watchdog holds the car
+        driver.wait_state(lambda s: s["flags"] & proto.StateFlag.WATCHDOG,
+                          what="the watchdog holding the car")  # the driver is silent
         before = driver.diagnostics()
         state0 = driver.fresh_state()
         # the viewer reads the state ...
@@ -339,10 +339,12 @@ def test_viewer_reads_state_but_cannot_command_or_control(acl_server):
 
 def test_driver_commands_resets_and_controls(acl_server):
     server, endpoint, configs = acl_server
-    with Probe(endpoint, zenoh_config=configs["driver"]) as driver:
-        wait_for_controls(driver)
+    with Client(endpoint, zenoh_config=configs["driver"]) as driver:
+        driver.wait_controls()
         before = driver.diagnostics()
-        state = driver.drive(1.5, throttle=0.5, gear=proto.Gear.D)
+        state = driver.drive_until(lambda s: s["u_mps"] > 1.0 and s["throttle"] > 0.49
+                                   and not s["flags"] & proto.StateFlag.WATCHDOG,
+                                   throttle=0.5, gear=proto.Gear.D, what="driving")
         assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
         assert not state["flags"] & proto.StateFlag.WATCHDOG
         after = driver.diagnostics()
@@ -360,21 +362,29 @@ def test_driver_commands_resets_and_controls(acl_server):
 def test_nobody_but_the_server_can_publish_the_state(acl_server):
     """A client publishing fake states on the state key reaches no other client."""
     _, endpoint, configs = acl_server
-    with Probe(endpoint, zenoh_config=configs["driver"]) as driver, \
-            Probe(endpoint, zenoh_config=configs["viewer"]) as viewer:
-        wait_for_controls(driver)
-        wait_for_controls(viewer)
+    with driver_and_viewer(endpoint, configs["driver"], configs["viewer"]) as (driver, viewer):
         fake_v = viewer.ep.session.declare_publisher(viewer.ep.keys.state)
         fake_d = driver.ep.session.declare_publisher(driver.ep.keys.state)
         driver.states.drain_newest()
         viewer.states.drain_newest()
-        for _ in range(50):
+        seen_by_driver: list[bytes] = []
+        seen_by_viewer: list[bytes] = []
+
+        def real_states(seen: list[bytes], inbox, n: int) -> None:
+            """Collect what arrives until ``n`` more real states came."""
+            start = len([p for p in seen if p[:1] not in (b"V", b"D")])
+            wait_until(lambda: seen.extend(inbox.drain_newest()) or seen,
+                       lambda got: len([p for p in got if p[:1] not in (b"V", b"D")])
+                       >= start + n, timeout_s=10, what=f"{n} real states")
+
+        for _ in range(50):  # a fake state between two real ones
             fake_v.put(b"V" * proto.STATE_SIZE)
             fake_d.put(b"D" * proto.STATE_SIZE)
-            time.sleep(0.002)
-        time.sleep(0.3)
-        seen_by_driver = driver.states.drain_newest()
-        seen_by_viewer = viewer.states.drain_newest()
+            real_states(seen_by_driver, driver.states, 1)
+            seen_by_viewer += viewer.states.drain_newest()
+        # whatever of the fakes could travel has arrived 300 server periods later
+        real_states(seen_by_driver, driver.states, 300)
+        real_states(seen_by_viewer, viewer.states, 300)
         # (a session sees its own publications locally; never the other client's)
         assert not [p for p in seen_by_driver if p[:1] == b"V"]
         assert not [p for p in seen_by_viewer if p[:1] == b"D"]
@@ -395,23 +405,23 @@ def test_mutual_tls_rights_follow_the_certificate_name(pki):
         for name in ("driver", "viewer", "rogue")
     }
     no_cert = materialize("client_tls.json5", pki)
-    endpoint = f"tls/127.0.0.1:{free_port()}"
-    with LiveServer(listen=[endpoint], extra_args=["--zenoh-config", str(server_cfg)]) as srv:
+    endpoint = loopback_endpoint("tls")
+    with ServerProcess(listen=[endpoint], extra_args=["--zenoh-config", str(server_cfg)]) as srv:
         with pytest.raises(ZenohOpenError):  # no client certificate
-            Probe(endpoint, zenoh_config=no_cert)
+            Client(endpoint, zenoh_config=no_cert)
         with pytest.raises(ZenohOpenError):  # CN "driver", but signed by another CA
-            Probe(endpoint, zenoh_config=clients["rogue"])
-        with Probe(endpoint, zenoh_config=clients["driver"]) as driver, \
-                Probe(endpoint, zenoh_config=clients["viewer"]) as viewer:
-            wait_for_controls(driver)
-            assert wait_for_controls(viewer)["ok"]
-            time.sleep(0.3)
+            Client(endpoint, zenoh_config=clients["rogue"])
+        with driver_and_viewer(endpoint, clients["driver"], clients["viewer"]) as (driver,
+                                                                                   viewer):
+            # the viewer's declarations (its command publisher first) reached the server
+            viewer.fresh_state()
             before = driver.diagnostics()
             viewer.drive(0.5, throttle=1.0)
             assert no_reply(viewer, "reset")
             after = driver.diagnostics()
             assert after["cmd_received"] == before["cmd_received"]
-            state = driver.drive(1.0, throttle=0.5)
+            state = driver.drive_until(lambda s: s["u_mps"] > 1.0 and s["throttle"] > 0.49,
+                                       throttle=0.5, what="driving")
             assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
             assert driver.request("reset")["ok"]
         assert srv.alive()
@@ -441,7 +451,7 @@ def test_router_access_control_separates_servers_drivers_and_viewers(pki, tmp_pa
         "REPLACE-WITH-THE-DRIVER-PASSWORD": pw["driver"]})
     viewer_cfg = materialize("client_viewer.json5", pki, "router_viewer.json5", replace={
         "REPLACE-WITH-THE-VIEWER-PASSWORD": pw["viewer"]})
-    router_ep = f"tls/127.0.0.1:{free_port()}"
+    router_ep = loopback_endpoint("tls")
 
     def server_yaml(name: str, zenoh_file: Path, vehicle: str) -> Path:
         # listen: null, so the zenoh file decides (no listener: the server is a client)
@@ -454,17 +464,16 @@ def test_router_access_control_separates_servers_drivers_and_viewers(pki, tmp_pa
     router = RoleProcess("router", ["--listen", router_ep, "--zenoh-config", str(router_cfg)])
     server = impostor = None
     try:
-        server = LiveServer(listen=[], config=server_yaml("server.yaml", server_zenoh, "car0"),
+        server = ServerProcess(listen=[], config=server_yaml("server.yaml", server_zenoh, "car0"),
                             extra_args=["--connect", router_ep])
         assert not [s for s in process_sockets(server.pid) if s.listening]
-        with Probe(router_ep, zenoh_config=driver_cfg) as driver, \
-                Probe(router_ep, zenoh_config=viewer_cfg) as viewer:
-            assert wait_for_controls(driver)["ok"]
-            assert wait_for_controls(viewer)["ok"]
-            state = driver.drive(1.0, throttle=0.5)
+        with driver_and_viewer(router_ep, driver_cfg, viewer_cfg) as (driver, viewer):
+            state = driver.drive_until(lambda s: s["u_mps"] > 1.0 and s["throttle"] > 0.49,
+                                       throttle=0.5, what="driving")
             assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
             assert driver.request("reset")["ok"]
-            time.sleep(0.4)
+            driver.wait_state(lambda s: s["flags"] & proto.StateFlag.WATCHDOG,
+                              what="the watchdog holding the car")  # the driver is silent
             before = driver.diagnostics()
             viewer.drive(0.5, throttle=1.0)
             assert no_reply(viewer, "reset") and no_reply(viewer, "pause")
@@ -473,15 +482,15 @@ def test_router_access_control_separates_servers_drivers_and_viewers(pki, tmp_pa
             assert state_is_finite(viewer.fresh_state())
             # a client cannot impersonate a server: a "car1" served by the driver's
             # credentials never gets a command or a query through
-            impostor = LiveServer(listen=[], vehicle_id="car1", config=server_yaml(
+            impostor = ServerProcess(listen=[], vehicle_id="car1", config=server_yaml(
                 "impostor.yaml", impostor_zenoh, "car1"), extra_args=["--connect", router_ep])
-            with Probe(router_ep, vehicle_id="car1", zenoh_config=driver_cfg) as victim:
+            with Client(router_ep, vehicle_id="car1", zenoh_config=driver_cfg) as victim:
                 assert no_reply(victim, "get_config")
                 victim.drive(0.5, throttle=0.5)
                 assert victim.received == 0  # and its states reach nobody
         # and without credentials, no session with the router
         with pytest.raises(ZenohOpenError):
-            Probe(router_ep, zenoh_config=materialize("client_tls.json5", pki))
+            Client(router_ep, zenoh_config=materialize("client_tls.json5", pki))
         assert server.alive()
     finally:
         if impostor is not None:

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import textwrap
@@ -30,15 +29,10 @@ from simserver.adapters.zenoh_io import (
     config_warnings,
     make_zenoh_config,
 )
+from simserver.testing import free_port, wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 5.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def loopback(port: int) -> str:
@@ -47,14 +41,7 @@ def loopback(port: int) -> str:
 
 def eventually(cond: Callable[[], object], timeout_s: float = TIMEOUT_S, what: str = ""):
     """Poll ``cond`` until it returns a truthy value; fail after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = cond()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what or cond}")
-        time.sleep(0.005)
+    return wait_until(cond, bool, timeout_s=timeout_s, what=what or str(cond))
 
 
 def server(port: int, vehicle: str = "car0", **kw) -> ZenohEndpoint:
@@ -76,15 +63,33 @@ def pair(vehicle: str = "car0") -> Iterator[tuple[ZenohEndpoint, ZenohEndpoint]]
         yield srv, cli
 
 
+LAST_PROBE = P.encode_command(seq=0xFFFFFFFF)
+"""A command no test sends otherwise: what arrives up to it was in flight before it."""
+
+
 def sync_commands(inbox, publisher) -> None:
-    """Publish probes until the subscription has propagated, then empty the inbox."""
-    def probe():
-        publisher.put(P.encode_command(seq=0))
-        time.sleep(0.01)
-        return inbox.drain_newest()
-    eventually(probe, what="the command subscription")
-    time.sleep(0.05)
-    inbox.drain_newest()
+    """Publish probes until the subscription has propagated, then empty the inbox up to
+    a last probe (one publisher's samples arrive in order)."""
+    eventually(lambda: publisher.put(P.encode_command(seq=0)) or inbox.wait_newest(0.01),
+               what="the command subscription")
+    publisher.put(LAST_PROBE)
+    eventually(lambda: LAST_PROBE in inbox.drain_newest(), what="the last probe")
+
+
+def flushed(sender: ZenohEndpoint, key: str, inbox) -> list[bytes]:
+    """Everything ``inbox`` (a subscriber on ``key``) receives up to a probe that
+    ``sender`` publishes on ``key`` as commands and states go (REAL_TIME, express): what
+    ``sender`` sent there before has arrived by then, so what else came is all that will."""
+    pub = sender.session.declare_publisher(key, priority=zenoh.Priority.REAL_TIME,
+                                           express=True,
+                                           congestion_control=zenoh.CongestionControl.BLOCK)
+    got: list[bytes] = []
+    try:
+        eventually(lambda: pub.put(LAST_PROBE) or got.extend(inbox.drain_newest())
+                   or LAST_PROBE in got, what=f"a probe on {key}")
+    finally:
+        pub.undeclare()
+    return [g for g in got if g != LAST_PROBE]
 
 
 # ============================================================================ config
@@ -206,7 +211,7 @@ def test_ring_keeps_only_the_newest():
         drains: list[list[int]] = []
 
         def drain_slowly():
-            time.sleep(0.2)  # let the burst land in the ring
+            time.sleep(0.2)  # the subject: a slow reader, so the burst overflows the ring
             drains.append([P.decode_command(g).seq for g in inbox.drain_newest()])
             return drains[-1] and drains[-1][-1] == 50
 
@@ -230,8 +235,7 @@ def test_state_and_diagnostics_reach_a_client():
         def exchange():
             state_pub.put(rec.tobytes())
             diag_pub.put(diag)
-            time.sleep(0.01)
-            return states.drain_newest() and diags.drain_newest()
+            return states.wait_newest(0.01) and diags.wait_newest(0.01)
 
         eventually(exchange, what="state and diagnostics")
         state_pub.put(rec.tobytes())
@@ -262,11 +266,10 @@ def test_low_latency_default_talks_to_a_peer_with_zenohs_defaults(ours):
 
         def exchange():
             pub.put(P.encode_command(throttle=0.5, seq=7))
-            time.sleep(0.01)
-            return inbox.drain_newest()
+            return inbox.wait_newest(0.01)
 
         got = eventually(exchange, what="a command across the mixed link")
-        assert P.decode_command(got[-1]).throttle == 0.5
+        assert P.decode_command(got).throttle == 0.5
 
 
 # ============================================================================ controls
@@ -284,7 +287,7 @@ def control_server(srv: ZenohEndpoint, handle: Callable[[str, dict], dict]):
             for req in inbox.poll():
                 seen.append((req.name, req.args))
                 req.reply_ok(**handle(req.name, req.args))
-            time.sleep(0.001)
+            stop.wait(0.001)  # a server loop's period
 
     thread = threading.Thread(target=loop, daemon=True)
     thread.start()
@@ -340,7 +343,9 @@ def test_request_without_server_times_out():
 def test_reply_twice_is_an_error():
     with pair() as (srv, cli):
         inbox = srv.declare_control_inbox()
-        time.sleep(0.1)
+        querier = cli.session.declare_querier(cli.keys.ctl["pause"])
+        eventually(lambda: querier.matching_status.matching, what="the queryable known")
+        querier.undeclare()
         result: dict = {}
         thread = threading.Thread(
             target=lambda: result.update(cli.request("pause", timeout_s=3.0)), daemon=True
@@ -397,8 +402,7 @@ def test_two_vehicle_ids_do_not_see_each_other_peer_to_peer():
             pub.put(P.encode_command(seq=i))
         got1: list[bytes] = []
         eventually(lambda: got1.extend(in1.drain_newest()) or len(got1) >= 20, what="car1")
-        time.sleep(0.1)
-        assert in0.drain_newest() == [] and in0.received == 0
+        assert flushed(c1, s0.keys.cmd, in0) == []  # nothing of car1's reached car0
         # car1 has no control server: car0's queryable does not answer for it.
         with pytest.raises(TimeoutError):
             c1.request("pause", timeout_s=0.3)
@@ -430,8 +434,8 @@ def test_isolation_through_a_router():
             state1.put(P.new_state_record().tobytes())  # car1's state: not car0's
         got: list[bytes] = []
         eventually(lambda: got.extend(in0.drain_newest()) or len(got) >= 10, what="car0")
-        time.sleep(0.1)
-        assert in1.drain_newest() == [] and states0.drain_newest() == []
+        assert flushed(c0, s1.keys.cmd, in1) == []  # car0's commands did not reach car1
+        assert flushed(s1, c0.keys.state, states0) == []  # nor car1's state car0's client
 
 
 # ============================================================================ process exit
