@@ -1,4 +1,4 @@
-"""``python -m clients.driver``: drive a simserver car from a keyboard, a gamepad or a wheel.
+"""``simserver-driver``: drive a simserver car from a keyboard, a gamepad or a wheel.
 
 The driver sends a DriverCommand at a steady rate (``--rate``, default 200 Hz: the
 server applies the newest one each 1 ms tick and holds the car with its watchdog if none
@@ -479,9 +479,9 @@ class Driver:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The command line of ``python -m clients.driver``."""
+    """The command line of ``simserver-driver`` (``python -m clients.driver``)."""
     parser = argparse.ArgumentParser(
-        prog="python -m clients.driver",
+        prog=PROG,
         description="Drive a simserver car from a terminal keyboard (works over SSH) or a "
         "game controller / steering wheel (pygame). Sends commands at a steady rate and "
         "shows speed, gear, slope and the server's health. Keys: " + KEY_HELP,
@@ -615,7 +615,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``python -m clients.driver``; returns the exit code."""
+    """Entry point of ``simserver-driver``; returns the exit code."""
     args = build_parser().parse_args(argv)
     return run_main(PROG, lambda: _run(args))
 

@@ -1,4 +1,4 @@
-"""``python -m clients.recorder``: record a live car's state and diagnostics to Parquet.
+"""``simserver-recorder``: record a live car's state and diagnostics to Parquet.
 
 Writes ``OUT/history.parquet`` (one row per VehicleState received) with the headless
 runner's column names (``simserver run-scenario``'s ``history.parquet``,
@@ -535,9 +535,9 @@ class Recorder:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The command line of ``python -m clients.recorder``."""
+    """The command line of ``simserver-recorder`` (``python -m clients.recorder``)."""
     parser = argparse.ArgumentParser(
-        prog="python -m clients.recorder",
+        prog=PROG,
         description="Record a live simserver car: OUT/history.parquet (one row per state, "
         "the headless runner's column names in the road-plane frame, plus world_* and "
         "state-only columns) and OUT/diagnostics.parquet. Ctrl-C or SIGTERM stops and "
@@ -653,7 +653,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``python -m clients.recorder``; returns the exit code."""
+    """Entry point of ``simserver-recorder``; returns the exit code."""
     args = build_parser().parse_args(argv)
     return run_main(PROG, lambda: _run(args))
 
