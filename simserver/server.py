@@ -518,7 +518,7 @@ class SimServer:
         previous = {s: signal.signal(s, self.stop) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
             with ZenohEndpoint(zcfg, prefix=cfg.prefix, vehicle=cfg.vehicle_id) as ep:
-                inbox = ep.declare_command_inbox(capacity=256)
+                inbox = ep.declare_command_inbox(capacity=proto.COMMAND_RING_SLOTS)
                 state_pub = ep.declare_state_publisher()
                 diag_pub = ep.declare_diag_publisher()
                 controls = ep.declare_control_inbox()

@@ -26,6 +26,7 @@ from typing import Any
 import zenoh
 
 from simserver.protocol import (
+    COMMAND_RING_SLOTS,
     DEFAULT_PREFIX,
     DEFAULT_VEHICLE,
     ENCODING_COMMAND,
@@ -444,7 +445,7 @@ class ZenohEndpoint:
 
     # ---------------------------------------------------------------- server side
 
-    def declare_command_inbox(self, capacity: int = 32) -> Inbox:
+    def declare_command_inbox(self, capacity: int = COMMAND_RING_SLOTS) -> Inbox:
         """Subscriber on ``cmd`` with a ring of ``capacity``; drain it every tick."""
         return self._keep(Inbox(self.session, self.keys.cmd, capacity))
 
