@@ -7,6 +7,9 @@
   ``configs/scenes/hill_10pct_paper_sedan.yaml``; an independent client watches the state:
   over a window of at least 3 s of simulated time with the driver's commands applied and
   no throttle, the car must not move, and the throttle must then drive it up the hill.
+- The recorder's file metadata named the first scene after a ``load`` in mid-recording:
+  the metadata is now per segment (a segment starts at each reset or load, seen as the
+  tick going back), each with the vehicle, scene and road ``get_config`` reported then.
 - The usage line of every client names the command users run (``simserver-driver``,
   ``simserver-player``, ``simserver-recorder``: the ``project.scripts`` of
   ``pyproject.toml``), not ``python -m clients.X``.
@@ -26,6 +29,7 @@ import pytest
 
 from simserver import protocol as proto
 from tests.serverproc import (
+    CONFIGS,
     REPO,
     ServerProcess,
     Watcher,
@@ -196,3 +200,56 @@ def test_start_hold_lets_go_only_on_the_throttle_and_rearms():
     assert hold.apply(0.0, 0.4, dt) == 0.4  # released: the driver's own brake
     hold.arm()  # a reset
     assert hold.engaged and hold.apply(0.0, 0.0, dt) == 1.0
+
+
+# ============================================================================ recorder
+
+
+def test_recorder_metadata_per_segment_after_a_load_and_a_reset(tmp_path):
+    """flat scene -> ``load`` the 10 % hill -> ``reset``: three segments, each described."""
+    from clients.recorder import HISTORY_FILE, read_segments
+    from simserver.adapters.history import read_history
+
+    hill = CONFIGS / "scenes" / "hill_10pct_paper_sedan.yaml"
+    server = ServerProcess(vehicle_id="rec", scene="flat_paper_sedan")
+    watcher = Watcher(server)
+    out = tmp_path / "rec"
+    rec = subprocess.Popen(client_command("recorder", "--out", str(out), "--quiet",
+                                          *server.client_args()),
+                           cwd=REPO, env=client_env(), stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
+    try:
+        assert "recording" in rec.stdout.readline()
+
+        def run_a_while(what: str) -> None:  # 0.3 s of simulated time in this segment
+            watcher.history.clear()
+            _wait_states(watcher, lambda h: len(h) > 1
+                         and int(h[-1]["tick"]) - int(h[0]["tick"]) >= 300, 30.0, what)
+
+        run_a_while("the flat segment")
+        assert watcher.ep.request("load", {"scene": str(hill)}, timeout_s=30.0)["ok"]
+        run_a_while("the hill segment")
+        assert watcher.ep.request("reset", timeout_s=5.0)["ok"]
+        run_a_while("the segment after the reset")
+        rec.terminate()
+        stdout, stderr = rec.communicate(timeout=60)
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+        watcher.close()
+        server.stop()
+    assert rec.returncode == 0, stdout + stderr
+    history = read_history(out)
+    segments = read_segments(out / HISTORY_FILE)
+    print(f"\nsegments: {segments}")
+    assert [s["segment"] for s in segments] == [0, 1, 2] == \
+        sorted(set(history["segment"].tolist()))
+    assert [s["scene"].rsplit("/", 1)[-1] for s in segments] == [
+        "flat_paper_sedan.yaml", "hill_10pct_paper_sedan.yaml", "hill_10pct_paper_sedan.yaml"]
+    assert [s["road"]["grade_pct"] for s in segments] == [0.0, 10.0, 10.0]
+    assert all(s["vehicle"] == "paper_sedan" for s in segments)
+    for s in segments:  # each entry starts where its rows do
+        rows = history["segment"] == s["segment"]
+        assert s["first_tick"] == int(history["tick"][rows][0])
+        assert s["rows"] == int(np.sum(rows))
+    assert segments[1]["first_tick"] < 300  # a new segment restarts the tick
