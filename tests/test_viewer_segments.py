@@ -138,3 +138,23 @@ def test_the_serve_sink_carries_every_segment(tmp_path):
         second.disconnect()
     finally:
         first.disconnect()
+
+
+def test_diagnostics_of_a_past_segment_are_not_logged_into_the_new_one(tmp_path):
+    """A Diagnostics message published just before a reset, read after the states that
+    show it, is ahead of the new segment's newest tick: it stays out of its recording."""
+    import rerun as rr
+
+    from simserver import protocol as proto
+    from simserver.viewer import log_diagnostics_payload
+
+    values = {f.name: (0.0 if f.count == 1 else [0.0] * f.count)
+              for f in proto.DIAGNOSTICS_FIELDS if f.name not in ("version", "reserved")}
+    rec = rr.RecordingStream("simserver_viewer_test")
+    rec.save(str(tmp_path / "d.rrd"))
+    old = proto.encode_diagnostics(**dict(values, tick=4000))
+    new = proto.encode_diagnostics(**dict(values, tick=40))
+    assert not log_diagnostics_payload(rec, old, 0.001, 0, newest_tick=35)
+    assert log_diagnostics_payload(rec, new, 0.001, 0, newest_tick=35)
+    assert log_diagnostics_payload(rec, old, 0.001, 0)  # no segment information: logged
+    rec.disconnect()
