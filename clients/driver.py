@@ -542,7 +542,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog=PROG,
         description="Drive a simserver car from a terminal keyboard (works over SSH) or a "
         "game controller / steering wheel (pygame). Sends commands at a steady rate and "
-        "shows speed, gear, slope and the server's health. Keys: " + KEY_HELP,
+        "shows speed, gear, slope and the server's health. The brake is held from the "
+        "start (and after a reset) until the throttle is first pressed, so a car on a hill "
+        "does not roll away. Keys: " + KEY_HELP,
         epilog="Exit codes: 0 normal quit, 1 the server went away, 2 bad command line or "
         "profile, 3 no server answered. docs/clients.md has the step-by-step guide.",
     )
