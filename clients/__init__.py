@@ -13,7 +13,7 @@ common
     Connection flags, the start-up check ("is a server there?"), exit codes, a rate pacer
     on absolute deadlines and signal handling shared by the three programs.
 driver
-    ``python -m clients.driver``: drive the car from a terminal keyboard (works over SSH)
+    ``simserver-driver``: drive the car from a terminal keyboard (works over SSH)
     or a game controller / steering wheel through pygame (SDL2), with a live status.
 keyboard
     Raw terminal input (termios), key decoding and the keyboard driving model (held keys
@@ -22,8 +22,8 @@ joystick
     Joystick profiles (YAML, validated), the pure axis/button mapping, the pygame device
     wrapper and SDL's virtual joystick (a scripted device for demos and tests).
 player
-    ``python -m clients.player``: play a scenario's input keyframes live, in real time.
+    ``simserver-player``: play a scenario's input keyframes live, in real time.
 recorder
-    ``python -m clients.recorder``: record state and diagnostics to Parquet with the
+    ``simserver-recorder``: record state and diagnostics to Parquet with the
     headless runner's column names.
 """

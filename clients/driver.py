@@ -1,4 +1,4 @@
-"""``python -m clients.driver``: drive a simserver car from a keyboard, a gamepad or a wheel.
+"""``simserver-driver``: drive a simserver car from a keyboard, a gamepad or a wheel.
 
 The driver sends a DriverCommand at a steady rate (``--rate``, default 200 Hz: the
 server applies the newest one each 1 ms tick and holds the car with its watchdog if none
@@ -20,6 +20,13 @@ Input modes
     ``--probe`` the live raw axes and buttons and what the profile makes of them.
     ``--virtual-joystick SCRIPT`` attaches SDL's virtual joystick and plays a timed
     script on it (a demo without hardware; the end-to-end test uses it).
+
+Safe start
+----------
+Until the driver first presses the throttle, the commands carry the brake fully applied
+(:class:`StartHold`), whatever the gear: started in D with the pedals at rest, the first
+command would otherwise release the server's watchdog brakes and a car on a hill would
+roll away with no key pressed. A reset re-arms the hold.
 
 Quitting (``q``, Ctrl-C, SIGTERM, a ``quit`` button, the end of a virtual-joystick
 script) stops the commands: the server's watchdog then holds the car.
@@ -86,6 +93,52 @@ DEFAULT_RATE_HZ = 200.0
 DISPLAY_HZ = 10.0
 SERVER_SILENT_S = 2.0
 """No state for this long: the status says so (the liveliness token decides exit)."""
+START_HOLD_BRAKE = 1.0
+"""Brake the driver holds from launch, and after a reset, until the throttle is pressed."""
+START_HOLD_RELEASE_PER_S = 3.0
+"""How fast that hold lets go once the throttle is pressed (full to none in 1/3 s, the
+keyboard brake key's release rate)."""
+
+
+class StartHold:
+    """The brake held from launch until the driver presses the throttle: a safe start.
+
+    The server's watchdog brakes the car until the first command arrives; a driver that
+    then sends the pedals at rest in D releases those brakes, and a car on a hill rolls
+    away before anyone has touched a key (on 10 %, back to -10 km/h within 3 s). So the
+    commands carry at least ``level`` of brake until the first throttle input (any
+    non-zero throttle: a held key, a pedal past its dead zone), like an automatic's hold;
+    then the hold fades out at ``release_per_s`` while the throttle comes in, so a hill
+    start does not roll back first. Steering, gear and parking-brake inputs do not release
+    it. Pure (no clock of its own): the driver feeds it each sample.
+
+    Parameters
+    ----------
+    level : float
+        Brake held while engaged, in [0, 1].
+    release_per_s : float
+        Fade-out rate once released (brake per second).
+    """
+
+    def __init__(self, level: float = START_HOLD_BRAKE,
+                 release_per_s: float = START_HOLD_RELEASE_PER_S) -> None:
+        self.level = level
+        self.release_per_s = release_per_s
+        self.engaged = True
+        self.brake = level
+
+    def arm(self) -> None:
+        """Hold again (after a reset: the car is back at rest at the scene's start)."""
+        self.engaged = True
+        self.brake = self.level
+
+    def apply(self, throttle: float, brake: float, dt_s: float) -> float:
+        """The brake to send: the driver's ``brake`` or the hold, whichever is more."""
+        if self.engaged and throttle > 0.0:
+            self.engaged = False
+        if not self.engaged:
+            self.brake = max(0.0, self.brake - self.release_per_s * max(dt_s, 0.0))
+        return max(brake, self.brake)
 
 
 # ---------------------------------------------------------------------------- sources
@@ -238,8 +291,9 @@ class StatusView:
         s, g = d.state, d.diag
         c = d.controls
         drive = (f"driver  steer {c['steer']:+.2f}  throttle {c['throttle']:.2f}  "
-                 f"brake {c['brake']:.2f}  gear {gear_name(c['gear'])}  "
-                 f"park {'ON' if c['parking_brake'] else 'off'}  seq {d.seq}")
+                 f"brake {c['brake']:.2f}{' HELD' if d.hold.engaged else ''}  gear "
+                 f"{gear_name(c['gear'])}  park {'ON' if c['parking_brake'] else 'off'}  "
+                 f"seq {d.seq}")
         if s is None:
             car = ["car     (no state received yet)", ""]
             server = ["server  -", ""]
@@ -333,7 +387,8 @@ class Driver:
         self._latencies: deque[float] = deque(maxlen=200)
         self._seen_seq = -1
         self.road: dict[str, float] | None = conn.config.get("road")
-        self.message = "connected"
+        self.hold = StartHold()
+        self.message = "the brake is held until you press the throttle"
         self.sent = 0
         ep = conn.ep
         self.pub = ep.declare_command_publisher()
@@ -375,7 +430,9 @@ class Driver:
         elif action == "reset":
             if self._control("reset") is not None:
                 self.source.reset()
-                self.message = "reset to the scene's start"
+                self.hold.arm()
+                self.message = "reset to the scene's start; the brake is held until you " \
+                    "press the throttle"
         elif action == "pause":
             paused = self.state is not None and bool(int(self.state["flags"])
                                                      & proto.StateFlag.PAUSED)
@@ -435,6 +492,7 @@ class Driver:
             t = pacer.wait(self.poll_states)
             speed = float(self.state["u_mps"]) if self.state is not None else 0.0
             steer, throttle, brake, actions = self.source.sample(t, t - last_t, speed)
+            brake = self.hold.apply(throttle, brake, t - last_t)
             last_t = t
             c["steer"], c["throttle"], c["brake"] = steer, throttle, brake
             if not all(self.act(a) for a in actions):
@@ -479,12 +537,14 @@ class Driver:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The command line of ``python -m clients.driver``."""
+    """The command line of ``simserver-driver`` (``python -m clients.driver``)."""
     parser = argparse.ArgumentParser(
-        prog="python -m clients.driver",
+        prog=PROG,
         description="Drive a simserver car from a terminal keyboard (works over SSH) or a "
         "game controller / steering wheel (pygame). Sends commands at a steady rate and "
-        "shows speed, gear, slope and the server's health. Keys: " + KEY_HELP,
+        "shows speed, gear, slope and the server's health. The brake is held from the "
+        "start (and after a reset) until the throttle is first pressed, so a car on a hill "
+        "does not roll away. Keys: " + KEY_HELP,
         epilog="Exit codes: 0 normal quit, 1 the server went away, 2 bad command line or "
         "profile, 3 no server answered. docs/clients.md has the step-by-step guide.",
     )
@@ -615,7 +675,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``python -m clients.driver``; returns the exit code."""
+    """Entry point of ``simserver-driver``; returns the exit code."""
     args = build_parser().parse_args(argv)
     return run_main(PROG, lambda: _run(args))
 

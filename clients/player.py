@@ -1,4 +1,4 @@
-"""``python -m clients.player``: play a scenario's input keyframes live, in real time.
+"""``simserver-player``: play a scenario's input keyframes live, in real time.
 
 The scenario file is the headless runner's (``configs/scenarios/*.yaml``); its name,
 duration and keyframes are read by :mod:`simserver.keyframes`, the keyframe parser and
@@ -243,9 +243,9 @@ def play(conn: Connection, track: InputTrack, stop: StopFlag, *, load: str | Non
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The command line of ``python -m clients.player``."""
+    """The command line of ``simserver-player`` (``python -m clients.player``)."""
     parser = argparse.ArgumentParser(
-        prog="python -m clients.player",
+        prog=PROG,
         description="Play the input keyframes of a scenario YAML (configs/scenarios/*.yaml, "
         "the headless runner's format) against a live simserver in real time.",
         epilog="Exit codes: 0 played to the end (or stopped by Ctrl-C/SIGTERM), 1 the "
@@ -303,7 +303,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``python -m clients.player``; returns the exit code."""
+    """Entry point of ``simserver-player``; returns the exit code."""
     args = build_parser().parse_args(argv)
     return run_main(PROG, lambda: _run(args))
 

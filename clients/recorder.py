@@ -1,4 +1,4 @@
-"""``python -m clients.recorder``: record a live car's state and diagnostics to Parquet.
+"""``simserver-recorder``: record a live car's state and diagnostics to Parquet.
 
 Writes ``OUT/history.parquet`` (one row per VehicleState received) with the headless
 runner's column names (``simserver run-scenario``'s ``history.parquet``,
@@ -38,6 +38,13 @@ the step that starts there and the forces at its start state). After a reset or 
 (``segment`` increases, ``tick`` restarts) the tick-0 row's step quantities are from
 before it.
 
+Segments
+--------
+A reset or a load restarts the server's tick: the recorder sees the tick go back and
+begins a new segment (the ``segment`` column), asks ``get_config`` what is running now,
+and keeps one metadata entry per segment (:data:`SEGMENTS_KEY`, written to both files'
+Parquet footer when they are completed; :func:`read_segments` reads it).
+
 An ``.rrd`` (``--rrd FILE``) is not drawn here: the recorder starts ``simserver view
 --sink save:FILE`` (the package's live viewer, which builds the 3D scene from the same
 state topic in its own process) beside itself and stops it with SIGTERM when the
@@ -47,6 +54,7 @@ recording ends. The recorder itself imports only the protocol and the zenoh adap
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import subprocess
 import sys
@@ -86,6 +94,12 @@ VIEWER_START_S = 60.0
 """How long ``--rrd`` waits for ``simserver view`` to start writing."""
 
 _TICK_OFFSET = proto.STATE_DTYPE.fields["tick"][1]
+
+SEGMENTS_KEY = "simserver.recorder.segments"
+"""File metadata key (both files' Parquet footer): a JSON list, one object per segment:
+``segment``, ``first_tick``, ``rows``, and ``vehicle``, ``vehicle_path``, ``scene``,
+``road`` as ``get_config`` reported them when the segment began (null if it did not
+answer). Read it with :func:`read_segments`."""
 
 # ----------------------------------------------------------------------------- columns
 
@@ -408,6 +422,7 @@ class Recorder:
         cfg = conn.config
         self.state_every = int((cfg.get("server") or {}).get("state_every", 1)) or 1
         self.road = self._road_of(cfg)
+        self.segments: list[dict[str, Any]] = [self._segment_entry(0, cfg)]
         self.rows = 0
         self.diag_count = 0
         self.paused_repeats = 0
@@ -420,8 +435,6 @@ class Recorder:
         meta = {
             "simserver.recorder.keys": conn.ep.keys.base,
             "simserver.recorder.protocol_version": str(proto.PROTOCOL_VERSION),
-            "simserver.recorder.vehicle": str((cfg.get("vehicle") or {}).get("name", "")),
-            "simserver.recorder.scene": str((cfg.get("scene") or {}).get("path", "")),
             "simserver.recorder.frame": FRAME_NOTE,
             "simserver.recorder.timing": TIMING_NOTE,
             "simserver.columns": "history.parquet names (road frame) + state-only columns: "
@@ -438,14 +451,35 @@ class Recorder:
         road = cfg.get("road") or {}
         return float(road.get("grade_pct", 0.0)), float(road.get("cross_slope_pct", 0.0))
 
-    def refresh_road(self) -> None:
-        """Ask the server for its road (``get_config``); keeps the old one on failure."""
+    @staticmethod
+    def _segment_entry(segment: int, cfg: dict[str, Any] | None) -> dict[str, Any]:
+        """The metadata of a segment that begins now (``cfg``: ``get_config``'s config)."""
+        vehicle = (cfg or {}).get("vehicle") or {}
+        return {"segment": segment, "first_tick": None, "rows": 0,
+                "vehicle": vehicle.get("name"), "vehicle_path": vehicle.get("path"),
+                "scene": ((cfg or {}).get("scene") or {}).get("path"),
+                "road": (cfg or {}).get("road")}
+
+    def _get_config(self) -> dict[str, Any] | None:
         try:
             reply = self.conn.ep.request("get_config", timeout_s=1.0)
         except (TimeoutError, proto.ProtocolError):
-            return
-        if reply.get("ok"):
-            self.road = self._road_of(reply.get("config") or {})
+            return None
+        return (reply.get("config") or {}) if reply.get("ok") else None
+
+    def refresh_road(self) -> None:
+        """Ask the server for its road (``get_config``); keeps the old one on failure."""
+        cfg = self._get_config()
+        if cfg is not None:
+            self.road = self._road_of(cfg)
+
+    def new_segment(self) -> None:
+        """A reset or load: the next segment, described by the server's config now."""
+        self.segment += 1
+        cfg = self._get_config()
+        if cfg is not None:
+            self.road = self._road_of(cfg)  # a load may have changed the road
+        self.segments.append(self._segment_entry(self.segment, cfg))
 
     def take(self, payload: bytes, recv_s: float) -> None:
         """File one state payload (dedupe frozen ticks, segment resets, count gaps)."""
@@ -460,12 +494,15 @@ class Recorder:
                 self.paused_repeats += 1
                 return
             if tick < last:
-                self.segment += 1
-                self.refresh_road()  # a load may have changed the road
+                self.new_segment()
             elif tick > last + self.state_every:
                 self.missed += (tick - last) // self.state_every - 1
         if self.first_tick is None:
             self.first_tick = tick
+        entry = self.segments[-1]
+        if entry["first_tick"] is None:
+            entry["first_tick"] = tick
+        entry["rows"] += 1
         self.last_tick = tick
         self.buffer.add(payload, recv_s, self.road, self.segment)
         self.rows += 1
@@ -491,8 +528,10 @@ class Recorder:
         return len(payloads)
 
     def close(self) -> None:
-        """Flush and complete both files."""
+        """Flush and complete both files (with the per-segment metadata)."""
         self.flush()
+        segments = {SEGMENTS_KEY: json.dumps(self.segments)}
+        self.writer.add_key_value_metadata(segments)
         self.writer.close()
         n = len(self.diag_rows)
         rec = np.frombuffer(b"".join(d for _, d in self.diag_rows),
@@ -500,8 +539,10 @@ class Recorder:
         arrays = [pa.array(np.array([t for t, _ in self.diag_rows], dtype=np.float64))]
         for f in list(self.diag_schema)[1:]:
             arrays.append(pa.array(rec[f.name].astype(f.type.to_pandas_dtype()), type=f.type))
-        pq.write_table(pa.Table.from_arrays(arrays, schema=self.diag_schema),
-                       self.out_dir / DIAGNOSTICS_FILE, compression="zstd")
+        with pq.ParquetWriter(self.out_dir / DIAGNOSTICS_FILE, self.diag_schema,
+                              compression="zstd") as writer:
+            writer.write_table(pa.Table.from_arrays(arrays, schema=self.diag_schema))
+            writer.add_key_value_metadata(segments)
 
     def run(self, stop: StopFlag, duration_s: float | None, quiet: bool) -> str:
         """Record until a signal, the duration, or the server leaving; returns why."""
@@ -534,10 +575,35 @@ class Recorder:
         return reason
 
 
+def read_segments(path: str | Path) -> list[dict[str, Any]]:
+    """The per-segment metadata of a recorder's Parquet file (``SEGMENTS_KEY``).
+
+    Parameters
+    ----------
+    path : str or Path
+        ``history.parquet`` or ``diagnostics.parquet`` of a recording.
+
+    Returns
+    -------
+    list of dict
+        One entry per segment, in order (see :data:`SEGMENTS_KEY`).
+
+    Raises
+    ------
+    ValueError
+        When the file has no segment metadata (not a recorder file, or an older one).
+    """
+    meta = pq.ParquetFile(path).metadata.metadata or {}
+    raw = meta.get(SEGMENTS_KEY.encode())
+    if raw is None:
+        raise ValueError(f"{path}: no {SEGMENTS_KEY} metadata (not a recorder file?)")
+    return json.loads(raw)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The command line of ``python -m clients.recorder``."""
+    """The command line of ``simserver-recorder`` (``python -m clients.recorder``)."""
     parser = argparse.ArgumentParser(
-        prog="python -m clients.recorder",
+        prog=PROG,
         description="Record a live simserver car: OUT/history.parquet (one row per state, "
         "the headless runner's column names in the road-plane frame, plus world_* and "
         "state-only columns) and OUT/diagnostics.parquet. Ctrl-C or SIGTERM stops and "
@@ -653,7 +719,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``python -m clients.recorder``; returns the exit code."""
+    """Entry point of ``simserver-recorder``; returns the exit code."""
     args = build_parser().parse_args(argv)
     return run_main(PROG, lambda: _run(args))
 

@@ -50,6 +50,10 @@ CLAMP_TOLERANCE: Final[float] = 1e-3
 MAX_CONTROL_PAYLOAD_BYTES: Final[int] = 65536
 """Control requests larger than this are rejected before JSON parsing."""
 
+COMMAND_RING_SLOTS: Final[int] = 256
+"""Command payloads the server keeps between two ticks (its subscriber's receive ring):
+when more arrive within one tick (a stalled loop), the oldest are dropped."""
+
 
 class ProtocolError(ValueError):
     """A payload, key or argument that does not satisfy the contract.
@@ -1257,6 +1261,8 @@ def constants_markdown() -> str:
             f"Diagnostics: {DIAGNOSTICS_SIZE} bytes",
             f"- clamp tolerance for normalised inputs: {CLAMP_TOLERANCE:g}",
             f"- largest control request: {MAX_CONTROL_PAYLOAD_BYTES} bytes",
+            f"- command receive ring: the server keeps the last {COMMAND_RING_SLOTS} "
+            f"commands (`COMMAND_RING_SLOTS`) that arrived since its previous tick",
             f"- default prefix `{DEFAULT_PREFIX}`, default vehicle id `{DEFAULT_VEHICLE}`",
         ]
     )

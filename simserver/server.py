@@ -285,7 +285,7 @@ class SimServer:
             with ZenohEndpoint(zcfg, prefix=cfg.prefix, vehicle=cfg.vehicle_id) as ep:
                 for slot in self.slots:
                     keys = slot.keys
-                    commands = ep.declare_command_inbox(capacity=256, keys=keys)
+                    commands = ep.declare_command_inbox(capacity=proto.COMMAND_RING_SLOTS, keys=keys)
                     publisher = ep.declare_vehicle_publisher(keys=keys)
                     controls = ep.declare_control_inbox(keys=keys, validate=False)
                     ep.declare_alive_token(keys=keys)

@@ -25,6 +25,14 @@ The wire state carries the world pose; the scene is drawn in the road's frame, s
 (from the ``get_config`` control, re-read once a second to follow ``set_road``) turns the
 pose back into road-plane coordinates (``core.pose.road_pose``). Quantities the wire does
 not carry (friction use, the damping share of the forces) are drawn as missing.
+
+One recording per segment: a reset or a ``load`` restarts the server's tick and
+``sim_time``, so when the tick goes back the viewer ends the current recording and starts
+the next one (recording id ``{prefix}/{vehicle}``, then ``.../segment1``, ...), with the
+vehicle and road ``get_config`` reports then. Each recording's ``sim_time`` timeline
+runs forward only and holds its own static scene. ``save:run.rrd`` writes the segments
+to ``run.rrd``, ``run.segment1.rrd``, ...; the other sinks stream them all to the same
+viewer (``rerun_sink.segment_sink``).
 """
 
 from __future__ import annotations
@@ -114,8 +122,14 @@ def lower_priority() -> str:
         return f"normal (could not lower: {exc})"
 
 
+def segment_recording_id(base_id: str, segment: int) -> str:
+    """Recording id of segment ``segment``: ``base_id``, then ``base_id/segment{k}``."""
+    return base_id if segment == 0 else f"{base_id}/segment{segment}"
+
+
 def log_diagnostics_payload(rec_stream: Any, payload: bytes, period_s: float,
-                            states_dropped: int) -> bool:
+                            states_dropped: int, newest_tick: int | None = None,
+                            ahead_ticks: int = 100) -> bool:
     """Log one Diagnostics payload on the ``sim_time`` timeline of the scene.
 
     Parameters
@@ -130,17 +144,25 @@ def log_diagnostics_payload(rec_stream: Any, payload: bytes, period_s: float,
         ``sim_time_s`` is, so the diagnostics line up with the frames at any period.
     states_dropped : int
         States the viewer's ring buffer has dropped so far.
+    newest_tick : int, optional
+        Tick of the newest state of the current segment: a message more than
+        ``ahead_ticks`` ahead of it was published before a reset or load that the states
+        already show, and belongs to the previous segment's recording (not logged).
+    ahead_ticks : int
+        See ``newest_tick``.
 
     Returns
     -------
     bool
-        False (nothing logged) when the payload does not decode.
+        False (nothing logged) when the payload does not decode or is of a past segment.
     """
     from simserver.adapters.rerun_scene import log_diagnostics
 
     try:
         d = proto.decode_diagnostics(payload)
     except proto.ProtocolError:
+        return False
+    if newest_tick is not None and int(d["tick"]) > newest_tick + ahead_ticks:
         return False
     log_diagnostics(rec_stream, float(d["tick"]) * period_s, float(d["lateness_p99_us"]),
                     states_dropped)
@@ -183,16 +205,11 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
     stats = ViewerStats()
     if idle_priority:  # before the sessions: the threads they start inherit it
         stats.cpu_priority = lower_priority()
-    from simserver.adapters.config import load_vehicle
-    from simserver.adapters.rerun_scene import RateGate, SceneLogger
-    from simserver.adapters.rerun_sink import open_recording, parse_sink
+    from simserver.adapters.rerun_scene import RateGate
     from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
 
-    mode, target = parse_sink(sink)
-    rec_stream = open_recording(mode, target, application_id="simserver",
-                                recording_id=f"{prefix}/{vehicle_id}", web_port=web_port,
-                                check_listener=check_listener)
-    if rec_stream is None:
+    recordings = _Recordings(sink, f"{prefix}/{vehicle_id}", web_port, check_listener)
+    if recordings.current is None:
         return stats
     running = [True]
 
@@ -211,36 +228,21 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
             config = ep.request("get_config", timeout_s=5.0)
             if not config.get("ok"):
                 raise RuntimeError(f"get_config failed: {config}")
-            vehicle = load_vehicle(config["config"]["vehicle"]["path"])
-            road = config["config"]["road"]
-            logger = SceneLogger(rec_stream, vehicle.vp, vehicle.tp, road["grade_pct"],
-                                 road["cross_slope_pct"], fps=None)  # decimated here
-            axes = road_axes(road["grade_pct"], road["cross_slope_pct"])
-            h_cg = float(vehicle.vp[VP_CG_HEIGHT_M])
+            scene = _SegmentScene(recordings.current, config["config"], 0, vehicle_id)
             state_every = int(config["config"]["server"]["state_every"])
             period_s = float(config["config"]["server"]["period_s"])
             last_tick: int | None = None
-            last_time_s = -np.inf
             frame_gate = RateGate(fps)  # decimate before the Python-heavy path
             t_start = last_poll = time.monotonic()
             while running[0]:
                 now = time.monotonic()
                 if duration_s is not None and now - t_start > duration_s:
                     break
-                if now - last_poll > ROAD_POLL_S:  # follow set_road and load
+                if now - last_poll > ROAD_POLL_S:  # follow set_road
                     last_poll = now
                     reply = ep.request("get_config", timeout_s=1.0)
-                    if reply.get("ok") and (reply["config"]["road"] != road
-                                            or reply["config"]["vehicle"]["path"]
-                                            != str(vehicle.path)):
-                        logger.flush()
-                        road = reply["config"]["road"]
-                        vehicle = load_vehicle(reply["config"]["vehicle"]["path"])
-                        logger = SceneLogger(rec_stream, vehicle.vp, vehicle.tp,
-                                             road["grade_pct"], road["cross_slope_pct"],
-                                             fps=None, send_blueprint=False)
-                        axes = road_axes(road["grade_pct"], road["cross_slope_pct"])
-                        h_cg = float(vehicle.vp[VP_CG_HEIGHT_M])
+                    if reply.get("ok"):
+                        scene.follow_road(reply["config"])
                 payloads = states.drain_newest()
                 for payload in payloads:
                     try:
@@ -249,29 +251,148 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
                         continue
                     stats.states_received += 1
                     tick = int(rec["tick"])
-                    if last_tick is not None and tick > last_tick + state_every:
+                    if last_tick is not None and tick < last_tick:
+                        # a reset or a load: the next segment, in a recording of its own
+                        scene.logger.flush()
+                        reply = ep.request("get_config", timeout_s=5.0)
+                        if not reply.get("ok"):
+                            raise RuntimeError(f"get_config failed: {reply}")
+                        scene = _SegmentScene(recordings.next(), reply["config"],
+                                              recordings.segment, vehicle_id)
+                        frame_gate.reset()
+                    elif last_tick is not None and tick > last_tick + state_every:
                         # the ring dropped the oldest: count what never arrived
                         stats.states_dropped += (tick - last_tick) // state_every - 1
                     last_tick = tick
                     time_s = float(rec["sim_time_s"])
-                    if time_s < last_time_s:  # a reset or a load: a new frame grid
-                        frame_gate.reset()
-                    last_time_s = time_s
                     if not frame_gate.due(time_s):
                         continue
-                    rows_from_state(rec, axes, h_cg, x, out, inputs)
-                    if logger.log_frame(time_s, x, out, inputs):
+                    rows_from_state(rec, scene.axes, scene.h_cg, x, out, inputs)
+                    if scene.logger.log_frame(time_s, x, out, inputs):
                         stats.frames_logged += 1
                 for payload in diags.drain_newest():
-                    if log_diagnostics_payload(rec_stream, payload, period_s,
-                                               stats.states_dropped):
+                    if log_diagnostics_payload(recordings.current, payload, period_s,
+                                               stats.states_dropped, last_tick,
+                                               100 * state_every):
                         stats.diagnostics += 1
                 if not payloads:
                     time.sleep(0.005)
-            logger.flush()
+            scene.logger.flush()
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
+        recordings.close()
+    return stats
+
+
+class _Recordings:
+    """The viewer's recordings, one per segment (see the module docstring).
+
+    Parameters
+    ----------
+    sink : str
+        ``MODE[:TARGET]`` of the first segment (``rerun_sink.segment_sink`` derives the
+        others).
+    base_id : str
+        Recording id of the first segment (``segment_recording_id``).
+    web_port : int or None
+        ``serve``: the web viewer's port (first segment only).
+    check_listener : bool
+        ``connect``: refuse at once when nothing listens.
+    """
+
+    def __init__(self, sink: str, base_id: str, web_port: int | None,
+                 check_listener: bool) -> None:
+        from simserver.adapters.rerun_sink import parse_sink
+
+        self.mode, self.target = parse_sink(sink)
+        self.base_id = base_id
+        self.web_port = web_port
+        self.check_listener = check_listener
+        self.segment = 0
+        self.current = self._open(0)
+        self.first = self.current
+        """serve: the first stream owns the gRPC server every segment goes to."""
+
+    def _open(self, segment: int) -> Any:
+        from simserver.adapters.rerun_sink import open_recording, segment_sink
+
+        mode, target = segment_sink(self.mode, self.target, segment)
+        return open_recording(mode, target, application_id="simserver",
+                              recording_id=segment_recording_id(self.base_id, segment),
+                              web_port=self.web_port if segment == 0 else None,
+                              check_listener=self.check_listener)
+
+    @staticmethod
+    def _end(rec_stream: Any) -> None:
         rec_stream.flush()
         rec_stream.disconnect()
-    return stats
+
+    def next(self) -> Any:
+        """End the current segment's recording (but not the gRPC server of ``serve``)
+        and open the next one; returns it."""
+        if self.current is not self.first or self.mode != "serve":
+            self._end(self.current)
+            if self.current is self.first:
+                self.first = None
+        self.segment += 1
+        self.current = self._open(self.segment)
+        return self.current
+
+    def close(self) -> None:
+        """End every open recording (the last one, and the one serving, if apart)."""
+        self._end(self.current)
+        if self.first is not None and self.first is not self.current:
+            self._end(self.first)
+
+
+class _SegmentScene:
+    """The scene of one segment: its recording, vehicle, road and ``SceneLogger``.
+
+    Parameters
+    ----------
+    rec_stream : rerun.RecordingStream
+        The segment's recording (named after the vehicle id, segment and scene).
+    config : dict
+        The ``config`` of a ``get_config`` reply at the segment's start.
+    segment : int
+        0, then +1 at each reset or load.
+    vehicle_id : str
+        For the recording's name.
+    """
+
+    def __init__(self, rec_stream: Any, config: dict[str, Any], segment: int,
+                 vehicle_id: str) -> None:
+        from simserver.adapters.config import load_vehicle
+
+        self.rec_stream = rec_stream
+        self.segment = segment
+        self.vehicle = load_vehicle(config["vehicle"]["path"])
+        self.scene_path = str(config["scene"]["path"])
+        self.vehicle_path = str(config["vehicle"]["path"])
+        rec_stream.send_recording_name(
+            f"{vehicle_id} segment {segment}: {Path(self.scene_path).stem}")
+        self._set_road(config["road"], send_blueprint=True)
+
+    def _set_road(self, road: dict[str, Any], send_blueprint: bool) -> None:
+        from simserver.adapters.rerun_scene import SceneLogger
+
+        self.road = road
+        self.logger = SceneLogger(self.rec_stream, self.vehicle.vp, self.vehicle.tp,
+                                  road["grade_pct"], road["cross_slope_pct"], fps=None,
+                                  send_blueprint=send_blueprint)  # decimated by the caller
+        self.axes = road_axes(road["grade_pct"], road["cross_slope_pct"])
+        self.h_cg = float(self.vehicle.vp[VP_CG_HEIGHT_M])
+
+    def follow_road(self, config: dict[str, Any]) -> None:
+        """A ``set_road`` within the segment: draw on the new road from now on.
+
+        A changed vehicle or scene is a ``load``, whose reset starts the next segment
+        (with its own recording) once the states show the tick going back.
+        """
+        if str(config["scene"]["path"]) != self.scene_path \
+                or str(config["vehicle"]["path"]) != self.vehicle_path:
+            return
+        if config["road"] != self.road:
+            self.logger.flush()
+            self._set_road(config["road"], send_blueprint=False)

@@ -31,6 +31,10 @@ one) with Rerun's ``log_time`` timeline switched off, or None for ``off``. The m
     blocks about 11 s there before giving up. The spawned viewer's own gRPC server
     listens on all interfaces (rerun's default).
 
+A live scene that a reset or a load splits into segments gets one recording per segment:
+``segment_sink`` says where the later ones go (``save``: ``run.rrd``, then
+``run.segment1.rrd``, ...; the other modes: the same viewer).
+
 Errors are ``RerunSinkError`` with a message that names the mode and target.
 """
 
@@ -151,6 +155,47 @@ def _has_display() -> bool:
 def web_viewer_url(grpc_url: str, web_port: int, host: str = "127.0.0.1") -> str:
     """The address to open in a browser for the web viewer connected to ``grpc_url``."""
     return f"http://{host}:{web_port}/?url={quote(grpc_url, safe='')}"
+
+
+def segment_path(path: str | os.PathLike[str], segment: int) -> Path:
+    """The ``.rrd`` of segment ``segment`` of a live recording saved to ``path``.
+
+    Segment 0 is ``path`` itself; segment ``k`` sits beside it as ``STEM.segment{k}.rrd``
+    (``run.rrd``, ``run.segment1.rrd``, ...): a file of rerun-sdk 0.41's file sink holds
+    the recording of one stream.
+    """
+    path = Path(path)
+    return path if segment == 0 else path.with_name(f"{path.stem}.segment{segment}{path.suffix}")
+
+
+def segment_sink(mode: str, target: str | None, segment: int) -> tuple[str, str | None]:
+    """Where segment ``segment`` (0 = the first) of a live scene goes, as ``(mode, target)``.
+
+    A reset or a load restarts the server's ``sim_time``; the live viewer starts a new
+    recording for each such segment so that no recording's timeline runs backwards
+    (``simserver.viewer``). Segment 0 goes to the sink as given; the later ones:
+
+    - ``save``: a file of their own beside the first (``segment_path``);
+    - ``serve``: streamed (``connect``) to the gRPC server the first segment's stream
+      started, which stays up until the viewer ends, so a viewer attached there sees
+      every segment;
+    - ``connect``: the same viewer URL;
+    - ``spawn``: the viewer spawned for the first segment (``connect`` to its port).
+    """
+    if segment == 0 or mode in ("off", "connect"):
+        return mode, target
+    if mode == "save":
+        if not target:
+            raise RerunSinkError("rerun save: a target .rrd file is required")
+        return mode, str(segment_path(target, segment))
+    if mode == "serve":
+        host, port = _split_host_port(mode, target, DEFAULT_SERVE_HOST, DEFAULT_GRPC_PORT)
+        if host in ("0.0.0.0", "::", ""):  # bound everywhere: reach it on loopback
+            host = DEFAULT_SERVE_HOST
+        host = f"[{host}]" if ":" in host else host
+        return "connect", f"rerun+http://{host}:{port}/proxy"
+    _, port = _split_host_port(mode, target, "127.0.0.1", DEFAULT_GRPC_PORT)  # spawn
+    return "connect", f"rerun+http://127.0.0.1:{port}/proxy"
 
 
 def open_recording(

@@ -31,6 +31,7 @@ from typing import Any
 import zenoh
 
 from simserver.protocol import (
+    COMMAND_RING_SLOTS,
     DEFAULT_PREFIX,
     DEFAULT_VEHICLE,
     ENCODING_COMMAND,
@@ -475,8 +476,8 @@ class ZenohEndpoint:
     # ---------------------------------------------------------------- server side
 
     # ``keys`` (default this endpoint's) lets one session serve several vehicles.
-    def declare_command_inbox(self, capacity: int = 32, keys: VehicleKeys | None = None
-                              ) -> Inbox:
+    def declare_command_inbox(self, capacity: int = COMMAND_RING_SLOTS,
+                              keys: VehicleKeys | None = None) -> Inbox:
         """Subscriber on ``cmd`` with a ring of ``capacity``; drain it every tick."""
         return self._keep(Inbox(self.session, (keys or self.keys).cmd, capacity))
 
