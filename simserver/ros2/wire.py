@@ -333,3 +333,35 @@ def type_hashes_markdown() -> str:
     for ros_type in dict.fromkeys(t.ros_type for t in TOPICS):
         rows.append(f"| `{ros_type}` | `{dds_type_name(ros_type)}` | `{type_hash(ros_type)}` |")
     return "\n".join(rows)
+
+
+def doc_sections() -> dict[str, str]:
+    """The generated sections of docs/ros2.md, by marker name."""
+    return {"topics": topics_markdown(), "type_hashes": type_hashes_markdown()}
+
+
+def update_doc(text: str) -> str:
+    """``text`` with every ``<!-- BEGIN GENERATED: name -->`` section regenerated."""
+    sections = doc_sections()
+
+    def sub(m: re.Match) -> str:
+        return f"{m.group(1)}\n{sections[m.group(2)]}\n{m.group(3)}"
+
+    return re.sub(r"(<!-- BEGIN GENERATED: (\w+) -->)\n.*?\n(<!-- END GENERATED -->)", sub,
+                  text, flags=re.S)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m simserver.ros2.wire --write docs/ros2.md``: regenerate its tables."""
+    import argparse
+    from pathlib import Path
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("--write", type=Path, required=True, metavar="DOC")
+    args = parser.parse_args(argv)
+    args.write.write_text(update_doc(args.write.read_text(encoding="utf-8")), encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

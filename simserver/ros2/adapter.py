@@ -1,0 +1,346 @@
+"""The ROS 2 adapter process: a ROS 2 node (as rmw_zenoh makes one) fed by the state topic.
+
+Like the viewer (``simserver.viewer``), it is a separate process that talks to the server
+only through the protocol: it subscribes to the state (a bounded ring, newest wins),
+sends DriverCommands, and reads the vehicle with the ``get_config`` control. The 1 kHz
+loop never waits for it, and by default it runs at idle CPU priority
+(``viewer.lower_priority``) so that on the server's machine it uses only time the
+physics does not want.
+
+Every ``1 / rate_hz`` seconds (absolute deadlines; a late loop skips, never bursts) it:
+
+1. takes the newest state and the newest ROS commands (``ackermann_cmd``, ``cmd_vel``:
+   whichever arrived last is in force);
+2. if the newest ROS command is younger than ``command_timeout_s``, runs the speed
+   controller (``simserver.ros2.control``) and sends one DriverCommand. Without a ROS
+   command for that long it sends nothing at all, so the server's own watchdog engages
+   after its period (throttle 0, brakes hold) exactly as for any silent client: no ROS
+   command, no drive;
+3. publishes Odometry, Imu, TF and JointState of that state (``simserver.ros2.convert``),
+   stamped with the wall clock (``stamp="wall"``, what a real car's drivers do) or the
+   simulated time (``stamp="sim"``).
+
+The node's graph entities (node, publishers, subscriptions) are announced with
+rmw_zenoh's liveliness tokens (``simserver.ros2.wire``), so ``ros2 node list`` shows
+``/simserver_<vehicle>`` and ``ros2 topic list`` its topics.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from simserver import protocol as proto
+from simserver.ros2 import wire
+from simserver.ros2.control import DriveTarget, SpeedController, VehicleLimits, twist_steer_angle
+from simserver.ros2.convert import StateConverter
+
+log = logging.getLogger("simserver.ros2")
+
+CONFIG_POLL_S = 2.0
+"""Re-read the server's configuration this often, to follow a ``load`` of another vehicle."""
+
+
+@dataclass
+class Ros2Options:
+    """How the adapter connects and what it names things (``simserver ros2`` flags)."""
+
+    connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    zenoh_config: Path | None = None
+    prefix: str = proto.DEFAULT_PREFIX
+    vehicle_id: str = proto.DEFAULT_VEHICLE
+    domain_id: int = 0
+    namespace: str = "/"
+    node_name: str | None = None  # default simserver_<vehicle id>
+    rate_hz: float = 100.0
+    command_timeout_s: float = 0.5
+    topics: dict[str, str] = field(default_factory=dict)  # option -> ROS name overrides
+    odom_frame: str = "odom"
+    base_frame: str = "base_link"
+    stamp: str = "wall"
+    duration_s: float | None = None
+    idle_priority: bool = True
+
+    def check(self) -> Ros2Options:
+        """Validate; :class:`simserver.ros2.wire.Ros2WireError` names the bad option."""
+        wire.check_domain_id(self.domain_id)
+        self.namespace = wire.validate_namespace(self.namespace)
+        self.node_name = wire.validate_node_name(self.node_name
+                                                 or wire.node_name_for(self.vehicle_id))
+        if not 1.0 <= self.rate_hz <= 1000.0:
+            raise wire.Ros2WireError(f"rate_hz: {self.rate_hz} is not in [1, 1000]")
+        if not 0.01 <= self.command_timeout_s <= 60.0:
+            raise wire.Ros2WireError(
+                f"command_timeout_s: {self.command_timeout_s} is not in [0.01, 60]")
+        if self.stamp not in ("wall", "sim"):
+            raise wire.Ros2WireError(f"stamp: {self.stamp!r} is not 'wall' or 'sim'")
+        for option, name in self.topics.items():
+            if option not in wire.TOPIC_BY_OPTION:
+                raise wire.Ros2WireError(
+                    f"topic: {option!r} is not one of {', '.join(wire.TOPIC_BY_OPTION)}")
+            wire.fully_qualified_name(self.namespace, name)
+        return self
+
+
+@dataclass
+class Ros2Stats:
+    """What the adapter did."""
+
+    states_received: int = 0
+    messages_published: int = 0
+    ros_commands: int = 0
+    ros_commands_rejected: int = 0
+    commands_sent: int = 0
+    cpu_priority: str = "normal"
+
+
+class RosPublisher:
+    """A ROS 2 publisher as rmw_zenoh makes one: key, CDR payload, attachment, token."""
+
+    def __init__(self, node: RosNode, fq_topic: str, ros_type: str, qos: wire.QoS) -> None:
+        self.ros_type = ros_type
+        self.key = wire.topic_keyexpr(node.domain_id, fq_topic, ros_type)
+        self.token_key = node.endpoint_token(wire.ENTITY_PUBLISHER, fq_topic, ros_type, qos)
+        self.gid = wire.gid_for(self.token_key)
+        self.seq = 0
+        # rmw_zenoh: a KEEP_LAST publisher drops rather than blocks on congestion
+        self._pub = node.session.declare_publisher(
+            self.key, congestion_control=zenoh.CongestionControl.DROP)
+        self._token = node.session.liveliness().declare_token(self.token_key)
+
+    def put(self, message: Any) -> None:
+        """Serialise and publish one message."""
+        self.seq += 1
+        self._pub.put(wire.serialize(message, self.ros_type),
+                      attachment=wire.encode_attachment(self.seq, time.time_ns(), self.gid))
+
+    def close(self) -> None:
+        for obj in (self._token, self._pub):
+            try:
+                obj.undeclare()
+            except zenoh.ZError:
+                pass
+
+
+class RosSubscription:
+    """A ROS 2 subscription: a ring of the newest samples, decoded with rosbags."""
+
+    def __init__(self, node: RosNode, fq_topic: str, ros_type: str, qos: wire.QoS) -> None:
+        self.ros_type = ros_type
+        self.key = wire.topic_keyexpr(node.domain_id, fq_topic, ros_type)
+        self.token_key = node.endpoint_token(wire.ENTITY_SUBSCRIPTION, fq_topic, ros_type, qos)
+        self._sub = node.session.declare_subscriber(
+            self.key, zenoh.handlers.RingChannel(max(1, qos.depth)))
+        self._token = node.session.liveliness().declare_token(self.token_key)
+        self.rejected = 0
+
+    def drain(self) -> list[Any]:
+        """Decoded messages received since the last call, oldest first (never blocks)."""
+        out = []
+        sample = self._sub.try_recv()
+        while sample is not None:
+            try:
+                out.append(wire.deserialize(sample.payload.to_bytes(), self.ros_type))
+            except Exception as exc:  # rosbags raises several kinds on a bad payload
+                self.rejected += 1
+                log.warning("%s: cannot decode a %s (%s)", self.key, self.ros_type, exc)
+            sample = self._sub.try_recv()
+        return out
+
+    def close(self) -> None:
+        for obj in (self._token, self._sub):
+            try:
+                obj.undeclare()
+            except zenoh.ZError:
+                pass
+
+
+class RosNode:
+    """One ROS 2 node on a zenoh session (rmw_zenoh's graph tokens), node id 0."""
+
+    def __init__(self, session: zenoh.Session, domain_id: int, namespace: str,
+                 node_name: str) -> None:
+        self.session = session
+        self.domain_id = domain_id
+        self.namespace = namespace
+        self.node_name = node_name
+        self.session_id = str(session.info.zid())
+        self.node_id = 0
+        self._next_entity_id = 1
+        self.token_key = wire.node_token(domain_id, self.session_id, self.node_id, namespace,
+                                         node_name)
+        self._token = session.liveliness().declare_token(self.token_key)
+        self._entities: list[RosPublisher | RosSubscription] = []
+
+    def endpoint_token(self, kind: str, fq_topic: str, ros_type: str, qos: wire.QoS) -> str:
+        entity_id = self._next_entity_id
+        self._next_entity_id += 1
+        return wire.endpoint_token(self.domain_id, self.session_id, self.node_id, entity_id,
+                                   kind, self.namespace, self.node_name, fq_topic, ros_type,
+                                   qos)
+
+    def publisher(self, fq_topic: str, ros_type: str, qos: wire.QoS) -> RosPublisher:
+        pub = RosPublisher(self, fq_topic, ros_type, qos)
+        self._entities.append(pub)
+        return pub
+
+    def subscription(self, fq_topic: str, ros_type: str, qos: wire.QoS) -> RosSubscription:
+        sub = RosSubscription(self, fq_topic, ros_type, qos)
+        self._entities.append(sub)
+        return sub
+
+    def close(self) -> None:
+        while self._entities:
+            self._entities.pop().close()
+        try:
+            self._token.undeclare()
+        except zenoh.ZError:
+            pass
+
+
+def _vehicle_from_config(config: dict[str, Any]) -> tuple[VehicleLimits, float, str]:
+    """Controller limits, gravity and a change marker from a ``get_config`` reply."""
+    from simserver.adapters.config import load_vehicle
+
+    vehicle_path = config["vehicle"]["path"]
+    model = config["scene"].get("model") or {}
+    vehicle = load_vehicle(vehicle_path, model)
+    limits = VehicleLimits.from_vehicle(vehicle.vp, vehicle.tp)
+    return limits, limits.gravity_mps2, f"{vehicle_path}|{sorted(model.items())}"
+
+
+def _target_from_ackermann(msg: Any) -> DriveTarget:
+    d = msg.drive
+    return DriveTarget(speed_mps=float(d.speed), accel_limit_mps2=abs(float(d.acceleration)),
+                       steer_rad=float(d.steering_angle),
+                       steer_rate_limit_radps=abs(float(d.steering_angle_velocity)))
+
+
+def run_ros2(options: Ros2Options) -> Ros2Stats:
+    """Run the adapter until SIGINT/SIGTERM (or ``duration_s``); returns its statistics."""
+    import math
+
+    from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
+    from simserver.viewer import lower_priority
+
+    opts = options.check()
+    stats = Ros2Stats()
+    if opts.idle_priority:  # before the session: its threads inherit it
+        stats.cpu_priority = lower_priority()
+    running = [True]
+
+    def stop(*_: Any) -> None:
+        running[0] = False
+
+    previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    cfg = make_zenoh_config(listen=[], connect=opts.connect, config_file=opts.zenoh_config)
+    names = {t.option: opts.topics.get(t.option, t.name) for t in wire.TOPICS}
+    try:
+        with ZenohEndpoint(cfg, prefix=opts.prefix, vehicle=opts.vehicle_id) as ep:
+            states = ep.declare_state_inbox(capacity=64)
+            cmd_pub = ep.declare_command_publisher()
+            reply = ep.request("get_config", timeout_s=5.0)
+            if not reply.get("ok"):
+                raise RuntimeError(f"get_config failed: {reply}")
+            limits, gravity, vehicle_marker = _vehicle_from_config(reply["config"])
+            controller = SpeedController(limits)
+            converter = StateConverter(opts.odom_frame, opts.base_frame, gravity)
+            node = RosNode(ep.session, opts.domain_id, opts.namespace, opts.node_name)
+            try:
+                pubs = {}
+                subs = {}
+                for t in wire.TOPICS:
+                    fq = wire.fully_qualified_name(opts.namespace, names[t.option])
+                    if t.direction == wire.PUBLISH:
+                        pubs[t.option] = node.publisher(fq, t.ros_type, t.qos)
+                    else:
+                        subs[t.option] = node.subscription(fq, t.ros_type, t.qos)
+                print(f"simserver ros2: node {opts.namespace.rstrip('/')}/{opts.node_name} on "
+                      f"domain {opts.domain_id} for {ep.keys.base} "
+                      f"({', '.join(p.key.split('/')[1] for p in pubs.values())} out; "
+                      f"{', '.join(s.key.split('/')[1] for s in subs.values())} in)", flush=True)
+                period = 1.0 / opts.rate_hz
+                target = DriveTarget()
+                last_ros_cmd: float | None = None
+                rec = None
+                last_control_time_s: float | None = None
+                seq = 0
+                t_start = next_t = last_poll = time.monotonic()
+                while running[0]:
+                    now = time.monotonic()
+                    if opts.duration_s is not None and now - t_start > opts.duration_s:
+                        break
+                    if now - last_poll > CONFIG_POLL_S:  # follow a load of another vehicle
+                        last_poll = now
+                        try:
+                            reply = ep.request("get_config", timeout_s=1.0)
+                        except TimeoutError:
+                            reply = {}
+                        if reply.get("ok"):
+                            new = _vehicle_from_config(reply["config"])
+                            if new[2] != vehicle_marker:
+                                limits, gravity, vehicle_marker = new
+                                controller = SpeedController(limits)
+                                converter.gravity_mps2 = gravity
+                    for payload in reversed(states.drain_newest()):
+                        try:
+                            rec = proto.decode_state(payload)
+                        except proto.ProtocolError:
+                            continue
+                        stats.states_received += 1
+                        break
+                    for msg in subs["ackermann_cmd"].drain():
+                        target = _target_from_ackermann(msg)
+                        last_ros_cmd = now
+                        stats.ros_commands += 1
+                    for msg in subs["cmd_vel"].drain():
+                        speed = float(msg.linear.x)
+                        target = DriveTarget(
+                            speed_mps=speed,
+                            steer_rad=twist_steer_angle(speed, float(msg.angular.z), limits))
+                        last_ros_cmd = now
+                        stats.ros_commands += 1
+                    stats.ros_commands_rejected = sum(s.rejected for s in subs.values())
+                    active = last_ros_cmd is not None and now - last_ros_cmd \
+                        <= opts.command_timeout_s
+                    if rec is not None and active:
+                        time_s = float(rec["sim_time_s"])
+                        dt = 0.0 if last_control_time_s is None \
+                            or time_s < last_control_time_s else time_s - last_control_time_s
+                        if last_control_time_s is not None and time_s < last_control_time_s:
+                            controller.reset()  # the server was reset
+                        last_control_time_s = time_s
+                        pedals = controller.update(target, float(rec["u_mps"]),
+                                                   float(rec["pitch_rad"]), dt)
+                        seq = (seq + 1) & 0xFFFFFFFF
+                        cmd_pub.put(proto.encode_command(
+                            pedals.steer, pedals.throttle, pedals.brake, gear=pedals.gear,
+                            seq=seq))
+                        stats.commands_sent += 1
+                    elif last_control_time_s is not None:
+                        controller.reset()  # silent: the server's watchdog takes over
+                        last_control_time_s = None
+                    if rec is not None:
+                        stamp_ns = time.time_ns() if opts.stamp == "wall" \
+                            else int(round(float(rec["sim_time_s"]) * 1e9))
+                        for option, (_, message) in converter.messages(rec, stamp_ns).items():
+                            pubs[option].put(message)
+                            stats.messages_published += 1
+                    next_t += period
+                    delay = next_t - time.monotonic()
+                    if delay > 0.0:
+                        time.sleep(delay)
+                    else:  # late: skip the missed deadlines instead of bursting
+                        next_t += period * math.floor(-delay / period)
+            finally:
+                node.close()
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+    return stats
