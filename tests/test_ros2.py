@@ -265,14 +265,18 @@ def within(history: list[np.void], since_s: float) -> list[np.void]:
     return [s for s in history if float(s["sim_time_s"]) >= end - since_s]
 
 
-def speed_reached_and_held(target: float, hold_s: float) -> Callable[[list[np.void]], bool]:
-    """True once every state of the last ``hold_s`` s is within 5 % of ``target``."""
-    def done(history: list[np.void]) -> bool:
-        window = within(history, hold_s)
-        if float(window[-1]["sim_time_s"]) - float(window[0]["sim_time_s"]) < hold_s - 0.01:
-            return False
-        return all(abs(float(s["u_mps"]) - target) <= 0.05 * abs(target) for s in window)
-    return done
+def assert_reaches_and_holds(pub, message, states: States, target: float) -> None:
+    """The car comes within 5 % of ``target``, then stays within 5 % for 3 s."""
+    def close(s: np.void) -> bool:
+        return abs(float(s["u_mps"]) - target) <= 0.05 * abs(target)
+
+    drive_until(pub, message, states, lambda h: close(h[-1]), 30.0, f"within 5 % of {target}")
+    states.history[:] = states.history[-1:]
+    start = float(states.history[0]["sim_time_s"])
+    drive_until(pub, message, states, lambda h: float(h[-1]["sim_time_s"]) >= start + 3.0,
+                10.0, "3 s more")
+    worst = max(abs(float(s["u_mps"]) - target) for s in states.history)
+    assert worst <= 0.05 * abs(target), f"left the 5 % band by {worst:.3f} m/s"
 
 
 def stopped_and_held(history: list[np.void]) -> bool:
@@ -293,6 +297,10 @@ def reset_at_rest(watcher: ZenohEndpoint, states: States) -> None:
 def assert_stop_and_hold_without_creep(pub, message, states: States) -> None:
     """Zero target: the car stops, the brake holds, and it does not creep down the 10 %."""
     drive_until(pub, message, states, stopped_and_held, 20.0, "stop")
+    stop_s = float(states.history[-1]["sim_time_s"])
+    # the tires' relaxation settles within a fraction of a millimetre; then nothing moves
+    drive_until(pub, message, states, lambda h: float(h[-1]["sim_time_s"]) >= stop_s + 0.5,
+                5.0, "settle")
     states.history[:] = states.history[-1:]
     start = states.history[0]
     drive_until(pub, message, states,
@@ -301,7 +309,7 @@ def assert_stop_and_hold_without_creep(pub, message, states: States) -> None:
     held = states.history
     creep_m = max(math.hypot(float(s["x_m"]) - float(start["x_m"]),
                              float(s["y_m"]) - float(start["y_m"])) for s in held)
-    assert creep_m < 1e-3, f"the car crept {creep_m * 1e3:.2f} mm in 3 s on the 10 % grade"
+    assert creep_m < 1e-4, f"the car crept {creep_m * 1e3:.3f} mm in 3 s on the 10 % grade"
     assert max(abs(float(s["u_mps"])) for s in held) < 0.01
     for s in held:  # held by the adapter's commands (brake pedal), not by the watchdog
         assert not int(s["flags"]) & WATCHDOG, "the server's watchdog engaged during the hold"
@@ -458,8 +466,7 @@ def test_ackermann_reaches_and_holds_speed_then_stops_and_holds_on_10pct(
                                    "ackermann_msgs/msg/AckermannDriveStamped")
     try:
         reset_at_rest(watcher, states)
-        drive_until(pub, ackermann(6.0), states, speed_reached_and_held(6.0, 3.0), 40.0,
-                    "6 m/s up the 10 % grade, held 3 s")
+        assert_reaches_and_holds(pub, ackermann(6.0), states, 6.0)  # up the 10 % grade
         steer = 0.05
         drive_until(pub, ackermann(6.0, steer=steer), states,
                     lambda h: float(h[-1]["steer_rad"][0]) == pytest.approx(steer, rel=1e-3),
@@ -479,8 +486,7 @@ def test_cmd_vel_reaches_and_holds_speed_then_stops_and_holds_on_10pct(
     pub = RosPublisherLikeRmwZenoh(session, "cmd_vel", "geometry_msgs/msg/Twist")
     try:
         reset_at_rest(watcher, states)
-        drive_until(pub, twist(4.0), states, speed_reached_and_held(4.0, 3.0), 40.0,
-                    "4 m/s up the 10 % grade, held 3 s")
+        assert_reaches_and_holds(pub, twist(4.0), states, 4.0)  # up the 10 % grade
         wheelbase = 1.35 + 1.55  # configs/vehicles/paper_sedan/chassis.yaml
         angle = math.atan(wheelbase * 0.2 / 4.0)
         drive_until(pub, twist(4.0, 0.2), states,

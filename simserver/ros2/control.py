@@ -16,9 +16,12 @@ Speed controller (:class:`SpeedController`), per sample of period ``dt``:
 3. **Demand.** An acceleration demand along the direction of travel, in m/s^2:
    feed-forward of the grade (``-g sin(pitch)``, pitch positive nose down) and of the
    aerodynamic drag (``rho CdA u^2 / 2m``), plus a PI on the speed error
-   (``KP_PER_S``, ``KI_PER_S2``). Anti-windup by conditional integration: the integral
-   does not grow while the pedal it drives is saturated in the error's direction, and it
-   is bounded by ``INTEGRAL_MAX_MPS2``.
+   (``KP_PER_S``, ``KI_PER_S2``). Anti-windup twice over: the integral only runs within
+   ``INTEGRAL_BAND_MPS`` of the reference (it trims the small steady offset the
+   feed-forward leaves, such as rolling losses; the approach to a new speed is the
+   proportional term's, so a step does not wind it up into an overshoot), and it does not
+   grow while the pedal it drives is saturated in the error's direction (conditional
+   integration); it is bounded by ``INTEGRAL_MAX_MPS2``.
 4. **Pedals, blended.** A positive demand is throttle, ``demand / a_drive_max`` (the
    acceleration of full throttle: drive torque cap / (wheel radius x mass); reverse
    torque in R); a negative demand is brake, ``-demand / a_brake_max`` (full-pedal brake
@@ -52,6 +55,8 @@ KP_PER_S = 1.5
 """Proportional gain: m/s^2 of demand per m/s of speed error."""
 KI_PER_S2 = 0.6
 """Integral gain: m/s^2 of demand per m of integrated speed error."""
+INTEGRAL_BAND_MPS = 0.5
+"""The integral runs only while the speed is this close to the reference."""
 INTEGRAL_MAX_MPS2 = 4.0
 """Bound of the integral term (beyond any grade the car can climb, to end wind-up)."""
 STOP_TARGET_MPS = 0.01
@@ -218,7 +223,7 @@ class SpeedController:
         demand = feed_forward + KP_PER_S * error + self.integral_mps2
         saturated_up = demand >= a_drive_max and error > 0.0
         saturated_down = demand <= -lim.brake_decel_max_mps2 and error < 0.0
-        if not (saturated_up or saturated_down):
+        if abs(error) < INTEGRAL_BAND_MPS and not (saturated_up or saturated_down):
             self.integral_mps2 = _clip(self.integral_mps2 + KI_PER_S2 * error * dt,
                                        -INTEGRAL_MAX_MPS2, INTEGRAL_MAX_MPS2)
         if demand >= 0.0:
