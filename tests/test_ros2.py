@@ -163,10 +163,13 @@ def watcher(server: str) -> Iterator[ZenohEndpoint]:
 @pytest.fixture(scope="module")
 def adapter(server: str, router: tuple[zenoh.Session, str]) -> Iterator[Process]:
     """``simserver ros2`` connected to the server and to the router, on domain 7."""
+    from simserver.ros2.cli import adapter_command
+
     session, router_endpoint = router
-    proc = Process([sys.executable, "-m", "simserver", "ros2", "--connect", server,
-                    "--connect", router_endpoint, "--domain-id", str(DOMAIN),
-                    "--normal-priority"], "simserver ros2: node")
+    # the command line serve uses (a server config's ros2: section)
+    args = adapter_command(server, "simserver", "car0", {
+        "router": router_endpoint, "domain_id": DOMAIN, "normal_priority": True})
+    proc = Process(args, "simserver ros2: node")
     proc.wait_ready(120)
     deadline = time.monotonic() + 30
     while not liveliness_tokens(session):  # the node is in the graph
@@ -358,6 +361,18 @@ def test_bad_options_are_refused_naming_the_option(flags, field, capsys) -> None
 
     assert main(["ros2", "--connect", "tcp/127.0.0.1:9", *flags]) == 2
     assert field in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("settings", "key"), [
+    ({"domain": 1}, "domain"), ({"domain_id": "1"}, "domain_id"),
+    ({"topics": ["odom"]}, "topics"), ({"normal_priority": 1}, "normal_priority"),
+])
+def test_serve_settings_are_checked_naming_the_key(settings, key) -> None:
+    from simserver.ros2.cli import adapter_command
+
+    with pytest.raises(ValueError, match=f"server.yaml: ros2.*{key}"):
+        adapter_command("tcp/127.0.0.1:7447", "simserver", "car0", settings,
+                        source="server.yaml: ros2")
 
 
 def test_published_topics_as_rmw_zenoh_writes_them(adapter, router, watcher) -> None:

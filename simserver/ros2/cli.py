@@ -82,3 +82,65 @@ def run(args: argparse.Namespace) -> int:
           f"{stats.ros_commands} ROS commands in ({stats.ros_commands_rejected} rejected), "
           f"{stats.commands_sent} commands sent; CPU priority {stats.cpu_priority}", flush=True)
     return 0
+
+
+SERVE_SETTINGS: dict[str, tuple[str, type]] = {
+    "router": ("--connect", str),
+    "domain_id": ("--domain-id", int),
+    "namespace": ("--namespace", str),
+    "node_name": ("--node-name", str),
+    "rate_hz": ("--rate", float),
+    "command_timeout_s": ("--command-timeout", float),
+    "stamp": ("--stamp", str),
+}
+"""The keys of a server config's ``ros2:`` section and the ``simserver ros2`` flag of each
+(plus ``topics: {option: name}`` and ``normal_priority: bool``)."""
+
+
+def adapter_command(endpoint: str, prefix: str, vehicle_id: str,
+                    settings: dict | None = None, source: str = "ros2") -> list[str]:
+    """The command line with which ``serve`` starts the adapter beside itself.
+
+    Parameters
+    ----------
+    endpoint : str
+        The server's own zenoh endpoint (as for the viewer: a loopback form of its first
+        listen endpoint).
+    prefix, vehicle_id : str
+        The server's keys.
+    settings : dict, optional
+        The server config's ``ros2:`` section (keys of :data:`SERVE_SETTINGS`, ``topics``
+        and ``normal_priority``); values are checked again by the adapter itself.
+    source : str
+        Where ``settings`` came from, for the error message (``"server.yaml: ros2"``).
+
+    Raises
+    ------
+    ValueError
+        Naming ``source`` and the key, for an unknown key or a value of the wrong type.
+    """
+    import sys
+
+    args = [sys.executable, "-m", "simserver", "ros2", "--connect", endpoint,
+            "--prefix", prefix, "--vehicle-id", vehicle_id]
+    for key, value in (settings or {}).items():
+        if key == "topics":
+            if not isinstance(value, dict):
+                raise ValueError(f"{source}.topics: expected a mapping option: ROS name")
+            for option, name in value.items():
+                args += ["--topic", f"{option}={name}"]
+        elif key == "normal_priority":
+            if not isinstance(value, bool):
+                raise ValueError(f"{source}.normal_priority: expected true or false")
+            if value:
+                args.append("--normal-priority")
+        elif key in SERVE_SETTINGS:
+            flag, kind = SERVE_SETTINGS[key]
+            if isinstance(value, bool) or not isinstance(value, (kind, int) if kind is float
+                                                          else kind):
+                raise ValueError(f"{source}.{key}: expected a {kind.__name__}, got {value!r}")
+            args += [flag, str(value)]
+        else:
+            raise ValueError(f"{source}: unknown key {key!r} (known: "
+                             f"{', '.join([*SERVE_SETTINGS, 'topics', 'normal_priority'])})")
+    return args
