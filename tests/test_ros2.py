@@ -301,9 +301,15 @@ def assert_stop_and_hold_without_creep(pub, message, states: States) -> None:
     """Zero target: the car stops, the brake holds, and it does not creep down the 10 %."""
     drive_until(pub, message, states, stopped_and_held, 20.0, "stop")
     stop_s = float(states.history[-1]["sim_time_s"])
-    # the tires' relaxation settles within a fraction of a millimetre; then nothing moves
-    drive_until(pub, message, states, lambda h: float(h[-1]["sim_time_s"]) >= stop_s + 0.5,
-                5.0, "settle")
+
+    def settled(history: list[np.void]) -> bool:
+        # the held car rocks on its tires (the paper's 3.5 Hz fore-aft mode) for about a
+        # second, within a fraction of a millimetre; then it must not move
+        window = within(history, 0.5)
+        return float(window[0]["sim_time_s"]) >= stop_s and \
+            all(abs(float(s["u_mps"])) < 1e-3 for s in window)
+
+    drive_until(pub, message, states, settled, 5.0, "settle")
     states.history[:] = states.history[-1:]
     start = states.history[0]
     drive_until(pub, message, states,
@@ -489,6 +495,9 @@ def test_ackermann_reaches_and_holds_speed_then_stops_and_holds_on_10pct(
         drive_until(pub, ackermann(6.0), states,
                     lambda h: abs(float(h[-1]["steer_rad"][0])) < 1e-6, 5.0, "straight")
         assert_stop_and_hold_without_creep(pub, ackermann(0.0), states)
+        assert_reaches_and_holds(pub, ackermann(-2.0), states, -2.0)  # reverse, downhill
+        assert int(states.history[-1]["gear"]) == proto.Gear.R
+        assert_stop_and_hold_without_creep(pub, ackermann(0.0), states)
     finally:
         pub.close()
         states.close()
@@ -514,7 +523,7 @@ def test_cmd_vel_reaches_and_holds_speed_then_stops_and_holds_on_10pct(
 
 
 def test_no_ros_command_no_drive(adapter, router, watcher) -> None:
-    """ROS commands stop: the adapter goes silent and the server's watchdog holds the car."""
+    """ROS commands stop (or turn to NaN): the adapter goes silent, the watchdog holds."""
     session, _ = router
     states = States(watcher)
     pub = RosPublisherLikeRmwZenoh(session, "ackermann_cmd",
@@ -525,17 +534,16 @@ def test_no_ros_command_no_drive(adapter, router, watcher) -> None:
                     lambda h: float(h[-1]["u_mps"]) > 1.0 and not int(h[-1]["flags"]) & WATCHDOG,
                     20.0, "driving")
         last_ros_command = time.monotonic()
-        deadline = last_ros_command + 5.0
-        while not int(states.poll()[-1]["flags"]) & WATCHDOG:
-            assert time.monotonic() < deadline, "the watchdog never engaged"
-            time.sleep(0.01)
+        nan_command = ackermann(float("nan"))  # keeps arriving, but is no command
+        drive_until(pub, nan_command, states, lambda h: int(h[-1]["flags"]) & WATCHDOG, 5.0,
+                    "the watchdog engaging")
         engaged_after_s = time.monotonic() - last_ros_command
         # the adapter's timeout (0.5 s) plus the server's watchdog (0.2 s), not sooner
         assert engaged_after_s > 0.6, engaged_after_s
         seq = int(states.history[-1]["last_cmd_seq"])
         end = float(states.history[-1]["sim_time_s"]) + 0.5
-        while float(states.poll()[-1]["sim_time_s"]) < end:
-            time.sleep(0.01)
+        drive_until(pub, nan_command, states, lambda h: float(h[-1]["sim_time_s"]) >= end,
+                    5.0, "0.5 s more")
         assert int(states.history[-1]["last_cmd_seq"]) == seq, "commands after the timeout"
         assert float(states.history[-1]["throttle"]) == 0.0
     finally:

@@ -9,8 +9,9 @@ physics does not want.
 
 Every ``1 / rate_hz`` seconds (absolute deadlines; a late loop skips, never bursts) it:
 
-1. takes the newest state and the newest ROS commands (``ackermann_cmd``, ``cmd_vel``:
-   whichever arrived last is in force);
+1. takes the newest state and the ROS commands received since the last period
+   (``ackermann_cmd``, then ``cmd_vel``; the last one is in force). A command with a
+   NaN or an infinity is ignored (counted as rejected), as if it had not been sent;
 2. if the newest ROS command is younger than ``command_timeout_s``, runs the speed
    controller (``simserver.ros2.control``) and sends one DriverCommand. Without a ROS
    command for that long it sends nothing at all, so the server's own watchdog engages
@@ -28,6 +29,7 @@ rmw_zenoh's liveliness tokens (``simserver.ros2.wire``), so ``ros2 node list`` s
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import time
 from dataclasses import dataclass, field
@@ -215,17 +217,35 @@ def _vehicle_from_config(config: dict[str, Any]) -> tuple[VehicleLimits, float, 
     return limits, limits.gravity_mps2, f"{vehicle_path}|{sorted(model.items())}"
 
 
-def _target_from_ackermann(msg: Any) -> DriveTarget:
+def _finite(target: DriveTarget) -> DriveTarget | None:
+    values = (target.speed_mps, target.accel_limit_mps2, target.steer_rad,
+              target.steer_rate_limit_radps)
+    if all(math.isfinite(v) for v in values):
+        return target
+    log.warning("a ROS command with a non-finite value was ignored: %s", target)
+    return None
+
+
+def _target_from_ackermann(msg: Any) -> DriveTarget | None:
+    """An AckermannDriveStamped's target, or None when a value is NaN or infinite."""
     d = msg.drive
-    return DriveTarget(speed_mps=float(d.speed), accel_limit_mps2=abs(float(d.acceleration)),
-                       steer_rad=float(d.steering_angle),
-                       steer_rate_limit_radps=abs(float(d.steering_angle_velocity)))
+    return _finite(DriveTarget(
+        speed_mps=float(d.speed), accel_limit_mps2=abs(float(d.acceleration)),
+        steer_rad=float(d.steering_angle),
+        steer_rate_limit_radps=abs(float(d.steering_angle_velocity))))
+
+
+def _target_from_twist(msg: Any, limits: VehicleLimits) -> DriveTarget | None:
+    """A Twist's target (``linear.x``, ``angular.z``), or None when one is not finite."""
+    speed, yaw_rate = float(msg.linear.x), float(msg.angular.z)
+    if not (math.isfinite(speed) and math.isfinite(yaw_rate)):
+        log.warning("a Twist with a non-finite value was ignored")
+        return None
+    return DriveTarget(speed_mps=speed, steer_rad=twist_steer_angle(speed, yaw_rate, limits))
 
 
 def run_ros2(options: Ros2Options) -> Ros2Stats:
     """Run the adapter until SIGINT/SIGTERM (or ``duration_s``); returns its statistics."""
-    import math
-
     from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
     from simserver.viewer import lower_priority
 
@@ -271,6 +291,7 @@ def run_ros2(options: Ros2Options) -> Ros2Stats:
                 rec = None
                 last_control_time_s: float | None = None
                 seq = 0
+                rejected_targets = 0
                 t_start = next_t = last_poll = time.monotonic()
                 while running[0]:
                     now = time.monotonic()
@@ -295,18 +316,17 @@ def run_ros2(options: Ros2Options) -> Ros2Stats:
                             continue
                         stats.states_received += 1
                         break
-                    for msg in subs["ackermann_cmd"].drain():
-                        target = _target_from_ackermann(msg)
+                    received = [_target_from_ackermann(m) for m in subs["ackermann_cmd"].drain()]
+                    received += [_target_from_twist(m, limits) for m in subs["cmd_vel"].drain()]
+                    for new_target in received:
+                        if new_target is None:  # NaN or infinity: no command at all
+                            rejected_targets += 1
+                            continue
+                        target = new_target
                         last_ros_cmd = now
                         stats.ros_commands += 1
-                    for msg in subs["cmd_vel"].drain():
-                        speed = float(msg.linear.x)
-                        target = DriveTarget(
-                            speed_mps=speed,
-                            steer_rad=twist_steer_angle(speed, float(msg.angular.z), limits))
-                        last_ros_cmd = now
-                        stats.ros_commands += 1
-                    stats.ros_commands_rejected = sum(s.rejected for s in subs.values())
+                    stats.ros_commands_rejected = rejected_targets + sum(
+                        s.rejected for s in subs.values())
                     active = last_ros_cmd is not None and now - last_ros_cmd \
                         <= opts.command_timeout_s
                     if rec is not None and active:
