@@ -106,6 +106,7 @@ class RosPublisher:
     """A ROS 2 publisher as rmw_zenoh makes one: key, CDR payload, attachment, token."""
 
     def __init__(self, node: RosNode, fq_topic: str, ros_type: str, qos: wire.QoS) -> None:
+        self.topic = fq_topic
         self.ros_type = ros_type
         self.key = wire.topic_keyexpr(node.domain_id, fq_topic, ros_type)
         self.token_key = node.endpoint_token(wire.ENTITY_PUBLISHER, fq_topic, ros_type, qos)
@@ -134,6 +135,7 @@ class RosSubscription:
     """A ROS 2 subscription: a ring of the newest samples, decoded with rosbags."""
 
     def __init__(self, node: RosNode, fq_topic: str, ros_type: str, qos: wire.QoS) -> None:
+        self.topic = fq_topic
         self.ros_type = ros_type
         self.key = wire.topic_keyexpr(node.domain_id, fq_topic, ros_type)
         self.token_key = node.endpoint_token(wire.ENTITY_SUBSCRIPTION, fq_topic, ros_type, qos)
@@ -244,8 +246,151 @@ def _target_from_twist(msg: Any, limits: VehicleLimits) -> DriveTarget | None:
     return DriveTarget(speed_mps=speed, steer_rad=twist_steer_angle(speed, yaw_rate, limits))
 
 
+class Ros2Adapter:
+    """The adapter's state between periods; :meth:`period` is its list of stages.
+
+    Parameters
+    ----------
+    opts : Ros2Options
+        Checked options.
+    ep : ZenohEndpoint
+        The session bound to the server's keys (it also carries the ROS node).
+    stats : Ros2Stats
+        Updated as it runs.
+    """
+
+    def __init__(self, opts: Ros2Options, ep: Any, stats: Ros2Stats) -> None:
+        self.opts = opts
+        self.ep = ep
+        self.stats = stats
+        self.states = ep.declare_state_inbox(capacity=64)
+        self.cmd_pub = ep.declare_command_publisher()
+        reply = ep.request("get_config", timeout_s=5.0)
+        if not reply.get("ok"):
+            raise RuntimeError(f"get_config failed: {reply}")
+        self.limits, gravity, self.vehicle_marker = _vehicle_from_config(reply["config"])
+        self.controller = SpeedController(self.limits)
+        self.converter = StateConverter(opts.odom_frame, opts.base_frame, gravity)
+        self.node = RosNode(ep.session, opts.domain_id, opts.namespace, opts.node_name)
+        self.pubs: dict[str, RosPublisher] = {}
+        self.subs: dict[str, RosSubscription] = {}
+        for t in wire.TOPICS:
+            fq = wire.fully_qualified_name(opts.namespace, opts.topics.get(t.option, t.name))
+            if t.direction == wire.PUBLISH:
+                self.pubs[t.option] = self.node.publisher(fq, t.ros_type, t.qos)
+            else:
+                self.subs[t.option] = self.node.subscription(fq, t.ros_type, t.qos)
+        self.rec: Any = None  # the newest decoded state
+        self.target = DriveTarget()
+        self.last_ros_command: float | None = None  # monotonic time of the newest
+        self.last_control_time_s: float | None = None  # sim time of the last command sent
+        self.rejected_targets = 0
+        self.seq = 0
+        self.last_config_poll = time.monotonic()
+
+    def describe(self) -> str:
+        """One line for the log: the node and its topics' keys."""
+        out = ", ".join(p.topic for p in self.pubs.values())
+        into = ", ".join(s.topic for s in self.subs.values())
+        name = f"{self.opts.namespace.rstrip('/')}/{self.opts.node_name}"
+        return (f"node {name} on domain {self.opts.domain_id} for {self.ep.keys.base} "
+                f"({out} out; {into} in)")
+
+    def period(self, now: float) -> None:
+        """One period: follow the vehicle, take input, drive, publish."""
+        self.follow_vehicle(now)
+        self.take_state()
+        self.take_ros_commands(now)
+        self.drive(now)
+        self.publish()
+
+    def follow_vehicle(self, now: float) -> None:
+        """Re-read the server's vehicle now and then (a ``load`` may change it)."""
+        if now - self.last_config_poll < CONFIG_POLL_S:
+            return
+        self.last_config_poll = now
+        try:
+            reply = self.ep.request("get_config", timeout_s=1.0)
+        except TimeoutError:
+            return
+        if reply.get("ok"):
+            limits, gravity, marker = _vehicle_from_config(reply["config"])
+            if marker != self.vehicle_marker:
+                self.limits, self.vehicle_marker = limits, marker
+                self.controller = SpeedController(limits)
+                self.converter.gravity_mps2 = gravity
+
+    def take_state(self) -> None:
+        """Keep the newest valid state of those that arrived."""
+        for payload in reversed(self.states.drain_newest()):
+            try:
+                self.rec = proto.decode_state(payload)
+            except proto.ProtocolError:
+                continue
+            self.stats.states_received += 1
+            return
+
+    def take_ros_commands(self, now: float) -> None:
+        """Targets from the commands that arrived (the last valid one is in force)."""
+        received = [_target_from_ackermann(m) for m in self.subs["ackermann_cmd"].drain()]
+        received += [_target_from_twist(m, self.limits) for m in self.subs["cmd_vel"].drain()]
+        for target in received:
+            if target is None:  # NaN or infinity: no command at all
+                self.rejected_targets += 1
+                continue
+            self.target = target
+            self.last_ros_command = now
+            self.stats.ros_commands += 1
+        self.stats.ros_commands_rejected = self.rejected_targets + sum(
+            s.rejected for s in self.subs.values())
+
+    def drive(self, now: float) -> None:
+        """One DriverCommand while ROS commands are fresh; silence (the watchdog) otherwise."""
+        fresh = self.last_ros_command is not None \
+            and now - self.last_ros_command <= self.opts.command_timeout_s
+        if not fresh or self.rec is None:
+            if self.last_control_time_s is not None:
+                self.controller.reset()
+                self.last_control_time_s = None
+            return
+        time_s = float(self.rec["sim_time_s"])
+        last = self.last_control_time_s
+        if last is not None and time_s < last:
+            self.controller.reset()  # the server was reset or loaded
+        dt = 0.0 if last is None or time_s < last else time_s - last
+        self.last_control_time_s = time_s
+        pedals = self.controller.update(self.target, float(self.rec["u_mps"]),
+                                        float(self.rec["pitch_rad"]), dt)
+        self.seq = (self.seq + 1) & 0xFFFFFFFF
+        self.cmd_pub.put(proto.encode_command(pedals.steer, pedals.throttle, pedals.brake,
+                                              gear=pedals.gear, seq=self.seq))
+        self.stats.commands_sent += 1
+
+    def publish(self) -> None:
+        """Odometry, Imu, TF and JointState of the newest state."""
+        if self.rec is None:
+            return
+        stamp_ns = time.time_ns() if self.opts.stamp == "wall" \
+            else int(round(float(self.rec["sim_time_s"]) * 1e9))
+        for option, (_, message) in self.converter.messages(self.rec, stamp_ns).items():
+            self.pubs[option].put(message)
+            self.stats.messages_published += 1
+
+    def close(self) -> None:
+        """Withdraw the node from the ROS graph (tokens first, with their entities)."""
+        self.node.close()
+
+
 def run_ros2(options: Ros2Options) -> Ros2Stats:
-    """Run the adapter until SIGINT/SIGTERM (or ``duration_s``); returns its statistics."""
+    """Run the adapter until SIGINT/SIGTERM (or ``duration_s``); returns its statistics.
+
+    Raises
+    ------
+    simserver.ros2.wire.Ros2WireError
+        For a bad option (nothing is opened).
+    TimeoutError
+        When the server does not answer ``get_config``.
+    """
     from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
     from simserver.viewer import lower_priority
 
@@ -260,106 +405,26 @@ def run_ros2(options: Ros2Options) -> Ros2Stats:
 
     previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     cfg = make_zenoh_config(listen=[], connect=opts.connect, config_file=opts.zenoh_config)
-    names = {t.option: opts.topics.get(t.option, t.name) for t in wire.TOPICS}
     try:
         with ZenohEndpoint(cfg, prefix=opts.prefix, vehicle=opts.vehicle_id) as ep:
-            states = ep.declare_state_inbox(capacity=64)
-            cmd_pub = ep.declare_command_publisher()
-            reply = ep.request("get_config", timeout_s=5.0)
-            if not reply.get("ok"):
-                raise RuntimeError(f"get_config failed: {reply}")
-            limits, gravity, vehicle_marker = _vehicle_from_config(reply["config"])
-            controller = SpeedController(limits)
-            converter = StateConverter(opts.odom_frame, opts.base_frame, gravity)
-            node = RosNode(ep.session, opts.domain_id, opts.namespace, opts.node_name)
+            adapter = Ros2Adapter(opts, ep, stats)
             try:
-                pubs = {}
-                subs = {}
-                for t in wire.TOPICS:
-                    fq = wire.fully_qualified_name(opts.namespace, names[t.option])
-                    if t.direction == wire.PUBLISH:
-                        pubs[t.option] = node.publisher(fq, t.ros_type, t.qos)
-                    else:
-                        subs[t.option] = node.subscription(fq, t.ros_type, t.qos)
-                print(f"simserver ros2: node {opts.namespace.rstrip('/')}/{opts.node_name} on "
-                      f"domain {opts.domain_id} for {ep.keys.base} "
-                      f"({', '.join(p.key.split('/')[1] for p in pubs.values())} out; "
-                      f"{', '.join(s.key.split('/')[1] for s in subs.values())} in)", flush=True)
+                print(f"simserver ros2: {adapter.describe()}", flush=True)
                 period = 1.0 / opts.rate_hz
-                target = DriveTarget()
-                last_ros_cmd: float | None = None
-                rec = None
-                last_control_time_s: float | None = None
-                seq = 0
-                rejected_targets = 0
-                t_start = next_t = last_poll = time.monotonic()
+                t_start = next_t = time.monotonic()
                 while running[0]:
                     now = time.monotonic()
                     if opts.duration_s is not None and now - t_start > opts.duration_s:
                         break
-                    if now - last_poll > CONFIG_POLL_S:  # follow a load of another vehicle
-                        last_poll = now
-                        try:
-                            reply = ep.request("get_config", timeout_s=1.0)
-                        except TimeoutError:
-                            reply = {}
-                        if reply.get("ok"):
-                            new = _vehicle_from_config(reply["config"])
-                            if new[2] != vehicle_marker:
-                                limits, gravity, vehicle_marker = new
-                                controller = SpeedController(limits)
-                                converter.gravity_mps2 = gravity
-                    for payload in reversed(states.drain_newest()):
-                        try:
-                            rec = proto.decode_state(payload)
-                        except proto.ProtocolError:
-                            continue
-                        stats.states_received += 1
-                        break
-                    received = [_target_from_ackermann(m) for m in subs["ackermann_cmd"].drain()]
-                    received += [_target_from_twist(m, limits) for m in subs["cmd_vel"].drain()]
-                    for new_target in received:
-                        if new_target is None:  # NaN or infinity: no command at all
-                            rejected_targets += 1
-                            continue
-                        target = new_target
-                        last_ros_cmd = now
-                        stats.ros_commands += 1
-                    stats.ros_commands_rejected = rejected_targets + sum(
-                        s.rejected for s in subs.values())
-                    active = last_ros_cmd is not None and now - last_ros_cmd \
-                        <= opts.command_timeout_s
-                    if rec is not None and active:
-                        time_s = float(rec["sim_time_s"])
-                        dt = 0.0 if last_control_time_s is None \
-                            or time_s < last_control_time_s else time_s - last_control_time_s
-                        if last_control_time_s is not None and time_s < last_control_time_s:
-                            controller.reset()  # the server was reset
-                        last_control_time_s = time_s
-                        pedals = controller.update(target, float(rec["u_mps"]),
-                                                   float(rec["pitch_rad"]), dt)
-                        seq = (seq + 1) & 0xFFFFFFFF
-                        cmd_pub.put(proto.encode_command(
-                            pedals.steer, pedals.throttle, pedals.brake, gear=pedals.gear,
-                            seq=seq))
-                        stats.commands_sent += 1
-                    elif last_control_time_s is not None:
-                        controller.reset()  # silent: the server's watchdog takes over
-                        last_control_time_s = None
-                    if rec is not None:
-                        stamp_ns = time.time_ns() if opts.stamp == "wall" \
-                            else int(round(float(rec["sim_time_s"]) * 1e9))
-                        for option, (_, message) in converter.messages(rec, stamp_ns).items():
-                            pubs[option].put(message)
-                            stats.messages_published += 1
-                    next_t += period
+                    adapter.period(now)
+                    next_t += period  # absolute deadlines
                     delay = next_t - time.monotonic()
                     if delay > 0.0:
                         time.sleep(delay)
                     else:  # late: skip the missed deadlines instead of bursting
                         next_t += period * math.floor(-delay / period)
             finally:
-                node.close()
+                adapter.close()
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
