@@ -369,6 +369,14 @@ def test_bad_options_are_refused_naming_the_option(flags, field, capsys) -> None
     assert field in capsys.readouterr().err
 
 
+def test_a_bad_ros_domain_id_in_the_environment_is_named(monkeypatch, capsys) -> None:
+    from simserver.cli import main
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", "seven")
+    assert main(["ros2", "--connect", "tcp/127.0.0.1:9"]) == 2
+    assert "ROS_DOMAIN_ID" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(("settings", "key"), [
     ({"domain": 1}, "domain"), ({"domain_id": "1"}, "domain_id"),
     ({"topics": ["odom"]}, "topics"), ({"normal_priority": 1}, "normal_priority"),
@@ -549,3 +557,57 @@ def test_no_ros_command_no_drive(adapter, router, watcher) -> None:
     finally:
         pub.close()
         states.close()
+
+
+# ---------------------------------------------------------------- the controller alone
+
+def paper_sedan_limits():
+    from simserver.adapters.config import load_vehicle
+    from simserver.ros2.control import VehicleLimits
+
+    vehicle = load_vehicle(REPO / "configs" / "vehicles" / "paper_sedan" / "vehicle.yaml")
+    return VehicleLimits.from_vehicle(vehicle.vp, vehicle.tp)
+
+
+def test_zero_target_holds_the_brake_pedal_as_documented() -> None:
+    from simserver.ros2 import control as C
+
+    limits = paper_sedan_limits()
+    ctl = C.SpeedController(limits)
+    pedals = ctl.update(C.DriveTarget(speed_mps=0.0), 0.0, -GRADE_RAD, 0.01)
+    expected = (C.STOP_DECEL_MPS2 + limits.gravity_mps2 * math.sin(GRADE_RAD)) \
+        / limits.brake_decel_max_mps2
+    assert pedals.throttle == 0.0 and pedals.brake == pytest.approx(max(expected, 0.3))
+    gentle = ctl.update(C.DriveTarget(speed_mps=0.0, accel_limit_mps2=0.5), 0.0, 0.0, 0.01)
+    assert gentle.brake == C.HOLD_PEDAL_MIN  # never less than the hold
+
+
+def test_integral_does_not_wind_up_while_the_throttle_is_saturated() -> None:
+    from simserver.ros2 import control as C
+
+    ctl = C.SpeedController(paper_sedan_limits())
+    for _ in range(500):  # 5 s far below a 30 m/s target, full throttle
+        pedals = ctl.update(C.DriveTarget(speed_mps=30.0), 2.0, 0.0, 0.01)
+        assert pedals.throttle == 1.0 and pedals.brake == 0.0
+    assert ctl.integral_mps2 == 0.0
+
+
+def test_reverse_waits_for_the_car_to_stop_before_shifting() -> None:
+    from simserver.protocol import Gear
+    from simserver.ros2 import control as C
+
+    ctl = C.SpeedController(paper_sedan_limits())
+    rolling = ctl.update(C.DriveTarget(speed_mps=-2.0), 3.0, 0.0, 0.01)
+    assert rolling.gear == Gear.D and rolling.brake > 0.0 and rolling.throttle == 0.0
+    stopped = ctl.update(C.DriveTarget(speed_mps=-2.0), 0.05, 0.0, 0.01)
+    assert stopped.gear == Gear.R and stopped.throttle > 0.0
+
+
+def test_steering_maps_road_wheel_angle_through_the_ratio() -> None:
+    from simserver.ros2 import control as C
+
+    limits = paper_sedan_limits()
+    assert C.steer_command(0.1, limits) == pytest.approx(0.1 * 17.0 / 9.42)
+    assert C.steer_command(1.0, limits) == 1.0  # beyond the lock: clipped
+    assert C.twist_steer_angle(4.0, 0.2, limits) == pytest.approx(math.atan(2.9 * 0.2 / 4.0))
+    assert C.twist_steer_angle(0.0, 0.5, limits) == 0.0  # no turning on the spot

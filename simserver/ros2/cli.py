@@ -27,8 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a zenoh JSON5 config instead of --connect")
     parser.add_argument("--vehicle-id", default="car0")
     parser.add_argument("--prefix", default="simserver")
-    parser.add_argument("--domain-id", type=int,
-                        default=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0),
+    parser.add_argument("--domain-id", type=int, default=None,
                         help="ROS_DOMAIN_ID (default: the environment's, else 0)")
     parser.add_argument("--namespace", default="/", help="the node's ROS namespace (default /)")
     parser.add_argument("--node-name", default=None,
@@ -65,10 +64,17 @@ def run(args: argparse.Namespace) -> int:
         if not sep or not name:
             raise CliError(f"--topic: {item!r} is not NAME=ROSNAME", exit_code=2)
         topics[option] = name
+    domain_id = args.domain_id
+    if domain_id is None:
+        env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+        try:
+            domain_id = int(env) if env else 0
+        except ValueError:
+            raise CliError(f"ROS_DOMAIN_ID: {env!r} is not an integer", exit_code=2) from None
     connect = args.connect or ([] if args.zenoh_config else ["tcp/127.0.0.1:7447"])
     options = Ros2Options(
         connect=connect, zenoh_config=args.zenoh_config, prefix=args.prefix,
-        vehicle_id=args.vehicle_id, domain_id=args.domain_id, namespace=args.namespace,
+        vehicle_id=args.vehicle_id, domain_id=domain_id, namespace=args.namespace,
         node_name=args.node_name, rate_hz=args.rate, command_timeout_s=args.command_timeout,
         topics=topics, odom_frame=args.odom_frame, base_frame=args.base_frame,
         stamp=args.stamp, duration_s=args.duration, idle_priority=not args.normal_priority)
