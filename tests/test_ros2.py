@@ -1,8 +1,10 @@
 """The ROS 2 adapter (issue 19), end to end with real parts and no ROS installation.
 
 A real server (``simserver serve`` on the 10 % hill scene), the adapter as a subprocess
-(``simserver ros2``), and this test as the ROS side: a zenoh session in router mode,
-standing in for ``rmw_zenohd`` and a ROS node on it. Everything the test checks is
+(``simserver ros2``), and this test as the ROS side: a zenoh session in router mode
+standing in for ``rmw_zenohd``, and a peer session connected to it as a ROS node is (so
+everything between the node and the adapter goes through the router, as on a ROS
+machine). Everything the test checks is
 built here from rmw_zenoh's design document (``docs/design.md`` of github.com/ros2/rmw_zenoh)
 and decoded with rosbags' own type store and CDR deserialiser, not with the adapter's
 modules: key expressions, type hashes, the 33-byte attachment, the liveliness tokens,
@@ -145,10 +147,19 @@ def server() -> Iterator[str]:
 
 @pytest.fixture(scope="module")
 def router() -> Iterator[tuple[zenoh.Session, str]]:
-    """The ROS side: a zenoh router session (as ``rmw_zenohd``) that the test uses as a node."""
+    """A zenoh router session standing in for ``rmw_zenohd``; yields it and its endpoint."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = zenoh.open(make_zenoh_config(listen=[endpoint], mode="router"))
     yield session, endpoint
+    session.close()
+
+
+@pytest.fixture(scope="module")
+def ros_node(router: tuple[zenoh.Session, str]) -> Iterator[zenoh.Session]:
+    """The test's ROS node: a peer of the router listening on loopback, as rmw_zenoh's are."""
+    session = zenoh.open(make_zenoh_config(listen=["tcp/127.0.0.1:0"], connect=[router[1]],
+                                           mode="peer"))
+    yield session
     session.close()
 
 
@@ -161,18 +172,19 @@ def watcher(server: str) -> Iterator[ZenohEndpoint]:
 
 
 @pytest.fixture(scope="module")
-def adapter(server: str, router: tuple[zenoh.Session, str]) -> Iterator[Process]:
-    """``simserver ros2`` connected to the server and to the router, on domain 7."""
+def adapter(server: str, router: tuple[zenoh.Session, str],
+            ros_node: zenoh.Session) -> Iterator[Process]:
+    """``simserver ros2`` connected to the server, its ROS node a client of the router."""
     from simserver.ros2.cli import adapter_command
 
-    session, router_endpoint = router
+    _, router_endpoint = router
     # the command line serve uses (a server config's ros2: section)
     args = adapter_command(server, "simserver", "car0", {
         "router": router_endpoint, "domain_id": DOMAIN, "normal_priority": True})
     proc = Process(args, "simserver ros2: node")
     proc.wait_ready(120)
     deadline = time.monotonic() + 30
-    while not liveliness_tokens(session):  # the node is in the graph
+    while not liveliness_tokens(ros_node):  # the node is in the graph, seen from a node
         assert time.monotonic() < deadline, "no liveliness token from the adapter"
     yield proc
     out = proc.stop()
@@ -389,9 +401,9 @@ def test_serve_settings_are_checked_naming_the_key(settings, key) -> None:
                         source="server.yaml: ros2")
 
 
-def test_published_topics_as_rmw_zenoh_writes_them(adapter, router, watcher) -> None:
+def test_published_topics_as_rmw_zenoh_writes_them(adapter, ros_node, watcher) -> None:
     """Keys, type hashes, CDR payloads, attachments and contents of all four topics."""
-    session, _ = router
+    session = ros_node
     states = States(watcher)
     received: dict[str, list] = {}
     sub = session.declare_subscriber(f"{DOMAIN}/**", zenoh.handlers.FifoChannel(1 << 14))
@@ -460,10 +472,10 @@ def test_published_topics_as_rmw_zenoh_writes_them(adapter, router, watcher) -> 
     assert len(joints.position) == len(joints.velocity) == 6
 
 
-def test_liveliness_tokens_announce_the_node_and_its_endpoints(adapter, router) -> None:
-    session, _ = router
-    tokens = [t.split("/") for t in liveliness_tokens(session)]
-    adapter_zids = {str(z) for z in session.info.peers_zid()}
+def test_liveliness_tokens_announce_the_node_and_its_endpoints(adapter, ros_node) -> None:
+    tokens = [t.split("/") for t in liveliness_tokens(ros_node)]
+    adapter_zids = {t[2] for t in tokens} - {str(ros_node.info.zid())}
+    assert len(adapter_zids) == 1, "one session holds the adapter's node"
     ours = [t for t in tokens if t[2] in adapter_zids]
     zid = ours[0][2]
     assert re.fullmatch(r"[0-9a-f]{1,32}", zid)
@@ -488,8 +500,8 @@ def test_liveliness_tokens_announce_the_node_and_its_endpoints(adapter, router) 
 # ---------------------------------------------------------------- driving
 
 def test_ackermann_reaches_and_holds_speed_then_stops_and_holds_on_10pct(
-        adapter, router, watcher) -> None:
-    session, _ = router
+        adapter, ros_node, watcher) -> None:
+    session = ros_node
     states = States(watcher)
     pub = RosPublisherLikeRmwZenoh(session, "ackermann_cmd",
                                    "ackermann_msgs/msg/AckermannDriveStamped")
@@ -512,8 +524,8 @@ def test_ackermann_reaches_and_holds_speed_then_stops_and_holds_on_10pct(
 
 
 def test_cmd_vel_reaches_and_holds_speed_then_stops_and_holds_on_10pct(
-        adapter, router, watcher) -> None:
-    session, _ = router
+        adapter, ros_node, watcher) -> None:
+    session = ros_node
     states = States(watcher)
     pub = RosPublisherLikeRmwZenoh(session, "cmd_vel", "geometry_msgs/msg/Twist")
     try:
@@ -530,9 +542,9 @@ def test_cmd_vel_reaches_and_holds_speed_then_stops_and_holds_on_10pct(
         states.close()
 
 
-def test_no_ros_command_no_drive(adapter, router, watcher) -> None:
+def test_no_ros_command_no_drive(adapter, ros_node, watcher) -> None:
     """ROS commands stop (or turn to NaN): the adapter goes silent, the watchdog holds."""
-    session, _ = router
+    session = ros_node
     states = States(watcher)
     pub = RosPublisherLikeRmwZenoh(session, "ackermann_cmd",
                                    "ackermann_msgs/msg/AckermannDriveStamped")

@@ -28,6 +28,7 @@ rmw_zenoh's liveliness tokens (``simserver.ros2.wire``), so ``ros2 node list`` s
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import signal
@@ -55,6 +56,7 @@ class Ros2Options:
 
     connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     zenoh_config: Path | None = None
+    ros_router: str | None = None  # rmw_zenohd's endpoint: the ROS node joins it as a client
     prefix: str = proto.DEFAULT_PREFIX
     vehicle_id: str = proto.DEFAULT_VEHICLE
     domain_id: int = 0
@@ -82,6 +84,9 @@ class Ros2Options:
                 f"command_timeout_s: {self.command_timeout_s} is not in [0.01, 60]")
         if self.stamp not in ("wall", "sim"):
             raise wire.Ros2WireError(f"stamp: {self.stamp!r} is not 'wall' or 'sim'")
+        if self.ros_router is not None and "/" not in self.ros_router:
+            raise wire.Ros2WireError(f"ros_router: {self.ros_router!r} is not an endpoint "
+                                     "<protocol>/<address> (e.g. tcp/127.0.0.1:7447)")
         for option, name in self.topics.items():
             if option not in wire.TOPIC_BY_OPTION:
                 raise wire.Ros2WireError(
@@ -254,12 +259,15 @@ class Ros2Adapter:
     opts : Ros2Options
         Checked options.
     ep : ZenohEndpoint
-        The session bound to the server's keys (it also carries the ROS node).
+        The session bound to the server's keys.
+    ros_session : zenoh.Session, optional
+        The session of the ROS node (a client of rmw_zenohd); default ``ep``'s.
     stats : Ros2Stats
         Updated as it runs.
     """
 
-    def __init__(self, opts: Ros2Options, ep: Any, stats: Ros2Stats) -> None:
+    def __init__(self, opts: Ros2Options, ep: Any, stats: Ros2Stats,
+                 ros_session: zenoh.Session | None = None) -> None:
         self.opts = opts
         self.ep = ep
         self.stats = stats
@@ -271,7 +279,8 @@ class Ros2Adapter:
         self.limits, gravity, self.vehicle_marker = _vehicle_from_config(reply["config"])
         self.controller = SpeedController(self.limits)
         self.converter = StateConverter(opts.odom_frame, opts.base_frame, gravity)
-        self.node = RosNode(ep.session, opts.domain_id, opts.namespace, opts.node_name)
+        self.node = RosNode(ros_session or ep.session, opts.domain_id, opts.namespace,
+                            opts.node_name)
         self.pubs: dict[str, RosPublisher] = {}
         self.subs: dict[str, RosSubscription] = {}
         for t in wire.TOPICS:
@@ -381,6 +390,26 @@ class Ros2Adapter:
         self.node.close()
 
 
+def open_ros_session(router: str) -> zenoh.Session:
+    """A zenoh client session of the rmw_zenohd router at ``router``.
+
+    Client, not peer: a router routes everything of its clients, whereas between two
+    peers it expects a direct link, and rmw_zenoh's nodes listen on loopback only
+    (``tcp/localhost:0``), which no other machine can reach. Zenoh's other defaults are
+    kept (those of rmw_zenoh's own sessions), multicast scouting excepted.
+    """
+    from simserver.adapters.zenoh_io import ZenohOpenError
+
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", json.dumps([router]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    try:
+        return zenoh.open(cfg)
+    except zenoh.ZError as exc:
+        raise ZenohOpenError(f"cannot join the ROS router at {router}: {exc}") from None
+
+
 def run_ros2(options: Ros2Options) -> Ros2Stats:
     """Run the adapter until SIGINT/SIGTERM (or ``duration_s``); returns its statistics.
 
@@ -405,9 +434,12 @@ def run_ros2(options: Ros2Options) -> Ros2Stats:
 
     previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     cfg = make_zenoh_config(listen=[], connect=opts.connect, config_file=opts.zenoh_config)
+    ros_session = None
     try:
         with ZenohEndpoint(cfg, prefix=opts.prefix, vehicle=opts.vehicle_id) as ep:
-            adapter = Ros2Adapter(opts, ep, stats)
+            if opts.ros_router is not None:
+                ros_session = open_ros_session(opts.ros_router)
+            adapter = Ros2Adapter(opts, ep, stats, ros_session)
             try:
                 print(f"simserver ros2: {adapter.describe()}", flush=True)
                 period = 1.0 / opts.rate_hz
@@ -426,6 +458,8 @@ def run_ros2(options: Ros2Options) -> Ros2Stats:
             finally:
                 adapter.close()
     finally:
+        if ros_session is not None:
+            ros_session.close()
         for s, h in previous.items():
             signal.signal(s, h)
     return stats

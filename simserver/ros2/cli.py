@@ -20,9 +20,12 @@ DESCRIPTION = ("Be a ROS 2 node as rmw_zenoh (ROS 2 Jazzy) makes one: publish th
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags of ``simserver ros2``."""
     parser.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
-                        help="zenoh endpoint to connect to, repeatable: the server's "
-                             "(default tcp/127.0.0.1:7447) and, for ROS nodes on other "
-                             "processes or machines, the rmw_zenohd router's")
+                        help="the server's zenoh endpoint (default tcp/127.0.0.1:7447)")
+    parser.add_argument("--ros-router", default=None, metavar="ENDPOINT",
+                        help="the rmw_zenohd router the ROS nodes use (e.g. "
+                             "tcp/127.0.0.1:7447 on a ROS machine): the adapter's ROS node "
+                             "joins it as a zenoh client. Without it the node lives on the "
+                             "server's zenoh network")
     parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
                         help="a zenoh JSON5 config instead of --connect")
     parser.add_argument("--vehicle-id", default="car0")
@@ -73,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(f"ROS_DOMAIN_ID: {env!r} is not an integer", exit_code=2) from None
     connect = args.connect or ([] if args.zenoh_config else ["tcp/127.0.0.1:7447"])
     options = Ros2Options(
-        connect=connect, zenoh_config=args.zenoh_config, prefix=args.prefix,
+        connect=connect, zenoh_config=args.zenoh_config, ros_router=args.ros_router,
+        prefix=args.prefix,
         vehicle_id=args.vehicle_id, domain_id=domain_id, namespace=args.namespace,
         node_name=args.node_name, rate_hz=args.rate, command_timeout_s=args.command_timeout,
         topics=topics, odom_frame=args.odom_frame, base_frame=args.base_frame,
@@ -91,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 SERVE_SETTINGS: dict[str, tuple[str, type]] = {
-    "router": ("--connect", str),
+    "router": ("--ros-router", str),
     "domain_id": ("--domain-id", int),
     "namespace": ("--namespace", str),
     "node_name": ("--node-name", str),
