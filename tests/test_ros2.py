@@ -191,9 +191,13 @@ def adapter(server: str, router: tuple[zenoh.Session, str],
     assert proc.proc.returncode == 0, out
 
 
-def liveliness_tokens(session: zenoh.Session) -> list[str]:
-    replies = session.liveliness().get(f"@ros2_lv/{DOMAIN}/**", timeout=1.0)
+def liveliness_tokens_of(session: zenoh.Session, domain: int) -> list[str]:
+    replies = session.liveliness().get(f"@ros2_lv/{domain}/**", timeout=1.0)
     return sorted(str(r.ok.key_expr) for r in replies if r.ok is not None)
+
+
+def liveliness_tokens(session: zenoh.Session) -> list[str]:
+    return liveliness_tokens_of(session, DOMAIN)
 
 
 class States:
@@ -495,6 +499,49 @@ def test_liveliness_tokens_announce_the_node_and_its_endpoints(adapter, ros_node
         assert t[10:13] == [dds_name(ros_type), TS.hash_rihs01(ros_type), qos]
     assert {t[9] for t in endpoints if t[5] == "MP"} == {"%" + p for p in PUBLISHED}
     assert {t[9] for t in endpoints if t[5] == "MS"} == {"%" + s for s in SUBSCRIBED}
+
+
+def test_sim_time_stamps_and_clock(server, router, ros_node, watcher) -> None:
+    """``stamp: sim``: stamps are the simulated time, also published on /clock."""
+    from simserver.ros2.cli import adapter_command
+
+    domain = DOMAIN + 1  # a second adapter beside the first, on its own domain
+    proc = Process(adapter_command(server, "simserver", "car0", {
+        "router": router[1], "domain_id": domain, "stamp": "sim", "normal_priority": True}),
+        "simserver ros2: node")
+    states = States(watcher)
+    clock_type = "rosgraph_msgs/msg/Clock"
+    clock_key = f"{domain}/clock/{dds_name(clock_type)}/{TS.hash_rihs01(clock_type)}"
+    sub = ros_node.declare_subscriber(f"{domain}/**", zenoh.handlers.FifoChannel(1 << 12))
+    try:
+        proc.wait_ready(120)
+        clocks, odoms = [], []
+        deadline = time.monotonic() + 20
+        while len(clocks) < 20 or len(odoms) < 20:
+            assert time.monotonic() < deadline, f"{len(clocks)} clocks, {len(odoms)} odoms"
+            sample = sub.try_recv()
+            if sample is None:
+                time.sleep(0.005)
+                continue
+            if str(sample.key_expr) == clock_key:
+                msg = TS.deserialize_cdr(sample.payload.to_bytes(), clock_type)
+                clocks.append(msg.clock.sec + 1e-9 * msg.clock.nanosec)
+            elif str(sample.key_expr).startswith(f"{domain}/odom/"):
+                msg = TS.deserialize_cdr(sample.payload.to_bytes(), "nav_msgs/msg/Odometry")
+                odoms.append(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
+        sim_now = float(states.poll()[-1]["sim_time_s"])
+        assert clocks == sorted(clocks) and clocks[-1] > clocks[0]
+        assert sim_now - 1.0 < clocks[-1] <= sim_now + 0.1, "not the simulated time"
+        assert sim_now - 1.0 < odoms[-1] <= sim_now + 0.1
+        tokens = [t for t in liveliness_tokens_of(ros_node, domain) if "/MP/" in t]
+        (clock_token,) = [t for t in tokens if "/%clock/" in t]
+        assert clock_token.endswith(f"/{dds_name(clock_type)}/{TS.hash_rihs01(clock_type)}/"
+                                    "2::,1:,:,:,,")  # best effort, keep last 1
+    finally:
+        sub.undeclare()
+        states.close()
+        out = proc.stop()
+    assert proc.proc.returncode == 0, out
 
 
 # ---------------------------------------------------------------- driving

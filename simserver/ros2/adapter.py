@@ -19,7 +19,8 @@ Every ``1 / rate_hz`` seconds (absolute deadlines; a late loop skips, never burs
    command, no drive;
 3. publishes Odometry, Imu, TF and JointState of that state (``simserver.ros2.convert``),
    stamped with the wall clock (``stamp="wall"``, what a real car's drivers do) or the
-   simulated time (``stamp="sim"``).
+   simulated time (``stamp="sim"``, which also publishes it on ``/clock`` for nodes run
+   with ``use_sim_time``).
 
 The node's graph entities (node, publishers, subscriptions) are announced with
 rmw_zenoh's liveliness tokens (``simserver.ros2.wire``), so ``ros2 node list`` shows
@@ -284,6 +285,8 @@ class Ros2Adapter:
         self.pubs: dict[str, RosPublisher] = {}
         self.subs: dict[str, RosSubscription] = {}
         for t in wire.TOPICS:
+            if t.sim_time_only and opts.stamp != "sim":
+                continue
             fq = wire.fully_qualified_name(opts.namespace, opts.topics.get(t.option, t.name))
             if t.direction == wire.PUBLISH:
                 self.pubs[t.option] = self.node.publisher(fq, t.ros_type, t.qos)
@@ -383,6 +386,9 @@ class Ros2Adapter:
             else int(round(float(self.rec["sim_time_s"]) * 1e9))
         for option, (_, message) in self.converter.messages(self.rec, stamp_ns).items():
             self.pubs[option].put(message)
+            self.stats.messages_published += 1
+        if "clock" in self.pubs:
+            self.pubs["clock"].put(self.converter.clock(stamp_ns))
             self.stats.messages_published += 1
 
     def close(self) -> None:

@@ -41,8 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with no ROS command for S seconds the adapter stops sending, "
                              "and the server's watchdog holds the car (default 0.5)")
     parser.add_argument("--topic", action="append", default=[], metavar="NAME=ROSNAME",
-                        help="rename a topic: odom, imu, tf, joint_states, ackermann_cmd, "
-                             "cmd_vel (e.g. --topic ackermann_cmd=/drive)")
+                        help="rename a topic: odom, imu, tf, joint_states, clock, "
+                             "ackermann_cmd, cmd_vel (e.g. --topic ackermann_cmd=/drive)")
     parser.add_argument("--odom-frame", default="odom")
     parser.add_argument("--base-frame", default="base_link")
     parser.add_argument("--stamp", choices=("wall", "sim"), default="wall",

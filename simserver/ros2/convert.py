@@ -100,6 +100,7 @@ class StateConverter:
         self._Imu = t["sensor_msgs/msg/Imu"]
         self._JointState = t["sensor_msgs/msg/JointState"]
         self._TFMessage = t["tf2_msgs/msg/TFMessage"]
+        self._Clock = t["rosgraph_msgs/msg/Clock"]
 
     def _integrate_wheels(self, rec: Any) -> tuple[np.ndarray, np.ndarray]:
         """Spin rates, and the steer rates differenced between samples (not on the wire)."""
@@ -117,6 +118,11 @@ class StateConverter:
         self._last_omega = omega
         self._last_steer = steer
         return omega, steer
+
+    def clock(self, stamp_ns: int) -> Any:
+        """A ``rosgraph_msgs/Clock`` of ``stamp_ns``."""
+        sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        return self._Clock(clock=self._Time(sec=sec, nanosec=nanosec))
 
     def messages(self, rec: Any, stamp_ns: int) -> dict[str, tuple[str, Any]]:
         """``{topic option: (ROS type, message)}`` for one state, stamped ``stamp_ns``."""

@@ -288,6 +288,7 @@ class TopicSpec:
     direction: str
     qos: QoS
     mapping: str
+    sim_time_only: bool = False  # declared only with simulated-time stamps
 
 
 TOPICS: Final[tuple[TopicSpec, ...]] = (
@@ -302,6 +303,10 @@ TOPICS: Final[tuple[TopicSpec, ...]] = (
     TopicSpec("joint_states", "joint_states", "sensor_msgs/msg/JointState", PUBLISH,
               QoS(depth=10),
               "wheel spin angles (integrated) and rates, front road-wheel steer angles"),
+    TopicSpec("clock", "/clock", "rosgraph_msgs/msg/Clock", PUBLISH,
+              QoS(depth=1, reliability=RELIABILITY_BEST_EFFORT),
+              "only with `--stamp sim`: the simulated time, for nodes with `use_sim_time`",
+              sim_time_only=True),
     TopicSpec("ackermann_cmd", "ackermann_cmd", "ackermann_msgs/msg/AckermannDriveStamped",
               SUBSCRIBE, QoS(depth=10),
               "`drive.speed` (m/s, < 0 reverses), `drive.acceleration` (ramp limit, 0 = as "
@@ -321,8 +326,10 @@ def topics_markdown() -> str:
     rows = ["| topic (default name) | type | direction | QoS (rmw_zenoh token) | mapping |",
             "|---|---|---|---|---|"]
     for t in TOPICS:
-        rows.append(f"| `{t.name}` | `{t.ros_type}` | {t.direction} | "
-                    f"reliable, volatile, keep last {t.qos.depth} (`{t.qos.keyexpr()}`) | "
+        reliability = "reliable" if t.qos.reliability == RELIABILITY_RELIABLE \
+            else "best effort"
+        rows.append(f"| `{t.name}` | `{t.ros_type}` | {t.direction} | {reliability}, "
+                    f"volatile, keep last {t.qos.depth} (`{t.qos.keyexpr()}`) | "
                     f"{t.mapping} |")
     return "\n".join(rows)
 
