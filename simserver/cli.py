@@ -24,6 +24,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from simserver.ros2 import cli as ros2_cli
+
 if TYPE_CHECKING:
     from simserver.scenario import Scenario
 
@@ -541,6 +543,8 @@ SUBCOMMANDS: dict[str, Subcommand] = {
                     "Rerun (serve, save, connect or spawn). The physics never waits for "
                     "it: it is its own process behind a bounded queue.",
     ),
+    "ros2": Subcommand(help=ros2_cli.HELP, add_arguments=ros2_cli.add_arguments,
+                       run=ros2_cli.run, description=ros2_cli.DESCRIPTION),
     "replay": Subcommand(
         help="re-run a server command log headless, bit for bit",
         add_arguments=_add_replay_arguments,
