@@ -20,7 +20,6 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import subprocess
-import time
 import tomllib
 from collections.abc import Callable
 
@@ -28,15 +27,16 @@ import numpy as np
 import pytest
 
 from simserver import protocol as proto
-from tests.serverproc import (
+from simserver.testing import (
     CONFIGS,
     REPO,
+    Client,
     ServerProcess,
-    Watcher,
     client_command,
     client_env,
+    wait_until,
 )
-from tests.test_clients import PtyProcess
+from tests.test_clients import PtyProcess, hold_until
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -85,16 +85,23 @@ def _driven(state: np.void) -> bool:
     return int(state["last_cmd_seq"]) > 0 and not int(state["flags"]) & proto.StateFlag.WATCHDOG
 
 
-def _wait_states(watcher: Watcher, done: Callable[[list[np.void]], bool], timeout_s: float,
+def _watcher(server: ServerProcess) -> Client:
+    """An independent client that only listens, keeping every state it receives."""
+    return Client(server, state_capacity=1 << 15, keep_history=True)
+
+
+def _wait_states(watcher: Client, done: Callable[[list[np.void]], bool], timeout_s: float,
                  what: str) -> list[np.void]:
     """Poll the watcher until ``done(history)``; fail naming ``what`` after the timeout."""
-    end = time.monotonic() + timeout_s
-    while not done(watcher.poll()):
-        if time.monotonic() > end:
-            last = watcher.history[-1] if watcher.history else None
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}; last "
-                                 f"state: {last}")
-        time.sleep(0.02)
+    def done_yet() -> bool:
+        watcher.poll()
+        return done(watcher.history)
+
+    try:  # every 20 ms: ``done`` may walk the whole history
+        wait_until(done_yet, timeout_s=timeout_s, what=what, interval_s=0.02)
+    except TimeoutError as exc:
+        last = watcher.history[-1] if watcher.history else None
+        raise AssertionError(f"{exc}; last state: {last}") from None
     return watcher.history
 
 
@@ -126,16 +133,16 @@ def _assert_did_not_roll(window: list[np.void], who: str) -> None:
     assert abs(x[-1] - x[0]) < STILL_M
 
 
-def _at_rest_on_the_hill(watcher: Watcher) -> None:
+def _at_rest_on_the_hill(watcher: Client) -> None:
     """Put the car back at the scene's start (a previous test may have driven it)."""
-    assert watcher.ep.request("reset", timeout_s=5.0)["ok"]
+    assert watcher.request("reset", timeout_s=5.0)["ok"]
     _wait_states(watcher, lambda h: bool(h) and int(h[-1]["tick"]) < 500
                  and abs(float(h[-1]["u_mps"])) < 1e-3, 10.0, "the reset")
     watcher.history.clear()
 
 
 def test_keyboard_driver_holds_the_car_on_a_hill_until_the_throttle(hill_server):
-    watcher = Watcher(hill_server)
+    watcher = _watcher(hill_server)
     _at_rest_on_the_hill(watcher)
     drv = PtyProcess(client_command("driver", "--rate", "200", *hill_server.client_args()))
     try:
@@ -143,10 +150,8 @@ def test_keyboard_driver_holds_the_car_on_a_hill_until_the_throttle(hill_server)
         states = _wait_states(watcher, lambda h: _span_s(_rest_window(h)) >= REST_WINDOW_S,
                               30.0, f"{REST_WINDOW_S} s of driven states without a key")
         window = _rest_window(states)
-        end = time.monotonic() + 20.0  # the driver acts: throttle until the car climbs
-        while float(watcher.newest()["u_mps"]) < 0.3 and time.monotonic() < end:
-            drv.hold(b"w", 0.1)
-        climbing = watcher.newest()
+        climbing = hold_until(drv, b"w", watcher,  # the driver acts: throttle until it climbs
+                              lambda s: float(s["u_mps"]) >= 0.3, 20.0)
         drv.send(b"q")
         assert drv.wait(15) == 0, drv.text()
     finally:
@@ -167,7 +172,7 @@ frames:
   - {t: 0.0, axes: {0: 0.0, 1: 1.0, 2: 1.0, 3: 1.0}}
   - {t: 7.0, axes: {2: -1.0}}
 """)
-    watcher = Watcher(hill_server)
+    watcher = _watcher(hill_server)
     _at_rest_on_the_hill(watcher)
     run = subprocess.run(
         client_command("driver", "--virtual-joystick", str(script), "--profile",
@@ -175,7 +180,8 @@ frames:
                        *hill_server.client_args()),
         cwd=REPO, env=client_env(), stdin=subprocess.DEVNULL, capture_output=True, text=True,
         timeout=120)
-    states = watcher.poll()
+    watcher.poll()
+    states = watcher.history
     watcher.close()
     assert run.returncode == 0, run.stdout + run.stderr
     window = _rest_window(states)
@@ -212,7 +218,7 @@ def test_recorder_metadata_per_segment_after_a_load_and_a_reset(tmp_path):
 
     hill = CONFIGS / "scenes" / "hill_10pct_paper_sedan.yaml"
     server = ServerProcess(vehicle_id="rec", scene="flat_paper_sedan")
-    watcher = Watcher(server)
+    watcher = _watcher(server)
     out = tmp_path / "rec"
     rec = subprocess.Popen(client_command("recorder", "--out", str(out), "--quiet",
                                           *server.client_args()),
@@ -227,9 +233,9 @@ def test_recorder_metadata_per_segment_after_a_load_and_a_reset(tmp_path):
                          and int(h[-1]["tick"]) - int(h[0]["tick"]) >= 300, 30.0, what)
 
         run_a_while("the flat segment")
-        assert watcher.ep.request("load", {"scene": str(hill)}, timeout_s=30.0)["ok"]
+        assert watcher.request("load", {"scene": str(hill)}, timeout_s=30.0)["ok"]
         run_a_while("the hill segment")
-        assert watcher.ep.request("reset", timeout_s=5.0)["ok"]
+        assert watcher.request("reset", timeout_s=5.0)["ok"]
         run_a_while("the segment after the reset")
         rec.terminate()
         stdout, stderr = rec.communicate(timeout=60)

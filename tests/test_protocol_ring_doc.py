@@ -13,7 +13,7 @@ import ast
 import re
 
 from simserver import protocol as P
-from tests.serverproc import REPO
+from simserver.testing import REPO
 
 DOC = REPO / "docs" / "protocol.md"
 SERVER_SOURCES = sorted((REPO / "simserver").glob("*.py"))

@@ -14,27 +14,18 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from simserver.adapters.rerun_scene import PLOT_SPEED, SCENE_INFO
-from tests.serverproc import CONFIGS, REPO, ServerProcess, Watcher
+from simserver.testing import CONFIGS, REPO, Client, ServerProcess, free_port, wait_until
 
 pytestmark = pytest.mark.timeout(300)
 
 DRAWN_BYTES = 100_000
 """A segment's file past this size holds its static scene (about 140 kB with the first
 frames; the header alone is about 1 kB)."""
-
-
-def _wait(predicate, timeout_s: float, what: str) -> None:
-    end = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.02)
 
 
 def _recording(path: Path) -> dict:
@@ -60,7 +51,7 @@ def test_live_rrd_has_one_recording_per_segment(tmp_path):
     hill = CONFIGS / "scenes" / "hill_10pct_paper_sedan.yaml"
     rrd = tmp_path / "live.rrd"
     server = ServerProcess(vehicle_id="view", scene="flat_paper_sedan")
-    watcher = Watcher(server)
+    watcher = Client(server, state_capacity=1 << 15, keep_history=True)
     env = dict(os.environ, XDG_CONFIG_HOME=str(tmp_path / "xdg_config"),
                XDG_DATA_HOME=str(tmp_path / "xdg_data"))
     viewer = subprocess.Popen(
@@ -71,17 +62,23 @@ def test_live_rrd_has_one_recording_per_segment(tmp_path):
         def run_a_while(path: Path, what: str) -> None:
             """Until the viewer draws this segment into ``path`` (its static scene and
             first frames), then 0.5 s of simulated time more."""
-            _wait(lambda: path.exists() and path.stat().st_size > DRAWN_BYTES
-                  or viewer.poll() is not None, 60.0, f"the viewer to draw {what}")
+            wait_until(lambda: path.exists() and path.stat().st_size > DRAWN_BYTES
+                       or viewer.poll() is not None, timeout_s=60.0,
+                       what=f"the viewer to draw {what}", interval_s=0.02)
             assert viewer.poll() is None, viewer.communicate()
             watcher.history.clear()
-            _wait(lambda: len(watcher.poll()) > 1 and int(watcher.history[-1]["tick"])
-                  - int(watcher.history[0]["tick"]) >= 500, 30.0, what)
+
+            def ran_500_ticks() -> bool:
+                watcher.poll()
+                h = watcher.history
+                return len(h) > 1 and int(h[-1]["tick"]) - int(h[0]["tick"]) >= 500
+
+            wait_until(ran_500_ticks, timeout_s=30.0, what=what, interval_s=0.02)
 
         run_a_while(rrd, "the flat segment")
-        assert watcher.ep.request("load", {"scene": str(hill)}, timeout_s=30.0)["ok"]
+        assert watcher.request("load", {"scene": str(hill)}, timeout_s=30.0)["ok"]
         run_a_while(tmp_path / "live.segment1.rrd", "the hill segment")
-        assert watcher.ep.request("reset", timeout_s=5.0)["ok"]
+        assert watcher.request("reset", timeout_s=5.0)["ok"]
         run_a_while(tmp_path / "live.segment2.rrd", "the segment after the reset")
         viewer.terminate()
         stdout, stderr = viewer.communicate(timeout=60)
@@ -126,7 +123,6 @@ def test_where_the_later_segments_go():
 def test_the_serve_sink_carries_every_segment(tmp_path):
     """Segment 1 streams into segment 0's own gRPC server (no second server, no error)."""
     from simserver.adapters.rerun_sink import open_recording, segment_sink
-    from tests.serverproc import free_port
 
     port = free_port()
     first = open_recording("serve", f"127.0.0.1:{port}", recording_id="seg0", web_port=None,
