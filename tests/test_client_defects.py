@@ -134,7 +134,13 @@ def _assert_did_not_roll(window: list[np.void], who: str) -> None:
 
 
 def _at_rest_on_the_hill(watcher: Client) -> None:
-    """Put the car back at the scene's start (a previous test may have driven it)."""
+    """Put the car back at the scene's start (a previous test may have driven it), with no
+    driver's command applied: a driver that quits leaves its last command in force for the
+    watchdog's time, across a reset, and those states (a sequence number, no watchdog flag,
+    maybe throttle) would pass for the new driver's first ones."""
+    watcher.wait_state(lambda s: bool(int(s["flags"]) & proto.StateFlag.WATCHDOG)
+                       and int(s["last_cmd_seq"]) == 0, 5.0,
+                       "the watchdog to hold the car (no driver's command left)")
     assert watcher.request("reset", timeout_s=5.0)["ok"]
     _wait_states(watcher, lambda h: bool(h) and int(h[-1]["tick"]) < 500
                  and abs(float(h[-1]["u_mps"])) < 1e-3, 10.0, "the reset")
