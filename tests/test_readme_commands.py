@@ -38,6 +38,7 @@ RUN_ELSEWHERE = {
     "python3 -m venv .venv && .venv/bin/pip install -e . && .venv/bin/simserver serve":
         "test_readme.py::test_main_command_job_runs (and the server of this module)",
     "simserver serve": "readme_server, the server of this module",
+    "simserver ros2": "test_ros2.py runs the adapter against a live server",
     'python3 -m venv .venv && .venv/bin/pip install -q -e ".[test]" && '
     '.venv/bin/python -m pytest -q': "CI: .ci/run runs it verbatim (test_readme.py)",
     ".venv/bin/simserver run-scenario configs/scenarios/e2_stop_downslope_paper_damping.yaml"
