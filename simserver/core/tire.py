@@ -1,10 +1,11 @@
 """One interface for every tire force model.
 
 The lagged slip states of SAE 950311 (see :mod:`simserver.core.slip`) "can be paired
-with any semi-empirical tire model". Every model here is a compiled kernel with the
-same signature::
-
-    model_forces(tp, kappa, tan_alpha, gamma_rad, fz_n, mu_scale, vx_mps, out)
+with any semi-empirical tire model". Every model here is a compiled kernel split in
+two with the signatures of ``tire_layout.PREPARE_SIGNATURE`` and ``EVALUATE_SIGNATURE``
+(below), listed in the tire-model registry (``simserver.tire_models``: id, name,
+parameter loader, kernels, stiffness report). The dispatchers here take the registered
+kernels (``TireKernels``, indexed by model id) and the tire's packed parameters:
 
 - ``tp``: the tire's packed parameter vector (``N_TIRE_PARAM`` floats). ``tp[TP_MODEL]``
   selects the model; ``TP_*`` slots below ``TP_MODEL_BASE`` are common to all models.
@@ -18,7 +19,7 @@ same signature::
   resistance); never divided by.
 - ``out``: ``N_TIRE_OUT`` floats, written with the ``OUT_*`` slots below.
 
-Sign convention (``../shared/docs/model.md`` section 2): ``Fx > 0`` for ``kappa > 0`` and
+Sign convention (``docs/model.md`` section 2): ``Fx > 0`` for ``kappa > 0`` and
 ``Fy < 0`` for ``tan_alpha > 0``.
 
 Split evaluation. Within one integrator step the load, camber and friction hardly move
@@ -62,14 +63,32 @@ from simserver.core.tire_layout import (
     OUT_TAN_ALPHA_SLIDE,
     TIRE_JIT_OPTIONS,
     TIRE_MODEL_MF61,
+    TIRE_MODEL_SIMPLE,
     TP_MODEL,
     TP_MODEL_BASE,
+    TireKernels,
     coef_scratch,
 )
-from simserver.core.tire_mf61 import N_MF61_PARAM, _mf61_evaluate, _mf61_prepare
-from simserver.core.tire_simple import N_SIMPLE_PARAM, _simple_evaluate, _simple_prepare
+from simserver.core.tire_mf61 import (
+    N_MF61_PARAM,
+    _mf61_evaluate,
+    _mf61_prepare,
+    mf61_evaluate,
+    mf61_prepare,
+)
+from simserver.core.tire_simple import (
+    N_SIMPLE_PARAM,
+    _simple_evaluate,
+    _simple_prepare,
+    simple_evaluate,
+    simple_prepare,
+)
 
 N_TIRE_PARAM = TP_MODEL_BASE + max(N_SIMPLE_PARAM, N_MF61_PARAM)
+
+BUILTIN_KERNELS = TireKernels((simple_prepare, mf61_prepare), (simple_evaluate, mf61_evaluate))
+"""The kernels of the built-in models, in id order (``simserver.tire_models`` starts its
+registry with them)."""
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
@@ -84,14 +103,26 @@ def _no_load(out: np.ndarray) -> None:
     out[OUT_TAN_ALPHA_SLIDE] = 1.0
 
 
+# The built-in models are called directly, their bodies inlined (a call through a function
+# pointer costs 2-4 ns and stops inlining; 20 calls a step); every other registered model
+# through its kernel. The registry checks the ids before anything is compiled.
+
+
 @nb.njit(**TIRE_JIT_OPTIONS)
 def tire_prepare(
-    tp: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
+    kernels: TireKernels,
+    tp: np.ndarray,
+    gamma_rad: float,
+    fz_n: float,
+    mu_scale: float,
+    coef: np.ndarray,
 ) -> None:
     """Load-dependent coefficients of the tire model selected by ``tp[TP_MODEL]``.
 
     Parameters
     ----------
+    kernels : TireKernels
+        The registered models' kernels (``simserver.tire_models.tire_kernels()``).
     tp : float64[N_TIRE_PARAM]
         Packed tire parameters.
     gamma_rad, fz_n, mu_scale : float
@@ -103,14 +134,18 @@ def tire_prepare(
     coef : float64[N_TIRE_COEF]
         Written (every slot the model uses).
     """
-    if int(tp[TP_MODEL]) == TIRE_MODEL_MF61:
+    model = int(tp[TP_MODEL])
+    if model == TIRE_MODEL_MF61:
         _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
-    else:
+    elif model == TIRE_MODEL_SIMPLE:
         _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+    else:
+        kernels.prepare[model](tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
 def tire_evaluate(
+    kernels: TireKernels,
     tp: np.ndarray,
     coef: np.ndarray,
     kappa: float,
@@ -123,6 +158,8 @@ def tire_evaluate(
 
     Parameters
     ----------
+    kernels : TireKernels
+        The registered models' kernels.
     tp : float64[N_TIRE_PARAM]
         Packed tire parameters (the same as given to :func:`tire_prepare`).
     coef : float64[N_TIRE_COEF]
@@ -137,16 +174,20 @@ def tire_evaluate(
     out : float64[N_TIRE_OUT]
         Written in place, every ``OUT_*`` slot.
     """
+    model = int(tp[TP_MODEL])
     if not fz_n > 0.0:
         _no_load(out)
-    elif int(tp[TP_MODEL]) == TIRE_MODEL_MF61:
+    elif model == TIRE_MODEL_MF61:
         _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
-    else:
+    elif model == TIRE_MODEL_SIMPLE:
         _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+    else:
+        kernels.evaluate[model](tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
 def tire_forces(
+    kernels: TireKernels,
     tp: np.ndarray,
     kappa: float,
     tan_alpha: float,
@@ -163,6 +204,8 @@ def tire_forces(
 
     Parameters
     ----------
+    kernels : TireKernels
+        The registered models' kernels.
     tp : float64[N_TIRE_PARAM]
         Packed tire parameters.
     kappa, tan_alpha : float
@@ -176,11 +219,5 @@ def tire_forces(
         _no_load(out)
         return
     coef = coef_scratch()
-    # the model kernels are inlined here (no call, so the view tp[TP_MODEL_BASE:] costs
-    # no reference counting); the same as tire_prepare then tire_evaluate
-    if int(tp[TP_MODEL]) == TIRE_MODEL_MF61:
-        _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
-        _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
-    else:
-        _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
-        _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+    tire_prepare(kernels, tp, gamma_rad, fz_n, mu_scale, coef)
+    tire_evaluate(kernels, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)

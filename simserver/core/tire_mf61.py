@@ -2,7 +2,7 @@
 
 Equations: H. B. Pacejka, *Tire and Vehicle Dynamics*, 3rd ed. (2012), section 4.3.2,
 "full set of equations" (4.E1) to (4.E78), in the ISO sign convention of MF-Tyre property
-files (``../shared/docs/model.md`` section 2). Equation numbers are quoted in the comments.
+files (``docs/model.md`` section 2). Equation numbers are quoted in the comments.
 No turn slip: every zeta factor is 1 (zeta0 = 1 as well, the pure camber path).
 
 Where the book and the MF-Tyre implementation differ, this module follows the latter, as
@@ -71,6 +71,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from simserver.core.tire_layout import (
+    EVALUATE_SIGNATURE,
     FZ_INPUT_MAX_N,
     MU_SCALE_MAX,
     N_MF61_COEF,
@@ -84,6 +85,7 @@ from simserver.core.tire_layout import (
     OUT_MY,
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
+    PREPARE_SIGNATURE,
     SLIP_INPUT_MAX,
     TIRE_JIT_OPTIONS,
     coef_scratch,
@@ -1083,18 +1085,19 @@ def mf61_forces(
     _mf61_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
 
-@nb.njit(**_JIT_OPTIONS)
+@nb.njit(PREPARE_SIGNATURE, **_JIT_OPTIONS)
 def mf61_prepare(
     p: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
 ) -> None:
     """Load-dependent coefficients of MF 6.1 into ``coef``: :func:`_mf61_prepare`.
 
-    Compiled on its own, so it may be called from code compiled with any options.
+    Compiled on its own with the registry's signature (``tire_layout.PREPARE_SIGNATURE``
+    or ``EVALUATE_SIGNATURE``): the kernel registered for this model.
     """
     _mf61_prepare(p, gamma_rad, fz_n, mu_scale, coef)
 
 
-@nb.njit(**_JIT_OPTIONS)
+@nb.njit(EVALUATE_SIGNATURE, **_JIT_OPTIONS)
 def mf61_evaluate(
     p: np.ndarray,
     coef: np.ndarray,
@@ -1106,7 +1109,8 @@ def mf61_evaluate(
 ) -> None:
     """MF 6.1 forces from prepared coefficients at the load ``fz_n``: :func:`_mf61_evaluate`.
 
-    Compiled on its own, so it may be called from code compiled with any options.
+    Compiled on its own with the registry's signature (``tire_layout.PREPARE_SIGNATURE``
+    or ``EVALUATE_SIGNATURE``): the kernel registered for this model.
     """
     _mf61_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 

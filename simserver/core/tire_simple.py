@@ -23,7 +23,7 @@ slips, and with them the shape of the curves, do not depend on load: every outpu
 ``Fz`` times a function of slip and friction. The split of :mod:`simserver.core.tire`
 (``simple_prepare`` once per step, ``simple_evaluate`` per stage, scaled by
 ``Fz / Fz_prepared``) is therefore exact at any load. The paper's car
-(model.md section 5) has ``C_alpha = 51 000 N/rad`` and ``C_kappa = 22 500`` per tire at
+(docs/model.md section 5) has ``C_alpha = 51 000 N/rad`` and ``C_kappa = 22 500`` per tire at
 ``Fz_nom = 5005 N``.
 """
 
@@ -33,6 +33,7 @@ import numba as nb
 import numpy as np
 
 from simserver.core.tire_layout import (
+    EVALUATE_SIGNATURE,
     FZ_INPUT_MAX_N,
     MU_SCALE_MAX,
     N_SIMPLE_COEF,
@@ -46,6 +47,7 @@ from simserver.core.tire_layout import (
     OUT_MY,
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
+    PREPARE_SIGNATURE,
     SLIP_INPUT_MAX,
     TIRE_JIT_OPTIONS,
     coef_scratch,
@@ -241,18 +243,19 @@ def simple_forces(
     _simple_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
 
-@nb.njit(**TIRE_JIT_OPTIONS)
+@nb.njit(PREPARE_SIGNATURE, **TIRE_JIT_OPTIONS)
 def simple_prepare(
     p: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
 ) -> None:
     """Load-dependent coefficients of the brush model: :func:`_simple_prepare`.
 
-    Compiled on its own, so it may be called from code compiled with any options.
+    Compiled on its own with the registry's signature (``tire_layout.PREPARE_SIGNATURE``
+    or ``EVALUATE_SIGNATURE``): the kernel registered for this model.
     """
     _simple_prepare(p, gamma_rad, fz_n, mu_scale, coef)
 
 
-@nb.njit(**TIRE_JIT_OPTIONS)
+@nb.njit(EVALUATE_SIGNATURE, **TIRE_JIT_OPTIONS)
 def simple_evaluate(
     p: np.ndarray,
     coef: np.ndarray,
@@ -264,6 +267,7 @@ def simple_evaluate(
 ) -> None:
     """Brush-model forces from prepared coefficients: :func:`_simple_evaluate`.
 
-    Compiled on its own, so it may be called from code compiled with any options.
+    Compiled on its own with the registry's signature (``tire_layout.PREPARE_SIGNATURE``
+    or ``EVALUATE_SIGNATURE``): the kernel registered for this model.
     """
     _simple_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
