@@ -133,7 +133,7 @@ def tire_model(key: str | float) -> TireModel:
     if float(key).is_integer() and 0 <= int(key) < len(_REGISTRY):
         return _REGISTRY[int(key)]
     raise UnknownTireModelError(
-        f"unknown tire model id {key!r} (registered: "
+        f"unknown tire model id {float(key):g} (registered: "
         + ", ".join(f"{m.id} {m.name}" for m in _REGISTRY) + ")")
 
 

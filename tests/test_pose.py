@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from simserver.core import layout as L
-from simserver.core.params import road_axes
+from simserver.core.road import road_axes
 from simserver.core.pose import road_pose, world_pose
 
 

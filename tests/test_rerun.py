@@ -208,8 +208,8 @@ def test_scene_logger_logs_the_same_frames_as_log_result(tmp_path):
 
     rec = rr.RecordingStream("simserver", recording_id="live")
     rec.save(live_rrd)
-    logger = S.SceneLogger(rec, scenario.vehicle.vp, scenario.vehicle.tp,
-                           scenario.road["grade_pct"], scenario.road["cross_slope_pct"],
+    logger = S.SceneLogger(rec, scenario.scene.vehicle.vp, scenario.scene.vehicle.tp,
+                           scenario.scene.road["grade_pct"], scenario.scene.road["cross_slope_pct"],
                            flush_every=7, send_blueprint=False)
     t0 = time.perf_counter()
     kept = [logger.log_frame(t, result.states[k], result.outputs[k], result.inputs[k])

@@ -808,8 +808,8 @@ def log_result(
     """
     rec.set_log_time_enabled(False)
     sc = result.scenario
-    vp, tp = sc.vehicle.vp, sc.vehicle.tp
-    grade, cross = sc.road["grade_pct"], sc.road["cross_slope_pct"]
+    vp, tp = sc.scene.vehicle.vp, sc.scene.vehicle.tp
+    grade, cross = sc.scene.road["grade_pct"], sc.scene.road["cross_slope_pct"]
     axes = road_axes(grade, cross)
     geometry = CarGeometry.from_params(vp, tp)
     states, outputs, inputs, t = result.states, result.outputs, result.inputs, result.time_s

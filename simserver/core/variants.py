@@ -54,7 +54,7 @@ class VariantRegistry:
         if float(variant_id).is_integer() and 0 <= int(variant_id) < len(self.variants):
             return self.variants[int(variant_id)]
         raise UnknownVariantError(
-            f"unknown {self.kind} id {variant_id!r} (known: "
+            f"unknown {self.kind} id {float(variant_id):g} (known: "
             + ", ".join(f"{v.id} {v.name}" for v in self.variants) + ")")
 
     def __iter__(self):  # noqa: ANN204 - an iterator of Variant
