@@ -7,7 +7,8 @@ An entry (``TireModel``) holds everything that is particular to a model:
 - ``load``: the parameter loader, from the tire file's mapping to the packed
   model-specific slots and the common ones (radius, relaxation lengths);
 - ``prepare`` and ``evaluate``: the compiled kernels, compiled with the explicit
-  signatures ``core.tire_layout.PREPARE_SIGNATURE`` and ``EVALUATE_SIGNATURE``;
+  signatures ``core.tire_layout.PREPARE_SIGNATURE`` and ``EVALUATE_SIGNATURE``, taking
+  the whole packed tire vector (common slots, then the model's from ``TP_MODEL_BASE``);
 - ``nominal_load_n``: the load at which its stiffnesses are reported
   (``stiffness_report``, the CLI's ``tire-curves``).
 
@@ -46,13 +47,18 @@ from simserver.core.tire_layout import (
     TP_MODEL_BASE,
     TireKernels,
 )
-from simserver.core.tire_mf61 import P_FNOMIN, mf61_evaluate, mf61_param_vector, mf61_prepare
+from simserver.core.tire_mf61 import (
+    P_FNOMIN,
+    mf61_evaluate_kernel,
+    mf61_param_vector,
+    mf61_prepare_kernel,
+)
 from simserver.core.tire_simple import (
     SIMPLE_PARAM_NAMES,
     SP_FZ_NOM,
-    simple_evaluate,
+    simple_evaluate_kernel,
     simple_param_vector,
-    simple_prepare,
+    simple_prepare_kernel,
 )
 
 # Tuples of first-class function pointers are what makes the kernels a cacheable argument
@@ -110,7 +116,7 @@ def register_tire_model(name: str, description: str, load: Callable[[Path, dict]
 
     ``prepare`` and ``evaluate`` are ``numba.njit`` functions compiled with the explicit
     signatures ``PREPARE_SIGNATURE`` and ``EVALUATE_SIGNATURE`` (core.tire_layout); they
-    see the model-specific slots ``tp[TP_MODEL_BASE:]`` only.
+    receive the whole packed tire vector, their own slots from ``TP_MODEL_BASE`` on.
     """
     if name in TIRE_MODEL_NAMES:
         raise ValueError(f"tire model {name!r} is already registered")
@@ -235,9 +241,9 @@ def _load_mf61(path: Path, data: dict[str, Any]) -> LoadedTire:
 
 _simple = register_tire_model(
     "simple", "brush (Fiala) combined-slip model with explicit stiffnesses (core/tire_simple.py)",
-    _load_simple, simple_prepare, simple_evaluate, lambda p: p[SP_FZ_NOM])
+    _load_simple, simple_prepare_kernel, simple_evaluate_kernel, lambda p: p[SP_FZ_NOM])
 _mf61 = register_tire_model(
     "mf61", "Magic Formula 6.1 from a .tir property file (core/tire_mf61.py)",
-    _load_mf61, mf61_prepare, mf61_evaluate, lambda p: p[P_FNOMIN])
+    _load_mf61, mf61_prepare_kernel, mf61_evaluate_kernel, lambda p: p[P_FNOMIN])
 if (_simple.id, _mf61.id) != (TIRE_MODEL_SIMPLE, TIRE_MODEL_MF61):
     raise ImportError("the built-in tire models must keep the ids of core.tire_layout")

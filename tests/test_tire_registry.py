@@ -34,6 +34,7 @@ from simserver.core.tire_layout import (
     OUT_TAN_ALPHA_SLIDE,
     PREPARE_SIGNATURE,
     TP_MODEL,
+    TP_MODEL_BASE,
 )
 from simserver.core.variants import UnknownVariantError
 from simserver.scenario import load_scenario, load_scene, run_scenario
@@ -48,21 +49,21 @@ from simserver.tire_models import (
 from tests.conftest import CONFIGS
 
 # ---------------------------------------------------------------- the toy tire "module"
-LIN_C_KAPPA, LIN_C_ALPHA, LIN_FZ_NOM, LIN_MU = 0, 1, 2, 3  # model-specific slots
+LIN_C_KAPPA, LIN_C_ALPHA, LIN_FZ_NOM, LIN_MU = 0, 1, 2, 3  # its slots from TP_MODEL_BASE
 LIN_FZ = 0  # coefficient slot: the prepared load
 
 
 @nb.njit(PREPARE_SIGNATURE, cache=True)
-def linear_prepare(p, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN201
+def linear_prepare(tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN201
     coef[LIN_FZ] = max(fz_n, 1.0)
 
 
 @nb.njit(EVALUATE_SIGNATURE, cache=True)
-def linear_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN201
-    scale = fz_n / p[LIN_FZ_NOM]
-    c_kappa = p[LIN_C_KAPPA] * scale
-    c_alpha = p[LIN_C_ALPHA] * scale
-    limit = p[LIN_MU] * fz_n
+def linear_evaluate(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN201
+    scale = fz_n / tp[TP_MODEL_BASE + LIN_FZ_NOM]
+    c_kappa = tp[TP_MODEL_BASE + LIN_C_KAPPA] * scale
+    c_alpha = tp[TP_MODEL_BASE + LIN_C_ALPHA] * scale
+    limit = tp[TP_MODEL_BASE + LIN_MU] * fz_n
     out[OUT_FX] = min(max(c_kappa * kappa, -limit), limit)
     out[OUT_FY] = min(max(-c_alpha * tan_alpha, -limit), limit)
     out[OUT_MZ] = 0.0
@@ -202,7 +203,7 @@ def test_unknown_variant_names_are_errors():
 
 def test_registry_rejects_kernels_without_the_registered_signature():
     @nb.njit
-    def untyped(p, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
+    def untyped(tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
         coef[0] = fz_n
 
     with pytest.raises(TypeError, match="prepare must be compiled with exactly the signature"):

@@ -88,6 +88,7 @@ from simserver.core.model import (
     W_FX_PEAK,
     W_FY,
     W_FY_PEAK,
+    W_FZ,
     W_HUB_U,
     W_HUB_V,
     W_KAPPA,
@@ -96,8 +97,14 @@ from simserver.core.model import (
     W_MZ,
     W_TAN_ALPHA,
     W_TAN_ALPHA_SLIDE,
-    Data,
+    WI_BRAKE_NM,
+    WI_COS_STEER,
+    WI_DRIVE_NM,
+    WI_HELD,
+    WI_SIN_STEER,
+    WI_STEER_RAD,
     Model,
+    Workspace,
 )
 from simserver.core.params import (
     VP_AIR_DENSITY_KGPM3,
@@ -202,8 +209,8 @@ def hub_velocity(
 
 
 @nb.njit(cache=True)
-def corner_loads(vp: np.ndarray, x: np.ndarray, fz_n: np.ndarray) -> None:
-    """Stage 1: the normal load of each corner (N) into ``fz_n``.
+def corner_loads(vp: np.ndarray, x: np.ndarray, wheel: np.ndarray) -> None:
+    """Stage 1: the normal load of each corner (N) into ``wheel[i, W_FZ]``.
 
     Static share (from the CG position and the component of gravity normal to the road)
     plus the suspension's force (spring, damper, anti-roll bar) from the body's heave,
@@ -233,8 +240,8 @@ def corner_loads(vp: np.ndarray, x: np.ndarray, fz_n: np.ndarray) -> None:
         rate_r = -(heave_rate - py_left * roll_rate - px * pitch_rate)
         arb = k_arb * (comp_l - comp_r)
         static = static_wheel_load(vp, left)
-        fz_n[left + LEFT] = max(0.0, static + (k_s * comp_l + c_s * rate_l + arb))
-        fz_n[left + RIGHT] = max(0.0, static + (k_s * comp_r + c_s * rate_r - arb))
+        wheel[left + LEFT, W_FZ] = max(0.0, static + (k_s * comp_l + c_s * rate_l + arb))
+        wheel[left + RIGHT, W_FZ] = max(0.0, static + (k_s * comp_r + c_s * rate_r - arb))
 
 
 @nb.njit(cache=True)
@@ -296,20 +303,20 @@ def auxiliary_damping(
 
 
 @nb.njit(cache=True)
-def wheel_forces(model: Model, data: Data, x: np.ndarray, dx: np.ndarray) -> None:
+def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
     """Stage 2: per wheel, the slip, the tire forces with the auxiliary damping and the
     spin; writes ``dx``'s spin and slip slots and ``ws.wheel`` (``W_*``).
 
-    Reads the loads of stage 1 (``ws.fz_n``) and the inputs frozen over the step
-    (``ws.cos_steer``, ``sin_steer``, ``drive_nm``, ``brake_nm``, ``held``).
+    Reads the loads of stage 1 (``ws.wheel[i, W_FZ]``) and the inputs held over the step
+    (``ws.wheel_in``).
     """
-    vp = model.vp
-    ws = data.ws
+    vp, tp, tires, dt_s = model.vp, model.tp, model.tires, model.dt_s
+    wheel_in, wheel, tire_out, tire_coef = ws.wheel_in, ws.wheel, ws.tire_out, ws.tire_coef
     slip_model = int(vp[VP_SLIP_MODEL])
     for i in range(N_WHEELS):
-        tp_wheel = model.tp[i]
-        fz = ws.fz_n[i]
-        u_w, v_w = hub_velocity(x, vp, i, ws.cos_steer[i], ws.sin_steer[i])
+        tp_wheel = tp[i]
+        fz = wheel[i, W_FZ]
+        u_w, v_w = hub_velocity(x, vp, i, wheel_in[i, WI_COS_STEER], wheel_in[i, WI_SIN_STEER])
         radius = tp_wheel[TP_RADIUS_M]
         omega = x[OMEGA0 + i]
         if slip_model == SLIP_KINEMATIC:
@@ -327,43 +334,41 @@ def wheel_forces(model: Model, data: Data, x: np.ndarray, dx: np.ndarray) -> Non
             )
         else:
             raise ValueError("unknown slip model id (core.slip.SLIP_MODELS)")
-        tire_out = ws.tire_out
-        tire_evaluate(model.tires, tp_wheel, ws.tire_coef[i], kappa, tan_alpha, fz, u_w,
-                      tire_out)
+        tire_evaluate(tires, tp_wheel, tire_coef[i], kappa, tan_alpha, fz, u_w, tire_out)
         damp_x, damp_y = auxiliary_damping(
             vp, i, tp_wheel, tire_out, fz, u_w, v_w, x[DAMPING_ACTIVE0 + i], d_tan_alpha,
-            d_kappa, model.dt_s,
+            d_kappa, dt_s,
         )
         fx = tire_out[OUT_FX] + damp_x
         fy = tire_out[OUT_FY] + damp_y
 
-        if ws.held[i] > 0.5:
+        if wheel_in[i, WI_HELD] > 0.5:
             d_omega = 0.0
         else:
-            d_omega = (ws.drive_nm[i] - radius * fx + ws.brake_nm[i]) / wheel_inertia(vp, i)
+            d_omega = (wheel_in[i, WI_DRIVE_NM] - radius * fx + wheel_in[i, WI_BRAKE_NM]) / (
+                wheel_inertia(vp, i))
         dx[OMEGA0 + i] = d_omega
         dx[TAN_ALPHA0 + i] = d_tan_alpha
         dx[KAPPA0 + i] = d_kappa
 
-        w = ws.wheel[i]
-        w[W_FX] = fx
-        w[W_FY] = fy
-        w[W_MZ] = tire_out[OUT_MZ]
-        w[W_MY] = tire_out[OUT_MY]
-        w[W_KAPPA_SLIDE] = tire_out[OUT_KAPPA_SLIDE]
-        w[W_TAN_ALPHA_SLIDE] = tire_out[OUT_TAN_ALPHA_SLIDE]
-        w[W_FX_PEAK] = tire_out[OUT_FX_PEAK]
-        w[W_FY_PEAK] = tire_out[OUT_FY_PEAK]
-        w[W_HUB_U] = u_w
-        w[W_HUB_V] = v_w
-        w[W_DAMPING_FX] = damp_x
-        w[W_DAMPING_FY] = damp_y
-        w[W_KAPPA] = kappa
-        w[W_TAN_ALPHA] = tan_alpha
+        wheel[i, W_FX] = fx
+        wheel[i, W_FY] = fy
+        wheel[i, W_MZ] = tire_out[OUT_MZ]
+        wheel[i, W_MY] = tire_out[OUT_MY]
+        wheel[i, W_KAPPA_SLIDE] = tire_out[OUT_KAPPA_SLIDE]
+        wheel[i, W_TAN_ALPHA_SLIDE] = tire_out[OUT_TAN_ALPHA_SLIDE]
+        wheel[i, W_FX_PEAK] = tire_out[OUT_FX_PEAK]
+        wheel[i, W_FY_PEAK] = tire_out[OUT_FY_PEAK]
+        wheel[i, W_HUB_U] = u_w
+        wheel[i, W_HUB_V] = v_w
+        wheel[i, W_DAMPING_FX] = damp_x
+        wheel[i, W_DAMPING_FY] = damp_y
+        wheel[i, W_KAPPA] = kappa
+        wheel[i, W_TAN_ALPHA] = tan_alpha
 
 
 @nb.njit(cache=True)
-def body_rates(model: Model, data: Data, x: np.ndarray, dx: np.ndarray) -> None:
+def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
     """Stage 3: the sprung body on the corner loads and the tire forces; writes ``dx``'s
     body slots and ``ws.body`` (``B_*``).
 
@@ -372,7 +377,7 @@ def body_rates(model: Model, data: Data, x: np.ndarray, dx: np.ndarray) -> None:
     ``M_pitch = -h sum(Fx)``; gravity adds its destabilising ``m_s g_n h phi``.
     """
     vp = model.vp
-    ws = data.ws
+    wheel_in, wheel, body = ws.wheel_in, ws.wheel, ws.body
     mass = vp[VP_MASS_KG]
     sprung = vp[VP_SPRUNG_MASS_KG]
     h_cg = vp[VP_CG_HEIGHT_M]
@@ -395,19 +400,18 @@ def body_rates(model: Model, data: Data, x: np.ndarray, dx: np.ndarray) -> None:
     pitch_moment = 0.0
     for i in range(N_WHEELS):
         px, py = wheel_position(vp, i)
-        dyn = ws.fz_n[i] - static_wheel_load(vp, i)  # what the corner pushes beyond static
+        dyn = wheel[i, W_FZ] - static_wheel_load(vp, i)  # what the corner adds to static
         heave_force += dyn
         roll_moment += py * dyn
         pitch_moment -= px * dyn
         # tire forces into body axes
-        w = ws.wheel[i]
-        c_d = ws.cos_steer[i]
-        s_d = ws.sin_steer[i]
-        fx_body = c_d * w[W_FX] - s_d * w[W_FY]
-        fy_body = s_d * w[W_FX] + c_d * w[W_FY]
+        c_d = wheel_in[i, WI_COS_STEER]
+        s_d = wheel_in[i, WI_SIN_STEER]
+        fx_body = c_d * wheel[i, W_FX] - s_d * wheel[i, W_FY]
+        fy_body = s_d * wheel[i, W_FX] + c_d * wheel[i, W_FY]
         fx_sum += fx_body
         fy_sum += fy_body
-        mz_sum += px * fy_body - py * fx_body + w[W_MZ]
+        mz_sum += px * fy_body - py * fx_body + wheel[i, W_MZ]
 
     drag = 0.5 * vp[VP_AIR_DENSITY_KGPM3] * vp[VP_DRAG_AREA_M2] * u * abs(u)
     force_x = fx_sum + mass * g_x - drag
@@ -433,58 +437,54 @@ def body_rates(model: Model, data: Data, x: np.ndarray, dx: np.ndarray) -> None:
         pitch_moment - h_cg * fx_sum + sprung * g_n * h_cg * x[PITCH_RAD]
     ) / vp[VP_PITCH_INERTIA_KGM2]
 
-    b = ws.body
-    b[B_AX_MPS2] = ax
-    b[B_AY_MPS2] = ay
-    b[B_YAW_ACC_RADPS2] = yaw_acc
-    b[B_GRAVITY_X_MPS2] = g_x
-    b[B_GRAVITY_Y_MPS2] = g_y
-    b[B_FX_SUM_N] = fx_sum
-    b[B_FY_SUM_N] = fy_sum
+    body[B_AX_MPS2] = ax
+    body[B_AY_MPS2] = ay
+    body[B_YAW_ACC_RADPS2] = yaw_acc
+    body[B_GRAVITY_X_MPS2] = g_x
+    body[B_GRAVITY_Y_MPS2] = g_y
+    body[B_FX_SUM_N] = fx_sum
+    body[B_FY_SUM_N] = fy_sum
 
 
 @nb.njit(cache=True)
-def vehicle_rates(model: Model, data: Data, x: np.ndarray, dx: np.ndarray) -> None:
+def vehicle_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
     """Time derivatives ``dx`` (float64[N_INTEGRATED]) of the integrated states at ``x``.
 
     The discrete slots of ``x`` are read, not differentiated. Leaves the per-wheel and
-    body quantities of ``x`` in the workspace (``ws.fz_n``, ``ws.wheel``, ``ws.body``).
+    body quantities of ``x`` in the workspace (``ws.wheel``, ``ws.body``).
     """
-    corner_loads(model.vp, x, data.ws.fz_n)
-    wheel_forces(model, data, x, dx)
-    body_rates(model, data, x, dx)
+    corner_loads(model.vp, x, ws.wheel)
+    wheel_forces(model, ws, x, dx)
+    body_rates(model, ws, x, dx)
 
 
 @nb.njit(cache=True)
-def record_outputs(data: Data) -> None:
+def record_outputs(ws: Workspace, out: np.ndarray) -> None:
     """Copy the forces of the state just evaluated into the outputs (``O_*`` slots);
     the brake torques are written by the integrator once the brakes are resolved."""
-    ws = data.ws
-    out = data.out
+    wheel_in, wheel, body = ws.wheel_in, ws.wheel, ws.body
     for i in range(N_WHEELS):
-        w = ws.wheel[i]
-        fx = w[W_FX]
-        fy = w[W_FY]
+        fx = wheel[i, W_FX]
+        fy = wheel[i, W_FY]
         out[O_FX0 + i] = fx
         out[O_FY0 + i] = fy
-        out[O_FZ0 + i] = ws.fz_n[i]
-        out[O_MZ0 + i] = w[W_MZ]
-        out[O_HUB_U0 + i] = w[W_HUB_U]
-        out[O_HUB_V0 + i] = w[W_HUB_V]
-        out[O_STEER0 + i] = ws.steer_rad[i]
-        out[O_DRIVE_TORQUE0 + i] = ws.drive_nm[i]
-        fx_avail = max(w[W_FX_PEAK], 1e-9)
-        fy_avail = max(w[W_FY_PEAK], 1e-9)
+        out[O_FZ0 + i] = wheel[i, W_FZ]
+        out[O_MZ0 + i] = wheel[i, W_MZ]
+        out[O_HUB_U0 + i] = wheel[i, W_HUB_U]
+        out[O_HUB_V0 + i] = wheel[i, W_HUB_V]
+        out[O_STEER0 + i] = wheel_in[i, WI_STEER_RAD]
+        out[O_DRIVE_TORQUE0 + i] = wheel_in[i, WI_DRIVE_NM]
+        fx_avail = max(wheel[i, W_FX_PEAK], 1e-9)
+        fy_avail = max(wheel[i, W_FY_PEAK], 1e-9)
         out[O_FRICTION_USE0 + i] = np.sqrt((fx / fx_avail) ** 2 + (fy / fy_avail) ** 2)
-        out[O_DAMPING_FX0 + i] = w[W_DAMPING_FX]
-        out[O_DAMPING_FY0 + i] = w[W_DAMPING_FY]
-        out[O_KAPPA0 + i] = w[W_KAPPA]
-        out[O_TAN_ALPHA0 + i] = w[W_TAN_ALPHA]
-    b = ws.body
-    out[O_AX_MPS2] = b[B_AX_MPS2]
-    out[O_AY_MPS2] = b[B_AY_MPS2]
-    out[O_YAW_ACC_RADPS2] = b[B_YAW_ACC_RADPS2]
-    out[O_GRAVITY_X_MPS2] = b[B_GRAVITY_X_MPS2]
-    out[O_GRAVITY_Y_MPS2] = b[B_GRAVITY_Y_MPS2]
-    out[O_FX_BODY_SUM_N] = b[B_FX_SUM_N]
-    out[O_FY_BODY_SUM_N] = b[B_FY_SUM_N]
+        out[O_DAMPING_FX0 + i] = wheel[i, W_DAMPING_FX]
+        out[O_DAMPING_FY0 + i] = wheel[i, W_DAMPING_FY]
+        out[O_KAPPA0 + i] = wheel[i, W_KAPPA]
+        out[O_TAN_ALPHA0 + i] = wheel[i, W_TAN_ALPHA]
+    out[O_AX_MPS2] = body[B_AX_MPS2]
+    out[O_AY_MPS2] = body[B_AY_MPS2]
+    out[O_YAW_ACC_RADPS2] = body[B_YAW_ACC_RADPS2]
+    out[O_GRAVITY_X_MPS2] = body[B_GRAVITY_X_MPS2]
+    out[O_GRAVITY_Y_MPS2] = body[B_GRAVITY_Y_MPS2]
+    out[O_FX_BODY_SUM_N] = body[B_FX_SUM_N]
+    out[O_FY_BODY_SUM_N] = body[B_FY_SUM_N]

@@ -78,11 +78,28 @@ from simserver.core.layout import (
     WHEEL_HELD0,
 )
 from simserver.core.model import (
+    RK_DECAY,
+    RK_E_HALF,
+    RK_K1,
+    RK_K2,
+    RK_K3,
+    RK_K4,
+    RK_Y2,
+    RK_Y3,
+    RK_Y4,
     W_FX,
+    W_FZ,
     W_HUB_U,
     W_KAPPA_SLIDE,
     W_MY,
     W_TAN_ALPHA_SLIDE,
+    WI_BRAKE_CAP_NM,
+    WI_BRAKE_NM,
+    WI_COS_STEER,
+    WI_DRIVE_NM,
+    WI_HELD,
+    WI_SIN_STEER,
+    WI_STEER_RAD,
     Data,
     Model,
 )
@@ -107,26 +124,27 @@ from simserver.core.tire_layout import TP_RADIUS_M, TP_RELAX_LAT_M, TP_RELAX_LON
 
 
 @nb.njit(cache=True)
-def road_wheel_angles(vp: np.ndarray, steer_input: float, steer_rad: np.ndarray) -> None:
+def road_wheel_angles(vp: np.ndarray, steer_input: float, wheel_in: np.ndarray) -> None:
     """Steering-wheel position [-1, 1] to road-wheel angles (parallel steer, front axle)."""
     delta = steer_input * vp[VP_STEERING_WHEEL_MAX_RAD] / vp[VP_STEERING_RATIO]
     for i in range(N_WHEELS):
-        steer_rad[i] = delta if i < N_FRONT_WHEELS else 0.0
+        wheel_in[i, WI_STEER_RAD] = delta if i < N_FRONT_WHEELS else 0.0
 
 
 @nb.njit(cache=True)
 def freeze_inputs(model: Model, data: Data) -> None:
-    """Stage 1: the inputs held over the step: road-wheel angles, drive torques, brake
-    capacities; the brakes start released and no wheel held."""
-    ws = data.ws
-    road_wheel_angles(model.vp, data.inputs[IN_STEER], ws.steer_rad)
+    """Stage 1: the inputs held over the step (``ws.wheel_in``): road-wheel angles, drive
+    torques, brake capacities; the brakes start released and no wheel held."""
+    wheel_in = data.ws.wheel_in
+    road_wheel_angles(model.vp, data.inputs[IN_STEER], wheel_in)
     for i in range(N_WHEELS):
-        ws.cos_steer[i] = np.cos(ws.steer_rad[i])
-        ws.sin_steer[i] = np.sin(ws.steer_rad[i])
-    wheel_torques(data.x, model.vp, data.inputs, ws.drive_nm, ws.brake_cap_nm)
+        wheel_in[i, WI_COS_STEER] = np.cos(wheel_in[i, WI_STEER_RAD])
+        wheel_in[i, WI_SIN_STEER] = np.sin(wheel_in[i, WI_STEER_RAD])
+    wheel_torques(data.x, model.vp, data.inputs, wheel_in[:, WI_DRIVE_NM],
+                  wheel_in[:, WI_BRAKE_CAP_NM])
     for i in range(N_WHEELS):
-        ws.held[i] = 0.0
-        ws.brake_nm[i] = 0.0
+        wheel_in[i, WI_HELD] = 0.0
+        wheel_in[i, WI_BRAKE_NM] = 0.0
 
 
 @nb.njit(cache=True)
@@ -139,14 +157,15 @@ def prepare_tires(model: Model, data: Data) -> None:
     none yet, prepared at ``Fz``). The start load becomes the next step's ``Fz_prev``.
     """
     x = data.x
-    ws = data.ws
-    corner_loads(model.vp, x, ws.fz_n)
-    mu = model.vp[VP_ROAD_FRICTION_SCALE]
+    vp, tp, tires = model.vp, model.tp, model.tires
+    wheel, tire_coef = data.ws.wheel, data.ws.tire_coef
+    corner_loads(vp, x, wheel)
+    mu = vp[VP_ROAD_FRICTION_SCALE]
     for i in range(N_WHEELS):
-        fz = ws.fz_n[i]
+        fz = wheel[i, W_FZ]
         fz_prev = x[FZ_PREV0 + i]
         fz_pred = fz + 0.5 * (fz - fz_prev) if fz_prev >= 0.0 else fz
-        tire_prepare(model.tires, model.tp[i], 0.0, fz_pred, mu, ws.tire_coef[i])
+        tire_prepare(tires, tp[i], 0.0, fz_pred, mu, tire_coef[i])
         x[FZ_PREV0 + i] = fz
 
 
@@ -162,26 +181,26 @@ def resolve_brakes(model: Model, data: Data) -> None:
     derivatives that depend on the brakes) are updated accordingly.
     """
     x = data.x
-    ws = data.ws
-    vp = model.vp
+    vp, tp, dt_s = model.vp, model.tp, model.dt_s
+    wheel_in, wheel, rk = data.ws.wheel_in, data.ws.wheel, data.ws.rk
     for i in range(N_WHEELS):
         inertia = wheel_inertia(vp, i)
-        radius = model.tp[i, TP_RADIUS_M]
-        t_other = ws.drive_nm[i] - radius * ws.wheel[i, W_FX]
-        capacity = ws.brake_cap_nm[i] + ws.wheel[i, W_MY]
-        t_stop = -inertia * x[OMEGA0 + i] / model.dt_s - t_other
+        radius = tp[i, TP_RADIUS_M]
+        t_other = wheel_in[i, WI_DRIVE_NM] - radius * wheel[i, W_FX]
+        capacity = wheel_in[i, WI_BRAKE_CAP_NM] + wheel[i, W_MY]
+        t_stop = -inertia * x[OMEGA0 + i] / dt_s - t_other
         if abs(t_stop) <= capacity:
-            ws.held[i] = 1.0
+            wheel_in[i, WI_HELD] = 1.0
             x[OMEGA0 + i] = 0.0
-            ws.brake_nm[i] = -t_other
+            wheel_in[i, WI_BRAKE_NM] = -t_other
         else:
-            ws.held[i] = 0.0
-            ws.brake_nm[i] = capacity if t_stop > 0.0 else -capacity
+            wheel_in[i, WI_HELD] = 0.0
+            wheel_in[i, WI_BRAKE_NM] = capacity if t_stop > 0.0 else -capacity
     for i in range(N_WHEELS):
-        if ws.held[i] > 0.5:
-            ws.k1[OMEGA0 + i] = 0.0
+        if wheel_in[i, WI_HELD] > 0.5:
+            rk[RK_K1, OMEGA0 + i] = 0.0
         else:
-            ws.k1[OMEGA0 + i] += ws.brake_nm[i] / wheel_inertia(vp, i)
+            rk[RK_K1, OMEGA0 + i] += wheel_in[i, WI_BRAKE_NM] / wheel_inertia(vp, i)
 
 
 @nb.njit(cache=True)
@@ -194,47 +213,49 @@ def _copy_discrete(src: np.ndarray, dst: np.ndarray) -> None:
 def freeze_decay_rates(model: Model, data: Data) -> None:
     """The slip states' linear decay rates ``|u|/b``, ``|u|/B`` at the step start (zero for
     the other states, and for the kinematic slip model, which has no slip states)."""
-    ws = data.ws
+    rk, wheel = data.ws.rk, data.ws.wheel
+    tp = model.tp
     h = model.dt_s
     for j in range(N_INTEGRATED):
-        ws.decay[j] = 0.0
-        ws.e_half[j] = 1.0
+        rk[RK_DECAY, j] = 0.0
+        rk[RK_E_HALF, j] = 1.0
     if int(model.vp[VP_SLIP_MODEL]) != SLIP_KINEMATIC:
         for i in range(N_WHEELS):
-            speed = abs(ws.wheel[i, W_HUB_U])
-            for j, length in ((TAN_ALPHA0 + i, model.tp[i, TP_RELAX_LAT_M]),
-                              (KAPPA0 + i, model.tp[i, TP_RELAX_LONG_M])):
-                ws.decay[j] = speed / length
-                ws.e_half[j] = np.exp(-0.5 * h * ws.decay[j])
+            speed = abs(wheel[i, W_HUB_U])
+            for j, length in ((TAN_ALPHA0 + i, tp[i, TP_RELAX_LAT_M]),
+                              (KAPPA0 + i, tp[i, TP_RELAX_LONG_M])):
+                rk[RK_DECAY, j] = speed / length
+                rk[RK_E_HALF, j] = np.exp(-0.5 * h * rk[RK_DECAY, j])
 
 
 @nb.njit(cache=True)
 def lawson_rk4(model: Model, data: Data) -> None:
     """Stage 5: exponential (Lawson) RK4 from ``k1`` (already evaluated at the start).
 
-    The start spins are kept in ``ws.y2`` for the zero-crossing test of stage 6.
+    The start spins are kept in the ``RK_Y2`` row for the zero-crossing test of stage 6.
     """
     x = data.x
     ws = data.ws
     h = model.dt_s
-    y2, y3, y4 = ws.y2, ws.y3, ws.y4
-    k1, k2, k3, k4 = ws.k1, ws.k2, ws.k3, ws.k4
-    decay, e_half = ws.decay, ws.e_half
+    rk = ws.rk
+    y2, y3, y4 = rk[RK_Y2], rk[RK_Y3], rk[RK_Y4]
+    k1, k2, k3, k4 = rk[RK_K1], rk[RK_K2], rk[RK_K3], rk[RK_K4]
+    decay, e_half = rk[RK_DECAY], rk[RK_E_HALF]
     _copy_discrete(x, y2)
     _copy_discrete(x, y3)
     _copy_discrete(x, y4)
     for j in range(N_INTEGRATED):
         k1[j] += decay[j] * x[j]
         y2[j] = e_half[j] * (x[j] + 0.5 * h * k1[j])
-    vehicle_rates(model, data, y2, k2)
+    vehicle_rates(model, ws, y2, k2)
     for j in range(N_INTEGRATED):
         k2[j] += decay[j] * y2[j]
         y3[j] = e_half[j] * x[j] + 0.5 * h * k2[j]
-    vehicle_rates(model, data, y3, k3)
+    vehicle_rates(model, ws, y3, k3)
     for j in range(N_INTEGRATED):
         k3[j] += decay[j] * y3[j]
         y4[j] = e_half[j] * e_half[j] * x[j] + h * e_half[j] * k3[j]
-    vehicle_rates(model, data, y4, k4)
+    vehicle_rates(model, ws, y4, k4)
     for i in range(N_WHEELS):
         y2[OMEGA0 + i] = x[OMEGA0 + i]  # keep the start spins for the zero-crossing test
     for j in range(N_INTEGRATED):
@@ -249,16 +270,16 @@ def lawson_rk4(model: Model, data: Data) -> None:
 def catch_stopped_wheels(data: Data) -> None:
     """Stage 6: the brakes catch a wheel whose spin crossed zero; record the held flags
     and the brake torques."""
-    x = data.x
-    ws = data.ws
+    x, out = data.x, data.out
+    rk, wheel_in = data.ws.rk, data.ws.wheel_in
     for i in range(N_WHEELS):
-        omega_start = ws.y2[OMEGA0 + i]
-        if ws.held[i] > 0.5:
+        omega_start = rk[RK_Y2, OMEGA0 + i]
+        if wheel_in[i, WI_HELD] > 0.5:
             x[OMEGA0 + i] = 0.0
-        elif ws.brake_cap_nm[i] > 0.0 and omega_start * x[OMEGA0 + i] < 0.0:
+        elif wheel_in[i, WI_BRAKE_CAP_NM] > 0.0 and omega_start * x[OMEGA0 + i] < 0.0:
             x[OMEGA0 + i] = 0.0
-        x[WHEEL_HELD0 + i] = ws.held[i]
-        data.out[O_BRAKE_TORQUE0 + i] = ws.brake_nm[i]
+        x[WHEEL_HELD0 + i] = wheel_in[i, WI_HELD]
+        out[O_BRAKE_TORQUE0 + i] = wheel_in[i, WI_BRAKE_NM]
 
 
 @nb.njit(cache=True)
@@ -266,20 +287,18 @@ def update_discrete_states(model: Model, data: Data) -> None:
     """Stage 7: per wheel, on the new hub velocities: the slip variant's projection
     (``core.slip``), the paper's damping trigger and release (``core.damping``), and the
     hub speed the next trigger compares with."""
-    x = data.x
-    ws = data.ws
+    x, out, inputs = data.x, data.out, data.inputs
+    wheel_in, wheel = data.ws.wheel_in, data.ws.wheel
     vp = model.vp
-    out = data.out
     slip_model = int(vp[VP_SLIP_MODEL])
     damping_model = int(vp[VP_DAMPING_MODEL])
-    inputs = data.inputs
     release = paper_release(inputs[IN_BRAKE], inputs[IN_PARKING_BRAKE], inputs[IN_THROTTLE])
     for i in range(N_WHEELS):
-        u_w, v_w = hub_velocity(x, vp, i, ws.cos_steer[i], ws.sin_steer[i])
+        u_w, v_w = hub_velocity(x, vp, i, wheel_in[i, WI_COS_STEER], wheel_in[i, WI_SIN_STEER])
         if slip_model == SLIP_LAGGED_PASSIVE:
             x[TAN_ALPHA0 + i], x[KAPPA0 + i] = project_to_sliding_limit(
                 x[TAN_ALPHA0 + i], x[KAPPA0 + i],
-                ws.wheel[i, W_TAN_ALPHA_SLIDE], ws.wheel[i, W_KAPPA_SLIDE],
+                wheel[i, W_TAN_ALPHA_SLIDE], wheel[i, W_KAPPA_SLIDE],
                 np.sqrt(u_w * u_w + v_w * v_w), vp[VP_SLIDE_WIDEN_SPEED_MPS],
             )
         elif slip_model == SLIP_KINEMATIC:
@@ -308,8 +327,8 @@ def step(model: Model, data: Data) -> None:
     """
     freeze_inputs(model, data)  # 1. inputs held over the step
     prepare_tires(model, data)  # 2. tire coefficients at the mid-step load
-    vehicle_rates(model, data, data.x, data.ws.k1)  # 3. forces at the start, free wheels
-    record_outputs(data)
+    vehicle_rates(model, data.ws, data.x, data.ws.rk[RK_K1])  # 3. forces at the start
+    record_outputs(data.ws, data.out)
     resolve_brakes(model, data)  # 4. static-friction brakes
     freeze_decay_rates(model, data)
     lawson_rk4(model, data)  # 5. the exponential RK4
@@ -333,13 +352,12 @@ def simulate(
     ``k * record_every`` and the forces evaluated at it. ``data.inputs`` ends holding the
     last row of ``inputs_per_step``.
     """
-    x = data.x
-    out = data.out
+    x, out, inputs = data.x, data.out, data.inputs
     n = inputs_per_step.shape[0]
     row = 0
     for k in range(n):
-        for j in range(data.inputs.size):
-            data.inputs[j] = inputs_per_step[k, j]
+        for j in range(inputs.size):
+            inputs[j] = inputs_per_step[k, j]
         if k % record_every == 0:
             for j in range(N_STATE):
                 states[row, j] = x[j]

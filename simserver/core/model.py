@@ -21,22 +21,33 @@ import numpy as np
 from simserver.core import layout as L
 from simserver.core.tire_layout import N_TIRE_COEF, N_TIRE_OUT, TireKernels
 
+# ---- per-wheel inputs held over a step (ws.wheel_in[i, WI_*])
+WI_STEER_RAD = 0  # road-wheel angle (rad)
+WI_COS_STEER = 1  # its cosine and sine
+WI_SIN_STEER = 2
+WI_DRIVE_NM = 3  # drive torque (N m)
+WI_BRAKE_CAP_NM = 4  # brake capacity (N m)
+WI_BRAKE_NM = 5  # brake + rolling-resistance torque applied, signed (N m)
+WI_HELD = 6  # 1 = wheel held at zero spin by its brake
+N_WI = 7
+
 # ---- per-wheel quantities of the state being evaluated (ws.wheel[i, W_*])
-W_FX = 0  # tire Fx incl. damping, wheel frame (N)
-W_FY = 1  # tire Fy incl. damping, wheel frame (N)
-W_MZ = 2  # aligning moment (N m)
-W_MY = 3  # rolling-resistance moment magnitude (N m)
-W_KAPPA_SLIDE = 4  # the tire's sliding limits at this load
-W_TAN_ALPHA_SLIDE = 5
-W_FX_PEAK = 6  # peak pure-slip forces at this load and friction (N)
-W_FY_PEAK = 7
-W_HUB_U = 8  # hub velocity, wheel frame (m/s)
-W_HUB_V = 9
-W_DAMPING_FX = 10  # auxiliary damping share of Fx, Fy (N)
-W_DAMPING_FY = 11
-W_KAPPA = 12  # slip fed to the tire model
-W_TAN_ALPHA = 13
-N_W = 14
+W_FZ = 0  # normal load (N)
+W_FX = 1  # tire Fx incl. damping, wheel frame (N)
+W_FY = 2  # tire Fy incl. damping, wheel frame (N)
+W_MZ = 3  # aligning moment (N m)
+W_MY = 4  # rolling-resistance moment magnitude (N m)
+W_KAPPA_SLIDE = 5  # the tire's sliding limits at this load
+W_TAN_ALPHA_SLIDE = 6
+W_FX_PEAK = 7  # peak pure-slip forces at this load and friction (N)
+W_FY_PEAK = 8
+W_HUB_U = 9  # hub velocity, wheel frame (m/s)
+W_HUB_V = 10
+W_DAMPING_FX = 11  # auxiliary damping share of Fx, Fy (N)
+W_DAMPING_FY = 12
+W_KAPPA = 13  # slip fed to the tire model
+W_TAN_ALPHA = 14
+N_W = 15
 
 # ---- whole-body quantities of the state being evaluated (ws.body[B_*])
 B_AX_MPS2 = 0
@@ -47,6 +58,14 @@ B_GRAVITY_Y_MPS2 = 4
 B_FX_SUM_N = 5
 B_FY_SUM_N = 6
 N_BODY = 7
+
+# ---- rows of the Runge-Kutta scratch (ws.rk[RK_*]; the derivative rows use the first
+# N_INTEGRATED columns)
+RK_Y2, RK_Y3, RK_Y4 = 0, 1, 2  # stage states
+RK_K1, RK_K2, RK_K3, RK_K4 = 3, 4, 5, 6  # stage derivatives
+RK_DECAY = 7  # linear decay rates frozen at the step start
+RK_E_HALF = 8  # exp(-decay h / 2)
+N_RK = 9
 
 
 class Model(NamedTuple):
@@ -59,25 +78,11 @@ class Model(NamedTuple):
 
 
 class Workspace(NamedTuple):
-    """Scratch of one step (``make_workspace``): nothing here lives from one step to the next."""
+    """Scratch of one step (``make_workspace``): nothing here lives from one step to the
+    next. Few arrays with named slots, so that the stages pass little."""
 
-    y2: np.ndarray  # RK4 stage states, float64[N_STATE]
-    y3: np.ndarray
-    y4: np.ndarray
-    k1: np.ndarray  # RK4 stage derivatives, float64[N_INTEGRATED]
-    k2: np.ndarray
-    k3: np.ndarray
-    k4: np.ndarray
-    decay: np.ndarray  # linear decay rates frozen at the step start, float64[N_INTEGRATED]
-    e_half: np.ndarray  # exp(-decay h / 2), float64[N_INTEGRATED]
-    steer_rad: np.ndarray  # road-wheel angles over the step, float64[N_WHEELS]
-    cos_steer: np.ndarray
-    sin_steer: np.ndarray
-    drive_nm: np.ndarray  # drive torque per wheel over the step
-    brake_cap_nm: np.ndarray  # brake capacity per wheel over the step
-    brake_nm: np.ndarray  # brake + rolling-resistance torque applied (signed)
-    held: np.ndarray  # 1 = wheel held at zero spin by its brake over the step
-    fz_n: np.ndarray  # normal loads of the state being evaluated, float64[N_WHEELS]
+    rk: np.ndarray  # float64[N_RK, N_STATE]
+    wheel_in: np.ndarray  # float64[N_WHEELS, N_WI]
     wheel: np.ndarray  # float64[N_WHEELS, N_W]
     body: np.ndarray  # float64[N_BODY]
     tire_out: np.ndarray  # float64[N_TIRE_OUT]
@@ -95,20 +100,10 @@ class Data(NamedTuple):
 
 def make_workspace() -> Workspace:
     """Allocate the scratch ``step`` needs (once, before the loop)."""
-    def vec(n: int) -> np.ndarray:
-        return np.zeros(n, dtype=np.float64)
-
-    n_int = L.N_INTEGRATED
     n_w = L.N_WHEELS
-    return Workspace(
-        y2=vec(L.N_STATE), y3=vec(L.N_STATE), y4=vec(L.N_STATE),
-        k1=vec(n_int), k2=vec(n_int), k3=vec(n_int), k4=vec(n_int),
-        decay=vec(n_int), e_half=vec(n_int),
-        steer_rad=vec(n_w), cos_steer=vec(n_w), sin_steer=vec(n_w),
-        drive_nm=vec(n_w), brake_cap_nm=vec(n_w), brake_nm=vec(n_w), held=vec(n_w),
-        fz_n=vec(n_w), wheel=np.zeros((n_w, N_W)), body=vec(N_BODY),
-        tire_out=vec(N_TIRE_OUT), tire_coef=np.zeros((n_w, N_TIRE_COEF)),
-    )
+    return Workspace(rk=np.zeros((N_RK, L.N_STATE)), wheel_in=np.zeros((n_w, N_WI)),
+                     wheel=np.zeros((n_w, N_W)), body=np.zeros(N_BODY),
+                     tire_out=np.zeros(N_TIRE_OUT), tire_coef=np.zeros((n_w, N_TIRE_COEF)))
 
 
 def make_data(x: np.ndarray | None = None) -> Data:

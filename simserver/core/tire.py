@@ -73,20 +73,21 @@ from simserver.core.tire_mf61 import (
     N_MF61_PARAM,
     _mf61_evaluate,
     _mf61_prepare,
-    mf61_evaluate,
-    mf61_prepare,
+    mf61_evaluate_kernel,
+    mf61_prepare_kernel,
 )
 from simserver.core.tire_simple import (
     N_SIMPLE_PARAM,
     _simple_evaluate,
     _simple_prepare,
-    simple_evaluate,
-    simple_prepare,
+    simple_evaluate_kernel,
+    simple_prepare_kernel,
 )
 
 N_TIRE_PARAM = TP_MODEL_BASE + max(N_SIMPLE_PARAM, N_MF61_PARAM)
 
-BUILTIN_KERNELS = TireKernels((simple_prepare, mf61_prepare), (simple_evaluate, mf61_evaluate))
+BUILTIN_KERNELS = TireKernels((simple_prepare_kernel, mf61_prepare_kernel),
+                              (simple_evaluate_kernel, mf61_evaluate_kernel))
 """The kernels of the built-in models, in id order (``simserver.tire_models`` starts its
 registry with them)."""
 
@@ -140,7 +141,7 @@ def tire_prepare(
     elif model == TIRE_MODEL_SIMPLE:
         _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
     else:
-        kernels.prepare[model](tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+        kernels.prepare[model](tp, gamma_rad, fz_n, mu_scale, coef)
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
@@ -182,7 +183,7 @@ def tire_evaluate(
     elif model == TIRE_MODEL_SIMPLE:
         _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
     else:
-        kernels.evaluate[model](tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+        kernels.evaluate[model](tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)

@@ -63,10 +63,11 @@ TIRE_JIT_OPTIONS = {"cache": True, "fastmath": {"contract"}, "error_model": "num
 # --- the compiled interface of a tire model --------------------------------------------
 # A model is two functions compiled with these explicit signatures (first-class function
 # pointers: a tuple of them is a cacheable argument of a compiled function):
-#   prepare(p, gamma_rad, fz_n, mu_scale, coef)
-#   evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
-# with ``p`` the model-specific slots ``tp[TP_MODEL_BASE:]``, ``coef`` N_TIRE_COEF floats,
-# ``out`` N_TIRE_OUT floats (core.tire describes the arguments).
+#   prepare(tp, gamma_rad, fz_n, mu_scale, coef)
+#   evaluate(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
+# with ``tp`` the packed tire vector (N_TIRE_PARAM floats: the common TP_* slots, then the
+# model's own from TP_MODEL_BASE), ``coef`` N_TIRE_COEF floats, ``out`` N_TIRE_OUT floats
+# (core.tire describes the arguments).
 _VEC = types.float64[::1]
 _F64 = types.float64
 PREPARE_SIGNATURE = types.void(_VEC, _F64, _F64, _F64, _VEC)

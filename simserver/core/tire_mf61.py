@@ -72,6 +72,9 @@ from numba.extending import intrinsic
 
 from simserver.core.tire_layout import (
     EVALUATE_SIGNATURE,
+    PREPARE_SIGNATURE,
+    TP_MODEL_BASE,
+    EVALUATE_SIGNATURE,
     FZ_INPUT_MAX_N,
     MU_SCALE_MAX,
     N_MF61_COEF,
@@ -1085,19 +1088,18 @@ def mf61_forces(
     _mf61_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
 
-@nb.njit(PREPARE_SIGNATURE, **_JIT_OPTIONS)
+@nb.njit(**_JIT_OPTIONS)
 def mf61_prepare(
     p: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
 ) -> None:
     """Load-dependent coefficients of MF 6.1 into ``coef``: :func:`_mf61_prepare`.
 
-    Compiled on its own with the registry's signature (``tire_layout.PREPARE_SIGNATURE``
-    or ``EVALUATE_SIGNATURE``): the kernel registered for this model.
+    Compiled on its own, so it may be called from code compiled with any options.
     """
     _mf61_prepare(p, gamma_rad, fz_n, mu_scale, coef)
 
 
-@nb.njit(EVALUATE_SIGNATURE, **_JIT_OPTIONS)
+@nb.njit(**_JIT_OPTIONS)
 def mf61_evaluate(
     p: np.ndarray,
     coef: np.ndarray,
@@ -1109,8 +1111,7 @@ def mf61_evaluate(
 ) -> None:
     """MF 6.1 forces from prepared coefficients at the load ``fz_n``: :func:`_mf61_evaluate`.
 
-    Compiled on its own with the registry's signature (``tire_layout.PREPARE_SIGNATURE``
-    or ``EVALUATE_SIGNATURE``): the kernel registered for this model.
+    Compiled on its own, so it may be called from code compiled with any options.
     """
     _mf61_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
@@ -1146,3 +1147,29 @@ def mf61_param_vector(coeffs: dict[str, float]) -> np.ndarray:
             raise ValueError(f"MF 6.1 coefficient {name} is not finite: {value!r}")
         vec[i] = float(value)
     return vec
+
+
+# ---- the kernels registered for this model (simserver.tire_models): the packed tire vector
+# in full (core.tire_layout.PREPARE_SIGNATURE, EVALUATE_SIGNATURE), the body inlined
+
+
+@nb.njit(PREPARE_SIGNATURE, **_JIT_OPTIONS)
+def mf61_prepare_kernel(
+    tp: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
+) -> None:
+    """:func:`_mf61_prepare` on the model slots of the packed tire vector ``tp``."""
+    _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+
+
+@nb.njit(EVALUATE_SIGNATURE, **_JIT_OPTIONS)
+def mf61_evaluate_kernel(
+    tp: np.ndarray,
+    coef: np.ndarray,
+    kappa: float,
+    tan_alpha: float,
+    fz_n: float,
+    vx_mps: float,
+    out: np.ndarray,
+) -> None:
+    """:func:`_mf61_evaluate` on the model slots of the packed tire vector ``tp``."""
+    _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)

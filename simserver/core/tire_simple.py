@@ -34,6 +34,9 @@ import numpy as np
 
 from simserver.core.tire_layout import (
     EVALUATE_SIGNATURE,
+    PREPARE_SIGNATURE,
+    TP_MODEL_BASE,
+    EVALUATE_SIGNATURE,
     FZ_INPUT_MAX_N,
     MU_SCALE_MAX,
     N_SIMPLE_COEF,
@@ -243,19 +246,18 @@ def simple_forces(
     _simple_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
 
-@nb.njit(PREPARE_SIGNATURE, **TIRE_JIT_OPTIONS)
+@nb.njit(**TIRE_JIT_OPTIONS)
 def simple_prepare(
     p: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
 ) -> None:
     """Load-dependent coefficients of the brush model: :func:`_simple_prepare`.
 
-    Compiled on its own with the registry's signature (``tire_layout.PREPARE_SIGNATURE``
-    or ``EVALUATE_SIGNATURE``): the kernel registered for this model.
+    Compiled on its own, so it may be called from code compiled with any options.
     """
     _simple_prepare(p, gamma_rad, fz_n, mu_scale, coef)
 
 
-@nb.njit(EVALUATE_SIGNATURE, **TIRE_JIT_OPTIONS)
+@nb.njit(**TIRE_JIT_OPTIONS)
 def simple_evaluate(
     p: np.ndarray,
     coef: np.ndarray,
@@ -267,7 +269,32 @@ def simple_evaluate(
 ) -> None:
     """Brush-model forces from prepared coefficients: :func:`_simple_evaluate`.
 
-    Compiled on its own with the registry's signature (``tire_layout.PREPARE_SIGNATURE``
-    or ``EVALUATE_SIGNATURE``): the kernel registered for this model.
+    Compiled on its own, so it may be called from code compiled with any options.
     """
     _simple_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
+
+
+# ---- the kernels registered for this model (simserver.tire_models): the packed tire vector
+# in full (core.tire_layout.PREPARE_SIGNATURE, EVALUATE_SIGNATURE), the body inlined
+
+
+@nb.njit(PREPARE_SIGNATURE, **TIRE_JIT_OPTIONS)
+def simple_prepare_kernel(
+    tp: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
+) -> None:
+    """:func:`_simple_prepare` on the model slots of the packed tire vector ``tp``."""
+    _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+
+
+@nb.njit(EVALUATE_SIGNATURE, **TIRE_JIT_OPTIONS)
+def simple_evaluate_kernel(
+    tp: np.ndarray,
+    coef: np.ndarray,
+    kappa: float,
+    tan_alpha: float,
+    fz_n: float,
+    vx_mps: float,
+    out: np.ndarray,
+) -> None:
+    """:func:`_simple_evaluate` on the model slots of the packed tire vector ``tp``."""
+    _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
