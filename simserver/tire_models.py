@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
-from simserver.core.tire import N_TIRE_PARAM, tire_forces
+from simserver.core.tire import N_BUILTIN_TIRE_MODELS, N_TIRE_PARAM, tire_forces
 from simserver.core.tire_layout import (
     EVALUATE_SIGNATURE,
     N_TIRE_OUT,
@@ -149,12 +149,14 @@ def tire_models() -> tuple[TireModel, ...]:
 
 
 def tire_kernels() -> TireKernels:
-    """The kernels of every registered model, indexed by id (the compiled step's argument).
+    """The compiled step's ``kernels`` argument: the kernels of every registered model
+    beyond the built-in ones (which ``core.tire`` calls directly), in id order.
 
     Registering a model changes the tuples' length: the step is then compiled once more
     for the new length (and cached like any other specialisation).
     """
-    return TireKernels(tuple(m.prepare for m in _REGISTRY), tuple(m.evaluate for m in _REGISTRY))
+    extra = _REGISTRY[N_BUILTIN_TIRE_MODELS:]
+    return TireKernels(tuple(m.prepare for m in extra), tuple(m.evaluate for m in extra))
 
 
 def check_tire_vectors(tp: np.ndarray) -> None:
@@ -245,5 +247,6 @@ _simple = register_tire_model(
 _mf61 = register_tire_model(
     "mf61", "Magic Formula 6.1 from a .tir property file (core/tire_mf61.py)",
     _load_mf61, mf61_prepare_kernel, mf61_evaluate_kernel, lambda p: p[P_FNOMIN])
-if (_simple.id, _mf61.id) != (TIRE_MODEL_SIMPLE, TIRE_MODEL_MF61):
+if (_simple.id, _mf61.id, len(_REGISTRY)) != (TIRE_MODEL_SIMPLE, TIRE_MODEL_MF61,
+                                               N_BUILTIN_TIRE_MODELS):
     raise ImportError("the built-in tire models must keep the ids of core.tire_layout")

@@ -208,7 +208,7 @@ def hub_velocity(
     return cos_steer * u_c + sin_steer * v_c, -sin_steer * u_c + cos_steer * v_c
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def corner_loads(vp: np.ndarray, x: np.ndarray, wheel: np.ndarray) -> None:
     """Stage 1: the normal load of each corner (N) into ``wheel[i, W_FZ]``.
 
@@ -244,7 +244,7 @@ def corner_loads(vp: np.ndarray, x: np.ndarray, wheel: np.ndarray) -> None:
         wheel[left + RIGHT, W_FZ] = max(0.0, static + (k_s * comp_r + c_s * rate_r - arb))
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def auxiliary_damping(
     vp: np.ndarray,
     i: int,
@@ -302,7 +302,7 @@ def auxiliary_damping(
     raise ValueError("unknown damping model id (core.damping.DAMPING_MODELS)")
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
     """Stage 2: per wheel, the slip, the tire forces with the auxiliary damping and the
     spin; writes ``dx``'s spin and slip slots and ``ws.wheel`` (``W_*``).
@@ -367,7 +367,7 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
         wheel[i, W_TAN_ALPHA] = tan_alpha
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
     """Stage 3: the sprung body on the corner loads and the tire forces; writes ``dx``'s
     body slots and ``ws.body`` (``B_*``).
@@ -446,7 +446,7 @@ def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> No
     body[B_FY_SUM_N] = fy_sum
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def vehicle_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
     """Time derivatives ``dx`` (float64[N_INTEGRATED]) of the integrated states at ``x``.
 
@@ -458,7 +458,7 @@ def vehicle_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) ->
     body_rates(model, ws, x, dx)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def record_outputs(ws: Workspace, out: np.ndarray) -> None:
     """Copy the forces of the state just evaluated into the outputs (``O_*`` slots);
     the brake torques are written by the integrator once the brakes are resolved."""

@@ -131,7 +131,7 @@ def road_wheel_angles(vp: np.ndarray, steer_input: float, wheel_in: np.ndarray) 
         wheel_in[i, WI_STEER_RAD] = delta if i < N_FRONT_WHEELS else 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def freeze_inputs(model: Model, data: Data) -> None:
     """Stage 1: the inputs held over the step (``ws.wheel_in``): road-wheel angles, drive
     torques, brake capacities; the brakes start released and no wheel held."""
@@ -147,7 +147,7 @@ def freeze_inputs(model: Model, data: Data) -> None:
         wheel_in[i, WI_BRAKE_NM] = 0.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def prepare_tires(model: Model, data: Data) -> None:
     """Stage 2: the tires' load-dependent coefficients, once per step and wheel.
 
@@ -169,7 +169,7 @@ def prepare_tires(model: Model, data: Data) -> None:
         x[FZ_PREV0 + i] = fz
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def resolve_brakes(model: Model, data: Data) -> None:
     """Stage 4: static-friction brakes: hold a wheel at zero spin when the capacity allows.
 
@@ -209,7 +209,7 @@ def _copy_discrete(src: np.ndarray, dst: np.ndarray) -> None:
         dst[j] = src[j]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def freeze_decay_rates(model: Model, data: Data) -> None:
     """The slip states' linear decay rates ``|u|/b``, ``|u|/B`` at the step start (zero for
     the other states, and for the kinematic slip model, which has no slip states)."""
@@ -228,7 +228,7 @@ def freeze_decay_rates(model: Model, data: Data) -> None:
                 rk[RK_E_HALF, j] = np.exp(-0.5 * h * rk[RK_DECAY, j])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def lawson_rk4(model: Model, data: Data) -> None:
     """Stage 5: exponential (Lawson) RK4 from ``k1`` (already evaluated at the start).
 
@@ -266,7 +266,7 @@ def lawson_rk4(model: Model, data: Data) -> None:
         )
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def catch_stopped_wheels(data: Data) -> None:
     """Stage 6: the brakes catch a wheel whose spin crossed zero; record the held flags
     and the brake torques."""
@@ -282,7 +282,7 @@ def catch_stopped_wheels(data: Data) -> None:
         out[O_BRAKE_TORQUE0 + i] = wheel_in[i, WI_BRAKE_NM]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def update_discrete_states(model: Model, data: Data) -> None:
     """Stage 7: per wheel, on the new hub velocities: the slip variant's projection
     (``core.slip``), the paper's damping trigger and release (``core.damping``), and the

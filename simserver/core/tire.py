@@ -54,6 +54,8 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from numba import types
+from numba.extending import overload
 
 from simserver.core.tire_layout import (
     N_TIRE_OUT,
@@ -69,27 +71,14 @@ from simserver.core.tire_layout import (
     TireKernels,
     coef_scratch,
 )
-from simserver.core.tire_mf61 import (
-    N_MF61_PARAM,
-    _mf61_evaluate,
-    _mf61_prepare,
-    mf61_evaluate_kernel,
-    mf61_prepare_kernel,
-)
-from simserver.core.tire_simple import (
-    N_SIMPLE_PARAM,
-    _simple_evaluate,
-    _simple_prepare,
-    simple_evaluate_kernel,
-    simple_prepare_kernel,
-)
+from simserver.core.tire_mf61 import N_MF61_PARAM, _mf61_evaluate, _mf61_prepare
+from simserver.core.tire_simple import N_SIMPLE_PARAM, _simple_evaluate, _simple_prepare
 
 N_TIRE_PARAM = TP_MODEL_BASE + max(N_SIMPLE_PARAM, N_MF61_PARAM)
 
-BUILTIN_KERNELS = TireKernels((simple_prepare_kernel, mf61_prepare_kernel),
-                              (simple_evaluate_kernel, mf61_evaluate_kernel))
-"""The kernels of the built-in models, in id order (``simserver.tire_models`` starts its
-registry with them)."""
+BUILTIN_KERNELS = TireKernels((), ())
+"""The ``kernels`` argument when only the built-in models are used (they are called
+directly); ``simserver.tire_models.tire_kernels()`` adds every other registered model's."""
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
@@ -105,8 +94,54 @@ def _no_load(out: np.ndarray) -> None:
 
 
 # The built-in models are called directly, their bodies inlined (a call through a function
-# pointer costs 2-4 ns and stops inlining; 20 calls a step); every other registered model
-# through its kernel. The registry checks the ids before anything is compiled.
+# pointer costs 2-4 ns and stops inlining; 20 calls a step). Every other registered model
+# is called through its kernels, which ``kernels`` holds in id order from
+# N_BUILTIN_TIRE_MODELS on. With no other model registered ``kernels`` holds empty tuples
+# and the indirect call is not even compiled (the two functions below are resolved on the
+# tuples' type): the default step carries no function-pointer machinery (measured: about
+# +0.3 us a step when it did). The registry checks the ids before anything is compiled.
+N_BUILTIN_TIRE_MODELS = 2
+
+
+def _registered_prepare(kernels: TireKernels, model: int, tp: np.ndarray, gamma_rad: float,
+                        fz_n: float, mu_scale: float, coef: np.ndarray) -> None:
+    """The prepare kernel of registered model ``model`` (compiled code only)."""
+    raise NotImplementedError
+
+
+def _registered_evaluate(kernels: TireKernels, model: int, tp: np.ndarray, coef: np.ndarray,
+                         kappa: float, tan_alpha: float, fz_n: float, vx_mps: float,
+                         out: np.ndarray) -> None:
+    """The evaluate kernel of registered model ``model`` (compiled code only)."""
+    raise NotImplementedError
+
+
+def _no_kernels(kernels: types.Type) -> bool:
+    return kernels.types[0].count == 0
+
+
+@overload(_registered_prepare, jit_options=TIRE_JIT_OPTIONS)
+def _registered_prepare_compiled(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
+    if _no_kernels(kernels):
+        def impl(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
+            raise ValueError("tire model id not registered (simserver.tire_models)")
+    else:
+        def impl(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
+            kernels.prepare[model - N_BUILTIN_TIRE_MODELS](tp, gamma_rad, fz_n, mu_scale, coef)
+    return impl
+
+
+@overload(_registered_evaluate, jit_options=TIRE_JIT_OPTIONS)
+def _registered_evaluate_compiled(kernels, model, tp, coef, kappa, tan_alpha, fz_n,  # noqa: ANN001, ANN202
+                                  vx_mps, out):
+    if _no_kernels(kernels):
+        def impl(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN202
+            raise ValueError("tire model id not registered (simserver.tire_models)")
+    else:
+        def impl(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN202
+            kernels.evaluate[model - N_BUILTIN_TIRE_MODELS](tp, coef, kappa, tan_alpha, fz_n,
+                                                            vx_mps, out)
+    return impl
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
@@ -141,7 +176,7 @@ def tire_prepare(
     elif model == TIRE_MODEL_SIMPLE:
         _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
     else:
-        kernels.prepare[model](tp, gamma_rad, fz_n, mu_scale, coef)
+        _registered_prepare(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef)
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
@@ -183,7 +218,7 @@ def tire_evaluate(
     elif model == TIRE_MODEL_SIMPLE:
         _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
     else:
-        kernels.evaluate[model](tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
+        _registered_evaluate(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
