@@ -316,7 +316,7 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
     for i in range(N_WHEELS):
         tp_wheel = tp[i]
         fz = wheel[i, W_FZ]
-        u_w, v_w = hub_velocity(x, vp, i, wheel_in[i, WI_COS_STEER], wheel_in[i, WI_SIN_STEER])
+        u_w, v_w = hub_velocity(x, vp, i, wheel_in[WI_COS_STEER, i], wheel_in[WI_SIN_STEER, i])
         radius = tp_wheel[TP_RADIUS_M]
         omega = x[OMEGA0 + i]
         if slip_model == SLIP_KINEMATIC:
@@ -342,10 +342,10 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
         fx = tire_out[OUT_FX] + damp_x
         fy = tire_out[OUT_FY] + damp_y
 
-        if wheel_in[i, WI_HELD] > 0.5:
+        if wheel_in[WI_HELD, i] > 0.5:
             d_omega = 0.0
         else:
-            d_omega = (wheel_in[i, WI_DRIVE_NM] - radius * fx + wheel_in[i, WI_BRAKE_NM]) / (
+            d_omega = (wheel_in[WI_DRIVE_NM, i] - radius * fx + wheel_in[WI_BRAKE_NM, i]) / (
                 wheel_inertia(vp, i))
         dx[OMEGA0 + i] = d_omega
         dx[TAN_ALPHA0 + i] = d_tan_alpha
@@ -405,8 +405,8 @@ def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> No
         roll_moment += py * dyn
         pitch_moment -= px * dyn
         # tire forces into body axes
-        c_d = wheel_in[i, WI_COS_STEER]
-        s_d = wheel_in[i, WI_SIN_STEER]
+        c_d = wheel_in[WI_COS_STEER, i]
+        s_d = wheel_in[WI_SIN_STEER, i]
         fx_body = c_d * wheel[i, W_FX] - s_d * wheel[i, W_FY]
         fy_body = s_d * wheel[i, W_FX] + c_d * wheel[i, W_FY]
         fx_sum += fx_body
@@ -472,8 +472,8 @@ def record_outputs(ws: Workspace, out: np.ndarray) -> None:
         out[O_MZ0 + i] = wheel[i, W_MZ]
         out[O_HUB_U0 + i] = wheel[i, W_HUB_U]
         out[O_HUB_V0 + i] = wheel[i, W_HUB_V]
-        out[O_STEER0 + i] = wheel_in[i, WI_STEER_RAD]
-        out[O_DRIVE_TORQUE0 + i] = wheel_in[i, WI_DRIVE_NM]
+        out[O_STEER0 + i] = wheel_in[WI_STEER_RAD, i]
+        out[O_DRIVE_TORQUE0 + i] = wheel_in[WI_DRIVE_NM, i]
         fx_avail = max(wheel[i, W_FX_PEAK], 1e-9)
         fy_avail = max(wheel[i, W_FY_PEAK], 1e-9)
         out[O_FRICTION_USE0 + i] = np.sqrt((fx / fx_avail) ** 2 + (fy / fy_avail) ** 2)

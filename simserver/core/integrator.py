@@ -128,7 +128,7 @@ def road_wheel_angles(vp: np.ndarray, steer_input: float, wheel_in: np.ndarray) 
     """Steering-wheel position [-1, 1] to road-wheel angles (parallel steer, front axle)."""
     delta = steer_input * vp[VP_STEERING_WHEEL_MAX_RAD] / vp[VP_STEERING_RATIO]
     for i in range(N_WHEELS):
-        wheel_in[i, WI_STEER_RAD] = delta if i < N_FRONT_WHEELS else 0.0
+        wheel_in[WI_STEER_RAD, i] = delta if i < N_FRONT_WHEELS else 0.0
 
 
 @nb.njit(cache=True, inline="always")
@@ -138,13 +138,13 @@ def freeze_inputs(model: Model, data: Data) -> None:
     wheel_in = data.ws.wheel_in
     road_wheel_angles(model.vp, data.inputs[IN_STEER], wheel_in)
     for i in range(N_WHEELS):
-        wheel_in[i, WI_COS_STEER] = np.cos(wheel_in[i, WI_STEER_RAD])
-        wheel_in[i, WI_SIN_STEER] = np.sin(wheel_in[i, WI_STEER_RAD])
-    wheel_torques(data.x, model.vp, data.inputs, wheel_in[:, WI_DRIVE_NM],
-                  wheel_in[:, WI_BRAKE_CAP_NM])
+        wheel_in[WI_COS_STEER, i] = np.cos(wheel_in[WI_STEER_RAD, i])
+        wheel_in[WI_SIN_STEER, i] = np.sin(wheel_in[WI_STEER_RAD, i])
+    wheel_torques(data.x, model.vp, data.inputs, wheel_in[WI_DRIVE_NM],
+                  wheel_in[WI_BRAKE_CAP_NM])
     for i in range(N_WHEELS):
-        wheel_in[i, WI_HELD] = 0.0
-        wheel_in[i, WI_BRAKE_NM] = 0.0
+        wheel_in[WI_HELD, i] = 0.0
+        wheel_in[WI_BRAKE_NM, i] = 0.0
 
 
 @nb.njit(cache=True, inline="always")
@@ -186,21 +186,21 @@ def resolve_brakes(model: Model, data: Data) -> None:
     for i in range(N_WHEELS):
         inertia = wheel_inertia(vp, i)
         radius = tp[i, TP_RADIUS_M]
-        t_other = wheel_in[i, WI_DRIVE_NM] - radius * wheel[i, W_FX]
-        capacity = wheel_in[i, WI_BRAKE_CAP_NM] + wheel[i, W_MY]
+        t_other = wheel_in[WI_DRIVE_NM, i] - radius * wheel[i, W_FX]
+        capacity = wheel_in[WI_BRAKE_CAP_NM, i] + wheel[i, W_MY]
         t_stop = -inertia * x[OMEGA0 + i] / dt_s - t_other
         if abs(t_stop) <= capacity:
-            wheel_in[i, WI_HELD] = 1.0
+            wheel_in[WI_HELD, i] = 1.0
             x[OMEGA0 + i] = 0.0
-            wheel_in[i, WI_BRAKE_NM] = -t_other
+            wheel_in[WI_BRAKE_NM, i] = -t_other
         else:
-            wheel_in[i, WI_HELD] = 0.0
-            wheel_in[i, WI_BRAKE_NM] = capacity if t_stop > 0.0 else -capacity
+            wheel_in[WI_HELD, i] = 0.0
+            wheel_in[WI_BRAKE_NM, i] = capacity if t_stop > 0.0 else -capacity
     for i in range(N_WHEELS):
-        if wheel_in[i, WI_HELD] > 0.5:
+        if wheel_in[WI_HELD, i] > 0.5:
             rk[RK_K1, OMEGA0 + i] = 0.0
         else:
-            rk[RK_K1, OMEGA0 + i] += wheel_in[i, WI_BRAKE_NM] / wheel_inertia(vp, i)
+            rk[RK_K1, OMEGA0 + i] += wheel_in[WI_BRAKE_NM, i] / wheel_inertia(vp, i)
 
 
 @nb.njit(cache=True)
@@ -274,12 +274,12 @@ def catch_stopped_wheels(data: Data) -> None:
     rk, wheel_in = data.ws.rk, data.ws.wheel_in
     for i in range(N_WHEELS):
         omega_start = rk[RK_Y2, OMEGA0 + i]
-        if wheel_in[i, WI_HELD] > 0.5:
+        if wheel_in[WI_HELD, i] > 0.5:
             x[OMEGA0 + i] = 0.0
-        elif wheel_in[i, WI_BRAKE_CAP_NM] > 0.0 and omega_start * x[OMEGA0 + i] < 0.0:
+        elif wheel_in[WI_BRAKE_CAP_NM, i] > 0.0 and omega_start * x[OMEGA0 + i] < 0.0:
             x[OMEGA0 + i] = 0.0
-        x[WHEEL_HELD0 + i] = wheel_in[i, WI_HELD]
-        out[O_BRAKE_TORQUE0 + i] = wheel_in[i, WI_BRAKE_NM]
+        x[WHEEL_HELD0 + i] = wheel_in[WI_HELD, i]
+        out[O_BRAKE_TORQUE0 + i] = wheel_in[WI_BRAKE_NM, i]
 
 
 @nb.njit(cache=True, inline="always")
@@ -294,7 +294,7 @@ def update_discrete_states(model: Model, data: Data) -> None:
     damping_model = int(vp[VP_DAMPING_MODEL])
     release = paper_release(inputs[IN_BRAKE], inputs[IN_PARKING_BRAKE], inputs[IN_THROTTLE])
     for i in range(N_WHEELS):
-        u_w, v_w = hub_velocity(x, vp, i, wheel_in[i, WI_COS_STEER], wheel_in[i, WI_SIN_STEER])
+        u_w, v_w = hub_velocity(x, vp, i, wheel_in[WI_COS_STEER, i], wheel_in[WI_SIN_STEER, i])
         if slip_model == SLIP_LAGGED_PASSIVE:
             x[TAN_ALPHA0 + i], x[KAPPA0 + i] = project_to_sliding_limit(
                 x[TAN_ALPHA0 + i], x[KAPPA0 + i],

@@ -21,7 +21,7 @@ import numpy as np
 from simserver.core import layout as L
 from simserver.core.tire_layout import N_TIRE_COEF, N_TIRE_OUT, TireKernels
 
-# ---- per-wheel inputs held over a step (ws.wheel_in[i, WI_*])
+# ---- per-wheel inputs held over a step (ws.wheel_in[WI_*, i]: a row per quantity)
 WI_STEER_RAD = 0  # road-wheel angle (rad)
 WI_COS_STEER = 1  # its cosine and sine
 WI_SIN_STEER = 2
@@ -82,7 +82,7 @@ class Workspace(NamedTuple):
     next. Few arrays with named slots, so that the stages pass little."""
 
     rk: np.ndarray  # float64[N_RK, N_STATE]
-    wheel_in: np.ndarray  # float64[N_WHEELS, N_WI]
+    wheel_in: np.ndarray  # float64[N_WI, N_WHEELS]
     wheel: np.ndarray  # float64[N_WHEELS, N_W]
     body: np.ndarray  # float64[N_BODY]
     tire_out: np.ndarray  # float64[N_TIRE_OUT]
@@ -101,7 +101,7 @@ class Data(NamedTuple):
 def make_workspace() -> Workspace:
     """Allocate the scratch ``step`` needs (once, before the loop)."""
     n_w = L.N_WHEELS
-    return Workspace(rk=np.zeros((N_RK, L.N_STATE)), wheel_in=np.zeros((n_w, N_WI)),
+    return Workspace(rk=np.zeros((N_RK, L.N_STATE)), wheel_in=np.zeros((N_WI, n_w)),
                      wheel=np.zeros((n_w, N_W)), body=np.zeros(N_BODY),
                      tire_out=np.zeros(N_TIRE_OUT), tire_coef=np.zeros((n_w, N_TIRE_COEF)))
 
