@@ -89,6 +89,7 @@ from simserver.core.model import (
     W_FY,
     W_FY_PEAK,
     W_FZ,
+    W_FZ_DYN,
     W_HUB_U,
     W_HUB_V,
     W_KAPPA,
@@ -210,7 +211,8 @@ def hub_velocity(
 
 @nb.njit(cache=True, inline="always")
 def corner_loads(vp: np.ndarray, x: np.ndarray, wheel: np.ndarray) -> None:
-    """Stage 1: the normal load of each corner (N) into ``wheel[i, W_FZ]``.
+    """Stage 1: the normal load of each corner (N) into ``wheel[i, W_FZ]`` (and what it
+    adds to the static share into ``W_FZ_DYN``).
 
     Static share (from the CG position and the component of gravity normal to the road)
     plus the suspension's force (spring, damper, anti-roll bar) from the body's heave,
@@ -240,8 +242,12 @@ def corner_loads(vp: np.ndarray, x: np.ndarray, wheel: np.ndarray) -> None:
         rate_r = -(heave_rate - py_left * roll_rate - px * pitch_rate)
         arb = k_arb * (comp_l - comp_r)
         static = static_wheel_load(vp, left)
-        wheel[left + LEFT, W_FZ] = max(0.0, static + (k_s * comp_l + c_s * rate_l + arb))
-        wheel[left + RIGHT, W_FZ] = max(0.0, static + (k_s * comp_r + c_s * rate_r - arb))
+        fz_l = max(0.0, static + (k_s * comp_l + c_s * rate_l + arb))
+        fz_r = max(0.0, static + (k_s * comp_r + c_s * rate_r - arb))
+        wheel[left + LEFT, W_FZ] = fz_l
+        wheel[left + RIGHT, W_FZ] = fz_r
+        wheel[left + LEFT, W_FZ_DYN] = fz_l - static
+        wheel[left + RIGHT, W_FZ_DYN] = fz_r - static
 
 
 @nb.njit(cache=True, inline="always")
@@ -400,7 +406,7 @@ def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> No
     pitch_moment = 0.0
     for i in range(N_WHEELS):
         px, py = wheel_position(vp, i)
-        dyn = wheel[i, W_FZ] - static_wheel_load(vp, i)  # what the corner adds to static
+        dyn = wheel[i, W_FZ_DYN]
         heave_force += dyn
         roll_moment += py * dyn
         pitch_moment -= px * dyn

@@ -47,7 +47,8 @@ W_DAMPING_FX = 11  # auxiliary damping share of Fx, Fy (N)
 W_DAMPING_FY = 12
 W_KAPPA = 13  # slip fed to the tire model
 W_TAN_ALPHA = 14
-N_W = 15
+W_FZ_DYN = 15  # normal load beyond the static share: what the corner pushes onto the body (N)
+N_W = 16
 
 # ---- whole-body quantities of the state being evaluated (ws.body[B_*])
 B_AX_MPS2 = 0

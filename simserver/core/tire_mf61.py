@@ -72,9 +72,6 @@ from numba.extending import intrinsic
 
 from simserver.core.tire_layout import (
     EVALUATE_SIGNATURE,
-    PREPARE_SIGNATURE,
-    TP_MODEL_BASE,
-    EVALUATE_SIGNATURE,
     FZ_INPUT_MAX_N,
     MU_SCALE_MAX,
     N_MF61_COEF,
@@ -91,6 +88,7 @@ from simserver.core.tire_layout import (
     PREPARE_SIGNATURE,
     SLIP_INPUT_MAX,
     TIRE_JIT_OPTIONS,
+    TP_MODEL_BASE,
     coef_scratch,
 )
 
