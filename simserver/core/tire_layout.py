@@ -58,7 +58,11 @@ N_TIRE_COEF = max(N_SIMPLE_COEF, N_MF61_COEF)
 # branch per division. The model bodies are inlined (numba IR) into the dispatchers of
 # simserver.core.tire, and inlined code is compiled with the *caller's* options: every
 # function that inlines a model body must use exactly these.
-TIRE_JIT_OPTIONS = {"cache": True, "fastmath": {"contract"}, "error_model": "numpy"}
+# ``_nrt`` is set explicitly because numba hands an unset one down from the caller being
+# compiled, and the integrator's step is compiled without reference counting; the MF 6.1
+# lanes (``nb.carray`` on the stack) need it.
+TIRE_JIT_OPTIONS = {"cache": True, "fastmath": {"contract"}, "error_model": "numpy",
+                    "_nrt": True}
 
 # --- the compiled interface of a tire model --------------------------------------------
 # A model is two functions compiled with these explicit signatures (first-class function
