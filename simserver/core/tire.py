@@ -99,7 +99,10 @@ def _no_load(out: np.ndarray) -> None:
 # N_BUILTIN_TIRE_MODELS on. With no other model registered ``kernels`` holds empty tuples
 # and the indirect call is not even compiled (the two functions below are resolved on the
 # tuples' type): the default step carries no function-pointer machinery (measured: about
-# +0.3 us a step when it did). The registry checks the ids before anything is compiled.
+# +0.3 us a step when it did). The registry checks the ids before anything is compiled
+# (``simserver.simulation.check_model``); an id that got past it anyway yields NaN, which
+# every check downstream reports, never another model's forces. (Not an exception: its
+# exit path would keep numba from pruning the reference counts of the dispatchers' views.)
 N_BUILTIN_TIRE_MODELS = 2
 
 
@@ -120,23 +123,25 @@ def _no_kernels(kernels: types.Type) -> bool:
     return kernels.types[0].count == 0
 
 
-@overload(_registered_prepare, jit_options=TIRE_JIT_OPTIONS)
+@overload(_registered_prepare, inline="always", jit_options=TIRE_JIT_OPTIONS)
 def _registered_prepare_compiled(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
     if _no_kernels(kernels):
         def impl(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
-            raise ValueError("tire model id not registered (simserver.tire_models)")
+            for k in range(coef.size):
+                coef[k] = np.nan
     else:
         def impl(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
             kernels.prepare[model - N_BUILTIN_TIRE_MODELS](tp, gamma_rad, fz_n, mu_scale, coef)
     return impl
 
 
-@overload(_registered_evaluate, jit_options=TIRE_JIT_OPTIONS)
+@overload(_registered_evaluate, inline="always", jit_options=TIRE_JIT_OPTIONS)
 def _registered_evaluate_compiled(kernels, model, tp, coef, kappa, tan_alpha, fz_n,  # noqa: ANN001, ANN202
                                   vx_mps, out):
     if _no_kernels(kernels):
         def impl(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN202
-            raise ValueError("tire model id not registered (simserver.tire_models)")
+            for k in range(out.size):
+                out[k] = np.nan
     else:
         def impl(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN202
             kernels.evaluate[model - N_BUILTIN_TIRE_MODELS](tp, coef, kappa, tan_alpha, fz_n,
@@ -255,5 +260,15 @@ def tire_forces(
         _no_load(out)
         return
     coef = coef_scratch()
-    tire_prepare(kernels, tp, gamma_rad, fz_n, mu_scale, coef)
-    tire_evaluate(kernels, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
+    # the model kernels are inlined here (no call, so the view tp[TP_MODEL_BASE:] costs
+    # no reference counting); the same as tire_prepare then tire_evaluate
+    model = int(tp[TP_MODEL])
+    if model == TIRE_MODEL_MF61:
+        _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+        _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+    elif model == TIRE_MODEL_SIMPLE:
+        _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+        _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+    else:
+        _registered_prepare(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef)
+        _registered_evaluate(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
