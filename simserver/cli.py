@@ -236,8 +236,8 @@ def tire_curve_data(
         ISO 8855 signs (``Fy < 0`` for a positive slip angle).
     """
     from simserver.core.tire import tire_forces
-    from simserver.tire_models import check_tire_vectors, tire_kernels
     from simserver.core.tire_layout import N_TIRE_OUT, OUT_FX, OUT_FY, OUT_MZ
+    from simserver.tire_models import check_tire_vectors, tire_kernels
 
     loads = np.asarray(loads_n, dtype=np.float64)
     alpha_deg = np.linspace(-alpha_max_deg, alpha_max_deg, n_points)

@@ -166,14 +166,17 @@ def test_an_unknown_tire_model_name_is_a_config_error(tmp_path):
 def test_an_unknown_tire_model_id_is_an_error():
     scene = load_scene(CONFIGS / "scenes" / "flat_paper_sedan.yaml")
     scene.vehicle.tp[2, TP_MODEL] = 99.0
-    with pytest.raises(UnknownTireModelError, match=r"unknown tire model id 99 \(registered: 0 simple, 1 mf61"):
+    with pytest.raises(UnknownTireModelError,
+                       match=r"unknown tire model id 99 \(registered: 0 simple, 1 mf61"):
         Simulation(scene, 0.001)
     with pytest.raises(UnknownTireModelError, match="unknown tire model 'nope'"):
         tire_model("nope")
 
 
-@pytest.mark.parametrize(("slot", "error"), [(VP_SLIP_MODEL, r"unknown slip model id 7 \(known: 0 lagged_passive"),
-                                             (VP_DAMPING_MODEL, r"unknown damping model id 7 \(known: 0 off")])
+@pytest.mark.parametrize(("slot", "error"), [
+    (VP_SLIP_MODEL, r"unknown slip model id 7 \(known: 0 lagged_passive"),
+    (VP_DAMPING_MODEL, r"unknown damping model id 7 \(known: 0 off"),
+])
 def test_an_unknown_variant_id_is_an_error(slot, error):
     scene = load_scene(CONFIGS / "scenes" / "flat_paper_sedan.yaml")
     scene.vehicle.vp[slot] = 7.0
