@@ -22,11 +22,6 @@ N_AXLES = 2
 WHEELS_PER_AXLE = 2  # left, then right
 
 
-def is_front(wheel: int) -> bool:
-    """Wheel ``wheel`` is on the front axle (usable in compiled code: a plain comparison)."""
-    return wheel < N_FRONT_WHEELS
-
-
 # ---------------------------------------------------------------- state vector
 # Integrated states (0 .. N_INTEGRATED-1)
 X_M = 0  # position along the road plane's first axis e1 (m)
