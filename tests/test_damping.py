@@ -25,7 +25,7 @@ from simserver.core.tire_layout import (
 
 
 def test_coefficients_at_the_reference_car(paper_tire):
-    """model.md section 4: c_x = 15.7 kN s/m, c_y = 7.49 kN s/m per wheel at Fz = 5005 N.
+    """docs/model.md section 4: c_x = 15.7 kN s/m, c_y = 7.49 kN s/m per wheel at Fz = 5005 N.
 
     Independent check: c = 2 zeta m w with m = Fz/g, w^2 = (C/relaxation length)/m.
     """

@@ -90,7 +90,7 @@ def test_e2_paper_damping_stops_and_holds_with_the_papers_force():
     assert abs(-fx_sum / expected - 1.0) < 0.01, (fx_sum, expected)
     assert abs(fy_sum) < 1.0
     # the paper's pattern with a 70/30 split: brake force in front, a slightly smaller
-    # tractive force at the rear (model.md 4b item 4)
+    # tractive force at the rear (docs/model.md section 4b item 4)
     o = r.outputs[-1]
     front = o[L.O_FX0] + o[L.O_FX0 + 1]
     rear = o[L.O_FX0 + 2] + o[L.O_FX0 + 3]

@@ -1,4 +1,4 @@
-"""The lagged slip states (model.md section 3): steady state, step response, u = 0."""
+"""The lagged slip states (docs/model.md section 3): steady state, step response, u = 0."""
 
 from __future__ import annotations
 
@@ -111,7 +111,7 @@ def test_phi1_is_regular_and_accurate():
 
 
 def test_no_division_by_hub_speed_in_slip_kernels():
-    """The lagged kernels have no '/ u' or '/ abs(u)' anywhere (model.md section 3)."""
+    """The lagged kernels have no '/ u' or '/ abs(u)' anywhere (docs/model.md section 3)."""
     import inspect
 
     from simserver.core import slip
