@@ -1,4 +1,5 @@
-"""The passive slip variant never returns energy the tire did not store (docs/model.md section 4b item 1).
+"""The passive slip variant never returns energy the tire did not store
+(docs/model.md section 4b item 1).
 
 A single wheel on a locked hub (Omega = 0) is driven back and forth at walking pace
 (0.3 m/s), along the wheel or sideways, with a displacement amplitude several times its
