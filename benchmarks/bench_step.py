@@ -23,9 +23,8 @@ import numpy as np
 
 from simserver.adapters.config import load_vehicle
 from simserver.core import layout as L
-from simserver.core.integrator import make_workspace, simulate
-from simserver.core.params import set_road
-from simserver.core.tire_layout import TP_RADIUS_M
+from simserver.scenario import INITIAL_RANGES, Scene
+from simserver.simulation import Simulation
 
 REPO = Path(__file__).resolve().parents[1]
 VEHICLES = {
@@ -48,25 +47,22 @@ def driving_cycle(n: int) -> np.ndarray:
 
 def bench_vehicle(path: Path, seconds: float, repeats: int) -> np.ndarray:
     """ns per step for each repeat."""
-    cfg = load_vehicle(path)
-    vp = cfg.vp.copy()
-    set_road(vp, 3.0, 2.0, 1.0)
+    initial = dict.fromkeys(INITIAL_RANGES, 0.0) | {"u_mps": 5.0}
+    road = {"grade_pct": 3.0, "cross_slope_pct": 2.0, "friction_scale": 1.0}
+    sim = Simulation(Scene(path=path, vehicle=load_vehicle(path), road=road, initial=initial),
+                     DT_S)
     n = int(seconds / DT_S)
     inputs = driving_cycle(n)
-    ws = make_workspace()
     states = np.zeros((n, L.N_STATE))
     outputs = np.zeros((n, L.N_OUT))
-    x0 = np.zeros(L.N_STATE)
-    x0[L.U_MPS] = 5.0
-    x0[L.OMEGA0:L.OMEGA0 + 4] = 5.0 / cfg.tp[:, TP_RADIUS_M]
-    simulate(x0.copy(), vp, cfg.tp, inputs[:10], DT_S, ws, states, outputs, 1)  # compile
+    sim.run(inputs[:10], states, outputs)  # compile
     costs = np.empty(repeats)
     for k in range(repeats):
-        x = x0.copy()
+        sim.reset(None)
         t0 = time.perf_counter_ns()
-        simulate(x, vp, cfg.tp, inputs, DT_S, ws, states, outputs, 1)
+        sim.run(inputs, states, outputs)
         costs[k] = (time.perf_counter_ns() - t0) / n
-        assert np.isfinite(x).all()
+        assert np.isfinite(sim.x).all()
     return costs
 
 

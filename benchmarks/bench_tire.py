@@ -40,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from simserver.adapters.tir_file import load_tir, mf61_coefficients  # noqa: E402
 from simserver.core.tire import (  # noqa: E402
+    BUILTIN_KERNELS,
     N_TIRE_PARAM,
     tire_evaluate,
     tire_forces,
@@ -101,7 +102,7 @@ def _loop_tire_forces(
     n_rows = kappa.shape[0]
     j = 0
     for _ in range(n_calls):
-        tire_forces(tp, kappa[j], tan_alpha[j], gamma[j], fz[j], mu[j], vx[j], out)
+        tire_forces(BUILTIN_KERNELS, tp, kappa[j], tan_alpha[j], gamma[j], fz[j], mu[j], vx[j], out)
         acc += out[OUT_FX] + out[OUT_FY] + out[OUT_MZ]
         j += 1
         if j == n_rows:
@@ -120,7 +121,7 @@ def _loop_tire_prepare(
     n_rows = kappa.shape[0]
     j = 0
     for _ in range(n_calls):
-        tire_prepare(tp, gamma[j], fz[j], mu[j], coefs[j])
+        tire_prepare(BUILTIN_KERNELS, tp, gamma[j], fz[j], mu[j], coefs[j])
         acc += coefs[j, 1]
         j += 1
         if j == n_rows:
@@ -139,7 +140,7 @@ def _loop_tire_evaluate(
     n_rows = kappa.shape[0]
     j = 0
     for _ in range(n_calls):
-        tire_evaluate(tp, coefs[j], kappa[j], tan_alpha[j], fz[j], vx[j], out)
+        tire_evaluate(BUILTIN_KERNELS, tp, coefs[j], kappa[j], tan_alpha[j], fz[j], vx[j], out)
         acc += out[OUT_FX] + out[OUT_FY] + out[OUT_MZ]
         j += 1
         if j == n_rows:
@@ -159,10 +160,11 @@ def _loop_wheel_step(
     coef = coefs[0]
     j = 0
     for _ in range(n_calls):
-        tire_prepare(tp, gamma[j], fz[j], mu[j], coef)
+        tire_prepare(BUILTIN_KERNELS, tp, gamma[j], fz[j], mu[j], coef)
         for stage in range(4):
             d = 1.0 + 1e-3 * stage
-            tire_evaluate(tp, coef, kappa[j] * d, tan_alpha[j] * d, fz[j] * d, vx[j], out)
+            tire_evaluate(BUILTIN_KERNELS, tp, coef, kappa[j] * d, tan_alpha[j] * d, fz[j] * d,
+                          vx[j], out)
             acc += out[OUT_FX] + out[OUT_FY] + out[OUT_MZ]
         j += 1
         if j == n_rows:

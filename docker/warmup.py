@@ -13,9 +13,10 @@ under ``--configs``, i.e. the simple brush tire and the MF 6.1 tire) it runs:
    ``simulate`` loop and everything it calls), in this process through ``simserver.cli``;
 2. the ``serve`` path: the server config ``server/default.yaml`` loaded with the scene,
    ``simserver.server.SimServer`` constructed (no network is opened) and its
-   ``Physics.warm_up()`` called, exactly what ``simserver serve`` does before its clock
+   ``Simulation.warm_up()`` called, exactly what ``simserver serve`` does before its clock
    starts (``step``, ``world_pose``, ``set_road``);
-3. the ``tire-curves`` path: ``core.tire.tire_forces`` called from Python;
+3. the ``tire-curves`` path: ``core.tire.tire_forces`` called from Python with the
+   registered kernels;
 4. the ``view`` path (``simserver view``, or ``serve --viewer save:FILE.rrd``): one state
    record turned back into the core layout (``core.pose.road_pose``).
 

@@ -181,7 +181,8 @@ def run_scenario_command(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------- tire-curves
 def nominal_load_n(tp: np.ndarray) -> float:
-    """Nominal load of a packed tire vector: ``FNOMIN`` (mf61) or ``nominal_load_n`` (simple).
+    """Nominal load of a packed tire vector, from its model's registry entry
+    (``simserver.tire_models``): ``FNOMIN`` (mf61), ``nominal_load_n`` (simple).
 
     Parameters
     ----------
@@ -193,21 +194,9 @@ def nominal_load_n(tp: np.ndarray) -> float:
     float
         Nominal wheel load (N).
     """
-    from simserver.core.tire_layout import (
-        TIRE_MODEL_MF61,
-        TIRE_MODEL_SIMPLE,
-        TP_MODEL,
-        TP_MODEL_BASE,
-    )
-    from simserver.core.tire_mf61 import P_FNOMIN
-    from simserver.core.tire_simple import SP_FZ_NOM
+    from simserver.tire_models import nominal_load_n as registered_nominal_load_n
 
-    model = int(tp[TP_MODEL])
-    if model == TIRE_MODEL_MF61:
-        return float(tp[TP_MODEL_BASE + P_FNOMIN])
-    if model == TIRE_MODEL_SIMPLE:
-        return float(tp[TP_MODEL_BASE + SP_FZ_NOM])
-    raise ValueError(f"unknown tire model id {model}")
+    return registered_nominal_load_n(tp)
 
 
 def tire_curve_data(
@@ -250,6 +239,7 @@ def tire_curve_data(
     """
     from simserver.core.tire import tire_forces
     from simserver.core.tire_layout import N_TIRE_OUT, OUT_FX, OUT_FY, OUT_MZ
+    from simserver.tire_models import check_tire_vectors, tire_kernels
 
     loads = np.asarray(loads_n, dtype=np.float64)
     alpha_deg = np.linspace(-alpha_max_deg, alpha_max_deg, n_points)
@@ -258,9 +248,12 @@ def tire_curve_data(
     comb_alpha = np.asarray(combined_alpha_deg, dtype=np.float64)
     comb_load = nominal_load_n(tp) if combined_load_n is None else float(combined_load_n)
     out = np.zeros(N_TIRE_OUT)
+    check_tire_vectors(tp)
+    kernels = tire_kernels()
+    tp = np.ascontiguousarray(tp, dtype=np.float64)
 
     def forces(k: float, ta: float, fz: float) -> tuple[float, float, float]:
-        tire_forces(tp, k, ta, 0.0, fz, mu_scale, vx_mps, out)
+        tire_forces(kernels, tp, k, ta, 0.0, fz, mu_scale, vx_mps, out)
         return out[OUT_FX], out[OUT_FY], out[OUT_MZ]
 
     fy_alpha = np.zeros((loads.size, n_points))
@@ -414,7 +407,7 @@ def replay_command(args: argparse.Namespace) -> int:
         print(f"replayed {rep.steps} steps (the log has no end line: the server did not "
               "stop cleanly, nothing to compare)")
         return 0
-    same = np.array_equal(rep.final_state, rep.logged_final_state)
+    same = rep.final_state_matches
     print(f"replayed {rep.steps} steps: final state "
           f"{'identical to' if same else 'DIFFERS from'} the live run's, bit for bit")
     return 0 if same else 1

@@ -42,11 +42,8 @@ from simserver.adapters.config import (
     read_yaml,
 )
 from simserver.core import layout as L
-from simserver.core.chassis import static_wheel_load
-from simserver.core.integrator import make_workspace, simulate
-from simserver.core.params import set_road
-from simserver.core.tire_layout import TP_RADIUS_M
 from simserver.keyframes import input_table, parse_keyframes
+from simserver.simulation import Simulation
 
 ROAD_RANGES = {"grade_pct": (-100.0, 100.0), "cross_slope_pct": (-100.0, 100.0),
                "friction_scale": (0.0, 3.0)}
@@ -56,20 +53,29 @@ INITIAL_RANGES = {"x_m": (-1e7, 1e7), "y_m": (-1e7, 1e7), "yaw_rad": (-1e3, 1e3)
 
 
 @dataclass
+class Scene:
+    """A vehicle on a road at an initial state: what the live server starts from."""
+
+    path: Path
+    vehicle: VehicleConfig
+    road: dict[str, float]
+    initial: dict[str, float]
+    model_options: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
 class Scenario:
-    """A validated scenario, ready to run."""
+    """A validated scenario, ready to run: a scene (vehicle, road, initial state, model
+    options) driven by keyframes for a duration."""
 
     name: str
     path: Path
     description: str
-    vehicle: VehicleConfig
-    road: dict[str, float]
-    initial: dict[str, float]
+    scene: Scene
     duration_s: float
     dt_s: float
     record_every: int
     keyframes: list[dict[str, Any]]
-    model_options: dict[str, Any] = field(default_factory=dict)
 
     @property
     def n_steps(self) -> int:
@@ -104,17 +110,6 @@ class ScenarioResult:
 
 
 SCENE_KEYS = ("vehicle", "road", "initial", "model")
-
-
-@dataclass
-class Scene:
-    """A vehicle on a road at an initial state: what the live server starts from."""
-
-    path: Path
-    vehicle: VehicleConfig
-    road: dict[str, float]
-    initial: dict[str, float]
-    model_options: dict[str, Any] = field(default_factory=dict)
 
 
 def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = None) -> Scene:
@@ -178,28 +173,10 @@ def load_scenario(path: str | Path) -> Scenario:
     if not isinstance(name, str) or not name:
         raise ConfigError(f"{path}: key 'name': expected a non-empty string")
     return Scenario(
-        name=name, path=path, description=str(data.get("description", "")),
-        vehicle=scene.vehicle, road=scene.road, initial=scene.initial, duration_s=duration,
-        dt_s=dt, record_every=record_every, keyframes=parse_keyframes(path, data["inputs"]),
-        model_options=scene.model_options,
+        name=name, path=path, description=str(data.get("description", "")), scene=scene,
+        duration_s=duration, dt_s=dt, record_every=record_every,
+        keyframes=parse_keyframes(path, data["inputs"]),
     )
-
-
-def initial_state(scenario: Scenario | Scene) -> np.ndarray:
-    """The state at t = 0: given pose and velocities, wheels rolling freely, springs static."""
-    x = np.zeros(L.N_STATE, dtype=np.float64)
-    init = scenario.initial
-    x[L.X_M] = init["x_m"]
-    x[L.Y_M] = init["y_m"]
-    x[L.YAW_RAD] = init["yaw_rad"]
-    x[L.U_MPS] = init["u_mps"]
-    x[L.V_MPS] = init["v_mps"]
-    x[L.YAW_RATE_RADPS] = init["yaw_rate_radps"]
-    tp = scenario.vehicle.tp
-    for i in range(L.N_WHEELS):
-        x[L.OMEGA0 + i] = init["u_mps"] / tp[i, TP_RADIUS_M]
-        x[L.HUB_U_PREV0 + i] = init["u_mps"]
-    return x
 
 
 def run_scenario(
@@ -212,10 +189,7 @@ def run_scenario(
     Deterministic: the same scenario gives the same arrays bit for bit.
     ``progress(done_steps, total_steps)`` is called after each chunk.
     """
-    vp = scenario.vehicle.vp.copy()
-    tp = scenario.vehicle.tp
-    set_road(vp, scenario.road["grade_pct"], scenario.road["cross_slope_pct"],
-             scenario.road["friction_scale"])
+    sim = Simulation(scenario.scene, scenario.dt_s)
     n = scenario.n_steps
     every = scenario.record_every
     chunk_steps = max(every, chunk_steps - chunk_steps % every)
@@ -224,29 +198,18 @@ def run_scenario(
     n_rec = (n + every - 1) // every
     states = np.zeros((n_rec, L.N_STATE))
     outputs = np.zeros((n_rec, L.N_OUT))
-    x = initial_state(scenario)
-    ws = make_workspace()
     t0 = time.perf_counter()
     done = 0
     while done < n:
         m = min(chunk_steps, n - done)
         r0 = done // every
         r1 = r0 + (m + every - 1) // every
-        simulate(x, vp, tp, inputs[done:done + m], scenario.dt_s, ws, states[r0:r1],
-                 outputs[r0:r1], every)
+        sim.run(inputs[done:done + m], states[r0:r1], outputs[r0:r1], every)
         done += m
         if progress is not None:
             progress(done, n)
     wall = time.perf_counter() - t0
     return ScenarioResult(
         scenario=scenario, time_s=states[:, L.TIME_S].copy(), states=states, outputs=outputs,
-        inputs=inputs[::every].copy(), final_state=x.copy(), wall_time_s=wall,
+        inputs=inputs[::every].copy(), final_state=sim.x.copy(), wall_time_s=wall,
     )
-
-
-def static_loads(scenario: Scenario | Scene) -> np.ndarray:
-    """Static wheel loads (N) of the scenario's vehicle on its road."""
-    vp = scenario.vehicle.vp.copy()
-    set_road(vp, scenario.road["grade_pct"], scenario.road["cross_slope_pct"],
-             scenario.road["friction_scale"])
-    return np.array([static_wheel_load(vp, i) for i in range(L.N_WHEELS)])

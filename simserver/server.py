@@ -1,7 +1,7 @@
 """The real-time server: the car at a fixed 1 kHz of wall-clock time, driven over zenoh.
 
 This module holds the server's configuration (``load_server_config``), the command log
-(``CommandLog``), the simulation both the server and the replay step (``Physics``), the
+(``CommandLog``), the one place the server builds its ``Simulation`` (``new_simulation``), the
 zenoh wiring (``SimServer``) and the replay (``replay_command_log``). The logic is apart:
 
 - :mod:`simserver.server_loop`: the fixed-rate loop (pacer, inbox drain, publish,
@@ -15,7 +15,6 @@ optional command log, which ``replay_command_log`` re-runs headless bit for bit.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import signal
@@ -31,11 +30,9 @@ import numpy as np
 from simserver import protocol as proto
 from simserver.adapters.config import ConfigError, check_keys, number, read_yaml
 from simserver.core import layout as L
-from simserver.core.integrator import forget_tire_loads, make_workspace, step
-from simserver.core.params import VP_CG_HEIGHT_M, road_axes, set_road
-from simserver.core.pose import world_pose
-from simserver.scenario import Scene, initial_state, load_scene
+from simserver.scenario import Scene, load_scene
 from simserver.server_loop import ServerLoop, SlotPorts
+from simserver.simulation import Simulation
 from simserver.vehicle_slot import VehicleSlot
 
 log = logging.getLogger("simserver.server")
@@ -183,61 +180,9 @@ class CommandLog:
         self._file.close()
 
 
-class Physics:
-    """The compiled vehicle plus its scene: state, parameters, and the step.
-
-    Shared by the live server and the replay so both run the very same arithmetic.
-    """
-
-    def __init__(self, scene: Scene, dt_s: float) -> None:
-        self.dt_s = dt_s
-        self.load(scene)
-        self.ws = make_workspace()
-        self.out = np.zeros(L.N_OUT)
-        self.inputs = np.zeros(L.N_INPUT)
-        self.inputs[L.IN_GEAR] = L.GEAR_P
-        self.pose = np.zeros(6)
-
-    def load(self, scene: Scene) -> None:
-        """Take a scene (vehicle, road, initial state); the state is reset to it."""
-        self.scene = scene
-        self.vp = scene.vehicle.vp.copy()
-        self.tp = scene.vehicle.tp.copy()
-        self.set_road(**scene.road)
-        self.reset(None)
-
-    def reset(self, pose: dict[str, float] | None) -> None:
-        """Back to the scene's initial state, or at rest at ``pose`` (x_m, y_m, yaw_rad)."""
-        scene = self.scene
-        if pose is not None:
-            at_rest = {**scene.initial, **pose, "u_mps": 0.0, "v_mps": 0.0,
-                       "yaw_rate_radps": 0.0}
-            scene = dataclasses.replace(scene, initial=at_rest)
-        self.x = initial_state(scene)
-        if hasattr(self, "ws"):
-            forget_tire_loads(self.ws)
-
-    def set_road(self, grade_pct: float, cross_slope_pct: float, friction_scale: float) -> None:
-        """Change the road plane (takes effect at the next step)."""
-        set_road(self.vp, grade_pct, cross_slope_pct, friction_scale)
-        self.road = {"grade_pct": grade_pct, "cross_slope_pct": cross_slope_pct,
-                     "friction_scale": friction_scale}
-        self.axes = road_axes(grade_pct, cross_slope_pct)
-
-    def step(self) -> None:
-        """One fixed step with the current inputs."""
-        step(self.x, self.vp, self.tp, self.inputs, self.dt_s, self.ws, self.out)
-
-    def warm_up(self) -> None:
-        """Compile (or load from cache) every kernel before the clock starts."""
-        x, out = self.x.copy(), self.out.copy()
-        step(x, self.vp, self.tp, self.inputs, self.dt_s, self.ws, out)
-        world_pose(self.x, self.axes, self.vp[VP_CG_HEIGHT_M], self.pose)
-
-
-def new_simulation(scene: Scene, dt_s: float) -> Physics:
+def new_simulation(scene: Scene, dt_s: float) -> Simulation:
     """The simulation a vehicle slot steps (the one place the server builds it)."""
-    return Physics(scene, dt_s)
+    return Simulation(scene, dt_s)
 
 
 class SimServer:
@@ -254,7 +199,7 @@ class SimServer:
         self.loop = ServerLoop(cfg)
 
     @property
-    def physics(self) -> Physics:
+    def physics(self) -> Simulation:
         """The first (default: only) vehicle's simulation."""
         return self.slots[0].sim
 
@@ -285,7 +230,8 @@ class SimServer:
             with ZenohEndpoint(zcfg, prefix=cfg.prefix, vehicle=cfg.vehicle_id) as ep:
                 for slot in self.slots:
                     keys = slot.keys
-                    commands = ep.declare_command_inbox(capacity=proto.COMMAND_RING_SLOTS, keys=keys)
+                    commands = ep.declare_command_inbox(capacity=proto.COMMAND_RING_SLOTS,
+                                                        keys=keys)
                     publisher = ep.declare_vehicle_publisher(keys=keys)
                     controls = ep.declare_control_inbox(keys=keys, validate=False)
                     ep.declare_alive_token(keys=keys)
@@ -335,13 +281,29 @@ class SimServer:
 # ---------------------------------------------------------------------- replay
 @dataclass
 class Replay:
-    """A command log re-run headless: the state after every step, and the final state."""
+    """A command log re-run headless: the state after every step, and the final state.
+
+    ``logged_final_state`` is the log's ``end`` state as written, which may be shorter
+    than ``N_STATE``: a log written before state slots were appended (``core.layout``)
+    holds the older layout, a prefix of this one. ``final_state_matches`` compares them
+    on the slots both have.
+    """
 
     states: np.ndarray  # (steps, N_STATE): state after step k
     outputs: np.ndarray  # (steps, N_OUT): forces at the start of step k
     final_state: np.ndarray
     logged_final_state: np.ndarray | None
     steps: int
+
+    @property
+    def final_state_matches(self) -> bool | None:
+        """The replayed final state equals the logged one bit for bit on the common slots
+        (None if the log has no end state)."""
+        if self.logged_final_state is None:
+            return None
+        n = self.logged_final_state.size
+        return n <= self.final_state.size and bool(
+            np.array_equal(self.final_state[:n], self.logged_final_state))
 
 
 def read_command_log(path: str | Path) -> list[dict[str, Any]]:
@@ -366,7 +328,7 @@ def replay_command_log(path: str | Path, progress: Any = None) -> Replay:
     """Re-run a command log headless with the same compiled step as the server."""
     entries = read_command_log(path)
     header = entries[0]
-    physics = Physics(load_scene(header["scene"]), float(header["dt_s"]))
+    physics = Simulation(load_scene(header["scene"]), float(header["dt_s"]))
     events = entries[1:]
     end = next((e for e in events if "end" in e), None)
     total = int(end["end"]) if end else max((int(e.get("step", 0)) for e in events), default=0)

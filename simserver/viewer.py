@@ -48,7 +48,8 @@ import numpy as np
 
 from simserver import protocol as proto
 from simserver.core import layout as L
-from simserver.core.params import VP_CG_HEIGHT_M, road_axes
+from simserver.core.params import VP_CG_HEIGHT_M
+from simserver.core.road import road_axes
 
 ROAD_POLL_S = 1.0
 

@@ -36,7 +36,7 @@ def shear_force_sums(result: ScenarioResult, row: int) -> tuple[float, float, fl
     """Sum of the tire shear forces along body x and y (N) and their yaw moment (N m)."""
     from simserver.core.chassis import wheel_position
 
-    vp = result.scenario.vehicle.vp
+    vp = result.scenario.scene.vehicle.vp
     o = result.outputs[row]
     fx_b = fy_b = mz = 0.0
     for i in range(L.N_WHEELS):

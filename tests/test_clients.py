@@ -400,8 +400,8 @@ def test_player_samples_keyframes_like_the_headless_input_table():
 def test_recorder_road_frame_inverts_the_servers_world_pose():
     """x_m, y_m, yaw, pitch, roll in the road frame, from the world pose on the wire."""
     from simserver.core import layout as L
-    from simserver.core.params import road_axes
     from simserver.core.pose import world_pose
+    from simserver.core.road import road_axes
 
     rng = np.random.default_rng(6)
     h_cg = 0.55

@@ -14,7 +14,7 @@ from simserver.core.damping import (
     paper_release,
     paper_trigger,
 )
-from simserver.core.tire import tire_forces
+from simserver.core.tire import BUILTIN_KERNELS, tire_forces
 from simserver.core.tire_layout import (
     N_TIRE_OUT,
     OUT_C_ALPHA,
@@ -31,7 +31,7 @@ def test_coefficients_at_the_reference_car(paper_tire):
     """
     fz, g = 5005.0, 9.81
     out = np.zeros(N_TIRE_OUT)
-    tire_forces(paper_tire, 0.0, 0.0, 0.0, fz, 1.0, 0.0, out)
+    tire_forces(BUILTIN_KERNELS, paper_tire, 0.0, 0.0, 0.0, fz, 1.0, 0.0, out)
     c_x, c_y = damping_coefficients(fz, out[OUT_C_KAPPA], out[OUT_C_ALPHA],
                                     paper_tire[TP_RELAX_LONG_M], paper_tire[TP_RELAX_LAT_M],
                                     PAPER_DAMPING_RATIO, g)

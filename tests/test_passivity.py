@@ -1,4 +1,5 @@
-"""The passive slip variant never returns energy the tire did not store (docs/model.md 4b item 1).
+"""The passive slip variant never returns energy the tire did not store
+(docs/model.md section 4b item 1).
 
 A single wheel on a locked hub (Omega = 0) is driven back and forth at walking pace
 (0.3 m/s), along the wheel or sideways, with a displacement amplitude several times its
@@ -19,7 +20,7 @@ import numpy as np
 import pytest
 
 from simserver.core.slip import lagged_slip_rates, project_to_sliding_limit
-from simserver.core.tire import tire_forces
+from simserver.core.tire import BUILTIN_KERNELS, tire_forces
 from simserver.core.tire_layout import (
     N_TIRE_OUT,
     OUT_FX,
@@ -61,7 +62,7 @@ def run_locked_hub(tp, passive: bool, lateral: bool, cycles: int = 3, n_per_cycl
 
     for step_no in range(power.size):
         u, v = hub(t)
-        tire_forces(tp, state[1], state[0], 0.0, FZ, 1.0, u, out)
+        tire_forces(BUILTIN_KERNELS, tp, state[1], state[0], 0.0, FZ, 1.0, u, out)
         power[step_no] = out[OUT_FX] * u + out[OUT_FY] * v  # work rate of the tire on the hub
         k1 = rate(state, t)
         k2 = rate(state + 0.5 * h * k1, t + 0.5 * h)
@@ -80,16 +81,16 @@ def run_locked_hub(tp, passive: bool, lateral: bool, cycles: int = 3, n_per_cycl
 def elastic_energy_at_slide(tp, lateral: bool) -> float:
     """E_max = relaxation length x integral of |F| over the slip up to the sliding limit."""
     out = np.zeros(N_TIRE_OUT)
-    tire_forces(tp, 0.0, 0.0, 0.0, FZ, 1.0, 0.0, out)
+    tire_forces(BUILTIN_KERNELS, tp, 0.0, 0.0, 0.0, FZ, 1.0, 0.0, out)
     limit = out[OUT_TAN_ALPHA_SLIDE] if lateral else out[OUT_KAPPA_SLIDE]
     slips = np.linspace(0.0, limit, 4001)
     force = []
     for s in slips:
         if lateral:
-            tire_forces(tp, 0.0, s, 0.0, FZ, 1.0, 0.0, out)
+            tire_forces(BUILTIN_KERNELS, tp, 0.0, s, 0.0, FZ, 1.0, 0.0, out)
             force.append(-out[OUT_FY])
         else:
-            tire_forces(tp, s, 0.0, 0.0, FZ, 1.0, 0.0, out)
+            tire_forces(BUILTIN_KERNELS, tp, s, 0.0, 0.0, FZ, 1.0, 0.0, out)
             force.append(out[OUT_FX])
     length = tp[TP_RELAX_LAT_M] if lateral else tp[TP_RELAX_LONG_M]
     return length * np.trapezoid(force, slips)

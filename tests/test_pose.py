@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from simserver.core import layout as L
-from simserver.core.params import road_axes
 from simserver.core.pose import road_pose, world_pose
+from simserver.core.road import road_axes
 
 
 def rot(axis: int, a: float) -> np.ndarray:

@@ -122,7 +122,7 @@ def test_the_only_timeline_is_sim_time(recorded):
 
 
 def test_car_translation_is_the_history_position_on_the_road_plane(recorded):
-    from simserver.core.params import road_axes
+    from simserver.core.road import road_axes
 
     history = recorded["history"]
     e1, e2, _ = road_axes(-5.0, 3.0)
@@ -210,8 +210,8 @@ def test_scene_logger_logs_the_same_frames_as_log_result(tmp_path):
 
     rec = rr.RecordingStream("simserver", recording_id="live")
     rec.save(live_rrd)
-    logger = S.SceneLogger(rec, scenario.vehicle.vp, scenario.vehicle.tp,
-                           scenario.road["grade_pct"], scenario.road["cross_slope_pct"],
+    logger = S.SceneLogger(rec, scenario.scene.vehicle.vp, scenario.scene.vehicle.tp,
+                           scenario.scene.road["grade_pct"], scenario.scene.road["cross_slope_pct"],
                            flush_every=7, send_blueprint=False)
     t0 = time.perf_counter()
     kept = [logger.log_frame(t, result.states[k], result.outputs[k], result.inputs[k])
@@ -367,8 +367,8 @@ def test_scene_body_pose_is_the_wire_world_pose():
     state topic's pose) does, with the same attitude, on a sloped and cross-sloped road."""
     from simserver.adapters.rerun_scene import body_pose, car_pose
     from simserver.core import layout as L
-    from simserver.core.params import road_axes
     from simserver.core.pose import world_pose
+    from simserver.core.road import road_axes
 
     rng = np.random.default_rng(11)
     axes = road_axes(-8.0, 4.0)

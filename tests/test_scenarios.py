@@ -34,9 +34,9 @@ def run(name: str, dt_s: float | None = None, **model):
     if key not in _cache:
         sc = load_scenario(SCEN / f"{name}.yaml")
         if model:
-            opts = dict(sc.model_options)
+            opts = dict(sc.scene.model_options)
             opts.update(model)
-            apply_model_options(sc.vehicle.vp, model_option_values(opts, "test"))
+            apply_model_options(sc.scene.vehicle.vp, model_option_values(opts, "test"))
         if dt_s is not None:
             sc.record_every = max(1, int(round(sc.record_every * sc.dt_s / dt_s)))
             sc.dt_s = dt_s
@@ -47,7 +47,7 @@ def run(name: str, dt_s: float | None = None, **model):
 
 
 def weight(result) -> float:
-    vp = result.scenario.vehicle.vp
+    vp = result.scenario.scene.vehicle.vp
     return vp[VP_MASS_KG] * vp[VP_GRAVITY_MPS2]
 
 
@@ -65,11 +65,11 @@ def test_e1_oscillates_about_zero_at_the_tire_spring_frequency():
     crossings = t[np.nonzero(np.diff(np.signbit(u)))[0]]
     assert crossings.size > 20  # it keeps oscillating: nothing damps it
     measured = 1.0 / (2.0 * np.median(np.diff(crossings)))
-    vp = r.scenario.vehicle.vp
+    vp = r.scenario.scene.vehicle.vp
     from simserver.core.tire_layout import TP_RELAX_LONG_M
 
     c_kappa_sum = 4 * 22500.0  # configs/tires/paper_sti.yaml, linear in load: sum is fixed
-    expected = math.sqrt(c_kappa_sum / (r.scenario.vehicle.tp[0, TP_RELAX_LONG_M]
+    expected = math.sqrt(c_kappa_sum / (r.scenario.scene.vehicle.tp[0, TP_RELAX_LONG_M]
                                         * vp[VP_MASS_KG])) / (2 * math.pi)
     assert abs(measured / expected - 1.0) < 0.15, (measured, expected)
     assert abs(expected - 3.5) < 0.05  # the paper's 3.5 Hz
@@ -90,14 +90,14 @@ def test_e2_paper_damping_stops_and_holds_with_the_papers_force():
     assert abs(-fx_sum / expected - 1.0) < 0.01, (fx_sum, expected)
     assert abs(fy_sum) < 1.0
     # the paper's pattern with a 70/30 split: brake force in front, a slightly smaller
-    # tractive force at the rear (docs/model.md 4b item 4)
+    # tractive force at the rear (docs/model.md section 4b item 4)
     o = r.outputs[-1]
     front = o[L.O_FX0] + o[L.O_FX0 + 1]
     rear = o[L.O_FX0 + 2] + o[L.O_FX0 + 3]
     print(f"E2 at rest: front {front:.0f} N, rear {rear:.0f} N, sum {front + rear:.0f} N")
     assert front < 0 < rear
     # the damping was triggered by the sign change of u, on every wheel
-    assert np.all(r.final_state[L.DAMPING_ACTIVE0:L.DAMPING_ACTIVE0 + 4] == 1.0)
+    assert np.all(r.final_state[L.DAMPING_ACTIVE] == 1.0)
     active = r.states[:, L.DAMPING_ACTIVE0]
     assert not active[: stop - 1].any()  # never before the stop
 
@@ -112,7 +112,7 @@ def test_e3_stop_from_a_steady_turn_leaves_no_net_force():
     assert speed(r)[-1] < 1e-3
     fx_sum, fy_sum, mz = shear_force_sums(r, -1)
     w = weight(r)
-    vp = r.scenario.vehicle.vp
+    vp = r.scenario.scene.vehicle.vp
     from simserver.core.params import VP_CG_TO_FRONT_AXLE_M, VP_CG_TO_REAR_AXLE_M
 
     wheelbase = vp[VP_CG_TO_FRONT_AXLE_M] + vp[VP_CG_TO_REAR_AXLE_M]
@@ -193,8 +193,8 @@ def test_same_outcome_at_half_the_step(name):
               for r in (a, b)]
     assert abs(settle[0] - settle[1]) < 2e-3, settle
     if name.startswith("e2"):
-        fa = a.outputs[-1, L.O_FX0:L.O_FX0 + 4]
-        fb = b.outputs[-1, L.O_FX0:L.O_FX0 + 4]
+        fa = a.outputs[-1, L.O_FX]
+        fb = b.outputs[-1, L.O_FX]
         assert np.all(np.abs(fa - fb) < 0.005 * weight(a) / 4), (fa, fb)
     else:
         ca = hold_and_restart(a, 1.0)

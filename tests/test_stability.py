@@ -66,8 +66,8 @@ def test_stable_everywhere(tmp_path, car, u0, maneuver, slip):
     # energy bound: nothing can make the car faster than its start plus what the engine
     # could add in 14 s (max 150 kW into 1550-2041 kg)
     assert speed.max() < abs(u0) + 40.0
-    assert np.all(r.outputs[:, L.O_FZ0:L.O_FZ0 + 4] >= 0.0)
-    omega = r.states[:, L.OMEGA0:L.OMEGA0 + 4]
+    assert np.all(r.outputs[:, L.O_FZ] >= 0.0)
+    omega = r.states[:, L.OMEGA]
     assert np.abs(omega).max() < 600.0  # rad/s: no numerical blow-up of a wheel
     if maneuver == "spin" and u0 != 0.0 and slip == "lagged_passive":
         assert speed[-1] < 0.05  # it comes to rest (the plain form may not: test_scenarios E7)

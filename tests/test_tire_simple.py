@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from simserver.core.tire import tire_forces
+from simserver.core.tire import BUILTIN_KERNELS, tire_forces
 from simserver.core.tire_layout import (
     N_TIRE_OUT,
     OUT_C_ALPHA,
@@ -27,7 +27,7 @@ FZ_NOM = 5005.0
 
 def forces(tp, kappa, tan_alpha, fz=FZ_NOM, mu=1.0):
     out = np.zeros(N_TIRE_OUT)
-    tire_forces(tp, kappa, tan_alpha, 0.0, fz, mu, 10.0, out)
+    tire_forces(BUILTIN_KERNELS, tp, kappa, tan_alpha, 0.0, fz, mu, 10.0, out)
     return out
 
 
@@ -79,7 +79,7 @@ def test_combined_slip_shares_the_friction_circle(paper_tire):
        mu=st.floats(0.0, 2.0))
 def test_finite_and_equal_to_python_reference(paper_tire, kappa, tan_a, fz, mu):
     out = np.full(N_TIRE_OUT, np.inf)
-    tire_forces(paper_tire, kappa, tan_a, 0.0, fz, mu, 3.0, out)
+    tire_forces(BUILTIN_KERNELS, paper_tire, kappa, tan_a, 0.0, fz, mu, 3.0, out)
     assert np.all(np.isfinite(out))
     if fz > 0.0:  # the pure-Python model (uncompiled) is the reference
         ref = np.full(N_TIRE_OUT, np.inf)

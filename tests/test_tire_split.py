@@ -55,7 +55,12 @@ from hypothesis import strategies as st
 from simserver.adapters.config import load_tire
 from simserver.adapters.tir_file import load_tir, mf61_coefficients
 from simserver.core import tire, tire_mf61, tire_simple
-from simserver.core.tire import tire_evaluate, tire_forces, tire_prepare
+from simserver.core.tire import (
+    BUILTIN_KERNELS,
+    tire_evaluate,
+    tire_forces,
+    tire_prepare,
+)
 from simserver.core.tire_layout import (
     N_MF61_COEF,
     N_SIMPLE_COEF,
@@ -104,16 +109,16 @@ LAMBDA = {  # sample file, 1000..9000 N: sup |dF/dFz - F/Fz| with margin (module
 def forces(tp, kappa, tan_alpha, gamma, fz, mu, vx) -> np.ndarray:
     """``tire_forces``, ``out`` pre-filled with NaN."""
     out = np.full(N_TIRE_OUT, np.nan)
-    tire_forces(tp, kappa, tan_alpha, gamma, fz, mu, vx, out)
+    tire_forces(BUILTIN_KERNELS, tp, kappa, tan_alpha, gamma, fz, mu, vx, out)
     return out
 
 
 def split(tp, kappa, tan_alpha, gamma, fz_prepared, fz, mu, vx) -> np.ndarray:
     """``tire_prepare`` at ``fz_prepared``, ``tire_evaluate`` at ``fz`` (NaN-filled)."""
     coef = np.full(N_TIRE_COEF, np.nan)
-    tire_prepare(tp, gamma, fz_prepared, mu, coef)
+    tire_prepare(BUILTIN_KERNELS, tp, gamma, fz_prepared, mu, coef)
     out = np.full(N_TIRE_OUT, np.nan)
-    tire_evaluate(tp, coef, kappa, tan_alpha, fz, vx, out)
+    tire_evaluate(BUILTIN_KERNELS, tp, coef, kappa, tan_alpha, fz, vx, out)
     return out
 
 
@@ -158,7 +163,7 @@ def test_prepare_writes_every_slot_it_uses(name: str) -> None:
     n_used = N_SIMPLE_COEF if name == "simple" else N_MF61_COEF
     for gamma, fz, mu in ((0.0, 4000.0, 1.0), (0.05, -10.0, 0.3), (-0.1, 3e4, 2.0)):
         coef = np.full(N_TIRE_COEF, np.nan)
-        tire_prepare(TIRES[name], gamma, fz, mu, coef)
+        tire_prepare(BUILTIN_KERNELS, TIRES[name], gamma, fz, mu, coef)
         assert np.all(np.isfinite(coef[:n_used])), coef
 
 
@@ -425,11 +430,11 @@ def test_dispatchers_neither_allocate_nor_count_references(name: str) -> None:
     tp = TIRES[name]
     coef = np.zeros(N_TIRE_COEF)
     out = np.zeros(N_TIRE_OUT)
-    tire_prepare(tp, 0.0, 4000.0, 1.0, coef)
+    tire_prepare(BUILTIN_KERNELS, tp, 0.0, 4000.0, 1.0, coef)
     calls = {
-        tire.tire_prepare: (tp, 0.0, 4000.0, 1.0, coef),
-        tire.tire_evaluate: (tp, coef, 0.01, 0.02, 4000.0, 10.0, out),
-        tire.tire_forces: (tp, 0.01, 0.02, 0.0, 4000.0, 1.0, 10.0, out),
+        tire.tire_prepare: (BUILTIN_KERNELS, tp, 0.0, 4000.0, 1.0, coef),
+        tire.tire_evaluate: (BUILTIN_KERNELS, tp, coef, 0.01, 0.02, 4000.0, 10.0, out),
+        tire.tire_forces: (BUILTIN_KERNELS, tp, 0.01, 0.02, 0.0, 4000.0, 1.0, 10.0, out),
     }
     for fn, args in calls.items():
         body = _main_function_ir(fn, *args)

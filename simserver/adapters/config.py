@@ -18,14 +18,12 @@ and the key (``ConfigError``).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from simserver.adapters.tir_file import TirError, load_tir, mf61_coefficients
 from simserver.adapters.validate import (  # re-exported: callers import them from here
     ConfigError,
     check_keys,
@@ -35,19 +33,16 @@ from simserver.adapters.validate import (  # re-exported: callers import them fr
 )
 from simserver.core import params as P
 from simserver.core.param_table import ParamTable, slot_constants_source, with_slot_constants
+from simserver.core.road import set_road
 from simserver.core.tire import N_TIRE_PARAM
 from simserver.core.tire_layout import (
-    TIRE_MODEL_MF61,
-    TIRE_MODEL_NAMES,
-    TIRE_MODEL_SIMPLE,
     TP_MODEL,
     TP_MODEL_BASE,
     TP_RADIUS_M,
     TP_RELAX_LAT_M,
     TP_RELAX_LONG_M,
 )
-from simserver.core.tire_mf61 import mf61_param_vector
-from simserver.core.tire_simple import SIMPLE_PARAM_NAMES, simple_param_vector
+from simserver.tire_models import N_MODEL_PARAM_MAX, TIRE_MODEL_NAMES, tire_model
 
 # The vehicle file's subsystem keys, one file each, and the ``model:`` section's defaults,
 # from the parameter tables (core/params.py).
@@ -126,9 +121,11 @@ def apply_model_options(vp: np.ndarray, values: dict[str, float]) -> None:
 
 
 def load_tire(path: Path) -> tuple[np.ndarray, str]:
-    """Load a tire file into a packed ``float64[N_TIRE_PARAM]`` vector.
+    """Load a tire file into a packed ``float64[N_TIRE_PARAM]`` vector; returns it and the
+    model's name.
 
-    Two forms::
+    The file's ``model`` key names a registered tire model (``simserver.tire_models``),
+    whose loader reads the rest. The two built-in forms::
 
         model: simple                       # core.tire_simple
         cornering_stiffness_n_per_rad: 51000
@@ -142,55 +139,25 @@ def load_tire(path: Path) -> tuple[np.ndarray, str]:
         relaxation_length_long_m: 0.091     # B, paper eq. 26
 
         model: mf61                         # core.tire_mf61
-        tir_file: ../../shared/.../x.tir    # relative to this file
+        tir_file: ../tir/x.tir              # relative to this file
         rolling_radius_m: 0.305             # optional, default UNLOADED_RADIUS
         relaxation_length_lat_m: 0.48       # optional, default from PTY1/PTY2 at FNOMIN
         relaxation_length_long_m: 0.62      # optional, default from PTX1 at FNOMIN
     """
     path = Path(path)
     data = read_yaml(path)
-    model = choice(path, "model", data.get("model"), TIRE_MODEL_NAMES)
+    model = tire_model(choice(path, "model", data.get("model"), TIRE_MODEL_NAMES))
+    loaded = model.load(path, data)
+    if loaded.model_params.size > N_MODEL_PARAM_MAX:
+        raise ConfigError(f"{path}: tire model {model.name!r} packs {loaded.model_params.size} "
+                          f"parameters, more than the {N_MODEL_PARAM_MAX} a tire vector holds")
     tp = np.zeros(N_TIRE_PARAM, dtype=np.float64)
-    common = ("relaxation_length_lat_m", "relaxation_length_long_m", "rolling_radius_m")
-    if model == TIRE_MODEL_SIMPLE:
-        keys = ("model", *SIMPLE_PARAM_NAMES, *common)
-        check_keys(path, data, keys, required=keys)
-        vals = {k: number(path, k, data[k], *SIMPLE_TIRE_RANGES[k]) for k in SIMPLE_PARAM_NAMES}
-        model_vec = simple_param_vector(vals)
-        tp[TP_MODEL] = TIRE_MODEL_SIMPLE
-        radius = vals["rolling_radius_m"]
-        relax_lat = number(path, common[0], data[common[0]], *TIRE_COMMON_RANGES[common[0]])
-        relax_long = number(path, common[1], data[common[1]], *TIRE_COMMON_RANGES[common[1]])
-        name = "simple"
-    else:
-        check_keys(path, data, ("model", "tir_file", *common), required=("model", "tir_file"))
-        if not isinstance(data["tir_file"], str):
-            raise ConfigError(f"{path}: key 'tir_file': expected a path string")
-        tir_path = (path.parent / data["tir_file"]).resolve()
-        try:
-            coeffs = mf61_coefficients(load_tir(tir_path))
-        except TirError as exc:
-            raise ConfigError(f"{path}: key 'tir_file': {exc}") from exc
-        model_vec = mf61_param_vector(coeffs)
-        tp[TP_MODEL] = TIRE_MODEL_MF61
-        r0 = coeffs["UNLOADED_RADIUS"]
-        # MF 6.1 relaxation lengths at the nominal load (Pacejka 2012, eqs. 4.E65 and 4.E67)
-        pty1 = coeffs.get("PTY1", 2.0)
-        pty2 = coeffs.get("PTY2", 2.0)
-        default_lat = pty1 * r0 * math.sin(2.0 * math.atan(1.0 / pty2))
-        default_long = coeffs.get("PTX1", 1.0) * r0
-        radius = number(path, "rolling_radius_m", data.get("rolling_radius_m", r0),
-                        *TIRE_COMMON_RANGES["rolling_radius_m"])
-        relax_lat = number(path, common[0], data.get(common[0], default_lat),
-                           *TIRE_COMMON_RANGES[common[0]])
-        relax_long = number(path, common[1], data.get(common[1], default_long),
-                            *TIRE_COMMON_RANGES[common[1]])
-        name = "mf61"
-    tp[TP_RADIUS_M] = radius
-    tp[TP_RELAX_LAT_M] = relax_lat
-    tp[TP_RELAX_LONG_M] = relax_long
-    tp[TP_MODEL_BASE:TP_MODEL_BASE + model_vec.size] = model_vec
-    return tp, name
+    tp[TP_MODEL] = model.id
+    tp[TP_RADIUS_M] = loaded.rolling_radius_m
+    tp[TP_RELAX_LAT_M] = loaded.relax_lat_m
+    tp[TP_RELAX_LONG_M] = loaded.relax_long_m
+    tp[TP_MODEL_BASE:TP_MODEL_BASE + loaded.model_params.size] = loaded.model_params
+    return tp, model.name
 
 
 def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
@@ -198,7 +165,7 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
     """Load and validate a vehicle file and its subsystem files.
 
     The road starts at the ``road:`` defaults, flat with friction scale 1
-    (``core.params.set_road`` changes it).
+    (``core.road.set_road`` changes it).
     """
     path = Path(path)
     top = read_yaml(path)
@@ -235,7 +202,7 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
 
     apply_model_options(vp, model_option_values(model_options, options_source))
     road = P.ROAD.defaults  # flat, friction scale 1
-    P.set_road(vp, road["grade_pct"], road["cross_slope_pct"], road["friction_scale"])
+    set_road(vp, road["grade_pct"], road["cross_slope_pct"], road["friction_scale"])
     name = top["name"]
     if not isinstance(name, str) or not name:
         raise ConfigError(f"{path}: key 'name': expected a non-empty string")

@@ -92,6 +92,8 @@ _DESCRIPTIONS: dict[str, str] = {
     "damping_active_{w}": "{W} paper's Appendix A low-speed damping latched on (0 or 1)",
     "hub_u_prev_{w}_mps": "{W} hub longitudinal speed at the previous step (damping trigger)",
     "wheel_held_{w}": "{W} wheel held at zero spin by its brake over the step (0 or 1)",
+    "fz_prev_{w}_n": "{W} normal load at the start of the previous step (-1: none yet), "
+                     "from which the tire coefficients are extrapolated to mid-step",
     # --- outputs
     "ax_mps2": "CG acceleration along body x",
     "ay_mps2": "CG acceleration along body y",
@@ -259,7 +261,7 @@ def _file_metadata(result: ScenarioResult) -> dict[str, str]:
     sc = result.scenario
     return {
         "simserver.scenario": sc.name,
-        "simserver.vehicle": sc.vehicle.name,
+        "simserver.vehicle": sc.scene.vehicle.name,
         "simserver.dt_s": repr(float(sc.dt_s)),
         "simserver.record_every": str(int(sc.record_every)),
         "simserver.columns": "time_s, states, outputs, input_*: see simserver.adapters.history",
@@ -393,7 +395,7 @@ def summarize(result: ScenarioResult) -> dict[str, Any]:
     n_rows = result.states.shape[0]
     n_steps = sc.n_steps
     options = dict(MODEL_OPTION_DEFAULTS)
-    options.update(sc.model_options)
+    options.update(sc.scene.model_options)
     simulated = n_steps * sc.dt_s
     wall = float(result.wall_time_s)
 
@@ -401,13 +403,13 @@ def summarize(result: ScenarioResult) -> dict[str, Any]:
         "format": "simserver.summary/1",
         "scenario": {"name": sc.name, "description": sc.description, "file": sc.path.name},
         "vehicle": {
-            "name": sc.vehicle.name,
-            "tire_model_front": sc.vehicle.tire_models[0],
-            "tire_model_rear": sc.vehicle.tire_models[1],
+            "name": sc.scene.vehicle.name,
+            "tire_model_front": sc.scene.vehicle.tire_models[0],
+            "tire_model_rear": sc.scene.vehicle.tire_models[1],
         },
-        "road": dict(sc.road),
+        "road": dict(sc.scene.road),
         "model_options": options,
-        "initial": dict(sc.initial),
+        "initial": dict(sc.scene.initial),
         "run": {
             "duration_s": sc.duration_s,
             "dt_s": sc.dt_s,

@@ -97,12 +97,12 @@ def _title(fig: Figure, result: ScenarioResult, what: str) -> None:
     from simserver.adapters.config import MODEL_OPTION_DEFAULTS
 
     sc = result.scenario
-    opts = {**MODEL_OPTION_DEFAULTS, **sc.model_options}
+    opts = {**MODEL_OPTION_DEFAULTS, **sc.scene.model_options}
     model = ", ".join(f"{k}={opts[k]}" for k in ("slip_model", "damping_model") if k in opts)
-    road = sc.road
+    road = sc.scene.road
     road_text = (f"grade {road['grade_pct']:g} %, cross-slope {road['cross_slope_pct']:g} %, "
                  f"friction x{road['friction_scale']:g}")
-    sub = f"{sc.vehicle.name}; {road_text}" + (f"; {model}" if model else "")
+    sub = f"{sc.scene.vehicle.name}; {road_text}" + (f"; {model}" if model else "")
     fig.suptitle(f"{sc.name}: {what}\n{sub}", fontsize=10)
 
 

@@ -20,7 +20,7 @@ Entity paths (constants below; ``RESULT_ENTITY_PATHS`` lists what ``log_result``
     world/road                     the road plane through the origin (static):
     world/road/surface               its surface, a rectangle around the run
     world/road/grid                  a 10 m grid on it, bold every 50 m
-    world/road/axes                  the plane's axes e1, e2, n (core.params.road_axes)
+    world/road/axes                  the plane's axes e1, e2, n (core.road.road_axes)
     world/trail                    the trajectory so far: a line strip on the road
     world/car                      transform: the car's pose in the plane: origin on the
                                    road below the CG (X e1 + Y e2), x forward along the
@@ -52,7 +52,7 @@ with ``{w}`` one of ``core.layout.WHEEL_NAMES`` (fl, fr, rl, rr). A plot entity 
 scalar instance per signal (``PLOT_GROUPS``: wheels in the order fl, fr, rl, rr), named
 and coloured by its static ``SeriesLines``: one entity per plot keeps the live logging
 cheap (rerun-sdk 0.41 costs about the same per entity for 1 or 4 scalars). The road plane,
-positions and rotations follow ``core.params.road_axes`` and ``core.layout`` (ISO 8855).
+positions and rotations follow ``core.road.road_axes`` and ``core.layout`` (ISO 8855).
 ``scene_blueprint()`` declares the layout: a 3D view whose eye follows the car (it
 tracks ``world/car/body/shell``) above the speed and yaw-rate plots, beside tabs of
 time-series views grouped as slips; forces per wheel; inputs; damping; server
@@ -808,8 +808,8 @@ def log_result(
     """
     rec.set_log_time_enabled(False)
     sc = result.scenario
-    vp, tp = sc.vehicle.vp, sc.vehicle.tp
-    grade, cross = sc.road["grade_pct"], sc.road["cross_slope_pct"]
+    vp, tp = sc.scene.vehicle.vp, sc.scene.vehicle.tp
+    grade, cross = sc.scene.road["grade_pct"], sc.scene.road["cross_slope_pct"]
     axes = road_axes(grade, cross)
     geometry = CarGeometry.from_params(vp, tp)
     states, outputs, inputs, t = result.states, result.outputs, result.inputs, result.time_s

@@ -3,13 +3,13 @@
 Without it a stopped car oscillates, lightly damped, on its tire springs (the paper's
 Example 1: about 3.5 Hz fore-aft). Two forms are selectable (``DAMPING_*``):
 
-``DAMPING_PAPER`` -- exactly Appendix A (model.md section 4). Per wheel, triggered when the
+``DAMPING_PAPER`` -- exactly Appendix A (docs/model.md section 4). Per wheel, triggered when the
 hub's longitudinal speed ``u`` changes sign while ``|v| < eps`` (0.15 m/s). The wheel is
 treated as a one-degree-of-freedom system of mass ``m_i = Fz_i / g`` on the tire spring
 (stiffness ``C_kappa/B`` fore-aft, ``C_alpha/b`` sideways), critically damped to
 ``zeta`` (0.7): ``c_x = 2 zeta m_i w_x`` with ``w_x = sqrt(C_kappa / (B m_i))``, likewise
 ``c_y``; the forces become ``Fx -= c_x u``, ``Fy -= c_y v``.
-Release rule (the paper gives none; model.md section 4b item 3): the damping of a wheel
+Release rule (the paper gives none; docs/model.md section 4b item 3): the damping of a wheel
 ends when the driver stops braking (brake pedal below ``PEDAL_RELEASED`` and parking
 brake off) or presses the throttle above ``PEDAL_RELEASED``. Left on it would hold a
 restart back (c_x is about 15.7 kN s/m per wheel on the paper's car); a car that is not
@@ -21,7 +21,7 @@ contact-patch deflection instead of the hub velocity: ``Fx += c_x B dk'/dt``,
 paper's ``-c_x u``, ``-c_y v``; in steady rolling the deflection rate is zero, so it never
 drags on a car that is driving away and needs no trigger or release rule. Because the
 deflection rate contains ``R Omega`` it also damps the wheel-spin / tire mode that rings
-when the brakes let go at standstill (model.md section 4b item 2). It fades out with hub
+when the brakes let go at standstill (docs/model.md section 4b item 2). It fades out with hub
 speed as MF-Tyre's low-speed damping does (cosine over ``0 .. v_fade``).
 """
 
@@ -30,10 +30,20 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from simserver.core.variants import Variant, VariantRegistry
+
 DAMPING_OFF = 0
 DAMPING_PAPER = 1
 DAMPING_PATCH = 2
-DAMPING_MODEL_NAMES = {"off": DAMPING_OFF, "paper": DAMPING_PAPER, "patch": DAMPING_PATCH}
+DAMPING_MODELS = VariantRegistry("damping model", (
+    Variant(DAMPING_OFF, "off", "no auxiliary low-speed damping"),
+    Variant(DAMPING_PAPER, "paper",
+            "Appendix A: hub-velocity damping, latched on a sign change of u"),
+    Variant(DAMPING_PATCH, "patch",
+            "the same coefficients on the contact-patch deflection rate, fading with speed "
+            "(default)"),
+))
+DAMPING_MODEL_NAMES = DAMPING_MODELS.names
 
 PAPER_TRIGGER_LATERAL_SPEED_MPS = 0.15
 """eps of Appendix A: the trigger needs |v| below this."""
@@ -56,7 +66,7 @@ def damping_coefficients(
     """Appendix A coefficients ``(c_x, c_y)`` in N s/m for one wheel.
 
     ``c = 2 zeta m w = 2 zeta sqrt(m k)`` with ``m = Fz/g`` and ``k = C/relaxation
-    length`` (the stopped tire's spring stiffness, model.md section 3 property 3).
+    length`` (the stopped tire's spring stiffness, docs/model.md section 3 property 3).
     """
     if fz_n <= 0.0:
         return 0.0, 0.0

@@ -5,8 +5,11 @@ constants below; the constants are the one definition of each layout (the column
 the output files and the wire payloads are derived from them).
 
 Wheel order everywhere: front-left, front-right, rear-left, rear-right.
-Frames (model.md section 2, ISO 8855): body x forward, y left, z up; the road is a plane,
-and ``X_M``/``Y_M``/``YAW_RAD`` are the pose within that plane (see ``core.road``).
+Frames (docs/model.md section 2, ISO 8855): body x forward, y left, z up; the road is a
+plane, and ``X_M``/``Y_M``/``YAW_RAD`` are the pose within that plane (see ``core.road``).
+
+Slots added later are appended (after ``TIME_S``), so an older layout is a prefix of this
+one: the ``end`` state of an older command log still compares on the common slots.
 """
 
 from __future__ import annotations
@@ -14,6 +17,10 @@ from __future__ import annotations
 N_WHEELS = 4
 WHEEL_NAMES = ("fl", "fr", "rl", "rr")
 FL, FR, RL, RR = 0, 1, 2, 3
+N_FRONT_WHEELS = 2  # wheels 0 .. N_FRONT_WHEELS-1 are on the front axle
+N_AXLES = 2
+WHEELS_PER_AXLE = 2  # left, then right
+
 
 # ---------------------------------------------------------------- state vector
 # Integrated states (0 .. N_INTEGRATED-1)
@@ -38,7 +45,11 @@ DAMPING_ACTIVE0 = 24  # Appendix A damping latched on (0/1), 4 slots
 HUB_U_PREV0 = 28  # hub longitudinal speed at the previous step (sign-change trigger), 4 slots
 WHEEL_HELD0 = 32  # 1 when the brake held the wheel at zero spin over the last step, 4 slots
 TIME_S = 36  # simulated time (s)
-N_STATE = 37
+N_STATE_V1 = 37  # the layout of the first release (command logs' ``end`` states)
+# Appended after TIME_S: memory carried from one step to the next
+FZ_PREV0 = 37  # normal load at the start of the previous step (N; -1: none yet), 4 slots
+N_STATE = 41
+FZ_PREV_NONE = -1.0  # FZ_PREV value of a fresh start: no previous load to extrapolate from
 
 STATE_NAMES = (
     ("x_m", "y_m", "yaw_rad", "u_mps", "v_mps", "yaw_rate_radps")
@@ -50,6 +61,7 @@ STATE_NAMES = (
     + tuple(f"hub_u_prev_{w}_mps" for w in WHEEL_NAMES)
     + tuple(f"wheel_held_{w}" for w in WHEEL_NAMES)
     + ("time_s",)
+    + tuple(f"fz_prev_{w}_n" for w in WHEEL_NAMES)
 )
 
 # ---------------------------------------------------------------- driver inputs
@@ -107,6 +119,35 @@ OUTPUT_NAMES = (
     + tuple(f"tan_alpha_{w}" for w in WHEEL_NAMES)
     + ("fx_body_sum_n", "fy_body_sum_n")
 )
+
+# per-wheel blocks: ``x[OMEGA]`` is the four spins (a slice, usable in compiled code too)
+OMEGA = slice(OMEGA0, OMEGA0 + N_WHEELS)
+TAN_ALPHA = slice(TAN_ALPHA0, TAN_ALPHA0 + N_WHEELS)
+KAPPA = slice(KAPPA0, KAPPA0 + N_WHEELS)
+DAMPING_ACTIVE = slice(DAMPING_ACTIVE0, DAMPING_ACTIVE0 + N_WHEELS)
+HUB_U_PREV = slice(HUB_U_PREV0, HUB_U_PREV0 + N_WHEELS)
+WHEEL_HELD = slice(WHEEL_HELD0, WHEEL_HELD0 + N_WHEELS)
+FZ_PREV = slice(FZ_PREV0, FZ_PREV0 + N_WHEELS)
+O_FX = slice(O_FX0, O_FX0 + N_WHEELS)
+O_FY = slice(O_FY0, O_FY0 + N_WHEELS)
+O_FZ = slice(O_FZ0, O_FZ0 + N_WHEELS)
+O_MZ = slice(O_MZ0, O_MZ0 + N_WHEELS)
+O_HUB_U = slice(O_HUB_U0, O_HUB_U0 + N_WHEELS)
+O_HUB_V = slice(O_HUB_V0, O_HUB_V0 + N_WHEELS)
+O_STEER = slice(O_STEER0, O_STEER0 + N_WHEELS)
+O_DRIVE_TORQUE = slice(O_DRIVE_TORQUE0, O_DRIVE_TORQUE0 + N_WHEELS)
+O_BRAKE_TORQUE = slice(O_BRAKE_TORQUE0, O_BRAKE_TORQUE0 + N_WHEELS)
+O_FRICTION_USE = slice(O_FRICTION_USE0, O_FRICTION_USE0 + N_WHEELS)
+O_DAMPING_FX = slice(O_DAMPING_FX0, O_DAMPING_FX0 + N_WHEELS)
+O_DAMPING_FY = slice(O_DAMPING_FY0, O_DAMPING_FY0 + N_WHEELS)
+O_KAPPA = slice(O_KAPPA0, O_KAPPA0 + N_WHEELS)
+O_TAN_ALPHA = slice(O_TAN_ALPHA0, O_TAN_ALPHA0 + N_WHEELS)
+
+# ---------------------------------------------------------------- world pose
+# ``core.pose.world_pose`` writes the CG position and the body attitude in world axes
+POSE_X_M, POSE_Y_M, POSE_Z_M = 0, 1, 2
+POSE_YAW_RAD, POSE_PITCH_RAD, POSE_ROLL_RAD = 3, 4, 5
+N_POSE = 6
 
 assert len(STATE_NAMES) == N_STATE
 assert len(OUTPUT_NAMES) == N_OUT

@@ -8,16 +8,13 @@ all derived from these tables.
 
 Parameters are packed once (by ``simserver.adapters.config``) and handed to the compiled
 kernels. The road and the model options live in the same vector so that one array
-describes "what is being simulated"; ``set_road`` updates the road slots and the gravity
-components derived from them at run time. The slot order is historical (slots are grouped
-as the kernels were written, not as the files are); it is kept so that packed vectors stay
-bit-identical.
+describes "what is being simulated"; ``core.road.set_road`` updates the road slots and
+the gravity components derived from them at run time. The slot order is historical (slots
+are grouped as the kernels were written, not as the files are); it is kept so that packed
+vectors stay bit-identical.
 """
 
 from __future__ import annotations
-
-import numba as nb
-import numpy as np
 
 from simserver.core.damping import (
     DAMPING_MODEL_NAMES,
@@ -196,42 +193,3 @@ VP_DAMPING_FADE_SPEED_MPS = 41  # m/s, model
 VP_KINEMATIC_U_MIN_MPS = 42  # m/s, model
 VP_SLIDE_WIDEN_SPEED_MPS = 43  # m/s, model
 # --- end of generated slot constants
-
-
-@nb.njit(cache=True)
-def set_road(
-    vp: np.ndarray, grade_pct: float, cross_slope_pct: float, friction_scale: float
-) -> None:
-    """Set the road plane and resolve gravity into its axes.
-
-    The road is the plane ``Z = (grade/100) X + (cross/100) Y`` (a grade of p % rises p m
-    per 100 m, model.md section 4b). ``e1`` is the world X axis projected onto the plane,
-    ``n`` the plane's upward normal, ``e2 = n x e1``. Gravity ``(0, 0, -g)`` resolves to
-    ``g_e1 e1 + g_e2 e2 - g_n n``.
-    """
-    g = vp[VP_GRAVITY_MPS2]
-    s_x = grade_pct / 100.0
-    s_y = cross_slope_pct / 100.0
-    # e1 = (1, 0, s_x)/|.|; n = (-s_x, -s_y, 1)/|.|; e2 = n x e1 = (-s_x s_y, 1 + s_x^2, s_y)/|.|
-    e1_z = s_x / np.sqrt(1.0 + s_x * s_x)
-    e2_norm = np.sqrt((s_x * s_y) ** 2 + (1.0 + s_x * s_x) ** 2 + s_y * s_y)
-    e2_z = s_y / e2_norm
-    n_z = 1.0 / np.sqrt(1.0 + s_x * s_x + s_y * s_y)
-    vp[VP_ROAD_GRADE_PCT] = grade_pct
-    vp[VP_ROAD_CROSS_SLOPE_PCT] = cross_slope_pct
-    vp[VP_ROAD_FRICTION_SCALE] = friction_scale
-    vp[VP_GRAVITY_E1_MPS2] = -g * e1_z
-    vp[VP_GRAVITY_E2_MPS2] = -g * e2_z
-    vp[VP_GRAVITY_N_MPS2] = g * n_z
-
-
-def road_axes(grade_pct: float, cross_slope_pct: float) -> np.ndarray:
-    """World-frame unit vectors ``(e1, e2, n)`` of the road plane, as rows of a 3x3 array."""
-    s_x = grade_pct / 100.0
-    s_y = cross_slope_pct / 100.0
-    e1 = np.array([1.0, 0.0, s_x])
-    n = np.array([-s_x, -s_y, 1.0])
-    e1 /= np.linalg.norm(e1)
-    n /= np.linalg.norm(n)
-    e2 = np.cross(n, e1)
-    return np.stack([e1, e2 / np.linalg.norm(e2), n])

@@ -12,7 +12,20 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from simserver.core.layout import HEAVE_M, PITCH_RAD, ROLL_RAD, X_M, Y_M, YAW_RAD
+from simserver.core.layout import (
+    HEAVE_M,
+    PITCH_RAD,
+    POSE_PITCH_RAD,
+    POSE_ROLL_RAD,
+    POSE_X_M,
+    POSE_Y_M,
+    POSE_YAW_RAD,
+    POSE_Z_M,
+    ROLL_RAD,
+    X_M,
+    Y_M,
+    YAW_RAD,
+)
 
 
 @nb.njit(cache=True)
@@ -25,15 +38,16 @@ def world_pose(x: np.ndarray, axes: np.ndarray, cg_height_m: float, pose: np.nda
         Vehicle state.
     axes : float64[3, 3]
         Rows ``e1``, ``e2``, ``n`` of the road plane in world axes
-        (``core.params.road_axes``).
+        (``core.road.road_axes``).
     cg_height_m : float
         Static CG height above the road.
-    pose : float64[6]
-        Written. The yaw is continuous: it follows the road-plane yaw without wrapping.
+    pose : float64[N_POSE]
+        Written, ``core.layout.POSE_*`` slots. The yaw is continuous: it follows the
+        road-plane yaw without wrapping.
     """
     lift = cg_height_m + x[HEAVE_M]
-    for k in range(3):
-        pose[k] = x[X_M] * axes[0, k] + x[Y_M] * axes[1, k] + lift * axes[2, k]
+    for k in range(3):  # POSE_X_M, POSE_Y_M, POSE_Z_M
+        pose[POSE_X_M + k] = x[X_M] * axes[0, k] + x[Y_M] * axes[1, k] + lift * axes[2, k]
     # body axes in the road frame: Rz(psi) Ry(theta) Rx(phi); columns = body x, y, z
     psi = x[YAW_RAD]
     cz, sz = np.cos(psi), np.sin(psi)
@@ -53,9 +67,9 @@ def world_pose(x: np.ndarray, axes: np.ndarray, cg_height_m: float, pose: np.nda
     # continuous yaw: the road-plane yaw plus the wrapped difference
     diff = yaw_wrapped - psi
     diff = (diff + np.pi) % (2.0 * np.pi) - np.pi
-    pose[3] = psi + diff
-    pose[4] = np.arcsin(min(1.0, max(-1.0, -wx2)))
-    pose[5] = np.arctan2(wy2, wz2)
+    pose[POSE_YAW_RAD] = psi + diff
+    pose[POSE_PITCH_RAD] = np.arcsin(min(1.0, max(-1.0, -wx2)))
+    pose[POSE_ROLL_RAD] = np.arctan2(wy2, wz2)
 
 
 @nb.njit(cache=True)
@@ -63,13 +77,13 @@ def road_pose(pose: np.ndarray, axes: np.ndarray, cg_height_m: float, x: np.ndar
     """Inverse of ``world_pose``: write ``X_M``, ``Y_M``, ``YAW_RAD``, ``HEAVE_M``,
     ``PITCH_RAD`` and ``ROLL_RAD`` of ``x`` from a world pose (for the live viewer, which
     receives world poses on the wire)."""
-    px, py, pz = pose[0], pose[1], pose[2]
+    px, py, pz = pose[POSE_X_M], pose[POSE_Y_M], pose[POSE_Z_M]
     x[X_M] = px * axes[0, 0] + py * axes[0, 1] + pz * axes[0, 2]
     x[Y_M] = px * axes[1, 0] + py * axes[1, 1] + pz * axes[1, 2]
     x[HEAVE_M] = px * axes[2, 0] + py * axes[2, 1] + pz * axes[2, 2] - cg_height_m
-    cz, sz = np.cos(pose[3]), np.sin(pose[3])
-    cy, sy = np.cos(pose[4]), np.sin(pose[4])
-    cx, sx = np.cos(pose[5]), np.sin(pose[5])
+    cz, sz = np.cos(pose[POSE_YAW_RAD]), np.sin(pose[POSE_YAW_RAD])
+    cy, sy = np.cos(pose[POSE_PITCH_RAD]), np.sin(pose[POSE_PITCH_RAD])
+    cx, sx = np.cos(pose[POSE_ROLL_RAD]), np.sin(pose[POSE_ROLL_RAD])
     # body x, y, z axes in world components (columns of Rz Ry Rx) ...
     bx = (cz * cy, sz * cy, -sy)
     by = (cz * sy * sx - sz * cx, sz * sy * sx + cz * cx, cy * sx)
@@ -81,7 +95,7 @@ def road_pose(pose: np.ndarray, axes: np.ndarray, cg_height_m: float, x: np.ndar
     r21 = by[0] * axes[2, 0] + by[1] * axes[2, 1] + by[2] * axes[2, 2]
     r22 = bz[0] * axes[2, 0] + bz[1] * axes[2, 1] + bz[2] * axes[2, 2]
     yaw_wrapped = np.arctan2(r10, r00)
-    diff = (yaw_wrapped - pose[3] + np.pi) % (2.0 * np.pi) - np.pi
-    x[YAW_RAD] = pose[3] + diff
+    diff = (yaw_wrapped - pose[POSE_YAW_RAD] + np.pi) % (2.0 * np.pi) - np.pi
+    x[YAW_RAD] = pose[POSE_YAW_RAD] + diff
     x[PITCH_RAD] = np.arcsin(min(1.0, max(-1.0, -r20)))
     x[ROLL_RAD] = np.arctan2(r21, r22)

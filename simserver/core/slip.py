@@ -1,7 +1,7 @@
 """Slip states of one wheel: the lagged formulation of SAE 950311 and its variants.
 
 Bernard & Clover make the slip angle and the longitudinal slip *state variables* with a
-first-order lag whose time constant is relaxation length / |u| (model.md section 3):
+first-order lag whose time constant is relaxation length / |u| (docs/model.md section 3):
 
     b d(tan a')/dt + |u| tan a' = v                      (paper eq. 16)
     B d(k')/dt     + |u| k'     = R Omega - u            (paper eq. 26, in the k' form)
@@ -14,7 +14,7 @@ contact-patch displacement (``tan a' = y/b``, ``k' = -x/B`` with a locked wheel)
 Three slip models are selectable (``SLIP_*``):
 
 - ``SLIP_LAGGED_PASSIVE`` (default): the equations above, with the states held within the
-  tire's sliding limit (:func:`project_to_sliding_limit`, model.md section 4b item 1).
+  tire's sliding limit (:func:`project_to_sliding_limit`, docs/model.md section 4b item 1).
   A real contact patch slides once the deflection reaches the friction limit instead of
   deflecting further; the paper's plain form keeps integrating displacement, stores
   energy that sliding should have dissipated, and gives it back when the slide reverses
@@ -33,14 +33,19 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from simserver.core.variants import Variant, VariantRegistry
+
 SLIP_LAGGED_PASSIVE = 0
 SLIP_LAGGED_PAPER = 1
 SLIP_KINEMATIC = 2
-SLIP_MODEL_NAMES = {
-    "lagged_passive": SLIP_LAGGED_PASSIVE,
-    "lagged_paper": SLIP_LAGGED_PAPER,
-    "kinematic": SLIP_KINEMATIC,
-}
+SLIP_MODELS = VariantRegistry("slip model", (
+    Variant(SLIP_LAGGED_PASSIVE, "lagged_passive",
+            "lagged slip states held within the tire's sliding limit (default)"),
+    Variant(SLIP_LAGGED_PAPER, "lagged_paper", "the paper's plain lagged slip states"),
+    Variant(SLIP_KINEMATIC, "kinematic",
+            "classic algebraic slip with the paper's eq. (1) u_min patch (baseline)"),
+))
+SLIP_MODEL_NAMES = SLIP_MODELS.names
 
 
 @nb.njit(cache=True)

@@ -1,10 +1,11 @@
 """One interface for every tire force model.
 
 The lagged slip states of SAE 950311 (see :mod:`simserver.core.slip`) "can be paired
-with any semi-empirical tire model". Every model here is a compiled kernel with the
-same signature::
-
-    model_forces(tp, kappa, tan_alpha, gamma_rad, fz_n, mu_scale, vx_mps, out)
+with any semi-empirical tire model". Every model here is a compiled kernel split in
+two with the signatures of ``tire_layout.PREPARE_SIGNATURE`` and ``EVALUATE_SIGNATURE``
+(below), listed in the tire-model registry (``simserver.tire_models``: id, name,
+parameter loader, kernels, stiffness report). The dispatchers here take the registered
+kernels (``TireKernels``, indexed by model id) and the tire's packed parameters:
 
 - ``tp``: the tire's packed parameter vector (``N_TIRE_PARAM`` floats). ``tp[TP_MODEL]``
   selects the model; ``TP_*`` slots below ``TP_MODEL_BASE`` are common to all models.
@@ -18,7 +19,7 @@ same signature::
   resistance); never divided by.
 - ``out``: ``N_TIRE_OUT`` floats, written with the ``OUT_*`` slots below.
 
-Sign convention (``../shared/docs/model.md`` section 2): ``Fx > 0`` for ``kappa > 0`` and
+Sign convention (``docs/model.md`` section 2): ``Fx > 0`` for ``kappa > 0`` and
 ``Fy < 0`` for ``tan_alpha > 0``.
 
 Split evaluation. Within one integrator step the load, camber and friction hardly move
@@ -53,6 +54,8 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from numba import types
+from numba.extending import overload
 
 from simserver.core.tire_layout import (
     N_TIRE_OUT,
@@ -62,14 +65,20 @@ from simserver.core.tire_layout import (
     OUT_TAN_ALPHA_SLIDE,
     TIRE_JIT_OPTIONS,
     TIRE_MODEL_MF61,
+    TIRE_MODEL_SIMPLE,
     TP_MODEL,
     TP_MODEL_BASE,
+    TireKernels,
     coef_scratch,
 )
 from simserver.core.tire_mf61 import N_MF61_PARAM, _mf61_evaluate, _mf61_prepare
 from simserver.core.tire_simple import N_SIMPLE_PARAM, _simple_evaluate, _simple_prepare
 
 N_TIRE_PARAM = TP_MODEL_BASE + max(N_SIMPLE_PARAM, N_MF61_PARAM)
+
+BUILTIN_KERNELS = TireKernels((), ())
+"""The ``kernels`` argument when only the built-in models are used (they are called
+directly); ``simserver.tire_models.tire_kernels()`` adds every other registered model's."""
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
@@ -84,14 +93,77 @@ def _no_load(out: np.ndarray) -> None:
     out[OUT_TAN_ALPHA_SLIDE] = 1.0
 
 
+# The built-in models are called directly, their bodies inlined (a call through a function
+# pointer costs 2-4 ns and stops inlining; 20 calls a step). Every other registered model
+# is called through its kernels, which ``kernels`` holds in id order from
+# N_BUILTIN_TIRE_MODELS on. With no other model registered ``kernels`` holds empty tuples
+# and the indirect call is not even compiled (the two functions below are resolved on the
+# tuples' type): the default step carries no function-pointer machinery (measured: about
+# +0.3 us a step when it did). The registry checks the ids before anything is compiled
+# (``simserver.simulation.check_model``); an id that got past it anyway yields NaN, which
+# every check downstream reports, never another model's forces. (Not an exception: its
+# exit path would keep numba from pruning the reference counts of the dispatchers' views.)
+N_BUILTIN_TIRE_MODELS = 2
+
+
+def _registered_prepare(kernels: TireKernels, model: int, tp: np.ndarray, gamma_rad: float,
+                        fz_n: float, mu_scale: float, coef: np.ndarray) -> None:
+    """The prepare kernel of registered model ``model`` (compiled code only)."""
+    raise NotImplementedError
+
+
+def _registered_evaluate(kernels: TireKernels, model: int, tp: np.ndarray, coef: np.ndarray,
+                         kappa: float, tan_alpha: float, fz_n: float, vx_mps: float,
+                         out: np.ndarray) -> None:
+    """The evaluate kernel of registered model ``model`` (compiled code only)."""
+    raise NotImplementedError
+
+
+def _no_kernels(kernels: types.Type) -> bool:
+    return kernels.types[0].count == 0
+
+
+@overload(_registered_prepare, inline="always", jit_options=TIRE_JIT_OPTIONS)
+def _registered_prepare_compiled(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
+    if _no_kernels(kernels):
+        def impl(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
+            for k in range(coef.size):
+                coef[k] = np.nan
+    else:
+        def impl(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
+            kernels.prepare[model - N_BUILTIN_TIRE_MODELS](tp, gamma_rad, fz_n, mu_scale, coef)
+    return impl
+
+
+@overload(_registered_evaluate, inline="always", jit_options=TIRE_JIT_OPTIONS)
+def _registered_evaluate_compiled(kernels, model, tp, coef, kappa, tan_alpha, fz_n,  # noqa: ANN001, ANN202
+                                  vx_mps, out):
+    if _no_kernels(kernels):
+        def impl(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN202
+            for k in range(out.size):
+                out[k] = np.nan
+    else:
+        def impl(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN202
+            kernels.evaluate[model - N_BUILTIN_TIRE_MODELS](tp, coef, kappa, tan_alpha, fz_n,
+                                                            vx_mps, out)
+    return impl
+
+
 @nb.njit(**TIRE_JIT_OPTIONS)
 def tire_prepare(
-    tp: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
+    kernels: TireKernels,
+    tp: np.ndarray,
+    gamma_rad: float,
+    fz_n: float,
+    mu_scale: float,
+    coef: np.ndarray,
 ) -> None:
     """Load-dependent coefficients of the tire model selected by ``tp[TP_MODEL]``.
 
     Parameters
     ----------
+    kernels : TireKernels
+        The registered models' kernels (``simserver.tire_models.tire_kernels()``).
     tp : float64[N_TIRE_PARAM]
         Packed tire parameters.
     gamma_rad, fz_n, mu_scale : float
@@ -103,14 +175,18 @@ def tire_prepare(
     coef : float64[N_TIRE_COEF]
         Written (every slot the model uses).
     """
-    if int(tp[TP_MODEL]) == TIRE_MODEL_MF61:
+    model = int(tp[TP_MODEL])
+    if model == TIRE_MODEL_MF61:
         _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
-    else:
+    elif model == TIRE_MODEL_SIMPLE:
         _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+    else:
+        _registered_prepare(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef)
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
 def tire_evaluate(
+    kernels: TireKernels,
     tp: np.ndarray,
     coef: np.ndarray,
     kappa: float,
@@ -123,6 +199,8 @@ def tire_evaluate(
 
     Parameters
     ----------
+    kernels : TireKernels
+        The registered models' kernels.
     tp : float64[N_TIRE_PARAM]
         Packed tire parameters (the same as given to :func:`tire_prepare`).
     coef : float64[N_TIRE_COEF]
@@ -137,16 +215,20 @@ def tire_evaluate(
     out : float64[N_TIRE_OUT]
         Written in place, every ``OUT_*`` slot.
     """
+    model = int(tp[TP_MODEL])
     if not fz_n > 0.0:
         _no_load(out)
-    elif int(tp[TP_MODEL]) == TIRE_MODEL_MF61:
+    elif model == TIRE_MODEL_MF61:
         _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
-    else:
+    elif model == TIRE_MODEL_SIMPLE:
         _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+    else:
+        _registered_evaluate(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
 def tire_forces(
+    kernels: TireKernels,
     tp: np.ndarray,
     kappa: float,
     tan_alpha: float,
@@ -163,6 +245,8 @@ def tire_forces(
 
     Parameters
     ----------
+    kernels : TireKernels
+        The registered models' kernels.
     tp : float64[N_TIRE_PARAM]
         Packed tire parameters.
     kappa, tan_alpha : float
@@ -178,9 +262,13 @@ def tire_forces(
     coef = coef_scratch()
     # the model kernels are inlined here (no call, so the view tp[TP_MODEL_BASE:] costs
     # no reference counting); the same as tire_prepare then tire_evaluate
-    if int(tp[TP_MODEL]) == TIRE_MODEL_MF61:
+    model = int(tp[TP_MODEL])
+    if model == TIRE_MODEL_MF61:
         _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
         _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
-    else:
+    elif model == TIRE_MODEL_SIMPLE:
         _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
         _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+    else:
+        _registered_prepare(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef)
+        _registered_evaluate(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)

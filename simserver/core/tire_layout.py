@@ -10,6 +10,8 @@ are named in each model's module), ``evaluate`` the slip-dependent rest from the
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba as nb
 import numpy as np
 from numba import types
@@ -17,9 +19,11 @@ from numba.core import cgutils
 from numba.extending import intrinsic, overload
 
 # --- model ids (tp[TP_MODEL]) -----------------------------------------------------
+# The ids of the two built-in models, which the dispatchers of core.tire call directly
+# (inlined); every other id is a registered model (simserver.tire_models), called through
+# its kernels. The registry is the one list of models, names and ids.
 TIRE_MODEL_SIMPLE = 0  # brush-type (Fiala) combined-slip model, explicit stiffnesses
 TIRE_MODEL_MF61 = 1  # Magic Formula 6.1 from a .tir property file
-TIRE_MODEL_NAMES = {"simple": TIRE_MODEL_SIMPLE, "mf61": TIRE_MODEL_MF61}
 
 # --- common parameter slots --------------------------------------------------------
 TP_MODEL = 0
@@ -54,7 +58,32 @@ N_TIRE_COEF = max(N_SIMPLE_COEF, N_MF61_COEF)
 # branch per division. The model bodies are inlined (numba IR) into the dispatchers of
 # simserver.core.tire, and inlined code is compiled with the *caller's* options: every
 # function that inlines a model body must use exactly these.
-TIRE_JIT_OPTIONS = {"cache": True, "fastmath": {"contract"}, "error_model": "numpy"}
+# ``_nrt`` is set explicitly because numba hands an unset one down from the caller being
+# compiled, and the integrator's step is compiled without reference counting; the MF 6.1
+# lanes (``nb.carray`` on the stack) need it.
+TIRE_JIT_OPTIONS = {"cache": True, "fastmath": {"contract"}, "error_model": "numpy",
+                    "_nrt": True}
+
+# --- the compiled interface of a tire model --------------------------------------------
+# A model is two functions compiled with these explicit signatures (first-class function
+# pointers: a tuple of them is a cacheable argument of a compiled function):
+#   prepare(tp, gamma_rad, fz_n, mu_scale, coef)
+#   evaluate(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
+# with ``tp`` the packed tire vector (N_TIRE_PARAM floats: the common TP_* slots, then the
+# model's own from TP_MODEL_BASE), ``coef`` N_TIRE_COEF floats, ``out`` N_TIRE_OUT floats
+# (core.tire describes the arguments).
+_VEC = types.float64[::1]
+_F64 = types.float64
+PREPARE_SIGNATURE = types.void(_VEC, _F64, _F64, _F64, _VEC)
+EVALUATE_SIGNATURE = types.void(_VEC, _VEC, _F64, _F64, _F64, _F64, _VEC)
+
+
+class TireKernels(NamedTuple):
+    """The registered models' compiled functions, indexed by model id (``tp[TP_MODEL]``)."""
+
+    prepare: tuple  # of PREPARE_SIGNATURE functions
+    evaluate: tuple  # of EVALUATE_SIGNATURE functions
+
 
 # --- input ranges shared by the models (outputs stay finite for any finite input) ----
 FZ_INPUT_MAX_N = 1.0e9  # fz_n is clamped to this

@@ -2,7 +2,7 @@
 
 Equations: H. B. Pacejka, *Tire and Vehicle Dynamics*, 3rd ed. (2012), section 4.3.2,
 "full set of equations" (4.E1) to (4.E78), in the ISO sign convention of MF-Tyre property
-files (``../shared/docs/model.md`` section 2). Equation numbers are quoted in the comments.
+files (``docs/model.md`` section 2). Equation numbers are quoted in the comments.
 No turn slip: every zeta factor is 1 (zeta0 = 1 as well, the pure camber path).
 
 Where the book and the MF-Tyre implementation differ, this module follows the latter, as
@@ -71,6 +71,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from simserver.core.tire_layout import (
+    EVALUATE_SIGNATURE,
     FZ_INPUT_MAX_N,
     MU_SCALE_MAX,
     N_MF61_COEF,
@@ -84,8 +85,10 @@ from simserver.core.tire_layout import (
     OUT_MY,
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
+    PREPARE_SIGNATURE,
     SLIP_INPUT_MAX,
     TIRE_JIT_OPTIONS,
+    TP_MODEL_BASE,
     coef_scratch,
 )
 
@@ -1142,3 +1145,29 @@ def mf61_param_vector(coeffs: dict[str, float]) -> np.ndarray:
             raise ValueError(f"MF 6.1 coefficient {name} is not finite: {value!r}")
         vec[i] = float(value)
     return vec
+
+
+# ---- the kernels registered for this model (simserver.tire_models): the packed tire vector
+# in full (core.tire_layout.PREPARE_SIGNATURE, EVALUATE_SIGNATURE), the body inlined
+
+
+@nb.njit(PREPARE_SIGNATURE, **_JIT_OPTIONS)
+def mf61_prepare_kernel(
+    tp: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
+) -> None:
+    """:func:`_mf61_prepare` on the model slots of the packed tire vector ``tp``."""
+    _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+
+
+@nb.njit(EVALUATE_SIGNATURE, **_JIT_OPTIONS)
+def mf61_evaluate_kernel(
+    tp: np.ndarray,
+    coef: np.ndarray,
+    kappa: float,
+    tan_alpha: float,
+    fz_n: float,
+    vx_mps: float,
+    out: np.ndarray,
+) -> None:
+    """:func:`_mf61_evaluate` on the model slots of the packed tire vector ``tp``."""
+    _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)

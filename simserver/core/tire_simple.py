@@ -23,7 +23,7 @@ slips, and with them the shape of the curves, do not depend on load: every outpu
 ``Fz`` times a function of slip and friction. The split of :mod:`simserver.core.tire`
 (``simple_prepare`` once per step, ``simple_evaluate`` per stage, scaled by
 ``Fz / Fz_prepared``) is therefore exact at any load. The paper's car
-(model.md section 5) has ``C_alpha = 51 000 N/rad`` and ``C_kappa = 22 500`` per tire at
+(docs/model.md section 5) has ``C_alpha = 51 000 N/rad`` and ``C_kappa = 22 500`` per tire at
 ``Fz_nom = 5005 N``.
 """
 
@@ -33,6 +33,7 @@ import numba as nb
 import numpy as np
 
 from simserver.core.tire_layout import (
+    EVALUATE_SIGNATURE,
     FZ_INPUT_MAX_N,
     MU_SCALE_MAX,
     N_SIMPLE_COEF,
@@ -46,8 +47,10 @@ from simserver.core.tire_layout import (
     OUT_MY,
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
+    PREPARE_SIGNATURE,
     SLIP_INPUT_MAX,
     TIRE_JIT_OPTIONS,
+    TP_MODEL_BASE,
     coef_scratch,
 )
 
@@ -267,3 +270,29 @@ def simple_evaluate(
     Compiled on its own, so it may be called from code compiled with any options.
     """
     _simple_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
+
+
+# ---- the kernels registered for this model (simserver.tire_models): the packed tire vector
+# in full (core.tire_layout.PREPARE_SIGNATURE, EVALUATE_SIGNATURE), the body inlined
+
+
+@nb.njit(PREPARE_SIGNATURE, **TIRE_JIT_OPTIONS)
+def simple_prepare_kernel(
+    tp: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
+) -> None:
+    """:func:`_simple_prepare` on the model slots of the packed tire vector ``tp``."""
+    _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+
+
+@nb.njit(EVALUATE_SIGNATURE, **TIRE_JIT_OPTIONS)
+def simple_evaluate_kernel(
+    tp: np.ndarray,
+    coef: np.ndarray,
+    kappa: float,
+    tan_alpha: float,
+    fz_n: float,
+    vx_mps: float,
+    out: np.ndarray,
+) -> None:
+    """:func:`_simple_evaluate` on the model slots of the packed tire vector ``tp``."""
+    _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)

@@ -1,0 +1,115 @@
+"""What the compiled step takes: a static model apart from the mutable data.
+
+- ``Model``: what is simulated. The vehicle parameters (road included, ``core.params``),
+  the tire parameters per wheel, the step and the registered tire kernels. Changed only
+  between steps, by ``core.road.set_road`` or by loading another vehicle.
+- ``Data``: what the step reads and writes: the state (everything that lives from one
+  step to the next, ``core.layout``), the driver inputs, the outputs of the last step,
+  and the workspace (scratch: nothing in it survives a step).
+
+Both are ``NamedTuple``\\ s of arrays, valid (and cacheable) arguments of compiled
+functions, so every stage of the step takes ``(model, data)`` instead of a list of
+positional arrays. ``simserver.simulation.Simulation`` builds them from a scene.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from simserver.core import layout as L
+from simserver.core.tire_layout import N_TIRE_COEF, N_TIRE_OUT, TireKernels
+
+# ---- per-wheel inputs held over a step (ws.wheel_in[WI_*, i]: a row per quantity)
+WI_STEER_RAD = 0  # road-wheel angle (rad)
+WI_COS_STEER = 1  # its cosine and sine
+WI_SIN_STEER = 2
+WI_DRIVE_NM = 3  # drive torque (N m)
+WI_BRAKE_CAP_NM = 4  # brake capacity (N m)
+WI_BRAKE_NM = 5  # brake + rolling-resistance torque applied, signed (N m)
+WI_HELD = 6  # 1 = wheel held at zero spin by its brake
+N_WI = 7
+
+# ---- per-wheel quantities of the state being evaluated (ws.wheel[i, W_*])
+W_FZ = 0  # normal load (N)
+W_FX = 1  # tire Fx incl. damping, wheel frame (N)
+W_FY = 2  # tire Fy incl. damping, wheel frame (N)
+W_MZ = 3  # aligning moment (N m)
+W_MY = 4  # rolling-resistance moment magnitude (N m)
+W_KAPPA_SLIDE = 5  # the tire's sliding limits at this load
+W_TAN_ALPHA_SLIDE = 6
+W_FX_PEAK = 7  # peak pure-slip forces at this load and friction (N)
+W_FY_PEAK = 8
+W_HUB_U = 9  # hub velocity, wheel frame (m/s)
+W_HUB_V = 10
+W_DAMPING_FX = 11  # auxiliary damping share of Fx, Fy (N)
+W_DAMPING_FY = 12
+W_KAPPA = 13  # slip fed to the tire model
+W_TAN_ALPHA = 14
+W_FZ_DYN = 15  # normal load beyond the static share: what the corner pushes onto the body (N)
+N_W = 16
+
+# ---- whole-body quantities of the state being evaluated (ws.body[B_*])
+B_AX_MPS2 = 0
+B_AY_MPS2 = 1
+B_YAW_ACC_RADPS2 = 2
+B_GRAVITY_X_MPS2 = 3
+B_GRAVITY_Y_MPS2 = 4
+B_FX_SUM_N = 5
+B_FY_SUM_N = 6
+N_BODY = 7
+
+# ---- rows of the Runge-Kutta scratch (ws.rk[RK_*]; the derivative rows use the first
+# N_INTEGRATED columns)
+RK_Y2, RK_Y3, RK_Y4 = 0, 1, 2  # stage states
+RK_K1, RK_K2, RK_K3, RK_K4 = 3, 4, 5, 6  # stage derivatives
+RK_DECAY = 7  # linear decay rates frozen at the step start
+RK_E_HALF = 8  # exp(-decay h / 2)
+N_RK = 9
+
+
+class Model(NamedTuple):
+    """The static model: vehicle and tire parameters, road, step, tire kernels."""
+
+    vp: np.ndarray  # float64[N_VEHICLE_PARAM] (core.params; the road slots included)
+    tp: np.ndarray  # float64[N_WHEELS, N_TIRE_PARAM] (core.tire_layout)
+    dt_s: float
+    tires: TireKernels  # the registered tire models' kernels, by model id
+
+
+class Workspace(NamedTuple):
+    """Scratch of one step (``make_workspace``): nothing here lives from one step to the
+    next. Few arrays with named slots, so that the stages pass little."""
+
+    rk: np.ndarray  # float64[N_RK, N_STATE]
+    wheel_in: np.ndarray  # float64[N_WI, N_WHEELS]
+    wheel: np.ndarray  # float64[N_WHEELS, N_W]
+    body: np.ndarray  # float64[N_BODY]
+    tire_out: np.ndarray  # float64[N_TIRE_OUT]
+    tire_coef: np.ndarray  # prepared tire coefficients, float64[N_WHEELS, N_TIRE_COEF]
+
+
+class Data(NamedTuple):
+    """The mutable data: state, inputs, outputs, workspace."""
+
+    x: np.ndarray  # float64[N_STATE], core.layout
+    inputs: np.ndarray  # float64[N_INPUT], validated and clamped
+    out: np.ndarray  # float64[N_OUT]: forces at the state at the start of the last step
+    ws: Workspace
+
+
+def make_workspace() -> Workspace:
+    """Allocate the scratch ``step`` needs (once, before the loop)."""
+    n_w = L.N_WHEELS
+    return Workspace(rk=np.zeros((N_RK, L.N_STATE)), wheel_in=np.zeros((N_WI, n_w)),
+                     wheel=np.zeros((n_w, N_W)), body=np.zeros(N_BODY),
+                     tire_out=np.zeros(N_TIRE_OUT), tire_coef=np.zeros((n_w, N_TIRE_COEF)))
+
+
+def make_data(x: np.ndarray | None = None) -> Data:
+    """New data: state ``x`` (copied; zeros if None), gear P, zero outputs."""
+    state = np.zeros(L.N_STATE) if x is None else np.array(x, dtype=np.float64)
+    inputs = np.zeros(L.N_INPUT)
+    inputs[L.IN_GEAR] = L.GEAR_P
+    return Data(x=state, inputs=inputs, out=np.zeros(L.N_OUT), ws=make_workspace())

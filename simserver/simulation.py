@@ -1,0 +1,151 @@
+"""One simulation object under every runner: the static model and the mutable data.
+
+``Simulation(scene, dt_s)`` is the one place where a scene becomes something the compiled
+step can run: the parameters are copied, the road is set, the tire and variant ids are
+checked against their registries, the initial state is built and the workspace made.
+The live server, the command-log replay, the headless scenarios, the soak, the
+benchmarks and the tests all use it, so they run the very same arithmetic.
+
+- ``sim.model`` (``core.model.Model``): vehicle and tire parameters, road, step, the
+  registered tire kernels. Static while stepping; ``set_road`` and ``load`` change it.
+- ``sim.data`` (``core.model.Data``): state, inputs, outputs, workspace.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from simserver.core import layout as L
+from simserver.core.damping import DAMPING_MODELS
+from simserver.core.integrator import simulate, step
+from simserver.core.model import Data, Model, make_data
+from simserver.core.params import VP_CG_HEIGHT_M, VP_DAMPING_MODEL, VP_SLIP_MODEL
+from simserver.core.pose import world_pose
+from simserver.core.road import road_axes, set_road
+from simserver.core.slip import SLIP_MODELS
+from simserver.core.tire_layout import TP_RADIUS_M
+from simserver.tire_models import check_tire_vectors, tire_kernels
+
+if TYPE_CHECKING:
+    from simserver.scenario import Scene
+
+
+def initial_state(scene: Scene) -> np.ndarray:
+    """The state at t = 0: given pose and velocities, wheels rolling freely, springs
+    static, no previous wheel loads."""
+    x = np.zeros(L.N_STATE, dtype=np.float64)
+    init = scene.initial
+    x[L.X_M] = init["x_m"]
+    x[L.Y_M] = init["y_m"]
+    x[L.YAW_RAD] = init["yaw_rad"]
+    x[L.U_MPS] = init["u_mps"]
+    x[L.V_MPS] = init["v_mps"]
+    x[L.YAW_RATE_RADPS] = init["yaw_rate_radps"]
+    tp = scene.vehicle.tp
+    for i in range(L.N_WHEELS):
+        x[L.OMEGA0 + i] = init["u_mps"] / tp[i, TP_RADIUS_M]
+        x[L.HUB_U_PREV0 + i] = init["u_mps"]
+    x[L.FZ_PREV] = L.FZ_PREV_NONE
+    return x
+
+
+def check_model(vp: np.ndarray, tp: np.ndarray) -> None:
+    """Raise ``ValueError`` unless every model id in ``vp`` and ``tp`` is registered."""
+    SLIP_MODELS.by_id(vp[VP_SLIP_MODEL])
+    DAMPING_MODELS.by_id(vp[VP_DAMPING_MODEL])
+    check_tire_vectors(tp)
+
+
+class Simulation:
+    """A vehicle on its road: the model, the data and the step (module docstring)."""
+
+    def __init__(self, scene: Scene, dt_s: float) -> None:
+        self.dt_s = float(dt_s)
+        self.data: Data = make_data()
+        self.pose = np.zeros(L.N_POSE)
+        self.load(scene)
+
+    # ---- the model
+    def load(self, scene: Scene) -> None:
+        """Take a scene (vehicle, road, initial state); the state is reset to it and the
+        inputs are kept."""
+        vp = scene.vehicle.vp.copy()
+        tp = np.ascontiguousarray(scene.vehicle.tp, dtype=np.float64).copy()
+        check_model(vp, tp)
+        self.scene = scene
+        self.model = Model(vp=vp, tp=tp, dt_s=self.dt_s, tires=tire_kernels())
+        self.set_road(**scene.road)
+        self.reset(None)
+
+    def set_road(self, grade_pct: float, cross_slope_pct: float, friction_scale: float) -> None:
+        """Change the road plane (takes effect at the next step)."""
+        set_road(self.model.vp, grade_pct, cross_slope_pct, friction_scale)
+        self.road = {"grade_pct": grade_pct, "cross_slope_pct": cross_slope_pct,
+                     "friction_scale": friction_scale}
+        self.axes = road_axes(grade_pct, cross_slope_pct)
+
+    @property
+    def vp(self) -> np.ndarray:
+        """Vehicle parameters (``core.params``), road included."""
+        return self.model.vp
+
+    @property
+    def tp(self) -> np.ndarray:
+        """Tire parameters per wheel (``core.tire_layout``)."""
+        return self.model.tp
+
+    # ---- the data
+    @property
+    def x(self) -> np.ndarray:
+        """The state (``core.layout``), advanced in place by ``step``."""
+        return self.data.x
+
+    @property
+    def inputs(self) -> np.ndarray:
+        """The driver inputs applied by the next ``step`` (``core.layout.IN_*``)."""
+        return self.data.inputs
+
+    @property
+    def out(self) -> np.ndarray:
+        """Forces and accelerations at the start of the last step (``core.layout.O_*``)."""
+        return self.data.out
+
+    def reset(self, pose: dict[str, float] | None) -> None:
+        """Back to the scene's initial state, or at rest at ``pose`` (x_m, y_m, yaw_rad)."""
+        scene = self.scene
+        if pose is not None:
+            at_rest = {**scene.initial, **pose, "u_mps": 0.0, "v_mps": 0.0,
+                       "yaw_rate_radps": 0.0}
+            scene = dataclasses.replace(scene, initial=at_rest)
+        self.data.x[:] = initial_state(scene)
+
+    # ---- stepping
+    def step(self) -> None:
+        """One fixed step with the current inputs."""
+        step(self.model, self.data)
+
+    def run(self, inputs_per_step: np.ndarray, states: np.ndarray, outputs: np.ndarray,
+            record_every: int = 1) -> None:
+        """``len(inputs_per_step)`` steps in one compiled loop (``core.integrator.simulate``):
+        row ``k`` of ``states``/``outputs`` is the start state of step ``k * record_every``
+        and the forces at it."""
+        simulate(self.model, self.data, np.ascontiguousarray(inputs_per_step), states, outputs,
+                 record_every)
+
+    def update_pose(self) -> np.ndarray:
+        """The world pose of the current state into ``self.pose`` (``core.layout.POSE_*``)."""
+        world_pose(self.data.x, self.axes, self.model.vp[VP_CG_HEIGHT_M], self.pose)
+        return self.pose
+
+    def warm_up(self) -> None:
+        """Compile (or load from cache) every kernel the server uses, before the clock starts;
+        the state is left as it was."""
+        saved = Data(x=self.data.x.copy(), inputs=self.data.inputs.copy(),
+                     out=self.data.out.copy(), ws=self.data.ws)
+        step(self.model, saved)
+        world_pose(self.data.x, self.axes, self.model.vp[VP_CG_HEIGHT_M], self.pose)
+        simulate(self.model, saved, np.zeros((1, L.N_INPUT)), np.zeros((1, L.N_STATE)),
+                 np.zeros((1, L.N_OUT)), 1)

@@ -1,0 +1,217 @@
+"""The model registries: a new tire model is one module plus one registry entry, and an
+unknown tire, slip or damping model is an error, never a fallback.
+
+The toy model below is this file's own "module": a linear tire saturating at the friction
+limit, registered through ``simserver.tire_models.register_tire_model`` and run in a
+scenario through the ordinary config loader and ``run_scenario``; nothing else is changed.
+(Registering lasts for the process: the compiled step is specialised once more for the
+longer kernel tuple and cached like any other specialisation.)
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+import pytest
+
+from simserver.adapters.config import ConfigError, load_tire
+from simserver.core import layout as L
+from simserver.core.damping import DAMPING_MODEL_NAMES, DAMPING_MODELS
+from simserver.core.integrator import step
+from simserver.core.params import VP_DAMPING_MODEL, VP_SLIP_MODEL
+from simserver.core.slip import SLIP_MODEL_NAMES, SLIP_MODELS
+from simserver.core.tire_layout import (
+    EVALUATE_SIGNATURE,
+    OUT_C_ALPHA,
+    OUT_C_KAPPA,
+    OUT_FX,
+    OUT_FX_PEAK,
+    OUT_FY,
+    OUT_FY_PEAK,
+    OUT_KAPPA_SLIDE,
+    OUT_MY,
+    OUT_MZ,
+    OUT_TAN_ALPHA_SLIDE,
+    PREPARE_SIGNATURE,
+    TP_MODEL,
+    TP_MODEL_BASE,
+)
+from simserver.core.variants import UnknownVariantError
+from simserver.scenario import load_scenario, load_scene, run_scenario
+from simserver.simulation import Simulation
+from simserver.tire_models import (
+    LoadedTire,
+    UnknownTireModelError,
+    register_tire_model,
+    tire_model,
+    tire_models,
+)
+from tests.conftest import CONFIGS
+
+# ---------------------------------------------------------------- the toy tire "module"
+LIN_C_KAPPA, LIN_C_ALPHA, LIN_FZ_NOM, LIN_MU = 0, 1, 2, 3  # its slots from TP_MODEL_BASE
+LIN_FZ = 0  # coefficient slot: the prepared load
+
+
+@nb.njit(PREPARE_SIGNATURE, cache=True)
+def linear_prepare(tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN201
+    coef[LIN_FZ] = max(fz_n, 1.0)
+
+
+@nb.njit(EVALUATE_SIGNATURE, cache=True)
+def linear_evaluate(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN201
+    scale = fz_n / tp[TP_MODEL_BASE + LIN_FZ_NOM]
+    c_kappa = tp[TP_MODEL_BASE + LIN_C_KAPPA] * scale
+    c_alpha = tp[TP_MODEL_BASE + LIN_C_ALPHA] * scale
+    limit = tp[TP_MODEL_BASE + LIN_MU] * fz_n
+    out[OUT_FX] = min(max(c_kappa * kappa, -limit), limit)
+    out[OUT_FY] = min(max(-c_alpha * tan_alpha, -limit), limit)
+    out[OUT_MZ] = 0.0
+    out[OUT_MY] = 0.0
+    out[OUT_C_KAPPA] = c_kappa
+    out[OUT_C_ALPHA] = c_alpha
+    out[OUT_KAPPA_SLIDE] = limit / c_kappa
+    out[OUT_TAN_ALPHA_SLIDE] = limit / c_alpha
+    out[OUT_FX_PEAK] = limit
+    out[OUT_FY_PEAK] = limit
+
+
+LINEAR_KEYS = ("longitudinal_stiffness_n", "cornering_stiffness_n_per_rad", "nominal_load_n",
+               "friction_coefficient")
+
+
+def load_linear(path, data):  # noqa: ANN001, ANN201
+    return LoadedTire(
+        model_params=np.array([float(data[k]) for k in LINEAR_KEYS]),
+        rolling_radius_m=float(data["rolling_radius_m"]),
+        relax_lat_m=float(data["relaxation_length_lat_m"]),
+        relax_long_m=float(data["relaxation_length_long_m"]))
+
+
+@pytest.fixture(scope="module")
+def linear_model():
+    if "toy_linear" in {m.name for m in tire_models()}:
+        return tire_model("toy_linear")
+    return register_tire_model("toy_linear", "linear tire, saturating at mu Fz (a test)",
+                               load_linear, linear_prepare, linear_evaluate,
+                               lambda p: p[LIN_FZ_NOM])
+
+
+TOY_TIRE = """\
+model: toy_linear
+longitudinal_stiffness_n: 22500
+cornering_stiffness_n_per_rad: 51000
+nominal_load_n: 5005
+friction_coefficient: 0.9
+rolling_radius_m: 0.33
+relaxation_length_lat_m: 0.91
+relaxation_length_long_m: 0.091
+"""
+
+SEDAN = CONFIGS / "vehicles" / "paper_sedan"
+TOY_VEHICLE = f"""\
+name: toy_sedan
+chassis: {SEDAN / "chassis.yaml"}
+suspension: {SEDAN / "suspension.yaml"}
+steering: {SEDAN / "steering.yaml"}
+brakes: {SEDAN / "brakes.yaml"}
+powertrain: {SEDAN / "powertrain.yaml"}
+tires: {{front: toy_tire.yaml, rear: toy_tire.yaml}}
+"""
+
+TOY_SCENARIO = """\
+name: toy_linear_stop
+vehicle: toy_vehicle.yaml
+initial: {u_mps: 15.0}
+duration_s: 6.0
+inputs:
+  - {t: 0.0, gear: D}
+  - {t: 0.5, steer: 0.0}
+  - {t: 1.5, steer: 0.1}
+  - {t: 2.0, brake: 0.0}
+  - {t: 2.3, brake: 0.6}
+"""
+
+
+def test_a_registered_toy_tire_runs_a_scenario(tmp_path, linear_model):
+    (tmp_path / "toy_tire.yaml").write_text(TOY_TIRE)
+    (tmp_path / "toy_vehicle.yaml").write_text(TOY_VEHICLE)
+    (tmp_path / "toy.yaml").write_text(TOY_SCENARIO)
+    tp, name = load_tire(tmp_path / "toy_tire.yaml")
+    assert name == "toy_linear" and tp[TP_MODEL] == linear_model.id >= 2
+
+    r = run_scenario(load_scenario(tmp_path / "toy.yaml"))
+    assert np.isfinite(r.states).all() and np.isfinite(r.outputs).all()
+    assert abs(r.final_state[L.U_MPS]) < 0.05  # braked to rest
+    assert r.states[:, L.YAW_RATE_RADPS].max() > 0.05  # it turned left on the steer
+    # the forces are the toy's: linear in the slip fed to the tire, clipped at mu Fz
+    fz = r.outputs[:, L.O_FZ]
+    tire_fx = r.outputs[:, L.O_FX] - r.outputs[:, L.O_DAMPING_FX]
+    tire_fy = r.outputs[:, L.O_FY] - r.outputs[:, L.O_DAMPING_FY]
+    limit = 0.9 * fz
+    expect_fx = np.clip(22500.0 * fz / 5005.0 * r.outputs[:, L.O_KAPPA], -limit, limit)
+    expect_fy = np.clip(-51000.0 * fz / 5005.0 * r.outputs[:, L.O_TAN_ALPHA], -limit, limit)
+    np.testing.assert_allclose(tire_fx, expect_fx, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(tire_fy, expect_fy, rtol=1e-12, atol=1e-9)
+    assert np.abs(tire_fx).max() > 1000.0 and np.abs(tire_fy).max() > 100.0
+
+
+def test_an_unknown_tire_model_name_is_a_config_error(tmp_path):
+    path = tmp_path / "tire.yaml"
+    path.write_text(TOY_TIRE.replace("toy_linear", "no_such_model"))
+    with pytest.raises(ConfigError, match=r"tire\.yaml: key 'model': expected one of"):
+        load_tire(path)
+
+
+def test_an_unknown_tire_model_id_is_an_error():
+    scene = load_scene(CONFIGS / "scenes" / "flat_paper_sedan.yaml")
+    scene.vehicle.tp[2, TP_MODEL] = 99.0
+    with pytest.raises(UnknownTireModelError,
+                       match=r"unknown tire model id 99 \(registered: 0 simple, 1 mf61"):
+        Simulation(scene, 0.001)
+    with pytest.raises(UnknownTireModelError, match="unknown tire model 'nope'"):
+        tire_model("nope")
+
+
+@pytest.mark.parametrize(("slot", "error"), [
+    (VP_SLIP_MODEL, r"unknown slip model id 7 \(known: 0 lagged_passive"),
+    (VP_DAMPING_MODEL, r"unknown damping model id 7 \(known: 0 off"),
+])
+def test_an_unknown_variant_id_is_an_error(slot, error):
+    scene = load_scene(CONFIGS / "scenes" / "flat_paper_sedan.yaml")
+    scene.vehicle.vp[slot] = 7.0
+    with pytest.raises(UnknownVariantError, match=error):
+        Simulation(scene, 0.001)
+
+
+@pytest.mark.parametrize(("slot", "error"), [(VP_SLIP_MODEL, "unknown slip model id"),
+                                             (VP_DAMPING_MODEL, "unknown damping model id")])
+def test_the_compiled_step_rejects_an_unknown_variant_too(slot, error):
+    """Past the registry check (the parameter vector changed under a running simulation),
+    the compiled step raises instead of running some other variant."""
+    sim = Simulation(load_scene(CONFIGS / "scenes" / "flat_paper_sedan.yaml"), 0.001)
+    sim.vp[slot] = 7.0
+    with pytest.raises(ValueError, match=error):
+        step(sim.model, sim.data)
+
+
+def test_unknown_variant_names_are_errors():
+    assert SLIP_MODELS.by_name("kinematic").id == SLIP_MODEL_NAMES["kinematic"]
+    assert DAMPING_MODELS.by_name("patch").id == DAMPING_MODEL_NAMES["patch"]
+    with pytest.raises(UnknownVariantError, match="unknown slip model 'lagged'"):
+        SLIP_MODELS.by_name("lagged")
+    with pytest.raises(UnknownVariantError, match="unknown damping model 'on'"):
+        DAMPING_MODELS.by_name("on")
+
+
+def test_registry_rejects_kernels_without_the_registered_signature():
+    @nb.njit
+    def untyped(tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
+        coef[0] = fz_n
+
+    with pytest.raises(TypeError, match="prepare must be compiled with exactly the signature"):
+        register_tire_model("untyped", "", load_linear, untyped, linear_evaluate,
+                            lambda p: 1.0)
+    with pytest.raises(ValueError, match="already registered"):
+        register_tire_model("simple", "", load_linear, linear_prepare, linear_evaluate,
+                            lambda p: 1.0)
