@@ -129,6 +129,16 @@ def register_tire_model(name: str, description: str, load: Callable[[Path, dict]
     return entry
 
 
+def unregister_tire_model(name: str) -> None:
+    """Remove the most recently registered model (ids stay dense: only the last one can go,
+    and never a built-in one). For plugins' tests, so that a toy model does not outlive them
+    (the registry is what the config loader, the CLI and the docs read)."""
+    if not _REGISTRY or _REGISTRY[-1].name != name or len(_REGISTRY) <= N_BUILTIN_TIRE_MODELS:
+        raise ValueError(f"tire model {name!r} is not the last registered non-built-in model")
+    _REGISTRY.pop()
+    del TIRE_MODEL_NAMES[name]
+
+
 def tire_model(key: str | float) -> TireModel:
     """The entry of a model, by name or by id (``tp[TP_MODEL]``)."""
     if isinstance(key, str):

@@ -45,6 +45,7 @@ from simserver.tire_models import (
     register_tire_model,
     tire_model,
     tire_models,
+    unregister_tire_model,
 )
 from tests.conftest import CONFIGS
 
@@ -90,11 +91,14 @@ def load_linear(path, data):  # noqa: ANN001, ANN201
 
 @pytest.fixture(scope="module")
 def linear_model():
-    if "toy_linear" in {m.name for m in tire_models()}:
-        return tire_model("toy_linear")
-    return register_tire_model("toy_linear", "linear tire, saturating at mu Fz (a test)",
-                               load_linear, linear_prepare, linear_evaluate,
-                               lambda p: p[LIN_FZ_NOM])
+    """The toy model, registered for this module's tests and removed after them (the
+    registry is global: the docs and the config loader of later tests read it)."""
+    entry = register_tire_model("toy_linear", "linear tire, saturating at mu Fz (a test)",
+                                load_linear, linear_prepare, linear_evaluate,
+                                lambda p: p[LIN_FZ_NOM])
+    yield entry
+    unregister_tire_model("toy_linear")
+    assert "toy_linear" not in {m.name for m in tire_models()}
 
 
 TOY_TIRE = """\
