@@ -9,7 +9,7 @@ prints, over every tick: start lateness p50 / p99 / max, the number and share of
 more than 1 ms late, overruns and skipped ticks, the achieved period, the drift of the
 deadline sequence from wall time, and the process CPU use. This is the floor under the
 server's own figures (issue 4 targets: lateness p99 under 100 us, under 1 % of ticks more
-than 1 ms late; this VM alone stalls 0.3-0.7 % of periods, see the platform notes).
+than 1 ms late; this VM alone stalls 0.3-0.7 % of periods, as this benchmark shows).
 """
 
 from __future__ import annotations

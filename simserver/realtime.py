@@ -8,7 +8,8 @@ Tick ``n`` is due at the absolute deadline ``t0 + n * period`` (integer nanoseco
 never at "previous tick + period", so rounding and lateness never accumulate: over an
 hour the deadline sequence is exactly ``3.6e6`` periods long. :meth:`Pacer.wait` sleeps
 until ``spin_ns`` (default 200 us) before the deadline, then spins on the clock: a plain
-sleep is about 100 us late on this VM, sleep-then-spin about 0.2 us (platform notes).
+sleep is about 100 us late on this VM, sleep-then-spin about 0.2 us
+(``benchmarks/bench_clock.py`` measures it).
 
 Overrun policy
 --------------

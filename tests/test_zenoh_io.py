@@ -111,7 +111,7 @@ def test_default_config_is_loopback_only():
     assert _json(cfg, "transport/unicast/lowlatency") is True
     assert _json(cfg, "transport/unicast/qos/enabled") is False
     assert config_warnings(cfg) == []
-    # zenoh's own defaults are what the platform notes warn about.
+    # zenoh's own defaults are what config_warnings warns about.
     assert len(config_warnings(zenoh.Config())) == 3
     client_cfg = make_zenoh_config(connect="tcp/127.0.0.1:7447", mode="client")
     assert _json(client_cfg, "listen/endpoints") == []

@@ -6,7 +6,7 @@
   (:func:`simserver.protocol.vehicle_keys`), with the few entities the server and the
   clients declare. Every receiver uses a channel handler polled with ``try_recv()``:
   nothing here blocks a real-time loop, and no Python callback keeps a process alive
-  (platform notes: a callback subscriber hangs the exit until the session is closed).
+  (a process with a callback subscriber does not exit until its session is closed).
 
 Facts this relies on (measured on the development machine, see ``docs/protocol.md``
 sections 1 and 5): zenoh's defaults join UDP multicast 224.0.0.224:7446 and listen on every
@@ -171,7 +171,7 @@ def make_zenoh_config(
 
 
 def config_warnings(cfg: zenoh.Config) -> list[str]:
-    """Settings of a (user-given) config that the platform notes advise against.
+    """Settings of a (user-given) config that ``docs/protocol.md`` advises against.
 
     Returns
     -------
