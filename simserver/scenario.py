@@ -41,6 +41,7 @@ from simserver.adapters.config import (
     number,
     read_yaml,
 )
+from simserver.adapters.validate import referenced_file
 from simserver.core import layout as L
 from simserver.core.chassis import static_wheel_load
 from simserver.core.integrator import make_workspace, simulate
@@ -123,9 +124,7 @@ def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = No
     ``vehicle_path`` overrides the file's ``vehicle`` key (the server's ``load`` control).
     """
     if vehicle_path is None:
-        if not isinstance(data.get("vehicle"), str):
-            raise ConfigError(f"{path}: key 'vehicle': expected a file path")
-        vehicle_path = (path.parent / data["vehicle"]).resolve()
+        vehicle_path = referenced_file(path, "vehicle", data.get("vehicle"))
     model_options = data.get("model") or {}
     vehicle = load_vehicle(vehicle_path, model_options, options_source=str(path))
     road_raw = data.get("road") or {}

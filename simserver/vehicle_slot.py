@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -25,6 +26,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from simserver import protocol as proto
+from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
 from simserver.core import layout as L
 from simserver.core.params import VP_CG_HEIGHT_M
 from simserver.core.pose import world_pose
@@ -348,11 +350,21 @@ class VehicleSlot:
     def prepare_load(self, args: dict[str, Any]) -> tuple[Scene, Path, Path | None]:
         """The scene a ``load`` asks for, read and validated: (scene, its path, vehicle path)."""
         base = self.cfg.path.parent
-        scene_path = self._resolve_config_path(args["scene"], base) if "scene" in args \
-            else self.scene_path
-        vehicle_path = self._resolve_config_path(args["vehicle"], base) \
+        scene_path = self._resolve_config_path(args["scene"], base, "scene") \
+            if "scene" in args else self.scene_path
+        vehicle_path = self._resolve_config_path(args["vehicle"], base, "vehicle") \
             if "vehicle" in args else None
-        return load_scene(scene_path, vehicle_path=vehicle_path), scene_path, vehicle_path
+        # every file the scene refers to, nested or not, must be in the config folders too;
+        # errors show paths relative to them only (docs/security.md)
+        with confined_to(self.cfg.config_dirs):
+            try:
+                scene = load_scene(scene_path, vehicle_path=vehicle_path)
+            except ConfigError as exc:  # named by the argument whose files are at fault
+                message = str(exc)
+                arg = "scene" if "vehicle" not in args or (
+                    "scene" in args and message.startswith(f"{scene_path}:")) else "vehicle"
+                raise proto.ProtocolError(arg, self._redacted(message)) from None
+        return scene, scene_path, vehicle_path
 
     def apply_load(self, scene: Scene, scene_path: Path,
                    vehicle_path: Path | None) -> dict[str, Any]:
@@ -364,35 +376,44 @@ class VehicleSlot:
         self._log({"step": self.steps_total, "load": {
             "scene": str(scene_path), "vehicle": None if vehicle_path is None
             else str(vehicle_path)}})
-        return {"vehicle": str(self.sim.scene.vehicle.path), "scene": str(scene_path)}
+        return {"vehicle": self._shown(self.sim.scene.vehicle.path),
+                "scene": self._shown(scene_path)}
 
     def ctl_get_config(self, args: dict[str, Any]) -> dict[str, Any]:
         """``get_config``: the active configuration."""
         cfg, p, keys = self.cfg, self.sim, self.keys
         return {"protocol_version": proto.PROTOCOL_VERSION, "config": {
-            "server": {"path": str(cfg.path), "period_s": cfg.period_s,
+            "server": {"path": self._shown(cfg.path), "period_s": cfg.period_s,
                        "state_every": cfg.state_every, "diag_hz": cfg.diag_hz,
                        "watchdog_s": cfg.watchdog_s, "watchdog_brake": cfg.watchdog_brake},
-            "vehicle": {"name": p.scene.vehicle.name, "path": str(p.scene.vehicle.path),
+            "vehicle": {"name": p.scene.vehicle.name, "path": self._shown(p.scene.vehicle.path),
                         "tire_models": list(p.scene.vehicle.tire_models)},
-            "scene": {"path": str(self.scene_path), "initial": p.scene.initial,
+            "scene": {"path": self._shown(self.scene_path), "initial": p.scene.initial,
                       "model": p.scene.model_options},
             "road": dict(p.road),
             "keys": {"cmd": keys.cmd, "state": keys.state, "diag": keys.diag,
                      "alive": keys.alive},
         }}
 
-    def _resolve_config_path(self, value: str, base: Path) -> Path:
-        path = (base / value).resolve() if not Path(value).is_absolute() else Path(value)
-        path = path.resolve()
+    def _resolve_config_path(self, value: str, base: Path, arg: str) -> Path:
+        path = (base / value).resolve()
         dirs = self.cfg.config_dirs
         if not any(path.is_relative_to(d) for d in dirs):
-            raise proto.ProtocolError(
-                "path", f"{path} is outside the server's config directories "
-                        f"({', '.join(str(d) for d in dirs)})")
+            raise proto.ProtocolError(arg, f"{short_repr(value)} is outside the server's config "
+                                           "directories")
         if not path.is_file():
-            raise proto.ProtocolError("path", f"{path}: no such file")
+            raise proto.ProtocolError(arg, f"{short_repr(value)}: no such file")
         return path
+
+    def _shown(self, path: Path) -> str:
+        """A path as a client may see it: relative to the config folder holding it."""
+        return display_path(path, self.cfg.config_dirs)
+
+    def _redacted(self, message: str) -> str:
+        """``message`` with the config folders' absolute paths made relative."""
+        for root in sorted(self.cfg.config_dirs, key=lambda d: -len(str(d))):
+            message = message.replace(f"{root}{os.sep}", "")
+        return message
 
     def _log(self, entry: dict[str, Any]) -> None:
         if self.command_log is not None:

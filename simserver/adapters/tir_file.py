@@ -24,6 +24,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from simserver.adapters.validate import ConfigError, read_config_bytes
 from simserver.core.tire_mf61 import MF61_PARAM_NAMES
 
 TirValue = float | str
@@ -152,9 +153,9 @@ def load_tir(path: str | Path) -> TirFile:
     """
     path = Path(path)
     try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise TirError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+        raw = read_config_bytes(path)  # a regular file of bounded size (docs/security.md)
+    except ConfigError as exc:
+        raise TirError(str(exc)) from None
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:
