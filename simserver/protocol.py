@@ -364,7 +364,9 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
     FieldSpec("flags", "<u2", 1, "-", None, None,
               "bit 0 watchdog engaged (no valid command: throttle off, brakes hold); "
               "bit 1 paused; bit 2 a brake holds a wheel at zero spin; bit 3 tick run late "
-              "as part of a catch-up; bits 4-15 are 0"),
+              "as part of a catch-up; bit 4 fault: the state went non-finite, the car was put "
+              "at rest at the scene's start pose and paused until a reset or load; bits "
+              "5-15 are 0"),
     FieldSpec("last_cmd_seq", "<u4", 1, "-", None, None,
               "seq of the last command applied (0 before the first)"),
     FieldSpec("tick", "<u8", 1, "-", None, None,
@@ -421,7 +423,9 @@ _WINDOW = "over the last window_ticks ticks"
 DIAGNOSTICS_FIELDS: Final[tuple[FieldSpec, ...]] = (
     FieldSpec("version", "<u2", 1, "-", PROTOCOL_VERSION, PROTOCOL_VERSION,
               "protocol version"),
-    FieldSpec("reserved", "<u2", 1, "-", 0, 0, "zero"),
+    FieldSpec("nonfinite_stops", "<u2", 1, "-", None, None,
+              "times the state went non-finite and the car was stopped (flags bit 4; "
+              "saturates at 65535)"),
     FieldSpec("window_ticks", "<u4", 1, "-", None, None,
               "ticks in the statistics window (the p50/p99/max fields)"),
     FieldSpec("tick", "<u8", 1, "-", None, None, "physics tick at publication"),
@@ -513,6 +517,7 @@ class StateFlag(enum.IntFlag):
     PAUSED = 0x02
     BRAKE_HOLD = 0x04
     CATCHUP = 0x08
+    FAULT = 0x10
 
 
 @dataclass(frozen=True, slots=True)

@@ -38,7 +38,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("simserver.server")
 
 COUNTER_NAMES: tuple[str, ...] = ("cmd_received", "cmd_rejected", "cmd_clamped",
-                                  "cmd_stale", "state_published", "watchdog_trips")
+                                  "cmd_stale", "state_published", "watchdog_trips",
+                                  "nonfinite_stops")
 """The slot's cumulative counters, in the order of the ``stopped`` line."""
 
 
@@ -185,8 +186,8 @@ class VehicleSlot:
         Where applied inputs and physics-changing controls are written.
 
     The loop calls, every tick: :meth:`take_commands`, :meth:`apply_inputs`,
-    :meth:`advance`, :meth:`state_payload` (at the state rate), the ``ctl_*`` handlers
-    through its control table, and :meth:`check_finite`.
+    :meth:`advance`, :meth:`check_finite`, :meth:`state_payload` (at the state rate)
+    and the ``ctl_*`` handlers through its control table.
     """
 
     def __init__(self, cfg: ServerConfig, sim: SimulationAPI,
@@ -204,6 +205,8 @@ class VehicleSlot:
         self.tick = 0  # ticks since start, reset or load (the protocol's tick)
         self.steps_total = 0  # physics steps since start (the command log's clock)
         self.record = proto.new_state_record()
+        self.fault = False  # the state went non-finite in this episode (since start,
+        # reset or load): flags bit 4, logged once
 
     # ------------------------------------------------------------------ each tick
     def take_commands(self, payloads: list[bytes], now_ns: int) -> None:
@@ -253,6 +256,8 @@ class VehicleSlot:
             flags |= proto.StateFlag.BRAKE_HOLD
         if catching_up:
             flags |= proto.StateFlag.CATCHUP
+        if self.fault:
+            flags |= proto.StateFlag.FAULT
         arbiter = self.arbiter
         rec["flags"] = flags
         rec["tick"] = self.tick
@@ -287,11 +292,32 @@ class VehicleSlot:
         rec["gear"] = inputs[L.IN_GEAR]
         return rec.tobytes()
 
-    def check_finite(self) -> None:
-        """Never expected: a non-finite state is logged loudly and the car reset."""
-        if not np.isfinite(self.sim.x).all():
-            log.error("non-finite state at tick %d: resetting", self.tick)
-            self.sim.reset(None)
+    def check_finite(self) -> bool:
+        """Stop the car in a defined safe state if its state is no longer finite.
+
+        Called before the state is published, so a non-finite value never reaches a
+        client. Safe state: at rest at the scene's start pose (``reset``, logged so a
+        replay does the same), forces zeroed, paused until a client resets, loads or
+        resumes; ``flags`` bit 4 until the next reset or load; counted in
+        ``nonfinite_stops``; logged once per episode (``docs/reliability.md``).
+        Returns True when the state was finite.
+        """
+        p = self.sim
+        if np.isfinite(p.x).all() and np.isfinite(p.out).all():
+            return True
+        if not self.fault:
+            log.error("non-finite state at tick %d (vehicle %s): car stopped at rest at "
+                      "the scene's start and paused until reset, load or resume",
+                      self.tick, p.scene.vehicle.name)
+        self.fault = True
+        self.counters["nonfinite_stops"] = min(self.counters["nonfinite_stops"] + 1, 0xFFFF)
+        pose = {k: p.scene.initial[k] for k in ("x_m", "y_m", "yaw_rad")}
+        p.reset(pose)
+        p.out[:] = 0.0
+        self.paused = True
+        self.steps_to_run = 0
+        self._log({"step": self.steps_total, "reset": pose})
+        return False
 
     def warm_up(self) -> None:
         """Compile every kernel the tick uses (simulation and state record) before the clock."""
@@ -308,6 +334,7 @@ class VehicleSlot:
         p = self.sim
         p.reset(pose)
         self.tick = 0
+        self.fault = False
         self._log({"step": self.steps_total, "reset": pose})
         return {"tick": 0, "pose": {"x_m": p.x[L.X_M], "y_m": p.x[L.Y_M],
                                     "yaw_rad": p.x[L.YAW_RAD]}}
@@ -373,6 +400,7 @@ class VehicleSlot:
         self.sim.warm_up()
         self.scene_path = scene_path
         self.tick = 0
+        self.fault = False
         self._log({"step": self.steps_total, "load": {
             "scene": str(scene_path), "vehicle": None if vehicle_path is None
             else str(vehicle_path)}})

@@ -658,7 +658,8 @@ def test_run_ticks_until_stopped_and_reports_the_stopped_line_fields(rig):
     assert list(final) == ["ticks", "steps_total", "uptime_s", "lateness_p50_us",
                            "lateness_p99_us", "lateness_max_us", "overruns",
                            "skipped_ticks", "late_ticks", "cmd_received", "cmd_rejected",
-                           "cmd_clamped", "cmd_stale", "state_published", "watchdog_trips"]
+                           "cmd_clamped", "cmd_stale", "state_published", "watchdog_trips",
+                          "nonfinite_stops"]
 
 
 def test_the_logic_needs_no_wall_clock(rig, monkeypatch):
@@ -680,3 +681,52 @@ def test_slots_keep_their_own_keys(flat_scene):
     slot = VehicleSlot(cfg, new_simulation(flat_scene, cfg.period_s))
     assert slot.keys.base == "lab1/simserver/cockpit-a"
 
+
+
+# ====================================================================== non-finite states
+MF_SCENE = REPO_CONFIGS / "scenes" / "flat_mf_hatchback.yaml"
+
+
+def test_a_non_finite_state_is_never_published_and_stops_the_car(caplog, tmp_path):
+    """Issue 14 item 3 live: a tire whose friction scale overflows (LMUX = 1e300, now
+    refused by the .tir check, so put in past it) made 3 001 of 3 002 published states NaN
+    and logged 1 000 lines a second. Now: checked before publishing, the car stopped at
+    rest at the scene's start and paused, flags bit 4 and ``nonfinite_stops``, one log line
+    per episode; a reset starts a new episode."""
+    from simserver.core.tire_layout import TP_MODEL_BASE
+    from simserver.core.tire_mf61 import P_LMUX
+
+    scene = load_scene(MF_SCENE)
+    log_path = tmp_path / "cmd.jsonl"
+    rig = Rig(scene, command_log=CommandLog(log_path, {"scene": str(MF_SCENE),
+                                                       "dt_s": 0.001, "step": 0}))
+    rig.slot.sim.tp[:, TP_MODEL_BASE + P_LMUX] = 1e300
+    caplog.set_level(logging.ERROR, logger="simserver.server")
+    for _ in range(300):
+        rig.send(throttle=1.0, gear=proto.Gear.D)
+        rig.run()
+    states = rig.out.states
+    assert len(states) == 300
+    for state in states:
+        for name in state.dtype.names:
+            assert np.isfinite(state[name]).all(), (int(state["tick"]), name)
+    faulted = [s for s in states if int(s["flags"]) & proto.StateFlag.FAULT]
+    assert faulted, "the overflowing tire never went non-finite: the test tests nothing"
+    first = faulted[0]
+    assert int(first["flags"]) & PAUSED and first["u_mps"] == 0.0 and first["x_m"] == 0.0
+    assert rig.slot.paused and rig.counters["nonfinite_stops"] == 1
+    assert all(int(s["flags"]) & proto.StateFlag.FAULT for s in states[len(states) -
+                                                                       len(faulted):])
+    errors = [r for r in caplog.records if "non-finite state" in r.getMessage()]
+    assert len(errors) == 1
+    # resumed into the same fault: stopped again, counted, not logged again
+    rig.control("resume")
+    rig.run(rig.loop.diag_every)  # up to the next diagnostics
+    assert rig.counters["nonfinite_stops"] == 2 and rig.slot.paused
+    assert len([r for r in caplog.records if "non-finite state" in r.getMessage()]) == 1
+    assert rig.loop.slots[0][1].publisher.diags[-1]["nonfinite_stops"] == 2
+    # a reset is a new episode: flag cleared
+    rig.slot.sim.tp[:, TP_MODEL_BASE + P_LMUX] = 1.0
+    rig.control("reset")
+    rig.control("resume")
+    assert not int(rig.run(5)["flags"]) & proto.StateFlag.FAULT
