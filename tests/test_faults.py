@@ -584,8 +584,9 @@ def test_a_torn_last_line_is_ignored_but_a_broken_complete_line_is_an_error(tmp_
     from simserver.adapters.config import ConfigError
     from simserver.server import read_command_log
 
-    header = json.dumps({"simserver_command_log": 1, "scene": str(CONFIGS / "scenes" / "flat_paper_sedan.yaml"),
-                         "dt_s": 0.001, "step": 0})
+    scene = CONFIGS / "scenes" / "flat_paper_sedan.yaml"
+    header = json.dumps({"simserver_command_log": 1, "scene": str(scene), "dt_s": 0.001,
+                         "step": 0})
     log = tmp_path / "log.jsonl"
     log.write_text(header + '\n{"step": 0, "inputs": [0, 0, 0, 0, 3]}\n{"step": 7, "inp')
     assert [e.get("step") for e in read_command_log(log)] == [0, 0]
