@@ -137,7 +137,8 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
     data = read_yaml(path)
     check_keys(path, data, tuple(SERVER_KEYS), required=("scene",))
     for key in ("scene", "zenoh_config", "command_log"):
-        if data.get(key) is not None and not (isinstance(data[key], str) and data[key]):
+        if (key == "scene" or data.get(key) is not None) and \
+                not (isinstance(data.get(key), str) and data[key]):
             raise ConfigError(f"{path}: key '{key}': expected a file path")
     base = {k: (path.parent / v).resolve() if k in ("scene", "zenoh_config", "command_log")
             and isinstance(v, str) else v for k, v in data.items()}

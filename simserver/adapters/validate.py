@@ -175,7 +175,11 @@ def _expanded_nodes(root: yaml.Node) -> int:
 def parse_yaml(path: Path | str, text: str) -> Any:
     """The YAML document in ``text`` within the limits above; errors name the file and
     the line but never quote the text (it may be a file the client must not see)."""
-    loader = _BoundedLoader(text)
+    try:
+        loader = _BoundedLoader(text)  # its reader refuses control characters at once
+    except yaml.reader.ReaderError as exc:
+        raise ConfigError(f"{path}: not valid YAML: character #x{exc.character:04x} is not "
+                          f"allowed (position {exc.position})") from None
     try:
         node = loader.get_single_node()
         if node is None:
