@@ -32,7 +32,7 @@ import numpy as np
 
 from simserver import protocol as proto
 from simserver.adapters.config import ConfigError, check_keys, number, read_yaml
-from simserver.adapters.validate import integer, short_repr
+from simserver.adapters.validate import integer, is_path_text, short_repr
 from simserver.core import layout as L
 from simserver.core.integrator import forget_tire_loads, make_workspace, step
 from simserver.core.params import VP_CG_HEIGHT_M, road_axes, set_road
@@ -137,8 +137,7 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
     data = read_yaml(path)
     check_keys(path, data, tuple(SERVER_KEYS), required=("scene",))
     for key in ("scene", "zenoh_config", "command_log"):
-        if (key == "scene" or data.get(key) is not None) and \
-                not (isinstance(data.get(key), str) and data[key]):
+        if (key == "scene" or data.get(key) is not None) and not is_path_text(data.get(key)):
             raise ConfigError(f"{path}: key '{key}': expected a file path")
     base = {k: (path.parent / v).resolve() if k in ("scene", "zenoh_config", "command_log")
             and isinstance(v, str) else v for k, v in data.items()}
@@ -176,7 +175,10 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
                 _check_endpoint(where(key), endpoint)
             setattr(cfg, key, endpoints)
         elif key == "config_dirs":
-            cfg.config_dirs = [(path.parent / d).resolve() for d in _string_list(path, key, value)]
+            folders = _string_list(path, key, value)
+            if not all(is_path_text(d) for d in folders):
+                raise ConfigError(f"{path}: key '{key}': expected folder paths")
+            cfg.config_dirs = [(path.parent / d).resolve() for d in folders]
         elif key in ("prefix", "vehicle_id", "mode", "viewer"):
             if not isinstance(value, str):
                 raise ConfigError(f"{path}: key '{key}': expected a string")

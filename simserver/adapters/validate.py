@@ -31,7 +31,7 @@ from typing import Any
 import yaml
 
 __all__ = ["MAX_CONFIG_BYTES", "MAX_YAML_DEPTH", "MAX_YAML_NODES", "ConfigError",
-           "check_keys", "choice", "confined_to", "display_path", "integer", "number",
+           "check_keys", "choice", "confined_to", "display_path", "integer", "is_path_text", "number",
            "read_config_bytes", "read_yaml", "referenced_file", "short_repr"]
 
 MAX_CONFIG_BYTES = 4 << 20
@@ -80,6 +80,17 @@ def _check_confined(path: Path, label: str) -> None:
         raise ConfigError(f"{label} outside the server's config directories")
 
 
+def is_path_text(value: Any) -> bool:
+    """A non-empty string the file system can take: no NUL, no lone surrogate."""
+    if not isinstance(value, str) or not value or "\0" in value:
+        return False
+    try:
+        os.fsencode(value)
+    except UnicodeError:
+        return False
+    return True
+
+
 def referenced_file(referrer: Path | str, key: str, value: Any) -> Path:
     """The file that key ``key`` of config file ``referrer`` refers to, resolved.
 
@@ -88,8 +99,9 @@ def referenced_file(referrer: Path | str, key: str, value: Any) -> Path:
     lie in the confined folders. Errors name the referring file and the key.
     """
     referrer = Path(referrer)
-    if not isinstance(value, str) or not value or "\0" in value:
-        raise ConfigError(f"{referrer}: key '{key}': expected a file path")
+    if not is_path_text(value):
+        raise ConfigError(f"{referrer}: key '{key}': expected a file path, got "
+                          f"{short_repr(value)}")
     target = (referrer.parent / value).resolve()
     _check_confined(target, f"{referrer}: key '{key}': refers to a file")
     try:
@@ -110,6 +122,8 @@ def read_config_bytes(path: Path | str) -> bytes:
     must lie in the confined folders.
     """
     path = Path(path)
+    if not is_path_text(str(path)):
+        raise ConfigError(f"{short_repr(str(path))}: cannot read: not a valid file name")
     _check_confined(path.resolve(), f"{path}: a file")
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
