@@ -45,6 +45,23 @@ from simserver.core.params import VP_CG_HEIGHT_M, road_axes
 ROAD_POLL_S = 1.0
 
 
+CONFIG_FOLDERS = (Path(__file__).resolve().parents[1] / "configs",)
+"""Where the viewer looks for the vehicle file ``get_config`` names: the server shows its
+paths relative to its config folders (never absolute, ``docs/security.md``), by default
+this installation's ``configs/``."""
+
+
+def local_config_file(shown: str) -> Path:
+    """The local file of a path as ``get_config`` shows it (relative to a config folder)."""
+    path = Path(shown)
+    if path.is_absolute():
+        return path
+    for folder in CONFIG_FOLDERS:
+        if (folder / path).is_file():
+            return folder / path
+    return Path.cwd() / path
+
+
 @dataclass
 class ViewerStats:
     """What the viewer process did."""
@@ -211,7 +228,8 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
             config = ep.request("get_config", timeout_s=5.0)
             if not config.get("ok"):
                 raise RuntimeError(f"get_config failed: {config}")
-            vehicle = load_vehicle(config["config"]["vehicle"]["path"])
+            shown = config["config"]["vehicle"]["path"]
+            vehicle = load_vehicle(local_config_file(shown))
             road = config["config"]["road"]
             logger = SceneLogger(rec_stream, vehicle.vp, vehicle.tp, road["grade_pct"],
                                  road["cross_slope_pct"], fps=None)  # decimated here
@@ -231,11 +249,11 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
                     last_poll = now
                     reply = ep.request("get_config", timeout_s=1.0)
                     if reply.get("ok") and (reply["config"]["road"] != road
-                                            or reply["config"]["vehicle"]["path"]
-                                            != str(vehicle.path)):
+                                            or reply["config"]["vehicle"]["path"] != shown):
                         logger.flush()
                         road = reply["config"]["road"]
-                        vehicle = load_vehicle(reply["config"]["vehicle"]["path"])
+                        shown = reply["config"]["vehicle"]["path"]
+                        vehicle = load_vehicle(local_config_file(shown))
                         logger = SceneLogger(rec_stream, vehicle.vp, vehicle.tp,
                                              road["grade_pct"], road["cross_slope_pct"],
                                              fps=None, send_blueprint=False)

@@ -5,7 +5,7 @@ subsystem and tire files, .tir, server config, keyframe file, command log) is fe
 built by hypothesis: a valid file with one value replaced by a hostile one (huge and
 non-finite numbers, subnormals, wrong types, deep nesting, lone surrogates, paths to
 devices), or random text. The only exception allowed out is ``ConfigError`` (a
-``TirError`` inside becomes one), and its message names the file. Bounded: a few hundred
+``TirError`` inside becomes one), and its message names the file. Bounded: 60
 examples per loader, a few seconds on an idle machine.
 """
 
