@@ -582,7 +582,14 @@ def replay_command_log(path: str | Path, progress: Any = None) -> Replay:
     """Re-run a command log headless with the same compiled step as the server."""
     entries = read_command_log(path)
     header = entries[0]
-    physics = Physics(load_scene(header["scene"]), float(header["dt_s"]))
+
+    def scene_of(line: int, key: str, scene: str, vehicle: str | None = None) -> Scene:
+        try:
+            return load_scene(scene, vehicle_path=vehicle)
+        except ConfigError as exc:  # a file the log refers to: name the line and the key
+            raise ConfigError(f"{path}:{line}: key '{key}': {exc}") from None
+
+    physics = Physics(scene_of(1, "scene", header["scene"]), float(header["dt_s"]))
     events = entries[1:]
     end = next((e for e in events if "end" in e), None)
     total = int(end["end"]) if end else max((int(e.get("step", 0)) for e in events), default=0)
@@ -600,7 +607,7 @@ def replay_command_log(path: str | Path, progress: Any = None) -> Replay:
                 physics.set_road(**e["set_road"])
             elif "load" in e:
                 spec = e["load"]
-                physics.load(load_scene(spec["scene"], vehicle_path=spec["vehicle"]))
+                physics.load(scene_of(k + 2, "load", spec["scene"], spec["vehicle"]))
             k += 1
         if n == total:
             break

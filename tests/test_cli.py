@@ -357,3 +357,11 @@ def test_a_binary_command_log_exits_2(tmp_path, capsys):
     path = tmp_path / "log.jsonl"
     path.write_bytes(b"\x00\xff\xfe garbage \x80" * 100)
     assert "not a simserver command log" in cli_error(capsys, "replay", path)
+
+
+@pytest.mark.timeout(60)
+def test_a_command_log_whose_scene_is_missing_names_the_line_and_the_key(tmp_path, capsys):
+    path = tmp_path / "log.jsonl"
+    path.write_text(_log_lines().replace(str(FLAT_SCENE), str(tmp_path / "gone.yaml")))
+    err = cli_error(capsys, "replay", path)
+    assert f"{path}:1: key 'scene': {tmp_path / 'gone.yaml'}: cannot read" in err, err
