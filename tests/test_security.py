@@ -31,6 +31,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from simserver import protocol as proto
 from simserver.adapters.zenoh_io import (
@@ -643,3 +644,47 @@ def test_a_get_config_flood_is_rate_limited_per_session_and_spares_the_driver(ac
     assert sent > 3 * GET_CONFIG_PER_SESSION_HZ * flood_s  # a flood, well above the limit
     assert replies[0] <= GET_CONFIG_PER_SESSION_HZ * flood_s + 5
     assert answered == sent // 50
+
+
+# ============================================================================ hijacking
+HIJACKED = json.dumps({"ok": True, "tick": 0, "hijacked": True}).encode()
+
+
+def _reset_replies(impostor: Client, victim: Client) -> list[dict]:
+    """Every reply the victim's ``ctl/reset`` gets while the impostor serves that key.
+
+    The victim asks every queryable (``QueryTarget.ALL``): with the default target zenoh
+    picks one, on this topology the server's, which is routing, not protection."""
+    key = victim.ep.keys.ctl["reset"]
+
+    def answer(query) -> None:
+        query.reply(key, HIJACKED)
+
+    queryable = impostor.ep.session.declare_queryable(key, answer, complete=True)
+    try:
+        time.sleep(0.5)  # the declaration travels (nothing to wait on: it may be denied)
+        replies = list(victim.ep.session.get(key, target=zenoh.QueryTarget.ALL, timeout=2.0))
+    finally:
+        queryable.undeclare()
+    return [json.loads(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
+
+
+def test_on_the_loopback_default_a_local_process_can_answer_the_controls():
+    """docs/security.md 1.1, as stated: without access control any local peer session
+    can serve ``ctl/*``, and its answer reaches a client beside the server's."""
+    with ServerProcess(listen=[loopback_endpoint()]) as server, \
+            Client(server, mode="peer") as impostor, Client(server) as victim:
+        victim.wait_controls()
+        bodies = _reset_replies(impostor, victim)
+    assert any(b.get("hijacked") for b in bodies), bodies
+
+
+def test_the_secured_config_lets_nobody_but_the_server_answer_the_controls(acl_server):
+    """With ``server_auth_acl.json5``, a driver's session serving ``ctl/reset`` reaches
+    no other client: the other driver gets the server's reply only."""
+    _, endpoint, configs = acl_server
+    with Client(endpoint, zenoh_config=configs["driver"], mode="peer") as impostor, \
+            Client(endpoint, zenoh_config=configs["driver"]) as victim:
+        victim.wait_controls()
+        bodies = _reset_replies(impostor, victim)
+    assert bodies and not any(b.get("hijacked") for b in bodies), bodies
