@@ -980,19 +980,22 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
         ),
         ControlSpec(
             "load",
-            "Load another vehicle and/or scene YAML (paths resolved by the server; it may "
-            "restrict them to its config directories), compile it, then reset. The "
-            "physics is paused meanwhile.",
+            "Load another vehicle and/or scene YAML (paths resolved by the server; it "
+            "reads only regular files in its config directories, and so must be every "
+            "file they refer to), compile it, then reset. The physics is paused "
+            "meanwhile. An error's `field` is the argument whose files are at fault.",
             (
                 ArgSpec("vehicle", "path", False, "", None, None, "vehicle YAML path"),
                 ArgSpec("scene", "path", False, "", None, None, "scene YAML path"),
             ),
             at_least_one=True,
-            reply='"vehicle": string, "scene": string (the active paths)',
+            reply='"vehicle": string, "scene": string (the active paths, relative to the '
+            'server\'s config directory holding them)',
         ),
         ControlSpec(
             "get_config",
-            "Return the active configuration.",
+            "Return the active configuration (file paths relative to the server's config "
+            "directory holding them: never an absolute server path).",
             reply='"protocol_version": 1, "config": object (server, vehicle, scene, road, keys)',
         ),
     )
