@@ -204,3 +204,35 @@ def test_any_text_as_a_yaml_config_is_a_config_error_or_a_mapping(text):
         path = Path(tmp) / "any.yaml"
         path.write_text(text, encoding="utf-8", errors="surrogatepass")
         _only_config_errors(load_scenario, path)
+
+
+@pytest.mark.parametrize(("text", "needle"), [
+    ("a: " + "[" * 100 + "]" * 100 + "\n", "nested deeper than 64"),
+    ("a: &a [*a]\n", "an alias refers to a node that contains it"),
+    ("a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
+        f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
+        for p, c in zip("abcdef", "bcdefg", strict=True)), "expands to more than"),
+    ("a: \x1f\n", "is not allowed"),
+])
+def test_yaml_limits_refuse_with_the_reason(tmp_path, text, needle):
+    path = tmp_path / "limits.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=needle):
+        read_yaml(path)
+
+
+def test_files_that_are_no_regular_file_or_too_large_are_refused_without_blocking(tmp_path):
+    import os
+
+    from simserver.adapters.validate import MAX_CONFIG_BYTES
+
+    fifo = tmp_path / "fifo.yaml"
+    os.mkfifo(fifo)  # no writer: a plain open() would block forever
+    for path, needle in ((fifo, "not a regular file"), (Path("/dev/zero"), "not a regular"),
+                         (tmp_path, "not a regular file")):
+        with pytest.raises(ConfigError, match=needle):
+            read_yaml(path)
+    big = tmp_path / "big.yaml"
+    big.write_bytes(b"# " + b"x" * MAX_CONFIG_BYTES + b"\n")
+    with pytest.raises(ConfigError, match="larger than"):
+        read_yaml(big)

@@ -31,8 +31,9 @@ from typing import Any
 import yaml
 
 __all__ = ["MAX_CONFIG_BYTES", "MAX_YAML_DEPTH", "MAX_YAML_NODES", "ConfigError",
-           "check_keys", "choice", "confined_to", "display_path", "integer", "is_path_text", "number",
-           "read_config_bytes", "read_yaml", "referenced_file", "short_repr"]
+           "check_keys", "choice", "confined_to", "display_path", "integer", "is_path_text",
+           "number", "parse_yaml", "read_config_bytes", "read_yaml", "referenced_file",
+           "short_repr"]
 
 MAX_CONFIG_BYTES = 4 << 20
 """Largest configuration file read (4 MiB; the shipped ones are below 20 KiB)."""
@@ -169,17 +170,21 @@ class _BoundedLoader(yaml.SafeLoader):
 def _expanded_nodes(root: yaml.Node) -> int:
     """Nodes of ``root`` with every alias expanded (shared nodes counted per use)."""
     sizes: dict[int, int] = {}
+    visiting: set[int] = set()
 
-    def size(node: yaml.Node) -> int:  # depth bounded by MAX_YAML_DEPTH
+    def size(node: yaml.Node) -> int:
         known = sizes.get(id(node))
         if known is not None:
             return known
-        sizes[id(node)] = 1  # a recursive alias counts once (the constructor refuses it)
+        if id(node) in visiting:  # a: &a [*a]: no configuration is infinite
+            raise yaml.YAMLError("an alias refers to a node that contains it")
+        visiting.add(id(node))
         total = 1
         if isinstance(node, yaml.SequenceNode):
             total += sum(size(child) for child in node.value)
         elif isinstance(node, yaml.MappingNode):
             total += sum(size(k) + size(v) for k, v in node.value)
+        visiting.discard(id(node))
         sizes[id(node)] = total
         return total
 
@@ -209,8 +214,9 @@ def parse_yaml(path: Path | str, text: str) -> Any:
             from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
-    except RecursionError:  # a recursive alias (a: &a [*a]) that the constructor follows
-        raise ConfigError(f"{path}: not valid YAML: recursive aliases") from None
+    except RecursionError:  # aliases chained or recursive (a: &a [*a]) past the stack
+        raise ConfigError(f"{path}: not valid YAML: aliases nested too deeply or "
+                          "recursively") from None
     finally:
         loader.dispose()
 
