@@ -37,7 +37,7 @@ from simserver.core import layout as L
 from simserver.core.integrator import forget_tire_loads, make_workspace, step
 from simserver.core.params import VP_CG_HEIGHT_M, road_axes, set_road
 from simserver.core.pose import world_pose
-from simserver.scenario import Scene, initial_state, load_scene
+from simserver.scenario import INITIAL_RANGES, Scene, initial_state, load_scene
 from simserver.server_loop import ServerLoop, SlotPorts
 from simserver.vehicle_slot import VehicleSlot
 
@@ -514,8 +514,9 @@ def _check_log_entry(where: str, entry: Any, last_step: int) -> int:
                 raise ConfigError(f"{where}: key 'inputs.{name}': {val:g} is not a whole "
                                   "number")
     elif kind == "reset":
-        if value is not None:
-            _log_numbers(where, "reset", value, _control_ranges("reset", "pose"))
+        if value is not None:  # a reset control's pose, or a scene's start (a fault stop)
+            _log_numbers(where, "reset", value,
+                         {k: INITIAL_RANGES[k] for k in ("x_m", "y_m", "yaw_rad")})
     elif kind == "set_road":
         _log_numbers(where, "set_road", value, _control_ranges("set_road"))
     else:
