@@ -170,7 +170,7 @@ STATE_ONLY: tuple[Column, ...] = (
     Column("segment", pa.int32(), "-", "0, then +1 at each reset or load (tick restarts)"),
     Column("recv_time_s", _F64, "s", "recorder's monotonic clock at receipt, from its start"),
     Column("flags", pa.uint16(), "-", "state flags: 1 watchdog, 2 paused, 4 brake hold, "
-           "8 catch-up tick"),
+           "8 catch-up tick, 16 fault (the state went non-finite: car stopped)"),
     Column("last_cmd_seq", pa.uint32(), "-", "seq of the last command applied"),
     Column("last_cmd_sender_time_ns", pa.uint64(), "ns", "its sender_time_ns"),
     Column("cmd_age_s", _F64, "s", "wall time since the last valid command (-1 before any)"),

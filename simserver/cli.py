@@ -93,6 +93,10 @@ def _with_dt(scenario: Scenario, dt_s: float | None) -> Scenario:
         if not (math.isfinite(dt_s) and lo <= dt_s <= hi):
             raise ConfigError(f"--dt: {dt_s:g} is outside [{lo:g}, {hi:g}] s")
         scenario = dataclasses.replace(scenario, dt_s=float(dt_s))
+        from simserver.scenario import check_run_size
+
+        check_run_size(f"{scenario.path} with --dt {dt_s:g}", scenario.duration_s,
+                       scenario.dt_s, scenario.record_every)
     if scenario.n_steps < 1:
         raise ConfigError(f"{scenario.path}: key 'duration_s': {scenario.duration_s:g} s is "
                           f"shorter than one step of {scenario.dt_s:g} s")

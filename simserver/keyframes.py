@@ -26,9 +26,12 @@ from typing import Any
 
 import numpy as np
 
-from simserver.adapters.validate import ConfigError, check_keys, number, read_yaml
+from simserver.adapters.validate import ConfigError, check_keys, number, read_yaml, short_repr
 from simserver.protocol import Gear
 
+MAX_DURATION_S = 3600.0
+"""Longest scenario (``duration_s``): the headless runner keeps every step's sampled inputs
+and every recorded row in memory (:data:`simserver.scenario.MAX_SCENARIO_STEPS`)."""
 CONTINUOUS_CHANNELS = {"steer": (-1.0, 1.0), "throttle": (0.0, 1.0), "brake": (0.0, 1.0)}
 """Channels interpolated linearly between keyframes, with their ranges."""
 DISCRETE_CHANNELS = ("parking_brake", "gear")
@@ -89,10 +92,9 @@ def parse_keyframes(path: Path | str, raw: Any) -> list[dict[str, Any]]:
             parsed["parking_brake"] = number(path, f"{where}.parking_brake", val, 0.0, 1.0)
         if "gear" in frame:
             gear = frame["gear"]
-            if gear not in GEAR_CODES:
-                raise ConfigError(
-                    f"{path}: key '{where}.gear': expected one of P, R, N, D, got {gear!r}"
-                )
+            if not isinstance(gear, str) or gear not in GEAR_CODES:
+                raise ConfigError(f"{path}: key '{where}.gear': expected one of P, R, N, D, "
+                                  f"got {short_repr(gear)}")
             parsed["gear"] = float(GEAR_CODES[gear])
         frames.append(parsed)
     return frames
@@ -167,6 +169,6 @@ def load_keyframe_file(path: str | Path) -> KeyframeFile:
     name = data["name"]
     if not isinstance(name, str) or not name:
         raise ConfigError(f"{path}: key 'name': expected a non-empty string")
-    duration = number(path, "duration_s", data["duration_s"], 0.001, 1e6)
+    duration = number(path, "duration_s", data["duration_s"], 0.001, MAX_DURATION_S)
     return KeyframeFile(name=name, duration_s=duration,
                         keyframes=parse_keyframes(path, data["inputs"]))

@@ -230,7 +230,9 @@ class VehicleKeys:
         Control name -> queryable key (``"{base}/ctl/{name}"``) for every
         :data:`CONTROL_NAMES`.
     ctl_wildcard : str
-        ``"{base}/ctl/*"``: one queryable serving every control.
+        ``"{base}/ctl/**"``: one queryable serving every control, and answering a query
+        on any other key below ``ctl`` (``ctl``, ``ctl/reset/extra``) with an error
+        instead of leaving it to time out.
     """
 
     prefix: str
@@ -293,7 +295,7 @@ def vehicle_keys(prefix: str = DEFAULT_PREFIX, vehicle: str = DEFAULT_VEHICLE) -
         diag=f"{base}/diag",
         alive=f"{base}/alive",
         ctl={name: f"{base}/ctl/{name}" for name in CONTROL_NAMES},
-        ctl_wildcard=f"{base}/ctl/*",
+        ctl_wildcard=f"{base}/ctl/**",
     )
 
 
@@ -368,7 +370,9 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
     FieldSpec("flags", "<u2", 1, "-", None, None,
               "bit 0 watchdog engaged (no valid command: throttle off, brakes hold); "
               "bit 1 paused; bit 2 a brake holds a wheel at zero spin; bit 3 tick run late "
-              "as part of a catch-up; bits 4-15 are 0"),
+              "as part of a catch-up; bit 4 fault: the state went non-finite, the car was put "
+              "at rest at the scene's start pose and paused until a reset or load; bits "
+              "5-15 are 0"),
     FieldSpec("last_cmd_seq", "<u4", 1, "-", None, None,
               "seq of the last command applied (0 before the first)"),
     FieldSpec("tick", "<u8", 1, "-", None, None,
@@ -425,7 +429,9 @@ _WINDOW = "over the last window_ticks ticks"
 DIAGNOSTICS_FIELDS: Final[tuple[FieldSpec, ...]] = (
     FieldSpec("version", "<u2", 1, "-", PROTOCOL_VERSION, PROTOCOL_VERSION,
               "protocol version"),
-    FieldSpec("reserved", "<u2", 1, "-", 0, 0, "zero"),
+    FieldSpec("nonfinite_stops", "<u2", 1, "-", None, None,
+              "times the state went non-finite and the car was stopped (flags bit 4; "
+              "saturates at 65535)"),
     FieldSpec("window_ticks", "<u4", 1, "-", None, None,
               "ticks in the statistics window (the p50/p99/max fields)"),
     FieldSpec("tick", "<u8", 1, "-", None, None, "physics tick at publication"),
@@ -517,6 +523,7 @@ class StateFlag(enum.IntFlag):
     PAUSED = 0x02
     BRAKE_HOLD = 0x04
     CATCHUP = 0x08
+    FAULT = 0x10
 
 
 @dataclass(frozen=True, slots=True)
@@ -918,6 +925,13 @@ class ControlSpec:
 
 
 _MAX_PATH = 1024
+YAW_BOUND_RAD: Final[float] = 6.28319
+"""The ``reset`` yaw bound: 2 pi rounded up to the digits the docs show, so that the
+documented bound itself is accepted (both ends inclusive)."""
+MAX_REPLY_FIELD_CHARS: Final[int] = 100
+"""Longest ``field`` in an error reply (a key of the request may be 60 000 characters)."""
+MAX_REPLY_ERROR_CHARS: Final[int] = 1000
+"""Longest ``error`` in an error reply."""
 
 CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
     spec.name: spec
@@ -932,8 +946,8 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
                         (
                             ArgSpec("x_m", "number", True, "m", -1e6, 1e6, "position x"),
                             ArgSpec("y_m", "number", True, "m", -1e6, 1e6, "position y"),
-                            ArgSpec("yaw_rad", "number", True, "rad", -2 * math.pi,
-                                    2 * math.pi, "heading, + = left of world x"),
+                            ArgSpec("yaw_rad", "number", True, "rad", -YAW_BOUND_RAD,
+                                    YAW_BOUND_RAD, "heading, + = left of world x"),
                         )),
             ),
             reply='"tick": 0, "pose": {"x_m": number, "y_m": number, "yaw_rad": number}',
@@ -970,19 +984,22 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
         ),
         ControlSpec(
             "load",
-            "Load another vehicle and/or scene YAML (paths resolved by the server; it may "
-            "restrict them to its config directories), compile it, then reset. The "
-            "physics is paused meanwhile.",
+            "Load another vehicle and/or scene YAML (paths resolved by the server; it "
+            "reads only regular files in its config directories, and so must be every "
+            "file they refer to), compile it, then reset. The physics is paused "
+            "meanwhile. An error's `field` is the argument whose files are at fault.",
             (
                 ArgSpec("vehicle", "path", False, "", None, None, "vehicle YAML path"),
                 ArgSpec("scene", "path", False, "", None, None, "scene YAML path"),
             ),
             at_least_one=True,
-            reply='"vehicle": string, "scene": string (the active paths)',
+            reply='"vehicle": string, "scene": string (the active paths, relative to the '
+            'server\'s config directory holding them)',
         ),
         ControlSpec(
             "get_config",
-            "Return the active configuration.",
+            "Return the active configuration (file paths relative to the server's config "
+            "directory holding them: never an absolute server path).",
             reply='"protocol_version": 1, "config": object (server, vehicle, scene, road, keys)',
         ),
     )
@@ -992,6 +1009,26 @@ assert tuple(CONTROL_SPECS) == CONTROL_NAMES
 
 def _reject_constant(name: str) -> Any:
     raise ValueError(f"{name} is not allowed (JSON numbers must be finite)")
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """An object's members; a key given twice is an error (which one would count?)."""
+    obj: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in obj:
+            raise ProtocolError(_printable(key, MAX_REPLY_FIELD_CHARS),
+                                "is given twice in one object")
+        obj[key] = value
+    return obj
+
+
+def _printable(text: str, limit: int) -> str:
+    """``text`` safe to send back: lone surrogates and control characters escaped
+    (strict JSON parsers reject a lone surrogate), cut to ``limit`` characters."""
+    text = text.encode("utf-8", "backslashreplace").decode("utf-8")
+    text = "".join(ch if ch.isprintable() else ch.encode("unicode_escape").decode("ascii")
+                   for ch in text)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def _check_arg(spec: ArgSpec, value: Any, path: str) -> Any:
@@ -1098,7 +1135,10 @@ def validate_control(name: str, payload: bytes | bytearray | memoryview | None) 
         except UnicodeDecodeError as exc:
             raise ProtocolError("request", f"is not UTF-8 ({exc.reason})") from None
         try:
-            obj = json.loads(text, parse_constant=_reject_constant)
+            obj = json.loads(text, parse_constant=_reject_constant,
+                             object_pairs_hook=_unique_keys)
+        except ProtocolError:
+            raise
         except RecursionError:
             raise ProtocolError("request", "JSON nested too deeply") from None
         except ValueError as exc:
@@ -1130,13 +1170,15 @@ def reply_ok(**data: Any) -> bytes:
 def reply_error(error: str | ProtocolError, field: str | None = None) -> bytes:
     """A failure reply: ``{"ok": false, "error": "...", "field": "..."}`` as UTF-8 JSON.
 
-    ``field`` is taken from a :class:`ProtocolError` when not given.
+    ``field`` is taken from a :class:`ProtocolError` when not given. Both are made
+    printable and cut (:data:`MAX_REPLY_ERROR_CHARS`, :data:`MAX_REPLY_FIELD_CHARS`): a
+    request's huge key or lone surrogate is never echoed back as such.
     """
     if field is None and isinstance(error, ProtocolError):
         field = error.field
-    body: dict[str, Any] = {"ok": False, "error": str(error)}
+    body: dict[str, Any] = {"ok": False, "error": _printable(str(error), MAX_REPLY_ERROR_CHARS)}
     if field is not None:
-        body["field"] = field
+        body["field"] = _printable(field, MAX_REPLY_FIELD_CHARS)
     return json.dumps(body).encode()
 
 

@@ -41,8 +41,9 @@ from simserver.adapters.config import (
     number,
     read_yaml,
 )
+from simserver.adapters.validate import integer, referenced_file
 from simserver.core import layout as L
-from simserver.keyframes import input_table, parse_keyframes
+from simserver.keyframes import MAX_DURATION_S, input_table, parse_keyframes
 from simserver.simulation import Simulation
 
 ROAD_RANGES = {"grade_pct": (-100.0, 100.0), "cross_slope_pct": (-100.0, 100.0),
@@ -50,6 +51,26 @@ ROAD_RANGES = {"grade_pct": (-100.0, 100.0), "cross_slope_pct": (-100.0, 100.0),
 INITIAL_RANGES = {"x_m": (-1e7, 1e7), "y_m": (-1e7, 1e7), "yaw_rad": (-1e3, 1e3),
                   "u_mps": (-100.0, 100.0), "v_mps": (-100.0, 100.0),
                   "yaw_rate_radps": (-10.0, 10.0)}
+
+
+MAX_SCENARIO_STEPS = 10_000_000
+"""Most steps of a headless run: its input table holds 40 bytes a step (400 MB here)."""
+MAX_RECORDED_ROWS = 1_000_000
+"""Most recorded rows of a headless run: 840 bytes each (state, outputs, inputs; 840 MB)."""
+
+
+def check_run_size(path: Path | str, duration_s: float, dt_s: float, record_every: int) -> None:
+    """Refuse a run whose arrays would not fit (:data:`MAX_SCENARIO_STEPS`,
+    :data:`MAX_RECORDED_ROWS`) before allocating them; errors name the key to change."""
+    steps = int(round(duration_s / dt_s))
+    if steps > MAX_SCENARIO_STEPS:
+        raise ConfigError(f"{path}: key 'duration_s': {duration_s:g} s at dt_s {dt_s:g} s is "
+                          f"{steps} steps, more than {MAX_SCENARIO_STEPS}")
+    rows = -(-steps // record_every)
+    if rows > MAX_RECORDED_ROWS:
+        raise ConfigError(f"{path}: key 'record_every': {rows} recorded rows, more than "
+                          f"{MAX_RECORDED_ROWS}: record_every must be at least "
+                          f"{-(-steps // MAX_RECORDED_ROWS)}")
 
 
 @dataclass
@@ -118,9 +139,7 @@ def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = No
     ``vehicle_path`` overrides the file's ``vehicle`` key (the server's ``load`` control).
     """
     if vehicle_path is None:
-        if not isinstance(data.get("vehicle"), str):
-            raise ConfigError(f"{path}: key 'vehicle': expected a file path")
-        vehicle_path = (path.parent / data["vehicle"]).resolve()
+        vehicle_path = referenced_file(path, "vehicle", data.get("vehicle"))
     model_options = data.get("model") or {}
     vehicle = load_vehicle(vehicle_path, model_options, options_source=str(path))
     road_raw = data.get("road") or {}
@@ -164,11 +183,10 @@ def load_scenario(path: str | Path) -> Scenario:
     allowed = ("name", "description", *SCENE_KEYS, *SCENARIO_ONLY_KEYS)
     check_keys(path, data, allowed, required=("name", "vehicle", "duration_s", "inputs"))
     scene = parse_scene(path, data)
-    duration = number(path, "duration_s", data["duration_s"], 0.001, 1e6)
+    duration = number(path, "duration_s", data["duration_s"], 0.001, MAX_DURATION_S)
     dt = number(path, "dt_s", data.get("dt_s", 0.001), 1e-5, 0.01)
-    record_every = data.get("record_every", 1)
-    if isinstance(record_every, bool) or not isinstance(record_every, int) or record_every < 1:
-        raise ConfigError(f"{path}: key 'record_every': expected a positive integer")
+    record_every = integer(path, "record_every", data.get("record_every", 1), 1, 1_000_000)
+    check_run_size(path, duration, dt, record_every)
     name = data["name"]
     if not isinstance(name, str) or not name:
         raise ConfigError(f"{path}: key 'name': expected a non-empty string")

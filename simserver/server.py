@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -29,8 +31,9 @@ import numpy as np
 
 from simserver import protocol as proto
 from simserver.adapters.config import ConfigError, check_keys, number, read_yaml
+from simserver.adapters.validate import integer, is_path_text, short_repr
 from simserver.core import layout as L
-from simserver.scenario import Scene, load_scene
+from simserver.scenario import INITIAL_RANGES, Scene, load_scene
 from simserver.server_loop import ServerLoop, SlotPorts
 from simserver.simulation import Simulation
 from simserver.vehicle_slot import VehicleSlot
@@ -92,14 +95,47 @@ def _string_list(path: Path, key: str, value: Any) -> list[str]:
     return list(value)
 
 
+ZENOH_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe",
+                   "serial", "vsock")
+"""The link protocols a zenoh endpoint may name (``proto/address``)."""
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+
+
+def _check_endpoint(where: str, endpoint: str) -> None:
+    """A zenoh endpoint ``proto/address[?params][#config]`` with a known protocol and, for
+    IP protocols, ``host:port`` with a port in 0-65535; errors name ``where``."""
+    proto_name, sep, rest = endpoint.partition("/")
+    if not sep or proto_name not in ZENOH_PROTOCOLS:
+        raise ConfigError(f"{where}: {short_repr(endpoint)}: expected PROTOCOL/ADDRESS with "
+                          f"PROTOCOL one of {', '.join(ZENOH_PROTOCOLS)}")
+    if proto_name in _IP_PROTOCOLS:
+        address = rest.split("?", 1)[0].split("#", 1)[0]
+        host, colon, port = address.rpartition(":")
+        if not colon or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+            raise ConfigError(f"{where}: {short_repr(endpoint)}: expected "
+                              f"{proto_name}/HOST:PORT with a port in 0-65535")
+
+
+def _check_command_log(where: str, log_path: Path) -> None:
+    """The command log's file can be created: not a folder, in an existing folder."""
+    if log_path.is_dir():
+        raise ConfigError(f"{where}: {log_path} is a folder, not a file")
+    if not log_path.parent.is_dir():
+        raise ConfigError(f"{where}: the folder {log_path.parent} does not exist")
+
+
 def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
     """Load a server YAML; ``overrides`` (command-line flags) replace keys that are not None.
 
     Paths in the file are relative to it; paths in ``overrides`` to the working directory.
+    Errors name the file and the key, or the command-line option that set it.
     """
     path = Path(path).resolve()
     data = read_yaml(path)
     check_keys(path, data, tuple(SERVER_KEYS), required=("scene",))
+    for key in ("scene", "zenoh_config", "command_log"):
+        if (key == "scene" or data.get(key) is not None) and not is_path_text(data.get(key)):
+            raise ConfigError(f"{path}: key '{key}': expected a file path")
     base = {k: (path.parent / v).resolve() if k in ("scene", "zenoh_config", "command_log")
             and isinstance(v, str) else v for k, v in data.items()}
     if overrides.get("zenoh_config") is not None:
@@ -107,23 +143,39 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
         # unless they are given on the command line too
         for key in ("listen", "connect", "mode"):
             base.pop(key, None)
+    from_cli: set[str] = set()
     for k, v in overrides.items():
         if v is not None:
             if k not in SERVER_KEYS:
                 raise ConfigError(f"command line: unknown server setting '{k}'")
             base[k] = Path(v).resolve() if k in ("scene", "zenoh_config", "command_log") else v
+            from_cli.add(k)
+
+    def where(key: str) -> str:
+        if key in from_cli:
+            return f"command line: option '--{key.replace('_', '-')}'"
+        return f"{path}: key '{key}'"
+
     cfg = ServerConfig(path=path, scene=Path(base["scene"]))
     for key, rng in SERVER_KEYS.items():
         if key not in base or key == "scene" or base[key] is None:
             continue
         value = base[key]
-        if rng is not None:
-            val = number(path, key, value, *rng)
-            setattr(cfg, key, int(val) if key in ("state_every", "max_catchup_ticks") else val)
+        if key in ("state_every", "max_catchup_ticks"):
+            lo, hi = rng
+            setattr(cfg, key, integer(path, key, value, int(lo), int(hi)))
+        elif rng is not None:
+            setattr(cfg, key, number(path, key, value, *rng))
         elif key in ("listen", "connect"):
-            setattr(cfg, key, _string_list(path, key, value))
+            endpoints = _string_list(path, key, value)
+            for endpoint in endpoints:
+                _check_endpoint(where(key), endpoint)
+            setattr(cfg, key, endpoints)
         elif key == "config_dirs":
-            cfg.config_dirs = [(path.parent / d).resolve() for d in _string_list(path, key, value)]
+            folders = _string_list(path, key, value)
+            if not all(is_path_text(d) for d in folders):
+                raise ConfigError(f"{path}: key '{key}': expected folder paths")
+            cfg.config_dirs = [(path.parent / d).resolve() for d in folders]
         elif key in ("prefix", "vehicle_id", "mode", "viewer"):
             if not isinstance(value, str):
                 raise ConfigError(f"{path}: key '{key}': expected a string")
@@ -132,20 +184,32 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
             setattr(cfg, key, Path(value))
     if cfg.mode not in (None, "peer", "router", "client"):
         raise ConfigError(f"{path}: key 'mode': expected peer, router or client")
+    for key in ("scene", "zenoh_config"):
+        file = getattr(cfg, key)
+        if file is not None and not file.is_file():
+            raise ConfigError(f"{where(key)}: {file}: no such file")
+    if cfg.command_log is not None:
+        _check_command_log(where("command_log"), cfg.command_log)
     try:
         proto.vehicle_keys(cfg.prefix, cfg.vehicle_id)
     except proto.ProtocolError as exc:
         raise ConfigError(f"{path}: {exc}") from exc
     if cfg.viewer != "off":
-        from simserver.adapters.rerun_sink import RerunSinkError, parse_sink
+        from simserver.adapters.rerun_sink import RerunSinkError, _split_host_port, parse_sink
 
         try:
-            parse_sink(cfg.viewer)
+            mode, target = parse_sink(cfg.viewer)
+            if mode == "serve" and target is not None:
+                _split_host_port(mode, target, "127.0.0.1", 0)  # the port is in 1-65535
         except RerunSinkError as exc:
-            raise ConfigError(f"{path}: key 'viewer': {exc}") from exc
+            raise ConfigError(f"{where('viewer')}: {exc}") from exc
     if not cfg.config_dirs:
         cfg.config_dirs = [REPO_CONFIGS, path.parent]
     return cfg
+
+
+COMMAND_LOG_FLUSH_S = 0.1
+"""Longest time an applied input stays in the command log's buffer before it is written."""
 
 
 class CommandLog:
@@ -156,27 +220,62 @@ class CommandLog:
     ``n``); ``{"step": n, "reset": pose|null}``, ``{"step": n, "set_road": {...}}``,
     ``{"step": n, "load": {"scene": ..., "vehicle": ...}}``; and at a clean shutdown
     ``{"end": n, "state": [hex floats]}``, the full final state, for checking a replay.
+
+    Crash-safe with a bounded loss (``docs/reliability.md``): every control line is
+    written to the operating system at once, input lines at most
+    :data:`COMMAND_LOG_FLUSH_S` after they were logged (checked at every step), so a
+    ``kill -9`` of the server loses at most the last 100 ms of inputs; a line torn by the
+    kill is ignored by :func:`read_command_log`. No ``fsync`` in the loop (it can take tens
+    of milliseconds on a disk): what the server wrote survives the server's crash, not a
+    crash of the machine; the file is fsynced at a clean shutdown.
     """
 
-    def __init__(self, path: Path, header: dict[str, Any]) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = path.open("w", encoding="utf-8", buffering=1 << 16)
+    def __init__(self, path: Path, header: dict[str, Any],
+                 clock_ns: Any = time.monotonic_ns) -> None:
+        try:
+            self._file = path.open("w", encoding="utf-8", buffering=1 << 16)
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot write the command log: "
+                              f"{exc.strerror or exc}") from None
+        self._clock_ns = clock_ns
+        self._flush_ns = int(COMMAND_LOG_FLUSH_S * 1e9)
+        self._dirty_since: int | None = None
         self._logged_inputs = np.full(L.N_INPUT, np.nan)
         self.write({"simserver_command_log": 1, **header})
 
     def write(self, entry: dict[str, Any]) -> None:
-        """Append one line."""
+        """Append one line and hand it to the operating system (a control, the header)."""
         self._file.write(json.dumps(entry, separators=(",", ":")) + "\n")
+        self.flush()
+
+    def flush(self) -> None:
+        """Hand every buffered line to the operating system."""
+        self._file.flush()
+        self._dirty_since = None
 
     def log_inputs(self, step: int, inputs: np.ndarray) -> None:
-        """The inputs applied at physics step ``step``, if they changed since the last line."""
+        """The inputs applied at physics step ``step``, if they changed since the last line.
+
+        Called at every step: buffered lines older than :data:`COMMAND_LOG_FLUSH_S` are
+        written out here.
+        """
         if not np.array_equal(inputs, self._logged_inputs):
             self._logged_inputs[:] = inputs
-            self.write({"step": step, "inputs": [float(v) for v in inputs]})
+            self._file.write(json.dumps({"step": step, "inputs": [float(v) for v in inputs]},
+                                        separators=(",", ":")) + "\n")
+            if self._dirty_since is None:
+                self._dirty_since = self._clock_ns()
+        if self._dirty_since is not None and \
+                self._clock_ns() - self._dirty_since >= self._flush_ns:
+            self.flush()
 
     def close(self, steps: int, state: np.ndarray) -> None:
-        """Write the end line with the exact final state and close."""
+        """Write the end line with the exact final state, fsync and close."""
         self.write({"end": steps, "state": [float(v).hex() for v in state]})
+        try:
+            os.fsync(self._file.fileno())
+        except OSError:  # a pipe or a file system without fsync: the data was written
+            pass
         self._file.close()
 
 
@@ -306,21 +405,139 @@ class Replay:
             np.array_equal(self.final_state[:n], self.logged_final_state))
 
 
+MAX_REPLAY_STEPS = 2_500_000
+"""Longest log replayed (about 42 min at 1 kHz): the replay keeps every state and output in
+memory, 800 bytes a step (2 GB at this limit)."""
+_LOG_INPUT_RANGES = ((-1.0, 1.0), (0.0, 1.0), (0.0, 1.0), (0.0, 1.0), (0.0, 3.0))
+"""Ranges of the logged inputs, in the order of ``core.layout.INPUT_NAMES``."""
+
+
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a number a command log holds")
+
+
+def _log_numbers(where: str, key: str, value: Any, spec: dict[str, tuple[float, float]],
+                 ) -> dict[str, float]:
+    if not isinstance(value, dict) or set(value) != set(spec):
+        raise ConfigError(f"{where}: key '{key}': expected an object with "
+                          f"{', '.join(spec)}")
+    return {k: number(where, f"{key}.{k}", value[k], *spec[k]) for k in spec}
+
+
+def _control_ranges(control: str, member: str | None = None) -> dict[str, tuple[float, float]]:
+    """The ranges of a control's numeric arguments, from the protocol's table."""
+    args = proto.CONTROL_SPECS[control].args
+    if member is not None:
+        args = next(a for a in args if a.name == member).children
+    return {a.name: (a.lo, a.hi) for a in args}
+
+
+def _check_log_entry(where: str, entry: Any, last_step: int) -> int:
+    """Validate one event line of a command log; its step."""
+    if not isinstance(entry, dict):
+        raise ConfigError(f"{where}: expected a JSON object, got {type(entry).__name__}")
+    if "end" in entry:
+        check_keys(where, entry, ("end", "state"), required=("end", "state"))
+        end = entry["end"]
+        if isinstance(end, bool) or not isinstance(end, int) or \
+                not last_step <= end <= MAX_REPLAY_STEPS:
+            raise ConfigError(f"{where}: key 'end': expected an integer step in "
+                              f"[{last_step}, {MAX_REPLAY_STEPS}], got {short_repr(end)}")
+        state = entry["state"]
+        if not isinstance(state, list) or len(state) != L.N_STATE:
+            raise ConfigError(f"{where}: key 'state': expected {L.N_STATE} hex floats")
+        for k, v in enumerate(state):
+            try:
+                if not isinstance(v, str):
+                    raise ValueError
+                float.fromhex(v)
+            except (ValueError, OverflowError):
+                raise ConfigError(f"{where}: key 'state[{k}]': not a hex float: "
+                                  f"{short_repr(v)}") from None
+        return end
+    kinds = [k for k in ("inputs", "reset", "set_road", "load") if k in entry]
+    if len(kinds) != 1:
+        raise ConfigError(f"{where}: expected one of inputs, reset, set_road, load, end")
+    kind = kinds[0]
+    check_keys(where, entry, ("step", kind), required=("step", kind))
+    step = entry["step"]
+    if isinstance(step, bool) or not isinstance(step, int) or \
+            not last_step <= step <= MAX_REPLAY_STEPS:
+        raise ConfigError(f"{where}: key 'step': expected an integer step in "
+                          f"[{last_step}, {MAX_REPLAY_STEPS}] (steps never go back), got "
+                          f"{short_repr(step)}")
+    value = entry[kind]
+    if kind == "inputs":
+        if not isinstance(value, list) or len(value) != L.N_INPUT:
+            raise ConfigError(f"{where}: key 'inputs': expected {L.N_INPUT} numbers")
+        for name, v, (lo, hi) in zip(L.INPUT_NAMES, value, _LOG_INPUT_RANGES, strict=True):
+            val = number(where, f"inputs.{name}", v, lo, hi)
+            if name in ("parking_brake", "gear") and not val.is_integer():
+                raise ConfigError(f"{where}: key 'inputs.{name}': {val:g} is not a whole "
+                                  "number")
+    elif kind == "reset":
+        if value is not None:  # a reset control's pose, or a scene's start (a fault stop)
+            _log_numbers(where, "reset", value,
+                         {k: INITIAL_RANGES[k] for k in ("x_m", "y_m", "yaw_rad")})
+    elif kind == "set_road":
+        _log_numbers(where, "set_road", value, _control_ranges("set_road"))
+    else:
+        if not isinstance(value, dict) or set(value) != {"scene", "vehicle"} or \
+                not isinstance(value["scene"], str) or \
+                not isinstance(value["vehicle"], str | None):
+            raise ConfigError(f"{where}: key 'load': expected {{\"scene\": path, "
+                              "\"vehicle\": path or null}")
+    return step
+
+
 def read_command_log(path: str | Path) -> list[dict[str, Any]]:
-    """Parse a command log, with errors naming the file and line."""
+    """Parse and validate a command log, with errors naming the file, line and key.
+
+    A last line without its newline that is not valid JSON is the line the server was
+    writing when it was killed (``kill -9``, a crash): it is dropped with a warning. Any
+    other malformed line is an error (``ConfigError``), as are values a live server never
+    logs (NaN, inputs out of range, steps going back, more than
+    :data:`MAX_REPLAY_STEPS`).
+    """
     path = Path(path)
-    entries = []
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            raise ConfigError(f"{path}: cannot read: not a regular file")
+        with path.open("rb") as f:
+            text = f.read().decode("utf-8")
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a simserver command log (not UTF-8 text at byte "
+                          f"{exc.start})") from None
+    lines = text.split("\n")
+    torn = lines.pop()  # "" when the file ends with a newline, as every complete log does
+    entries = []
     for n, line in enumerate(lines, 1):
         try:
-            entries.append(json.loads(line))
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"{path}:{n}: not a JSON line: {exc.msg}") from exc
-    if not entries or entries[0].get("simserver_command_log") != 1:
+            entries.append(json.loads(line, parse_constant=_reject_constant))
+        except (ValueError, RecursionError) as exc:
+            msg = exc.msg if isinstance(exc, json.JSONDecodeError) else str(exc) or "too deep"
+            raise ConfigError(f"{path}:{n}: not a JSON line: {msg}") from None
+    if torn:
+        try:
+            entries.append(json.loads(torn, parse_constant=_reject_constant))
+        except (ValueError, RecursionError):
+            log.warning("%s:%d: the last line is torn (the server was killed while writing "
+                        "it): ignored", path, len(lines) + 1)
+    header = entries[0] if entries else None
+    if not isinstance(header, dict) or header.get("simserver_command_log") != 1:
         raise ConfigError(f"{path}: not a simserver command log (no header line)")
+    where = f"{path}:1"
+    if not isinstance(header.get("scene"), str):
+        raise ConfigError(f"{where}: key 'scene': expected a scene path")
+    number(where, "dt_s", header.get("dt_s"), *SERVER_KEYS["period_s"])
+    last_step = 0
+    for n, entry in enumerate(entries[1:], 2):
+        if last_step is None:
+            raise ConfigError(f"{path}:{n}: a line after the end line")
+        step = _check_log_entry(f"{path}:{n}", entry, last_step)
+        last_step = None if "end" in entry else step
     return entries
 
 
@@ -328,7 +545,14 @@ def replay_command_log(path: str | Path, progress: Any = None) -> Replay:
     """Re-run a command log headless with the same compiled step as the server."""
     entries = read_command_log(path)
     header = entries[0]
-    physics = Simulation(load_scene(header["scene"]), float(header["dt_s"]))
+
+    def scene_of(line: int, key: str, scene: str, vehicle: str | None = None) -> Scene:
+        try:
+            return load_scene(scene, vehicle_path=vehicle)
+        except ConfigError as exc:  # a file the log refers to: name the line and the key
+            raise ConfigError(f"{path}:{line}: key '{key}': {exc}") from None
+
+    physics = Simulation(scene_of(1, "scene", header["scene"]), float(header["dt_s"]))
     events = entries[1:]
     end = next((e for e in events if "end" in e), None)
     total = int(end["end"]) if end else max((int(e.get("step", 0)) for e in events), default=0)
@@ -346,7 +570,7 @@ def replay_command_log(path: str | Path, progress: Any = None) -> Replay:
                 physics.set_road(**e["set_road"])
             elif "load" in e:
                 spec = e["load"]
-                physics.load(load_scene(spec["scene"], vehicle_path=spec["vehicle"]))
+                physics.load(scene_of(k + 2, "load", spec["scene"], spec["vehicle"]))
             k += 1
         if n == total:
             break

@@ -9,11 +9,12 @@ One thread, one loop; every tick (:meth:`ServerLoop.tick`), for each vehicle slo
    (:class:`simserver.vehicle_slot.CommandArbiter`: the newest valid one wins);
 3. the watchdog (:class:`simserver.vehicle_slot.Watchdog`);
 4. step the simulation once, unless paused;
-5. publish the state (every ``state_every`` ticks) and, a few times a second, the
+5. check the state is finite, else stop the car in a safe state
+   (:meth:`simserver.vehicle_slot.VehicleSlot.check_finite`): before publishing;
+6. publish the state (every ``state_every`` ticks) and, a few times a second, the
    diagnostics;
-6. serve control requests through :data:`CONTROLS` (name -> handler), each validated
-   first (:func:`simserver.protocol.validate_control`);
-7. check the state is finite.
+7. serve control requests through :data:`CONTROLS` (name -> handler), each validated
+   first (:func:`simserver.protocol.validate_control`).
 
 What the loop talks to is injected: the clock and sleep of its pacer, and per slot a
 :class:`SlotPorts` (a command inbox, a control inbox, a publisher). The zenoh adapter is
@@ -215,6 +216,7 @@ class ServerLoop:
             slot.take_commands(ports.commands.drain_newest(), now)
             slot.apply_inputs(now)
             slot.advance()
+            slot.check_finite()  # before publishing: no non-finite state leaves the server
             if publish_state:
                 ports.publisher.publish_state(slot.state_payload(now, catching_up))
             if diag is not None:
@@ -223,7 +225,6 @@ class ServerLoop:
                 control = serve_control(slot, request)
                 if control is not None and control.stalls_loop:
                     self.pacer.rebase()
-            slot.check_finite()
         self.loop_count += 1
 
     def uptime_s(self) -> float:

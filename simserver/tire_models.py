@@ -227,11 +227,10 @@ def _load_mf61(path: Path, data: dict[str, Any]) -> LoadedTire:
     optional radius and relaxation lengths (defaults from the .tir file)."""
     from simserver.adapters.config import TIRE_COMMON_RANGES, ConfigError, check_keys, number
     from simserver.adapters.tir_file import TirError, load_tir, mf61_coefficients
+    from simserver.adapters.validate import referenced_file
 
     check_keys(path, data, ("model", "tir_file", *COMMON_KEYS), required=("model", "tir_file"))
-    if not isinstance(data["tir_file"], str):
-        raise ConfigError(f"{path}: key 'tir_file': expected a path string")
-    tir_path = (path.parent / data["tir_file"]).resolve()
+    tir_path = referenced_file(path, "tir_file", data["tir_file"])
     try:
         coeffs = mf61_coefficients(load_tir(tir_path))
     except TirError as exc:

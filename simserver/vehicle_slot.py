@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -25,6 +26,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from simserver import protocol as proto
+from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
 from simserver.core import layout as L
 from simserver.core.params import VP_CG_HEIGHT_M
 from simserver.core.pose import world_pose
@@ -36,7 +38,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("simserver.server")
 
 COUNTER_NAMES: tuple[str, ...] = ("cmd_received", "cmd_rejected", "cmd_clamped",
-                                  "cmd_stale", "state_published", "watchdog_trips")
+                                  "cmd_stale", "state_published", "watchdog_trips",
+                                  "nonfinite_stops")
 """The slot's cumulative counters, in the order of the ``stopped`` line."""
 
 
@@ -183,8 +186,8 @@ class VehicleSlot:
         Where applied inputs and physics-changing controls are written.
 
     The loop calls, every tick: :meth:`take_commands`, :meth:`apply_inputs`,
-    :meth:`advance`, :meth:`state_payload` (at the state rate), the ``ctl_*`` handlers
-    through its control table, and :meth:`check_finite`.
+    :meth:`advance`, :meth:`check_finite`, :meth:`state_payload` (at the state rate)
+    and the ``ctl_*`` handlers through its control table.
     """
 
     def __init__(self, cfg: ServerConfig, sim: SimulationAPI,
@@ -202,6 +205,8 @@ class VehicleSlot:
         self.tick = 0  # ticks since start, reset or load (the protocol's tick)
         self.steps_total = 0  # physics steps since start (the command log's clock)
         self.record = proto.new_state_record()
+        self.fault = False  # the state went non-finite in this episode (since start,
+        # reset or load): flags bit 4, logged once
 
     # ------------------------------------------------------------------ each tick
     def take_commands(self, payloads: list[bytes], now_ns: int) -> None:
@@ -251,6 +256,8 @@ class VehicleSlot:
             flags |= proto.StateFlag.BRAKE_HOLD
         if catching_up:
             flags |= proto.StateFlag.CATCHUP
+        if self.fault:
+            flags |= proto.StateFlag.FAULT
         arbiter = self.arbiter
         rec["flags"] = flags
         rec["tick"] = self.tick
@@ -285,11 +292,32 @@ class VehicleSlot:
         rec["gear"] = inputs[L.IN_GEAR]
         return rec.tobytes()
 
-    def check_finite(self) -> None:
-        """Never expected: a non-finite state is logged loudly and the car reset."""
-        if not np.isfinite(self.sim.x).all():
-            log.error("non-finite state at tick %d: resetting", self.tick)
-            self.sim.reset(None)
+    def check_finite(self) -> bool:
+        """Stop the car in a defined safe state if its state is no longer finite.
+
+        Called before the state is published, so a non-finite value never reaches a
+        client. Safe state: at rest at the scene's start pose (``reset``, logged so a
+        replay does the same), forces zeroed, paused until a client resets, loads or
+        resumes; ``flags`` bit 4 until the next reset or load; counted in
+        ``nonfinite_stops``; logged once per episode (``docs/reliability.md``).
+        Returns True when the state was finite.
+        """
+        p = self.sim
+        if np.isfinite(p.x).all() and np.isfinite(p.out).all():
+            return True
+        if not self.fault:
+            log.error("non-finite state at tick %d (vehicle %s): car stopped at rest at "
+                      "the scene's start and paused until reset, load or resume",
+                      self.tick, p.scene.vehicle.name)
+        self.fault = True
+        self.counters["nonfinite_stops"] = min(self.counters["nonfinite_stops"] + 1, 0xFFFF)
+        pose = {k: p.scene.initial[k] for k in ("x_m", "y_m", "yaw_rad")}
+        p.reset(pose)
+        p.out[:] = 0.0
+        self.paused = True
+        self.steps_to_run = 0
+        self._log({"step": self.steps_total, "reset": pose})
+        return False
 
     def warm_up(self) -> None:
         """Compile every kernel the tick uses (simulation and state record) before the clock."""
@@ -306,6 +334,7 @@ class VehicleSlot:
         p = self.sim
         p.reset(pose)
         self.tick = 0
+        self.fault = False
         self._log({"step": self.steps_total, "reset": pose})
         return {"tick": 0, "pose": {"x_m": p.x[L.X_M], "y_m": p.x[L.Y_M],
                                     "yaw_rad": p.x[L.YAW_RAD]}}
@@ -348,11 +377,21 @@ class VehicleSlot:
     def prepare_load(self, args: dict[str, Any]) -> tuple[Scene, Path, Path | None]:
         """The scene a ``load`` asks for, read and validated: (scene, its path, vehicle path)."""
         base = self.cfg.path.parent
-        scene_path = self._resolve_config_path(args["scene"], base) if "scene" in args \
-            else self.scene_path
-        vehicle_path = self._resolve_config_path(args["vehicle"], base) \
+        scene_path = self._resolve_config_path(args["scene"], base, "scene") \
+            if "scene" in args else self.scene_path
+        vehicle_path = self._resolve_config_path(args["vehicle"], base, "vehicle") \
             if "vehicle" in args else None
-        return load_scene(scene_path, vehicle_path=vehicle_path), scene_path, vehicle_path
+        # every file the scene refers to, nested or not, must be in the config folders too;
+        # errors show paths relative to them only (docs/security.md)
+        with confined_to(self.cfg.config_dirs):
+            try:
+                scene = load_scene(scene_path, vehicle_path=vehicle_path)
+            except ConfigError as exc:  # named by the argument whose files are at fault
+                message = str(exc)
+                arg = "scene" if "vehicle" not in args or (
+                    "scene" in args and message.startswith(f"{scene_path}:")) else "vehicle"
+                raise proto.ProtocolError(arg, self._redacted(message)) from None
+        return scene, scene_path, vehicle_path
 
     def apply_load(self, scene: Scene, scene_path: Path,
                    vehicle_path: Path | None) -> dict[str, Any]:
@@ -361,38 +400,48 @@ class VehicleSlot:
         self.sim.warm_up()
         self.scene_path = scene_path
         self.tick = 0
+        self.fault = False
         self._log({"step": self.steps_total, "load": {
             "scene": str(scene_path), "vehicle": None if vehicle_path is None
             else str(vehicle_path)}})
-        return {"vehicle": str(self.sim.scene.vehicle.path), "scene": str(scene_path)}
+        return {"vehicle": self._shown(self.sim.scene.vehicle.path),
+                "scene": self._shown(scene_path)}
 
     def ctl_get_config(self, args: dict[str, Any]) -> dict[str, Any]:
         """``get_config``: the active configuration."""
         cfg, p, keys = self.cfg, self.sim, self.keys
         return {"protocol_version": proto.PROTOCOL_VERSION, "config": {
-            "server": {"path": str(cfg.path), "period_s": cfg.period_s,
+            "server": {"path": self._shown(cfg.path), "period_s": cfg.period_s,
                        "state_every": cfg.state_every, "diag_hz": cfg.diag_hz,
                        "watchdog_s": cfg.watchdog_s, "watchdog_brake": cfg.watchdog_brake},
-            "vehicle": {"name": p.scene.vehicle.name, "path": str(p.scene.vehicle.path),
+            "vehicle": {"name": p.scene.vehicle.name, "path": self._shown(p.scene.vehicle.path),
                         "tire_models": list(p.scene.vehicle.tire_models)},
-            "scene": {"path": str(self.scene_path), "initial": p.scene.initial,
+            "scene": {"path": self._shown(self.scene_path), "initial": p.scene.initial,
                       "model": p.scene.model_options},
             "road": dict(p.road),
             "keys": {"cmd": keys.cmd, "state": keys.state, "diag": keys.diag,
                      "alive": keys.alive},
         }}
 
-    def _resolve_config_path(self, value: str, base: Path) -> Path:
-        path = (base / value).resolve() if not Path(value).is_absolute() else Path(value)
-        path = path.resolve()
+    def _resolve_config_path(self, value: str, base: Path, arg: str) -> Path:
+        path = (base / value).resolve()
         dirs = self.cfg.config_dirs
         if not any(path.is_relative_to(d) for d in dirs):
-            raise proto.ProtocolError(
-                "path", f"{path} is outside the server's config directories "
-                        f"({', '.join(str(d) for d in dirs)})")
+            raise proto.ProtocolError(arg, f"{short_repr(value)} is outside the server's config "
+                                           "directories")
         if not path.is_file():
-            raise proto.ProtocolError("path", f"{path}: no such file")
+            raise proto.ProtocolError(arg, f"{short_repr(value)}: no such file")
         return path
+
+    def _shown(self, path: Path) -> str:
+        """A path as a client may see it: relative to the config folder holding it."""
+        return display_path(path, self.cfg.config_dirs)
+
+    def _redacted(self, message: str) -> str:
+        """``message`` with the config folders' absolute paths made relative."""
+        for root in sorted(self.cfg.config_dirs, key=lambda d: -len(str(d))):
+            message = message.replace(f"{root}{os.sep}", "")
+        return message
 
     def _log(self, entry: dict[str, Any]) -> None:
         if self.command_log is not None:

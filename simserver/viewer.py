@@ -54,6 +54,23 @@ from simserver.core.road import road_axes
 ROAD_POLL_S = 1.0
 
 
+CONFIG_FOLDERS = (Path(__file__).resolve().parents[1] / "configs",)
+"""Where the viewer looks for the vehicle file ``get_config`` names: the server shows its
+paths relative to its config folders (never absolute, ``docs/security.md``), by default
+this installation's ``configs/``."""
+
+
+def local_config_file(shown: str) -> Path:
+    """The local file of a path as ``get_config`` shows it (relative to a config folder)."""
+    path = Path(shown)
+    if path.is_absolute():
+        return path
+    for folder in CONFIG_FOLDERS:
+        if (folder / path).is_file():
+            return folder / path
+    return Path.cwd() / path
+
+
 @dataclass
 class ViewerStats:
     """What the viewer process did."""
@@ -368,7 +385,7 @@ class _SegmentScene:
 
         self.rec_stream = rec_stream
         self.segment = segment
-        self.vehicle = load_vehicle(config["vehicle"]["path"])
+        self.vehicle = load_vehicle(local_config_file(config["vehicle"]["path"]))
         self.scene_path = str(config["scene"]["path"])
         self.vehicle_path = str(config["vehicle"]["path"])
         rec_stream.send_recording_name(

@@ -195,3 +195,173 @@ def test_a_run_that_goes_non_finite_exits_1_but_writes_its_files(tmp_path, capsy
     summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
     assert summary["finite"]["all"] is False and summary["final"]["u_mps"] is None
     assert (out / "trajectory.png").exists()
+
+
+# ------------------------------------------------------------------- the fuzz corpus
+# Issue 14 item 6: inputs that gave a traceback, a wrong acceptance or an error that did
+# not name the key. Each is run through the CLI's entry point in-process: exit 2, one
+# "error:" line naming the file and the key (or option), never a traceback.
+SERVER_YAML = REPO / "configs" / "server" / "default.yaml"
+FLAT_SCENE = REPO / "configs" / "scenes" / "flat_paper_sedan.yaml"
+
+
+def cli_error(capsys, *argv: str | Path) -> str:
+    """Run the CLI in-process; it must exit 2 with an error line, which is returned."""
+    from simserver.cli import main
+
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.startswith("error: ") and "Traceback" not in err, err
+    return err
+
+
+def _nested(depth: int) -> str:
+    return "[" * depth + "]" * depth
+
+
+SCENARIO_CASES = {
+    # name: (replace, with, the text the error must hold besides the file)
+    "deep-nesting": ("inputs:\n", f"extra: {_nested(5000)}\ninputs:\n", "nested deeper"),
+    "record-every-400-digits": ("duration_s: 2.5", "duration_s: 2.5\nrecord_every: "
+                                + "9" * 400, "key 'record_every'"),
+    "gear-list": ("{t: 0.0, gear: D}", "{t: 0.0, gear: [D]}", "key 'inputs[0].gear'"),
+    "gear-mapping": ("{t: 0.0, gear: D}", "{t: 0.0, gear: {{a: 1}}}", "key 'inputs[0].gear'"),
+    "duration-1e6": ("duration_s: 2.5", "duration_s: 1.0e+6", "key 'duration_s'"),
+    "record-every-float": ("duration_s: 2.5", "duration_s: 2.5\nrecord_every: 1.5",
+                           "key 'record_every'"),
+    "alias-bomb": ("inputs:\n", "a: &a [x, x, x, x, x, x, x, x, x, x]\n"
+                   + "".join(f"{c}: &{c} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
+                             for p, c in zip("abcdefgh", "bcdefghi", strict=True))
+                   + "inputs:\n", "aliases"),
+    "missing-vehicle": ("vehicle: {vehicle}", "vehicle: no_such_vehicle.yaml",
+                        "key 'vehicle': "),
+    "vehicle-is-a-device": ("vehicle: {vehicle}", "vehicle: /dev/zero", "not a regular file"),
+}
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("case", list(SCENARIO_CASES))
+def test_fuzz_corpus_scenarios_exit_2_naming_file_and_key(tmp_path, capsys, case):
+    old, new, needle = SCENARIO_CASES[case]
+    assert old in SCENARIO
+    path = write_scenario(tmp_path / "fuzz.yaml", SCENARIO.replace(old, new))
+    err = cli_error(capsys, "run-scenario", path, "--out", tmp_path / "out")
+    assert str(path) in err and needle in err, err
+    assert not (tmp_path / "out" / "history.parquet").exists()
+
+
+@pytest.mark.timeout(60)
+def test_fuzz_corpus_nested_files(tmp_path, capsys):
+    """A FIFO as vehicle (read without blocking), a 3 000-deep vehicle file, a missing
+    tire file: each error names the file that refers to it and the key."""
+    fifo = tmp_path / "fifo.yaml"
+    os.mkfifo(fifo)
+    path = write_scenario(tmp_path / "s.yaml", SCENARIO.replace("vehicle: {vehicle}",
+                                                                f"vehicle: {fifo}"))
+    err = cli_error(capsys, "run-scenario", path, "--out", tmp_path / "out")
+    assert f"{path}: key 'vehicle': {fifo}: not a regular file" in err
+    deep = tmp_path / "vehicle.yaml"
+    deep.write_text(f"name: {_nested(3000)}\n")
+    path = write_scenario(tmp_path / "s.yaml", SCENARIO.replace("vehicle: {vehicle}",
+                                                                f"vehicle: {deep}"))
+    err = cli_error(capsys, "run-scenario", path, "--out", tmp_path / "out")
+    assert f"{deep}: not valid YAML: nested deeper" in err
+    vehicle = tmp_path / "v" / "vehicle.yaml"
+    vehicle.parent.mkdir()
+    text = VEHICLE.read_text()
+    for name in ("chassis", "suspension", "steering", "brakes", "powertrain"):
+        text = text.replace(f"{name}.yaml", str(VEHICLE.parent / f"{name}.yaml"))
+    vehicle.write_text(re_sub_front(text))
+    path = write_scenario(tmp_path / "s.yaml", SCENARIO.replace("vehicle: {vehicle}",
+                                                                f"vehicle: {vehicle}"))
+    err = cli_error(capsys, "run-scenario", path, "--out", tmp_path / "out")
+    assert f"{vehicle}: key 'tires.front': " in err and "no_such_tire.yaml" in err, err
+
+
+def re_sub_front(vehicle_text: str) -> str:
+    """The vehicle file with its front tire file replaced by a missing one."""
+    import re
+
+    return re.sub(r"front:\s*[^,}\s]+", "front: no_such_tire.yaml", vehicle_text)
+
+
+SERVER_CASES = {
+    "state-every-1.5": ({"state_every": 1.5}, (), "key 'state_every'"),
+    "viewer-port-99999": ({"viewer": "serve:99999"}, (), "key 'viewer'"),
+    "listen-port-99999": ({"listen": ["tcp/127.0.0.1:99999"]}, (), "key 'listen'"),
+    "listen-unknown-protocol": ({"listen": ["xyz/127.0.0.1:7447"]}, (), "key 'listen'"),
+    "listen-option": ({}, ("--listen", "tcp/127.0.0.1:99999"), "option '--listen'"),
+    "command-log-dot": ({"command_log": "."}, (), "key 'command_log'"),
+    "command-log-missing-folder": ({"command_log": "no/such/folder/log.jsonl"}, (),
+                                   "key 'command_log'"),
+    "missing-scene": ({"scene": "no_such_scene.yaml"}, (), "key 'scene'"),
+    "missing-zenoh-config": ({"zenoh_config": "no_such.json5"}, (), "key 'zenoh_config'"),
+}
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("case", list(SERVER_CASES))
+def test_fuzz_corpus_server_configs_exit_2_naming_file_and_key(tmp_path, capsys, case):
+    import yaml
+
+    changes, argv, needle = SERVER_CASES[case]
+    data = {"scene": str(FLAT_SCENE), "viewer": "off", **changes}
+    path = tmp_path / "server.yaml"
+    path.write_text(yaml.safe_dump(data))
+    err = cli_error(capsys, "serve", "--config", path, *argv)
+    assert needle in err, err
+    if not argv:
+        assert str(path) in err, err
+
+
+def _log_lines(*lines: str) -> str:
+    header = json.dumps({"simserver_command_log": 1, "scene": str(FLAT_SCENE),
+                         "dt_s": 0.001, "step": 0})
+    return "\n".join((header, *lines)) + "\n"
+
+
+STATE_HEX = json.dumps([0.0.hex()] * 37)
+REPLAY_CASES = {
+    "negative-end": (_log_lines(f'{{"end": -1, "state": {STATE_HEX}}}'), ":2: key 'end'"),
+    "huge-end": (_log_lines(f'{{"end": {10**15}, "state": {STATE_HEX}}}'), ":2: key 'end'"),
+    "non-hex-state": (_log_lines('{"end": 5, "state": ' + json.dumps(["zz"] * 37) + "}"),
+                      ":2: key 'state[0]'"),
+    "dt-zero": (_log_lines().replace('"dt_s": 0.001', '"dt_s": 0'), ":1: key 'dt_s'"),
+    "step-a-string": (_log_lines('{"step": "a", "inputs": [0, 0, 0, 0, 3]}'),
+                      ":2: key 'step'"),
+    "inputs-a-string": (_log_lines('{"step": 1, "inputs": "x"}'), ":2: key 'inputs'"),
+    "a-list-line": (_log_lines("[1, 2]"), ":2: expected a JSON object"),
+    "nan-inputs": (_log_lines('{"step": 0, "inputs": [NaN, 0, 0, 0, 3]}'), ":2: "),
+    "inputs-out-of-range": (_log_lines('{"step": 0, "inputs": [0, 7, 0, 0, 3]}'),
+                            ":2: key 'inputs.throttle'"),
+    "steps-going-back": (_log_lines('{"step": 5, "inputs": [0, 0, 0, 0, 3]}',
+                                    '{"step": 4, "reset": null}'), ":3: key 'step'"),
+    "set-road-wrong-type": (_log_lines('{"step": 0, "set_road": [1]}'), ":2: key 'set_road'"),
+    "no-header": ('{"step": 0}\n', "not a simserver command log"),
+}
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("case", list(REPLAY_CASES))
+def test_fuzz_corpus_malformed_command_logs_exit_2(tmp_path, capsys, case):
+    text, needle = REPLAY_CASES[case]
+    path = tmp_path / "log.jsonl"
+    path.write_text(text)
+    err = cli_error(capsys, "replay", path)
+    assert f"{path}" in err and needle in err, err
+
+
+@pytest.mark.timeout(60)
+def test_a_binary_command_log_exits_2(tmp_path, capsys):
+    path = tmp_path / "log.jsonl"
+    path.write_bytes(b"\x00\xff\xfe garbage \x80" * 100)
+    assert "not a simserver command log" in cli_error(capsys, "replay", path)
+
+
+@pytest.mark.timeout(60)
+def test_a_command_log_whose_scene_is_missing_names_the_line_and_the_key(tmp_path, capsys):
+    path = tmp_path / "log.jsonl"
+    path.write_text(_log_lines().replace(str(FLAT_SCENE), str(tmp_path / "gone.yaml")))
+    err = cli_error(capsys, "replay", path)
+    assert f"{path}:1: key 'scene': {tmp_path / 'gone.yaml'}: cannot read" in err, err

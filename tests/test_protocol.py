@@ -42,7 +42,7 @@ def test_default_keys():
     assert set(P.CONTROL_NAMES) == {
         "reset", "pause", "resume", "step", "set_road", "load", "get_config"
     }
-    assert k.ctl_wildcard == "simserver/car0/ctl/*"
+    assert k.ctl_wildcard == "simserver/car0/ctl/**"
 
 
 def test_custom_prefix_and_vehicle():
@@ -535,3 +535,38 @@ def test_doc_check_detects_drift(tmp_path):
     assert path.read_text(encoding="utf-8") == text
     with pytest.raises(ValueError, match="missing"):
         P.update_doc("no sections here")
+
+
+# ------------------------------------------------------------------ issue 14, item 7
+def test_a_key_given_twice_is_rejected_naming_it():
+    with raise_field("friction_scale"):
+        P.validate_control("set_road", b'{"friction_scale": 1e6, "friction_scale": 1.0}')
+    with raise_field("x_m"):
+        P.validate_control("reset", b'{"pose": {"x_m": 1, "x_m": 2, "y_m": 0, "yaw_rad": 0}}')
+
+
+def test_the_documented_yaw_bound_is_accepted_at_both_ends():
+    for yaw in (6.28319, -6.28319, 2 * math.pi):
+        args = P.validate_control("reset", json.dumps(
+            {"pose": {"x_m": 0, "y_m": 0, "yaw_rad": yaw}}).encode())
+        assert args["pose"]["yaw_rad"] == yaw
+    with raise_field("pose.yaw_rad"):
+        P.validate_control("reset", b'{"pose": {"x_m": 0, "y_m": 0, "yaw_rad": 6.2832}}')
+    assert "[-6.28319, 6.28319]" in P.controls_markdown()
+
+
+@pytest.mark.parametrize("key", ["k" * 60_000, "\ud800", "a\x00b\u2028"])
+def test_error_replies_never_echo_huge_keys_or_lone_surrogates(key):
+    try:
+        P.validate_control("pause", json.dumps({key: 1}).encode())
+    except P.ProtocolError as exc:
+        body = P.reply_error(exc)
+    else:
+        raise AssertionError("an unknown key was accepted")
+    assert len(body) < 1500
+    text = body.decode("utf-8", errors="strict")
+    assert "\\ud800" not in text.replace("\\\\ud800", "")  # no JSON surrogate escape
+    reply = json.loads(text)
+    reply["error"].encode("utf-8")  # strict: no lone surrogate
+    assert all(ch.isprintable() for ch in reply["error"] + reply["field"])
+    assert len(reply["field"]) <= P.MAX_REPLY_FIELD_CHARS

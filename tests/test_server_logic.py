@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from collections.abc import Callable
 
 import numpy as np
@@ -413,7 +414,9 @@ def test_get_config_reports_the_active_configuration(rig):
     config = reply["config"]
     assert set(config) == {"server", "vehicle", "scene", "road", "keys"}
     assert config["server"]["watchdog_s"] == 0.2 and config["server"]["period_s"] == 0.001
-    assert config["scene"]["path"] == str(FLAT)
+    # paths relative to the config folder holding them: no absolute server path is shown
+    assert config["scene"]["path"] == "scenes/flat_paper_sedan.yaml"
+    assert config["server"]["path"] == "server/default.yaml"
     assert config["road"]["grade_pct"] == 3.0
     assert config["vehicle"]["name"] == rig.slot.sim.scene.vehicle.name
     assert config["keys"] == {"cmd": "simserver/car0/cmd", "state": "simserver/car0/state",
@@ -433,8 +436,9 @@ def test_load_swaps_the_scene_resets_and_rebases_the_clock(rig, monkeypatch):
     monkeypatch.setattr(sim, "warm_up", slow_warm_up)
     # Relative paths are resolved against the server config's folder (configs/server).
     reply = rig.control("load", {"scene": "../scenes/hill_10pct_paper_sedan.yaml"})
-    assert reply == {"ok": True, "scene": str(HILL),
-                     "vehicle": str(sim.scene.vehicle.path)}
+    assert reply == {"ok": True, "scene": "scenes/hill_10pct_paper_sedan.yaml",
+                     "vehicle": "vehicles/paper_sedan/vehicle.yaml"}
+    assert sim.scene.vehicle.path == REPO_CONFIGS / "vehicles/paper_sedan/vehicle.yaml"
     assert sim.road["grade_pct"] == 10.0 and rig.slot.scene_path == HILL
     assert rig.slot.tick == 0 and sim.x[L.U_MPS] == 0.0
     # The stall was intended: no deadline skipped, nothing caught up but the tick due at
@@ -443,7 +447,8 @@ def test_load_swaps_the_scene_resets_and_rebases_the_clock(rig, monkeypatch):
     assert rig.loop.pacer.skipped_ticks == 0 and rig.loop.pacer.overruns == 2
     assert [int(s["flags"]) & CATCHUP for s in after] == [CATCHUP, 0, 0]
     assert [int(s["tick"]) for s in after] == [1, 2, 3]
-    assert rig.control("get_config")["config"]["scene"]["path"] == str(HILL)
+    assert rig.control("get_config")["config"]["scene"]["path"] == \
+        "scenes/hill_10pct_paper_sedan.yaml"
 
 
 def test_a_load_that_fails_changes_nothing(flat_scene, tmp_path):
@@ -452,10 +457,10 @@ def test_a_load_that_fails_changes_nothing(flat_scene, tmp_path):
     rig = Rig(flat_scene, config_dirs=[str(REPO_CONFIGS), str(tmp_path)])
     rig.run(5)
     cases = [
-        ({"scene": "/etc/simserver.yaml"}, "path", "outside the server's config directories"),
-        ({"scene": "scenes/no_such_scene.yaml"}, "path", "no such file"),
-        ({"vehicle": "vehicles/none.yml"}, "path", "no such file"),
-        ({"scene": str(bad)}, "load", f"load: {bad}: missing key 'vehicle'"),
+        ({"scene": "/etc/simserver.yaml"}, "scene", "outside the server's config directories"),
+        ({"scene": "scenes/no_such_scene.yaml"}, "scene", "no such file"),
+        ({"vehicle": "vehicles/none.yml"}, "vehicle", "no such file"),
+        ({"scene": str(bad)}, "scene", "scene: bad_scene.yaml: missing key 'vehicle'"),
         ({"scene": "scenes/flat.txt"}, "scene", "not a .yaml/.yml file"),
         ({}, "request", "give at least one of"),
     ]
@@ -464,6 +469,39 @@ def test_a_load_that_fails_changes_nothing(flat_scene, tmp_path):
         assert reply["ok"] is False and reply["field"] == field, reply
         assert text in reply["error"], reply
     assert rig.slot.scene_path == FLAT and rig.slot.tick == 5 + len(cases)
+    assert rig.slot.sim.scene is flat_scene
+
+
+def test_load_confines_nested_files_and_quotes_nothing_of_them(flat_scene, tmp_path):
+    """Issue 14 item 5: a scene inside the config folders whose ``vehicle`` (or a vehicle
+    whose subsystem or tire file) lies outside them, or is no regular file, is refused
+    without the file being read; no reply shows an absolute server path."""
+    inside = tmp_path / "configs"
+    inside.mkdir()
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    secret = outside / "secret.yaml"
+    secret.write_text("name: SECRET-LINE\n")
+    fifo = inside / "fifo.yaml"
+    os.mkfifo(fifo)
+    sedan = REPO_CONFIGS / "vehicles" / "paper_sedan"
+    vehicle = (sedan / "vehicle.yaml").read_text()
+    (inside / "vehicle_out.yaml").write_text(vehicle.replace("chassis.yaml", str(secret)))
+    for name, target in (("proc", "/proc/self/status"), ("out", str(secret)),
+                         ("fifo", "fifo.yaml"), ("nested", "vehicle_out.yaml")):
+        (inside / f"scene_{name}.yaml").write_text(f"vehicle: {target}\n")
+    rig = Rig(flat_scene, config_dirs=[str(inside)])
+    for name, text in (("proc", "key 'vehicle': refers to a file outside"),
+                       ("out", "key 'vehicle': refers to a file outside"),
+                       ("fifo", "key 'vehicle': " + "fifo.yaml: not a regular file"),
+                       ("nested", "key 'chassis': refers to a file outside")):
+        reply = rig.control("load", {"scene": str(inside / f"scene_{name}.yaml")})
+        assert reply["ok"] is False and reply["field"] == "scene", reply
+        assert text in reply["error"], reply
+        assert "SECRET" not in reply["error"] and "State:" not in reply["error"], reply
+        assert str(tmp_path) not in reply["error"] and str(REPO_CONFIGS) not in reply["error"]
+    reply = rig.control("load", {"scene": str(secret)})
+    assert reply["field"] == "scene" and str(tmp_path) not in reply["error"], reply
     assert rig.slot.sim.scene is flat_scene
 
 
@@ -620,7 +658,8 @@ def test_run_ticks_until_stopped_and_reports_the_stopped_line_fields(rig):
     assert list(final) == ["ticks", "steps_total", "uptime_s", "lateness_p50_us",
                            "lateness_p99_us", "lateness_max_us", "overruns",
                            "skipped_ticks", "late_ticks", "cmd_received", "cmd_rejected",
-                           "cmd_clamped", "cmd_stale", "state_published", "watchdog_trips"]
+                           "cmd_clamped", "cmd_stale", "state_published", "watchdog_trips",
+                          "nonfinite_stops"]
 
 
 def test_the_logic_needs_no_wall_clock(rig, monkeypatch):
@@ -642,3 +681,52 @@ def test_slots_keep_their_own_keys(flat_scene):
     slot = VehicleSlot(cfg, new_simulation(flat_scene, cfg.period_s))
     assert slot.keys.base == "lab1/simserver/cockpit-a"
 
+
+
+# ====================================================================== non-finite states
+MF_SCENE = REPO_CONFIGS / "scenes" / "flat_mf_hatchback.yaml"
+
+
+def test_a_non_finite_state_is_never_published_and_stops_the_car(caplog, tmp_path):
+    """Issue 14 item 3 live: a tire whose friction scale overflows (LMUX = 1e300, now
+    refused by the .tir check, so put in past it) made 3 001 of 3 002 published states NaN
+    and logged 1 000 lines a second. Now: checked before publishing, the car stopped at
+    rest at the scene's start and paused, flags bit 4 and ``nonfinite_stops``, one log line
+    per episode; a reset starts a new episode."""
+    from simserver.core.tire_layout import TP_MODEL_BASE
+    from simserver.core.tire_mf61 import P_LMUX
+
+    scene = load_scene(MF_SCENE)
+    log_path = tmp_path / "cmd.jsonl"
+    rig = Rig(scene, command_log=CommandLog(log_path, {"scene": str(MF_SCENE),
+                                                       "dt_s": 0.001, "step": 0}))
+    rig.slot.sim.tp[:, TP_MODEL_BASE + P_LMUX] = 1e300
+    caplog.set_level(logging.ERROR, logger="simserver.server")
+    for _ in range(300):
+        rig.send(throttle=1.0, gear=proto.Gear.D)
+        rig.run()
+    states = rig.out.states
+    assert len(states) == 300
+    for state in states:
+        for name in state.dtype.names:
+            assert np.isfinite(state[name]).all(), (int(state["tick"]), name)
+    faulted = [s for s in states if int(s["flags"]) & proto.StateFlag.FAULT]
+    assert faulted, "the overflowing tire never went non-finite: the test tests nothing"
+    first = faulted[0]
+    assert int(first["flags"]) & PAUSED and first["u_mps"] == 0.0 and first["x_m"] == 0.0
+    assert rig.slot.paused and rig.counters["nonfinite_stops"] == 1
+    assert all(int(s["flags"]) & proto.StateFlag.FAULT for s in states[len(states) -
+                                                                       len(faulted):])
+    errors = [r for r in caplog.records if "non-finite state" in r.getMessage()]
+    assert len(errors) == 1
+    # resumed into the same fault: stopped again, counted, not logged again
+    rig.control("resume")
+    rig.run(rig.loop.diag_every)  # up to the next diagnostics
+    assert rig.counters["nonfinite_stops"] == 2 and rig.slot.paused
+    assert len([r for r in caplog.records if "non-finite state" in r.getMessage()]) == 1
+    assert rig.loop.slots[0][1].publisher.diags[-1]["nonfinite_stops"] == 2
+    # a reset is a new episode: flag cleared
+    rig.slot.sim.tp[:, TP_MODEL_BASE + P_LMUX] = 1.0
+    rig.control("reset")
+    rig.control("resume")
+    assert not int(rig.run(5)["flags"]) & proto.StateFlag.FAULT

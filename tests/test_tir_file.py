@@ -297,6 +297,18 @@ def test_missing_fittyp(tmp_path: Path) -> None:
         ("LMUY", "LMUY = 0"),
         ("PCX1", "PCX1 = -1.5"),
         ("NOMPRES", "NOMPRES = -1"),
+        # issue 14: accepted before, and every state of a run with them was NaN
+        ("FNOMIN", "FNOMIN = 1e-320"),
+        ("NOMPRES", "NOMPRES = 1e-320"),
+        ("LMUX", "LMUX = 1e300"),
+        ("NOMPRES", "NOMPRES = 1e-300"),
+        ("FNOMIN", "FNOMIN = 1e-300"),
+        ("PDX1", "PDX1 = 1e300"),
+        ("QBZ1", "QBZ1 = 1e-310"),
+        ("UNLOADED_RADIUS", "UNLOADED_RADIUS = 1e5"),
+        ("LFZO", "LFZO = 1e-200"),
+        ("FZMAX", "FZMAX = 1e9"),
+        ("PKX3", "PKX3 = 500"),
     ],
 )
 def test_out_of_range_value(tmp_path: Path, key: str, line: str) -> None:
@@ -338,3 +350,16 @@ def test_string_for_coefficient_in_flat_view(tmp_path: Path) -> None:
 def test_the_shipped_sample_is_the_reference_file_unchanged():
     """The repository's copy is the third-party file byte for byte (loaded unchanged)."""
     assert SAMPLE_TIR.read_bytes() == SHARED_TIR.read_bytes()
+
+
+@pytest.mark.parametrize("line", ["FNOMIN = 1e-320", "NOMPRES = 1e-320", "LMUX = 1e300"])
+def test_a_tire_that_would_run_non_finite_is_refused_headless(tmp_path: Path, line: str):
+    """Issue 14 item 3 headless: such a .tir made `simserver run` produce NaN states."""
+    from simserver.adapters.config import ConfigError, load_tire
+
+    key = line.split()[0]
+    tir = _variant(tmp_path, "bad.tir", _replace_line(key, line))
+    tire = tmp_path / "tire.yaml"
+    tire.write_text(f"model: mf61\ntir_file: {tir.name}\n")
+    with pytest.raises(ConfigError, match=rf"{tire}: key 'tir_file': .*{key}"):
+        load_tire(tire)

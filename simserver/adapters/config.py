@@ -30,6 +30,7 @@ from simserver.adapters.validate import (  # re-exported: callers import them fr
     choice,
     number,
     read_yaml,
+    referenced_file,
 )
 from simserver.core import params as P
 from simserver.core.param_table import ParamTable, slot_constants_source, with_slot_constants
@@ -175,10 +176,7 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
     sources: dict[str, str] = {}
     for table in P.VEHICLE_SUBSYSTEMS:
         subsystem = table.name
-        ref = top[subsystem]
-        if not isinstance(ref, str):
-            raise ConfigError(f"{path}: key '{subsystem}': expected a file path")
-        sub_path = (path.parent / ref).resolve()
+        sub_path = referenced_file(path, subsystem, top[subsystem])
         sources[subsystem] = str(sub_path)
         pack_params(vp, table, read_params(sub_path, read_yaml(sub_path), table))
     if vp[P.VP_SPRUNG_MASS_KG] > vp[P.VP_MASS_KG]:
@@ -191,9 +189,7 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
     tp = np.zeros((4, N_TIRE_PARAM), dtype=np.float64)
     names = []
     for axle, rows in (("front", (0, 1)), ("rear", (2, 3))):
-        if not isinstance(tires[axle], str):
-            raise ConfigError(f"{path}: key 'tires.{axle}': expected a file path")
-        tire_path = (path.parent / tires[axle]).resolve()
+        tire_path = referenced_file(path, f"tires.{axle}", tires[axle])
         sources[f"tire_{axle}"] = str(tire_path)
         vec, model_name = load_tire(tire_path)
         for row in rows:

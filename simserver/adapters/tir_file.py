@@ -21,9 +21,11 @@ from __future__ import annotations
 
 import math
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from simserver.adapters.validate import ConfigError, read_config_bytes
 from simserver.core.tire_mf61 import MF61_PARAM_NAMES
 
 TirValue = float | str
@@ -152,9 +154,9 @@ def load_tir(path: str | Path) -> TirFile:
     """
     path = Path(path)
     try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise TirError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+        raw = read_config_bytes(path)  # a regular file of bounded size (docs/security.md)
+    except ConfigError as exc:
+        raise TirError(str(exc)) from None
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:
@@ -259,6 +261,8 @@ MF61_REQUIRED = (
     "QBZ1", "QCZ1", "QDZ1",
 )  # fmt: skip
 
+MF61_MAX_SCALING = 100.0
+"""Largest scaling factor (``L*``): they scale a fitted tire, 1 is neutral."""
 _SCALING = tuple(name for name in MF61_PARAM_NAMES if name.startswith("L") and name != "LONGVL")
 
 #: Defaults of optional keys other than 0 (every other optional key defaults to 0:
@@ -272,6 +276,28 @@ MF61_DEFAULTS: dict[str, float] = {
 }
 
 _POSITIVE = ("FNOMIN", "UNLOADED_RADIUS", "LFZO", "LMUX", "LMUY", "PCX1", "PCY1", "PKY2")
+
+#: Physical ranges, inclusive, of the coefficients that have one (SI units): wide enough
+#: for any real tire, narrow enough that the model stays finite (issue 14: FNOMIN = 1e-320
+#: or LMUX = 1e300 made every state NaN). The nominal load and radius as the simple tire's
+#: (``adapters/config.py``); pressures are 0 (pressure model off) or a tire's pressure.
+MF61_RANGES: dict[str, tuple[float, float]] = {
+    "FNOMIN": (10.0, 1e6),
+    "UNLOADED_RADIUS": (0.05, 2.0),
+    "LONGVL": (0.1, 1000.0),
+    "FZMIN": (0.0, 1e7),
+    "FZMAX": (0.0, 1e7),
+    **{name: (0.0, MF61_MAX_SCALING) for name in _SCALING},
+    "LFZO": (0.1, 10.0),  # the rated load scaled: F'z0 = LFZO FNOMIN (4.E1)
+}
+MF61_PRESSURE_RANGE_PA = (1e3, 1e8)
+"""``NOMPRES`` and ``INFLPRES`` when not 0: 10 mbar to 1000 bar."""
+MF61_MAX_ABS = 1e4
+"""Largest magnitude of every other coefficient (the shape, peak, stiffness, curvature and
+shift coefficients of real files are below 200)."""
+MF61_MAX_EXPONENT = 700.0
+"""Largest argument of ``exp`` and ``log`` of ``pow`` over the clamped load range (e^709 is
+the largest double): bounds ``PKX3 dfz`` (4.E15) and ``QSY7 ln(Fz / FNOMIN)`` (4.E70)."""
 
 
 def mf61_coefficients(tir: TirFile) -> dict[str, float]:
@@ -298,7 +324,9 @@ def mf61_coefficients(tir: TirFile) -> dict[str, float]:
         named); a coefficient that is a string or ambiguous across sections; ``LONGVL``
         absent while ``QSY3`` or ``QSY4`` is non-zero; a value out of its valid range
         (non-positive load, radius, friction scale, shape factor or ``PKY2``;
-        ``FZMAX <= FZMIN``; negative pressure).
+        ``FZMAX <= FZMIN``; negative pressure); a subnormal coefficient or one outside
+        its physical range (:data:`MF61_RANGES`, :data:`MF61_MAX_ABS`); ``PKX3`` or
+        ``QSY7`` overflowing over the load range (:data:`MF61_MAX_EXPONENT`).
     """
     values = tir.values
 
@@ -338,6 +366,7 @@ def mf61_coefficients(tir: TirFile) -> dict[str, float]:
     if number("LONGVL") is None and (coeffs["QSY3"] != 0.0 or coeffs["QSY4"] != 0.0):
         raise TirError(f"{tir.path}: missing key LONGVL (needed by QSY3 / QSY4)")
 
+    _check_ranges(tir, coeffs)
     for key in _POSITIVE:
         if not coeffs[key] > 0.0:
             raise TirError(f"{tir.where(key)}: {key} = {coeffs[key]:g}: must be > 0")
@@ -353,4 +382,41 @@ def mf61_coefficients(tir: TirFile) -> dict[str, float]:
             raise TirError(f"{tir.where(key)}: {key} = {coeffs[key]:g}: must be >= 0")
     if coeffs["NOMPRES"] > 0.0 and coeffs["INFLPRES"] <= 0.0:
         raise TirError(f"{tir.where('INFLPRES')}: INFLPRES must be > 0 when NOMPRES is given")
+    if coeffs["FZMAX"] > 100.0 * fnomin:
+        raise TirError(f"{tir.where('FZMAX')}: FZMAX = {coeffs['FZMAX']:g}: must be at most "
+                       "100 FNOMIN")
+    _check_exponents(tir, coeffs)
     return coeffs
+
+
+def _check_ranges(tir: TirFile, coeffs: dict[str, float]) -> None:
+    """Every coefficient normal (or 0) and within its range (:data:`MF61_RANGES`)."""
+    for key, value in coeffs.items():
+        if value != 0.0 and abs(value) < sys.float_info.min:
+            raise TirError(f"{tir.where(key)}: {key} = {value:g}: subnormal (use 0 or a "
+                           "normal number)")
+        if key in ("NOMPRES", "INFLPRES"):
+            lo, hi = MF61_PRESSURE_RANGE_PA
+            if value != 0.0 and not lo <= value <= hi:
+                raise TirError(f"{tir.where(key)}: {key} = {value:g}: must be 0 or in "
+                               f"[{lo:g}, {hi:g}] Pa")
+            continue
+        lo, hi = MF61_RANGES.get(key, (-MF61_MAX_ABS, MF61_MAX_ABS))
+        if not lo <= value <= hi:
+            raise TirError(f"{tir.where(key)}: {key} = {value:g}: outside [{lo:g}, {hi:g}]")
+
+
+def _check_exponents(tir: TirFile, coeffs: dict[str, float]) -> None:
+    """``exp(PKX3 dfz)`` and ``(Fz / FNOMIN)^QSY7`` finite over the loads the kernel uses
+    (``Fz`` clamped to ``[max(FZMIN, 0.01 FNOMIN), FZMAX]``, ``core/tire_mf61.py``)."""
+    fnomin = coeffs["FNOMIN"]
+    fz0 = fnomin * coeffs["LFZO"]
+    fz_lo = max(coeffs["FZMIN"], 0.01 * fnomin)
+    fz_hi = max(coeffs["FZMAX"], fz_lo)
+    for key, args in (("PKX3", [(fz - fz0) / fz0 for fz in (fz_lo, fz_hi)]),
+                      ("QSY7", [math.log(fz / fnomin) for fz in (fz_lo, fz_hi)])):
+        worst = max(abs(coeffs[key] * a) for a in args)
+        if worst > MF61_MAX_EXPONENT:
+            raise TirError(f"{tir.where(key)}: {key} = {coeffs[key]:g}: overflows over the "
+                           f"load range FZMIN..FZMAX (exponent {worst:.3g} > "
+                           f"{MF61_MAX_EXPONENT:g})")
