@@ -444,8 +444,10 @@ def _check_log_entry(where: str, entry: Any, last_step: int) -> int:
             raise ConfigError(f"{where}: key 'end': expected an integer step in "
                               f"[{last_step}, {MAX_REPLAY_STEPS}], got {short_repr(end)}")
         state = entry["state"]
-        if not isinstance(state, list) or len(state) != L.N_STATE:
-            raise ConfigError(f"{where}: key 'state': expected {L.N_STATE} hex floats")
+        # a log of the first release holds its shorter layout, a prefix of this one
+        if not isinstance(state, list) or len(state) not in (L.N_STATE_V1, L.N_STATE):
+            raise ConfigError(f"{where}: key 'state': expected {L.N_STATE} (or, from the "
+                              f"first release, {L.N_STATE_V1}) hex floats")
         for k, v in enumerate(state):
             try:
                 if not isinstance(v, str):

@@ -281,3 +281,19 @@ def test_load_another_scene_and_vehicle():
     finally:
         client.close()
         server.stop()
+
+
+def test_a_first_release_log_still_replays_bit_for_bit(monkeypatch):
+    """A log the first release's live server wrote (player-driven: a ``load`` of E4, a
+    ``reset``, E5 uphill; scene paths made relative to the repository): its ``end`` state
+    has that release's 37 slots, the prefix of today's layout, and replaying it today gives
+    those 37 values bit for bit (the redesign changed no arithmetic)."""
+    from simserver.core import layout as L
+    from simserver.server import replay_command_log
+
+    monkeypatch.chdir(REPO)
+    rep = replay_command_log(REPO / "tests" / "data" / "first_release_live.cmdlog")
+    assert rep.logged_final_state.size == L.N_STATE_V1 < L.N_STATE
+    assert rep.steps == 9171
+    assert np.array_equal(rep.final_state[:L.N_STATE_V1], rep.logged_final_state)
+    assert rep.final_state_matches
