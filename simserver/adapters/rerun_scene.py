@@ -78,8 +78,8 @@ from simserver.core.params import (
     VP_CG_TO_REAR_AXLE_M,
     VP_TRACK_FRONT_M,
     VP_TRACK_REAR_M,
-    road_axes,
 )
+from simserver.core.road import road_axes
 from simserver.core.tire_layout import TP_RADIUS_M
 
 if TYPE_CHECKING:  # scenario imports the compiled core at run time only where needed
