@@ -417,10 +417,12 @@ def test_recorder_road_frame_inverts_the_servers_world_pose():
             x[L.YAW_RAD] = rng.uniform(-20, 20)
             x[L.PITCH_RAD], x[L.ROLL_RAD] = rng.uniform(-0.1, 0.1, 2)
             x[L.HEAVE_M] = rng.uniform(-0.05, 0.05)
-            pose = np.zeros(6)
+            pose = np.zeros(L.N_POSE)
             world_pose(x, axes, h_cg, pose)
-            got = recorder.world_to_road(pose[None, :3], pose[3:4], pose[4:5], pose[5:6],
-                                         np.array([grade]), np.array([cross]))
+            got = recorder.world_to_road(pose[None, [L.POSE_X_M, L.POSE_Y_M, L.POSE_Z_M]],
+                                         pose[[L.POSE_YAW_RAD]], pose[[L.POSE_PITCH_RAD]],
+                                         pose[[L.POSE_ROLL_RAD]], np.array([grade]),
+                                         np.array([cross]))
             assert got["x_m"][0] == pytest.approx(x[L.X_M], abs=1e-9)
             assert got["y_m"][0] == pytest.approx(x[L.Y_M], abs=1e-9)
             assert got["cg_above_road_m"][0] == pytest.approx(h_cg + x[L.HEAVE_M], abs=1e-9)
