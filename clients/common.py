@@ -62,6 +62,24 @@ class ClientError(Exception):
         self.code = code
 
 
+COMMAND_RATE_RANGE_HZ = (10.0, 1000.0)
+"""The command rates a sending client accepts (``--rate``)."""
+
+
+def add_rate_arg(parser: argparse.ArgumentParser, default_hz: float) -> None:
+    """Add ``--rate HZ``, the command rate (checked by :func:`check_rate`)."""
+    lo, hi = COMMAND_RATE_RANGE_HZ
+    parser.add_argument("--rate", metavar="HZ", type=float, default=default_hz,
+                        help=f"command rate (default {default_hz:g} Hz; {lo:g} to {hi:g})")
+
+
+def check_rate(rate_hz: float) -> None:
+    """Raise :class:`ClientError` unless ``rate_hz`` is within ``COMMAND_RATE_RANGE_HZ``."""
+    lo, hi = COMMAND_RATE_RANGE_HZ
+    if not lo <= rate_hz <= hi:
+        raise ClientError(f"--rate {rate_hz:g}: expected {lo:g} to {hi:g} Hz")
+
+
 def add_connection_args(parser: argparse.ArgumentParser) -> None:
     """Add ``--connect``, ``--zenoh-config``, ``--prefix``, ``--vehicle-id``, ``--wait``.
 
@@ -210,6 +228,14 @@ def run_main(prog: str, body: Callable[[], int]) -> int:
     except ClientError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr, flush=True)
         return exc.code
+
+
+def client_main(prog: str, build_parser: Callable[[], argparse.ArgumentParser],
+                run: Callable[[argparse.Namespace], int], argv: Sequence[str] | None) -> int:
+    """A client's entry point: parse ``argv`` (default ``sys.argv[1:]``) with the parser
+    ``build_parser`` makes, then :func:`run_main` ``run(args)``; the exit code."""
+    args = build_parser().parse_args(argv)
+    return run_main(prog, lambda: run(args))
 
 
 class StopFlag:

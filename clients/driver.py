@@ -58,9 +58,11 @@ from clients.common import (
     ServerPresence,
     StopFlag,
     add_connection_args,
+    add_rate_arg,
+    check_rate,
+    client_main,
     connect,
     gear_name,
-    run_main,
 )
 from clients.joystick import (
     ButtonEdges,
@@ -554,8 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="input profile YAML (default configs/clients/keyboard.yaml, or "
                         "configs/clients/gamepad.yaml with --input joystick; "
                         "configs/clients/wheel.yaml for a wheel)")
-    parser.add_argument("--rate", metavar="HZ", type=float, default=DEFAULT_RATE_HZ,
-                        help=f"command rate (default {DEFAULT_RATE_HZ:g} Hz; 10 to 1000)")
+    add_rate_arg(parser, DEFAULT_RATE_HZ)
     parser.add_argument("--gear", choices=tuple(g.name for g in proto.Gear), default="D",
                         help="gear at start (default D)")
     parser.add_argument("--list-joysticks", action="store_true",
@@ -621,8 +622,7 @@ def _probe(args: argparse.Namespace, stop: StopFlag) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    if not 10.0 <= args.rate <= 1000.0:
-        raise ClientError(f"--rate {args.rate:g}: expected 10 to 1000 Hz")
+    check_rate(args.rate)
     if args.virtual_joystick:
         args.input = "joystick"
     with StopFlag() as stop:
@@ -676,8 +676,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``simserver-driver``; returns the exit code."""
-    args = build_parser().parse_args(argv)
-    return run_main(PROG, lambda: _run(args))
+    return client_main(PROG, build_parser, _run, argv)
 
 
 if __name__ == "__main__":

@@ -46,9 +46,11 @@ from clients.common import (
     ServerPresence,
     StopFlag,
     add_connection_args,
+    add_rate_arg,
+    check_rate,
+    client_main,
     connect,
     gear_name,
-    run_main,
 )
 from simserver import protocol as proto
 from simserver.adapters.validate import ConfigError
@@ -253,8 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
         "3 no server answered.",
     )
     parser.add_argument("scenario", type=Path, help="scenario YAML")
-    parser.add_argument("--rate", metavar="HZ", type=float, default=DEFAULT_RATE_HZ,
-                        help=f"command rate (default {DEFAULT_RATE_HZ:g} Hz; 10 to 1000)")
+    add_rate_arg(parser, DEFAULT_RATE_HZ)
     parser.add_argument("--duration", metavar="S", type=float, default=None,
                         help="play this long (default the scenario's duration_s)")
     parser.add_argument("--load", action="store_true",
@@ -278,8 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(args: argparse.Namespace) -> int:
-    if not 10.0 <= args.rate <= 1000.0:
-        raise ClientError(f"--rate {args.rate:g}: expected 10 to 1000 Hz")
+    check_rate(args.rate)
     if args.duration is not None and not 0.0 < args.duration <= 1e6:
         raise ClientError(f"--duration {args.duration:g}: expected a positive number of s")
     if not 0.0 <= args.preroll <= 10.0:
@@ -304,8 +304,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``simserver-player``; returns the exit code."""
-    args = build_parser().parse_args(argv)
-    return run_main(PROG, lambda: _run(args))
+    return client_main(PROG, build_parser, _run, argv)
 
 
 if __name__ == "__main__":

@@ -77,8 +77,8 @@ from clients.common import (
     ServerPresence,
     StopFlag,
     add_connection_args,
+    client_main,
     connect,
-    run_main,
 )
 from simserver import protocol as proto
 
@@ -720,8 +720,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``simserver-recorder``; returns the exit code."""
-    args = build_parser().parse_args(argv)
-    return run_main(PROG, lambda: _run(args))
+    return client_main(PROG, build_parser, _run, argv)
 
 
 if __name__ == "__main__":

@@ -150,6 +150,26 @@ class KeyframeFile:
     keyframes: list[dict[str, Any]]
 
 
+def read_keyframe_file(path: Path | str, data: Mapping[str, Any]) -> KeyframeFile:
+    """Validate the ``name``, ``duration_s`` and ``inputs`` of a scenario file's contents
+    ``data`` (the player and the headless runner both read them this way).
+
+    Raises
+    ------
+    ConfigError
+        Naming the file and the key.
+    """
+    for key in ("name", "duration_s", "inputs"):
+        if key not in data:
+            raise ConfigError(f"{path}: missing key '{key}'")
+    name = data["name"]
+    if not isinstance(name, str) or not name:
+        raise ConfigError(f"{path}: key 'name': expected a non-empty string")
+    duration = number(path, "duration_s", data["duration_s"], 0.001, MAX_DURATION_S)
+    return KeyframeFile(name=name, duration_s=duration,
+                        keyframes=parse_keyframes(path, data["inputs"]))
+
+
 def load_keyframe_file(path: str | Path) -> KeyframeFile:
     """Read a scenario file's ``name``, ``duration_s`` and ``inputs``.
 
@@ -162,13 +182,4 @@ def load_keyframe_file(path: str | Path) -> KeyframeFile:
         Naming the file and the key.
     """
     path = Path(path)
-    data = read_yaml(path)
-    for key in ("name", "duration_s", "inputs"):
-        if key not in data:
-            raise ConfigError(f"{path}: missing key '{key}'")
-    name = data["name"]
-    if not isinstance(name, str) or not name:
-        raise ConfigError(f"{path}: key 'name': expected a non-empty string")
-    duration = number(path, "duration_s", data["duration_s"], 0.001, MAX_DURATION_S)
-    return KeyframeFile(name=name, duration_s=duration,
-                        keyframes=parse_keyframes(path, data["inputs"]))
+    return read_keyframe_file(path, read_yaml(path))

@@ -16,11 +16,9 @@ Scenario YAML (paths relative to the scenario file)::
       - {t: 1.0, brake: 0.0}
       - {t: 1.3, brake: 0.6}
 
-Each channel (``steer``, ``throttle``, ``brake``, ``parking_brake``, ``gear``) is defined
-by the keyframes that name it: ``steer``, ``throttle`` and ``brake`` are linear between
-them, ``parking_brake`` (0/1 or true/false) and ``gear`` (P, R, N, D) switch at the
-keyframe's time. Before a channel's first keyframe it holds its initial value (0, and
-gear ``D``), after its last keyframe it holds the last value.
+The channels are ``steer``, ``throttle``, ``brake``, ``parking_brake`` (0/1 or true/false)
+and ``gear`` (P, R, N, D); how each is sampled between, before and after the keyframes that
+name it is defined in :mod:`simserver.keyframes`, which the player client shares.
 """
 
 from __future__ import annotations
@@ -43,7 +41,7 @@ from simserver.adapters.config import (
 )
 from simserver.adapters.validate import integer, referenced_file
 from simserver.core import layout as L
-from simserver.keyframes import MAX_DURATION_S, input_table, parse_keyframes
+from simserver.keyframes import input_table, read_keyframe_file
 from simserver.simulation import Simulation
 
 ROAD_RANGES = {"grade_pct": (-100.0, 100.0), "cross_slope_pct": (-100.0, 100.0),
@@ -183,17 +181,14 @@ def load_scenario(path: str | Path) -> Scenario:
     allowed = ("name", "description", *SCENE_KEYS, *SCENARIO_ONLY_KEYS)
     check_keys(path, data, allowed, required=("name", "vehicle", "duration_s", "inputs"))
     scene = parse_scene(path, data)
-    duration = number(path, "duration_s", data["duration_s"], 0.001, MAX_DURATION_S)
+    run = read_keyframe_file(path, data)
     dt = number(path, "dt_s", data.get("dt_s", 0.001), 1e-5, 0.01)
     record_every = integer(path, "record_every", data.get("record_every", 1), 1, 1_000_000)
-    check_run_size(path, duration, dt, record_every)
-    name = data["name"]
-    if not isinstance(name, str) or not name:
-        raise ConfigError(f"{path}: key 'name': expected a non-empty string")
+    check_run_size(path, run.duration_s, dt, record_every)
     return Scenario(
-        name=name, path=path, description=str(data.get("description", "")), scene=scene,
-        duration_s=duration, dt_s=dt, record_every=record_every,
-        keyframes=parse_keyframes(path, data["inputs"]),
+        name=run.name, path=path, description=str(data.get("description", "")), scene=scene,
+        duration_s=run.duration_s, dt_s=dt, record_every=record_every,
+        keyframes=run.keyframes,
     )
 
 

@@ -87,27 +87,30 @@ def rows_from_state(rec: np.ndarray, axes: np.ndarray, cg_height_m: float,
     """Fill core-layout rows from one decoded VehicleState (missing quantities = NaN)."""
     from simserver.core.pose import road_pose
 
-    pose = np.array([rec["x_m"], rec["y_m"], rec["z_m"], rec["yaw_rad"], rec["pitch_rad"],
-                     rec["roll_rad"]], dtype=np.float64)
+    pose = np.empty(L.N_POSE)
+    pose[L.POSE_X_M], pose[L.POSE_Y_M], pose[L.POSE_Z_M] = rec["x_m"], rec["y_m"], rec["z_m"]
+    pose[L.POSE_YAW_RAD] = rec["yaw_rad"]
+    pose[L.POSE_PITCH_RAD] = rec["pitch_rad"]
+    pose[L.POSE_ROLL_RAD] = rec["roll_rad"]
     road_pose(pose, axes, cg_height_m, x)
     x[L.U_MPS] = rec["u_mps"]
     x[L.V_MPS] = rec["v_mps"]
     x[L.YAW_RATE_RADPS] = rec["yaw_rate_radps"]
-    x[L.OMEGA0:L.OMEGA0 + 4] = rec["omega_radps"]
-    x[L.KAPPA0:L.KAPPA0 + 4] = rec["kappa_lag"]
-    x[L.TAN_ALPHA0:L.TAN_ALPHA0 + 4] = rec["tan_alpha_lag"]
-    x[L.DAMPING_ACTIVE0:L.DAMPING_ACTIVE0 + 4] = rec["damping_active"]
-    x[L.WHEEL_HELD0:L.WHEEL_HELD0 + 4] = rec["brake_held"]
+    x[L.OMEGA] = rec["omega_radps"]
+    x[L.KAPPA] = rec["kappa_lag"]
+    x[L.TAN_ALPHA] = rec["tan_alpha_lag"]
+    x[L.DAMPING_ACTIVE] = rec["damping_active"]
+    x[L.WHEEL_HELD] = rec["brake_held"]
     x[L.TIME_S] = rec["sim_time_s"]
     out[:] = np.nan
     out[L.O_AX_MPS2] = rec["ax_mps2"]
     out[L.O_AY_MPS2] = rec["ay_mps2"]
-    out[L.O_FX0:L.O_FX0 + 4] = rec["fx_n"]
-    out[L.O_FY0:L.O_FY0 + 4] = rec["fy_n"]
-    out[L.O_FZ0:L.O_FZ0 + 4] = rec["fz_n"]
-    out[L.O_STEER0:L.O_STEER0 + 4] = rec["steer_rad"]
-    out[L.O_KAPPA0:L.O_KAPPA0 + 4] = rec["kappa_lag"]
-    out[L.O_TAN_ALPHA0:L.O_TAN_ALPHA0 + 4] = rec["tan_alpha_lag"]
+    out[L.O_FX] = rec["fx_n"]
+    out[L.O_FY] = rec["fy_n"]
+    out[L.O_FZ] = rec["fz_n"]
+    out[L.O_STEER] = rec["steer_rad"]
+    out[L.O_KAPPA] = rec["kappa_lag"]
+    out[L.O_TAN_ALPHA] = rec["tan_alpha_lag"]
     inputs[L.IN_STEER] = rec["steer"]
     inputs[L.IN_THROTTLE] = rec["throttle"]
     inputs[L.IN_BRAKE] = rec["brake"]

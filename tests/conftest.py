@@ -17,10 +17,21 @@ from simserver.testing import CONFIGS, REPO, ServerProcess
 
 SAMPLE_TIR = CONFIGS / "tires" / "data" / "mf61_225_50R17_sample.tir"
 """The MF 6.1 sample property file, as shipped with the repository (the one the
-``mf61_sample`` tire uses): a byte-for-byte copy of the team's reference file
-``SHARED_TIR`` (``tests/test_tir_file.py`` checks it where that exists), so that a clone
-on any machine tests the same file."""
-SHARED_TIR = REPO.parent / "shared" / "data" / "tires" / "mf61_225_50R17_sample.tir"
+``mf61_sample`` tire uses); ``tests/test_tir_file.py`` checks it is the third-party file
+unchanged."""
+
+
+def mf61_sample_coefficients(variant: bool = False) -> dict[str, float]:
+    """The MF 6.1 coefficients of ``SAMPLE_TIR``, or with ``variant`` a set that takes the
+    kernel's other branches: off-nominal pressure (dpi != 0, (p/p0)^QSY8), PKY5 != 0 (K_ya at
+    gamma = 0 computed apart), LFZO != 1, a wider Fz range."""
+    from simserver.adapters.tir_file import load_tir, mf61_coefficients
+
+    c = mf61_coefficients(load_tir(SAMPLE_TIR))
+    if not variant:
+        return c
+    return dict(c, INFLPRES=1.15 * c["NOMPRES"], PKY5=0.4, LFZO=1.1, FZMIN=0.0,
+                FZMAX=3.0 * c["FNOMIN"])
 
 
 def slow_enabled(markexpr: str | None) -> bool:

@@ -31,6 +31,7 @@ from simserver.testing import (
     CONFIGS,
     REPO,
     Client,
+    OutputProcess,
     ServerProcess,
     client_command,
     client_env,
@@ -226,12 +227,11 @@ def test_recorder_metadata_per_segment_after_a_load_and_a_reset(tmp_path):
     server = ServerProcess(vehicle_id="rec", scene="flat_paper_sedan")
     watcher = _watcher(server)
     out = tmp_path / "rec"
-    rec = subprocess.Popen(client_command("recorder", "--out", str(out), "--quiet",
-                                          *server.client_args()),
-                           cwd=REPO, env=client_env(), stdout=subprocess.PIPE,
-                           stderr=subprocess.PIPE, text=True)
+    rec = OutputProcess(client_command("recorder", "--out", str(out), "--quiet",
+                                       *server.client_args()),
+                        ready="recording", env=client_env())
     try:
-        assert "recording" in rec.stdout.readline()
+        assert rec.wait_ready(30.0), rec.text()
 
         def run_a_while(what: str) -> None:  # 0.3 s of simulated time in this segment
             watcher.history.clear()
@@ -243,14 +243,11 @@ def test_recorder_metadata_per_segment_after_a_load_and_a_reset(tmp_path):
         run_a_while("the hill segment")
         assert watcher.request("reset", timeout_s=5.0)["ok"]
         run_a_while("the segment after the reset")
-        rec.terminate()
-        stdout, stderr = rec.communicate(timeout=60)
+        assert rec.stop(timeout_s=60.0) == 0, rec.text()
     finally:
-        if rec.poll() is None:
-            rec.kill()
+        rec.kill()
         watcher.close()
         server.stop()
-    assert rec.returncode == 0, stdout + stderr
     history = read_history(out)
     segments = read_segments(out / HISTORY_FILE)
     print(f"\nsegments: {segments}")

@@ -22,6 +22,7 @@ import importlib.util
 import math
 import os
 import pty
+import signal
 import struct
 import subprocess
 import termios
@@ -42,6 +43,7 @@ from simserver.testing import (
     CONFIGS,
     REPO,
     Client,
+    OutputProcess,
     ServerProcess,
     client_command,
     client_env,
@@ -415,10 +417,12 @@ def test_recorder_road_frame_inverts_the_servers_world_pose():
             x[L.YAW_RAD] = rng.uniform(-20, 20)
             x[L.PITCH_RAD], x[L.ROLL_RAD] = rng.uniform(-0.1, 0.1, 2)
             x[L.HEAVE_M] = rng.uniform(-0.05, 0.05)
-            pose = np.zeros(6)
+            pose = np.zeros(L.N_POSE)
             world_pose(x, axes, h_cg, pose)
-            got = recorder.world_to_road(pose[None, :3], pose[3:4], pose[4:5], pose[5:6],
-                                         np.array([grade]), np.array([cross]))
+            got = recorder.world_to_road(pose[None, [L.POSE_X_M, L.POSE_Y_M, L.POSE_Z_M]],
+                                         pose[[L.POSE_YAW_RAD]], pose[[L.POSE_PITCH_RAD]],
+                                         pose[[L.POSE_ROLL_RAD]], np.array([grade]),
+                                         np.array([cross]))
             assert got["x_m"][0] == pytest.approx(x[L.X_M], abs=1e-9)
             assert got["y_m"][0] == pytest.approx(x[L.Y_M], abs=1e-9)
             assert got["cg_above_road_m"][0] == pytest.approx(h_cg + x[L.HEAVE_M], abs=1e-9)
@@ -448,26 +452,23 @@ def test_every_client_without_a_server_exits_3_quickly_with_a_clear_message(tmp_
     t0 = time.monotonic()
     driver = PtyProcess(client_command("driver", *args))
     others = {
-        "player": subprocess.Popen(client_command("player", str(E2), "--load", *args),
-                                   cwd=REPO, env=client_env(), stdout=subprocess.PIPE,
-                                   stderr=subprocess.PIPE, text=True),
-        "recorder": subprocess.Popen(client_command("recorder", "--out", str(tmp_path / "r"),
-                                                    *args), cwd=REPO, env=client_env(),
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True),
+        "player": OutputProcess(client_command("player", str(E2), "--load", *args),
+                                env=client_env()),
+        "recorder": OutputProcess(client_command("recorder", "--out", str(tmp_path / "r"),
+                                                 *args), env=client_env()),
     }
     try:
         assert driver.wait(20) == EXIT_NO_SERVER
         assert "no simserver answers for simserver/nobody" in driver.text()
         for name, proc in others.items():
-            out, err = proc.communicate(timeout=20)
-            assert proc.returncode == EXIT_NO_SERVER, (name, out, err)
-            assert "error: no simserver answers for simserver/nobody at tcp/127.0.0.1:" in err
-            assert "Traceback" not in err
+            assert proc.wait(20.0) == EXIT_NO_SERVER, (name, proc.text())
+            assert "error: no simserver answers for simserver/nobody at tcp/127.0.0.1:" in \
+                proc.text()
+            assert "Traceback" not in proc.text()
     finally:
         driver.close()
         for proc in others.values():
-            if proc.poll() is None:
-                proc.kill()
+            proc.kill()
     elapsed = time.monotonic() - t0
     assert elapsed < 20.0  # 2 s of --wait plus start-up, all three at once: 4 s when idle
     assert not (tmp_path / "r").exists()
@@ -525,13 +526,12 @@ def test_player_and_recorder_reproduce_the_headless_e2_stop(tmp_path):
 
     server = ServerProcess(vehicle_id="e2", scene="flat_paper_sedan")
     out = tmp_path / "rec"
-    rec = subprocess.Popen(client_command("recorder", "--out", str(out), "--quiet",
-                                          *server.client_args()),
-                           cwd=REPO, env=client_env(), stdout=subprocess.PIPE,
-                           stderr=subprocess.PIPE, text=True)
+    rec = OutputProcess(client_command("recorder", "--out", str(out), "--quiet",
+                                       *server.client_args()), ready="recording",
+                        env=client_env())
     try:
-        line = rec.stdout.readline()
-        assert "recording simserver/e2" in line, line + rec.stderr.read()
+        assert rec.wait_ready(30.0), rec.text()
+        assert "recording simserver/e2" in rec.ready_line, rec.text()
         duration = 6.0
         play = subprocess.run(client_command("player", str(E2), "--load", "--duration",
                                              str(duration), *server.client_args()),
@@ -539,14 +539,13 @@ def test_player_and_recorder_reproduce_the_headless_e2_stop(tmp_path):
                               timeout=60)
         assert play.returncode == 0, play.stdout + play.stderr
         assert "loaded" in play.stdout and "done: " in play.stdout
-        rec.send_signal(2)  # Ctrl-C: the recorder writes what it received and exits 0
-        rec_out, rec_err = rec.communicate(timeout=30)
-        assert rec.returncode == 0, rec_out + rec_err
-        assert "stopped by SIGINT" in rec_out, rec_out
+        # Ctrl-C: the recorder writes what it received and exits 0
+        assert rec.stop(signal.SIGINT, timeout_s=30.0) == 0, rec.text()
+        assert "stopped by SIGINT" in rec.text(), rec.text()
     finally:
-        if rec.poll() is None:
-            rec.kill()
+        rec.kill()
         server.stop()
+    rec_out = rec.text()
 
     live = read_history(out)  # the headless reader reads the recorder's file
     last = live["segment"] == live["segment"].max()  # since the player's load
@@ -719,14 +718,13 @@ def test_recorder_row_groups_rrd_and_a_clean_sigterm(flat_server, tmp_path):
     from simserver.adapters.history import read_history
 
     out = tmp_path / "rec"
-    proc = subprocess.Popen(client_command("recorder", "--out", str(out), "--rrd",
-                                           str(out / "run.rrd"), "--flush-rows", "500",
-                                           "--quiet", *flat_server.client_args()),
-                            cwd=REPO, env=client_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    proc = OutputProcess(client_command("recorder", "--out", str(out), "--rrd",
+                                        str(out / "run.rrd"), "--flush-rows", "500",
+                                        "--quiet", *flat_server.client_args()),
+                         env=client_env())
     try:
-        line = proc.stdout.readline()
-        assert "run.rrd" in line, line + proc.stderr.read()
+        assert proc.wait_ready(30.0), proc.text()
+        assert "run.rrd" in proc.ready_line, proc.text()
         with Client(flat_server) as watcher:  # 2 s of states to record
             start = int(watcher.fresh_state()["tick"])
             watcher.wait_state(lambda s: int(s["tick"]) >= start + 2000, 60.0, "2000 ticks")
@@ -734,12 +732,10 @@ def test_recorder_row_groups_rrd_and_a_clean_sigterm(flat_server, tmp_path):
         with contextlib.suppress(TimeoutError):
             wait_until(lambda: (out / "run.rrd").stat().st_size >= 200_000, timeout_s=30,
                        what="frames in the .rrd", interval_s=0.1)
-        proc.terminate()
-        stdout, stderr = proc.communicate(timeout=60)
+        assert proc.stop(timeout_s=60.0) == 0, proc.text()
     finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0, stdout + stderr
+        proc.kill()
+    stdout = proc.text()
     assert "stopped by SIGTERM" in stdout
     rows = int(stdout.split("wrote ")[1].split(" state rows")[0])
     history = read_history(out)

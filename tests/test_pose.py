@@ -33,15 +33,17 @@ def test_world_pose_matches_rotation_matrices(grade, cross, yaw, pitch, roll, px
     x[L.X_M], x[L.Y_M], x[L.YAW_RAD] = px, py, yaw
     x[L.PITCH_RAD], x[L.ROLL_RAD], x[L.HEAVE_M] = pitch, roll, heave
     axes = road_axes(grade, cross)
-    pose = np.zeros(6)
+    pose = np.zeros(L.N_POSE)
     world_pose(x, axes, 0.5, pose)
     frame = axes.T  # columns e1, e2, n
     r_world = frame @ rot(2, yaw) @ rot(1, pitch) @ rot(0, roll)
     expected_pos = frame @ np.array([px, py, 0.5 + heave])
-    np.testing.assert_allclose(pose[:3], expected_pos, atol=1e-9)
-    r_back = rot(2, pose[3]) @ rot(1, pose[4]) @ rot(0, pose[5])
+    np.testing.assert_allclose(pose[[L.POSE_X_M, L.POSE_Y_M, L.POSE_Z_M]], expected_pos,
+                               atol=1e-9)
+    r_back = (rot(2, pose[L.POSE_YAW_RAD]) @ rot(1, pose[L.POSE_PITCH_RAD])
+              @ rot(0, pose[L.POSE_ROLL_RAD]))
     np.testing.assert_allclose(r_back, r_world, atol=1e-9)
-    assert abs(pose[3] - yaw) < math.pi  # continuous with the road-plane heading
+    assert abs(pose[L.POSE_YAW_RAD] - yaw) < math.pi  # continuous with the road-plane heading
     back = np.zeros(L.N_STATE)
     road_pose(pose, axes, 0.5, back)  # and the inverse gives the road-plane pose again
     for k in (L.X_M, L.Y_M, L.HEAVE_M, L.YAW_RAD, L.PITCH_RAD, L.ROLL_RAD):
@@ -51,6 +53,8 @@ def test_world_pose_matches_rotation_matrices(grade, cross, yaw, pitch, roll, px
 def test_flat_road_is_identity():
     x = np.zeros(L.N_STATE)
     x[L.X_M], x[L.YAW_RAD] = 3.0, 7.0
-    pose = np.zeros(6)
+    pose = np.zeros(L.N_POSE)
     world_pose(x, road_axes(0.0, 0.0), 0.5, pose)
-    np.testing.assert_allclose(pose, [3.0, 0.0, 0.5, 7.0, 0.0, 0.0], atol=1e-12)
+    expected = np.zeros(L.N_POSE)
+    expected[L.POSE_X_M], expected[L.POSE_Z_M], expected[L.POSE_YAW_RAD] = 3.0, 0.5, 7.0
+    np.testing.assert_allclose(pose, expected, atol=1e-12)

@@ -383,9 +383,10 @@ def test_scene_body_pose_is_the_wire_world_pose():
         r_car = _quat_matrix(car_q[0])
         position = car_t[0] + r_car @ body_t[0]
         attitude = r_car @ _quat_matrix(body_q[0])
-        pose = np.zeros(6)
+        pose = np.zeros(L.N_POSE)
         world_pose(x, axes, cg_height, pose)
-        np.testing.assert_allclose(position, pose[:3], atol=1e-9)
-        yaw, pitch, roll = pose[3:]
+        np.testing.assert_allclose(position, pose[[L.POSE_X_M, L.POSE_Y_M, L.POSE_Z_M]],
+                                   atol=1e-9)
+        yaw, pitch, roll = pose[[L.POSE_YAW_RAD, L.POSE_PITCH_RAD, L.POSE_ROLL_RAD]]
         np.testing.assert_allclose(attitude, _rot(2, yaw) @ _rot(1, pitch) @ _rot(0, roll),
                                    atol=1e-9)

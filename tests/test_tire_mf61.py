@@ -15,7 +15,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from simserver.adapters.tir_file import load_tir, mf61_coefficients
 from simserver.core import tire_mf61 as mf
 from simserver.core.tire_layout import (
     N_TIRE_OUT,
@@ -30,16 +29,13 @@ from simserver.core.tire_layout import (
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
 )
-from tests.conftest import SAMPLE_TIR
+from tests.conftest import SAMPLE_TIR, mf61_sample_coefficients
 
 SAMPLE = SAMPLE_TIR
-C = mf61_coefficients(load_tir(SAMPLE))
+# the sample, and a variant that takes the other branches (conftest)
+C = mf61_sample_coefficients()
 P = mf.mf61_param_vector(C)
-# the sample, and a variant that takes the other branches: off-nominal pressure (dpi != 0,
-# (p/p0)^QSY8), PKY5 != 0 (K_ya at gamma = 0 computed apart), LFZO != 1, a wider Fz range
-VARIANT = dict(
-    C, INFLPRES=1.15 * C["NOMPRES"], PKY5=0.4, LFZO=1.1, FZMIN=0.0, FZMAX=3.0 * C["FNOMIN"]
-)
+VARIANT = mf61_sample_coefficients(variant=True)
 
 
 def run(

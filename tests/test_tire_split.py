@@ -53,7 +53,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from simserver.adapters.config import load_tire
-from simserver.adapters.tir_file import load_tir, mf61_coefficients
 from simserver.core import tire, tire_mf61, tire_simple
 from simserver.core.tire import (
     BUILTIN_KERNELS,
@@ -79,12 +78,10 @@ from simserver.core.tire_layout import (
     TIRE_JIT_OPTIONS,
     TP_MODEL_BASE,
 )
-from tests.conftest import CONFIGS, SAMPLE_TIR
+from tests.conftest import CONFIGS, mf61_sample_coefficients
 
-C = mf61_coefficients(load_tir(SAMPLE_TIR))
-VARIANT = dict(
-    C, INFLPRES=1.15 * C["NOMPRES"], PKY5=0.4, LFZO=1.1, FZMIN=0.0, FZMAX=3.0 * C["FNOMIN"]
-)
+C = mf61_sample_coefficients()
+VARIANT = mf61_sample_coefficients(variant=True)
 MF_SAMPLE, _ = load_tire(CONFIGS / "tires" / "mf61_sample.yaml")
 MF_VARIANT = MF_SAMPLE.copy()
 MF_VARIANT[TP_MODEL_BASE : TP_MODEL_BASE + tire_mf61.N_MF61_PARAM] = (

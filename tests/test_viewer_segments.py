@@ -12,14 +12,20 @@ segment is a recording of its own: for ``save:FILE`` the first goes to FILE and 
 from __future__ import annotations
 
 import os
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
 from simserver.adapters.rerun_scene import PLOT_SPEED, SCENE_INFO
-from simserver.testing import CONFIGS, REPO, Client, ServerProcess, free_port, wait_until
+from simserver.testing import (
+    CONFIGS,
+    Client,
+    OutputProcess,
+    ServerProcess,
+    free_port,
+    wait_until,
+)
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -54,18 +60,17 @@ def test_live_rrd_has_one_recording_per_segment(tmp_path):
     watcher = Client(server, state_capacity=1 << 15, keep_history=True)
     env = dict(os.environ, XDG_CONFIG_HOME=str(tmp_path / "xdg_config"),
                XDG_DATA_HOME=str(tmp_path / "xdg_data"))
-    viewer = subprocess.Popen(
+    viewer = OutputProcess(
         [sys.executable, "-m", "simserver", "view", "--sink", f"save:{rrd}", "--connect",
-         server.endpoint, "--vehicle-id", "view", "--normal-priority"],
-        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+         server.endpoint, "--vehicle-id", "view", "--normal-priority"], env=env)
     try:
         def run_a_while(path: Path, what: str) -> None:
             """Until the viewer draws this segment into ``path`` (its static scene and
             first frames), then 0.5 s of simulated time more."""
             wait_until(lambda: path.exists() and path.stat().st_size > DRAWN_BYTES
-                       or viewer.poll() is not None, timeout_s=60.0,
+                       or not viewer.alive(), timeout_s=60.0,
                        what=f"the viewer to draw {what}", interval_s=0.02)
-            assert viewer.poll() is None, viewer.communicate()
+            assert viewer.alive(), viewer.text()
             watcher.history.clear()
 
             def ran_500_ticks() -> bool:
@@ -80,14 +85,11 @@ def test_live_rrd_has_one_recording_per_segment(tmp_path):
         run_a_while(tmp_path / "live.segment1.rrd", "the hill segment")
         assert watcher.request("reset", timeout_s=5.0)["ok"]
         run_a_while(tmp_path / "live.segment2.rrd", "the segment after the reset")
-        viewer.terminate()
-        stdout, stderr = viewer.communicate(timeout=60)
+        assert viewer.stop(timeout_s=60.0) == 0, viewer.text()
     finally:
-        if viewer.poll() is None:
-            viewer.kill()
+        viewer.kill()
         watcher.close()
         server.stop()
-    assert viewer.returncode == 0, stdout + stderr
     files = sorted(tmp_path.glob("live*.rrd"))
     recordings = [_recording(f) for f in files]
     for f, r in zip(files, recordings, strict=True):

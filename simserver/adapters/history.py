@@ -369,6 +369,15 @@ def _rest_times(time_s: np.ndarray, u: np.ndarray) -> tuple[float | None, float 
     return first, settled
 
 
+def model_options(result: ScenarioResult) -> dict[str, Any]:
+    """The model options a run used: its scene's, the defaults for the others."""
+    # Imported here: the option defaults live with the config loader (which imports the
+    # compiled core); the history writer alone does not need it.
+    from simserver.adapters.config import MODEL_OPTION_DEFAULTS
+
+    return {**MODEL_OPTION_DEFAULTS, **result.scenario.scene.model_options}
+
+
 def summarize(result: ScenarioResult) -> dict[str, Any]:
     """Digest of a run for ``summary.json`` (plain JSON types, rounded, keys unsorted).
 
@@ -386,16 +395,11 @@ def summarize(result: ScenarioResult) -> dict[str, Any]:
         same numbers as the last row of ``history.parquet`` (forces are only known at
         recorded rows); its ``time_s`` says when that is.
     """
-    # Imported here: the option defaults live with the config loader (which imports the
-    # compiled core); the history writer alone does not need it.
-    from simserver.adapters.config import MODEL_OPTION_DEFAULTS
-
     sc = result.scenario
     cols = result_columns(result)
     n_rows = result.states.shape[0]
     n_steps = sc.n_steps
-    options = dict(MODEL_OPTION_DEFAULTS)
-    options.update(sc.scene.model_options)
+    options = model_options(result)
     simulated = n_steps * sc.dt_s
     wall = float(result.wall_time_s)
 

@@ -29,7 +29,12 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from simserver.adapters.history import HISTORY_COLUMNS, column_unit, result_columns
+from simserver.adapters.history import (
+    HISTORY_COLUMNS,
+    column_unit,
+    model_options,
+    result_columns,
+)
 from simserver.core import layout as L
 
 if TYPE_CHECKING:
@@ -93,11 +98,8 @@ def _figure(n_rows: int, height_per_row: float = 2.3, width: float = 8.5,
 
 
 def _title(fig: Figure, result: ScenarioResult, what: str) -> None:
-    # the option defaults live with the config loader, imported only once a run exists
-    from simserver.adapters.config import MODEL_OPTION_DEFAULTS
-
     sc = result.scenario
-    opts = {**MODEL_OPTION_DEFAULTS, **sc.scene.model_options}
+    opts = model_options(result)
     model = ", ".join(f"{k}={opts[k]}" for k in ("slip_model", "damping_model") if k in opts)
     road = sc.scene.road
     road_text = (f"grade {road['grade_pct']:g} %, cross-slope {road['cross_slope_pct']:g} %, "
@@ -116,72 +118,60 @@ def _legend_right(ax: Axes) -> None:
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0.0)
 
 
-def _wheel_lines(ax: Axes, t: np.ndarray, cols: dict[str, np.ndarray], template: str) -> None:
-    for i, wheel in enumerate(L.WHEEL_NAMES):
-        ax.plot(t, cols[template.format(w=wheel)], WHEEL_STYLES[i], color=WHEEL_COLORS[i],
-                lw=1.1, label=WHEEL_LABELS[i])
+def _time_figure(result: ScenarioResult, n_rows: int, **figure_options: object
+                 ) -> tuple[dict[str, np.ndarray], Figure, np.ndarray]:
+    """The history columns of ``result`` and a figure of ``n_rows`` panels against time."""
+    fig, axes = _figure(n_rows, **figure_options)
+    return result_columns(result), fig, axes
 
 
-def plot_speed(result: ScenarioResult, path: str | Path) -> Path:
-    """Body velocities u and v against time.
-
-    Parameters
-    ----------
-    result : ScenarioResult
-        A finished run.
-    path : str or Path
-        PNG file to write.
-
-    Returns
-    -------
-    Path
-    """
-    cols = result_columns(result)
-    t = cols["time_s"]
-    fig, axes = _figure(2)
-    for ax, name, color in zip(axes[:, 0], ("u_mps", "v_mps"), ("tab:blue", "tab:red"),
-                               strict=True):
-        ax.plot(t, cols[name], color=color, lw=1.2)
-        ax.axhline(0.0, color="k", lw=0.6)
-        ax.set_ylabel(signal_label(name))
+def _finish_time_figure(fig: Figure, axes: np.ndarray, result: ScenarioResult, what: str,
+                        path: str | Path) -> Path:
+    """Label the shared time axis, title the figure and write it to ``path``."""
     axes[-1, 0].set_xlabel(signal_label("time_s"))
-    _title(fig, result, "body velocities")
+    _title(fig, result, what)
     return _save(fig, Path(path))
 
 
-def plot_forces(result: ScenarioResult, path: str | Path) -> Path:
-    """Per-wheel tire forces Fx, Fy (wheel frame) and Fz against time.
-
-    The Fx and Fy panels also show the sum of the four tires along body x and y
-    (thin black), the number to compare with the weight component on a slope.
-
-    Parameters
-    ----------
-    result : ScenarioResult
-        A finished run.
-    path : str or Path
-        PNG file to write.
-
-    Returns
-    -------
-    Path
-    """
-    cols = result_columns(result)
+def _wheel_panels(axes: np.ndarray, cols: dict[str, np.ndarray],
+                  panels: Sequence[tuple[str, str, str | None, str | None]]) -> None:
+    """One panel per ``(column template, y label, total column, its label)``: the four
+    wheels' lines, the total (thin black; None: none), a zero line and the legend."""
     t = cols["time_s"]
-    fig, axes = _figure(3)
-    panels = (("fx_{w}_n", "Fx, wheel frame (N)", "fx_body_sum_n", "Σ body x"),
-              ("fy_{w}_n", "Fy, wheel frame (N)", "fy_body_sum_n", "Σ body y"),
-              ("fz_{w}_n", "Fz (N)", None, None))
     for ax, (template, ylabel, total, total_label) in zip(axes[:, 0], panels, strict=True):
-        _wheel_lines(ax, t, cols, template)
+        for i, wheel in enumerate(L.WHEEL_NAMES):
+            ax.plot(t, cols[template.format(w=wheel)], WHEEL_STYLES[i], color=WHEEL_COLORS[i],
+                    lw=1.1, label=WHEEL_LABELS[i])
         if total is not None:
             ax.plot(t, cols[total], color="k", lw=0.8, label=total_label)
         ax.axhline(0.0, color="k", lw=0.5, alpha=0.5)
         ax.set_ylabel(ylabel)
         _legend_right(ax)
-    axes[-1, 0].set_xlabel(signal_label("time_s"))
-    _title(fig, result, "tire forces (ISO 8855: x forward, y left)")
-    return _save(fig, Path(path))
+
+
+def plot_speed(result: ScenarioResult, path: str | Path) -> Path:
+    """Body velocities u and v against time (``PLOT_FILES``)."""
+    cols, fig, axes = _time_figure(result, 2)
+    for ax, name, color in zip(axes[:, 0], ("u_mps", "v_mps"), ("tab:blue", "tab:red"),
+                               strict=True):
+        ax.plot(cols["time_s"], cols[name], color=color, lw=1.2)
+        ax.axhline(0.0, color="k", lw=0.6)
+        ax.set_ylabel(signal_label(name))
+    return _finish_time_figure(fig, axes, result, "body velocities", path)
+
+
+def plot_forces(result: ScenarioResult, path: str | Path) -> Path:
+    """Per-wheel tire forces Fx, Fy (wheel frame) and Fz against time (``PLOT_FILES``).
+
+    The Fx and Fy panels also show the sum of the four tires along body x and y
+    (thin black), the number to compare with the weight component on a slope.
+    """
+    cols, fig, axes = _time_figure(result, 3)
+    _wheel_panels(axes, cols, (("fx_{w}_n", "Fx, wheel frame (N)", "fx_body_sum_n", "Σ body x"),
+                               ("fy_{w}_n", "Fy, wheel frame (N)", "fy_body_sum_n", "Σ body y"),
+                               ("fz_{w}_n", "Fz (N)", None, None)))
+    return _finish_time_figure(fig, axes, result, "tire forces (ISO 8855: x forward, y left)",
+                               path)
 
 
 def _nice_step(raw: float) -> float:
@@ -222,19 +212,7 @@ def heading_marks(x: np.ndarray, y: np.ndarray, n_target: int = 12) -> tuple[np.
 
 
 def plot_trajectory(result: ScenarioResult, path: str | Path) -> Path:
-    """The path in the road plane with heading arrows, start and end marked.
-
-    Parameters
-    ----------
-    result : ScenarioResult
-        A finished run.
-    path : str or Path
-        PNG file to write.
-
-    Returns
-    -------
-    Path
-    """
+    """The path in the road plane with heading arrows, start and end marked (``PLOT_FILES``)."""
     cols = result_columns(result)
     x, y, yaw = cols["x_m"], cols["y_m"], cols["yaw_rad"]
     fig = Figure(figsize=(7.5, 7.0), dpi=DPI, layout="constrained")
@@ -266,54 +244,23 @@ def plot_trajectory(result: ScenarioResult, path: str | Path) -> Path:
 
 
 def plot_slip(result: ScenarioResult, path: str | Path) -> Path:
-    """The slip fed to the tire model per wheel: k' and tan a' against time.
+    """The slip fed to the tire model per wheel: k' and tan a' against time (``PLOT_FILES``).
 
     For the lagged models these are the state variables of SAE 950311 eqs. 16 and 26;
     for the kinematic baseline, the classic slips with the eq. (1) patch.
-
-    Parameters
-    ----------
-    result : ScenarioResult
-        A finished run.
-    path : str or Path
-        PNG file to write.
-
-    Returns
-    -------
-    Path
     """
-    cols = result_columns(result)
-    t = cols["time_s"]
-    fig, axes = _figure(2)
-    panels = (("kappa_{w}", "k', longitudinal slip (–)"),
-              ("tan_alpha_{w}", "tan a', lateral slip (–)"))
-    for ax, (template, ylabel) in zip(axes[:, 0], panels, strict=True):
-        _wheel_lines(ax, t, cols, template)
-        ax.axhline(0.0, color="k", lw=0.5, alpha=0.5)
-        ax.set_ylabel(ylabel)
-        _legend_right(ax)
-    axes[-1, 0].set_xlabel(signal_label("time_s"))
-    _title(fig, result, "slip fed to the tire model (driving k' > 0; hub sliding left tan a' > 0)")
-    return _save(fig, Path(path))
+    cols, fig, axes = _time_figure(result, 2)
+    _wheel_panels(axes, cols, (("kappa_{w}", "k', longitudinal slip (–)", None, None),
+                               ("tan_alpha_{w}", "tan a', lateral slip (–)", None, None)))
+    return _finish_time_figure(
+        fig, axes, result,
+        "slip fed to the tire model (driving k' > 0; hub sliding left tan a' > 0)", path)
 
 
 def plot_inputs(result: ScenarioResult, path: str | Path) -> Path:
-    """Driver inputs against time: steering, pedals and parking brake, gear.
-
-    Parameters
-    ----------
-    result : ScenarioResult
-        A finished run.
-    path : str or Path
-        PNG file to write.
-
-    Returns
-    -------
-    Path
-    """
-    cols = result_columns(result)
+    """Driver inputs against time: steering, pedals and parking brake, gear (``PLOT_FILES``)."""
+    cols, fig, axes = _time_figure(result, 3, height_per_row=2.0, height_ratios=(1.0, 1.0, 0.6))
     t = cols["time_s"]
-    fig, axes = _figure(3, height_per_row=2.0, height_ratios=(1.0, 1.0, 0.6))
     ax_steer, ax_pedal, ax_gear = axes[:, 0]
     ax_steer.plot(t, cols["input_steer"], color="tab:purple", lw=1.2)
     ax_steer.set_ylabel("steer (–1..1, left +)")
@@ -329,9 +276,7 @@ def plot_inputs(result: ScenarioResult, path: str | Path) -> Path:
     ax_gear.set_yticks(range(len(L.GEAR_NAMES)), L.GEAR_NAMES)
     ax_gear.set_ylim(-0.4, len(L.GEAR_NAMES) - 0.6)
     ax_gear.set_ylabel("gear")
-    ax_gear.set_xlabel(signal_label("time_s"))
-    _title(fig, result, "driver inputs")
-    return _save(fig, Path(path))
+    return _finish_time_figure(fig, axes, result, "driver inputs", path)
 
 
 PLOT_FILES: dict[str, Callable[[ScenarioResult, str | Path], Path]] = {
@@ -341,7 +286,9 @@ PLOT_FILES: dict[str, Callable[[ScenarioResult, str | Path], Path]] = {
     "slip.png": plot_slip,
     "inputs.png": plot_inputs,
 }
-"""File name of each run plot and the function that draws it."""
+"""File name of each run plot and the function that draws it: ``plot(result, path)`` draws
+the finished run ``result`` (a ``ScenarioResult``) into the PNG file ``path`` and returns
+that path."""
 
 
 def plot_result(result: ScenarioResult, out_dir: str | Path) -> list[Path]:

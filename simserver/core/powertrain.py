@@ -25,6 +25,7 @@ from simserver.core.layout import (
     IN_GEAR,
     IN_PARKING_BRAKE,
     IN_THROTTLE,
+    N_FRONT_WHEELS,
     N_WHEELS,
     OMEGA0,
 )
@@ -98,7 +99,7 @@ def wheel_torques(
     for i in range(N_WHEELS):
         share = drive_nm[i]
         drive_nm[i] = total * share
-        if i < 2:
+        if i < N_FRONT_WHEELS:
             brake_cap_nm[i] = 0.5 * front * brake_total
         else:
             brake_cap_nm[i] = 0.5 * (1.0 - front) * brake_total + park

@@ -187,14 +187,15 @@ class OutputProcess:
     argv : sequence of str
         The command (run from the repository root).
     ready : str
-        Marker of its ready line: ``start`` waits for a line containing it.
+        Marker of its ready line: ``wait_ready`` waits for a line containing it (default:
+        the first line).
     env : dict, optional
         Environment, as given (default this one, with ``PYTHONUNBUFFERED=1``).
     cwd : Path
         Working directory (default the repository).
     """
 
-    def __init__(self, argv: Sequence[str], ready: str, env: dict[str, str] | None = None,
+    def __init__(self, argv: Sequence[str], ready: str = "", env: dict[str, str] | None = None,
                  cwd: Path = REPO) -> None:
         self.argv = list(argv)
         self.output: list[str] = []
@@ -299,6 +300,14 @@ class OutputProcess:
         self._reader.join(timeout=5)
         self.returncode = self.proc.returncode
         return self.returncode
+
+    def __enter__(self) -> OutputProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Leaves nothing running: a process still alive (a test that failed) is killed."""
+        if self.alive():
+            self.kill()
 
 
 # ============================================================================ the server
