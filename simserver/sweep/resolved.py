@@ -6,8 +6,9 @@ everything it refers to inline (the vehicle, its subsystem and tire files, every
 default); ``load_scenario(label, resolved)`` loads it back into the same ``Scenario``.
 A sweep changes it by dotted paths (``vehicle.chassis.mass_kg``,
 ``vehicle.tires.front.relaxation_length_long_m``, ``road.grade_pct``,
-``model.damping_ratio``, ``initial.u_mps``, ``duration_s``); ``*`` stands for every key
-at its level (``vehicle.tires.*.relaxation_length_long_m``: both axles). A run's
+``model.damping_ratio``, ``initial.u_mps``, ``duration_s``, ``inputs.1.brake``: a list
+item by its index); ``*`` stands for every key at its level
+(``vehicle.tires.*.relaxation_length_long_m``: both axles). A run's
 identity is the hash of its resolved mapping (``run_id``): the same on every machine and
 process for the same configuration.
 """
@@ -46,6 +47,15 @@ def set_path(resolved: dict[str, Any], dotted: str, value: Any, origin: str,
 
 def _set(node: Any, parts: list[str], value: Any, dotted: str, origin: str, depth: int) -> None:
     here = ".".join(parts[:depth]) or "the scenario"
+    if isinstance(node, list):  # a list (``inputs``) is indexed by number: inputs.1.brake
+        if not parts[depth].isdigit() or int(parts[depth]) >= len(node):
+            raise ConfigError(f"{origin}: parameter {dotted!r}: {here} has items 0 .. "
+                              f"{len(node) - 1}, not {parts[depth]!r}")
+        if depth == len(parts) - 1:
+            node[int(parts[depth])] = copy.deepcopy(value)
+        else:
+            _set(node[int(parts[depth])], parts, value, dotted, origin, depth + 1)
+        return
     if not isinstance(node, dict):
         raise ConfigError(f"{origin}: parameter {dotted!r}: {here} is not a mapping")
     key = parts[depth]
