@@ -107,13 +107,15 @@ def test_local_cluster_two_workers_identical_to_serial_and_run_scenario(tmp_path
         assert hist.keys() == cols.keys()
         for name, values in cols.items():
             assert np.array_equal(hist[name], values, equal_nan=True), (rid, name)
-    # the unmodified e2 case against `simserver run-scenario` of the file itself
-    proc = OutputProcess([PY, "-m", "simserver", "run-scenario", str(E2), "--out",
+    # an overridden case against `simserver run-scenario` of it written out resolved
+    case = next(r for r in rows if r["case"] == 2)
+    case_file = tmp_path / "case2.yaml"
+    case_file.write_text(yaml.safe_dump(next(c.resolved for c in sweep.cases if c.index == 2)))
+    proc = OutputProcess([PY, "-m", "simserver", "run-scenario", str(case_file), "--out",
                           str(tmp_path / "cli"), "--no-plots", "--quiet"], ready="wrote")
     assert proc.wait(120) == 0, proc.text()
     cli = read_history(tmp_path / "cli")
-    e2_id = next(r["run_id"] for r in rows if r["case"] == 0)
-    mine = read_history(tmp_path / "out" / HISTORY_DIR / f"{e2_id}.parquet")
+    mine = read_history(tmp_path / "out" / HISTORY_DIR / f"{case['run_id']}.parquet")
     assert cli.keys() == mine.keys()
     for name in cli:
         assert np.array_equal(cli[name], mine[name], equal_nan=True), name

@@ -47,6 +47,7 @@ class SweepOutcome:
     failed: int  # of those run now, not ok
     wall_time_s: float
     workers: int
+    ready_s: float = 0.0  # of wall_time_s, until the workers were up and warm
     metric_columns: list[str] = field(default_factory=list)
 
 
@@ -133,6 +134,7 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
     t0 = time.perf_counter()
     failed = 0
     n_workers = 0
+    ready_s = 0.0
     client = open_client(scheduler, workers, numba_cache) if todo else None
     try:
         if client is not None:
@@ -141,6 +143,7 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
                 client.register_plugin(WarmUp(warm.resolved, warm.base))
             client.wait_for_workers(1, timeout=120)
             n_workers = len(client.scheduler_info(n_workers=-1)["workers"])
+            ready_s = time.perf_counter() - t0
             futures = {}
             for i, chunk in enumerate(batches(todo, max(1, n_workers), batch_runs)):
                 future = client.submit(run_batch, chunk, sweep.metrics, history_dir,
@@ -177,6 +180,7 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
     return SweepOutcome(rows=sorted(rows, key=lambda r: r["case"]), ran=len(todo),
                         skipped=skipped, failed=failed,
                         wall_time_s=time.perf_counter() - t0, workers=n_workers,
+                        ready_s=ready_s,
                         metric_columns=list(dict.fromkeys(metric_columns)))
 
 
