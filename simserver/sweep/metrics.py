@@ -20,7 +20,7 @@ A stopping metric of a car that never comes to rest is NaN.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,7 +41,7 @@ def _start(time_s: np.ndarray, from_s: float) -> int:
     return int(np.searchsorted(time_s, from_s, side="left"))
 
 
-def stopping_distance(cols: dict[str, np.ndarray], from_s: float = 0.0) -> dict[str, float]:
+def stopping_distance(cols: Mapping[str, np.ndarray], from_s: float = 0.0) -> dict[str, float]:
     t, k = cols["time_s"], _first_rest(cols["time_s"], cols["u_mps"], from_s)
     if k is None:
         return {"stopping_distance_m": math.nan}
@@ -50,12 +50,12 @@ def stopping_distance(cols: dict[str, np.ndarray], from_s: float = 0.0) -> dict[
     return {"stopping_distance_m": float(steps.sum())}
 
 
-def time_to_rest(cols: dict[str, np.ndarray], from_s: float = 0.0) -> dict[str, float]:
+def time_to_rest(cols: Mapping[str, np.ndarray], from_s: float = 0.0) -> dict[str, float]:
     k = _first_rest(cols["time_s"], cols["u_mps"], from_s)
     return {"time_to_rest_s": math.nan if k is None else float(cols["time_s"][k] - from_s)}
 
 
-def creep(cols: dict[str, np.ndarray], from_s: float, to_s: float,
+def creep(cols: Mapping[str, np.ndarray], from_s: float, to_s: float,
           limit_m: float = 1e-3) -> dict[str, float]:
     t = cols["time_s"]
     k0 = min(_start(t, from_s), len(t) - 1)
@@ -65,12 +65,12 @@ def creep(cols: dict[str, np.ndarray], from_s: float, to_s: float,
     return {"creep_m": moved, "holds": bool(moved < limit_m)}
 
 
-def yaw(cols: dict[str, np.ndarray]) -> dict[str, float]:
+def yaw(cols: Mapping[str, np.ndarray]) -> dict[str, float]:
     return {"peak_yaw_rate_radps": float(np.max(np.abs(cols["yaw_rate_radps"]))),
             "yaw_change_rad": float(cols["yaw_rad"][-1] - cols["yaw_rad"][0])}
 
 
-def resting_forces(cols: dict[str, np.ndarray]) -> dict[str, float]:
+def resting_forces(cols: Mapping[str, np.ndarray]) -> dict[str, float]:
     out = {}
     for q in ("fx", "fy"):
         out[f"{q}_front_n"] = float(cols[f"{q}_fl_n"][-1] + cols[f"{q}_fr_n"][-1])
@@ -104,7 +104,7 @@ class Metric:
     column: str = ""
     stat: str = ""
 
-    def evaluate(self, cols: dict[str, np.ndarray]) -> dict[str, float]:
+    def evaluate(self, cols: Mapping[str, np.ndarray]) -> dict[str, float]:
         if self.kind == "column":
             values = cols[self.column]
             if self.stat == "final":
@@ -152,7 +152,7 @@ def parse_metrics(origin: str, entries: Any, columns: tuple[str, ...]) -> tuple[
     return tuple(metrics)
 
 
-def evaluate(metrics: tuple[Metric, ...], cols: dict[str, np.ndarray]) -> dict[str, float]:
+def evaluate(metrics: tuple[Metric, ...], cols: Mapping[str, np.ndarray]) -> dict[str, float]:
     """Every metric's numbers for one run's history columns."""
     out: dict[str, float] = {}
     for metric in metrics:

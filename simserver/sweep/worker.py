@@ -13,6 +13,7 @@ import os
 import socket
 import time
 import traceback
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,37 @@ from simserver.sweep.metrics import Metric, evaluate
 from simserver.sweep.spec import Case
 
 OK, CONFIG_ERROR, NON_FINITE, FAILED = "ok", "config_error", "non_finite", "error"
+
+
+class HistoryColumns(Mapping):
+    """A run's history columns by name (``adapters.history.result_columns``), each made
+    only when a metric reads it: a run's metrics read a handful of its columns."""
+
+    def __init__(self, result: Any) -> None:
+        from simserver.adapters.history import INPUT_PREFIX, STATE_COLUMNS
+        from simserver.core import layout as L
+
+        self._arrays = {"states": result.states, "outputs": result.outputs,
+                        "inputs": result.inputs}
+        self._where = {"time_s": ("states", L.TIME_S),
+                       **{name: ("states", idx) for name, idx in STATE_COLUMNS},
+                       **{name: ("outputs", idx) for idx, name in enumerate(L.OUTPUT_NAMES)},
+                       **{INPUT_PREFIX + name: ("inputs", idx)
+                          for idx, name in enumerate(L.INPUT_NAMES)}}
+        self._made: dict[str, np.ndarray] = {}
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self._made:
+            array, idx = self._where[name]
+            self._made[name] = np.ascontiguousarray(self._arrays[array][:, idx],
+                                                    dtype=np.float64)
+        return self._made[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._where)
+
+    def __len__(self) -> int:
+        return len(self._where)
 
 
 def warm_up(resolved: dict[str, Any], label: str) -> float:
@@ -53,7 +85,7 @@ class WarmUp(WorkerPlugin):
 
 def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -> dict[str, Any]:
     """One case -> its row: run id, case, parameters, metrics, status, error, wall time."""
-    from simserver.adapters.history import result_columns, write_history
+    from simserver.adapters.history import write_history
     from simserver.scenario import load_scenario, run_scenario
 
     t0 = time.perf_counter()
@@ -72,8 +104,7 @@ def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -
                 raise ConfigError(f"{case.base}: key 'duration_s': shorter than one step")
             result = run_scenario(scenario)
             row["sim_wall_time_s"] = result.wall_time_s
-            cols = result_columns(result)
-            row["metrics"] = evaluate(metrics, cols)
+            row["metrics"] = evaluate(metrics, HistoryColumns(result))
             if not (np.isfinite(result.states).all() and np.isfinite(result.outputs).all()
                     and np.isfinite(result.final_state).all()):
                 bad = ~(np.isfinite(result.states).all(axis=1)
