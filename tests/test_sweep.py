@@ -194,3 +194,26 @@ def test_resume_after_ctrl_c_runs_only_the_rest(tmp_path):
     for row in table:  # the runs of the first invocation are kept as they were
         if row["run_id"] in kept_by_id:
             assert row == kept_by_id[row["run_id"]]
+
+
+def test_soak_case_is_run_soak_of_its_scene_and_seed(tmp_path):
+    from simserver.scenario import load_scene
+    from simserver.soak import run_soak
+    from simserver.sweep.worker import run_case
+
+    scene_file = CONFIGS / "scenes" / "flat_mf_hatchback.yaml"
+    path = tmp_path / "soak.yaml"
+    path.write_text(yaml.safe_dump({"name": "soak", "kind": "soak",
+                                    "scenarios": [str(scene_file)],
+                                    "soak": {"duration_s": 20.0, "seeds": 2}}))
+    sweep = load_sweep(path)
+    assert [c.params for c in sweep.cases] == [{"soak.seed": 0}, {"soak.seed": 1}]
+    assert sweep.cases[0].run_id != sweep.cases[1].run_id
+    for case in sweep.cases:
+        row = run_case(case, sweep.metrics, None)
+        report = run_soak(load_scene(scene_file), 20.0, seed=case.params["soak.seed"])
+        assert row["status"] == ("ok" if report.ok else "violation"), row["error"]
+        assert row["metrics"]["violations"] == len(report.violations)
+        assert row["metrics"]["max_speed_mps"] == report.max_speed_mps
+        assert row["metrics"]["min_fz_n"] == report.min_fz_n
+        assert row["metrics"]["max_hold_creep_m"] == report.max_hold_creep_m

@@ -13,6 +13,16 @@
     metrics: [stopping_distance, time_to_rest, {column: u_mps, stat: min}]
     histories: false              # optional: write each run's history.parquet
 
+A soak sweep (``kind: soak``) runs ``simserver.soak.run_soak`` on each base (a scene or
+a scenario file, of which only the scene counts) for every seed 0 .. seeds-1::
+
+    kind: soak
+    scenarios: [../scenes/flat_paper_sedan.yaml, ../scenes/flat_mf_hatchback.yaml]
+    soak: {duration_s: 300, seeds: 32}
+
+Its metrics are the soak's own (``worker.SOAK_METRICS``); the seed is the parameter
+``soak.seed`` and, like the duration, part of the run's resolved configuration.
+
 Paths are relative to the sweep file; parameters are dotted paths into a run's resolved
 configuration (``simserver.sweep.resolved``). Every base scenario is run with every
 parameter set; with no ``grid``/``cases``/``random`` each base scenario runs once.
@@ -34,8 +44,10 @@ from simserver.scenario import resolve_scenario
 from simserver.sweep.metrics import Metric, parse_metrics
 from simserver.sweep.resolved import run_id, with_overrides
 
-KEYS = ("name", "description", "scenarios", "grid", "cases", "random", "metrics",
-        "histories")
+KEYS = ("name", "description", "kind", "scenarios", "grid", "cases", "random", "metrics",
+        "histories", "soak")
+KINDS = ("scenario", "soak")
+SOAK_KEYS = ("duration_s", "seeds")
 MAX_RUNS = 1_000_000
 
 
@@ -128,8 +140,27 @@ def load_sweep(path: str | Path) -> Sweep:
     """Read and validate a sweep file and expand it into resolved cases."""
     path = Path(path)
     data = read_yaml(path)
-    check_keys(path, data, KEYS, required=("scenarios", "metrics"))
+    kind = data.get("kind", "scenario")
+    if kind not in KINDS:
+        raise ConfigError(f"{path}: key 'kind': expected one of {', '.join(KINDS)}")
+    check_keys(path, data, KEYS,
+               required=("scenarios", "soak") if kind == "soak" else ("scenarios", "metrics"))
     origin = str(path)
+    soak: dict[str, Any] | None = None
+    if kind == "soak":
+        if "metrics" in data:
+            raise ConfigError(f"{origin}: key 'metrics': a soak sweep's metrics are the "
+                              f"soak's own")
+        if not isinstance(data["soak"], dict):
+            raise ConfigError(f"{origin}: key 'soak': expected {{duration_s, seeds}}")
+        check_keys(f"{origin} (soak)", data["soak"], SOAK_KEYS, required=SOAK_KEYS)
+        seeds = data["soak"]["seeds"]
+        if isinstance(seeds, bool) or not isinstance(seeds, int) or not 1 <= seeds <= MAX_RUNS:
+            raise ConfigError(f"{origin}: key 'soak.seeds': expected a positive integer")
+        soak = {"duration_s": number(origin, "soak.duration_s", data["soak"]["duration_s"],
+                                     0.01, 1e7), "seed": 0}
+    elif "soak" in data:
+        raise ConfigError(f"{origin}: key 'soak': only with 'kind: soak'")
     scen = data["scenarios"]
     scen = [scen] if isinstance(scen, str) else scen
     if not isinstance(scen, list) or not scen or not all(isinstance(s, str) for s in scen):
@@ -142,16 +173,22 @@ def load_sweep(path: str | Path) -> Sweep:
             raise ConfigError(f"{origin}: key 'scenarios': {pattern!r} matches no file")
         bases += [Path(f) for f in found]
     sets = parameter_sets(origin, data)
+    if soak is not None:
+        sets = [{**params, "soak.seed": seed} for params in sets
+                for seed in range(data["soak"]["seeds"])]
     if len(bases) * len(sets) > MAX_RUNS:
         raise ConfigError(f"{origin}: {len(bases) * len(sets)} runs, more than {MAX_RUNS}")
     parameters = tuple(dict.fromkeys(k for s in sets for k in s))
-    metrics = parse_metrics(origin, data["metrics"], HISTORY_COLUMNS)
+    metrics = () if soak is not None else parse_metrics(origin, data["metrics"],
+                                                         HISTORY_COLUMNS)
     histories = data.get("histories", False)
     if not isinstance(histories, bool):
         raise ConfigError(f"{origin}: key 'histories': expected true or false")
     cases: list[Case] = []
     for base in bases:
         resolved_base = resolve_scenario(base)
+        if soak is not None:
+            resolved_base["soak"] = dict(soak)
         for params in sets:
             index = len(cases)
             where = f"{origin}: case {index} ({base.name})"

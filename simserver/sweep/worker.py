@@ -25,6 +25,9 @@ from simserver.sweep.metrics import Metric, evaluate
 from simserver.sweep.spec import Case
 
 OK, CONFIG_ERROR, NON_FINITE, FAILED = "ok", "config_error", "non_finite", "error"
+VIOLATION = "violation"  # a soak broke an invariant
+SOAK_METRICS = ("violations", "holds_checked", "holds_not_at_rest", "max_hold_creep_m",
+                "max_speed_mps", "min_fz_n", "simulated_s")
 
 
 class HistoryColumns(Mapping):
@@ -98,6 +101,10 @@ def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -
         row.update(status=CONFIG_ERROR, error=case.error)
     else:
         try:
+            if "soak" in case.resolved:
+                run_soak_case(case, row)
+                row["wall_time_s"] = time.perf_counter() - t0
+                return row
             scenario = load_scenario(case.base, case.resolved)
             row["scenario"] = scenario.name
             if scenario.n_steps < 1:
@@ -122,6 +129,25 @@ def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -
                                             f"({Path(last.filename).name}:{last.lineno})")
     row["wall_time_s"] = time.perf_counter() - t0
     return row
+
+
+def run_soak_case(case: Case, row: dict[str, Any]) -> None:
+    """A soak case: ``run_soak`` on the case's scene, as ``simserver soak`` runs it."""
+    from simserver.scenario import parse_scene
+    from simserver.soak import run_soak
+
+    soak = case.resolved["soak"]
+    scene = parse_scene(Path(case.base), case.resolved)
+    row["scenario"] = str(case.resolved.get("name", ""))
+    report = run_soak(scene, float(soak["duration_s"]), seed=int(soak["seed"]),
+                      dt_s=float(case.resolved.get("dt_s", 0.001)))
+    summary = report.as_dict()
+    row["sim_wall_time_s"] = report.wall_s
+    row["metrics"] = {"violations": len(report.violations),
+                      **{k: float(summary[k]) for k in SOAK_METRICS[1:]}}
+    if not report.ok:
+        row.update(status=VIOLATION, error="; ".join(
+            f"{v.invariant} at t = {v.time_s:g} s: {v.detail}" for v in report.violations))
 
 
 def run_batch(cases: list[Case], metrics: tuple[Metric, ...],
