@@ -37,7 +37,7 @@ def plot_metrics(sweep: Sweep, rows: list[dict[str, Any]], metric_columns: list[
     written: list[Path] = []
     if not ok or not params:
         return written
-    (out / PLOT_DIR).mkdir(exist_ok=True)
+    (out / PLOT_DIR).mkdir(parents=True, exist_ok=True)
     for metric in metric_columns:
         ys = [r.get(metric) for r in ok]
         if not _numeric([y for y in ys if y is not None]):
@@ -55,6 +55,7 @@ def plot_metrics(sweep: Sweep, rows: list[dict[str, Any]], metric_columns: list[
             ax.set_xlabel(p)
             ax.set_ylabel(metric)
             ax.set_title(f"{sweep.name}: {metric}", fontsize=10)
+            ax.ticklabel_format(axis="y", useOffset=False)
             ax.grid(True, alpha=0.3)
             fig.tight_layout()
             path = out / PLOT_DIR / f"{_slug(metric)}__{_slug(p)}.png"
