@@ -28,7 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="runs per Dask task (default: about 8 tasks per worker)")
     parser.add_argument("--numba-cache", type=Path, default=None, metavar="DIR",
                         help="NUMBA_CACHE_DIR of the LocalCluster's workers (shared: a "
-                             "machine compiles once)")
+                             "machine compiles once; the workers of --scheduler take theirs "
+                             "from their own environment)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
