@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from simserver.ros2 import cli as ros2_cli
+from simserver.sweep import cli as sweep_cli
 
 if TYPE_CHECKING:
     from simserver.scenario import Scenario
@@ -540,6 +541,8 @@ SUBCOMMANDS: dict[str, Subcommand] = {
                     "Rerun (serve, save, connect or spawn). The physics never waits for "
                     "it: it is its own process behind a bounded queue.",
     ),
+    "sweep": Subcommand(help=sweep_cli.HELP, add_arguments=sweep_cli.add_arguments,
+                        run=sweep_cli.run, description=sweep_cli.DESCRIPTION),
     "ros2": Subcommand(help=ros2_cli.HELP, add_arguments=ros2_cli.add_arguments,
                        run=ros2_cli.run, description=ros2_cli.DESCRIPTION),
     "replay": Subcommand(

@@ -32,12 +32,14 @@ from typing import Any
 import numpy as np
 
 from simserver.adapters.config import (
+    MODEL_OPTION_DEFAULTS,
     ConfigError,
     VehicleConfig,
     check_keys,
     load_vehicle,
     number,
     read_yaml,
+    resolve_vehicle,
 )
 from simserver.adapters.validate import integer, referenced_file
 from simserver.core import layout as L
@@ -136,10 +138,14 @@ def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = No
 
     ``vehicle_path`` overrides the file's ``vehicle`` key (the server's ``load`` control).
     """
-    if vehicle_path is None:
-        vehicle_path = referenced_file(path, "vehicle", data.get("vehicle"))
     model_options = data.get("model") or {}
-    vehicle = load_vehicle(vehicle_path, model_options, options_source=str(path))
+    if vehicle_path is None and isinstance(data.get("vehicle"), dict):  # resolve_scenario
+        vehicle = load_vehicle(f"{path}#vehicle", model_options, options_source=str(path),
+                               resolved=data["vehicle"])
+    else:
+        if vehicle_path is None:
+            vehicle_path = referenced_file(path, "vehicle", data.get("vehicle"))
+        vehicle = load_vehicle(vehicle_path, model_options, options_source=str(path))
     road_raw = data.get("road") or {}
     if not isinstance(road_raw, dict):
         raise ConfigError(f"{path}: key 'road': expected a mapping")
@@ -174,10 +180,14 @@ def load_scene(path: str | Path, vehicle_path: str | Path | None = None) -> Scen
     return parse_scene(path, data, None if vehicle_path is None else Path(vehicle_path))
 
 
-def load_scenario(path: str | Path) -> Scenario:
-    """Load and validate a scenario file (errors name the file and the key)."""
+def load_scenario(path: str | Path, data: dict[str, Any] | None = None) -> Scenario:
+    """Load and validate a scenario file (errors name the file and the key).
+
+    ``data``: the scenario's mapping, e.g. from ``resolve_scenario`` (then ``path`` only
+    labels the errors and the run).
+    """
     path = Path(path)
-    data = read_yaml(path)
+    data = read_yaml(path) if data is None else data
     allowed = ("name", "description", *SCENE_KEYS, *SCENARIO_ONLY_KEYS)
     check_keys(path, data, allowed, required=("name", "vehicle", "duration_s", "inputs"))
     scene = parse_scene(path, data)
@@ -190,6 +200,27 @@ def load_scenario(path: str | Path) -> Scenario:
         duration_s=run.duration_s, dt_s=dt, record_every=record_every,
         keyframes=run.keyframes,
     )
+
+
+def resolve_scenario(path: str | Path) -> dict[str, Any]:
+    """A scenario file as one mapping holding everything it refers to: the vehicle with its
+    subsystem and tire files inline (``resolve_vehicle``) and every default written out.
+    ``load_scenario(path, resolve_scenario(path))`` is ``load_scenario(path)``."""
+    path = Path(path)
+    data = dict(read_yaml(path))
+    if isinstance(data.get("vehicle"), str):
+        data["vehicle"] = resolve_vehicle((path.parent / data["vehicle"]).resolve())
+    defaults = {"road": {"grade_pct": 0.0, "cross_slope_pct": 0.0, "friction_scale": 1.0},
+                "initial": dict.fromkeys(INITIAL_RANGES, 0.0),
+                "model": dict(MODEL_OPTION_DEFAULTS)}
+    for section, values in defaults.items():
+        given = data.get(section) or {}
+        if isinstance(given, dict):
+            data[section] = {**values, **given}
+    data.setdefault("description", "")
+    data.setdefault("dt_s", 0.001)
+    data.setdefault("record_every", 1)
+    return data
 
 
 def run_scenario(

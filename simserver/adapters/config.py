@@ -121,7 +121,7 @@ def apply_model_options(vp: np.ndarray, values: dict[str, float]) -> None:
     pack_params(vp, P.MODEL_OPTIONS, values)
 
 
-def load_tire(path: Path) -> tuple[np.ndarray, str]:
+def load_tire(path: Path, data: dict[str, Any] | None = None) -> tuple[np.ndarray, str]:
     """Load a tire file into a packed ``float64[N_TIRE_PARAM]`` vector; returns it and the
     model's name.
 
@@ -144,9 +144,11 @@ def load_tire(path: Path) -> tuple[np.ndarray, str]:
         rolling_radius_m: 0.305             # optional, default UNLOADED_RADIUS
         relaxation_length_lat_m: 0.48       # optional, default from PTY1/PTY2 at FNOMIN
         relaxation_length_long_m: 0.62      # optional, default from PTX1 at FNOMIN
+
+    ``data``: the file's mapping already read (a resolved vehicle, ``resolve_vehicle``).
     """
     path = Path(path)
-    data = read_yaml(path)
+    data = read_yaml(path) if data is None else data
     model = tire_model(choice(path, "model", data.get("model"), TIRE_MODEL_NAMES))
     loaded = model.load(path, data)
     if loaded.model_params.size > N_MODEL_PARAM_MAX:
@@ -162,21 +164,29 @@ def load_tire(path: Path) -> tuple[np.ndarray, str]:
 
 
 def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
-                 options_source: str = "model options") -> VehicleConfig:
+                 options_source: str = "model options",
+                 resolved: dict[str, Any] | None = None) -> VehicleConfig:
     """Load and validate a vehicle file and its subsystem files.
 
+    ``resolved``: the vehicle as ``resolve_vehicle`` returns it (its files' contents
+    inline); then ``path`` only labels the errors.
     The road starts at the ``road:`` defaults, flat with friction scale 1
     (``core.road.set_road`` changes it).
     """
     path = Path(path)
-    top = read_yaml(path)
+    top = read_yaml(path) if resolved is None else resolved
     allowed = ("name", "description", "tires", *SUBSYSTEMS)
     check_keys(path, top, allowed, required=("name", "tires", *SUBSYSTEMS))
     vp = np.zeros(P.N_VEHICLE_PARAM, dtype=np.float64)
     sources: dict[str, str] = {}
     for table in P.VEHICLE_SUBSYSTEMS:
         subsystem = table.name
-        sub_path = referenced_file(path, subsystem, top[subsystem])
+        ref = top[subsystem]
+        if isinstance(ref, dict) and resolved is not None:
+            sources[subsystem] = f"{path}.{subsystem}"
+            pack_params(vp, table, read_params(sources[subsystem], ref, table))
+            continue
+        sub_path = referenced_file(path, subsystem, ref)
         sources[subsystem] = str(sub_path)
         pack_params(vp, table, read_params(sub_path, read_yaml(sub_path), table))
     if vp[P.VP_SPRUNG_MASS_KG] > vp[P.VP_MASS_KG]:
@@ -189,6 +199,12 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
     tp = np.zeros((4, N_TIRE_PARAM), dtype=np.float64)
     names = []
     for axle, rows in (("front", (0, 1)), ("rear", (2, 3))):
+        if isinstance(tires[axle], dict) and resolved is not None:
+            sources[f"tire_{axle}"] = f"{path}.tires.{axle}"
+            vec, model_name = load_tire(Path(sources[f"tire_{axle}"]), tires[axle])
+            tp[rows[0]] = tp[rows[1]] = vec
+            names.append(model_name)
+            continue
         tire_path = referenced_file(path, f"tires.{axle}", tires[axle])
         sources[f"tire_{axle}"] = str(tire_path)
         vec, model_name = load_tire(tire_path)
@@ -204,6 +220,29 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
         raise ConfigError(f"{path}: key 'name': expected a non-empty string")
     return VehicleConfig(name=name, path=path, vp=vp, tp=tp,
                          tire_models=(names[0], names[1]), sources=sources)
+
+
+def resolve_vehicle(path: str | Path) -> dict[str, Any]:
+    """A vehicle file with every file it names read inline: subsystem and tire mappings
+    instead of paths (``load_vehicle(..., resolved=...)`` loads it). A tire key ending in
+    ``_file`` (``tir_file``) becomes an absolute path."""
+    path = Path(path)
+    top = dict(read_yaml(path))
+    for subsystem in SUBSYSTEMS:
+        if isinstance(top.get(subsystem), str):
+            top[subsystem] = dict(read_yaml((path.parent / top[subsystem]).resolve()))
+    tires = top.get("tires")
+    if isinstance(tires, dict):
+        top["tires"] = dict(tires)
+        for axle, ref in tires.items():
+            if isinstance(ref, str):
+                tire_path = (path.parent / ref).resolve()
+                tire = dict(read_yaml(tire_path))
+                for key, value in tire.items():
+                    if key.endswith("_file") and isinstance(value, str):
+                        tire[key] = str((tire_path.parent / value).resolve())
+                top["tires"][axle] = tire
+    return top
 
 
 # ----------------------------------------------------------------- the reference doc

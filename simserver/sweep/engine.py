@@ -1,0 +1,192 @@
+"""Running a sweep on Dask distributed: the client, the batches, the results table, resume.
+
+The engine is Dask's: an embedded ``LocalCluster`` (one single-threaded worker process
+per core) by default, or an existing scheduler (``tcp://HOST:8786``). Every worker warms
+its compiled kernels once when it joins (``worker.WarmUp``, a worker plugin); workers
+that share ``NUMBA_CACHE_DIR`` (``--numba-cache``; the default is numba's own cache next
+to the sources) load what one of them compiled. Cases go out in batches, several runs per
+task, so a task lasts well over Dask's 100 ms guidance. A task whose worker dies is run
+again elsewhere by the scheduler (and ``retries`` covers a task that raised), so no run
+is lost. The results table (``results.parquet``, one row per run) is rewritten atomically
+as batches finish, so an interrupted sweep keeps what it ran and ``--resume`` runs only
+the cases whose run id (the hash of the resolved configuration) is not in it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from simserver.sweep.spec import Case, Sweep
+from simserver.sweep.worker import FAILED, OK, WarmUp, run_batch
+
+RESULTS_FILE = "results.parquet"
+HISTORY_DIR = "histories"
+CHECKPOINT_EVERY_S = 0.5
+TASKS_PER_WORKER = 8  # batches per worker: large tasks, yet a lost worker costs little
+MAX_BATCH = 64
+TASK_RETRIES = 2
+FIRST_COLUMNS = ("run_id", "case", "base", "scenario")
+LAST_COLUMNS = ("status", "error", "wall_time_s", "sim_wall_time_s", "worker")
+
+
+@dataclass
+class SweepOutcome:
+    rows: list[dict[str, Any]]  # the whole table, by case
+    ran: int  # runs done by this invocation
+    skipped: int  # runs already in the table (--resume)
+    failed: int  # of those run now, not ok
+    wall_time_s: float
+    workers: int
+    ready_s: float = 0.0  # of wall_time_s, until the workers were up and warm
+    metric_columns: list[str] = field(default_factory=list)
+
+
+def flat_row(row: dict[str, Any], parameters: tuple[str, ...]) -> dict[str, Any]:
+    """A worker's row as a table row: parameters and metrics as columns of their own."""
+    out = {k: row[k] for k in FIRST_COLUMNS}
+    out.update({p: row["params"].get(p) for p in parameters})
+    out.update(row["metrics"])
+    out.update({k: row[k] for k in LAST_COLUMNS})
+    return out
+
+
+def _column(values: list[Any]) -> pa.Array:
+    present = [v for v in values if v is not None]
+    if present and all(isinstance(v, bool) for v in present):
+        return pa.array(values, type=pa.bool_())
+    if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in present):
+        if all(isinstance(v, int) for v in present) and present:
+            return pa.array(values, type=pa.int64())
+        return pa.array([math.nan if v is None else float(v) for v in values],
+                        type=pa.float64())
+    return pa.array([None if v is None else str(v) for v in values], type=pa.string())
+
+
+def write_table(rows: list[dict[str, Any]], path: Path) -> None:
+    """The rows as one Parquet table, written to a temporary file then renamed."""
+    names: list[str] = list(FIRST_COLUMNS)
+    for row in rows:
+        names += [k for k in row if k not in names and k not in LAST_COLUMNS]
+    names += list(LAST_COLUMNS)
+    rows = sorted(rows, key=lambda r: r["case"])
+    table = pa.table({n: _column([r.get(n) for r in rows]) for n in names})
+    tmp = path.with_suffix(".parquet.tmp")
+    pq.write_table(table, tmp)
+    os.replace(tmp, path)
+
+
+def read_table(path: Path) -> list[dict[str, Any]]:
+    return pq.read_table(path).to_pylist() if path.is_file() else []
+
+
+def batches(cases: list[Case], n_workers: int, batch_runs: int | None) -> list[list[Case]]:
+    size = batch_runs or max(1, min(MAX_BATCH, math.ceil(len(cases)
+                                                         / (TASKS_PER_WORKER * n_workers))))
+    return [cases[i:i + size] for i in range(0, len(cases), size)]
+
+
+def open_client(scheduler: str | None, workers: int | None, numba_cache: Path | None) -> Any:
+    """A Dask client: to ``scheduler``, or to a new ``LocalCluster`` of worker processes."""
+    from dask.distributed import Client, LocalCluster
+
+    if numba_cache is not None:  # the worker processes inherit it
+        numba_cache.mkdir(parents=True, exist_ok=True)
+        os.environ["NUMBA_CACHE_DIR"] = str(numba_cache.resolve())
+    if scheduler is not None:
+        return Client(scheduler, timeout="30s")
+    cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
+                           processes=True, dashboard_address=None,
+                           silence_logs=logging.ERROR)
+    return Client(cluster)
+
+
+def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
+              workers: int | None = None, resume: bool = False,
+              batch_runs: int | None = None, numba_cache: Path | None = None,
+              quiet: bool = False) -> SweepOutcome:
+    """Run every case of ``sweep`` not already in ``out/results.parquet`` (with ``resume``)
+    and write the table. Ctrl-C keeps the finished runs in the table and re-raises."""
+    from dask.distributed import as_completed
+    from tqdm import tqdm
+
+    out.mkdir(parents=True, exist_ok=True)
+    table_path = out / RESULTS_FILE
+    # a run that raised (``error``) may go through another time; the other statuses are
+    # what the configuration gives
+    rows = [r for r in read_table(table_path) if r["status"] != FAILED] if resume else []
+    done_ids = {r["run_id"] for r in rows}
+    todo = [c for c in sweep.cases if c.run_id not in done_ids]
+    skipped = len(sweep.cases) - len(todo)
+    history_dir = None
+    if sweep.histories:
+        history_dir = str((out / HISTORY_DIR).resolve())
+        Path(history_dir).mkdir(exist_ok=True)
+    t0 = time.perf_counter()
+    failed = 0
+    n_workers = 0
+    ready_s = 0.0
+    client = open_client(scheduler, workers, numba_cache) if todo else None
+    try:
+        if client is not None:
+            warm = next((c for c in sweep.cases if c.resolved is not None), None)
+            if warm is not None:
+                client.register_plugin(WarmUp(warm.resolved, warm.base))
+            client.wait_for_workers(1, timeout=120)
+            n_workers = len(client.scheduler_info(n_workers=-1)["workers"])
+            ready_s = time.perf_counter() - t0
+            futures = {}
+            for i, chunk in enumerate(batches(todo, max(1, n_workers), batch_runs)):
+                future = client.submit(run_batch, chunk, sweep.metrics, history_dir,
+                                       retries=TASK_RETRIES, pure=False,
+                                       key=f"sweep-{sweep.name}-{i}-{chunk[0].run_id}")
+                futures[future] = chunk
+            show = not quiet and sys.stderr.isatty()
+            last_write = 0.0
+            with tqdm(total=len(todo), desc=sweep.name, unit="run", file=sys.stderr,
+                      disable=not show) as bar:
+                for future in as_completed(futures):
+                    try:
+                        new = future.result()
+                    except Exception as exc:  # noqa: BLE001 - the batch's runs are recorded
+                        new = [lost_row(c, exc) for c in futures[future]]
+                    for row in new:
+                        rows.append(flat_row(row, sweep.parameters))
+                        failed += row["status"] != OK
+                    bar.update(len(new))
+                    bar.set_postfix(failed=failed)
+                    if time.perf_counter() - last_write >= CHECKPOINT_EVERY_S:
+                        write_table(rows, table_path)
+                        last_write = time.perf_counter()
+    finally:
+        if rows:
+            write_table(rows, table_path)
+        if client is not None:
+            cluster = client.cluster
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    metric_columns = [k for r in rows for k in r
+                      if k not in (*FIRST_COLUMNS, *LAST_COLUMNS, *sweep.parameters)]
+    return SweepOutcome(rows=sorted(rows, key=lambda r: r["case"]), ran=len(todo),
+                        skipped=skipped, failed=failed,
+                        wall_time_s=time.perf_counter() - t0, workers=n_workers,
+                        ready_s=ready_s,
+                        metric_columns=list(dict.fromkeys(metric_columns)))
+
+
+def lost_row(case: Case, exc: BaseException) -> dict[str, Any]:
+    """The row of a case whose task failed as a whole (its worker kept dying)."""
+    return {"run_id": case.run_id, "case": case.index, "base": Path(case.base).name,
+            "scenario": "", "params": dict(case.params), "metrics": {}, "status": FAILED,
+            "error": f"{type(exc).__name__}: {exc}", "wall_time_s": math.nan,
+            "sim_wall_time_s": math.nan, "worker": ""}

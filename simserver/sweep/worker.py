@@ -1,0 +1,159 @@
+"""What a Dask task does: run a batch of cases and return one result row per case.
+
+Each case is loaded from its resolved configuration and run exactly as
+``simserver run-scenario`` runs its file (``load_scenario`` + ``run_scenario``, a fresh
+``Simulation`` each), so its numbers are the same bit for bit. A case that cannot load
+(config error) or goes non-finite is a row with its status and error; nothing a case does
+stops the batch.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+import traceback
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from distributed import WorkerPlugin
+
+from simserver.adapters.validate import ConfigError
+from simserver.sweep.metrics import Metric, evaluate
+from simserver.sweep.spec import Case
+
+OK, CONFIG_ERROR, NON_FINITE, FAILED = "ok", "config_error", "non_finite", "error"
+VIOLATION = "violation"  # a soak broke an invariant
+SOAK_METRICS = ("violations", "holds_checked", "holds_not_at_rest", "max_hold_creep_m",
+                "max_speed_mps", "min_fz_n", "simulated_s")
+
+
+class HistoryColumns(Mapping):
+    """A run's history columns by name (``adapters.history.result_columns``), each made
+    only when a metric reads it: a run's metrics read a handful of its columns."""
+
+    def __init__(self, result: Any) -> None:
+        from simserver.adapters.history import INPUT_PREFIX, STATE_COLUMNS
+        from simserver.core import layout as L
+
+        self._arrays = {"states": result.states, "outputs": result.outputs,
+                        "inputs": result.inputs}
+        self._where = {"time_s": ("states", L.TIME_S),
+                       **{name: ("states", idx) for name, idx in STATE_COLUMNS},
+                       **{name: ("outputs", idx) for idx, name in enumerate(L.OUTPUT_NAMES)},
+                       **{INPUT_PREFIX + name: ("inputs", idx)
+                          for idx, name in enumerate(L.INPUT_NAMES)}}
+        self._made: dict[str, np.ndarray] = {}
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self._made:
+            array, idx = self._where[name]
+            self._made[name] = np.ascontiguousarray(self._arrays[array][:, idx],
+                                                    dtype=np.float64)
+        return self._made[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._where)
+
+    def __len__(self) -> int:
+        return len(self._where)
+
+
+def warm_up(resolved: dict[str, Any], label: str) -> float:
+    """Load (or compile) the compiled kernels on a case's scene (``Simulation.warm_up``).
+    Returns the seconds; a scene that does not load warms nothing (its runs say why)."""
+    from simserver.scenario import parse_scene
+    from simserver.simulation import Simulation
+
+    t0 = time.perf_counter()
+    try:
+        scene = parse_scene(Path(label), resolved)
+    except ConfigError:
+        return 0.0
+    Simulation(scene, float(resolved.get("dt_s", 0.001))).warm_up()
+    return time.perf_counter() - t0
+
+
+class WarmUp(WorkerPlugin):
+    """A Dask worker plugin: every worker warms its kernels once, when it joins."""
+
+    name = "simserver-warm-up"
+
+    def __init__(self, resolved: dict[str, Any], label: str) -> None:
+        self.resolved = resolved
+        self.label = label
+
+    def setup(self, worker: Any) -> None:
+        warm_up(self.resolved, self.label)
+
+
+def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -> dict[str, Any]:
+    """One case -> its row: run id, case, parameters, metrics, status, error, wall time."""
+    from simserver.adapters.history import write_history
+    from simserver.scenario import load_scenario, run_scenario
+
+    t0 = time.perf_counter()
+    row: dict[str, Any] = {"run_id": case.run_id, "case": case.index,
+                           "base": Path(case.base).name, "scenario": "",
+                           "params": dict(case.params), "metrics": {}, "status": OK,
+                           "error": "", "sim_wall_time_s": np.nan,
+                           "worker": f"{socket.gethostname()}:{os.getpid()}"}
+    if case.resolved is None:
+        row.update(status=CONFIG_ERROR, error=case.error)
+    else:
+        try:
+            if "soak" in case.resolved:
+                run_soak_case(case, row)
+                row["wall_time_s"] = time.perf_counter() - t0
+                return row
+            scenario = load_scenario(case.base, case.resolved)
+            row["scenario"] = scenario.name
+            if scenario.n_steps < 1:
+                raise ConfigError(f"{case.base}: key 'duration_s': shorter than one step")
+            result = run_scenario(scenario)
+            row["sim_wall_time_s"] = result.wall_time_s
+            row["metrics"] = evaluate(metrics, HistoryColumns(result))
+            if not (np.isfinite(result.states).all() and np.isfinite(result.outputs).all()
+                    and np.isfinite(result.final_state).all()):
+                bad = ~(np.isfinite(result.states).all(axis=1)
+                        & np.isfinite(result.outputs).all(axis=1))
+                t_bad = float(result.time_s[np.argmax(bad)]) if bad.any() else scenario.duration_s
+                row.update(status=NON_FINITE,
+                           error=f"the run went non-finite (NaN or inf) at t = {t_bad:g} s")
+            if history_dir is not None:
+                write_history(result, Path(history_dir) / f"{case.run_id}.parquet")
+        except ConfigError as exc:
+            row.update(status=CONFIG_ERROR, error=str(exc))
+        except Exception as exc:  # noqa: BLE001 - recorded in the table; the sweep goes on
+            last = traceback.extract_tb(exc.__traceback__)[-1]
+            row.update(status=FAILED, error=f"{type(exc).__name__}: {exc} "
+                                            f"({Path(last.filename).name}:{last.lineno})")
+    row["wall_time_s"] = time.perf_counter() - t0
+    return row
+
+
+def run_soak_case(case: Case, row: dict[str, Any]) -> None:
+    """A soak case: ``run_soak`` on the case's scene, as ``simserver soak`` runs it."""
+    from simserver.scenario import parse_scene
+    from simserver.soak import run_soak
+
+    soak = case.resolved["soak"]
+    scene = parse_scene(Path(case.base), case.resolved)
+    row["scenario"] = str(case.resolved.get("name", ""))
+    report = run_soak(scene, float(soak["duration_s"]), seed=int(soak["seed"]),
+                      dt_s=float(case.resolved.get("dt_s", 0.001)))
+    summary = report.as_dict()
+    row["sim_wall_time_s"] = report.wall_s
+    row["metrics"] = {"violations": len(report.violations),
+                      **{k: float(summary[k]) for k in SOAK_METRICS[1:]}}
+    if not report.ok:
+        row.update(status=VIOLATION, error="; ".join(
+            f"{v.invariant} at t = {v.time_s:g} s: {v.detail}" for v in report.violations))
+
+
+def run_batch(cases: list[Case], metrics: tuple[Metric, ...],
+              history_dir: str | None) -> list[dict[str, Any]]:
+    """A Dask task: several cases, so the per-task overhead stays small against the work."""
+    return [run_case(case, metrics, history_dir) for case in cases]
