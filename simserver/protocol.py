@@ -454,6 +454,16 @@ DIAGNOSTICS_FIELDS: Final[tuple[FieldSpec, ...]] = (
               "superseded by a newer one in the same tick"),
     FieldSpec("state_published", "<u8", 1, "-", None, None, "VehicleState messages published"),
     FieldSpec("watchdog_trips", "<u8", 1, "-", None, None, "times the watchdog engaged"),
+    FieldSpec("cmd_dropped", "<u8", 1, "-", None, None,
+              "command payloads lost because the server's receive buffer was full (more "
+              "than its capacity arrived between two ticks; the oldest are dropped)"),
+    FieldSpec("ctl_received", "<u8", 1, "-", None, None, "control requests received"),
+    FieldSpec("ctl_busy", "<u8", 1, "-", None, None,
+              "control requests answered busy (that client's queue full, or a load "
+              "still being prepared)"),
+    FieldSpec("publish_slow", "<u8", 1, "-", None, None,
+              "state publications that took longer than a quarter period (a congested "
+              "link; the publication never waits for a subscriber)"),
 )
 
 _STRUCT_CODES = {"u1": "B", "u2": "H", "u4": "I", "u8": "Q", "f4": "f", "f8": "d"}
@@ -487,7 +497,7 @@ DIAGNOSTICS_SIZE: Final[int] = DIAGNOSTICS_DTYPE.itemsize
 
 assert _COMMAND_STRUCT.size == COMMAND_SIZE == 32
 assert _STATE_STRUCT.size == STATE_SIZE == 256
-assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 128
+assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 160
 
 
 # ============================================================================ commands
@@ -513,6 +523,7 @@ class StateFlag(enum.IntFlag):
     PAUSED = 0x02
     BRAKE_HOLD = 0x04
     CATCHUP = 0x08
+    SKIPPED = 0x10  # the first state after deadlines were skipped (a stall: SIGSTOP, ...)
 
 
 @dataclass(frozen=True, slots=True)
@@ -966,9 +977,12 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
         ),
         ControlSpec(
             "load",
-            "Load another vehicle and/or scene YAML (paths resolved by the server; it may "
-            "restrict them to its config directories), compile it, then reset. The "
-            "physics is paused meanwhile.",
+            "Load another vehicle and/or scene YAML (a relative path is looked up in the "
+            "server's working directory first, then in its config directories, to which "
+            "it may restrict them; the error lists where it looked), then reset. The "
+            "files are read off the tick (the physics runs on meanwhile) and the result "
+            "swapped in between two ticks; the reply comes then. One load at a time: "
+            "another meanwhile is answered busy.",
             (
                 ArgSpec("vehicle", "path", False, "", None, None, "vehicle YAML path"),
                 ArgSpec("scene", "path", False, "", None, None, "scene YAML path"),
