@@ -363,8 +363,11 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
               "protocol version"),
     FieldSpec("flags", "<u2", 1, "-", None, None,
               "bit 0 watchdog engaged (no valid command: throttle off, brakes hold); "
-              "bit 1 paused; bit 2 a brake holds a wheel at zero spin; bit 3 tick run late "
-              "as part of a catch-up; bits 4-15 are 0"),
+              "bit 1 paused; bit 2 a brake holds a wheel at zero spin (the pedal, the "
+              "parking brake or the park lock acting; not rolling resistance alone); "
+              "bit 3 tick run late as part of a catch-up; bit 4 the first state after "
+              "skipped deadlines (a stall beyond the catch-up bound, see "
+              "Diagnostics.skipped_ticks); bits 5-15 are 0"),
     FieldSpec("last_cmd_seq", "<u4", 1, "-", None, None,
               "seq of the last command applied (0 before the first)"),
     FieldSpec("tick", "<u8", 1, "-", None, None,
