@@ -557,12 +557,12 @@ class RealtimeScheduler:
     def summary(self) -> str:
         """One line: what was applied, and the warnings."""
         parts = list(self.applied)
-        if self.promoted:
-            parts.append(f"{self.policy} priority {self._rt_priority - 1} for "
-                         f"{len(self.promoted)} zenoh thread(s) "
-                         f"({', '.join(sorted(set(self.promoted.values())))})"
-                         if self.policy == "SCHED_FIFO" else
-                         f"{self.policy} for {len(self.promoted)} zenoh thread(s)")
+        if self.policy not in ("off", "unchanged"):
+            what = f"SCHED_FIFO priority {self._rt_priority - 1}" \
+                if self.policy == "SCHED_FIFO" else self.policy
+            names = ", ".join(p + "*" for p in self.settings.zenoh_threads)
+            parts.append(f"{what} for zenoh's threads {names} as they start "
+                         f"({len(self.promoted)} so far)")
         line = "real-time scheduling: " + ("; ".join(parts) if parts else "none applied")
         if self.warnings:
             line += " (warning: " + "; ".join(self.warnings) + ")"

@@ -422,7 +422,9 @@ class SimServer:
                 log.info("serving %s (vehicle %s) every %.3f ms; compiled in %.2f s",
                          first.keys.base, first.sim.scene.vehicle.name,
                          1e3 * cfg.period_s, compile_s)
-                log.info("%s", self.scheduler.apply())
+                summary = self.scheduler.apply()
+                log.log(logging.WARNING if self.scheduler.warnings else logging.INFO, "%s",
+                        summary)
                 loop.every_second.append(self._housekeeping)
                 where = f"listen {', '.join(listen)}" if listen else \
                     f"connect {', '.join(effective_endpoints(zcfg, 'connect/endpoints'))}"
