@@ -6,8 +6,8 @@ would stop the tick just the same), an alias bomb's memory stays in the worker, 
 worker stuck on a file that never ends (a FIFO) is killed and replaced
 (:meth:`ProcessPreparer.restart`). The loop submits a picklable ``(function, arguments)``
 and polls the future between ticks (:class:`simserver.server_loop.ServerLoop`); the
-worker runs at a lower priority than the server (nice +10, ``SCHED_OTHER``) and is
-started and warmed (its imports, the configured scene read once) before the clock starts.
+worker runs at a lower priority than the server (nice +5, ``SCHED_OTHER``) and is
+started and warmed (its imports, the configured scene read once) as the server starts.
 """
 
 from __future__ import annotations
@@ -21,8 +21,9 @@ from typing import Any
 
 log = logging.getLogger("simserver.server")
 
-WORKER_NICE = 10
-"""The worker yields the CPU to the server and to zenoh's threads."""
+WORKER_NICE = 5
+"""The worker yields the CPU to the server's threads when they are not real-time (under
+SCHED_FIFO they always win); not more, or a busy machine starves a ``load``."""
 
 
 def _worker_init() -> None:
@@ -47,9 +48,10 @@ class ProcessPreparer:
                 initializer=_worker_init)
         return self._pool
 
-    def warm(self, fn: Callable[..., Any], *args: Any, timeout_s: float = 120.0) -> Any:
-        """Start the worker and run one job to completion (before the clock starts)."""
-        return self._executor().submit(fn, *args).result(timeout=timeout_s)
+    def warm(self, fn: Callable[..., Any], *args: Any) -> Future:
+        """Start the worker and give it a first job (its imports and one scene read) now,
+        before the clock starts, so that a later job finds it ready; not waited for."""
+        return self._executor().submit(fn, *args)
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
         """Run ``fn(*args)`` in the worker; the future of its result."""

@@ -373,8 +373,10 @@ REALTIME_MODES = ("auto", "off")
 warning; ``off``: leave the scheduling alone."""
 DEFAULT_RT_PRIORITY = 50
 """SCHED_FIFO priority of the tick thread (1-99); zenoh's threads get one less."""
-DEFAULT_ZENOH_THREADS = ("rx-", "tx-")
-"""Name prefixes of zenoh's threads that carry commands (rx) and states (tx)."""
+DEFAULT_ZENOH_THREADS = ("rx-", "tx-", "app-", "net-", "acc-")
+"""Name prefixes of zenoh's runtime threads: receive (commands in), transmit (states out)
+and the runtimes they hand work to. Promoting only rx/tx gave a command-to-state latency
+p99 of 8.5 ms beside two CPU hogs, all of them 3.7 ms (20 s runs, load average 6)."""
 FALLBACK_NICE = -10
 """Nice level asked for when no real-time policy is permitted."""
 

@@ -396,10 +396,8 @@ class SimServer:
         zcfg = make_zenoh_config(listen=cfg.listen, connect=cfg.connect,
                                  config_file=cfg.zenoh_config, mode=cfg.mode)
         listen = effective_endpoints(zcfg)
-        t_worker = time.perf_counter()
         fn, job_args = self.slots[0].load_job({})  # the load worker: imports, one scene
         self.preparer.warm(fn, *job_args)
-        log.debug("load worker ready in %.2f s", time.perf_counter() - t_worker)
         loop = self.loop
         loop.running = True  # before the handlers: a signal from now on ends the loop
         previous = {s: signal.signal(s, self.stop) for s in (signal.SIGINT, signal.SIGTERM)}
