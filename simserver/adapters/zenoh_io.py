@@ -59,6 +59,14 @@ Zenoh's own default is 5 s: a client that stops reading would stall ``put()`` in
 drops the wedged peer's link instead.
 """
 
+STATE_DROP_WAIT_US = 50
+"""A DROP publication waits at most this long for a full link before dropping for it.
+
+The server's state publisher uses DROP (issue 13): with BLOCK a subscriber that stopped
+reading stalled the 1 kHz loop 100 ms (:data:`DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US`) each
+time its socket buffers filled; zenoh's own DROP wait is 1 ms, a whole tick.
+"""
+
 _RUST_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
 
 
@@ -167,6 +175,8 @@ def make_zenoh_config(
         DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US,
         origin,
     )
+    _insert(cfg, "transport/link/tx/queue/congestion_control/drop/wait_before_drop",
+            STATE_DROP_WAIT_US, origin)
     return cfg
 
 
@@ -558,9 +568,12 @@ class ZenohEndpoint:
                                zenoh.Priority.DATA, False, zenoh.CongestionControl.BLOCK)
 
     def declare_vehicle_publisher(self, keys: VehicleKeys | None = None) -> VehiclePublisher:
-        """The ``state`` and ``diag`` publishers above, as the server loop's publisher."""
-        return VehiclePublisher(self.declare_state_publisher(keys=keys),
-                                self.declare_diag_publisher(keys=keys))
+        """The server loop's publisher: ``state`` with congestion control DROP (a
+        subscriber that stops reading loses states, the loop never waits for it: see
+        :data:`STATE_DROP_WAIT_US`) and ``diag`` as above."""
+        return VehiclePublisher(
+            self.declare_state_publisher(zenoh.CongestionControl.DROP, keys=keys),
+            self.declare_diag_publisher(keys=keys))
 
     def declare_control_inbox(self, per_client: int = 16, keys: VehicleKeys | None = None,
                               validate: bool = True) -> ControlInbox:
