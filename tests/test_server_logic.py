@@ -617,6 +617,75 @@ def test_late_ticks_are_flagged_as_catch_up(rig):
     assert rig.loop.pacer.skipped_ticks == 0
 
 
+def test_the_first_state_after_skipped_deadlines_is_flagged(rig):
+    rig.run(5)
+    rig.clock.advance(2000 * MS)  # SIGSTOP for 2 s: far beyond max_catchup_ticks
+    states = [rig.run() for _ in range(3)]
+    assert rig.loop.pacer.skipped_ticks > 1000
+    skipped = [bool(int(s["flags"]) & proto.StateFlag.SKIPPED) for s in states]
+    assert skipped == [True, False, False]
+
+
+def test_the_brake_hold_flag_means_a_brake_holds(flat_scene):
+    """At rest on the flat with brake 0 and the parking brake off nothing holds the car
+    but rolling resistance: no flag. With the pedal, or the parking brake (rear wheels
+    only): flagged."""
+    rig = Rig(flat_scene)
+
+    def hold(ticks: int, **command) -> np.void:  # a driver holding its inputs
+        for _ in range(ticks):
+            rig.send(**command)
+            state = rig.run()
+        return state
+
+    state = hold(300, gear=proto.Gear.D, brake=0.0)
+    assert abs(state["u_mps"]) < 1e-3 and state["brake"] == 0.0
+    assert not int(state["flags"]) & (proto.StateFlag.BRAKE_HOLD | WATCHDOG)
+    assert list(state["brake_held"]) == [0, 0, 0, 0]
+    state = hold(50, gear=proto.Gear.D, brake=0.5)
+    assert int(state["flags"]) & proto.StateFlag.BRAKE_HOLD
+    assert list(state["brake_held"]) == [1, 1, 1, 1]
+    state = hold(50, gear=proto.Gear.N, parking_brake=True)
+    assert int(state["flags"]) & proto.StateFlag.BRAKE_HOLD
+    assert list(state["brake_held"]) == [0, 0, 1, 1]
+
+
+def test_reset_forgets_the_last_seq(rig):
+    """docs/protocol.md 2.1: the server forgets the last seq on ctl/reset, so a restarted
+    client may count from 1 again at once."""
+    rig.send(seq=900, throttle=0.2, gear=proto.Gear.D)
+    rig.run()
+    assert rig.control("reset")["ok"] is True
+    rig.send(seq=1, throttle=0.6, gear=proto.Gear.D)
+    state = rig.run()
+    assert state["last_cmd_seq"] == 1 and state["throttle"] == approx32(0.6)
+    assert rig.counters["cmd_stale"] == 0
+
+
+def test_commands_overwritten_in_a_full_buffer_are_counted(flat_scene):
+    rig = Rig(flat_scene)
+    rig.commands.capacity = 8
+    rig.send(seq=1, throttle=0.1)
+    rig.run()
+    for seq in range(2, 22):  # 20 arrive between two ticks: 12 overwritten
+        rig.send(seq=seq, throttle=0.2)
+    state = rig.run()
+    assert state["last_cmd_seq"] == 21
+    assert rig.counters["cmd_dropped"] == 12 and rig.counters["cmd_received"] == 9
+    rig.send(seq=30, throttle=0.3)  # a gap without a full buffer is the sender's own
+    rig.run()
+    assert rig.counters["cmd_dropped"] == 12
+
+
+def test_control_requests_are_served_a_few_per_tick(rig):
+    reqs = [LocalRequest("get_config", b"") for _ in range(10)]
+    rig.controls.pending += reqs
+    rig.run()
+    assert sum(r.body is not None for r in reqs) == rig.loop.controls_per_tick
+    rig.run(3)
+    assert all(r.answer["ok"] for r in reqs)
+
+
 def test_a_non_finite_state_is_reset(rig, caplog):
     rig.run(5)
     rig.slot.sim.x[L.U_MPS] = np.nan
