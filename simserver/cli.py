@@ -397,10 +397,11 @@ def serve_command(args: argparse.Namespace) -> int:
         realtime=args.realtime, rt_priority=args.rt_priority, rt_cpus=args.rt_cpus,
         rt_lock_memory=args.rt_lock_memory)
     from simserver.adapters.zenoh_io import ZenohConfigError, ZenohOpenError
+    from simserver.server import DuplicateVehicleError
 
     try:
         SimServer(cfg).run()
-    except (ZenohConfigError, ZenohOpenError) as exc:
+    except (ZenohConfigError, ZenohOpenError, DuplicateVehicleError) as exc:
         raise CliError(str(exc), exit_code=2) from exc
     return 0
 

@@ -509,8 +509,8 @@ class SimServer:
                 log.warning("viewer port %d is in use: the live viewer serves on %d instead "
                             "(choose one with --viewer serve:PORT, or --viewer off)", taken,
                             port)
-            log.info("open the live viewer with: rerun --connect "
-                     "rerun+http://127.0.0.1:%d/proxy", port)
+            # the same command as the README's and the viewer's own line
+            log.info("open the live viewer with: rerun rerun+http://127.0.0.1:%d/proxy", port)
         args = [sys.executable, "-m", "simserver", "view", "--sink", sink,
                 "--connect", loopback_of(listen[0]), "--prefix", cfg.prefix,
                 "--vehicle-id", cfg.vehicle_id]
