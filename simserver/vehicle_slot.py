@@ -462,6 +462,9 @@ def resolve_config_path(field: str, value: str, config_dirs: tuple[Path, ...],
                            f"({', '.join(str(d) for d in config_dirs)})")
             if path.is_file():
                 return path
+        if path.exists() and not path.is_file():  # never opened: a FIFO would block
+            raise proto.ProtocolError(field, f"{path}: not a regular file (a FIFO, a "
+                                             "device or a directory)")
     raise proto.ProtocolError(field, f"{value}: no such file; looked in "
                                      f"{', '.join(str(c.resolve()) for c in candidates)}")
 
