@@ -115,7 +115,7 @@ KEY_SPECS: Final[tuple[KeySpec, ...]] = (
         "server -> clients (put)",
         "VehicleState (binary)",
         ENCODING_STATE,
-        "REAL_TIME, express, BLOCK",
+        "REAL_TIME, express, DROP (waits at most 50 us for a full link)",
         "every tick (1 kHz) by default; server-side decimation",
     ),
     KeySpec(
