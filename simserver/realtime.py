@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -373,10 +374,13 @@ REALTIME_MODES = ("auto", "off")
 warning; ``off``: leave the scheduling alone."""
 DEFAULT_RT_PRIORITY = 50
 """SCHED_FIFO priority of the tick thread (1-99); zenoh's threads get one less."""
-DEFAULT_ZENOH_THREADS = ("rx-", "tx-", "app-", "net-", "acc-")
-"""Name prefixes of zenoh's runtime threads: receive (commands in), transmit (states out)
-and the runtimes they hand work to. Promoting only rx/tx gave a command-to-state latency
-p99 of 8.5 ms beside two CPU hogs, all of them 3.7 ms (20 s runs, load average 6)."""
+DEFAULT_ZENOH_THREADS: tuple[str, ...] = ()
+"""Name prefixes of the threads to promote besides the tick thread; empty: every thread
+started after the scheduler was made (zenoh opens its session later) that Python did not
+start, i.e. zenoh's Rust threads, named ("rx-N", "tx-N", "app-N", "net-N", "acc-N") or
+not. Beside two CPU hogs the command-to-state latency p99 was 8.5 ms promoting rx/tx
+only, 2.9-3.7 ms promoting the named ones, 1.9 ms with every thread of both processes
+at SCHED_FIFO (``chrt -f 50``; 20-60 s runs, load average 5-7)."""
 FALLBACK_NICE = -10
 """Nice level asked for when no real-time policy is permitted."""
 
@@ -469,7 +473,8 @@ class RealtimeScheduler:
         self.applied: list[str] = []
         self.warnings: list[str] = []
         self.promoted: dict[int, str] = {}  # zenoh threads given the policy
-        self._seen: set[int] = set()
+        # threads that exist before zenoh starts (numpy's, say) are never promoted
+        self._seen: set[int] = set(process_threads())
         self._rt_priority = settings.priority
 
     def apply(self) -> str:
@@ -535,13 +540,16 @@ class RealtimeScheduler:
         if self.settings.mode == "off" or self.policy == "unchanged":
             return 0
         prefixes = self.settings.zenoh_threads
+        python_threads = {t.native_id for t in threading.enumerate()}
         n = 0
         for tid, name in process_threads().items():
             if tid in self._seen:
                 continue
             self._seen.add(tid)
-            if not name.startswith(prefixes):
+            if prefixes and not name.startswith(prefixes):
                 continue
+            if not prefixes and tid in python_threads:
+                continue  # Python's own (a pool's manager): not on the real-time path
             try:
                 if self.policy == "SCHED_FIFO":
                     os.sched_setscheduler(tid, os.SCHED_FIFO | _RESET_ON_FORK,
@@ -562,7 +570,8 @@ class RealtimeScheduler:
         if self.policy not in ("off", "unchanged"):
             what = f"SCHED_FIFO priority {self._rt_priority - 1}" \
                 if self.policy == "SCHED_FIFO" else self.policy
-            names = ", ".join(p + "*" for p in self.settings.zenoh_threads)
+            names = ", ".join(p + "*" for p in self.settings.zenoh_threads) or \
+                "(every thread Python did not start)"
             parts.append(f"{what} for zenoh's threads {names} as they start "
                          f"({len(self.promoted)} so far)")
         line = "real-time scheduling: " + ("; ".join(parts) if parts else "none applied")
