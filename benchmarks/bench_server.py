@@ -37,6 +37,7 @@ from collections import deque
 from contextlib import contextmanager
 
 import numpy as np
+import zenoh
 
 from simserver import protocol as proto
 from simserver.testing import Client, ServerProcess
@@ -89,7 +90,11 @@ def _run(seconds: float, cmd_hz: float, viewer: str, realtime: str,
         def on_state(sample) -> None:  # zenoh's thread: stamp first, decode later
             arrivals.append((time.monotonic_ns(), sample.payload.to_bytes()))
 
-        states = ep.session.declare_subscriber(ep.keys.state, on_state)
+        # indirect=False: stamped in zenoh's receiving thread (real-time with the client's
+        # scheduling), not in a Python thread of zenoh's at normal priority that CPU hogs
+        # would delay (that was this benchmark's own latency, not the server's)
+        states = ep.session.declare_subscriber(
+            ep.keys.state, zenoh.handlers.Callback(on_state, indirect=False))
         client_rt.apply()  # this thread and the client's zenoh threads
         diag = client.diag
         sent: dict[int, int] = {}

@@ -316,7 +316,12 @@ class ControlInbox:
         self.busy = 0
         self._queues: dict[bytes, deque] = {}
         self._turn: deque[bytes] = deque()  # clients with something queued, in turn
-        self._q = session.declare_queryable(keys.ctl_wildcard, self._on_query, complete=True)
+        # indirect=False: the callback runs in zenoh's receiving thread (the server makes it
+        # real-time), not in a Python thread of its own, which would hold the GIL at
+        # normal priority and keep the interpreter from exiting (platform note)
+        self._q = session.declare_queryable(
+            keys.ctl_wildcard, zenoh.handlers.Callback(self._on_query, indirect=False),
+            complete=True)
 
     def _on_query(self, query: zenoh.Query) -> None:
         """zenoh's thread: queue the request, or answer busy when its client's queue is full."""
