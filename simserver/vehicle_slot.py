@@ -465,8 +465,8 @@ def resolve_config_path(field: str, value: str, config_dirs: tuple[Path, ...],
         if path.exists() and not path.is_file():  # never opened: a FIFO would block
             raise proto.ProtocolError(field, f"{path}: not a regular file (a FIFO, a "
                                              "device or a directory)")
-    raise proto.ProtocolError(field, f"{value}: no such file; looked in "
-                                     f"{', '.join(str(c.resolve()) for c in candidates)}")
+    looked = dict.fromkeys(str(c.resolve()) for c in candidates)
+    raise proto.ProtocolError(field, f"{value}: no such file; looked in {', '.join(looked)}")
 
 
 def prepare_load(scene: str | None, vehicle: str | None, current_scene: Path,
