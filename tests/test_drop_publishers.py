@@ -24,13 +24,29 @@ SECONDS = 2.0
 HOGS = 2
 
 
-def _session(server: ServerProcess) -> dict:
+def zenoh_defaults(endpoint: str) -> zenoh.Config:
+    """A client as a new user writes one: zenoh's defaults (QoS on, the normal transport,
+    multicast scouting off only to stay on this machine) connecting to ``endpoint``."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", f'["{endpoint}"]')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    return cfg
+
+
+def _session(server: ServerProcess, defaults: bool) -> dict:
     """One DROP session at 1 kHz for SECONDS: the longest time the server's
     ``last_cmd_seq`` lagged the newest seq sent by more than 50 commands."""
     with Client(server) as client:
-        pub = client.ep.session.declare_publisher(
-            client.ep.keys.cmd, congestion_control=zenoh.CongestionControl.DROP,
-            priority=zenoh.Priority.REAL_TIME, express=True)
+        if defaults:  # the whole session as zenoh's defaults make it, publisher included
+            client.ep.session.close()
+            client.ep.session = zenoh.open(zenoh_defaults(server.endpoint))
+            client.states = client.ep.declare_state_inbox()
+            pub = client.ep.session.declare_publisher(client.ep.keys.cmd)
+        else:
+            pub = client.ep.session.declare_publisher(
+                client.ep.keys.cmd, congestion_control=zenoh.CongestionControl.DROP,
+                priority=zenoh.Priority.REAL_TIME, express=True)
         client.wait_state()
         seq = 0
         lag_since = None
@@ -53,11 +69,12 @@ def _session(server: ServerProcess) -> dict:
     return {"sent": seq, "worst_lag_s": worst_lag_s}
 
 
-def test_drop_publishers_under_cpu_load_keep_their_command_stream():
+@pytest.mark.parametrize("defaults", [False, True], ids=["project-config", "zenoh-defaults"])
+def test_drop_publishers_under_cpu_load_keep_their_command_stream(defaults):
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(HOGS)]
     try:
         with ServerProcess() as server:
-            results = [_session(server) for _ in range(SESSIONS)]
+            results = [_session(server, defaults) for _ in range(SESSIONS)]
     finally:
         for hog in hogs:
             hog.kill()
