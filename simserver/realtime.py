@@ -152,6 +152,10 @@ class Pacer:
             raise ValueError(f"period_ns must be > 0, got {period_ns}")
         if int(spin_ns) < 0:
             raise ValueError(f"spin_ns must be >= 0, got {spin_ns}")
+        if int(spin_ns) > int(period_ns) // 2:
+            # under SCHED_FIFO the spin holds a core: at most half of each period
+            raise ValueError(f"spin_ns must be at most half the period ({int(period_ns) // 2}"
+                             f" ns), got {spin_ns}")
         if int(max_catchup_ticks) < 0:
             raise ValueError(f"max_catchup_ticks must be >= 0, got {max_catchup_ticks}")
         if int(window) < 1:
@@ -540,12 +544,22 @@ class RealtimeScheduler:
         if self.settings.mode == "off" or self.policy == "unchanged":
             return 0
         prefixes = self.settings.zenoh_threads
+        try:  # once a second in the tick: list the ids, read only the new threads' names
+            new = [int(t) for t in os.listdir("/proc/self/task") if int(t) not in self._seen]
+        except OSError:
+            return 0
+        if not new:
+            return 0
         python_threads = {t.native_id for t in threading.enumerate()}
         n = 0
-        for tid, name in process_threads().items():
-            if tid in self._seen:
-                continue
+        for tid in new:
             self._seen.add(tid)
+            try:
+                with open(f"/proc/self/task/{tid}/comm", encoding="utf-8",
+                          errors="replace") as fh:
+                    name = fh.read().strip()
+            except OSError:
+                continue  # ended meanwhile
             if prefixes and not name.startswith(prefixes):
                 continue
             if not prefixes and tid in python_threads:

@@ -260,7 +260,8 @@ class ServerLoop:
                  preparer: Preparer | None = None, job_timeout_s: float = JOB_TIMEOUT_S,
                  controls_per_tick: int = CONTROLS_PER_TICK) -> None:
         self.clock = clock
-        self.pacer = Pacer(period_ns=int(round(cfg.period_s * NS_PER_S)), spin_ns=spin_ns,
+        period_ns = int(round(cfg.period_s * NS_PER_S))
+        self.pacer = Pacer(period_ns=period_ns, spin_ns=min(spin_ns, period_ns // 2),
                            max_catchup_ticks=cfg.max_catchup_ticks, clock=clock, sleep=sleep)
         self.cpu = cpu if cpu is not None else CpuMeter(clock=clock)
         self.state_every = cfg.state_every
