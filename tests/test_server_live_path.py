@@ -25,6 +25,7 @@ from pathlib import Path
 import pytest
 
 from simserver import protocol as proto
+from simserver.realtime import thread_policy
 from simserver.server import CompileProgress
 from simserver.testing import (
     CONFIGS,
@@ -176,6 +177,9 @@ def test_a_viewer_port_in_use_moves_to_a_free_port_and_its_death_is_logged():
                         if b"view" in Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")]
 
             viewer_pid = wait_until(viewer_pids, what="the viewer process")[0]
+            # the server's real-time policy is not inherited: the viewer runs idle
+            wait_until(lambda: thread_policy(viewer_pid)[0], lambda p: p == "SCHED_IDLE",
+                       what="the viewer at SCHED_IDLE")
             mark = len(server.output)
             os.kill(viewer_pid, 9)
             died = server.wait_for_line("the live viewer exited", start=mark)
