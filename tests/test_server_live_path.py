@@ -171,12 +171,7 @@ def test_a_viewer_port_in_use_moves_to_a_free_port_and_its_death_is_logged():
             moved = opened.split("rerun+http://")[1].strip()
             assert f"open with `rerun rerun+http://{moved}`" in server.wait_for_line(
                 "rerun: serving")
-
-            def viewer_pids() -> list[int]:
-                return [pid for pid in server.children()
-                        if b"view" in Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")]
-
-            viewer_pid = wait_until(viewer_pids, what="the viewer process")[0]
+            viewer_pid = wait_until(server.viewer_pids, what="the viewer process")[0]
             # the server's real-time policy is not inherited: the viewer runs idle
             wait_until(lambda: thread_policy(viewer_pid)[0], lambda p: p == "SCHED_IDLE",
                        what="the viewer at SCHED_IDLE")
