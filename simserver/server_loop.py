@@ -343,6 +343,11 @@ class ServerLoop:
             if control is None or control.job is None:
                 serve_control(slot, request)
                 continue
+            try:  # bad arguments are named first, busy or not
+                args = _validated(name, request.payload)
+            except proto.ProtocolError as exc:
+                request.reply(proto.reply_error(exc))
+                continue
             if index in self.pending:
                 self._jobs_busy[index] = self._jobs_busy.get(index, 0) + 1
                 request.reply(proto.reply_error(
@@ -350,7 +355,7 @@ class ServerLoop:
                     "prepared; ask again when it has been answered", field=name))
                 continue
             try:
-                fn, job_args = control.job(slot, _validated(name, request.payload))
+                fn, job_args = control.job(slot, args)
             except proto.ProtocolError as exc:
                 request.reply(proto.reply_error(exc))
                 continue

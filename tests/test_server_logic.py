@@ -499,6 +499,8 @@ def test_load_is_prepared_off_the_tick_and_applied_between_two_ticks(flat_scene)
     assert ticks == list(range(ticks[0], ticks[0] + 5)) and rig.slot.sim.road["grade_pct"] == 0
     busy = rig.control("load", {"scene": "../scenes/flat_paper_sedan.yaml"})
     assert busy["ok"] is False and busy["field"] == "load" and "busy" in busy["error"]
+    bad = rig.control("load", {"N": 1})  # bad arguments are named first, busy or not
+    assert bad["ok"] is False and bad["field"] == "N"
     assert rig.control("get_config")["ok"] is True  # quick controls are still served
     held.finish()
     state = rig.run()  # applied between this tick's step and its controls
