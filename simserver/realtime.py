@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import logging
 import os
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -380,9 +379,11 @@ DEFAULT_RT_PRIORITY = 50
 """SCHED_FIFO priority of the tick thread (1-99); zenoh's threads get one less."""
 DEFAULT_ZENOH_THREADS: tuple[str, ...] = ()
 """Name prefixes of the threads to promote besides the tick thread; empty: every thread
-started after the scheduler was made (zenoh opens its session later) that Python did not
-start, i.e. zenoh's Rust threads, named ("rx-N", "tx-N", "app-N", "net-N", "acc-N") or
-not. Beside two CPU hogs the command-to-state latency p99 was 8.5 ms promoting rx/tx
+started after the scheduler was made (zenoh opens its session later): zenoh's Rust
+threads, named ("rx-N", "tx-N", "app-N", "net-N", "acc-N") or not, and the load worker's
+Python threads in this process (they take the GIL briefly to hand a result over: at
+normal priority a CPU hog preempting one of them mid-way would hold the tick for
+milliseconds). Beside two CPU hogs the command-to-state latency p99 was 8.5 ms promoting rx/tx
 only, 2.9-3.7 ms promoting the named ones, 1.9 ms with every thread of both processes
 at SCHED_FIFO (``chrt -f 50``; 20-60 s runs, load average 5-7)."""
 FALLBACK_NICE = -10
@@ -550,7 +551,6 @@ class RealtimeScheduler:
             return 0
         if not new:
             return 0
-        python_threads = {t.native_id for t in threading.enumerate()}
         n = 0
         for tid in new:
             self._seen.add(tid)
@@ -562,8 +562,6 @@ class RealtimeScheduler:
                 continue  # ended meanwhile
             if prefixes and not name.startswith(prefixes):
                 continue
-            if not prefixes and tid in python_threads:
-                continue  # Python's own (a pool's manager): not on the real-time path
             try:
                 if self.policy == "SCHED_FIFO":
                     os.sched_setscheduler(tid, os.SCHED_FIFO | _RESET_ON_FORK,
@@ -585,7 +583,7 @@ class RealtimeScheduler:
             what = f"SCHED_FIFO priority {self._rt_priority - 1}" \
                 if self.policy == "SCHED_FIFO" else self.policy
             names = ", ".join(p + "*" for p in self.settings.zenoh_threads) or \
-                "(every thread Python did not start)"
+                "(every thread started from now on)"
             parts.append(f"{what} for zenoh's threads {names} as they start "
                          f"({len(self.promoted)} so far)")
         line = "real-time scheduling: " + ("; ".join(parts) if parts else "none applied")

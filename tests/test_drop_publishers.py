@@ -69,7 +69,15 @@ def _session(server: ServerProcess, defaults: bool) -> dict:
     return {"sent": seq, "worst_lag_s": worst_lag_s}
 
 
-@pytest.mark.parametrize("defaults", [False, True], ids=["project-config", "zenoh-defaults"])
+@pytest.mark.parametrize("defaults", [
+    False,
+    pytest.param(True, marks=pytest.mark.xfail(
+        strict=False, reason="issue 13, open: with zenoh's defaults (normal transport, "
+        "batching, DROP) beside CPU hogs 4 of 12 sessions lost their commands for 0.9-1.9 s "
+        "(2026-12-01, load average 10+); 0 of 12 in two other runs. Cause not established; "
+        "the project's client config (low-latency transport, express, REAL_TIME) lost none "
+        "in 36 sessions")),
+], ids=["project-config", "zenoh-defaults"])
 def test_drop_publishers_under_cpu_load_keep_their_command_stream(defaults):
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(HOGS)]
     try:
