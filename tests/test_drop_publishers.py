@@ -3,7 +3,15 @@
 (``cmd_received`` frozen for 2-25 s while the session still got states). This runs many
 short DROP sessions against one server beside CPU-bound processes and checks, in every
 session, that the server keeps applying the client's commands: the state's
-``last_cmd_seq`` follows the newest ``seq`` sent."""
+``last_cmd_seq`` follows the newest ``seq`` sent.
+
+What these runs established (2026-12-01, load average 7-10): the cause is not DROP but a
+transport mismatch. A client with zenoh's defaults (the normal transport, QoS on) talking
+to the server's default config (zenoh's low-latency transport, QoS off) lost its commands
+for 0.4-1.9 s in 4-5 of 12 two-second sessions, with or without CPU hogs and with BLOCK as
+well; the same client against a server on zenoh's defaults lost none, and a client with
+the server's config lost none in 36 sessions. The mismatched case stays an expected
+failure until the server either serves both transports or refuses the mismatch."""
 
 from __future__ import annotations
 
@@ -15,7 +23,7 @@ import pytest
 import zenoh
 
 from simserver import protocol as proto
-from simserver.testing import Client, ServerProcess
+from simserver.testing import Client, ServerProcess, loopback_endpoint
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -32,6 +40,13 @@ def zenoh_defaults(endpoint: str) -> zenoh.Config:
     cfg.insert_json5("connect/endpoints", f'["{endpoint}"]')
     cfg.insert_json5("scouting/multicast/enabled", "false")
     return cfg
+
+
+SERVER_DEFAULTS = ('{{ mode: "peer", listen: {{ endpoints: ["{endpoint}"] }}, '
+                   'scouting: {{ multicast: {{ enabled: false }} }}, '
+                   'transport: {{ shared_memory: {{ enabled: false }} }} }}\n')
+"""A server config file with zenoh's default transport (multicast and shared memory off
+only to keep to this machine)."""
 
 
 def _session(server: ServerProcess, defaults: bool) -> dict:
@@ -69,19 +84,27 @@ def _session(server: ServerProcess, defaults: bool) -> dict:
     return {"sent": seq, "worst_lag_s": worst_lag_s}
 
 
-@pytest.mark.parametrize("defaults", [
-    False,
-    pytest.param(True, marks=pytest.mark.xfail(
-        strict=False, reason="issue 13, open: with zenoh's defaults (normal transport, "
-        "batching, DROP) beside CPU hogs 4 of 12 sessions lost their commands for 0.9-1.9 s "
-        "(2026-12-01, load average 10+); 0 of 12 in two other runs. Cause not established; "
-        "the project's client config (low-latency transport, express, REAL_TIME) lost none "
-        "in 36 sessions")),
-], ids=["project-config", "zenoh-defaults"])
-def test_drop_publishers_under_cpu_load_keep_their_command_stream(defaults):
+@pytest.mark.parametrize(("defaults", "server_defaults"), [
+    (False, False),
+    pytest.param(True, False, marks=pytest.mark.xfail(
+        strict=False, reason="issue 13, open: a client on zenoh's normal transport against "
+        "the server's low-latency transport loses its commands for seconds (see the module "
+        "docstring)")),
+    (True, True),
+], ids=["project-config", "zenoh-defaults-client-mismatched", "zenoh-defaults-both"])
+def test_drop_publishers_under_cpu_load_keep_their_command_stream(defaults, server_defaults,
+                                                                  tmp_path):
+    endpoint = loopback_endpoint()
+    extra: list[str] = []
+    if server_defaults:
+        zcfg = tmp_path / "server_defaults.json5"
+        zcfg.write_text(SERVER_DEFAULTS.format(endpoint=endpoint), encoding="utf-8")
+        extra = ["--zenoh-config", str(zcfg)]
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(HOGS)]
     try:
-        with ServerProcess() as server:
+        with ServerProcess(listen=[endpoint] if not server_defaults else [],
+                           extra_args=extra) as server:
+            server.endpoint = endpoint
             results = [_session(server, defaults) for _ in range(SESSIONS)]
     finally:
         for hog in hogs:
