@@ -6,6 +6,17 @@
 #   docker run --rm -p 127.0.0.1:7447:7447 simserver
 #   docker run --rm -p 127.0.0.1:7447:7447 -v ./myconfigs:/etc/simserver:ro simserver
 #
+# Real-time scheduling: the server asks for SCHED_FIFO (priority 50, `--rt-priority`) for
+# its tick thread and zenoh's threads; on a busy machine that keeps its 1 kHz. The image's
+# user is not root, so grant it an rtprio limit (and CAP_SYS_NICE for a root user or the
+# nice-level fallback):
+#
+#   docker run --rm --ulimit rtprio=99 --cap-add SYS_NICE -p 127.0.0.1:7447:7447 simserver
+#
+# Without them the server logs a warning and runs at normal priority (`--realtime off`
+# silences it). With cgroup v1 real-time group scheduling add `--cpu-rt-runtime=950000`;
+# for `--rt-lock-memory` add `--ulimit memlock=-1` (or `--cap-add IPC_LOCK`).
+#
 # Configuration: /etc/simserver holds the repository's configs/ tree (server/, scenes/,
 # vehicles/, tires/, scenarios/); the default command loads /etc/simserver/server/default.yaml.
 # Mount your own tree over it (it must contain server/default.yaml and whatever that names),

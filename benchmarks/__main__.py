@@ -14,6 +14,10 @@ In order:
    200 Hz: tick lateness p50/p99/max, ticks more than 1 ms late, overruns, drift, command-to-
    state latency p50/p99. While it runs, this harness samples the server's peak resident
    memory (``VmHWM`` in ``/proc/PID/status``);
+   ``busy``: the same beside two CPU-bound processes (``--hogs 2``), the server and the
+   client under their default real-time scheduling (issue 13);
+   ``load``: ``benchmarks.bench_load``, 20 state subscribers and 10 clients joining and
+   leaving a second, a driver at 1 kHz;
 3. ``benchmarks.bench_viewer``: the same with the live viewer off, saving to a file and
    streaming to a stalled viewer (also sampling the viewer process's peak memory);
 4. start-up: ``simserver serve`` from launch to its ``ready`` line (physics compiled or
@@ -61,7 +65,7 @@ TABLE_HEADER = ("| figure | value | target | command |", "|---|---|---|---|")
 HEADLESS_SCENARIO = "configs/scenarios/e2_stop_downslope_paper_damping.yaml"
 """The README's headless example, run for the headless memory figure."""
 
-SECTIONS = ("step", "server", "viewer", "startup", "memory")
+SECTIONS = ("step", "server", "busy", "load", "viewer", "startup", "memory")
 """Benchmarks in the order they run (``--only`` takes these names)."""
 
 
@@ -71,16 +75,19 @@ class Settings:
 
     step_args: tuple[str, ...]
     server_seconds: float
+    busy_runs: int
+    load_seconds: float
     viewer_seconds: float
     viewer_rounds: int
     startup_cold: int
     startup_warm: int
 
 
-FULL = Settings(step_args=(), server_seconds=60.0, viewer_seconds=60.0, viewer_rounds=2,
-                startup_cold=3, startup_warm=5)
+FULL = Settings(step_args=(), server_seconds=60.0, busy_runs=3, load_seconds=30.0,
+                viewer_seconds=60.0, viewer_rounds=2, startup_cold=3, startup_warm=5)
 QUICK = Settings(step_args=("--seconds", "5", "--repeats", "5"), server_seconds=8.0,
-                 viewer_seconds=6.0, viewer_rounds=1, startup_cold=1, startup_warm=3)
+                 busy_runs=1, load_seconds=8.0, viewer_seconds=6.0, viewer_rounds=1,
+                 startup_cold=1, startup_warm=3)
 """Short runs: long enough for the server's 4096-tick statistics window, no longer."""
 
 
@@ -386,6 +393,46 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
             rows.append(Row(f"server peak RSS ({span})", _mib(peaks["serve (viewer off)"]),
                             "python -m benchmarks --only server" + suffix))
 
+    if "busy" in sections:
+        print("== bench_server --hogs 2", flush=True)
+        argv = ["--seconds", f"{settings.server_seconds:g}", "--hogs", "2"]
+        cmd = " ".join(["python -m benchmarks.bench_server", *argv])
+        runs = [bench_server.main(argv) for _ in range(settings.busy_runs)]
+        raw["busy"] = runs
+
+        def med(key: str) -> float:
+            return statistics.median(r[key] for r in runs)
+
+        loads = ", ".join(f"{r['loadavg_1min']:.1f}" for r in runs)
+        rows += [
+            Row(f"busy machine (2 CPU hogs, median of {len(runs)} runs): ticks > 1 ms late",
+                f"{100 * med('late_fraction'):.2f} % (runs: " + ", ".join(
+                    f"{100 * r['late_fraction']:.2f}" for r in runs)
+                + f"; load average {loads})", cmd, "<= 0.5 %"),
+            Row("busy machine: tick lateness p99", _us(med("lateness_p99_us")) + " (runs: "
+                + ", ".join(_us(r["lateness_p99_us"]) for r in runs) + ")", cmd, "< 50 us"),
+            Row("busy machine: command-to-state latency p50 / p99",
+                f"{_us(med('latency_p50_us'))} / {_us(med('latency_p99_us'))} (p99 runs: "
+                + ", ".join(_us(r["latency_p99_us"]) for r in runs) + ")", cmd, "p99 < 1.5 ms"),
+        ]
+
+    if "load" in sections:
+        from benchmarks import bench_load
+
+        print("== bench_load", flush=True)
+        argv = ["--seconds", f"{settings.load_seconds:g}"]
+        cmd = " ".join(["python -m benchmarks.bench_load", *argv])
+        raw["load"] = r = bench_load.main(argv)
+        rows += [
+            Row("20 state subscribers + 10 clients joining and leaving per s: ticks > 1 ms "
+                "late", f"{r['late_ticks']} of {r['ticks']} ({100 * r['late_fraction']:.2f} "
+                f"%), skipped {r['skipped_ticks']}; load average {r['loadavg_1min']:.1f}",
+                cmd, "<= 1 %"),
+            Row("the same: states lost by the 20 subscribers",
+                f"{r['subscriber_missing_total']} ({r['joined']} clients joined, "
+                f"{r['config_ok']} get_config answered)", cmd, "0"),
+        ]
+
     if "viewer" in sections:
         print("== bench_viewer", flush=True)
         argv = ["--seconds", f"{settings.viewer_seconds:g}",
@@ -458,6 +505,13 @@ def render(report: Report, sections: list[str]) -> str:
         "command sent to the first state that reflects it, on the shared monotonic clock, "
         "each command sent at a random offset (uniform over one tick) in its 5 ms slot: a "
         "driver's clock has no fixed phase to the server's ticks.",
+        "- Busy machine: the server run beside two CPU-bound Python processes at normal "
+        "priority (`--hogs 2`); the server and the benchmark's client use their default "
+        "real-time scheduling (SCHED_FIFO where permitted, `simserver serve --realtime`).",
+        "- Load: `benchmarks.bench_load`: a driver at 1 kHz, 20 state subscribers (each its "
+        "own zenoh session) checking every tick arrives, and 10 sessions a second joining "
+        "(state subscription, `get_config`) and leaving a second later; late ticks from the "
+        "server's diagnostics over the loaded period.",
         "- Start-up: launch of `python -m simserver serve --viewer off` to its `ready` line "
         "(kernels compiled or loaded, zenoh open, before the first tick). Cold: "
         "`NUMBA_CACHE_DIR` an empty directory (Python bytecode already compiled); warm: the "
@@ -485,6 +539,23 @@ def readme_block(report: Report) -> str:
     return "\n".join(lines)
 
 
+def merge_rows(text: str, rows: list[Row]) -> str:
+    """``text`` (a document with the performance table) with the rows of the same figure
+    replaced by ``rows`` and the new ones appended to the table: a partial run
+    (``--only ... --merge``) refreshes its own rows and keeps the others."""
+    lines = text.split("\n")
+    try:
+        start = lines.index(TABLE_HEADER[1]) + 1
+    except ValueError:
+        raise SystemExit("the performance table is missing") from None
+    end = start
+    while end < len(lines) and lines[end].startswith("| "):
+        end += 1
+    fresh = {r.figure: r.markdown() for r in rows}
+    table = [fresh.pop(line.split(" | ")[0][2:], line) for line in lines[start:end]]
+    return "\n".join(lines[:start] + table + list(fresh.values()) + lines[end:])
+
+
 def update_readme(text: str, block: str) -> str:
     """``text`` with its performance block replaced by ``block``."""
     try:
@@ -508,6 +579,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                              "for a full run of every benchmark; none for --quick or --only)")
     parser.add_argument("--json", type=Path, default=None, metavar="FILE",
                         help="also write every raw result as JSON")
+    parser.add_argument("--merge", action="store_true",
+                        help="with --only: put this run's rows into the README's table and "
+                             f"{DEFAULT_OUT.relative_to(REPO)} (same figure replaced, new "
+                             "ones appended), keeping the other rows")
     args = parser.parse_args(argv)
     sections = [s for s in SECTIONS if args.only is None or s in args.only]
     settings = QUICK if args.quick else FULL
@@ -527,6 +602,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         README.write_text(update_readme(README.read_text(encoding="utf-8"),
                                         readme_block(report)), encoding="utf-8")
         print(f"wrote the performance block of {README}")
+    elif args.merge and not args.quick:
+        for path in (README, DEFAULT_OUT):
+            path.write_text(merge_rows(path.read_text(encoding="utf-8"), report.rows),
+                            encoding="utf-8")
+            print(f"merged {len(report.rows)} rows into {path}")
     result = {"machine": report.machine, "mode": report.mode, "rows": [vars(r) for r in
               report.rows], "raw": report.raw, "wall_s": time.monotonic() - t0}
     if args.json is not None:

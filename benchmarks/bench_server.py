@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python -m benchmarks.bench_server [--seconds 60] [--cmd-hz 200]
+    python -m benchmarks.bench_server [--seconds 60] [--cmd-hz 200] [--hogs 2]
 
 Starts ``simserver serve`` as a subprocess (state published every tick) on a free
 loopback port; this process is the client: it publishes driver commands at ``--cmd-hz``
@@ -18,15 +18,26 @@ the figure. Tick lateness comes from the server's diagnostics (windows of 4096 t
 the median of the windows' p50 and p99 are quoted) and from its final statistics at
 SIGTERM (maximum and late ticks over the whole run). Drift: simulated time (ticks x
 1 ms) against the wall time between the first and last state received.
+
+``--hogs N`` starts N CPU-bound processes at normal priority for the whole run (a busy
+machine). The server uses its default real-time scheduling (``--realtime auto``; pass
+``--realtime off`` to compare) and so does this client, for its own zenoh threads and the
+thread that sends commands (``--client-realtime off`` to leave it at normal priority): a
+client starved by the hogs would time its own scheduling delay, not the server's.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import subprocess
+import sys
 import time
 from collections import deque
+from contextlib import contextmanager
 
 import numpy as np
+import zenoh
 
 from simserver import protocol as proto
 from simserver.testing import Client, ServerProcess
@@ -35,10 +46,40 @@ TICK_S = 1e-3
 """The server's default period: a command's send instant is uniform over one of these."""
 
 
-def run(seconds: float, cmd_hz: float, viewer: str = "off") -> dict:
-    """One server run of ``seconds`` with the live viewer ``viewer`` (a ``--viewer`` value)."""
-    server = ServerProcess(scene=None, log_level="WARNING", viewer=viewer)
+HOG = "while True: pass"
+
+
+@contextmanager
+def cpu_hogs(n: int):
+    """``n`` CPU-bound processes at normal priority while the block runs."""
+    hogs = [subprocess.Popen([sys.executable, "-c", HOG]) for _ in range(n)]
+    try:
+        yield hogs
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+
+
+def run(seconds: float, cmd_hz: float, viewer: str = "off", hogs: int = 0,
+        realtime: str = "auto", client_realtime: str = "auto") -> dict:
+    """One server run of ``seconds`` with the live viewer ``viewer`` (a ``--viewer`` value),
+    ``hogs`` CPU-bound processes beside it, the server's ``--realtime`` mode and this
+    client's."""
+    with cpu_hogs(hogs):
+        return _run(seconds, cmd_hz, viewer, realtime, client_realtime) | {
+            "hogs": hogs, "realtime": realtime, "client_realtime": client_realtime,
+            "loadavg_1min": os.getloadavg()[0]}
+
+
+def _run(seconds: float, cmd_hz: float, viewer: str, realtime: str,
+         client_realtime: str) -> dict:
+    from simserver.realtime import RealtimeScheduler, RealtimeSettings
+
+    server = ServerProcess(scene=None, log_level="WARNING", viewer=viewer,
+                           extra_args=["--realtime", realtime])
     startup_s = server.ready_s
+    client_rt = RealtimeScheduler(RealtimeSettings(mode=client_realtime, priority=40))
     latencies_us: list[float] = []
     diags: list[np.ndarray] = []
     first_state = last_state = None
@@ -49,7 +90,12 @@ def run(seconds: float, cmd_hz: float, viewer: str = "off") -> dict:
         def on_state(sample) -> None:  # zenoh's thread: stamp first, decode later
             arrivals.append((time.monotonic_ns(), sample.payload.to_bytes()))
 
-        states = ep.session.declare_subscriber(ep.keys.state, on_state)
+        # indirect=False: stamped in zenoh's receiving thread (real-time with the client's
+        # scheduling), not in a Python thread of zenoh's at normal priority that CPU hogs
+        # would delay (that was this benchmark's own latency, not the server's)
+        states = ep.session.declare_subscriber(
+            ep.keys.state, zenoh.handlers.Callback(on_state, indirect=False))
+        client_rt.apply()  # this thread and the client's zenoh threads
         diag = client.diag
         sent: dict[int, int] = {}
         seq = 0
@@ -83,6 +129,8 @@ def run(seconds: float, cmd_hz: float, viewer: str = "off") -> dict:
             for payload in diag.drain_newest():
                 diags.append(proto.decode_diagnostics(payload))
             time.sleep(0.0005)
+            if len(sent) % 256 == 0:
+                client_rt.promote_new_threads()
         states.undeclare()  # a callback subscriber would otherwise hold the exit
     server.stop()
     final = server.final_stats()
@@ -116,10 +164,18 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--cmd-hz", type=float, default=200.0)
     parser.add_argument("--viewer", default="off", help="the server's --viewer (default off)")
+    parser.add_argument("--hogs", type=int, default=0,
+                        help="CPU-bound processes at normal priority during the run")
+    parser.add_argument("--realtime", default="auto", choices=("auto", "off"),
+                        help="the server's --realtime (default auto)")
+    parser.add_argument("--client-realtime", default="auto", choices=("auto", "off"),
+                        help="real-time scheduling of this client (default auto)")
     args = parser.parse_args(argv)
-    r = run(args.seconds, args.cmd_hz, args.viewer)
-    print(f"server run {r['seconds']:.0f} s (viewer {args.viewer}), {r['ticks']} ticks, "
-          f"state every tick; "
+    r = run(args.seconds, args.cmd_hz, args.viewer, args.hogs, args.realtime,
+            args.client_realtime)
+    print(f"server run {r['seconds']:.0f} s (viewer {args.viewer}, {args.hogs} CPU hogs, "
+          f"server realtime {args.realtime}, client realtime {args.client_realtime}, "
+          f"load average {r['loadavg_1min']:.2f}), {r['ticks']} ticks, state every tick; "
           f"ready {r['startup_s']:.1f} s after launch")
     print(f"tick lateness: p50 {r['lateness_p50_us']:.1f} us, p99 {r['lateness_p99_us']:.1f} us"
           f" (worst 4096-tick window {r['lateness_p99_worst_window_us']:.0f} us), "

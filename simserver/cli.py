@@ -367,6 +367,18 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help="live Rerun view in its own process: serve[:PORT] (loopback "
                              "gRPC + web viewer), save:FILE.rrd, connect:URL, spawn, off "
                              "(default: the config's 'viewer')")
+    parser.add_argument("--realtime", default=None, choices=("auto", "off"),
+                        help="auto (default): SCHED_FIFO for the tick thread and zenoh's "
+                             "threads where the OS allows it (root, CAP_SYS_NICE or an "
+                             "rtprio limit), else a warning and a nice-level fallback; "
+                             "off: leave the scheduling alone")
+    parser.add_argument("--rt-priority", type=int, default=None, metavar="N",
+                        help="SCHED_FIFO priority of the tick thread, 2-99 (default 50; "
+                             "zenoh's threads get N-1)")
+    parser.add_argument("--rt-cpus", default=None, metavar="LIST",
+                        help="pin the server to these CPUs (e.g. 1 or 2-3; default: any)")
+    parser.add_argument("--rt-lock-memory", action="store_true", default=None,
+                        help="mlockall: no page faults in the tick (needs CAP_IPC_LOCK)")
     parser.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
 
 
@@ -381,12 +393,15 @@ def serve_command(args: argparse.Namespace) -> int:
     cfg = load_server_config(
         args.config or DEFAULT_SERVER_CONFIG, scene=args.scene, vehicle_id=args.vehicle_id,
         prefix=args.prefix, listen=args.listen, connect=args.connect,
-        zenoh_config=args.zenoh_config, command_log=args.command_log, viewer=args.viewer)
+        zenoh_config=args.zenoh_config, command_log=args.command_log, viewer=args.viewer,
+        realtime=args.realtime, rt_priority=args.rt_priority, rt_cpus=args.rt_cpus,
+        rt_lock_memory=args.rt_lock_memory)
     from simserver.adapters.zenoh_io import ZenohConfigError, ZenohOpenError
+    from simserver.server import DuplicateVehicleError
 
     try:
         SimServer(cfg).run()
-    except (ZenohConfigError, ZenohOpenError) as exc:
+    except (ZenohConfigError, ZenohOpenError, DuplicateVehicleError) as exc:
         raise CliError(str(exc), exit_code=2) from exc
     return 0
 

@@ -119,7 +119,7 @@ KEY_SPECS: Final[tuple[KeySpec, ...]] = (
         "server -> clients (put)",
         "VehicleState (binary)",
         ENCODING_STATE,
-        "REAL_TIME, express, BLOCK",
+        "REAL_TIME, express, DROP (waits at most 50 us for a full link)",
         "every tick (1 kHz) by default; server-side decimation",
     ),
     KeySpec(
@@ -369,10 +369,13 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
               "protocol version"),
     FieldSpec("flags", "<u2", 1, "-", None, None,
               "bit 0 watchdog engaged (no valid command: throttle off, brakes hold); "
-              "bit 1 paused; bit 2 a brake holds a wheel at zero spin; bit 3 tick run late "
-              "as part of a catch-up; bit 4 fault: the state went non-finite, the car was put "
-              "at rest at the scene's start pose and paused until a reset or load; bits "
-              "5-15 are 0"),
+              "bit 1 paused; bit 2 a brake holds a wheel at zero spin (the pedal, the "
+              "parking brake or the park lock acting; not rolling resistance alone); "
+              "bit 3 tick run late as part of a catch-up; bit 4 fault: the state went "
+              "non-finite, the car was put at rest at the scene's start pose and paused "
+              "until a reset or load; bit 5 the first state after skipped deadlines (a "
+              "stall beyond the catch-up bound, see Diagnostics.skipped_ticks); bits 6-15 "
+              "are 0"),
     FieldSpec("last_cmd_seq", "<u4", 1, "-", None, None,
               "seq of the last command applied (0 before the first)"),
     FieldSpec("tick", "<u8", 1, "-", None, None,
@@ -464,6 +467,16 @@ DIAGNOSTICS_FIELDS: Final[tuple[FieldSpec, ...]] = (
               "superseded by a newer one in the same tick"),
     FieldSpec("state_published", "<u8", 1, "-", None, None, "VehicleState messages published"),
     FieldSpec("watchdog_trips", "<u8", 1, "-", None, None, "times the watchdog engaged"),
+    FieldSpec("cmd_dropped", "<u8", 1, "-", None, None,
+              "command payloads lost because the server's receive buffer was full (more "
+              "than its capacity arrived between two ticks; the oldest are dropped)"),
+    FieldSpec("ctl_received", "<u8", 1, "-", None, None, "control requests received"),
+    FieldSpec("ctl_busy", "<u8", 1, "-", None, None,
+              "control requests answered busy (that client's queue full, or a load "
+              "still being prepared)"),
+    FieldSpec("publish_slow", "<u8", 1, "-", None, None,
+              "state publications that took longer than a quarter period (a congested "
+              "link; the publication never waits for a subscriber)"),
 )
 
 _STRUCT_CODES = {"u1": "B", "u2": "H", "u4": "I", "u8": "Q", "f4": "f", "f8": "d"}
@@ -497,7 +510,7 @@ DIAGNOSTICS_SIZE: Final[int] = DIAGNOSTICS_DTYPE.itemsize
 
 assert _COMMAND_STRUCT.size == COMMAND_SIZE == 32
 assert _STATE_STRUCT.size == STATE_SIZE == 256
-assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 128
+assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 160
 
 
 # ============================================================================ commands
@@ -524,6 +537,7 @@ class StateFlag(enum.IntFlag):
     BRAKE_HOLD = 0x04
     CATCHUP = 0x08
     FAULT = 0x10
+    SKIPPED = 0x20  # the first state after deadlines were skipped (a stall: SIGSTOP, ...)
 
 
 @dataclass(frozen=True, slots=True)
@@ -984,10 +998,14 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
         ),
         ControlSpec(
             "load",
-            "Load another vehicle and/or scene YAML (paths resolved by the server; it "
-            "reads only regular files in its config directories, and so must be every "
-            "file they refer to), compile it, then reset. The physics is paused "
-            "meanwhile. An error's `field` is the argument whose files are at fault.",
+            "Load another vehicle and/or scene YAML (a relative path is looked up in the "
+            "server's working directory first, then in its config directories, to which "
+            "it may restrict them; the error lists where it looked). The server reads "
+            "only regular files in its config directories, and so must be every file "
+            "they refer to. The files are read off the tick (the physics runs on "
+            "meanwhile) and the result swapped in between two ticks, then reset; the "
+            "reply comes then. One load at a time: another meanwhile is answered busy. "
+            "An error's `field` is the argument whose files are at fault.",
             (
                 ArgSpec("vehicle", "path", False, "", None, None, "vehicle YAML path"),
                 ArgSpec("scene", "path", False, "", None, None, "scene YAML path"),

@@ -19,9 +19,11 @@ import json
 import logging
 import os
 import signal
+import socket
 import stat
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +35,14 @@ from simserver import protocol as proto
 from simserver.adapters.config import ConfigError, check_keys, number, read_yaml
 from simserver.adapters.validate import integer, is_path_text, short_repr
 from simserver.core import layout as L
+from simserver.load_worker import ProcessPreparer
+from simserver.realtime import (
+    DEFAULT_RT_PRIORITY,
+    REALTIME_MODES,
+    RealtimeScheduler,
+    RealtimeSettings,
+    parse_cpus,
+)
 from simserver.scenario import INITIAL_RANGES, Scene, load_scene
 from simserver.server_loop import ServerLoop, SlotPorts
 from simserver.simulation import Simulation
@@ -61,6 +71,10 @@ SERVER_KEYS: dict[str, tuple[float, float] | None] = {
     "command_log": None,
     "config_dirs": None,
     "viewer": None,
+    "realtime": None,
+    "rt_priority": (2, 99),
+    "rt_cpus": None,
+    "rt_lock_memory": None,
 }
 
 
@@ -85,6 +99,15 @@ class ServerConfig:
     command_log: Path | None = None
     config_dirs: list[Path] = field(default_factory=list)
     viewer: str = "off"
+    realtime: str = "auto"
+    rt_priority: int = DEFAULT_RT_PRIORITY
+    rt_cpus: tuple[int, ...] = ()
+    rt_lock_memory: bool = False
+
+    def realtime_settings(self) -> RealtimeSettings:
+        """The real-time scheduling asked for (``simserver.realtime``)."""
+        return RealtimeSettings(mode=self.realtime, priority=self.rt_priority,
+                                cpus=self.rt_cpus, lock_memory=self.rt_lock_memory)
 
 
 def _string_list(path: Path, key: str, value: Any) -> list[str]:
@@ -161,7 +184,7 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
         if key not in base or key == "scene" or base[key] is None:
             continue
         value = base[key]
-        if key in ("state_every", "max_catchup_ticks"):
+        if key in ("state_every", "max_catchup_ticks", "rt_priority"):
             lo, hi = rng
             setattr(cfg, key, integer(path, key, value, int(lo), int(hi)))
         elif rng is not None:
@@ -176,12 +199,24 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
             if not all(is_path_text(d) for d in folders):
                 raise ConfigError(f"{path}: key '{key}': expected folder paths")
             cfg.config_dirs = [(path.parent / d).resolve() for d in folders]
-        elif key in ("prefix", "vehicle_id", "mode", "viewer"):
+        elif key == "rt_cpus":
+            try:
+                cfg.rt_cpus = parse_cpus(str(value))
+            except ValueError as exc:
+                raise ConfigError(f"{path}: key 'rt_cpus': {exc}") from None
+        elif key == "rt_lock_memory":
+            if not isinstance(value, bool):
+                raise ConfigError(f"{path}: key 'rt_lock_memory': expected true or false")
+            cfg.rt_lock_memory = value
+        elif key in ("prefix", "vehicle_id", "mode", "viewer", "realtime"):
             if not isinstance(value, str):
                 raise ConfigError(f"{path}: key '{key}': expected a string")
             setattr(cfg, key, value)
         else:
             setattr(cfg, key, Path(value))
+    if cfg.realtime not in REALTIME_MODES:
+        raise ConfigError(f"{path}: key 'realtime': expected one of "
+                          f"{', '.join(REALTIME_MODES)}, got {cfg.realtime!r}")
     if cfg.mode not in (None, "peer", "router", "client"):
         raise ConfigError(f"{path}: key 'mode': expected peer, router or client")
     for key in ("scene", "zenoh_config"):
@@ -284,18 +319,98 @@ def new_simulation(scene: Scene, dt_s: float) -> Simulation:
     return Simulation(scene, dt_s)
 
 
+class DuplicateVehicleError(RuntimeError):
+    """Another server already serves this vehicle id on the zenoh network."""
+
+
+COLD_COMPILE_S = (20, 45)
+"""A cold start's compile time on the development machine (2 vCPUs), for the log line."""
+
+
+class CompileProgress:
+    """Say so when compiling takes long (a cold numba cache), with the seconds so far.
+
+    Silent when the kernels come from the cache (under ``quiet_s``); otherwise one line
+    ``simserver: compiling ... (first start only, about 20-45 s)``, one line every
+    ``every_s`` with the time so far, and one when done. A daemon thread prints them: the
+    compiling thread is busy.
+    """
+
+    def __init__(self, quiet_s: float = 1.0, every_s: float = 5.0,
+                 out: Any = None) -> None:
+        self.quiet_s = quiet_s
+        self.every_s = every_s
+        self.out = out
+        self.announced = False
+        self._done = threading.Event()
+        self._t0 = 0.0
+
+    def _print(self, text: str) -> None:
+        print(text, file=self.out or sys.stdout, flush=True)
+
+    def _watch(self) -> None:
+        if self._done.wait(self.quiet_s):
+            return
+        self.announced = True
+        lo, hi = COLD_COMPILE_S
+        self._print(f"simserver: compiling the vehicle kernels (first start only, about "
+                    f"{lo}-{hi} s; later starts load them from the cache) ...")
+        while not self._done.wait(self.every_s):
+            self._print(f"simserver: compiling ... {time.perf_counter() - self._t0:.0f} s")
+
+    def __enter__(self) -> CompileProgress:
+        self._t0 = time.perf_counter()
+        self._thread = threading.Thread(target=self._watch, name="compile-progress",
+                                        daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._done.set()
+        self._thread.join()
+        if self.announced:
+            self._print(f"simserver: compiled in {time.perf_counter() - self._t0:.1f} s")
+
+
+def effective_endpoints(zcfg: Any, key: str = "listen/endpoints") -> list[str]:
+    """The endpoints a zenoh config really has (a list, or per mode for routers/peers)."""
+    value = json.loads(zcfg.get_json(key))
+    if isinstance(value, dict):
+        mode = json.loads(zcfg.get_json("mode")) or "peer"
+        value = value.get(mode, [])
+    return [str(v) for v in value or []]
+
+
+def loopback_of(endpoint: str) -> str:
+    """An endpoint a local client can connect to (``0.0.0.0``/``[::]`` -> loopback)."""
+    return endpoint.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
+
+
 class SimServer:
     """The live server over zenoh: one vehicle slot, the loop, the viewer, the signals.
 
     ``run()`` blocks until SIGINT/SIGTERM or ``stop()``. The logic lives in
     :class:`simserver.vehicle_slot.VehicleSlot` and :class:`simserver.server_loop.ServerLoop`;
-    this class only wires them to zenoh (:mod:`simserver.adapters.zenoh_io`).
+    this class only wires them to zenoh (:mod:`simserver.adapters.zenoh_io`), applies the
+    real-time scheduling (:class:`simserver.realtime.RealtimeScheduler`) and watches the
+    viewer and the vehicle's liveliness once a second.
     """
 
     def __init__(self, cfg: ServerConfig) -> None:
         self.cfg = cfg
-        self.slots = [VehicleSlot(cfg, new_simulation(load_scene(cfg.scene), cfg.period_s))]
-        self.loop = ServerLoop(cfg)
+        with CompileProgress():
+            self.slots = [VehicleSlot(cfg, new_simulation(load_scene(cfg.scene),
+                                                          cfg.period_s))]
+            for slot in self.slots:
+                slot.warm_up()
+        self.preparer = ProcessPreparer()
+        self.loop = ServerLoop(cfg, preparer=self.preparer)
+        self.scheduler = RealtimeScheduler(cfg.realtime_settings(), log=log.log)
+        self.viewer: subprocess.Popen | None = None
+        self.viewer_command: str | None = None
+        self._viewer_reported = False
+        self._alive_watches: list[Any] = []
+        self._zid = ""
 
     @property
     def physics(self) -> Simulation:
@@ -307,46 +422,62 @@ class SimServer:
         self.loop.stop()
 
     def run(self) -> dict[str, Any]:
-        """Serve until stopped; returns the final statistics."""
+        """Serve until stopped; returns the final statistics.
+
+        Raises
+        ------
+        DuplicateVehicleError
+            When the vehicle's liveliness token already exists on the network.
+        """
         from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
 
         cfg = self.cfg
         t_compile = time.perf_counter()
         for slot in self.slots:
-            slot.warm_up()
+            slot.warm_up()  # from the cache: the kernels compiled in __init__
         compile_s = time.perf_counter() - t_compile
         zcfg = make_zenoh_config(listen=cfg.listen, connect=cfg.connect,
                                  config_file=cfg.zenoh_config, mode=cfg.mode)
-        for slot in self.slots:
-            if slot.cfg.command_log is not None:
-                slot.command_log = CommandLog(slot.cfg.command_log, {
-                    "scene": str(slot.scene_path), "dt_s": cfg.period_s, "step": 0})
+        listen = effective_endpoints(zcfg)
+        fn, job_args = self.slots[0].load_job({})  # the load worker: imports, one scene
+        self.preparer.warm(fn, *job_args)
         loop = self.loop
         loop.running = True  # before the handlers: a signal from now on ends the loop
         previous = {s: signal.signal(s, self.stop) for s in (signal.SIGINT, signal.SIGTERM)}
-        viewer = None
         try:
             with ZenohEndpoint(zcfg, prefix=cfg.prefix, vehicle=cfg.vehicle_id) as ep:
+                self._zid = str(ep.session.zid())
+                for slot in self.slots:
+                    self._claim_vehicle(ep, slot)
+                for slot in self.slots:
+                    if slot.cfg.command_log is not None:
+                        slot.command_log = CommandLog(slot.cfg.command_log, {
+                            "scene": str(slot.scene_path), "dt_s": cfg.period_s, "step": 0})
                 for slot in self.slots:
                     keys = slot.keys
                     commands = ep.declare_command_inbox(capacity=proto.COMMAND_RING_SLOTS,
                                                         keys=keys)
                     publisher = ep.declare_vehicle_publisher(keys=keys)
                     controls = ep.declare_control_inbox(keys=keys, validate=False)
-                    ep.declare_alive_token(keys=keys)
                     loop.add(slot, SlotPorts(commands, controls, publisher))
                 first = self.slots[0]
                 log.info("serving %s (vehicle %s) every %.3f ms; compiled in %.2f s",
                          first.keys.base, first.sim.scene.vehicle.name,
                          1e3 * cfg.period_s, compile_s)
-                print(f"simserver: ready on {first.keys.base} "
-                      f"(listen {cfg.listen or 'tcp/127.0.0.1:7447'})", flush=True)
-                viewer = self._start_viewer()
+                summary = self.scheduler.apply()
+                log.log(logging.WARNING if self.scheduler.warnings else logging.INFO, "%s",
+                        summary)
+                loop.every_second.append(self._housekeeping)
+                where = f"listen {', '.join(listen)}" if listen else \
+                    f"connect {', '.join(effective_endpoints(zcfg, 'connect/endpoints'))}"
+                print(f"simserver: ready on {first.keys.base} ({where})", flush=True)
+                self.viewer = self._start_viewer(listen)
                 loop.run()
         finally:
             for s, h in previous.items():
                 signal.signal(s, h)
-            self._stop_viewer(viewer)
+            self._stop_viewer(self.viewer)
+            self.preparer.close()
             for slot in self.slots:
                 if slot.command_log is not None:
                     slot.command_log.close(slot.steps_total, slot.sim.x)
@@ -354,16 +485,81 @@ class SimServer:
         print("simserver: stopped " + json.dumps(final), flush=True)
         return final
 
-    def _start_viewer(self) -> subprocess.Popen | None:
-        """Start ``simserver view`` in its own process (the physics never waits on it)."""
+    # ------------------------------------------------------------------ one vehicle id
+    def _claim_vehicle(self, ep: Any, slot: VehicleSlot) -> None:
+        """Refuse a vehicle id another server serves; declare ours and watch for others.
+
+        Zenoh merges liveliness tokens of the same key (a second one is not announced,
+        and the first one's end looks like the key's end), so besides the protocol's
+        ``alive`` token each server declares ``alive/<its session id>`` and watches
+        ``alive/*`` for the others'.
+        """
+        keys = slot.keys
+        present = ep.alive_tokens(keys.alive, timeout_s=ALIVE_QUERY_S)
+        if present:
+            raise DuplicateVehicleError(
+                f"vehicle '{cfg_vehicle(slot)}' is already served on this zenoh network "
+                f"(liveliness token {keys.alive} exists): stop that server or give this one "
+                "another --vehicle-id")
+        ep.declare_alive_token(keys=keys)
+        ep._keep(ep.session.liveliness().declare_token(f"{keys.alive}/{self._zid}"))
+        self._alive_watches.append((slot, ep.declare_alive_watch(f"{keys.alive}/*")))
+
+    def _check_alive(self) -> None:
+        mine = self._zid
+        for slot, watch in self._alive_watches:
+            for key, appeared in watch.poll():
+                if appeared and not key.endswith("/" + mine):
+                    log.warning("another server (session %s) now serves vehicle '%s' on "
+                                "this zenoh network: clients get both state streams; stop "
+                                "one of them", key.rsplit("/", 1)[-1], cfg_vehicle(slot))
+
+    # ------------------------------------------------------------------ once a second
+    def _housekeeping(self) -> None:
+        """Off the hot path, once a second: new zenoh threads, liveliness, the viewer."""
+        self.scheduler.promote_new_threads()
+        self._check_alive()
+        viewer = self.viewer
+        if viewer is not None and not self._viewer_reported:
+            code = viewer.poll()
+            if code is not None:
+                self._viewer_reported = True
+                log.warning("the live viewer exited (code %s); the server runs on. Start one "
+                            "again with: %s", code, self.viewer_command)
+
+    # ------------------------------------------------------------------ the viewer
+    def _start_viewer(self, listen: list[str]) -> subprocess.Popen | None:
+        """Start ``simserver view`` in its own process (the physics never waits on it).
+
+        ``serve`` on a port in use moves to a free port and says so; the command to open
+        the viewer is logged (the same as the README's).
+        """
         cfg = self.cfg
         if cfg.viewer == "off":
             return None
-        endpoint = (cfg.listen or ["tcp/127.0.0.1:7447"])[0]
-        endpoint = endpoint.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
-        args = [sys.executable, "-m", "simserver", "view", "--sink", cfg.viewer,
-                "--connect", endpoint, "--prefix", cfg.prefix, "--vehicle-id", cfg.vehicle_id]
-        log.info("live view: %s", " ".join(args[2:]))
+        if not listen:
+            log.warning("live viewer not started: the server listens on no endpoint "
+                        "(run 'simserver view --connect ENDPOINT' yourself)")
+            return None
+        from simserver.adapters.rerun_sink import DEFAULT_GRPC_PORT, parse_sink
+
+        sink = cfg.viewer
+        mode, target = parse_sink(sink)
+        if mode == "serve":
+            port = int(target.rpartition(":")[2]) if target else DEFAULT_GRPC_PORT
+            if not _port_free(port):
+                taken, port = port, _free_port()
+                sink = f"serve:{port}"
+                log.warning("viewer port %d is in use: the live viewer serves on %d instead "
+                            "(choose one with --viewer serve:PORT, or --viewer off)", taken,
+                            port)
+            # the same command as the README's and the viewer's own line
+            log.info("open the live viewer with: rerun rerun+http://127.0.0.1:%d/proxy", port)
+        args = [sys.executable, "-m", "simserver", "view", "--sink", sink,
+                "--connect", loopback_of(listen[0]), "--prefix", cfg.prefix,
+                "--vehicle-id", cfg.vehicle_id]
+        self.viewer_command = "simserver " + " ".join(args[3:])
+        log.info("live viewer: %s", self.viewer_command)
         return subprocess.Popen(args)
 
     @staticmethod
@@ -375,6 +571,30 @@ class SimServer:
             viewer.wait(timeout=10)
         except subprocess.TimeoutExpired:
             viewer.kill()
+
+
+ALIVE_QUERY_S = 1.0
+"""How long the start-up asks the network whether the vehicle id is served already."""
+
+
+def cfg_vehicle(slot: VehicleSlot) -> str:
+    """The vehicle id of a slot."""
+    return slot.cfg.vehicle_id
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 # ---------------------------------------------------------------------- replay

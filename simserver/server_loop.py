@@ -29,23 +29,36 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterable, Mapping
+from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 from simserver import protocol as proto
 from simserver.adapters.config import ConfigError
 from simserver.realtime import DEFAULT_SPIN_NS, NS_PER_S, CpuMeter, Pacer, PacerStats
-from simserver.vehicle_slot import VehicleSlot
+from simserver.vehicle_slot import VehicleSlot, unwrap_prepared
 
 if TYPE_CHECKING:
     from simserver.server import ServerConfig
 
 log = logging.getLogger("simserver.server")
 
+JOB_TIMEOUT_S = 10.0
+"""A control's off-tick job (``load``) not done after this long is abandoned."""
+CONTROLS_PER_TICK = 4
+"""Control requests served per slot and tick at most; more wait in the inbox (bounded,
+per client: ``simserver.adapters.zenoh_io.ControlInbox``)."""
+
 
 # ---------------------------------------------------------------------- the ports
 class CommandInbox(Protocol):
-    """Driver command payloads received since the last call, oldest first; never blocks."""
+    """Driver command payloads received since the last call, oldest first; never blocks.
+
+    At most ``capacity`` between two calls: beyond, the oldest are overwritten (a full
+    drain is how the loop knows; the slot counts the loss from the ``seq`` gap).
+    """
+
+    capacity: int
 
     def drain_newest(self) -> list[bytes]: ...
 
@@ -60,13 +73,25 @@ class ControlRequest(Protocol):
 
 
 class ControlInbox(Protocol):
-    """Control requests received since the last call; never blocks (usually empty)."""
+    """Control requests received since the last call; never blocks (usually empty).
 
-    def poll(self) -> Iterable[ControlRequest]: ...
+    ``poll(n)`` returns at most ``n`` (fairly taken from its clients); ``received``
+    counts the requests, ``busy`` those it answered "busy" itself (a full queue).
+    """
+
+    received: int
+    busy: int
+
+    def poll(self, limit: int) -> Iterable[ControlRequest]: ...
 
 
 class Publisher(Protocol):
-    """Where one vehicle's state and diagnostics go."""
+    """Where one vehicle's state and diagnostics go; never waits for a slow subscriber.
+
+    ``slow_publishes`` counts the publishes that took longer than a tick's budget.
+    """
+
+    slow_publishes: int
 
     def publish_state(self, payload: bytes) -> None: ...
     def publish_diagnostics(self, payload: bytes) -> None: ...
@@ -89,14 +114,25 @@ class Control:
     Attributes
     ----------
     handler : callable
-        ``handler(slot, args) -> reply members``; ``args`` already validated.
-    stalls_loop : bool
-        The handler takes longer than a tick on purpose (``load`` compiles): after it
-        succeeds, the pacer restarts its deadline sequence instead of catching up.
+        ``handler(slot, args) -> reply members``; ``args`` already validated. Runs in the
+        tick: it must be quick (microseconds).
+    job : callable, optional
+        For a control that reads files or builds a vehicle: ``job(slot, args) ->
+        (function, arguments)``, picklable, run off the tick by the loop's
+        :class:`Preparer`; then ``apply(slot, result)`` runs in the tick between two
+        steps and returns the reply members. ``handler`` is then the in-one-go form
+        (tools, tests).
+    apply : callable, optional
+        See ``job``.
     """
 
     handler: Callable[[VehicleSlot, dict[str, Any]], dict[str, Any]]
-    stalls_loop: bool = False
+    job: Callable[[VehicleSlot, dict[str, Any]], tuple[Callable[..., Any], tuple]] | None = None
+    apply: Callable[[VehicleSlot, Any], dict[str, Any]] | None = None
+
+
+def _apply_load(slot: VehicleSlot, result: Any) -> dict[str, Any]:
+    return slot.apply_load(unwrap_prepared(result))
 
 
 CONTROLS: Mapping[str, Control] = {
@@ -105,11 +141,52 @@ CONTROLS: Mapping[str, Control] = {
     "resume": Control(VehicleSlot.ctl_resume),
     "step": Control(VehicleSlot.ctl_step),
     "set_road": Control(VehicleSlot.ctl_set_road),
-    "load": Control(VehicleSlot.ctl_load, stalls_loop=True),
+    "load": Control(VehicleSlot.ctl_load, job=VehicleSlot.load_job, apply=_apply_load),
     "get_config": Control(VehicleSlot.ctl_get_config),
 }
 """Every control of ``docs/protocol.md`` section 3, by name."""
 assert tuple(CONTROLS) == proto.CONTROL_NAMES, "one handler per control of the protocol"
+
+
+class Preparer(Protocol):
+    """Runs a control's job off the tick (``concurrent.futures`` style)."""
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future: ...
+    def restart(self) -> None: ...
+
+
+class InlinePreparer:
+    """Runs jobs at once, in the calling thread (tests; a loop with nothing slow to do)."""
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args))
+        except Exception as exc:  # handed to the loop like a worker's failure
+            future.set_exception(exc)
+        return future
+
+    def restart(self) -> None:
+        """Nothing to restart."""
+
+
+def _answer(request: ControlRequest, name: str, run: Callable[[], dict[str, Any]]) -> bool:
+    """Run ``run`` and answer ``request`` with its members or the error; True if it succeeded."""
+    try:
+        body = proto.reply_ok(**run())
+    except proto.ProtocolError as exc:
+        request.reply(proto.reply_error(exc))
+        return False
+    except ConfigError as exc:
+        request.reply(proto.reply_error(f"{name}: {exc}", field=name))
+        return False
+    except Exception as exc:  # a bug must not stop the 1 kHz loop: answer, log, go on
+        log.exception("control %s failed", name)
+        request.reply(proto.reply_error(f"{name}: internal error ({type(exc).__name__})",
+                                        field=name))
+        return False
+    request.reply(body)
+    return True
 
 
 def serve_control(slot: VehicleSlot, request: ControlRequest) -> Control | None:
@@ -119,23 +196,12 @@ def serve_control(slot: VehicleSlot, request: ControlRequest) -> Control | None:
     naming the field (``docs/protocol.md`` section 3; bad arguments change nothing).
     """
     name = request.name
-    try:
-        args = _validated(name, request.payload)
-        control = CONTROLS[name]
-        body = proto.reply_ok(**control.handler(slot, args))
-    except proto.ProtocolError as exc:
-        request.reply(proto.reply_error(exc))
-        return None
-    except ConfigError as exc:
-        request.reply(proto.reply_error(f"{name}: {exc}", field=name))
-        return None
-    except Exception as exc:  # a bug must not stop the 1 kHz loop: answer, log, go on
-        log.exception("control %s failed", name)
-        request.reply(proto.reply_error(f"{name}: internal error ({type(exc).__name__})",
-                                        field=name))
-        return None
-    request.reply(body)
-    return control
+
+    def run() -> dict[str, Any]:
+        args = _validated(name, request.payload)  # an unknown name fails here
+        return CONTROLS[name].handler(slot, args)
+
+    return CONTROLS[name] if _answer(request, name, run) else None
 
 
 def _validated(name: str, payload: bytes) -> dict[str, Any]:
@@ -146,6 +212,16 @@ def _validated(name: str, payload: bytes) -> dict[str, Any]:
     except Exception as exc:  # a validator bug: answered like bad input, never escapes
         raise proto.ProtocolError(
             "request", f"could not be validated ({type(exc).__name__})") from exc
+
+
+@dataclass
+class PendingJob:
+    """A control whose job runs off the tick: answered when its result is applied."""
+
+    request: ControlRequest
+    control: Control
+    future: Future
+    submitted_ns: int
 
 
 # ---------------------------------------------------------------------- the loop
@@ -165,24 +241,44 @@ class ServerLoop:
         The pacer's spin phase before each deadline.
     cpu : CpuMeter, optional
         CPU use reported in the diagnostics (default: the process's, on ``clock``).
+    preparer : Preparer, optional
+        Runs the jobs of controls that read files (``load``) off the tick (default
+        :class:`InlinePreparer`; the server passes a worker process).
+    job_timeout_s : float
+        A job not done after this long is answered with an error and its worker
+        restarted (a file that never ends, a parser that does not return).
+    controls_per_tick : int
+        Control requests served per slot and tick at most (the rest wait in the inbox).
 
     Call :meth:`add` for each slot, then :meth:`run` (blocks until :meth:`stop`), or
-    :meth:`start` and :meth:`tick` one at a time.
+    :meth:`start` and :meth:`tick` one at a time. ``every_second`` holds callables run
+    once a second between two ticks (the server's housekeeping).
     """
 
     def __init__(self, cfg: ServerConfig, *, clock: Callable[[], int] = time.perf_counter_ns,
                  sleep: Callable[[float], object] = time.sleep,
-                 spin_ns: int = DEFAULT_SPIN_NS, cpu: CpuMeter | None = None) -> None:
+                 spin_ns: int = DEFAULT_SPIN_NS, cpu: CpuMeter | None = None,
+                 preparer: Preparer | None = None, job_timeout_s: float = JOB_TIMEOUT_S,
+                 controls_per_tick: int = CONTROLS_PER_TICK) -> None:
         self.clock = clock
-        self.pacer = Pacer(period_ns=int(round(cfg.period_s * NS_PER_S)), spin_ns=spin_ns,
+        period_ns = int(round(cfg.period_s * NS_PER_S))
+        self.pacer = Pacer(period_ns=period_ns, spin_ns=min(spin_ns, period_ns // 2),
                            max_catchup_ticks=cfg.max_catchup_ticks, clock=clock, sleep=sleep)
         self.cpu = cpu if cpu is not None else CpuMeter(clock=clock)
         self.state_every = cfg.state_every
         self.diag_every = max(1, int(round(1.0 / (cfg.diag_hz * cfg.period_s))))
+        self.second_every = max(1, int(round(1.0 / cfg.period_s)))
+        self.preparer: Preparer = preparer if preparer is not None else InlinePreparer()
+        self.job_timeout_ns = int(job_timeout_s * NS_PER_S)
+        self.controls_per_tick = controls_per_tick
         self.slots: list[tuple[VehicleSlot, SlotPorts]] = []
+        self.pending: dict[int, PendingJob] = {}  # by slot index
+        self.every_second: list[Callable[[], None]] = []
         self.running = False
         self.loop_count = 0
         self.t0_ns = 0
+        self._skipped_seen = 0
+        self._jobs_busy: dict[int, int] = {}
 
     def add(self, slot: VehicleSlot, ports: SlotPorts) -> None:
         """Serve ``slot`` through ``ports`` from the next tick on."""
@@ -194,6 +290,7 @@ class ServerLoop:
         self.cpu.percent()  # the first diagnostics' CPU reading starts here, not at compile
         self.pacer.start()
         self.loop_count = 0
+        self._skipped_seen = 0
 
     def stop(self, *_: Any) -> None:
         """Ask :meth:`run` to finish after the current tick (a signal handler)."""
@@ -207,25 +304,98 @@ class ServerLoop:
 
     def tick(self) -> None:
         """Wait for the next deadline and run one tick of every slot."""
-        self.pacer.wait()
-        catching_up = self.pacer.catching_up
+        pacer = self.pacer
+        pacer.wait()
+        catching_up = pacer.catching_up
+        skipped = pacer.skipped_ticks != self._skipped_seen
+        self._skipped_seen = pacer.skipped_ticks
         now = self.clock()
-        publish_state = self.loop_count % self.state_every == 0
-        diag = self._diagnostics_source() if self.loop_count % self.diag_every == 0 else None
-        for slot, ports in self.slots:
-            slot.take_commands(ports.commands.drain_newest(), now)
+        count = self.loop_count
+        publish_state = count % self.state_every == 0
+        diag = self._diagnostics_source() if count % self.diag_every == 0 else None
+        for index, (slot, ports) in enumerate(self.slots):
+            if skipped:
+                slot.skipped_before = True
+            payloads = ports.commands.drain_newest()
+            slot.take_commands(payloads, now, len(payloads) >= ports.commands.capacity)
             slot.apply_inputs(now)
             slot.advance()
             slot.check_finite()  # before publishing: no non-finite state leaves the server
             if publish_state:
                 ports.publisher.publish_state(slot.state_payload(now, catching_up))
             if diag is not None:
+                self._port_counters(index, slot, ports)
                 ports.publisher.publish_diagnostics(self._diagnostics(slot, *diag))
-            for request in ports.controls.poll():
-                control = serve_control(slot, request)
-                if control is not None and control.stalls_loop:
-                    self.pacer.rebase()
+            self._serve_controls(index, slot, ports, now)
+        if count % self.second_every == self.second_every // 2:  # between diagnostics
+            for job in self.every_second:
+                job()
         self.loop_count += 1
+
+    def _serve_controls(self, index: int, slot: VehicleSlot, ports: SlotPorts,
+                        now: int) -> None:
+        """Apply a finished job; serve the quick controls; hand slow ones to the preparer."""
+        pending = self.pending.get(index)
+        if pending is not None:
+            self._finish_job(index, slot, pending, now)
+        for request in ports.controls.poll(self.controls_per_tick):
+            name = request.name
+            control = CONTROLS.get(name)
+            if control is None or control.job is None:
+                serve_control(slot, request)
+                continue
+            try:  # bad arguments are named first, busy or not
+                args = _validated(name, request.payload)
+            except proto.ProtocolError as exc:
+                request.reply(proto.reply_error(exc))
+                continue
+            if index in self.pending:
+                self._jobs_busy[index] = self._jobs_busy.get(index, 0) + 1
+                request.reply(proto.reply_error(
+                    f"{name}: busy: a {self.pending[index].request.name} is still being "
+                    "prepared; ask again when it has been answered", field=name))
+                continue
+            try:
+                fn, job_args = control.job(slot, args)
+            except proto.ProtocolError as exc:
+                request.reply(proto.reply_error(exc))
+                continue
+            job = self.pending[index] = PendingJob(request, control,
+                                                   self.preparer.submit(fn, *job_args), now)
+            if job.future.done():  # an inline preparer: answered in this tick
+                self._finish_job(index, slot, job, now)
+
+    def _port_counters(self, index: int, slot: VehicleSlot, ports: SlotPorts) -> None:
+        """The transport's counters into the slot's (diagnostics, the stopped line)."""
+        c = slot.counters
+        c["ctl_received"] = ports.controls.received
+        c["ctl_busy"] = ports.controls.busy + self._jobs_busy.get(index, 0)
+        c["publish_slow"] = ports.publisher.slow_publishes
+
+    def _finish_job(self, index: int, slot: VehicleSlot, pending: PendingJob,
+                    now: int) -> None:
+        name = pending.request.name
+        future = pending.future
+        if future.done():
+            del self.pending[index]
+            exc = future.exception()
+            if exc is not None:
+                log.error("control %s: its worker failed: %r", name, exc)
+                pending.request.reply(proto.reply_error(
+                    f"{name}: the worker preparing it failed ({type(exc).__name__}); "
+                    "nothing changed", field=name))
+                self.preparer.restart()
+                return
+            result = future.result()
+            _answer(pending.request, name, lambda: pending.control.apply(slot, result))
+        elif now - pending.submitted_ns > self.job_timeout_ns:
+            del self.pending[index]
+            log.error("control %s: not prepared after %.0f s: worker restarted", name,
+                      self.job_timeout_ns / NS_PER_S)
+            pending.request.reply(proto.reply_error(
+                f"{name}: not prepared within {self.job_timeout_ns / NS_PER_S:.0f} s (a "
+                "file that never ends, a FIFO?); nothing changed", field=name))
+            self.preparer.restart()
 
     def uptime_s(self) -> float:
         """Wall time since :meth:`start`."""
@@ -253,6 +423,8 @@ class ServerLoop:
         With one slot its fields are at the top level (the documented line); with several
         they are under ``"vehicles"``, by vehicle id.
         """
+        for index, (slot, ports) in enumerate(self.slots):
+            self._port_counters(index, slot, ports)
         st = self.pacer.stats()
         timing = {"uptime_s": round(self.uptime_s(), 3),
                   "lateness_p50_us": st.lateness_p50_us,

@@ -20,13 +20,14 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from simserver import protocol as proto
-from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
+from simserver.adapters.validate import ConfigError, confined_to, display_path
 from simserver.core import layout as L
 from simserver.core.params import VP_CG_HEIGHT_M
 from simserver.core.pose import world_pose
@@ -39,7 +40,8 @@ log = logging.getLogger("simserver.server")
 
 COUNTER_NAMES: tuple[str, ...] = ("cmd_received", "cmd_rejected", "cmd_clamped",
                                   "cmd_stale", "state_published", "watchdog_trips",
-                                  "nonfinite_stops")
+                                  "nonfinite_stops", "cmd_dropped", "ctl_received", "ctl_busy",
+                                  "publish_slow")
 """The slot's cumulative counters, in the order of the ``stopped`` line."""
 
 
@@ -95,16 +97,25 @@ class CommandArbiter:
 
     def __init__(self, counters: dict[str, int], initial_inputs: np.ndarray) -> None:
         self.counters = counters
-        self.last_seq: int | None = None
+        self.last_seq: int | None = None  # the newer-than rule's reference (None: any is)
+        self.last_applied_seq = 0  # the state's last_cmd_seq: 0 only before the first
+        self.last_seen_seq: int | None = None  # of the last valid command received
         self.last_cmd_ns: int | None = None  # loop clock when the last valid one arrived
         self.last_sender_ns = 0
         self.commanded = initial_inputs.copy()
         self.reject_log = RateLimitedLog()
 
-    def take(self, payloads: list[bytes], now_ns: int) -> None:
-        """Apply the newest valid command among ``payloads`` (oldest first), if any."""
+    def take(self, payloads: list[bytes], now_ns: int, buffer_full: bool = False) -> None:
+        """Apply the newest valid command among ``payloads`` (oldest first), if any.
+
+        ``buffer_full``: the receive buffer was full, so older commands were overwritten
+        in it; they are counted in ``cmd_dropped`` from the ``seq`` gap between the last
+        command seen before and the first one here (exact for one driver numbering its
+        commands one by one, as the protocol asks).
+        """
         counters = self.counters
         newest: proto.DriverCommand | None = None
+        first = True
         for payload in payloads:
             counters["cmd_received"] += 1
             try:
@@ -113,6 +124,13 @@ class CommandArbiter:
                 counters["cmd_rejected"] += 1
                 self.reject_log.warn(f"rejected command: {exc}", now_ns * 1e-9)
                 continue
+            if first:
+                first = False
+                if buffer_full and self.last_seen_seq is not None:
+                    gap = (cmd.seq - self.last_seen_seq - 1) & 0xFFFFFFFF
+                    if gap < 0x80000000:  # newer: the commands in between were overwritten
+                        counters["cmd_dropped"] += gap
+            self.last_seen_seq = cmd.seq
             if cmd.clamped:
                 counters["cmd_clamped"] += 1
             if self.last_seq is not None and not proto.seq_newer(cmd.seq, self.last_seq):
@@ -127,6 +145,7 @@ class CommandArbiter:
         if newest is None:
             return
         self.last_seq = newest.seq
+        self.last_applied_seq = newest.seq
         self.last_cmd_ns = now_ns
         self.last_sender_ns = newest.sender_time_ns
         c = self.commanded
@@ -207,11 +226,16 @@ class VehicleSlot:
         self.record = proto.new_state_record()
         self.fault = False  # the state went non-finite in this episode (since start,
         # reset or load): flags bit 4, logged once
+        self._braking = np.zeros(4, dtype=bool)
+        self._held = np.zeros(4, dtype=bool)
+        self.skipped_before = False  # deadlines were skipped since the last state
 
     # ------------------------------------------------------------------ each tick
-    def take_commands(self, payloads: list[bytes], now_ns: int) -> None:
-        """Arbitrate the command payloads drained this tick."""
-        self.arbiter.take(payloads, now_ns)
+    def take_commands(self, payloads: list[bytes], now_ns: int,
+                      buffer_full: bool = False) -> None:
+        """Arbitrate the command payloads drained this tick (``buffer_full``: see
+        :meth:`CommandArbiter.take`)."""
+        self.arbiter.take(payloads, now_ns, buffer_full)
 
     def apply_inputs(self, now_ns: int) -> None:
         """Commanded inputs through the watchdog into the simulation's input vector."""
@@ -251,18 +275,31 @@ class VehicleSlot:
             flags |= proto.StateFlag.WATCHDOG
         if self.paused:
             flags |= proto.StateFlag.PAUSED
-        held = x[L.WHEEL_HELD0:L.WHEEL_HELD0 + 4]
+        inputs = p.inputs
+        # The core holds a wheel at zero spin whenever the torques on it balance, rolling
+        # resistance included (at rest on the flat with no brake); the flag and the
+        # per-wheel field say "a brake holds it": only while a brake acts (pedal, parking
+        # brake on the rear wheels, or the park lock of gear P).
+        braking = self._braking
+        braking[:] = inputs[L.IN_BRAKE] > 0.0 or inputs[L.IN_GEAR] == L.GEAR_P
+        if inputs[L.IN_PARKING_BRAKE] > 0.0:
+            braking[2:] = True
+        held = self._held
+        np.logical_and(x[L.WHEEL_HELD0:L.WHEEL_HELD0 + 4] > 0.5, braking, out=held)
         if held.any():
             flags |= proto.StateFlag.BRAKE_HOLD
         if catching_up:
             flags |= proto.StateFlag.CATCHUP
         if self.fault:
             flags |= proto.StateFlag.FAULT
+        if self.skipped_before:
+            flags |= proto.StateFlag.SKIPPED
+            self.skipped_before = False
         arbiter = self.arbiter
         rec["flags"] = flags
         rec["tick"] = self.tick
         rec["sim_time_s"] = self.tick * p.dt_s
-        rec["last_cmd_seq"] = arbiter.last_seq or 0
+        rec["last_cmd_seq"] = arbiter.last_applied_seq
         rec["last_cmd_sender_time_ns"] = arbiter.last_sender_ns
         rec["cmd_age_s"] = arbiter.cmd_age_s(now_ns)
         rec["x_m"], rec["y_m"], rec["z_m"] = p.pose[0], p.pose[1], p.pose[2]
@@ -284,7 +321,6 @@ class VehicleSlot:
         rec["steer_rad"] = out[L.O_STEER0:L.O_STEER0 + 4]
         rec["damping_active"] = x[L.DAMPING_ACTIVE0:L.DAMPING_ACTIVE0 + 4]
         rec["brake_held"] = held
-        inputs = p.inputs
         rec["steer"] = inputs[L.IN_STEER]
         rec["throttle"] = inputs[L.IN_THROTTLE]
         rec["brake"] = inputs[L.IN_BRAKE]
@@ -335,6 +371,7 @@ class VehicleSlot:
         p.reset(pose)
         self.tick = 0
         self.fault = False
+        self.arbiter.last_seq = None  # docs/protocol.md 2.1: a new client may start from 0
         self._log({"step": self.steps_total, "reset": pose})
         return {"tick": 0, "pose": {"x_m": p.x[L.X_M], "y_m": p.x[L.Y_M],
                                     "yaw_rad": p.x[L.YAW_RAD]}}
@@ -353,8 +390,8 @@ class VehicleSlot:
 
     def ctl_step(self, args: dict[str, Any]) -> dict[str, Any]:
         """``step``: while paused, run ``n`` more ticks at the normal rate."""
-        if not self.paused:
-            raise proto.ProtocolError("n", "the server is not paused (pause first)")
+        if not self.paused:  # a state of the server, not an argument: named by the control
+            raise proto.ProtocolError("step", "the server is not paused (pause first)")
         self.steps_to_run += int(args["n"])
         return {"tick": self.tick, "until_tick": self.tick + self.steps_to_run}
 
@@ -366,36 +403,35 @@ class VehicleSlot:
         return {"road": road}
 
     def ctl_load(self, args: dict[str, Any]) -> dict[str, Any]:
-        """``load``: validate everything first, then swap; nothing changes on error.
+        """``load`` in one go (tests and tools): :meth:`load_job` run here, then applied.
 
-        Two halves: :meth:`prepare_load` reads and validates the files (touches nothing
-        of the slot), :meth:`apply_load` swaps the result in and compiles (from the
-        cache: same array types), so the loop rebases its pacer afterwards.
+        The server runs the job off the tick (``simserver.server_loop``: a worker process)
+        and calls :meth:`apply_load` between two ticks.
         """
-        return self.apply_load(*self.prepare_load(args))
+        fn, job_args = self.load_job(args)
+        return self.apply_load(unwrap_prepared(fn(*job_args)))
+
+    def load_job(self, args: dict[str, Any]) -> tuple[Callable[..., Any], tuple[Any, ...]]:
+        """The file reading of a ``load``, as a picklable ``(function, arguments)``.
+
+        It touches nothing of the slot: run it anywhere (a worker process), then hand its
+        result to :meth:`apply_load`.
+        """
+        return prepare_load, (args.get("scene"), args.get("vehicle"), self.scene_path,
+                              tuple(self.cfg.config_dirs), os.getcwd(), self.cfg.path.parent)
 
     def prepare_load(self, args: dict[str, Any]) -> tuple[Scene, Path, Path | None]:
         """The scene a ``load`` asks for, read and validated: (scene, its path, vehicle path)."""
-        base = self.cfg.path.parent
-        scene_path = self._resolve_config_path(args["scene"], base, "scene") \
-            if "scene" in args else self.scene_path
-        vehicle_path = self._resolve_config_path(args["vehicle"], base, "vehicle") \
-            if "vehicle" in args else None
-        # every file the scene refers to, nested or not, must be in the config folders too;
-        # errors show paths relative to them only (docs/security.md)
-        with confined_to(self.cfg.config_dirs):
-            try:
-                scene = load_scene(scene_path, vehicle_path=vehicle_path)
-            except ConfigError as exc:  # named by the argument whose files are at fault
-                message = str(exc)
-                arg = "scene" if "vehicle" not in args or (
-                    "scene" in args and message.startswith(f"{scene_path}:")) else "vehicle"
-                raise proto.ProtocolError(arg, self._redacted(message)) from None
-        return scene, scene_path, vehicle_path
+        fn, job_args = self.load_job(args)
+        return unwrap_prepared(fn(*job_args))
 
-    def apply_load(self, scene: Scene, scene_path: Path,
-                   vehicle_path: Path | None) -> dict[str, Any]:
-        """Swap a prepared scene in: the simulation reset to it, tick 0, logged."""
+    def apply_load(self, prepared: tuple[Scene, Path, Path | None]) -> dict[str, Any]:
+        """Swap a prepared scene in: the simulation reset to it, tick 0, logged.
+
+        Fast (tens of microseconds): the kernels are those already compiled (the model's
+        array signature does not change with the vehicle).
+        """
+        scene, scene_path, vehicle_path = prepared
         self.sim.load(scene)
         self.sim.warm_up()
         self.scene_path = scene_path
@@ -423,26 +459,90 @@ class VehicleSlot:
                      "alive": keys.alive},
         }}
 
-    def _resolve_config_path(self, value: str, base: Path, arg: str) -> Path:
-        path = (base / value).resolve()
-        dirs = self.cfg.config_dirs
-        if not any(path.is_relative_to(d) for d in dirs):
-            raise proto.ProtocolError(arg, f"{short_repr(value)} is outside the server's config "
-                                           "directories")
-        if not path.is_file():
-            raise proto.ProtocolError(arg, f"{short_repr(value)}: no such file")
-        return path
-
     def _shown(self, path: Path) -> str:
         """A path as a client may see it: relative to the config folder holding it."""
         return display_path(path, self.cfg.config_dirs)
 
-    def _redacted(self, message: str) -> str:
-        """``message`` with the config folders' absolute paths made relative."""
-        for root in sorted(self.cfg.config_dirs, key=lambda d: -len(str(d))):
-            message = message.replace(f"{root}{os.sep}", "")
-        return message
-
     def _log(self, entry: dict[str, Any]) -> None:
         if self.command_log is not None:
             self.command_log.write(entry)
+
+
+# ---------------------------------------------------------------------- load, off the tick
+def resolve_config_path(field: str, value: str, config_dirs: tuple[Path, ...],
+                        cwd: str | Path, config_folder: Path | None = None) -> Path:
+    """The file a ``load`` names: absolute, or relative to the server's working directory
+    first, then to each config directory in turn, then to the server config's own folder
+    (``config_folder``; relative paths in that file are relative to it) (``docs/protocol.md``,
+    ``ctl/load``).
+
+    Raises
+    ------
+    ProtocolError
+        Naming ``field`` and every place it looked, when no candidate is a file; or when
+        the file is outside the config directories.
+    """
+    given = Path(value)
+    bases = list(dict.fromkeys([Path(cwd), *map(Path, config_dirs),
+                                *([config_folder] if config_folder is not None else [])]))
+    candidates = [given] if given.is_absolute() else [b / given for b in bases]
+    for candidate in candidates:
+        path = candidate.resolve()
+        if path.is_file() or given.is_absolute():
+            if not any(path.is_relative_to(d) for d in config_dirs):
+                raise proto.ProtocolError(
+                    field, f"{path} is outside the server's config directories "
+                           f"({', '.join(str(d) for d in config_dirs)})")
+            if path.is_file():
+                return path
+        if path.exists() and not path.is_file():  # never opened: a FIFO would block
+            raise proto.ProtocolError(field, f"{path}: not a regular file (a FIFO, a "
+                                             "device or a directory)")
+    looked = dict.fromkeys(str(c.resolve()) for c in candidates)
+    raise proto.ProtocolError(field, f"{value}: no such file; looked in {', '.join(looked)}")
+
+
+def prepare_load(scene: str | None, vehicle: str | None, current_scene: Path,
+                 config_dirs: tuple[Path, ...], cwd: str,
+                 config_folder: Path | None = None) -> tuple[str, Any]:
+    """Read and validate the files of a ``load`` (run in the load worker).
+
+    Returns ``("ok", (scene, scene path, vehicle path))`` or ``("error", field, message)``
+    (errors as data: they cross a process boundary).
+    """
+    try:
+        scene_path = resolve_config_path("scene", scene, config_dirs, cwd, config_folder) \
+            if scene is not None else current_scene
+        vehicle_path = resolve_config_path("vehicle", vehicle, config_dirs, cwd,
+                                           config_folder) if vehicle is not None else None
+    except proto.ProtocolError as exc:
+        return "error", exc.field, redacted(str(exc), config_dirs, cwd)
+    # every file the scene refers to, nested or not, must be in the config folders too;
+    # errors show paths relative to them only (docs/security.md)
+    with confined_to(config_dirs):
+        try:
+            loaded = load_scene(scene_path, vehicle_path=vehicle_path)
+        except ConfigError as exc:  # named by the argument whose files are at fault
+            message = str(exc)
+            field = "scene" if vehicle is None or (
+                scene is not None and message.startswith(f"{scene_path}:")) else "vehicle"
+            return "error", field, redacted(message, config_dirs, cwd)
+    return "ok", (loaded, scene_path, vehicle_path)
+
+
+def redacted(message: str, config_dirs: tuple[Path, ...], cwd: str | Path) -> str:
+    """``message`` with the config folders' and the working directory's absolute paths made
+    relative: a reply never discloses where the server is installed."""
+    for root in sorted((*map(str, config_dirs), str(cwd)), key=lambda d: -len(d)):
+        message = message.replace(f"{root}{os.sep}", "")
+    return message
+
+
+def unwrap_prepared(result: tuple[str, Any] | tuple[str, str, str]) -> Any:
+    """The value of a :func:`prepare_load` result, or its error raised as ProtocolError."""
+    if result[0] == "ok":
+        return result[1]
+    _, field, message = result
+    err = proto.ProtocolError(field, "x")
+    err.args = (message,)
+    raise err

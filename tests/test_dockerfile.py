@@ -245,6 +245,28 @@ def test_exposes_zenoh_port_and_serves(final: Stage) -> None:
     assert (REPO / "configs/server/default.yaml").is_file()
 
 
+def test_documents_the_real_time_capability_and_ulimit() -> None:
+    """The server asks for SCHED_FIFO; the image's non-root user needs an rtprio limit at
+    least the server's priority (and CAP_SYS_NICE for root or the nice fallback): the
+    Dockerfile's header says how to grant them, in a run line that parses."""
+    from simserver.realtime import DEFAULT_RT_PRIORITY
+
+    header = [line[1:].strip() for line in DOCKERFILE.read_text().splitlines()
+              if line.startswith("#")]
+    runs = [shlex.split(line) for line in header if line.startswith("docker run")
+            and "--ulimit" in line]
+    assert runs, "a docker run line granting the real-time limits"
+    run = runs[0]
+    ulimits = [run[i + 1] for i, a in enumerate(run) if a == "--ulimit"]
+    rtprio = [int(u.split("=")[1]) for u in ulimits if u.startswith("rtprio=")]
+    assert rtprio and rtprio[0] >= DEFAULT_RT_PRIORITY
+    caps = [run[i + 1] for i, a in enumerate(run) if a == "--cap-add"]
+    assert "SYS_NICE" in caps
+    assert run[-1] == "simserver"
+    text = "\n".join(header)
+    assert "--realtime off" in text and "memlock" in text
+
+
 def test_healthcheck_runs_the_shipped_script(final: Stage) -> None:
     checks = final.all("HEALTHCHECK")
     assert len(checks) == 1

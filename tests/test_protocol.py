@@ -87,7 +87,7 @@ def test_key_table_matches_keys():
 @pytest.mark.parametrize(
     ("fields", "dtype", "size"),
     [(P.COMMAND_FIELDS, P.COMMAND_DTYPE, 32), (P.STATE_FIELDS, P.STATE_DTYPE, 256),
-     (P.DIAGNOSTICS_FIELDS, P.DIAGNOSTICS_DTYPE, 128)],
+     (P.DIAGNOSTICS_FIELDS, P.DIAGNOSTICS_DTYPE, 160)],
 )
 def test_layouts_packed_aligned_little_endian(fields, dtype, size):
     assert dtype.itemsize == size
@@ -369,7 +369,7 @@ def test_diagnostics_round_trip():
     values = _random_values(P.DIAGNOSTICS_FIELDS, np.random.default_rng(4))
     values["cmd_received"] = 2**64 - 1
     payload = P.encode_diagnostics(**values)
-    assert len(payload) == P.DIAGNOSTICS_SIZE == 128
+    assert len(payload) == P.DIAGNOSTICS_SIZE == 160
     rec = P.decode_diagnostics(payload)
     assert int(rec["cmd_received"]) == 2**64 - 1
     assert rec["lateness_p99_us"] == np.float32(values["lateness_p99_us"])

@@ -57,7 +57,7 @@ NOT_RUN_HERE = {
     "simserver serve --config /etc/simserver/server/default.yaml --listen tcp/0.0.0.0:7447 "
     "--viewer off": "the image's command, on all interfaces: test_dockerfile.py runs it on "
                     "loopback",
-    "rerun --connect rerun+http://127.0.0.1:9876/proxy": "the native viewer needs a display",
+    "rerun rerun+http://127.0.0.1:9876/proxy": "the native viewer needs a display",
     "rerun DIR/scene.rrd": "a placeholder, and a display",
     "simserver run-scenario SCENARIO.yaml --out DIR --rrd DIR/scene.rrd":
         "a placeholder: test_rerun.py runs it on a scenario",

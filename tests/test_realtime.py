@@ -213,6 +213,9 @@ def test_misuse_is_an_error():
     for kw in ({"period_ns": 0}, {"spin_ns": -1}, {"max_catchup_ticks": -1}, {"window": 0}):
         with pytest.raises(ValueError, match=next(iter(kw))):
             Pacer(**kw)
+    # the spin phase is bounded: a SCHED_FIFO thread never holds a core a whole period
+    with pytest.raises(ValueError, match="at most half the period"):
+        Pacer(P, spin_ns=P // 2 + 1)
 
 
 def test_start_resets_everything():

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import re
 import time
+from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -57,6 +58,14 @@ DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US = 100_000
 Zenoh's own default is 5 s: a client that stops reading would stall ``put()`` in the
 1 kHz loop for that long. 100 ms bounds the damage (about 100 ticks, then caught up) and
 drops the wedged peer's link instead.
+"""
+
+STATE_DROP_WAIT_US = 50
+"""A DROP publication waits at most this long for a full link before dropping for it.
+
+The server's state publisher uses DROP (issue 13): with BLOCK a subscriber that stopped
+reading stalled the 1 kHz loop 100 ms (:data:`DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US`) each
+time its socket buffers filled; zenoh's own DROP wait is 1 ms, a whole tick.
 """
 
 _RUST_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
@@ -167,6 +176,8 @@ def make_zenoh_config(
         DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US,
         origin,
     )
+    _insert(cfg, "transport/link/tx/queue/congestion_control/drop/wait_before_drop",
+            STATE_DROP_WAIT_US, origin)
     return cfg
 
 
@@ -279,75 +290,141 @@ class ControlRequest:
 
 
 class ControlInbox:
-    """One queryable on ``{prefix}/{vehicle}/ctl/*`` serving every control.
+    """One queryable on ``{prefix}/{vehicle}/ctl/*`` serving every control, fairly.
+
+    Requests are queued per client (the client's session id, which
+    :meth:`ZenohEndpoint.request` attaches; requests without one share a queue), each
+    queue bounded to ``per_client``: a request beyond it is answered at once with a busy
+    error and counted in ``busy``, so a client flooding the server cannot push out
+    another's requests, and none goes unanswered. The queueing runs in zenoh's receive
+    thread (a short Python callback); :meth:`poll` (the tick) takes the queues in turn.
 
     :meth:`poll` answers malformed requests itself (unknown control, wildcard key, and
     with ``validate`` bad arguments: an error reply naming the field) and returns the
     others. The server passes ``validate=False``: its control table validates.
     """
 
-    def __init__(self, session: zenoh.Session, keys: VehicleKeys, capacity: int,
-                 validate: bool = True) -> None:
+    def __init__(self, session: zenoh.Session, keys: VehicleKeys, per_client: int = 16,
+                 validate: bool = True, max_clients: int = 256) -> None:
+        if per_client < 1:
+            raise ValueError(f"per_client must be >= 1, got {per_client}")
         self.keys = keys
         self.validate = validate
+        self.per_client = per_client
+        self.max_clients = max_clients
         self.received = 0
         self.rejected = 0
+        self.busy = 0
+        self._queues: dict[bytes, deque] = {}
+        self._turn: deque[bytes] = deque()  # clients with something queued, in turn
+        # indirect=False: the callback runs in zenoh's receiving thread (the server makes it
+        # real-time), not in a Python thread of its own, which would hold the GIL at
+        # normal priority and keep the interpreter from exiting (platform note)
         self._q = session.declare_queryable(
-            keys.ctl_wildcard, zenoh.handlers.RingChannel(capacity), complete=True
-        )
+            keys.ctl_wildcard, zenoh.handlers.Callback(self._on_query, indirect=False),
+            complete=True)
 
-    def poll(self) -> list[ControlRequest]:
-        """Valid requests received since the last call (never blocks; usually empty)."""
-        out: list[ControlRequest] = []
-        query = self._q.try_recv()
-        while query is not None:
-            self.received += 1
-            key = str(query.key_expr)
-            name = self.keys.control_name(key)
-            payload = query.payload.to_bytes() if query.payload is not None else b""
-            try:
-                if name is None:
-                    raise ProtocolError(
-                        "control", f"{key!r} is not one control key of {self.keys.base}"
-                    )
-                args = validate_control(name, payload) if self.validate else None
-            except Exception as exc:  # ProtocolError, or a validator bug: never escapes
-                if not isinstance(exc, ProtocolError):
-                    exc = ProtocolError("request", f"could not be validated ({type(exc).__name__})")
-                self.rejected += 1
-                try:
-                    if name is None:
-                        query.reply_err(reply_error(exc))
-                    else:
-                        query.reply(key, reply_error(exc),
-                                    encoding=zenoh.Encoding(ENCODING_CONTROL))
-                finally:
-                    query.drop()
+    def _on_query(self, query: zenoh.Query) -> None:
+        """zenoh's thread: queue the request, or answer busy when its client's queue is full."""
+        self.received += 1
+        client = query.attachment.to_bytes() if query.attachment is not None else b""
+        queue = self._queues.get(client)
+        if queue is None:
+            if len(self._queues) >= self.max_clients:
+                client, queue = b"", self._queues.setdefault(b"", deque())
             else:
-                out.append(ControlRequest(name, args, key, query, payload))
-            query = self._q.try_recv()
+                queue = self._queues[client] = deque()
+        if len(queue) >= self.per_client:
+            self.busy += 1
+            try:
+                query.reply_err(reply_error(
+                    f"busy: {len(queue)} requests of this client are waiting; ask again "
+                    "after their replies", "control"))
+            except zenoh.ZError:
+                pass  # the client is gone
+            finally:
+                query.drop()
+            return
+        if not queue:
+            self._turn.append(client)
+        queue.append(query)
+
+    def poll(self, limit: int = 1 << 30) -> list[ControlRequest]:
+        """Valid requests received since the last call, at most ``limit``, one client at a
+        time in turn (never blocks; usually empty)."""
+        out: list[ControlRequest] = []
+        turn = self._turn
+        while turn and len(out) < limit:
+            client = turn.popleft()
+            queue = self._queues.get(client)
+            if not queue:
+                continue
+            request = self._accept(queue.popleft())
+            if queue:
+                turn.append(client)  # its next request after the other clients'
+            if request is not None:
+                out.append(request)
         return out
 
+    def _accept(self, query: zenoh.Query) -> ControlRequest | None:
+        key = str(query.key_expr)
+        name = self.keys.control_name(key)
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            if name is None:
+                raise ProtocolError(
+                    "control", f"{key!r} is not one control key of {self.keys.base}"
+                )
+            args = validate_control(name, payload) if self.validate else None
+        except Exception as exc:  # ProtocolError, or a validator bug: never escapes
+            if not isinstance(exc, ProtocolError):
+                exc = ProtocolError("request", f"could not be validated ({type(exc).__name__})")
+            self.rejected += 1
+            try:
+                if name is None:
+                    query.reply_err(reply_error(exc))
+                else:
+                    query.reply(key, reply_error(exc),
+                                encoding=zenoh.Encoding(ENCODING_CONTROL))
+            finally:
+                query.drop()
+            return None
+        return ControlRequest(name, args, key, query, payload)
+
     def close(self) -> None:
-        """Undeclare the queryable (idempotent)."""
+        """Undeclare the queryable (idempotent); queued requests are dropped unanswered."""
         if self._q is not None:
             try:
                 self._q.undeclare()
             except zenoh.ZError:
                 pass
             self._q = None
+        for queue in self._queues.values():
+            while queue:
+                queue.popleft().drop()
 
 
 class VehiclePublisher:
-    """A vehicle's state and diagnostics publishers: the server loop's publisher port."""
+    """A vehicle's state and diagnostics publishers: the server loop's publisher port.
 
-    def __init__(self, state: zenoh.Publisher, diagnostics: zenoh.Publisher) -> None:
+    ``slow_publishes`` counts state publications that took longer than ``slow_ns``: the
+    state publisher never waits for a subscriber (congestion control DROP, with
+    :data:`STATE_DROP_WAIT_US`), so these are the ticks a congested link cost something.
+    """
+
+    def __init__(self, state: zenoh.Publisher, diagnostics: zenoh.Publisher,
+                 slow_ns: int = 250_000) -> None:
         self.state = state
         self.diagnostics = diagnostics
+        self.slow_ns = slow_ns
+        self.slow_publishes = 0
 
     def publish_state(self, payload: bytes) -> None:
         """Put one VehicleState."""
+        t0 = time.perf_counter_ns()
         self.state.put(payload)
+        if time.perf_counter_ns() - t0 > self.slow_ns:
+            self.slow_publishes += 1
 
     def publish_diagnostics(self, payload: bytes) -> None:
         """Put one Diagnostics."""
@@ -427,6 +504,8 @@ class ZenohEndpoint:
             self.session = zenoh.open(config if config is not None else make_zenoh_config())
         except zenoh.ZError as exc:
             raise ZenohOpenError(f"cannot open the zenoh session: {_clean(exc)}") from None
+        # sent with control requests: the server queues them per client (ControlInbox)
+        self._client_id = str(self.session.zid()).encode()
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -495,18 +574,22 @@ class ZenohEndpoint:
                                zenoh.Priority.DATA, False, zenoh.CongestionControl.BLOCK)
 
     def declare_vehicle_publisher(self, keys: VehicleKeys | None = None) -> VehiclePublisher:
-        """The ``state`` and ``diag`` publishers above, as the server loop's publisher."""
-        return VehiclePublisher(self.declare_state_publisher(keys=keys),
-                                self.declare_diag_publisher(keys=keys))
+        """The server loop's publisher: ``state`` with congestion control DROP (a
+        subscriber that stops reading loses states, the loop never waits for it: see
+        :data:`STATE_DROP_WAIT_US`) and ``diag`` as above."""
+        return VehiclePublisher(
+            self.declare_state_publisher(zenoh.CongestionControl.DROP, keys=keys),
+            self.declare_diag_publisher(keys=keys))
 
-    def declare_control_inbox(self, capacity: int = 32, keys: VehicleKeys | None = None,
+    def declare_control_inbox(self, per_client: int = 16, keys: VehicleKeys | None = None,
                               validate: bool = True) -> ControlInbox:
-        """Queryable serving every ``ctl/*`` key; poll it every tick.
+        """Queryable serving every ``ctl/*`` key, ``per_client`` requests queued per client
+        at most; poll it every tick.
 
         With ``validate=False`` requests come with their raw payload only (``args`` None)
         for a caller that validates them itself (the server's control table).
         """
-        return self._keep(ControlInbox(self.session, keys or self.keys, capacity, validate))
+        return self._keep(ControlInbox(self.session, keys or self.keys, per_client, validate))
 
     def declare_alive_token(self, keys: VehicleKeys | None = None) -> zenoh.LivelinessToken:
         """Liveliness token on ``alive`` (gone when undeclared, closed, or the process dies)."""
@@ -574,7 +657,8 @@ class ZenohEndpoint:
         key = self.keys.control(name)
         body = payload if payload is not None else encode_control(name, args)
         replies = self.session.get(
-            key, payload=body, encoding=zenoh.Encoding(ENCODING_CONTROL), timeout=timeout_s
+            key, payload=body, encoding=zenoh.Encoding(ENCODING_CONTROL), timeout=timeout_s,
+            attachment=self._client_id,
         )
         for reply in replies:
             result = reply.ok if reply.ok is not None else reply.err

@@ -403,6 +403,19 @@ class ServerProcess(OutputProcess):
             pass
         return f"server alive: {self.alive()}\n" + self.text()[-3000:]
 
+    def viewer_pids(self) -> list[int]:
+        """Its children that are live viewers (``simserver view``), not its other children
+        (the ``load`` worker, multiprocessing's resource tracker)."""
+        pids = []
+        for pid in self.children():
+            try:
+                argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"simserver" in argv and b"view" in argv:
+                pids.append(pid)
+        return pids
+
     def client_args(self) -> list[str]:
         """The connection flags of a client program of this server."""
         return ["--connect", self.endpoint, "--vehicle-id", self.vehicle_id]

@@ -8,7 +8,11 @@
 - ``recorder``: appends every state payload to ``--out`` and checks the ticks for gaps;
 - ``joiner``: subscribes to the state, asks ``get_config``, leaves after ``--seconds``;
 - ``slowsub``: subscribes through a tiny FIFO that it never reads;
-- ``router``: a zenoh router on ``--listen``.
+- ``router``: a zenoh router on ``--listen``;
+- ``multisub``: ``--sessions`` state subscribers, each its own zenoh session (link), each
+  checking its ticks for gaps;
+- ``churn``: ``--rate`` sessions a second join (subscribe to the state, ask
+  ``get_config``) and leave ``--life`` seconds later.
 
 Every role prints ``READY`` once its session is up and, when it ends (its duration is
 over, or SIGTERM), one line ``RESULT {json}``. ``simserver.testing.RoleProcess`` starts
@@ -236,8 +240,72 @@ def role_router(args: argparse.Namespace) -> None:
     _result({"routed": True})
 
 
+def role_multisub(args: argparse.Namespace) -> None:
+    """``--sessions`` subscribers of the state, one zenoh session each; gaps per session."""
+    stop = _Stop()
+    tick_at = proto.STATE_DTYPE.fields["tick"][1]
+    unpack = struct.Struct("<Q").unpack_from
+    eps = [_role_endpoint(args) for _ in range(args.sessions)]
+    inboxes = [ep.declare_state_inbox(capacity=1 << 16) for ep in eps]
+    states = [0] * len(eps)
+    missing = [0] * len(eps)
+    last: list[int | None] = [None] * len(eps)
+    print("READY", flush=True)
+    end = time.monotonic() + args.seconds if args.seconds > 0 else math.inf
+    try:
+        while not stop.stopped and time.monotonic() < end:
+            for i, inbox in enumerate(inboxes):
+                for payload in inbox.drain_newest():
+                    tick = unpack(payload, tick_at)[0]
+                    if last[i] is not None and tick > last[i] + 1:
+                        missing[i] += tick - last[i] - 1
+                    last[i] = tick
+                    states[i] += 1
+            time.sleep(0.005)
+    finally:
+        for ep in eps:
+            ep.close()
+    _result({"sessions": len(eps), "states_min": min(states), "states_max": max(states),
+             "missing_ticks": missing, "missing_total": sum(missing)})
+
+
+def role_churn(args: argparse.Namespace) -> None:
+    """Sessions joining at ``--rate`` per second, each leaving after ``--life`` seconds."""
+    stop = _Stop()
+    period = 1.0 / args.rate
+    alive: list[tuple[float, Any, Any]] = []
+    joined = config_ok = 0
+    print("READY", flush=True)
+    t0 = time.monotonic()
+    next_t = t0
+    end = t0 + args.seconds if args.seconds > 0 else math.inf
+    while not stop.stopped and time.monotonic() < end:
+        now = time.monotonic()
+        while alive and alive[0][0] <= now:
+            alive.pop(0)[1].close()
+        if now >= next_t:
+            ep = _role_endpoint(args)
+            inbox = ep.declare_state_inbox(capacity=1 << 12)
+            try:
+                config_ok += bool(ep.request("get_config", timeout_s=1.0)["ok"])
+            except (TimeoutError, ValueError):
+                pass
+            alive.append((time.monotonic() + args.life, ep, inbox))
+            joined += 1
+            next_t += period
+        else:
+            for _, _, inbox in alive:
+                inbox.drain_newest()
+            time.sleep(min(0.005, max(0.0, next_t - now)))
+    for _, ep, _ in alive:
+        ep.close()
+    _result({"joined": joined, "config_ok": config_ok,
+             "seconds": round(time.monotonic() - t0, 3)})
+
+
 ROLES = {"driver": role_driver, "flood": role_flood, "recorder": role_recorder,
-         "joiner": role_joiner, "slowsub": role_slowsub, "router": role_router}
+         "joiner": role_joiner, "slowsub": role_slowsub, "router": role_router,
+         "multisub": role_multisub, "churn": role_churn}
 
 
 def role_main(argv: Sequence[str]) -> int:
@@ -255,6 +323,8 @@ def role_main(argv: Sequence[str]) -> int:
     parser.add_argument("--profile", default="cycle", help="cycle | throttle:X | brake:X")
     parser.add_argument("--out", default=None, help="recorder: file of raw state payloads")
     parser.add_argument("--capacity", type=int, default=1, help="slowsub: FIFO capacity")
+    parser.add_argument("--sessions", type=int, default=20, help="multisub: sessions")
+    parser.add_argument("--life", type=float, default=1.0, help="churn: session lifetime, s")
     args = parser.parse_args(argv)
     if args.name != "router" and not args.connect:
         parser.error(f"role {args.name} needs --connect")
