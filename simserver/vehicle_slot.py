@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from simserver import protocol as proto
-from simserver.adapters.validate import ConfigError, confined_to, display_path
+from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
 from simserver.core import layout as L
 from simserver.core.params import VP_CG_HEIGHT_M
 from simserver.core.pose import world_pose
@@ -490,9 +490,8 @@ def resolve_config_path(field: str, value: str, config_dirs: tuple[Path, ...],
         path = candidate.resolve()
         if path.is_file() or given.is_absolute():
             if not any(path.is_relative_to(d) for d in config_dirs):
-                raise proto.ProtocolError(
-                    field, f"{path} is outside the server's config directories "
-                           f"({', '.join(str(d) for d in config_dirs)})")
+                raise proto.ProtocolError(  # not the absolute paths: docs/security.md
+                    field, f"{short_repr(value)} is outside the server's config directories")
             if path.is_file():
                 return path
         if path.exists() and not path.is_file():  # never opened: a FIFO would block
@@ -526,7 +525,7 @@ def prepare_load(scene: str | None, vehicle: str | None, current_scene: Path,
             message = str(exc)
             field = "scene" if vehicle is None or (
                 scene is not None and message.startswith(f"{scene_path}:")) else "vehicle"
-            return "error", field, redacted(message, config_dirs, cwd)
+            return "error", field, f"{field}: {redacted(message, config_dirs, cwd)}"
     return "ok", (loaded, scene_path, vehicle_path)
 
 

@@ -456,16 +456,20 @@ def test_load_paths_are_relative_to_the_working_directory_then_the_config_folder
         rig, monkeypatch):
     monkeypatch.chdir(REPO_CONFIGS.parent)  # the repository root, as a user runs it
     reply = rig.control("load", {"scene": "configs/scenes/hill_10pct_paper_sedan.yaml"})
-    assert reply["ok"] is True and reply["scene"] == str(HILL), reply
+    # replies show paths relative to the config folder (docs/security.md)
+    assert reply["ok"] is True and reply["scene"] == "scenes/hill_10pct_paper_sedan.yaml", reply
+    assert rig.slot.scene_path == HILL
     reply = rig.control("load", {"scene": "scenes/flat_paper_sedan.yaml"})  # configs/
-    assert reply["ok"] is True and reply["scene"] == str(FLAT), reply
+    assert reply["ok"] is True and reply["scene"] == "scenes/flat_paper_sedan.yaml", reply
+    assert rig.slot.scene_path == FLAT
     reply = rig.control("load", {"scene": "scenes/nowhere.yaml"})
     assert reply["ok"] is False and reply["field"] == "scene"
-    # the error lists every place it looked, the working directory first
-    looked = [str(d / "scenes/nowhere.yaml") for d in
-              (REPO_CONFIGS.parent, *rig.cfg.config_dirs, rig.cfg.path.parent)]
-    assert reply["error"] == f"scene: scenes/nowhere.yaml: no such file; looked in " \
-                             f"{', '.join(looked)}"
+    # the error lists every place it looked, the working directory first, each shown
+    # relative to the config folder or the working directory (no absolute server paths)
+    assert rig.cfg.config_dirs == [REPO_CONFIGS] and rig.cfg.path.parent == REPO_CONFIGS / "server"
+    assert reply["error"] == "scene: scenes/nowhere.yaml: no such file; looked in " \
+                             "scenes/nowhere.yaml, scenes/nowhere.yaml, server/scenes/nowhere.yaml"
+    assert str(REPO_CONFIGS.parent) not in reply["error"]
 
 
 class HeldPreparer:
@@ -509,7 +513,7 @@ def test_load_is_prepared_off_the_tick_and_applied_between_two_ticks(flat_scene)
     assert rig.control("get_config")["ok"] is True  # quick controls are still served
     held.finish()
     state = rig.run()  # applied between this tick's step and its controls
-    assert req.answer["ok"] is True and req.answer["scene"] == str(HILL)
+    assert req.answer["ok"] is True and req.answer["scene"] == "scenes/hill_10pct_paper_sedan.yaml"
     assert rig.slot.sim.road["grade_pct"] == 10.0 and rig.slot.tick == 0
     assert rig.run()["tick"] == 1 and state is not None
     rig.run(int(1 / (rig.cfg.diag_hz * rig.cfg.period_s)))
