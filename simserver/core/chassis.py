@@ -156,7 +156,7 @@ from simserver.core.params import (
     VP_WHEEL_INERTIA_REAR_KGM2,
     VP_YAW_INERTIA_KGM2,
 )
-from simserver.core.road import road_frame
+from simserver.core.road import road_axes, road_frame
 from simserver.core.slip import (
     SLIP_KINEMATIC,
     SLIP_LAGGED_PAPER,
@@ -686,13 +686,19 @@ def place_on_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
     wheels there, the springs left static, and the planar velocities kept (docs/model.md
     section 10)."""
     u, v, r = x[U_MPS], x[V_MPS], x[YAW_RATE_RADPS]
+    world_x, world_y = x[X_M], x[Y_M]
     x[REF_GRADE_PCT] = 0.0
     x[REF_CROSS_SLOPE_PCT] = 0.0
-    x[REF_HEIGHT_M] = surface_at(model.terrain, x[X_M], x[Y_M])[0]
+    x[REF_HEIGHT_M] = surface_at(model.terrain, world_x, world_y)[0]
     for _ in range(4):  # the fit moves the wheels' points a little: repeat to a fixed point
         x[U_MPS] = x[V_MPS] = x[YAW_RATE_RADPS] = 0.0
         follow_terrain(model, ws, x)
         for k in (HEAVE_M, HEAVE_RATE_MPS, ROLL_RAD, ROLL_RATE_RADPS, PITCH_RAD,
                   PITCH_RATE_RADPS):
             x[k] = 0.0
+        # the CG's foot on the plane straight below (world_x, world_y)
+        axes = road_axes(x[REF_GRADE_PCT], x[REF_CROSS_SLOPE_PCT])
+        rise = (x[REF_GRADE_PCT] * world_x + x[REF_CROSS_SLOPE_PCT] * world_y) / 100.0
+        x[X_M] = world_x * axes[0, 0] + world_y * axes[0, 1] + rise * axes[0, 2]
+        x[Y_M] = world_x * axes[1, 0] + world_y * axes[1, 1] + rise * axes[1, 2]
     x[U_MPS], x[V_MPS], x[YAW_RATE_RADPS] = u, v, r
