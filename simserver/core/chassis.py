@@ -91,6 +91,8 @@ from simserver.core.model import (
     G_GRAVITY_E2_MPS2,
     G_GRAVITY_N_MPS2,
     G_MU0,
+    W_CONTACT_S1_M,
+    W_CONTACT_S2_M,
     W_DAMPING_FX,
     W_DAMPING_FY,
     W_FX,
@@ -101,6 +103,9 @@ from simserver.core.model import (
     W_FY_PLANE,
     W_FZ,
     W_FZ_DYN,
+    W_GAP0_M,
+    W_GAP_D1,
+    W_GAP_D2,
     W_GAP_M,
     W_GAP_RATE_MPS,
     W_HUB_U,
@@ -109,10 +114,15 @@ from simserver.core.model import (
     W_KAPPA_SLIDE,
     W_MY,
     W_MZ,
-    W_SLOPE_LAT,
-    W_SLOPE_LONG,
+    W_N0,
+    W_N1,
     W_TAN_ALPHA,
     W_TAN_ALPHA_SLIDE,
+    W_TILT,
+    W_TX0,
+    W_TX1,
+    W_TY0,
+    W_TY1,
     WI_BRAKE_NM,
     WI_COS_STEER,
     WI_DRIVE_NM,
@@ -250,7 +260,7 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
     does what it did before terrains). On a height map a plane is fitted through the four
     contact points and the states are re-expressed on it (``core.terrain``)."""
     vp, terrain = model.vp, model.terrain
-    ground = ws.ground
+    ground, wheel = ws.ground, ws.wheel
     if terrain.kind == TERRAIN_PLANE:
         ground[G_GRAVITY_E1_MPS2] = vp[VP_GRAVITY_E1_MPS2]
         ground[G_GRAVITY_E2_MPS2] = vp[VP_GRAVITY_E2_MPS2]
@@ -274,11 +284,13 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
         s2 = x[Y_M] + px * s + py * c
         wx = s1 * axes_old[0, 0] + s2 * axes_old[1, 0]
         wy = s1 * axes_old[0, 1] + s2 * axes_old[1, 1]
-        height, _, _, mu = surface_at(terrain, wx, wy)
+        height, grad_x, grad_y, mu = surface_at(terrain, wx, wy)
         contact[0, i] = wx
         contact[1, i] = wy
         contact[2, i] = height
         ground[G_MU0 + i] = vp[VP_ROAD_FRICTION_SCALE] * mu
+        wheel[i, W_GAP_D1] = grad_x  # the gradient, until contact_frames below
+        wheel[i, W_GAP_D2] = grad_y
     slope_x, slope_y, height0 = fit_plane(contact[0], contact[1], contact[2])
     rebase_reference_plane(x, 100.0 * slope_x, 100.0 * slope_y, height0, vp[VP_CG_HEIGHT_M],
                            axes_old, axes_new)
@@ -289,17 +301,21 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
     for r in range(3):
         for k in range(3):
             ground[G_AXES + 3 * r + k] = axes_new[r, k]
+    contact_frames(model, ws, x)
 
 
 @nb.njit(cache=True, inline="always")
-def terrain_gaps(model: Model, ws: Workspace, x: np.ndarray) -> None:
-    """Per wheel, what the reference plane misses of the surface under it: the surface's
-    height above the plane (``W_GAP_M``, along the plane's normal) and its rate as the
-    wheel moves (``W_GAP_RATE_MPS``), and the surface's slope relative to the plane along
-    and across the wheel's heading (``W_SLOPE_LONG``, ``W_SLOPE_LAT``): docs/model.md
-    section 10."""
-    vp, terrain = model.vp, model.terrain
-    ground, wheel, wheel_in = ws.ground, ws.wheel, ws.wheel_in
+def contact_frames(model: Model, ws: Workspace, x: np.ndarray) -> None:
+    """Once per step, per wheel on a terrain: the surface under the wheel as its tangent
+    plane at the step start, in the reference plane's terms (the gap ``W_GAP0_M`` at the
+    contact point ``W_CONTACT_S1_M``, ``W_CONTACT_S2_M`` and its gradient ``W_GAP_D1``,
+    ``W_GAP_D2``), and the wheel's contact frame on it: the normal, the wheel heading
+    projected onto the tangent plane, and their cross product (docs/model.md section 10).
+    Frozen over the step, as the tires' coefficients are. Reads the world gradient that
+    ``follow_terrain`` left in ``W_GAP_D1``, ``W_GAP_D2`` and the queried points and
+    heights in ``ws.contact``."""
+    vp = model.vp
+    ground, wheel, wheel_in, contact = ws.ground, ws.wheel, ws.wheel_in, ws.contact
     slope_x = x[REF_GRADE_PCT] / 100.0
     slope_y = x[REF_CROSS_SLOPE_PCT] / 100.0
     e1x, e1y, e1z = ground[G_AXES], ground[G_AXES + 1], ground[G_AXES + 2]
@@ -308,7 +324,6 @@ def terrain_gaps(model: Model, ws: Workspace, x: np.ndarray) -> None:
     psi = x[YAW_RAD]
     c = np.cos(psi)
     s = np.sin(psi)
-    r = x[YAW_RATE_RADPS]
     for i in range(N_WHEELS):
         px, py = wheel_position(vp, i)
         s1 = x[X_M] + px * c - py * s
@@ -316,28 +331,69 @@ def terrain_gaps(model: Model, ws: Workspace, x: np.ndarray) -> None:
         wx = s1 * e1x + s2 * e2x
         wy = s1 * e1y + s2 * e2y
         wz = s1 * e1z + s2 * e2z + x[REF_HEIGHT_M]
-        height, grad_x, grad_y, _ = surface_at(terrain, wx, wy)
+        grad_x = wheel[i, W_GAP_D1]
+        grad_y = wheel[i, W_GAP_D2]
+        # the surface's tangent plane at the queried point, evaluated where the wheel's
+        # contact point is on the new reference plane (micrometres away)
+        height = contact[2, i] + grad_x * (wx - contact[0, i]) + grad_y * (wy - contact[1, i])
         rel_x = grad_x - slope_x
         rel_y = grad_y - slope_y
         # d(gap)/ds along e1 and e2 (an in-plane step ds moves (e_x, e_y) ds horizontally)
         d_gap_1 = n_z * (rel_x * e1x + rel_y * e1y)
         d_gap_2 = n_z * (rel_x * e2x + rel_y * e2y)
-        u_c = x[U_MPS] - r * py
-        v_c = x[V_MPS] + r * px
-        wheel[i, W_GAP_M] = (height - wz) * n_z
-        wheel[i, W_GAP_RATE_MPS] = d_gap_1 * (u_c * c - v_c * s) + d_gap_2 * (u_c * s + v_c * c)
+        wheel[i, W_CONTACT_S1_M] = s1
+        wheel[i, W_CONTACT_S2_M] = s2
+        wheel[i, W_GAP0_M] = (height - wz) * n_z
+        wheel[i, W_GAP_D1] = d_gap_1
+        wheel[i, W_GAP_D2] = d_gap_2
+        # slopes along and across the wheel heading, then the contact frame
         c_h = c * wheel_in[WI_COS_STEER, i] - s * wheel_in[WI_SIN_STEER, i]
         s_h = s * wheel_in[WI_COS_STEER, i] + c * wheel_in[WI_SIN_STEER, i]
-        wheel[i, W_SLOPE_LONG] = c_h * d_gap_1 + s_h * d_gap_2
-        wheel[i, W_SLOPE_LAT] = -s_h * d_gap_1 + c_h * d_gap_2
+        slope_long = c_h * d_gap_1 + s_h * d_gap_2
+        slope_lat = -s_h * d_gap_1 + c_h * d_gap_2
+        tilt = np.sqrt(1.0 + slope_long * slope_long + slope_lat * slope_lat)
+        n_0 = -slope_long / tilt
+        n_1 = -slope_lat / tilt
+        n_2 = 1.0 / tilt
+        # t_x: the wheel heading (1, 0, 0) projected onto the tangent plane; t_y = n x t_x
+        t_x0 = 1.0 - n_0 * n_0
+        t_x1 = -n_0 * n_1
+        t_x2 = -n_0 * n_2
+        t_norm = np.sqrt(t_x0 * t_x0 + t_x1 * t_x1 + t_x2 * t_x2)
+        t_x0 /= t_norm
+        t_x1 /= t_norm
+        t_x2 /= t_norm
+        wheel[i, W_TILT] = tilt
+        wheel[i, W_N0] = n_0
+        wheel[i, W_N1] = n_1
+        wheel[i, W_TX0] = t_x0
+        wheel[i, W_TX1] = t_x1
+        wheel[i, W_TY0] = n_1 * t_x2 - n_2 * t_x1
+        wheel[i, W_TY1] = n_2 * t_x0 - n_0 * t_x2
 
 
 @nb.njit(cache=True, inline="always")
-def contact_tilt(wheel: np.ndarray, i: int) -> float:
-    """``1 / n_z`` of wheel ``i``'s contact normal in the reference plane's axes."""
-    slope_long = wheel[i, W_SLOPE_LONG]
-    slope_lat = wheel[i, W_SLOPE_LAT]
-    return np.sqrt(1.0 + slope_long * slope_long + slope_lat * slope_lat)
+def terrain_gaps(model: Model, ws: Workspace, x: np.ndarray) -> None:
+    """Per wheel and evaluation, what the reference plane misses of the surface under it:
+    the gap (``W_GAP_M``, along the plane's normal) and its rate as the wheel moves
+    (``W_GAP_RATE_MPS``), on the tangent planes of the step start (``contact_frames``)."""
+    vp = model.vp
+    wheel = ws.wheel
+    psi = x[YAW_RAD]
+    c = np.cos(psi)
+    s = np.sin(psi)
+    r = x[YAW_RATE_RADPS]
+    for i in range(N_WHEELS):
+        px, py = wheel_position(vp, i)
+        s1 = x[X_M] + px * c - py * s
+        s2 = x[Y_M] + px * s + py * c
+        d_gap_1 = wheel[i, W_GAP_D1]
+        d_gap_2 = wheel[i, W_GAP_D2]
+        u_c = x[U_MPS] - r * py
+        v_c = x[V_MPS] + r * px
+        wheel[i, W_GAP_M] = (wheel[i, W_GAP0_M] + d_gap_1 * (s1 - wheel[i, W_CONTACT_S1_M])
+                             + d_gap_2 * (s2 - wheel[i, W_CONTACT_S2_M]))
+        wheel[i, W_GAP_RATE_MPS] = d_gap_1 * (u_c * c - v_c * s) + d_gap_2 * (u_c * s + v_c * c)
 
 
 @nb.njit(cache=True, inline="always")
@@ -391,8 +447,8 @@ def corner_loads(model: Model, ws: Workspace, x: np.ndarray) -> None:
         wheel[left + LEFT, W_FZ_DYN] = fz_l - static
         wheel[left + RIGHT, W_FZ_DYN] = fz_r - static
         if not on_plane:  # the plane-normal force is the contact normal's n component
-            fz_l *= contact_tilt(wheel, left + LEFT)
-            fz_r *= contact_tilt(wheel, left + RIGHT)
+            fz_l *= wheel[left + LEFT, W_TILT]
+            fz_r *= wheel[left + RIGHT, W_TILT]
         wheel[left + LEFT, W_FZ] = fz_l
         wheel[left + RIGHT, W_FZ] = fz_r
 
@@ -471,24 +527,9 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
         tp_wheel = tp[i]
         fz = wheel[i, W_FZ]
         u_w, v_w = hub_velocity(x, vp, i, wheel_in[WI_COS_STEER, i], wheel_in[WI_SIN_STEER, i])
-        n_0 = n_1 = t_x1 = t_y0 = 0.0
-        t_x0 = t_y1 = 1.0
         if not on_plane:  # into the wheel's contact frame (docs/model.md section 10)
-            n_inv = 1.0 / contact_tilt(wheel, i)
-            n_0 = -wheel[i, W_SLOPE_LONG] * n_inv
-            n_1 = -wheel[i, W_SLOPE_LAT] * n_inv
-            n_2 = n_inv
-            # t_x: the wheel heading projected onto the tangent plane; t_y = n x t_x
-            t_x0 = 1.0 - n_0 * n_0
-            t_x1 = -n_0 * n_1
-            t_x2 = -n_0 * n_2
-            t_norm = np.sqrt(t_x0 * t_x0 + t_x1 * t_x1 + t_x2 * t_x2)
-            t_x0 /= t_norm
-            t_x1 /= t_norm
-            t_x2 /= t_norm
-            t_y0 = n_1 * t_x2 - n_2 * t_x1
-            t_y1 = n_2 * t_x0 - n_0 * t_x2
-            u_w, v_w = u_w * t_x0 + v_w * t_x1, u_w * t_y0 + v_w * t_y1
+            u_w, v_w = (u_w * wheel[i, W_TX0] + v_w * wheel[i, W_TX1],
+                        u_w * wheel[i, W_TY0] + v_w * wheel[i, W_TY1])
         radius = tp_wheel[TP_RADIUS_M]
         omega = x[OMEGA0 + i]
         if slip_model == SLIP_KINEMATIC:
@@ -521,8 +562,10 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
                 fx = fy = damp_x = damp_y = 0.0
                 tire_out[OUT_MZ] = tire_out[OUT_MY] = 0.0
             # the contact force in the reference plane, along and across the wheel heading
-            wheel[i, W_FX_PLANE] = fx * t_x0 + fy * t_y0 + fz * n_0
-            wheel[i, W_FY_PLANE] = fx * t_x1 + fy * t_y1 + fz * n_1
+            wheel[i, W_FX_PLANE] = (fx * wheel[i, W_TX0] + fy * wheel[i, W_TY0]
+                                    + fz * wheel[i, W_N0])
+            wheel[i, W_FY_PLANE] = (fx * wheel[i, W_TX1] + fy * wheel[i, W_TY1]
+                                    + fz * wheel[i, W_N1])
 
         if wheel_in[WI_HELD, i] > 0.5:
             d_omega = 0.0

@@ -334,13 +334,13 @@ def step(model: Model, data: Data) -> None:
     """Advance ``data.x`` by ``model.dt_s`` in place with the inputs ``data.inputs``.
 
     Writes ``data.out``: forces and accelerations at the state at the *start* of the step.
-    The stages, in order: 0 ``follow_terrain``, 1 ``freeze_inputs``, 2 ``prepare_tires``,
+    The stages, in order: 1 ``freeze_inputs`` and ``follow_terrain``, 2 ``prepare_tires``,
     3 ``vehicle_rates`` at the start state, ``record_outputs`` and ``record_contacts``,
     4 ``resolve_brakes``, 5 ``freeze_decay_rates`` and ``lawson_rk4``, 6 ``catch_stopped_wheels``,
     7 ``update_discrete_states``.
     """
-    follow_terrain(model, data.ws, data.x)  # 0. the reference plane under the car
     freeze_inputs(model, data)  # 1. inputs held over the step
+    follow_terrain(model, data.ws, data.x)  # 1b. the reference plane, contact frames
     prepare_tires(model, data)  # 2. tire coefficients at the mid-step load
     vehicle_rates(model, data.ws, data.x, data.ws.rk[RK_K1])  # 3. forces at the start
     record_outputs(data.ws, data.out)

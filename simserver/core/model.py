@@ -49,14 +49,26 @@ W_DAMPING_FY = 12
 W_KAPPA = 13  # slip fed to the tire model
 W_TAN_ALPHA = 14
 W_FZ_DYN = 15  # normal load beyond the static share: what the corner pushes onto the body (N)
-# terrain (core.terrain, docs/model.md section 10): the contact frame of each wheel
+# terrain (core.terrain, docs/model.md section 10)
 W_FX_PLANE = 16  # contact force along the wheel heading in the reference plane (N)
 W_FY_PLANE = 17  # contact force across it, in the reference plane (N)
-W_SLOPE_LONG = 18  # surface slope relative to the reference plane along the wheel heading
-W_SLOPE_LAT = 19  # ... and across it (to the left)
-W_GAP_M = 20  # surface height above the reference plane under the wheel (m, along n)
-W_GAP_RATE_MPS = 21  # its rate as the wheel moves (m/s)
-N_W = 22
+W_GAP_M = 18  # surface height above the reference plane under the wheel (m, along n)
+W_GAP_RATE_MPS = 19  # its rate as the wheel moves (m/s)
+# ... frozen over the step (core.chassis.follow_terrain): the surface under the wheel as
+# its tangent plane at the step start, and the wheel's contact frame on it
+W_CONTACT_S1_M = 20  # contact point at the step start, in the reference plane (m)
+W_CONTACT_S2_M = 21
+W_GAP0_M = 22  # gap there (m)
+W_GAP_D1 = 23  # d(gap)/ds along the reference plane's e1 and e2
+W_GAP_D2 = 24
+W_TILT = 25  # 1 / n_z of the contact normal (n_z along the reference plane's normal)
+W_N0 = 26  # contact normal: along the wheel heading, across it (reference-plane axes)
+W_N1 = 27
+W_TX0 = 28  # contact frame's x axis (the heading on the tangent plane), same components
+W_TX1 = 29
+W_TY0 = 30  # its y axis
+W_TY1 = 31
+N_W = 32
 
 # ---- whole-body quantities of the state being evaluated (ws.body[B_*])
 B_AX_MPS2 = 0

@@ -125,7 +125,7 @@ def _cell(pos: float, origin: float, spacing: float, n: int) -> tuple[int, float
     return i, f - i
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def surface_at(terrain: Terrain, wx: float, wy: float) -> tuple[float, float, float, float]:
     """Height (m), gradient ``(dh/dx, dh/dy)`` and friction scale of a height map at the
     world point ``(wx, wy)``. Catmull-Rom in each axis (C1); the samples beyond the edge
@@ -172,7 +172,7 @@ def surface_at(terrain: Terrain, wx: float, wy: float) -> tuple[float, float, fl
     return height, grad_x / dx, grad_y / dy, mu
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def fit_plane(px: np.ndarray, py: np.ndarray, pz: np.ndarray) -> tuple[float, float, float]:
     """Least-squares plane ``Z = a X + b Y + c`` through the points; ``(a, b, c)``."""
     n = px.size
@@ -206,7 +206,7 @@ def fit_plane(px: np.ndarray, py: np.ndarray, pz: np.ndarray) -> tuple[float, fl
     return a, b, mz - a * mx - b * my
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def rebase_reference_plane(x: np.ndarray, grade_pct: float, cross_slope_pct: float,
                            height_m: float, cg_height_m: float, axes_old: np.ndarray,
                            axes_new: np.ndarray) -> None:
