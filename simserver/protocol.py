@@ -38,7 +38,7 @@ import numpy as np
 
 # ============================================================================ version
 
-PROTOCOL_VERSION: Final[int] = 1
+PROTOCOL_VERSION: Final[int] = 2  # 2: VehicleState wheel_contact (issue 15)
 """Carried in the first two bytes of every binary payload; bumped on any layout change."""
 
 DEFAULT_PREFIX: Final[str] = "simserver"
@@ -417,7 +417,9 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
               f"brake holds the wheel at zero spin (0/1); {_WHEELS}"),
     FieldSpec("parking_brake", "u1", 1, "-", 0, 1, "applied parking brake (0/1)"),
     FieldSpec("gear", "u1", 1, "-", 0, 3, "applied gear, 0 = P, 1 = R, 2 = N, 3 = D"),
-    FieldSpec("reserved", "u1", 6, "-", 0, 0, "zero (pads the payload to 256 bytes)"),
+    FieldSpec("wheel_contact", "u1", 4, "-", 0, 1,
+              f"wheel touches the ground (carries load) (0/1); {_WHEELS}"),
+    FieldSpec("reserved", "u1", 2, "-", 0, 0, "zero (pads the payload to 256 bytes)"),
 )
 
 _WINDOW = "over the last window_ticks ticks"
