@@ -1,4 +1,4 @@
-"""Terrain kinds (docs/model.md section 10): the height map's surface, its files, and the car
+"""Terrain kinds (docs/model.md section 11): the height map's surface, its files, and the car
 on it: the plane as a height map rests like the plane kind, the sharp bump lifts a wheel,
 coasting between hills only loses energy."""
 

@@ -253,7 +253,7 @@ def hub_velocity(
 
 @nb.njit(cache=True, inline="always")
 def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
-    """Stage 0: the reference plane of the step (docs/model.md section 10) into
+    """Stage 1b: the reference plane of the step (docs/model.md section 11) into
     ``ws.ground``: its axes, gravity resolved into them, the friction under each wheel.
 
     On the plane kind it is the road (``core.road.set_road``'s slots, copied: the step
@@ -310,7 +310,7 @@ def contact_frames(model: Model, ws: Workspace, x: np.ndarray) -> None:
     plane at the step start, in the reference plane's terms (the gap ``W_GAP0_M`` at the
     contact point ``W_CONTACT_S1_M``, ``W_CONTACT_S2_M`` and its gradient ``W_GAP_D1``,
     ``W_GAP_D2``), and the wheel's contact frame on it: the normal, the wheel heading
-    projected onto the tangent plane, and their cross product (docs/model.md section 10).
+    projected onto the tangent plane, and their cross product (docs/model.md section 11).
     Frozen over the step, as the tires' coefficients are. Reads the world gradient that
     ``follow_terrain`` left in ``W_GAP_D1``, ``W_GAP_D2`` and the queried points and
     heights in ``ws.contact``."""
@@ -405,7 +405,7 @@ def corner_loads(model: Model, ws: Workspace, x: np.ndarray) -> None:
     reference plane) plus the suspension's force (spring, damper, anti-roll bar) from the
     body's heave, roll and pitch and, on a terrain, the surface's gap under the wheel; a
     corner whose load would go negative lifts off (``Fz = 0``). On a terrain, ``W_FZ`` is
-    the load along the wheel's own contact normal (docs/model.md section 10).
+    the load along the wheel's own contact normal (docs/model.md section 11).
     """
     vp = model.vp
     wheel = ws.wheel
@@ -527,7 +527,7 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
         tp_wheel = tp[i]
         fz = wheel[i, W_FZ]
         u_w, v_w = hub_velocity(x, vp, i, wheel_in[WI_COS_STEER, i], wheel_in[WI_SIN_STEER, i])
-        if not on_plane:  # into the wheel's contact frame (docs/model.md section 10)
+        if not on_plane:  # into the wheel's contact frame (docs/model.md section 11)
             u_w, v_w = (u_w * wheel[i, W_TX0] + v_w * wheel[i, W_TX1],
                         u_w * wheel[i, W_TY0] + v_w * wheel[i, W_TY1])
         radius = tp_wheel[TP_RADIUS_M]
@@ -727,7 +727,7 @@ def place_on_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
     """Put the car of state ``x`` onto a terrain: ``X_M``, ``Y_M`` and ``YAW_RAD`` are read
     as the world position and heading of the CG; the reference plane is fitted under the
     wheels there, the springs left static, and the planar velocities kept (docs/model.md
-    section 10)."""
+    section 11)."""
     u, v, r = x[U_MPS], x[V_MPS], x[YAW_RATE_RADPS]
     world_x, world_y = x[X_M], x[Y_M]
     x[REF_GRADE_PCT] = 0.0

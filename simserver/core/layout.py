@@ -48,7 +48,7 @@ TIME_S = 36  # simulated time (s)
 N_STATE_V1 = 37  # the layout of the first release (command logs' ``end`` states)
 # Appended after TIME_S: memory carried from one step to the next
 FZ_PREV0 = 37  # normal load at the start of the previous step (N; -1: none yet), 4 slots
-# Appended for terrains (core.terrain, docs/model.md section 10): the reference plane the
+# Appended for terrains (core.terrain, docs/model.md section 11): the reference plane the
 # planar states live on, Z = grade/100 X + cross/100 Y + height (on the plane kind, the
 # road itself), and which wheels touch the ground
 REF_GRADE_PCT = 41  # reference plane's rise along world x (%)

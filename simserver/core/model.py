@@ -49,7 +49,7 @@ W_DAMPING_FY = 12
 W_KAPPA = 13  # slip fed to the tire model
 W_TAN_ALPHA = 14
 W_FZ_DYN = 15  # normal load beyond the static share: what the corner pushes onto the body (N)
-# terrain (core.terrain, docs/model.md section 10)
+# terrain (core.terrain, docs/model.md section 11)
 W_FX_PLANE = 16  # contact force along the wheel heading in the reference plane (N)
 W_FY_PLANE = 17  # contact force across it, in the reference plane (N)
 W_GAP_M = 18  # surface height above the reference plane under the wheel (m, along n)

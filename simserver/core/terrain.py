@@ -1,4 +1,4 @@
-"""The ground under each wheel: terrain kinds and the contact query (docs/model.md section 10).
+"""The ground under each wheel: terrain kinds and the contact query (docs/model.md section 11).
 
 A terrain is a ``Terrain`` tuple of arrays, the same types for every kind, so the compiled
 step takes any of them without recompiling:
@@ -212,7 +212,7 @@ def rebase_reference_plane(x: np.ndarray, grade_pct: float, cross_slope_pct: flo
                            axes_new: np.ndarray) -> None:
     """Re-express the body's planar states on another reference plane
     ``Z = grade/100 X + cross/100 Y + height``, keeping its world CG position, velocity and
-    attitude (docs/model.md section 10); the plane's slots of ``x`` are set to it.
+    attitude (docs/model.md section 11); the plane's slots of ``x`` are set to it.
 
     Roll and pitch change by the tilt between the planes (small-angle: the plane moves by
     micro-radians a step); the angular rates are unchanged. ``axes_old`` and ``axes_new``
