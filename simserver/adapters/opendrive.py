@@ -93,6 +93,32 @@ class Geometry:
             return (*_local_to_world(self.x, self.y, h0, u, v), h0 + math.atan2(dv, du))
         raise ValueError(f"unknown geometry kind {self.kind!r}")
 
+    def points(self, ds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``point`` at every ``ds`` of an increasing array (vectorised; the spiral is
+        integrated piece by piece between the samples)."""
+        ds = np.asarray(ds, dtype=np.float64)
+        h0 = self.hdg
+        if self.kind == "line" or (self.kind == "arc" and self.params["curvature"] == 0.0):
+            return self.x + ds * math.cos(h0), self.y + ds * math.sin(h0), np.full_like(ds, h0)
+        if self.kind == "arc":
+            k = float(self.params["curvature"])
+            return (self.x + (np.sin(h0 + k * ds) - math.sin(h0)) / k,
+                    self.y - (np.cos(h0 + k * ds) - math.cos(h0)) / k, h0 + k * ds)
+        if self.kind == "spiral":
+            k0 = float(self.params["curvStart"])
+            rate = (float(self.params["curvEnd"]) - k0) / self.length
+            edges = np.concatenate(([0.0], ds))
+            half = 0.5 * np.diff(edges)
+            mid = 0.5 * (edges[1:] + edges[:-1])
+            sq = mid[:, None] + half[:, None] * _GL_NODES[None, :]
+            theta = h0 + k0 * sq + 0.5 * rate * sq * sq
+            w = half[:, None] * _GL_WEIGHTS[None, :]
+            u = np.cumsum(np.sum(w * np.cos(theta), axis=1))
+            v = np.cumsum(np.sum(w * np.sin(theta), axis=1))
+            return self.x + u, self.y + v, h0 + k0 * ds + 0.5 * rate * ds * ds
+        pts = np.array([self.point(float(d)) for d in ds]).reshape(-1, 3)
+        return pts[:, 0], pts[:, 1], pts[:, 2]
+
     def end(self) -> tuple[float, float, float]:
         """``point(length)``."""
         return self.point(self.length)
@@ -154,6 +180,19 @@ class Cubic:
     def at(self, s: float) -> float:
         ds = s - self.s
         return self.a + ds * (self.b + ds * (self.c + ds * self.d))
+
+
+def profile_values(pieces: list[Cubic], s: np.ndarray) -> np.ndarray:
+    """``profile_at`` at every ``s`` (vectorised)."""
+    s = np.asarray(s, dtype=np.float64)
+    if not pieces:
+        return np.zeros_like(s)
+    starts = np.array([p.s for p in pieces])
+    coef = np.array([(p.a, p.b, p.c, p.d) for p in pieces])
+    k = np.clip(np.searchsorted(starts, s + 1e-9, side="right") - 1, 0, len(pieces) - 1)
+    ds = s - starts[k]
+    a, b, c, d = coef[k].T
+    return a + ds * (b + ds * (c + ds * d))
 
 
 def profile_at(pieces: list[Cubic], s: float) -> float:
@@ -303,3 +342,124 @@ def load_opendrive(path: str | Path) -> OpenDrive:
     if not roads:
         raise OpenDriveError(f"{path}: no <road>")
     return OpenDrive(path, roads)
+
+
+def _section_at(road: Road, s: float) -> LaneSection | None:
+    section = None
+    for sec in road.lane_sections:
+        if sec.s <= s + 1e-9:
+            section = sec
+    return section
+
+
+def road_extent(road: Road, s: float) -> tuple[float, float]:
+    """Lateral extent ``(t_right <= 0, t_left >= 0)`` of the road's lanes at ``s``."""
+    sec = _section_at(road, s)
+    if sec is None:
+        return 0.0, 0.0
+    left = right = 0.0
+    for lane in sec.lanes:
+        if lane.id == 0 or not lane.widths:
+            continue
+        width = max(0.0, profile_at(lane.widths, s - sec.s))
+        if lane.id > 0:
+            left += width
+        else:
+            right -= width
+    return right, left
+
+
+def rasterise(od: OpenDrive, cell_m: float, margin_m: float = 20.0
+              ) -> tuple[np.ndarray, float, float]:
+    """The road surface as a height grid: ``(heights[j, i], x0, y0)`` with cells of
+    ``cell_m``.
+
+    The surface point at ``(s, t)`` is the reference line's point moved ``t cos(roll)``
+    across it horizontally and ``t sin(roll)`` up from the elevation (roll: the
+    superelevation). Beyond the outer lanes' edges the edge extends flat across for
+    ``margin_m``; grid cells farther from every road take the height of the nearest
+    surface cell along their grid row (rows with none: along their column). Each cell
+    takes the surface sample nearest to its centre, moved to the centre along the
+    surface's local slope (samples every quarter of a cell)."""
+    step = 0.25 * cell_m
+    pts_x, pts_y, pts_z, pts_gx, pts_gy = [], [], [], [], []
+    for road in od.roads:
+        s_all = np.arange(0.0, road.length + 0.5 * step, step)
+        s_all[-1] = min(s_all[-1], road.length)
+        ref_x, ref_y, ref_h = np.empty_like(s_all), np.empty_like(s_all), np.empty_like(s_all)
+        starts = np.array([g.s for g in road.geometries])
+        which = np.clip(np.searchsorted(starts, s_all + 1e-9, side="right") - 1, 0,
+                        len(starts) - 1)
+        for k, geo in enumerate(road.geometries):
+            sel = which == k
+            if sel.any():
+                ds = np.clip(s_all[sel] - geo.s, 0.0, geo.length)
+                ref_x[sel], ref_y[sel], ref_h[sel] = geo.points(ds)
+        elev = profile_values(road.elevation, s_all)
+        slope = (profile_values(road.elevation, s_all + 1e-3)
+                 - profile_values(road.elevation, s_all - 1e-3)) / 2e-3
+        rolls = profile_values(road.superelevation, s_all)
+        for n, s in enumerate(s_all):
+            t_right, t_left = road_extent(road, s)
+            t = np.arange(t_right - margin_m, t_left + margin_m + 0.5 * step, step)
+            t_surface = np.clip(t, t_right, t_left)  # the edges extend flat beyond
+            c, sn = math.cos(ref_h[n]), math.sin(ref_h[n])
+            roll = rolls[n]
+            lateral = t * math.cos(roll)
+            pts_x.append(ref_x[n] - sn * lateral)
+            pts_y.append(ref_y[n] + c * lateral)
+            pts_z.append(elev[n] + t_surface * math.sin(roll))
+            bank = np.where((t >= t_right) & (t <= t_left), math.tan(roll), 0.0)
+            # gradient: dz/ds along the heading, the bank across it (horizontal axes)
+            pts_gx.append(slope[n] * c - bank * sn)
+            pts_gy.append(slope[n] * sn + bank * c)
+    px = np.concatenate(pts_x)
+    py = np.concatenate(pts_y)
+    pz = np.concatenate(pts_z)
+    gx = np.concatenate(pts_gx)
+    gy = np.concatenate(pts_gy)
+    x0 = math.floor(px.min() / cell_m) * cell_m
+    y0 = math.floor(py.min() / cell_m) * cell_m
+    nx = int(math.ceil((px.max() - x0) / cell_m)) + 1
+    ny = int(math.ceil((py.max() - y0) / cell_m)) + 1
+    ci = np.rint((px - x0) / cell_m).astype(np.int64)
+    cj = np.rint((py - y0) / cell_m).astype(np.int64)
+    dx = x0 + ci * cell_m - px
+    dy = y0 + cj * cell_m - py
+    cell = cj * nx + ci
+    order = np.lexsort((dx * dx + dy * dy, cell))
+    first = order[np.unique(cell[order], return_index=True)[1]]
+    heights = np.full(ny * nx, np.nan)
+    heights[cell[first]] = pz[first] + gx[first] * dx[first] + gy[first] * dy[first]
+    grid = heights.reshape(ny, nx)
+    _fill_nearest(grid)
+    return grid, x0, y0
+
+
+def _fill_along(grid: np.ndarray) -> None:
+    """Fill each row's NaN cells with the row's nearest filled cell (in place)."""
+    ny, nx = grid.shape
+    idx = np.arange(nx)
+    have = ~np.isnan(grid)
+    prev = np.where(have, idx[None, :], -1)
+    np.maximum.accumulate(prev, axis=1, out=prev)
+    nxt = np.where(have, idx[None, :], nx)
+    nxt = np.minimum.accumulate(nxt[:, ::-1], axis=1)[:, ::-1]
+    use_prev = (prev >= 0) & ((nxt >= nx) | (idx[None, :] - prev <= nxt - idx[None, :]))
+    use_next = ~use_prev & (nxt < nx)
+    rows = np.arange(ny)[:, None].repeat(nx, axis=1)
+    filled = grid.copy()
+    filled[use_prev] = grid[rows[use_prev], prev[use_prev]]
+    filled[use_next] = grid[rows[use_next], nxt[use_next]]
+    grid[:] = filled
+
+
+def _fill_nearest(grid: np.ndarray) -> None:
+    """Fill NaN cells: along each row from its nearest surface cell, then the rows that
+    had none along each column."""
+    if np.isnan(grid).all():
+        raise OpenDriveError("rasterise: no road surface to extend")
+    _fill_along(grid)
+    transposed = grid.T.copy()
+    _fill_along(transposed)
+    grid[:] = transposed.T

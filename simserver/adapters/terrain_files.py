@@ -15,6 +15,12 @@
   - ``height_scale_m``, ``height_offset_m``: for a PNG (``height_scale_m`` required there).
   - ``friction_file``: ``.npy`` friction scale per grid point (instead of the ``.npz``'s).
 
+- ``kind: opendrive``: ``file`` (required, ``.xodr``), ``cell_m`` (default 0.5) and
+  ``margin_m`` (default 20): the road is rasterised into a height grid of ``cell_m`` cells
+  when loaded (``simserver.adapters.opendrive.rasterise``: the lanes' edges extend flat
+  for ``margin_m``, farther cells take the nearest surface cell's height along their grid
+  row or column); seconds per kilometre of road.
+
 Every error names the file and the key (``ConfigError``); nothing is kept of a terrain
 that failed to load.
 """
@@ -27,10 +33,12 @@ from typing import Any
 
 import numpy as np
 
+from simserver.adapters.opendrive import load_opendrive, rasterise
 from simserver.adapters.validate import ConfigError, check_keys, number
 from simserver.core.terrain import (
     TERRAIN_HEIGHTMAP,
     TERRAIN_KINDS,
+    TERRAIN_OPENDRIVE,
     TERRAIN_PLANE,
     Terrain,
     heightmap_terrain,
@@ -38,6 +46,7 @@ from simserver.core.terrain import (
 )
 from simserver.core.variants import UnknownVariantError
 
+OPENDRIVE_KEYS = ("kind", "file", "cell_m", "margin_m")
 HEIGHTMAP_KEYS = ("kind", "file", "cell_m", "origin_m", "height_scale_m", "height_offset_m",
                   "friction_file")
 PNG_FULL_SCALE = 65535.0
@@ -101,6 +110,8 @@ def load_terrain(source: Path, raw: Any) -> Terrain:
         return plane_terrain()
     if kind == TERRAIN_HEIGHTMAP:
         return _load_heightmap(source, raw)
+    if kind == TERRAIN_OPENDRIVE:
+        return _load_opendrive(source, raw)
     raise ConfigError(f"{source}: key 'terrain.kind': {kind_name!r} is not loadable here")
 
 
@@ -141,3 +152,14 @@ def _load_heightmap(source: Path, raw: dict[str, Any]) -> Terrain:
         return heightmap_terrain(heights, cell, cell, x0, y0, friction)
     except ValueError as exc:
         raise ConfigError(f"{path}: terrain: {exc}") from None
+
+
+def _load_opendrive(source: Path, raw: dict[str, Any]) -> Terrain:
+    check_keys(f"{source} (terrain)", raw, OPENDRIVE_KEYS, required=("file",))
+    if not isinstance(raw["file"], str):
+        raise ConfigError(f"{source}: key 'terrain.file': expected a file path")
+    cell = number(source, "terrain.cell_m", raw.get("cell_m", 0.5), 0.05, 10.0)
+    margin = number(source, "terrain.margin_m", raw.get("margin_m", 20.0), 0.0, 1e3)
+    od = load_opendrive((source.parent / raw["file"]).resolve())
+    heights, x0, y0 = rasterise(od, cell, margin)
+    return heightmap_terrain(heights, cell, cell, x0, y0)._replace(kind=TERRAIN_OPENDRIVE)

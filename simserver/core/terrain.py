@@ -6,6 +6,8 @@ step takes any of them without recompiling:
 - ``TERRAIN_PLANE``: today's road, the inclined plane of ``core.road`` (grade, cross-slope
   and friction in the vehicle parameters). The arrays are placeholders; the step does
   exactly what it did before terrains existed.
+- ``TERRAIN_OPENDRIVE``: an OpenDRIVE road, rasterised when loaded into the grid of a
+  height map (``simserver.adapters.opendrive.rasterise``); the step treats it as one.
 - ``TERRAIN_HEIGHTMAP``: a regular grid of heights ``heights[j, i]`` at
   ``(x0 + i dx, y0 + j dy)``, interpolated by a tensor-product Catmull-Rom spline (C1: the
   height and its gradient, hence the surface normal, are continuous), with a friction
@@ -46,12 +48,16 @@ from simserver.core.variants import Variant, VariantRegistry
 
 TERRAIN_PLANE = 0
 TERRAIN_HEIGHTMAP = 1
+TERRAIN_OPENDRIVE = 2  # an OpenDRIVE road rasterised into a height grid at load time
 TERRAIN_KINDS = VariantRegistry("terrain kind", (
     Variant(TERRAIN_PLANE, "plane",
             "one inclined plane: the road's grade, cross-slope and friction"),
     Variant(TERRAIN_HEIGHTMAP, "heightmap",
             "a regular grid of heights (.npy, .npz, 16-bit PNG), C1 Catmull-Rom, "
             "optional friction map"),
+    Variant(TERRAIN_OPENDRIVE, "opendrive",
+            "an ASAM OpenDRIVE road (.xodr), rasterised into a height grid when loaded "
+            "(simserver.adapters.opendrive); stepped as a height map"),
 ))
 
 # slots of Terrain.grid
