@@ -5,10 +5,11 @@ Run from the repository root::
     python -m benchmarks.bench_terrain [--seconds S] [--repeats R]
 
 The paper sedan drives ``bench_step``'s cycle (accelerate and steer, brake to rest, hold)
-on three terrains: the plane kind (3 % grade, 2 % cross-slope), the same plane as a height
-map, and the generated hills (``configs/roads/hills.npz``, from the flat part before the
-bump). The repeats alternate between the terrains so that they share the machine's state;
-reported: median ns per step and its ratio to the plane's.
+on four terrains: the plane kind (3 % grade, 2 % cross-slope), the same plane as a height
+map, the generated hills (``configs/roads/hills.npz``) and the OpenDRIVE crest-curve road
+(``configs/scenes/crest_curve_paper_sedan.yaml``, from the crest). The repeats alternate
+between the terrains so that they share the machine's state; reported: median ns per step
+and its ratio to the plane's.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ def simulations() -> dict[str, Simulation]:
     plane_map = heightmap_terrain(GRADE_PCT / 100 * xx + CROSS_PCT / 100 * yy, 1.0, 1.0,
                                   -500.0, -500.0)
     hills = load_scene(REPO / "configs/scenes/hills_paper_sedan.yaml")
+    crest = load_scene(REPO / "configs/scenes/crest_curve_paper_sedan.yaml")
     return {
         "plane": Simulation(dataclasses.replace(flat, road=road, initial=start), DT_S),
         "plane as height map": Simulation(
@@ -47,6 +49,8 @@ def simulations() -> dict[str, Simulation]:
         "hills height map": Simulation(
             dataclasses.replace(hills, initial={**hills.initial, "x_m": 0.0, "u_mps": 5.0}),
             DT_S),
+        "OpenDRIVE crest-curve": Simulation(
+            dataclasses.replace(crest, initial={**crest.initial, "u_mps": 5.0}), DT_S),
     }
 
 
