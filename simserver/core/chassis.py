@@ -87,10 +87,15 @@ from simserver.core.model import (
     B_GRAVITY_Y_MPS2,
     B_YAW_ACC_RADPS2,
     G_AXES,
+    G_COS_YAW0,
     G_GRAVITY_E1_MPS2,
     G_GRAVITY_E2_MPS2,
     G_GRAVITY_N_MPS2,
     G_MU0,
+    G_SIN_YAW0,
+    G_X0_M,
+    G_Y0_M,
+    G_YAW0_RAD,
     W_CONTACT_S1_M,
     W_CONTACT_S2_M,
     W_DAMPING_FX,
@@ -324,6 +329,11 @@ def contact_frames(model: Model, ws: Workspace, x: np.ndarray) -> None:
     psi = x[YAW_RAD]
     c = np.cos(psi)
     s = np.sin(psi)
+    ground[G_X0_M] = x[X_M]
+    ground[G_Y0_M] = x[Y_M]
+    ground[G_YAW0_RAD] = psi
+    ground[G_COS_YAW0] = c
+    ground[G_SIN_YAW0] = s
     for i in range(N_WHEELS):
         px, py = wheel_position(vp, i)
         s1 = x[X_M] + px * c - py * s
@@ -376,23 +386,30 @@ def contact_frames(model: Model, ws: Workspace, x: np.ndarray) -> None:
 def terrain_gaps(model: Model, ws: Workspace, x: np.ndarray) -> None:
     """Per wheel and evaluation, what the reference plane misses of the surface under it:
     the gap (``W_GAP_M``, along the plane's normal) and its rate as the wheel moves
-    (``W_GAP_RATE_MPS``), on the tangent planes of the step start (``contact_frames``)."""
+    (``W_GAP_RATE_MPS``), on the tangent planes of the step start (``contact_frames``).
+
+    The wheel's displacement from its start point is the body's, with the turn of the
+    heading linearised (the heading moves by a milliradian a step: the neglected term is
+    a micrometre), so no trigonometry is repeated per stage."""
     vp = model.vp
-    wheel = ws.wheel
-    psi = x[YAW_RAD]
-    c = np.cos(psi)
-    s = np.sin(psi)
+    wheel, ground = ws.wheel, ws.ground
+    c = ground[G_COS_YAW0]
+    s = ground[G_SIN_YAW0]
+    d_x = x[X_M] - ground[G_X0_M]
+    d_y = x[Y_M] - ground[G_Y0_M]
+    d_psi = x[YAW_RAD] - ground[G_YAW0_RAD]
     r = x[YAW_RATE_RADPS]
     for i in range(N_WHEELS):
         px, py = wheel_position(vp, i)
-        s1 = x[X_M] + px * c - py * s
-        s2 = x[Y_M] + px * s + py * c
+        # in-plane offsets of the wheel from the CG at the start: (px c - py s, px s + py c);
+        # turning by d_psi moves the wheel by d_psi times the offset turned a quarter
+        d_s1 = d_x - d_psi * (px * s + py * c)
+        d_s2 = d_y + d_psi * (px * c - py * s)
         d_gap_1 = wheel[i, W_GAP_D1]
         d_gap_2 = wheel[i, W_GAP_D2]
         u_c = x[U_MPS] - r * py
         v_c = x[V_MPS] + r * px
-        wheel[i, W_GAP_M] = (wheel[i, W_GAP0_M] + d_gap_1 * (s1 - wheel[i, W_CONTACT_S1_M])
-                             + d_gap_2 * (s2 - wheel[i, W_CONTACT_S2_M]))
+        wheel[i, W_GAP_M] = wheel[i, W_GAP0_M] + d_gap_1 * d_s1 + d_gap_2 * d_s2
         wheel[i, W_GAP_RATE_MPS] = d_gap_1 * (u_c * c - v_c * s) + d_gap_2 * (u_c * s + v_c * c)
 
 

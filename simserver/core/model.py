@@ -86,7 +86,12 @@ G_GRAVITY_E2_MPS2 = 1
 G_GRAVITY_N_MPS2 = 2
 G_AXES = 3  # 9 slots: rows e1, e2, n in world axes (core.road.road_frame)
 G_MU0 = 12  # friction scale under each wheel at the step start, 4 slots
-N_GROUND = 16
+G_X0_M = 16  # the body's planar pose at the step start (terrain_gaps moves from it)
+G_Y0_M = 17
+G_YAW0_RAD = 18
+G_COS_YAW0 = 19
+G_SIN_YAW0 = 20
+N_GROUND = 21
 
 # ---- rows of the Runge-Kutta scratch (ws.rk[RK_*]; the derivative rows use the first
 # N_INTEGRATED columns)
