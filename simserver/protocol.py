@@ -38,7 +38,7 @@ import numpy as np
 
 # ============================================================================ version
 
-PROTOCOL_VERSION: Final[int] = 1
+PROTOCOL_VERSION: Final[int] = 2  # 2: see the history in docs/protocol.md section 6
 """Carried in the first two bytes of every binary payload; bumped on any layout change."""
 
 DEFAULT_PREFIX: Final[str] = "simserver"
@@ -424,7 +424,9 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
               f"brake holds the wheel at zero spin (0/1); {_WHEELS}"),
     FieldSpec("parking_brake", "u1", 1, "-", 0, 1, "applied parking brake (0/1)"),
     FieldSpec("gear", "u1", 1, "-", 0, 3, "applied gear, 0 = P, 1 = R, 2 = N, 3 = D"),
-    FieldSpec("reserved", "u1", 6, "-", 0, 0, "zero (pads the payload to 256 bytes)"),
+    FieldSpec("wheel_contact", "u1", 4, "-", 0, 1,
+              f"wheel touches the ground (carries load) (0/1); {_WHEELS}"),
+    FieldSpec("reserved", "u1", 2, "-", 0, 0, "zero (pads the payload to 256 bytes)"),
 )
 
 _WINDOW = "over the last window_ticks ticks"
@@ -1018,7 +1020,8 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
             "get_config",
             "Return the active configuration (file paths relative to the server's config "
             "directory holding them: never an absolute server path).",
-            reply='"protocol_version": 1, "config": object (server, vehicle, scene, road, keys)',
+            reply='"protocol_version": integer (PROTOCOL_VERSION), "config": object (server, '
+            'vehicle, scene, road, keys)',
         ),
     )
 }

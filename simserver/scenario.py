@@ -11,6 +11,8 @@ Scenario YAML (paths relative to the scenario file)::
     dt_s: 0.001              # optional, default 0.001
     record_every: 1          # optional: keep every n-th step in the output
     model: {slip_model: lagged_paper, damping_model: paper}   # optional, see config
+    terrain: {kind: heightmap, file: ../roads/hills.npz, cell_m: 1.0}  # optional, default
+                             # the plane of road: (keys: simserver.adapters.terrain_files)
     inputs:                  # keyframes
       - {t: 0.0, gear: D}
       - {t: 1.0, brake: 0.0}
@@ -41,8 +43,10 @@ from simserver.adapters.config import (
     read_yaml,
     resolve_vehicle,
 )
+from simserver.adapters.terrain_files import load_terrain
 from simserver.adapters.validate import integer, referenced_file
 from simserver.core import layout as L
+from simserver.core.terrain import Terrain, plane_terrain
 from simserver.keyframes import input_table, read_keyframe_file
 from simserver.simulation import Simulation
 
@@ -82,6 +86,7 @@ class Scene:
     road: dict[str, float]
     initial: dict[str, float]
     model_options: dict[str, Any] = field(default_factory=dict)
+    terrain: Terrain = field(default_factory=plane_terrain)  # core.terrain
 
 
 @dataclass
@@ -130,7 +135,7 @@ class ScenarioResult:
         return self.outputs[:, index]
 
 
-SCENE_KEYS = ("vehicle", "road", "initial", "model")
+SCENE_KEYS = ("vehicle", "road", "initial", "model", "terrain")
 
 
 def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = None) -> Scene:
@@ -160,8 +165,9 @@ def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = No
     check_keys(f"{path} (initial)", init_raw, tuple(INITIAL_RANGES))
     initial = {key: number(path, f"initial.{key}", init_raw.get(key, 0.0), lo, hi)
                for key, (lo, hi) in INITIAL_RANGES.items()}
+    terrain = load_terrain(path, data.get("terrain"))
     return Scene(path=path, vehicle=vehicle, road=road, initial=initial,
-                 model_options=dict(model_options))
+                 model_options=dict(model_options), terrain=terrain)
 
 
 SCENARIO_ONLY_KEYS = ("duration_s", "dt_s", "record_every", "inputs")

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from simserver.core import layout as L
+from simserver.core.chassis import place_on_terrain
 from simserver.core.damping import DAMPING_MODELS
 from simserver.core.integrator import simulate, step
 from simserver.core.model import Data, Model, make_data
@@ -26,6 +27,7 @@ from simserver.core.params import VP_CG_HEIGHT_M, VP_DAMPING_MODEL, VP_SLIP_MODE
 from simserver.core.pose import world_pose
 from simserver.core.road import road_axes, set_road
 from simserver.core.slip import SLIP_MODELS
+from simserver.core.terrain import TERRAIN_PLANE
 from simserver.core.tire_layout import TP_RADIUS_M
 from simserver.tire_models import check_tire_vectors, tire_kernels
 
@@ -76,7 +78,8 @@ class Simulation:
         tp = np.ascontiguousarray(scene.vehicle.tp, dtype=np.float64).copy()
         check_model(vp, tp)
         self.scene = scene
-        self.model = Model(vp=vp, tp=tp, dt_s=self.dt_s, tires=tire_kernels())
+        self.model = Model(vp=vp, tp=tp, dt_s=self.dt_s, tires=tire_kernels(),
+                           terrain=scene.terrain)
         self.set_road(**scene.road)
         self.reset(None)
 
@@ -121,6 +124,8 @@ class Simulation:
                        "yaw_rate_radps": 0.0}
             scene = dataclasses.replace(scene, initial=at_rest)
         self.data.x[:] = initial_state(scene)
+        if self.model.terrain.kind != TERRAIN_PLANE:
+            place_on_terrain(self.model, self.data.ws, self.data.x)
 
     # ---- stepping
     def step(self) -> None:
@@ -137,7 +142,13 @@ class Simulation:
 
     def update_pose(self) -> np.ndarray:
         """The world pose of the current state into ``self.pose`` (``core.layout.POSE_*``)."""
-        world_pose(self.data.x, self.axes, self.model.vp[VP_CG_HEIGHT_M], self.pose)
+        x = self.data.x
+        if self.model.terrain.kind == TERRAIN_PLANE:
+            world_pose(x, self.axes, self.model.vp[VP_CG_HEIGHT_M], self.pose)
+        else:  # the states live on the reference plane of the last step
+            axes = road_axes(x[L.REF_GRADE_PCT], x[L.REF_CROSS_SLOPE_PCT])
+            world_pose(x, axes, self.model.vp[VP_CG_HEIGHT_M], self.pose)
+            self.pose[L.POSE_Z_M] += x[L.REF_HEIGHT_M]
         return self.pose
 
     def warm_up(self) -> None:

@@ -321,6 +321,7 @@ class VehicleSlot:
         rec["steer_rad"] = out[L.O_STEER0:L.O_STEER0 + 4]
         rec["damping_active"] = x[L.DAMPING_ACTIVE0:L.DAMPING_ACTIVE0 + 4]
         rec["brake_held"] = held
+        rec["wheel_contact"] = x[L.IN_CONTACT0:L.IN_CONTACT0 + 4]
         rec["steer"] = inputs[L.IN_STEER]
         rec["throttle"] = inputs[L.IN_THROTTLE]
         rec["brake"] = inputs[L.IN_BRAKE]

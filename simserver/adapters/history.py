@@ -94,6 +94,11 @@ _DESCRIPTIONS: dict[str, str] = {
     "wheel_held_{w}": "{W} wheel held at zero spin by its brake over the step (0 or 1)",
     "fz_prev_{w}_n": "{W} normal load at the start of the previous step (-1: none yet), "
                      "from which the tire coefficients are extrapolated to mid-step",
+    "ref_grade_pct": "reference plane under the car (docs/model.md section 11): rise along "
+                     "world x per 100 m (the road's grade on the plane terrain)",
+    "ref_cross_slope_pct": "reference plane under the car: rise along world y per 100 m",
+    "ref_height_m": "reference plane under the car: its height at the world origin",
+    "in_contact_{w}": "{W} wheel carried load (touched the ground) at the step start (0 or 1)",
     # --- outputs
     "ax_mps2": "CG acceleration along body x",
     "ay_mps2": "CG acceleration along body y",

@@ -36,6 +36,7 @@ from simserver.core.layout import (
     DAMPING_ACTIVE0,
     HEAVE_M,
     HEAVE_RATE_MPS,
+    IN_CONTACT0,
     KAPPA0,
     N_AXLES,
     N_FRONT_WHEELS,
@@ -63,6 +64,9 @@ from simserver.core.layout import (
     OMEGA0,
     PITCH_RAD,
     PITCH_RATE_RADPS,
+    REF_CROSS_SLOPE_PCT,
+    REF_GRADE_PCT,
+    REF_HEIGHT_M,
     ROLL_RAD,
     ROLL_RATE_RADPS,
     TAN_ALPHA0,
@@ -82,22 +86,48 @@ from simserver.core.model import (
     B_GRAVITY_X_MPS2,
     B_GRAVITY_Y_MPS2,
     B_YAW_ACC_RADPS2,
+    G_AXES,
+    G_COS_YAW0,
+    G_GRAVITY_E1_MPS2,
+    G_GRAVITY_E2_MPS2,
+    G_GRAVITY_N_MPS2,
+    G_MU0,
+    G_SIN_YAW0,
+    G_X0_M,
+    G_Y0_M,
+    G_YAW0_RAD,
+    W_CONTACT_S1_M,
+    W_CONTACT_S2_M,
     W_DAMPING_FX,
     W_DAMPING_FY,
     W_FX,
     W_FX_PEAK,
+    W_FX_PLANE,
     W_FY,
     W_FY_PEAK,
+    W_FY_PLANE,
     W_FZ,
     W_FZ_DYN,
+    W_GAP0_M,
+    W_GAP_D1,
+    W_GAP_D2,
+    W_GAP_M,
+    W_GAP_RATE_MPS,
     W_HUB_U,
     W_HUB_V,
     W_KAPPA,
     W_KAPPA_SLIDE,
     W_MY,
     W_MZ,
+    W_N0,
+    W_N1,
     W_TAN_ALPHA,
     W_TAN_ALPHA_SLIDE,
+    W_TILT,
+    W_TX0,
+    W_TX1,
+    W_TY0,
+    W_TY1,
     WI_BRAKE_NM,
     WI_COS_STEER,
     WI_DRIVE_NM,
@@ -127,6 +157,9 @@ from simserver.core.params import (
     VP_KINEMATIC_U_MIN_MPS,
     VP_MASS_KG,
     VP_PITCH_INERTIA_KGM2,
+    VP_ROAD_CROSS_SLOPE_PCT,
+    VP_ROAD_FRICTION_SCALE,
+    VP_ROAD_GRADE_PCT,
     VP_ROLL_INERTIA_KGM2,
     VP_SLIP_MODEL,
     VP_SPRING_FRONT_NPM,
@@ -138,12 +171,19 @@ from simserver.core.params import (
     VP_WHEEL_INERTIA_REAR_KGM2,
     VP_YAW_INERTIA_KGM2,
 )
+from simserver.core.road import road_axes, road_frame
 from simserver.core.slip import (
     SLIP_KINEMATIC,
     SLIP_LAGGED_PAPER,
     SLIP_LAGGED_PASSIVE,
     kinematic_slip,
     lagged_slip_rates,
+)
+from simserver.core.terrain import (
+    TERRAIN_PLANE,
+    fit_plane,
+    rebase_reference_plane,
+    surface_at,
 )
 from simserver.core.tire import tire_evaluate
 from simserver.core.tire_layout import (
@@ -188,9 +228,16 @@ def wheel_inertia(vp: np.ndarray, i: int) -> float:
 @nb.njit(cache=True)
 def static_wheel_load(vp: np.ndarray, i: int) -> float:
     """Static normal load of wheel ``i`` on the road plane (N)."""
+    return static_share(vp, i, vp[VP_GRAVITY_N_MPS2])
+
+
+@nb.njit(cache=True, inline="always")
+def static_share(vp: np.ndarray, i: int, gravity_n_mps2: float) -> float:
+    """Static normal load of wheel ``i`` on a plane where gravity presses with
+    ``gravity_n_mps2`` (N)."""
     a = vp[VP_CG_TO_FRONT_AXLE_M]
     b = vp[VP_CG_TO_REAR_AXLE_M]
-    weight_n = vp[VP_MASS_KG] * vp[VP_GRAVITY_N_MPS2]
+    weight_n = vp[VP_MASS_KG] * gravity_n_mps2
     if is_front(i):
         return 0.5 * weight_n * b / (a + b)
     return 0.5 * weight_n * a / (a + b)
@@ -210,14 +257,179 @@ def hub_velocity(
 
 
 @nb.njit(cache=True, inline="always")
-def corner_loads(vp: np.ndarray, x: np.ndarray, wheel: np.ndarray) -> None:
-    """Stage 1: the normal load of each corner (N) into ``wheel[i, W_FZ]`` (and what it
+def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
+    """Stage 1b: the reference plane of the step (docs/model.md section 11) into
+    ``ws.ground``: its axes, gravity resolved into them, the friction under each wheel.
+
+    On the plane kind it is the road (``core.road.set_road``'s slots, copied: the step
+    does what it did before terrains). On a height map a plane is fitted through the four
+    contact points and the states are re-expressed on it (``core.terrain``)."""
+    vp, terrain = model.vp, model.terrain
+    ground, wheel = ws.ground, ws.wheel
+    if terrain.kind == TERRAIN_PLANE:
+        ground[G_GRAVITY_E1_MPS2] = vp[VP_GRAVITY_E1_MPS2]
+        ground[G_GRAVITY_E2_MPS2] = vp[VP_GRAVITY_E2_MPS2]
+        ground[G_GRAVITY_N_MPS2] = vp[VP_GRAVITY_N_MPS2]
+        x[REF_GRADE_PCT] = vp[VP_ROAD_GRADE_PCT]
+        x[REF_CROSS_SLOPE_PCT] = vp[VP_ROAD_CROSS_SLOPE_PCT]
+        x[REF_HEIGHT_M] = 0.0
+        for i in range(N_WHEELS):
+            ground[G_MU0 + i] = vp[VP_ROAD_FRICTION_SCALE]
+        return
+    axes_old = ws.axes[0]
+    axes_new = ws.axes[1]
+    contact = ws.contact
+    road_frame(x[REF_GRADE_PCT], x[REF_CROSS_SLOPE_PCT], axes_old)
+    psi = x[YAW_RAD]
+    c = np.cos(psi)
+    s = np.sin(psi)
+    for i in range(N_WHEELS):
+        px, py = wheel_position(vp, i)
+        s1 = x[X_M] + px * c - py * s
+        s2 = x[Y_M] + px * s + py * c
+        wx = s1 * axes_old[0, 0] + s2 * axes_old[1, 0]
+        wy = s1 * axes_old[0, 1] + s2 * axes_old[1, 1]
+        height, grad_x, grad_y, mu = surface_at(terrain, wx, wy)
+        contact[0, i] = wx
+        contact[1, i] = wy
+        contact[2, i] = height
+        ground[G_MU0 + i] = vp[VP_ROAD_FRICTION_SCALE] * mu
+        wheel[i, W_GAP_D1] = grad_x  # the gradient, until contact_frames below
+        wheel[i, W_GAP_D2] = grad_y
+    slope_x, slope_y, height0 = fit_plane(contact[0], contact[1], contact[2])
+    rebase_reference_plane(x, 100.0 * slope_x, 100.0 * slope_y, height0, vp[VP_CG_HEIGHT_M],
+                           axes_old, axes_new)
+    g = vp[VP_GRAVITY_MPS2]
+    ground[G_GRAVITY_E1_MPS2] = -g * axes_new[0, 2]
+    ground[G_GRAVITY_E2_MPS2] = -g * axes_new[1, 2]
+    ground[G_GRAVITY_N_MPS2] = g * axes_new[2, 2]
+    for r in range(3):
+        for k in range(3):
+            ground[G_AXES + 3 * r + k] = axes_new[r, k]
+    contact_frames(model, ws, x)
+
+
+@nb.njit(cache=True, inline="always")
+def contact_frames(model: Model, ws: Workspace, x: np.ndarray) -> None:
+    """Once per step, per wheel on a terrain: the surface under the wheel as its tangent
+    plane at the step start, in the reference plane's terms (the gap ``W_GAP0_M`` at the
+    contact point ``W_CONTACT_S1_M``, ``W_CONTACT_S2_M`` and its gradient ``W_GAP_D1``,
+    ``W_GAP_D2``), and the wheel's contact frame on it: the normal, the wheel heading
+    projected onto the tangent plane, and their cross product (docs/model.md section 11).
+    Frozen over the step, as the tires' coefficients are. Reads the world gradient that
+    ``follow_terrain`` left in ``W_GAP_D1``, ``W_GAP_D2`` and the queried points and
+    heights in ``ws.contact``."""
+    vp = model.vp
+    ground, wheel, wheel_in, contact = ws.ground, ws.wheel, ws.wheel_in, ws.contact
+    slope_x = x[REF_GRADE_PCT] / 100.0
+    slope_y = x[REF_CROSS_SLOPE_PCT] / 100.0
+    e1x, e1y, e1z = ground[G_AXES], ground[G_AXES + 1], ground[G_AXES + 2]
+    e2x, e2y, e2z = ground[G_AXES + 3], ground[G_AXES + 4], ground[G_AXES + 5]
+    n_z = ground[G_AXES + 8]
+    psi = x[YAW_RAD]
+    c = np.cos(psi)
+    s = np.sin(psi)
+    ground[G_X0_M] = x[X_M]
+    ground[G_Y0_M] = x[Y_M]
+    ground[G_YAW0_RAD] = psi
+    ground[G_COS_YAW0] = c
+    ground[G_SIN_YAW0] = s
+    for i in range(N_WHEELS):
+        px, py = wheel_position(vp, i)
+        s1 = x[X_M] + px * c - py * s
+        s2 = x[Y_M] + px * s + py * c
+        wx = s1 * e1x + s2 * e2x
+        wy = s1 * e1y + s2 * e2y
+        wz = s1 * e1z + s2 * e2z + x[REF_HEIGHT_M]
+        grad_x = wheel[i, W_GAP_D1]
+        grad_y = wheel[i, W_GAP_D2]
+        # the surface's tangent plane at the queried point, evaluated where the wheel's
+        # contact point is on the new reference plane (micrometres away)
+        height = contact[2, i] + grad_x * (wx - contact[0, i]) + grad_y * (wy - contact[1, i])
+        rel_x = grad_x - slope_x
+        rel_y = grad_y - slope_y
+        # d(gap)/ds along e1 and e2 (an in-plane step ds moves (e_x, e_y) ds horizontally)
+        d_gap_1 = n_z * (rel_x * e1x + rel_y * e1y)
+        d_gap_2 = n_z * (rel_x * e2x + rel_y * e2y)
+        wheel[i, W_CONTACT_S1_M] = s1
+        wheel[i, W_CONTACT_S2_M] = s2
+        wheel[i, W_GAP0_M] = (height - wz) * n_z
+        wheel[i, W_GAP_D1] = d_gap_1
+        wheel[i, W_GAP_D2] = d_gap_2
+        # slopes along and across the wheel heading, then the contact frame
+        c_h = c * wheel_in[WI_COS_STEER, i] - s * wheel_in[WI_SIN_STEER, i]
+        s_h = s * wheel_in[WI_COS_STEER, i] + c * wheel_in[WI_SIN_STEER, i]
+        slope_long = c_h * d_gap_1 + s_h * d_gap_2
+        slope_lat = -s_h * d_gap_1 + c_h * d_gap_2
+        tilt = np.sqrt(1.0 + slope_long * slope_long + slope_lat * slope_lat)
+        n_0 = -slope_long / tilt
+        n_1 = -slope_lat / tilt
+        n_2 = 1.0 / tilt
+        # t_x: the wheel heading (1, 0, 0) projected onto the tangent plane; t_y = n x t_x
+        t_x0 = 1.0 - n_0 * n_0
+        t_x1 = -n_0 * n_1
+        t_x2 = -n_0 * n_2
+        t_norm = np.sqrt(t_x0 * t_x0 + t_x1 * t_x1 + t_x2 * t_x2)
+        t_x0 /= t_norm
+        t_x1 /= t_norm
+        t_x2 /= t_norm
+        wheel[i, W_TILT] = tilt
+        wheel[i, W_N0] = n_0
+        wheel[i, W_N1] = n_1
+        wheel[i, W_TX0] = t_x0
+        wheel[i, W_TX1] = t_x1
+        wheel[i, W_TY0] = n_1 * t_x2 - n_2 * t_x1
+        wheel[i, W_TY1] = n_2 * t_x0 - n_0 * t_x2
+
+
+@nb.njit(cache=True, inline="always")
+def terrain_gaps(model: Model, ws: Workspace, x: np.ndarray) -> None:
+    """Per wheel and evaluation, what the reference plane misses of the surface under it:
+    the gap (``W_GAP_M``, along the plane's normal) and its rate as the wheel moves
+    (``W_GAP_RATE_MPS``), on the tangent planes of the step start (``contact_frames``).
+
+    The wheel's displacement from its start point is the body's, with the turn of the
+    heading linearised (the heading moves by a milliradian a step: the neglected term is
+    a micrometre), so no trigonometry is repeated per stage."""
+    vp = model.vp
+    wheel, ground = ws.wheel, ws.ground
+    c = ground[G_COS_YAW0]
+    s = ground[G_SIN_YAW0]
+    d_x = x[X_M] - ground[G_X0_M]
+    d_y = x[Y_M] - ground[G_Y0_M]
+    d_psi = x[YAW_RAD] - ground[G_YAW0_RAD]
+    r = x[YAW_RATE_RADPS]
+    for i in range(N_WHEELS):
+        px, py = wheel_position(vp, i)
+        # in-plane offsets of the wheel from the CG at the start: (px c - py s, px s + py c);
+        # turning by d_psi moves the wheel by d_psi times the offset turned a quarter
+        d_s1 = d_x - d_psi * (px * s + py * c)
+        d_s2 = d_y + d_psi * (px * c - py * s)
+        d_gap_1 = wheel[i, W_GAP_D1]
+        d_gap_2 = wheel[i, W_GAP_D2]
+        u_c = x[U_MPS] - r * py
+        v_c = x[V_MPS] + r * px
+        wheel[i, W_GAP_M] = wheel[i, W_GAP0_M] + d_gap_1 * d_s1 + d_gap_2 * d_s2
+        wheel[i, W_GAP_RATE_MPS] = d_gap_1 * (u_c * c - v_c * s) + d_gap_2 * (u_c * s + v_c * c)
+
+
+@nb.njit(cache=True, inline="always")
+def corner_loads(model: Model, ws: Workspace, x: np.ndarray) -> None:
+    """Stage 1: the normal load of each corner (N) into ``ws.wheel[i, W_FZ]`` (and what it
     adds to the static share into ``W_FZ_DYN``).
 
-    Static share (from the CG position and the component of gravity normal to the road)
-    plus the suspension's force (spring, damper, anti-roll bar) from the body's heave,
-    roll and pitch; a corner whose load would go negative lifts off (``Fz = 0``).
+    Static share (from the CG position and the component of gravity normal to the
+    reference plane) plus the suspension's force (spring, damper, anti-roll bar) from the
+    body's heave, roll and pitch and, on a terrain, the surface's gap under the wheel; a
+    corner whose load would go negative lifts off (``Fz = 0``). On a terrain, ``W_FZ`` is
+    the load along the wheel's own contact normal (docs/model.md section 11).
     """
+    vp = model.vp
+    wheel = ws.wheel
+    on_plane = model.terrain.kind == TERRAIN_PLANE
+    if not on_plane:
+        terrain_gaps(model, ws, x)
+    g_n = ws.ground[G_GRAVITY_N_MPS2]
     heave = x[HEAVE_M]
     heave_rate = x[HEAVE_RATE_MPS]
     roll = x[ROLL_RAD]
@@ -240,14 +452,22 @@ def corner_loads(vp: np.ndarray, x: np.ndarray, wheel: np.ndarray) -> None:
         comp_r = -(heave - py_left * roll - px * pitch)
         rate_l = -(heave_rate + py_left * roll_rate - px * pitch_rate)
         rate_r = -(heave_rate - py_left * roll_rate - px * pitch_rate)
+        if not on_plane:
+            comp_l += wheel[left + LEFT, W_GAP_M]
+            comp_r += wheel[left + RIGHT, W_GAP_M]
+            rate_l += wheel[left + LEFT, W_GAP_RATE_MPS]
+            rate_r += wheel[left + RIGHT, W_GAP_RATE_MPS]
         arb = k_arb * (comp_l - comp_r)
-        static = static_wheel_load(vp, left)
+        static = static_share(vp, left, g_n)
         fz_l = max(0.0, static + (k_s * comp_l + c_s * rate_l + arb))
         fz_r = max(0.0, static + (k_s * comp_r + c_s * rate_r - arb))
-        wheel[left + LEFT, W_FZ] = fz_l
-        wheel[left + RIGHT, W_FZ] = fz_r
         wheel[left + LEFT, W_FZ_DYN] = fz_l - static
         wheel[left + RIGHT, W_FZ_DYN] = fz_r - static
+        if not on_plane:  # the plane-normal force is the contact normal's n component
+            fz_l *= wheel[left + LEFT, W_TILT]
+            fz_r *= wheel[left + RIGHT, W_TILT]
+        wheel[left + LEFT, W_FZ] = fz_l
+        wheel[left + RIGHT, W_FZ] = fz_r
 
 
 @nb.njit(cache=True, inline="always")
@@ -319,10 +539,14 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
     vp, tp, tires, dt_s = model.vp, model.tp, model.tires, model.dt_s
     wheel_in, wheel, tire_out, tire_coef = ws.wheel_in, ws.wheel, ws.tire_out, ws.tire_coef
     slip_model = int(vp[VP_SLIP_MODEL])
+    on_plane = model.terrain.kind == TERRAIN_PLANE
     for i in range(N_WHEELS):
         tp_wheel = tp[i]
         fz = wheel[i, W_FZ]
         u_w, v_w = hub_velocity(x, vp, i, wheel_in[WI_COS_STEER, i], wheel_in[WI_SIN_STEER, i])
+        if not on_plane:  # into the wheel's contact frame (docs/model.md section 11)
+            u_w, v_w = (u_w * wheel[i, W_TX0] + v_w * wheel[i, W_TX1],
+                        u_w * wheel[i, W_TY0] + v_w * wheel[i, W_TY1])
         radius = tp_wheel[TP_RADIUS_M]
         omega = x[OMEGA0 + i]
         if slip_model == SLIP_KINEMATIC:
@@ -347,6 +571,18 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
         )
         fx = tire_out[OUT_FX] + damp_x
         fy = tire_out[OUT_FY] + damp_y
+        if on_plane:
+            wheel[i, W_FX_PLANE] = fx
+            wheel[i, W_FY_PLANE] = fy
+        else:
+            if not fz > 0.0:  # off the ground: no shear either
+                fx = fy = damp_x = damp_y = 0.0
+                tire_out[OUT_MZ] = tire_out[OUT_MY] = 0.0
+            # the contact force in the reference plane, along and across the wheel heading
+            wheel[i, W_FX_PLANE] = (fx * wheel[i, W_TX0] + fy * wheel[i, W_TY0]
+                                    + fz * wheel[i, W_N0])
+            wheel[i, W_FY_PLANE] = (fx * wheel[i, W_TX1] + fy * wheel[i, W_TY1]
+                                    + fz * wheel[i, W_N1])
 
         if wheel_in[WI_HELD, i] > 0.5:
             d_omega = 0.0
@@ -387,13 +623,14 @@ def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> No
     mass = vp[VP_MASS_KG]
     sprung = vp[VP_SPRUNG_MASS_KG]
     h_cg = vp[VP_CG_HEIGHT_M]
-    g_n = vp[VP_GRAVITY_N_MPS2]
+    ground = ws.ground
+    g_n = ground[G_GRAVITY_N_MPS2]
 
     yaw = x[YAW_RAD]
     cos_yaw = np.cos(yaw)
     sin_yaw = np.sin(yaw)
-    g_x = vp[VP_GRAVITY_E1_MPS2] * cos_yaw + vp[VP_GRAVITY_E2_MPS2] * sin_yaw
-    g_y = -vp[VP_GRAVITY_E1_MPS2] * sin_yaw + vp[VP_GRAVITY_E2_MPS2] * cos_yaw
+    g_x = ground[G_GRAVITY_E1_MPS2] * cos_yaw + ground[G_GRAVITY_E2_MPS2] * sin_yaw
+    g_y = -ground[G_GRAVITY_E1_MPS2] * sin_yaw + ground[G_GRAVITY_E2_MPS2] * cos_yaw
     u = x[U_MPS]
     v = x[V_MPS]
     r = x[YAW_RATE_RADPS]
@@ -413,8 +650,8 @@ def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> No
         # tire forces into body axes
         c_d = wheel_in[WI_COS_STEER, i]
         s_d = wheel_in[WI_SIN_STEER, i]
-        fx_body = c_d * wheel[i, W_FX] - s_d * wheel[i, W_FY]
-        fy_body = s_d * wheel[i, W_FX] + c_d * wheel[i, W_FY]
+        fx_body = c_d * wheel[i, W_FX_PLANE] - s_d * wheel[i, W_FY_PLANE]
+        fy_body = s_d * wheel[i, W_FX_PLANE] + c_d * wheel[i, W_FY_PLANE]
         fx_sum += fx_body
         fy_sum += fy_body
         mz_sum += px * fy_body - py * fx_body + wheel[i, W_MZ]
@@ -459,9 +696,16 @@ def vehicle_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) ->
     The discrete slots of ``x`` are read, not differentiated. Leaves the per-wheel and
     body quantities of ``x`` in the workspace (``ws.wheel``, ``ws.body``).
     """
-    corner_loads(model.vp, x, ws.wheel)
+    corner_loads(model, ws, x)
     wheel_forces(model, ws, x, dx)
     body_rates(model, ws, x, dx)
+
+
+@nb.njit(cache=True, inline="always")
+def record_contacts(ws: Workspace, x: np.ndarray) -> None:
+    """Which wheels carried load at the start of the step (state ``IN_CONTACT``)."""
+    for i in range(N_WHEELS):
+        x[IN_CONTACT0 + i] = 1.0 if ws.wheel[i, W_FZ] > 0.0 else 0.0
 
 
 @nb.njit(cache=True, inline="always")
@@ -494,3 +738,27 @@ def record_outputs(ws: Workspace, out: np.ndarray) -> None:
     out[O_GRAVITY_Y_MPS2] = body[B_GRAVITY_Y_MPS2]
     out[O_FX_BODY_SUM_N] = body[B_FX_SUM_N]
     out[O_FY_BODY_SUM_N] = body[B_FY_SUM_N]
+
+
+def place_on_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
+    """Put the car of state ``x`` onto a terrain: ``X_M``, ``Y_M`` and ``YAW_RAD`` are read
+    as the world position and heading of the CG; the reference plane is fitted under the
+    wheels there, the springs left static, and the planar velocities kept (docs/model.md
+    section 11)."""
+    u, v, r = x[U_MPS], x[V_MPS], x[YAW_RATE_RADPS]
+    world_x, world_y = x[X_M], x[Y_M]
+    x[REF_GRADE_PCT] = 0.0
+    x[REF_CROSS_SLOPE_PCT] = 0.0
+    x[REF_HEIGHT_M] = surface_at(model.terrain, world_x, world_y)[0]
+    for _ in range(4):  # the fit moves the wheels' points a little: repeat to a fixed point
+        x[U_MPS] = x[V_MPS] = x[YAW_RATE_RADPS] = 0.0
+        follow_terrain(model, ws, x)
+        for k in (HEAVE_M, HEAVE_RATE_MPS, ROLL_RAD, ROLL_RATE_RADPS, PITCH_RAD,
+                  PITCH_RATE_RADPS):
+            x[k] = 0.0
+        # the CG's foot on the plane straight below (world_x, world_y)
+        axes = road_axes(x[REF_GRADE_PCT], x[REF_CROSS_SLOPE_PCT])
+        rise = (x[REF_GRADE_PCT] * world_x + x[REF_CROSS_SLOPE_PCT] * world_y) / 100.0
+        x[X_M] = world_x * axes[0, 0] + world_y * axes[0, 1] + rise * axes[0, 2]
+        x[Y_M] = world_x * axes[1, 0] + world_y * axes[1, 1] + rise * axes[1, 2]
+    x[U_MPS], x[V_MPS], x[YAW_RATE_RADPS] = u, v, r

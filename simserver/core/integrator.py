@@ -43,7 +43,9 @@ import numpy as np
 
 from simserver.core.chassis import (
     corner_loads,
+    follow_terrain,
     hub_velocity,
+    record_contacts,
     record_outputs,
     vehicle_rates,
     wheel_inertia,
@@ -78,6 +80,7 @@ from simserver.core.layout import (
     WHEEL_HELD0,
 )
 from simserver.core.model import (
+    G_MU0,
     RK_DECAY,
     RK_E_HALF,
     RK_K1,
@@ -106,7 +109,6 @@ from simserver.core.model import (
 from simserver.core.params import (
     VP_DAMPING_MODEL,
     VP_DAMPING_TRIGGER_V_MPS,
-    VP_ROAD_FRICTION_SCALE,
     VP_SLIDE_WIDEN_SPEED_MPS,
     VP_SLIP_MODEL,
     VP_STEERING_RATIO,
@@ -157,15 +159,15 @@ def prepare_tires(model: Model, data: Data) -> None:
     none yet, prepared at ``Fz``). The start load becomes the next step's ``Fz_prev``.
     """
     x = data.x
-    vp, tp, tires = model.vp, model.tp, model.tires
+    tp, tires = model.tp, model.tires
     wheel, tire_coef = data.ws.wheel, data.ws.tire_coef
-    corner_loads(vp, x, wheel)
-    mu = vp[VP_ROAD_FRICTION_SCALE]
+    corner_loads(model, data.ws, x)
+    ground = data.ws.ground
     for i in range(N_WHEELS):
         fz = wheel[i, W_FZ]
         fz_prev = x[FZ_PREV0 + i]
         fz_pred = fz + 0.5 * (fz - fz_prev) if fz_prev >= 0.0 else fz
-        tire_prepare(tires, tp[i], 0.0, fz_pred, mu, tire_coef[i])
+        tire_prepare(tires, tp[i], 0.0, fz_pred, ground[G_MU0 + i], tire_coef[i])
         x[FZ_PREV0 + i] = fz
 
 
@@ -332,14 +334,17 @@ def step(model: Model, data: Data) -> None:
     """Advance ``data.x`` by ``model.dt_s`` in place with the inputs ``data.inputs``.
 
     Writes ``data.out``: forces and accelerations at the state at the *start* of the step.
-    The stages, in order: 1 ``freeze_inputs``, 2 ``prepare_tires``, 3 ``vehicle_rates`` at
-    the start state and ``record_outputs``, 4 ``resolve_brakes``, 5 ``freeze_decay_rates``
-    and ``lawson_rk4``, 6 ``catch_stopped_wheels``, 7 ``update_discrete_states``.
+    The stages, in order: 1 ``freeze_inputs`` and ``follow_terrain``, 2 ``prepare_tires``,
+    3 ``vehicle_rates`` at the start state, ``record_outputs`` and ``record_contacts``,
+    4 ``resolve_brakes``, 5 ``freeze_decay_rates`` and ``lawson_rk4``, 6 ``catch_stopped_wheels``,
+    7 ``update_discrete_states``.
     """
     freeze_inputs(model, data)  # 1. inputs held over the step
+    follow_terrain(model, data.ws, data.x)  # 1b. the reference plane, contact frames
     prepare_tires(model, data)  # 2. tire coefficients at the mid-step load
     vehicle_rates(model, data.ws, data.x, data.ws.rk[RK_K1])  # 3. forces at the start
     record_outputs(data.ws, data.out)
+    record_contacts(data.ws, data.x)
     resolve_brakes(model, data)  # 4. static-friction brakes
     freeze_decay_rates(model, data)
     lawson_rk4(model, data)  # 5. the exponential RK4

@@ -48,7 +48,14 @@ TIME_S = 36  # simulated time (s)
 N_STATE_V1 = 37  # the layout of the first release (command logs' ``end`` states)
 # Appended after TIME_S: memory carried from one step to the next
 FZ_PREV0 = 37  # normal load at the start of the previous step (N; -1: none yet), 4 slots
-N_STATE = 41
+# Appended for terrains (core.terrain, docs/model.md section 11): the reference plane the
+# planar states live on, Z = grade/100 X + cross/100 Y + height (on the plane kind, the
+# road itself), and which wheels touch the ground
+REF_GRADE_PCT = 41  # reference plane's rise along world x (%)
+REF_CROSS_SLOPE_PCT = 42  # its rise along world y (%)
+REF_HEIGHT_M = 43  # its height at the world origin (m)
+IN_CONTACT0 = 44  # 1 when the wheel carried load at the start of the last step, 4 slots
+N_STATE = 48
 FZ_PREV_NONE = -1.0  # FZ_PREV value of a fresh start: no previous load to extrapolate from
 
 STATE_NAMES = (
@@ -62,6 +69,8 @@ STATE_NAMES = (
     + tuple(f"wheel_held_{w}" for w in WHEEL_NAMES)
     + ("time_s",)
     + tuple(f"fz_prev_{w}_n" for w in WHEEL_NAMES)
+    + ("ref_grade_pct", "ref_cross_slope_pct", "ref_height_m")
+    + tuple(f"in_contact_{w}" for w in WHEEL_NAMES)
 )
 
 # ---------------------------------------------------------------- driver inputs
@@ -128,6 +137,7 @@ DAMPING_ACTIVE = slice(DAMPING_ACTIVE0, DAMPING_ACTIVE0 + N_WHEELS)
 HUB_U_PREV = slice(HUB_U_PREV0, HUB_U_PREV0 + N_WHEELS)
 WHEEL_HELD = slice(WHEEL_HELD0, WHEEL_HELD0 + N_WHEELS)
 FZ_PREV = slice(FZ_PREV0, FZ_PREV0 + N_WHEELS)
+IN_CONTACT = slice(IN_CONTACT0, IN_CONTACT0 + N_WHEELS)
 O_FX = slice(O_FX0, O_FX0 + N_WHEELS)
 O_FY = slice(O_FY0, O_FY0 + N_WHEELS)
 O_FZ = slice(O_FZ0, O_FZ0 + N_WHEELS)

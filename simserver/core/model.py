@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from simserver.core import layout as L
+from simserver.core.terrain import Terrain
 from simserver.core.tire_layout import N_TIRE_COEF, N_TIRE_OUT, TireKernels
 
 # ---- per-wheel inputs held over a step (ws.wheel_in[WI_*, i]: a row per quantity)
@@ -48,7 +49,26 @@ W_DAMPING_FY = 12
 W_KAPPA = 13  # slip fed to the tire model
 W_TAN_ALPHA = 14
 W_FZ_DYN = 15  # normal load beyond the static share: what the corner pushes onto the body (N)
-N_W = 16
+# terrain (core.terrain, docs/model.md section 11)
+W_FX_PLANE = 16  # contact force along the wheel heading in the reference plane (N)
+W_FY_PLANE = 17  # contact force across it, in the reference plane (N)
+W_GAP_M = 18  # surface height above the reference plane under the wheel (m, along n)
+W_GAP_RATE_MPS = 19  # its rate as the wheel moves (m/s)
+# ... frozen over the step (core.chassis.follow_terrain): the surface under the wheel as
+# its tangent plane at the step start, and the wheel's contact frame on it
+W_CONTACT_S1_M = 20  # contact point at the step start, in the reference plane (m)
+W_CONTACT_S2_M = 21
+W_GAP0_M = 22  # gap there (m)
+W_GAP_D1 = 23  # d(gap)/ds along the reference plane's e1 and e2
+W_GAP_D2 = 24
+W_TILT = 25  # 1 / n_z of the contact normal (n_z along the reference plane's normal)
+W_N0 = 26  # contact normal: along the wheel heading, across it (reference-plane axes)
+W_N1 = 27
+W_TX0 = 28  # contact frame's x axis (the heading on the tangent plane), same components
+W_TX1 = 29
+W_TY0 = 30  # its y axis
+W_TY1 = 31
+N_W = 32
 
 # ---- whole-body quantities of the state being evaluated (ws.body[B_*])
 B_AX_MPS2 = 0
@@ -59,6 +79,19 @@ B_GRAVITY_Y_MPS2 = 4
 B_FX_SUM_N = 5
 B_FY_SUM_N = 6
 N_BODY = 7
+
+# ---- the reference plane of the step (ws.ground[G_*], core.terrain)
+G_GRAVITY_E1_MPS2 = 0  # gravity along the reference plane's e1, e2, and pressing onto it
+G_GRAVITY_E2_MPS2 = 1
+G_GRAVITY_N_MPS2 = 2
+G_AXES = 3  # 9 slots: rows e1, e2, n in world axes (core.road.road_frame)
+G_MU0 = 12  # friction scale under each wheel at the step start, 4 slots
+G_X0_M = 16  # the body's planar pose at the step start (terrain_gaps moves from it)
+G_Y0_M = 17
+G_YAW0_RAD = 18
+G_COS_YAW0 = 19
+G_SIN_YAW0 = 20
+N_GROUND = 21
 
 # ---- rows of the Runge-Kutta scratch (ws.rk[RK_*]; the derivative rows use the first
 # N_INTEGRATED columns)
@@ -76,6 +109,7 @@ class Model(NamedTuple):
     tp: np.ndarray  # float64[N_WHEELS, N_TIRE_PARAM] (core.tire_layout)
     dt_s: float
     tires: TireKernels  # the registered tire models' kernels, by model id
+    terrain: Terrain  # the ground (core.terrain)
 
 
 class Workspace(NamedTuple):
@@ -88,6 +122,9 @@ class Workspace(NamedTuple):
     body: np.ndarray  # float64[N_BODY]
     tire_out: np.ndarray  # float64[N_TIRE_OUT]
     tire_coef: np.ndarray  # prepared tire coefficients, float64[N_WHEELS, N_TIRE_COEF]
+    ground: np.ndarray  # float64[N_GROUND]: the reference plane of the step (G_*)
+    axes: np.ndarray  # float64[2, 3, 3]: scratch of the reference plane's rebase
+    contact: np.ndarray  # float64[3, N_WHEELS]: scratch of the plane fit (x, y, z)
 
 
 class Data(NamedTuple):
@@ -104,7 +141,9 @@ def make_workspace() -> Workspace:
     n_w = L.N_WHEELS
     return Workspace(rk=np.zeros((N_RK, L.N_STATE)), wheel_in=np.zeros((N_WI, n_w)),
                      wheel=np.zeros((n_w, N_W)), body=np.zeros(N_BODY),
-                     tire_out=np.zeros(N_TIRE_OUT), tire_coef=np.zeros((n_w, N_TIRE_COEF)))
+                     tire_out=np.zeros(N_TIRE_OUT), tire_coef=np.zeros((n_w, N_TIRE_COEF)),
+                     ground=np.zeros(N_GROUND), axes=np.zeros((2, 3, 3)),
+                     contact=np.zeros((3, n_w)))
 
 
 def make_data(x: np.ndarray | None = None) -> Data:

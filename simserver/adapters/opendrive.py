@@ -1,0 +1,465 @@
+"""ASAM OpenDRIVE roads: the subset the terrain needs, read from an ``.xodr`` file.
+
+Per road: the reference line (``planView``: ``line``, ``arc``, ``spiral``, ``poly3``,
+``paramPoly3``), the elevation and superelevation profiles (cubic in ``ds`` per piece)
+and the lane sections with their lane widths (cubic in ``ds`` from ``sOffset``). The
+geometry follows the standard's definitions:
+
+- ``line``: ``x = x0 + ds cos(hdg)``, ``y = y0 + ds sin(hdg)``;
+- ``arc`` (curvature k): ``x = x0 + (sin(hdg + k ds) - sin(hdg)) / k``,
+  ``y = y0 - (cos(hdg + k ds) - cos(hdg)) / k``, heading ``hdg + k ds``;
+- ``spiral`` (clothoid, curvature linear in ``ds`` from ``curvStart`` to ``curvEnd``):
+  heading ``hdg + k0 ds + (k1 - k0) ds^2 / (2 L)``, position the integral of the heading's
+  unit vector (Gauss-Legendre, 8 nodes per metre or less: exact to rounding here);
+- ``poly3``: ``v = a + b u + c u^2 + d u^3`` in the local frame at (x0, y0, hdg), with
+  ``ds`` the arc length along the curve (``u`` found from it);
+- ``paramPoly3``: ``u(p)``, ``v(p)`` cubic in ``p``, with ``pRange`` ``arcLength``
+  (``p`` in [0, length]) or ``normalized`` (``p`` in [0, 1]).
+
+Superelevation is the roll angle of the cross-section about the reference line (positive:
+the right side, ``t < 0``, goes down; ASAM OpenDRIVE 1.6, 8.4.1), so a surface point at
+lateral offset ``t`` stands ``t sin(roll)`` above the reference line's elevation.
+
+Errors name the file and the element (``OpenDriveError``, a ``ConfigError``); a file that
+fails is not kept in part.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from simserver.adapters.validate import ConfigError
+
+GEOMETRY_KINDS = ("line", "arc", "spiral", "poly3", "paramPoly3")
+_GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(8)
+
+
+class OpenDriveError(ConfigError):
+    """An ``.xodr`` file is unreadable or outside the supported subset; names the element."""
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """One piece of a reference line, starting at ``s`` with ``(x, y, hdg)``."""
+
+    s: float
+    x: float
+    y: float
+    hdg: float
+    length: float
+    kind: str  # one of GEOMETRY_KINDS
+    params: dict[str, float | str] = field(default_factory=dict)
+
+    def point(self, ds: float) -> tuple[float, float, float]:
+        """World ``(x, y, heading)`` at ``ds`` (0 .. length) along the piece."""
+        h0 = self.hdg
+        if self.kind == "line":
+            return self.x + ds * math.cos(h0), self.y + ds * math.sin(h0), h0
+        if self.kind == "arc":
+            k = float(self.params["curvature"])
+            if k == 0.0:
+                return self.x + ds * math.cos(h0), self.y + ds * math.sin(h0), h0
+            return (self.x + (math.sin(h0 + k * ds) - math.sin(h0)) / k,
+                    self.y - (math.cos(h0 + k * ds) - math.cos(h0)) / k, h0 + k * ds)
+        if self.kind == "spiral":
+            k0 = float(self.params["curvStart"])
+            k1 = float(self.params["curvEnd"])
+            rate = (k1 - k0) / self.length
+
+            def heading(s: np.ndarray) -> np.ndarray:
+                return h0 + k0 * s + 0.5 * rate * s * s
+
+            u, v = _integrate_unit(heading, ds)
+            return self.x + u, self.y + v, float(heading(np.array(ds)))
+        if self.kind == "poly3":
+            a, b, c, d = (float(self.params[k]) for k in "abcd")
+            u = _poly3_u_at_length(b, c, d, ds)
+            v = a + b * u + c * u * u + d * u ** 3
+            dv = b + 2.0 * c * u + 3.0 * d * u * u
+            return (*_local_to_world(self.x, self.y, h0, u, v), h0 + math.atan(dv))
+        if self.kind == "paramPoly3":
+            p = ds if self.params["pRange"] == "arcLength" else ds / self.length
+            cu = [float(self.params[f"{k}U"]) for k in "abcd"]
+            cv = [float(self.params[f"{k}V"]) for k in "abcd"]
+            u = cu[0] + cu[1] * p + cu[2] * p * p + cu[3] * p ** 3
+            v = cv[0] + cv[1] * p + cv[2] * p * p + cv[3] * p ** 3
+            du = cu[1] + 2.0 * cu[2] * p + 3.0 * cu[3] * p * p
+            dv = cv[1] + 2.0 * cv[2] * p + 3.0 * cv[3] * p * p
+            return (*_local_to_world(self.x, self.y, h0, u, v), h0 + math.atan2(dv, du))
+        raise ValueError(f"unknown geometry kind {self.kind!r}")
+
+    def points(self, ds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``point`` at every ``ds`` of an increasing array (vectorised; the spiral is
+        integrated piece by piece between the samples)."""
+        ds = np.asarray(ds, dtype=np.float64)
+        h0 = self.hdg
+        if self.kind == "line" or (self.kind == "arc" and self.params["curvature"] == 0.0):
+            return self.x + ds * math.cos(h0), self.y + ds * math.sin(h0), np.full_like(ds, h0)
+        if self.kind == "arc":
+            k = float(self.params["curvature"])
+            return (self.x + (np.sin(h0 + k * ds) - math.sin(h0)) / k,
+                    self.y - (np.cos(h0 + k * ds) - math.cos(h0)) / k, h0 + k * ds)
+        if self.kind == "spiral":
+            k0 = float(self.params["curvStart"])
+            rate = (float(self.params["curvEnd"]) - k0) / self.length
+            edges = np.concatenate(([0.0], ds))
+            half = 0.5 * np.diff(edges)
+            mid = 0.5 * (edges[1:] + edges[:-1])
+            sq = mid[:, None] + half[:, None] * _GL_NODES[None, :]
+            theta = h0 + k0 * sq + 0.5 * rate * sq * sq
+            w = half[:, None] * _GL_WEIGHTS[None, :]
+            u = np.cumsum(np.sum(w * np.cos(theta), axis=1))
+            v = np.cumsum(np.sum(w * np.sin(theta), axis=1))
+            return self.x + u, self.y + v, h0 + k0 * ds + 0.5 * rate * ds * ds
+        pts = np.array([self.point(float(d)) for d in ds]).reshape(-1, 3)
+        return pts[:, 0], pts[:, 1], pts[:, 2]
+
+    def end(self) -> tuple[float, float, float]:
+        """``point(length)``."""
+        return self.point(self.length)
+
+
+def _local_to_world(x0: float, y0: float, hdg: float, u: float, v: float) -> tuple[float, float]:
+    c, s = math.cos(hdg), math.sin(hdg)
+    return x0 + c * u - s * v, y0 + s * u + c * v
+
+
+def _integrate_unit(heading, ds: float) -> tuple[float, float]:  # noqa: ANN001 - a callable
+    """``(int_0^ds cos(heading), int_0^ds sin(heading))`` by composite Gauss-Legendre."""
+    if ds <= 0.0:
+        return 0.0, 0.0
+    n = max(1, math.ceil(ds))  # pieces of at most 1 m, 8 nodes each
+    edges = np.linspace(0.0, ds, n + 1)
+    half = 0.5 * (edges[1:] - edges[:-1])
+    mid = 0.5 * (edges[1:] + edges[:-1])
+    s = (mid[:, None] + half[:, None] * _GL_NODES[None, :]).ravel()
+    w = (half[:, None] * _GL_WEIGHTS[None, :]).ravel()
+    theta = heading(s)
+    return float(np.sum(w * np.cos(theta))), float(np.sum(w * np.sin(theta)))
+
+
+def _poly3_u_at_length(b: float, c: float, d: float, length: float) -> float:
+    """The ``u`` at which the arc length of ``v(u)`` from 0 reaches ``length`` (Newton)."""
+    def arc(u: float) -> float:
+        if u <= 0.0:
+            return 0.0
+        n = max(1, math.ceil(u))
+        edges = np.linspace(0.0, u, n + 1)
+        half = 0.5 * (edges[1:] - edges[:-1])
+        mid = 0.5 * (edges[1:] + edges[:-1])
+        x = (mid[:, None] + half[:, None] * _GL_NODES[None, :]).ravel()
+        w = (half[:, None] * _GL_WEIGHTS[None, :]).ravel()
+        dv = b + 2.0 * c * x + 3.0 * d * x * x
+        return float(np.sum(w * np.sqrt(1.0 + dv * dv)))
+
+    u = length
+    for _ in range(50):
+        dv = b + 2.0 * c * u + 3.0 * d * u * u
+        step = (arc(u) - length) / math.sqrt(1.0 + dv * dv)
+        u -= step
+        if abs(step) < 1e-12:
+            break
+    return u
+
+
+@dataclass(frozen=True)
+class Cubic:
+    """``a + b ds + c ds^2 + d ds^3`` from ``s`` on (one piece of a profile)."""
+
+    s: float
+    a: float
+    b: float
+    c: float
+    d: float
+
+    def at(self, s: float) -> float:
+        ds = s - self.s
+        return self.a + ds * (self.b + ds * (self.c + ds * self.d))
+
+
+def profile_values(pieces: list[Cubic], s: np.ndarray) -> np.ndarray:
+    """``profile_at`` at every ``s`` (vectorised)."""
+    s = np.asarray(s, dtype=np.float64)
+    if not pieces:
+        return np.zeros_like(s)
+    starts = np.array([p.s for p in pieces])
+    coef = np.array([(p.a, p.b, p.c, p.d) for p in pieces])
+    k = np.clip(np.searchsorted(starts, s + 1e-9, side="right") - 1, 0, len(pieces) - 1)
+    ds = s - starts[k]
+    a, b, c, d = coef[k].T
+    return a + ds * (b + ds * (c + ds * d))
+
+
+def profile_at(pieces: list[Cubic], s: float) -> float:
+    """The value of a piecewise-cubic profile at ``s`` (the last piece starting at or
+    before ``s``; 0 for an empty profile)."""
+    value = 0.0
+    for piece in pieces:
+        if piece.s <= s + 1e-9:
+            value = piece.at(s)
+        else:
+            break
+    return value
+
+
+@dataclass(frozen=True)
+class Lane:
+    id: int
+    type: str
+    widths: list[Cubic]  # s = sOffset from the section start
+
+
+@dataclass(frozen=True)
+class LaneSection:
+    s: float
+    lanes: list[Lane]
+
+
+@dataclass(frozen=True)
+class Road:
+    id: str
+    length: float
+    geometries: list[Geometry]
+    elevation: list[Cubic]
+    superelevation: list[Cubic]
+    lane_sections: list[LaneSection]
+
+    def reference(self, s: float) -> tuple[float, float, float]:
+        """World ``(x, y, heading)`` of the reference line at ``s``."""
+        geo = self.geometries[0]
+        for g in self.geometries:
+            if g.s <= s + 1e-9:
+                geo = g
+        return geo.point(min(max(s - geo.s, 0.0), geo.length))
+
+
+@dataclass(frozen=True)
+class OpenDrive:
+    path: Path
+    roads: list[Road]
+
+
+def _num(path: Path, elem: ET.Element, what: str, key: str) -> float:
+    raw = elem.get(key)
+    if raw is None:
+        raise OpenDriveError(f"{path}: {what}: attribute '{key}' missing")
+    try:
+        value = float(raw)
+    except ValueError:
+        raise OpenDriveError(f"{path}: {what}: attribute '{key}'={raw!r} is not a number") from None
+    if not math.isfinite(value):
+        raise OpenDriveError(f"{path}: {what}: attribute '{key}'={raw!r} is not finite")
+    return value
+
+
+def _cubics(path: Path, parent: ET.Element | None, tag: str, what: str, s_key: str = "s"
+            ) -> list[Cubic]:
+    if parent is None:
+        return []
+    pieces = []
+    for k, e in enumerate(parent.findall(tag)):
+        where = f"{what} <{tag}> #{k}"
+        pieces.append(Cubic(*(_num(path, e, where, key) for key in (s_key, "a", "b", "c", "d"))))
+    return pieces
+
+
+def load_opendrive(path: str | Path) -> OpenDrive:
+    """Read an ``.xodr`` file (module docstring); ``OpenDriveError`` names file and
+    element."""
+    path = Path(path)
+    if not path.is_file():
+        raise OpenDriveError(f"{path}: no such file")
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError) as exc:
+        raise OpenDriveError(f"{path}: unreadable XML ({exc})") from None
+    if root.tag != "OpenDRIVE":
+        raise OpenDriveError(f"{path}: root element <{root.tag}>, expected <OpenDRIVE>")
+    roads = []
+    for road_el in root.findall("road"):
+        rid = road_el.get("id", "?")
+        what = f"road {rid}"
+        plan = road_el.find("planView")
+        if plan is None:
+            raise OpenDriveError(f"{path}: {what}: no <planView>")
+        geometries = []
+        for k, g in enumerate(plan.findall("geometry")):
+            gwhat = f"{what} <geometry> #{k}"
+            base = [_num(path, g, gwhat, key) for key in ("s", "x", "y", "hdg", "length")]
+            if len(g) != 1 or g[0].tag not in GEOMETRY_KINDS:
+                kinds = [c.tag for c in g]
+                raise OpenDriveError(f"{path}: {gwhat}: unknown geometry {kinds} (supported: "
+                                     f"{', '.join(GEOMETRY_KINDS)})")
+            shape = g[0]
+            params: dict[str, float | str] = {}
+            keys = {"line": (), "arc": ("curvature",), "spiral": ("curvStart", "curvEnd"),
+                    "poly3": ("a", "b", "c", "d"),
+                    "paramPoly3": tuple(f"{c}{a}" for a in "UV" for c in "abcd")}[shape.tag]
+            for key in keys:
+                params[key] = _num(path, shape, f"{gwhat} <{shape.tag}>", key)
+            if shape.tag == "paramPoly3":
+                p_range = shape.get("pRange", "normalized")
+                if p_range not in ("arcLength", "normalized"):
+                    raise OpenDriveError(f"{path}: {gwhat} <paramPoly3>: pRange {p_range!r}")
+                params["pRange"] = p_range
+            if not base[4] > 0.0:
+                raise OpenDriveError(f"{path}: {gwhat}: length must be > 0")
+            geometries.append(Geometry(*base, kind=shape.tag, params=params))
+        if not geometries:
+            raise OpenDriveError(f"{path}: {what}: <planView> has no <geometry>")
+        elevation = _cubics(path, road_el.find("elevationProfile"), "elevation", what)
+        superelevation = _cubics(path, road_el.find("lateralProfile"), "superelevation", what)
+        sections = []
+        lanes_el = road_el.find("lanes")
+        for k, sec in enumerate([] if lanes_el is None else lanes_el.findall("laneSection")):
+            swhat = f"{what} <laneSection> #{k}"
+            s0 = _num(path, sec, swhat, "s")
+            lanes = []
+            for side in ("left", "center", "right"):
+                side_el = sec.find(side)
+                for lane in [] if side_el is None else side_el.findall("lane"):
+                    lwhat = f"{swhat} <{side}> lane {lane.get('id')}"
+                    try:
+                        lane_id = int(lane.get("id", ""))
+                    except ValueError:
+                        raise OpenDriveError(f"{path}: {lwhat}: id is not an integer") from None
+                    if (side == "left") != (lane_id > 0) and side != "center":
+                        raise OpenDriveError(f"{path}: {lwhat}: id on the wrong side")
+                    widths = _cubics(path, lane, "width", lwhat, s_key="sOffset")
+                    if side != "center" and not widths:
+                        raise OpenDriveError(f"{path}: {lwhat}: no <width>")
+                    lanes.append(Lane(lane_id, lane.get("type", "none"), widths))
+            if not any(lane.id != 0 for lane in lanes):
+                raise OpenDriveError(f"{path}: {swhat}: no lanes")
+            sections.append(LaneSection(s0, lanes))
+        roads.append(Road(rid, _num(path, road_el, what, "length"), geometries, elevation,
+                          superelevation, sections))
+    if not roads:
+        raise OpenDriveError(f"{path}: no <road>")
+    return OpenDrive(path, roads)
+
+
+def _section_at(road: Road, s: float) -> LaneSection | None:
+    section = None
+    for sec in road.lane_sections:
+        if sec.s <= s + 1e-9:
+            section = sec
+    return section
+
+
+def road_extent(road: Road, s: float) -> tuple[float, float]:
+    """Lateral extent ``(t_right <= 0, t_left >= 0)`` of the road's lanes at ``s``."""
+    sec = _section_at(road, s)
+    if sec is None:
+        return 0.0, 0.0
+    left = right = 0.0
+    for lane in sec.lanes:
+        if lane.id == 0 or not lane.widths:
+            continue
+        width = max(0.0, profile_at(lane.widths, s - sec.s))
+        if lane.id > 0:
+            left += width
+        else:
+            right -= width
+    return right, left
+
+
+def rasterise(od: OpenDrive, cell_m: float, margin_m: float = 20.0
+              ) -> tuple[np.ndarray, float, float]:
+    """The road surface as a height grid: ``(heights[j, i], x0, y0)`` with cells of
+    ``cell_m``.
+
+    The surface point at ``(s, t)`` is the reference line's point moved ``t cos(roll)``
+    across it horizontally and ``t sin(roll)`` up from the elevation (roll: the
+    superelevation). Beyond the outer lanes' edges the edge extends flat across for
+    ``margin_m``; grid cells farther from every road take the height of the nearest
+    surface cell along their grid row (rows with none: along their column). Each cell
+    takes the surface sample nearest to its centre, moved to the centre along the
+    surface's local slope (samples every quarter of a cell)."""
+    step = 0.25 * cell_m
+    pts_x, pts_y, pts_z, pts_gx, pts_gy = [], [], [], [], []
+    for road in od.roads:
+        s_all = np.arange(0.0, road.length + 0.5 * step, step)
+        s_all[-1] = min(s_all[-1], road.length)
+        ref_x, ref_y, ref_h = np.empty_like(s_all), np.empty_like(s_all), np.empty_like(s_all)
+        starts = np.array([g.s for g in road.geometries])
+        which = np.clip(np.searchsorted(starts, s_all + 1e-9, side="right") - 1, 0,
+                        len(starts) - 1)
+        for k, geo in enumerate(road.geometries):
+            sel = which == k
+            if sel.any():
+                ds = np.clip(s_all[sel] - geo.s, 0.0, geo.length)
+                ref_x[sel], ref_y[sel], ref_h[sel] = geo.points(ds)
+        elev = profile_values(road.elevation, s_all)
+        slope = (profile_values(road.elevation, s_all + 1e-3)
+                 - profile_values(road.elevation, s_all - 1e-3)) / 2e-3
+        rolls = profile_values(road.superelevation, s_all)
+        for n, s in enumerate(s_all):
+            t_right, t_left = road_extent(road, s)
+            t = np.arange(t_right - margin_m, t_left + margin_m + 0.5 * step, step)
+            t_surface = np.clip(t, t_right, t_left)  # the edges extend flat beyond
+            c, sn = math.cos(ref_h[n]), math.sin(ref_h[n])
+            roll = rolls[n]
+            lateral = t * math.cos(roll)
+            pts_x.append(ref_x[n] - sn * lateral)
+            pts_y.append(ref_y[n] + c * lateral)
+            pts_z.append(elev[n] + t_surface * math.sin(roll))
+            bank = np.where((t >= t_right) & (t <= t_left), math.tan(roll), 0.0)
+            # gradient: dz/ds along the heading, the bank across it (horizontal axes)
+            pts_gx.append(slope[n] * c - bank * sn)
+            pts_gy.append(slope[n] * sn + bank * c)
+    px = np.concatenate(pts_x)
+    py = np.concatenate(pts_y)
+    pz = np.concatenate(pts_z)
+    gx = np.concatenate(pts_gx)
+    gy = np.concatenate(pts_gy)
+    x0 = math.floor(px.min() / cell_m) * cell_m
+    y0 = math.floor(py.min() / cell_m) * cell_m
+    nx = int(math.ceil((px.max() - x0) / cell_m)) + 1
+    ny = int(math.ceil((py.max() - y0) / cell_m)) + 1
+    ci = np.rint((px - x0) / cell_m).astype(np.int64)
+    cj = np.rint((py - y0) / cell_m).astype(np.int64)
+    dx = x0 + ci * cell_m - px
+    dy = y0 + cj * cell_m - py
+    cell = cj * nx + ci
+    order = np.lexsort((dx * dx + dy * dy, cell))
+    first = order[np.unique(cell[order], return_index=True)[1]]
+    heights = np.full(ny * nx, np.nan)
+    heights[cell[first]] = pz[first] + gx[first] * dx[first] + gy[first] * dy[first]
+    grid = heights.reshape(ny, nx)
+    _fill_nearest(grid)
+    return grid, x0, y0
+
+
+def _fill_along(grid: np.ndarray) -> None:
+    """Fill each row's NaN cells with the row's nearest filled cell (in place)."""
+    ny, nx = grid.shape
+    idx = np.arange(nx)
+    have = ~np.isnan(grid)
+    prev = np.where(have, idx[None, :], -1)
+    np.maximum.accumulate(prev, axis=1, out=prev)
+    nxt = np.where(have, idx[None, :], nx)
+    nxt = np.minimum.accumulate(nxt[:, ::-1], axis=1)[:, ::-1]
+    use_prev = (prev >= 0) & ((nxt >= nx) | (idx[None, :] - prev <= nxt - idx[None, :]))
+    use_next = ~use_prev & (nxt < nx)
+    rows = np.arange(ny)[:, None].repeat(nx, axis=1)
+    filled = grid.copy()
+    filled[use_prev] = grid[rows[use_prev], prev[use_prev]]
+    filled[use_next] = grid[rows[use_next], nxt[use_next]]
+    grid[:] = filled
+
+
+def _fill_nearest(grid: np.ndarray) -> None:
+    """Fill NaN cells: along each row from its nearest surface cell, then the rows that
+    had none along each column."""
+    if np.isnan(grid).all():
+        raise OpenDriveError("rasterise: no road surface to extend")
+    _fill_along(grid)
+    transposed = grid.T.copy()
+    _fill_along(transposed)
+    grid[:] = transposed.T

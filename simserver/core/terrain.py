@@ -1,0 +1,277 @@
+"""The ground under each wheel: terrain kinds and the contact query (docs/model.md section 11).
+
+A terrain is a ``Terrain`` tuple of arrays, the same types for every kind, so the compiled
+step takes any of them without recompiling:
+
+- ``TERRAIN_PLANE``: today's road, the inclined plane of ``core.road`` (grade, cross-slope
+  and friction in the vehicle parameters). The arrays are placeholders; the step does
+  exactly what it did before terrains existed.
+- ``TERRAIN_OPENDRIVE``: an OpenDRIVE road, rasterised when loaded into the grid of a
+  height map (``simserver.adapters.opendrive.rasterise``); the step treats it as one.
+- ``TERRAIN_HEIGHTMAP``: a regular grid of heights ``heights[j, i]`` at
+  ``(x0 + i dx, y0 + j dy)``, interpolated by a tensor-product Catmull-Rom spline (C1: the
+  height and its gradient, hence the surface normal, are continuous), with a friction
+  scale per grid point (bilinear). Off the grid the query is clamped to the grid's edge:
+  the edge heights extend flat, never NaN.
+
+The chassis keeps its planar formulation on a *reference plane* fitted under the four
+contact points once per step (``fit_reference_plane``, ``rebase_reference_plane``): on
+the plane kind the reference plane is the road itself; on a height map the states are
+re-expressed on the new plane each step so that the body's world position, velocity and
+attitude are unchanged, and what the plane misses under each wheel (``surface_at``)
+enters the wheel's suspension and its own contact frame (``core.chassis``).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numba as nb
+import numpy as np
+
+from simserver.core.layout import (
+    HEAVE_M,
+    HEAVE_RATE_MPS,
+    PITCH_RAD,
+    REF_CROSS_SLOPE_PCT,
+    REF_GRADE_PCT,
+    REF_HEIGHT_M,
+    ROLL_RAD,
+    U_MPS,
+    V_MPS,
+    X_M,
+    Y_M,
+    YAW_RAD,
+)
+from simserver.core.road import road_frame
+from simserver.core.variants import Variant, VariantRegistry
+
+TERRAIN_PLANE = 0
+TERRAIN_HEIGHTMAP = 1
+TERRAIN_OPENDRIVE = 2  # an OpenDRIVE road rasterised into a height grid at load time
+TERRAIN_KINDS = VariantRegistry("terrain kind", (
+    Variant(TERRAIN_PLANE, "plane",
+            "one inclined plane: the road's grade, cross-slope and friction"),
+    Variant(TERRAIN_HEIGHTMAP, "heightmap",
+            "a regular grid of heights (.npy, .npz, 16-bit PNG), C1 Catmull-Rom, "
+            "optional friction map"),
+    Variant(TERRAIN_OPENDRIVE, "opendrive",
+            "an ASAM OpenDRIVE road (.xodr), rasterised into a height grid when loaded "
+            "(simserver.adapters.opendrive); stepped as a height map"),
+))
+
+# slots of Terrain.grid
+GRID_X0_M, GRID_Y0_M, GRID_DX_M, GRID_DY_M = 0, 1, 2, 3
+N_GRID = 4
+
+
+class Terrain(NamedTuple):
+    """The ground, as the compiled step takes it (module docstring)."""
+
+    kind: int  # TERRAIN_* id
+    heights: np.ndarray  # float64[ny, nx], m (a 1x1 placeholder on the plane)
+    friction: np.ndarray  # float64[ny, nx], friction scale per grid point
+    grid: np.ndarray  # float64[N_GRID]: origin and spacing (GRID_*)
+
+
+def plane_terrain() -> Terrain:
+    """The plane kind: the road of ``core.road`` (the arrays are placeholders)."""
+    grid = np.zeros(N_GRID)
+    grid[GRID_DX_M] = grid[GRID_DY_M] = 1.0
+    return Terrain(TERRAIN_PLANE, np.zeros((1, 1)), np.ones((1, 1)), grid)
+
+
+def heightmap_terrain(heights: np.ndarray, dx_m: float, dy_m: float, x0_m: float = 0.0,
+                      y0_m: float = 0.0, friction: np.ndarray | None = None) -> Terrain:
+    """A height-map terrain; ``heights[j, i]`` is at ``(x0 + i dx, y0 + j dy)``.
+
+    Raises ``ValueError`` for a grid smaller than 2x2, a non-finite height or friction, a
+    friction map of another shape or a spacing that is not positive."""
+    h = np.ascontiguousarray(heights, dtype=np.float64)
+    if h.ndim != 2 or h.shape[0] < 2 or h.shape[1] < 2:
+        raise ValueError(f"heights: expected a 2-D grid of at least 2x2, got shape {h.shape}")
+    if not np.all(np.isfinite(h)):
+        bad = np.argwhere(~np.isfinite(h))[0]
+        raise ValueError(f"heights: non-finite value at row {bad[0]}, column {bad[1]}")
+    if friction is None:
+        mu = np.ones_like(h)
+    else:
+        mu = np.ascontiguousarray(friction, dtype=np.float64)
+        if mu.shape != h.shape:
+            raise ValueError(f"friction: shape {mu.shape} differs from the heights' {h.shape}")
+        if not np.all(np.isfinite(mu)) or np.any(mu < 0.0):
+            raise ValueError("friction: every value must be finite and >= 0")
+    if not (dx_m > 0.0 and dy_m > 0.0 and np.isfinite(dx_m) and np.isfinite(dy_m)):
+        raise ValueError(f"grid spacing must be positive, got dx={dx_m}, dy={dy_m}")
+    grid = np.array([x0_m, y0_m, dx_m, dy_m], dtype=np.float64)
+    return Terrain(TERRAIN_HEIGHTMAP, h, mu, grid)
+
+
+@nb.njit(cache=True, inline="always")
+def _catmull_rom(t: float) -> tuple[float, float, float, float, float, float, float, float]:
+    """Catmull-Rom weights of the four samples around ``t`` in [0, 1] and their
+    derivatives in ``t``."""
+    t2 = t * t
+    t3 = t2 * t
+    return (0.5 * (-t + 2.0 * t2 - t3), 0.5 * (2.0 - 5.0 * t2 + 3.0 * t3),
+            0.5 * (t + 4.0 * t2 - 3.0 * t3), 0.5 * (-t2 + t3),
+            0.5 * (-1.0 + 4.0 * t - 3.0 * t2), 0.5 * (-10.0 * t + 9.0 * t2),
+            0.5 * (1.0 + 8.0 * t - 9.0 * t2), 0.5 * (-2.0 * t + 3.0 * t2))
+
+
+@nb.njit(cache=True, inline="always")
+def _cell(pos: float, origin: float, spacing: float, n: int) -> tuple[int, float]:
+    """Grid cell index and fraction of a position, clamped to the grid."""
+    f = (pos - origin) / spacing
+    if not f > 0.0:  # also NaN: the grid's first cell
+        return 0, 0.0
+    if f >= n - 1:
+        return n - 2, 1.0
+    i = int(f)
+    return i, f - i
+
+
+@nb.njit(cache=True, inline="always")
+def surface_at(terrain: Terrain, wx: float, wy: float) -> tuple[float, float, float, float]:
+    """Height (m), gradient ``(dh/dx, dh/dy)`` and friction scale of a height map at the
+    world point ``(wx, wy)``. Catmull-Rom in each axis (C1); the samples beyond the edge
+    are the edge's own (clamped indices); off the grid the point is clamped to the edge."""
+    h = terrain.heights
+    grid = terrain.grid
+    ny, nx = h.shape
+    dx = grid[GRID_DX_M]
+    dy = grid[GRID_DY_M]
+    i, tx = _cell(wx, grid[GRID_X0_M], dx, nx)
+    j, ty = _cell(wy, grid[GRID_Y0_M], dy, ny)
+    wx0, wx1, wx2, wx3, dwx0, dwx1, dwx2, dwx3 = _catmull_rom(tx)
+    wy0, wy1, wy2, wy3, dwy0, dwy1, dwy2, dwy3 = _catmull_rom(ty)
+    height = 0.0
+    grad_x = 0.0
+    grad_y = 0.0
+    for m in range(4):
+        jj = min(max(j - 1 + m, 0), ny - 1)
+        if m == 0:
+            wy_m, dwy_m = wy0, dwy0
+        elif m == 1:
+            wy_m, dwy_m = wy1, dwy1
+        elif m == 2:
+            wy_m, dwy_m = wy2, dwy2
+        else:
+            wy_m, dwy_m = wy3, dwy3
+        i0 = max(i - 1, 0)
+        i3 = min(i + 2, nx - 1)
+        row_v = wx0 * h[jj, i0] + wx1 * h[jj, i] + wx2 * h[jj, i + 1] + wx3 * h[jj, i3]
+        row_d = dwx0 * h[jj, i0] + dwx1 * h[jj, i] + dwx2 * h[jj, i + 1] + dwx3 * h[jj, i3]
+        height += wy_m * row_v
+        grad_x += wy_m * row_d
+        grad_y += dwy_m * row_v
+    mu_map = terrain.friction
+    mu = ((1.0 - ty) * ((1.0 - tx) * mu_map[j, i] + tx * mu_map[j, i + 1])
+          + ty * ((1.0 - tx) * mu_map[j + 1, i] + tx * mu_map[j + 1, i + 1]))
+    # clamped outside the grid: flat there
+    f_x = (wx - grid[GRID_X0_M]) / dx
+    f_y = (wy - grid[GRID_Y0_M]) / dy
+    if not (0.0 < f_x < nx - 1):
+        grad_x = 0.0
+    if not (0.0 < f_y < ny - 1):
+        grad_y = 0.0
+    return height, grad_x / dx, grad_y / dy, mu
+
+
+@nb.njit(cache=True, inline="always")
+def fit_plane(px: np.ndarray, py: np.ndarray, pz: np.ndarray) -> tuple[float, float, float]:
+    """Least-squares plane ``Z = a X + b Y + c`` through the points; ``(a, b, c)``."""
+    n = px.size
+    mx = 0.0
+    my = 0.0
+    mz = 0.0
+    for k in range(n):
+        mx += px[k]
+        my += py[k]
+        mz += pz[k]
+    mx /= n
+    my /= n
+    mz /= n
+    sxx = 0.0
+    sxy = 0.0
+    syy = 0.0
+    sxz = 0.0
+    syz = 0.0
+    for k in range(n):
+        ddx = px[k] - mx
+        ddy = py[k] - my
+        ddz = pz[k] - mz
+        sxx += ddx * ddx
+        sxy += ddx * ddy
+        syy += ddy * ddy
+        sxz += ddx * ddz
+        syz += ddy * ddz
+    det = sxx * syy - sxy * sxy
+    a = (sxz * syy - syz * sxy) / det
+    b = (syz * sxx - sxz * sxy) / det
+    return a, b, mz - a * mx - b * my
+
+
+@nb.njit(cache=True, inline="always")
+def rebase_reference_plane(x: np.ndarray, grade_pct: float, cross_slope_pct: float,
+                           height_m: float, cg_height_m: float, axes_old: np.ndarray,
+                           axes_new: np.ndarray) -> None:
+    """Re-express the body's planar states on another reference plane
+    ``Z = grade/100 X + cross/100 Y + height``, keeping its world CG position, velocity and
+    attitude (docs/model.md section 11); the plane's slots of ``x`` are set to it.
+
+    Roll and pitch change by the tilt between the planes (small-angle: the plane moves by
+    micro-radians a step); the angular rates are unchanged. ``axes_old`` and ``axes_new``
+    are float64[3, 3] scratch."""
+    road_frame(x[REF_GRADE_PCT], x[REF_CROSS_SLOPE_PCT], axes_old)
+    road_frame(grade_pct, cross_slope_pct, axes_new)
+    lift = cg_height_m + x[HEAVE_M]
+    psi = x[YAW_RAD]
+    c = np.cos(psi)
+    s = np.sin(psi)
+    a = x[U_MPS] * c - x[V_MPS] * s
+    b = x[U_MPS] * s + x[V_MPS] * c
+    dz0 = x[REF_HEIGHT_M] - height_m
+    new_pos0 = 0.0
+    new_pos1 = 0.0
+    new_pos2 = 0.0
+    vel0 = 0.0
+    vel1 = 0.0
+    vel2 = 0.0
+    head_e1 = 0.0
+    head_e2 = 0.0
+    head_n = 0.0
+    left_n = 0.0
+    for k in range(3):
+        cg_k = x[X_M] * axes_old[0, k] + x[Y_M] * axes_old[1, k] + lift * axes_old[2, k]
+        if k == 2:
+            cg_k += dz0
+        vel_k = a * axes_old[0, k] + b * axes_old[1, k] + x[HEAVE_RATE_MPS] * axes_old[2, k]
+        head_k = c * axes_old[0, k] + s * axes_old[1, k]
+        left_k = -s * axes_old[0, k] + c * axes_old[1, k]
+        new_pos0 += cg_k * axes_new[0, k]
+        new_pos1 += cg_k * axes_new[1, k]
+        new_pos2 += cg_k * axes_new[2, k]
+        vel0 += vel_k * axes_new[0, k]
+        vel1 += vel_k * axes_new[1, k]
+        vel2 += vel_k * axes_new[2, k]
+        head_e1 += head_k * axes_new[0, k]
+        head_e2 += head_k * axes_new[1, k]
+        head_n += head_k * axes_new[2, k]
+        left_n += left_k * axes_new[2, k]
+    diff = np.arctan2(head_e2, head_e1) - psi
+    psi_new = psi + ((diff + np.pi) % (2.0 * np.pi) - np.pi)
+    c = np.cos(psi_new)
+    s = np.sin(psi_new)
+    x[X_M] = new_pos0
+    x[Y_M] = new_pos1
+    x[HEAVE_M] = new_pos2 - cg_height_m
+    x[YAW_RAD] = psi_new
+    x[U_MPS] = vel0 * c + vel1 * s
+    x[V_MPS] = -vel0 * s + vel1 * c
+    x[HEAVE_RATE_MPS] = vel2
+    x[PITCH_RAD] -= head_n
+    x[ROLL_RAD] += left_n
+    x[REF_GRADE_PCT] = grade_pct
+    x[REF_CROSS_SLOPE_PCT] = cross_slope_pct
+    x[REF_HEIGHT_M] = height_m
