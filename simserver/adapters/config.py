@@ -36,34 +36,19 @@ from simserver.core.param_table import ParamTable, slot_constants_source, with_s
 from simserver.core.road import set_road
 from simserver.core.tire import N_TIRE_PARAM
 from simserver.core.tire_layout import (
+    TP_MIRRORED,
     TP_MODEL,
     TP_MODEL_BASE,
     TP_RADIUS_M,
     TP_RELAX_LAT_M,
     TP_RELAX_LONG_M,
 )
-from simserver.tire_models import N_MODEL_PARAM_MAX, TIRE_MODEL_NAMES, tire_model
+from simserver.tire_models import N_MODEL_PARAM_MAX, TIRE_MODEL_NAMES, tire_model, tire_models
 
 # The vehicle file's subsystem keys, one file each, and the ``model:`` section's defaults,
 # from the parameter tables (core/params.py).
 SUBSYSTEMS: tuple[str, ...] = tuple(table.name for table in P.VEHICLE_SUBSYSTEMS)
 MODEL_OPTION_DEFAULTS: dict[str, Any] = P.MODEL_OPTIONS.defaults
-
-SIMPLE_TIRE_RANGES: dict[str, tuple[float, float]] = {
-    "cornering_stiffness_n_per_rad": (100.0, 1e7),
-    "longitudinal_stiffness_n": (100.0, 1e7),
-    "nominal_load_n": (10.0, 1e6),
-    "friction_coefficient": (0.01, 3.0),
-    "rolling_resistance_coefficient": (0.0, 0.5),
-    "pneumatic_trail_m": (0.0, 0.5),
-    "rolling_radius_m": (0.05, 2.0),
-}
-TIRE_COMMON_RANGES: dict[str, tuple[float, float]] = {
-    "relaxation_length_lat_m": (0.005, 5.0),
-    "relaxation_length_long_m": (0.005, 5.0),
-    "rolling_radius_m": (0.05, 2.0),
-}
-
 
 @dataclass
 class VehicleConfig:
@@ -141,9 +126,21 @@ def load_tire(path: Path) -> tuple[np.ndarray, str]:
         model: mf61                         # core.tire_mf61
         tir_file: ../tir/x.tir              # relative to this file
         rolling_radius_m: 0.305             # optional, default UNLOADED_RADIUS
-        relaxation_length_lat_m: 0.48       # optional, default from PTY1/PTY2 at FNOMIN
-        relaxation_length_long_m: 0.62      # optional, default from PTX1 at FNOMIN
+        relaxation_length_lat_m: 0.48       # optional, default from PTY1, PTY2, R0
+        relaxation_length_long_m: 0.62      # optional, default from PTX1, R0
+
+    Every key with its unit, range and meaning: the model's parameter table
+    (``TireModel.params``, docs/configuration.md). The vector is the tire as its file
+    describes it (``tp[TP_MIRRORED] = 0``); ``load_vehicle`` mirrors the corners on the
+    other side (``load_tire_sided``).
     """
+    tp, name, _ = load_tire_sided(path)
+    return tp, name
+
+
+def load_tire_sided(path: Path) -> tuple[np.ndarray, str, str | None]:
+    """``load_tire`` and the side the file's tire is meant for: ``"left"``, ``"right"`` or
+    None (a symmetric tire, never mirrored)."""
     path = Path(path)
     data = read_yaml(path)
     model = tire_model(choice(path, "model", data.get("model"), TIRE_MODEL_NAMES))
@@ -157,7 +154,7 @@ def load_tire(path: Path) -> tuple[np.ndarray, str]:
     tp[TP_RELAX_LAT_M] = loaded.relax_lat_m
     tp[TP_RELAX_LONG_M] = loaded.relax_long_m
     tp[TP_MODEL_BASE:TP_MODEL_BASE + loaded.model_params.size] = loaded.model_params
-    return tp, model.name
+    return tp, model.name, loaded.side
 
 
 def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
@@ -195,9 +192,13 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
             raise ConfigError(f"{path}: key 'tires.{axle}': expected a file path")
         tire_path = (path.parent / tires[axle]).resolve()
         sources[f"tire_{axle}"] = str(tire_path)
-        vec, model_name = load_tire(tire_path)
+        vec, model_name, side = load_tire_sided(tire_path)
         for row in rows:
             tp[row] = vec
+            # one file per axle: the corner on the other side gets the mirror image
+            # (docs/configuration.md, "Tire files"); rows are left, right (core.layout)
+            corner_side = "left" if row % 2 == 0 else "right"
+            tp[row, TP_MIRRORED] = 1.0 if side is not None and side != corner_side else 0.0
         names.append(model_name)
 
     apply_model_options(vp, model_option_values(model_options, options_source))
@@ -211,19 +212,6 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
 
 
 # ----------------------------------------------------------------- the reference doc
-TIRE_MEANING: dict[str, str] = {
-    "cornering_stiffness_n_per_rad": "C_alpha at nominal_load_n, linear in the load",
-    "longitudinal_stiffness_n": "C_kappa (N per unit slip) at nominal_load_n, linear in "
-                                "the load",
-    "nominal_load_n": "load at which the stiffnesses are given",
-    "friction_coefficient": "peak friction mu (times the road's friction scale)",
-    "rolling_resistance_coefficient": "rolling-resistance force / Fz",
-    "pneumatic_trail_m": "pneumatic trail at zero slip (Mz = -t Fy, t falls to 0 at full "
-                         "sliding)",
-    "rolling_radius_m": "effective rolling radius R (mf61: default UNLOADED_RADIUS)",
-    "relaxation_length_lat_m": "b of paper eq. 16 (mf61: default from PTY1, PTY2 at FNOMIN)",
-    "relaxation_length_long_m": "B of paper eq. 26 (mf61: default from PTX1 at FNOMIN)",
-}
 def _param_rows(table: ParamTable, with_default: bool) -> list[str]:
     """A markdown table of a section's keys, from its parameter table."""
     if with_default:
@@ -233,7 +221,14 @@ def _param_rows(table: ParamTable, with_default: bool) -> list[str]:
     for param in table:
         if param.derived:
             continue
-        default = f" `{param.default}` |" if with_default else ""
+        if not with_default:
+            default = ""
+        elif param.default is None:
+            default = " required |"
+        elif isinstance(param.default, str) and param.choices is None:
+            default = f" {param.default} |"  # computed by the loader
+        else:
+            default = f" `{param.default}` |"
         meaning = param.meaning.replace("|", "\\|")  # |v| would end the markdown cell
         lines.append(f"| `{param.yaml_key}` | {param.unit} |{default} {param.range_text()} | "
                      f"{meaning} |")
@@ -262,15 +257,26 @@ def config_reference_markdown() -> str:
         lines += ["", f"## `{table.name}` file", "", f"{table.title.capitalize()}.", ""]
         lines += _param_rows(table, with_default=False)
     lines += ["", "## Tire files", "",
-              f"`model`: one of {', '.join(f'`{m}`' for m in TIRE_MODEL_NAMES)}.", "",
-              "`model: simple` (the brush combined-slip tire, `core/tire_simple.py`) takes "
-              "every key below; `model: mf61` (Magic Formula 6.1, `core/tire_mf61.py`) takes "
-              "`tir_file` (an MF-Tyre .tir property file, relative to the tire file) and, "
-              "optionally, the last three.", "",
-              "| key | range | meaning |", "|---|---|---|"]
-    tire_keys = {**SIMPLE_TIRE_RANGES, **TIRE_COMMON_RANGES}
-    for key, (lo, hi) in tire_keys.items():
-        lines.append(f"| `{key}` | {lo:g} .. {hi:g} | {TIRE_MEANING[key]} |")
+              f"`model`: one of {', '.join(f'`{m.name}`' for m in tire_models())}; the "
+              "other keys are the model's (from its parameter table in "
+              "`simserver/tire_models.py`). A default in words is computed by the loader "
+              "when the key is absent.",
+              "",
+              "A tire file describes the tire as measured on one side of a car (`mf61`: the "
+              ".tir's `TYRESIDE`, `Left` when absent; `simple`: symmetric). The vehicle's "
+              "`tires: {front, rear}` gives one file per axle: the corner on the file's side "
+              "uses the tire as described, the corner on the other side its mirror image "
+              "(slip angle, camber, side force and aligning moment mirrored, as MF-Tyre "
+              "does), so a left tire's shifts (SHy, SVy, conicity, ply steer) pull the car "
+              "to neither side."]
+    for model in tire_models():
+        if model.params is None:
+            continue
+        lines += ["", f"### `model: {model.name}`", "", f"{model.description}.", ""]
+        lines += [f"- `{key}` (path): {meaning}." for key, meaning in model.path_keys]
+        if model.path_keys:
+            lines.append("")
+        lines += _param_rows(model.params, with_default=True)
     for table, where in ((P.ROAD, "road"), (P.MODEL_OPTIONS, "model")):
         lines += ["", f"## `{where}:` section of a scenario or scene", "",
                   f"{table.title.capitalize()}; every key is optional.", ""]

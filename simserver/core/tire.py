@@ -61,11 +61,14 @@ from simserver.core.tire_layout import (
     N_TIRE_OUT,
     OUT_C_ALPHA,
     OUT_C_KAPPA,
+    OUT_FY,
     OUT_KAPPA_SLIDE,
+    OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
     TIRE_JIT_OPTIONS,
     TIRE_MODEL_MF61,
     TIRE_MODEL_SIMPLE,
+    TP_MIRRORED,
     TP_MODEL,
     TP_MODEL_BASE,
     TireKernels,
@@ -79,6 +82,20 @@ N_TIRE_PARAM = TP_MODEL_BASE + max(N_SIMPLE_PARAM, N_MF61_PARAM)
 BUILTIN_KERNELS = TireKernels((), ())
 """The ``kernels`` argument when only the built-in models are used (they are called
 directly); ``simserver.tire_models.tire_kernels()`` adds every other registered model's."""
+
+
+@nb.njit(inline="always", **TIRE_JIT_OPTIONS)
+def _side_sign(tp: np.ndarray) -> float:
+    """-1 for a mirrored tire (``tp[TP_MIRRORED] = 1``), +1 as described.
+
+    Mirroring a tire in the vehicle's x-z plane (MF-Tyre's handling of a tire used on the
+    side opposite to its ``TYRESIDE``): the model is evaluated at the mirrored slip angle
+    and camber, and its side force and aligning moment are mirrored back, so every
+    lateral asymmetry (the shifts SHy, SVy, the camber terms, conicity, ply steer) changes
+    side while Fx, My and the stiffnesses do not. A multiplication by exactly 1.0 for an
+    unmirrored tire: its results stay bit-identical.
+    """
+    return 1.0 - 2.0 * tp[TP_MIRRORED]
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
@@ -176,6 +193,7 @@ def tire_prepare(
         Written (every slot the model uses).
     """
     model = int(tp[TP_MODEL])
+    gamma_rad = gamma_rad * _side_sign(tp)  # a mirrored tire sees the mirrored camber
     if model == TIRE_MODEL_MF61:
         _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
     elif model == TIRE_MODEL_SIMPLE:
@@ -216,6 +234,8 @@ def tire_evaluate(
         Written in place, every ``OUT_*`` slot.
     """
     model = int(tp[TP_MODEL])
+    side = _side_sign(tp)
+    tan_alpha = tan_alpha * side
     if not fz_n > 0.0:
         _no_load(out)
     elif model == TIRE_MODEL_MF61:
@@ -224,6 +244,8 @@ def tire_evaluate(
         _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
     else:
         _registered_evaluate(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
+    out[OUT_FY] *= side
+    out[OUT_MZ] *= side
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
@@ -263,6 +285,9 @@ def tire_forces(
     # the model kernels are inlined here (no call, so the view tp[TP_MODEL_BASE:] costs
     # no reference counting); the same as tire_prepare then tire_evaluate
     model = int(tp[TP_MODEL])
+    side = _side_sign(tp)
+    tan_alpha = tan_alpha * side
+    gamma_rad = gamma_rad * side
     if model == TIRE_MODEL_MF61:
         _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
         _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
@@ -272,3 +297,5 @@ def tire_forces(
     else:
         _registered_prepare(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef)
         _registered_evaluate(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
+    out[OUT_FY] *= side
+    out[OUT_MZ] *= side
