@@ -295,7 +295,8 @@ def _load_list(text: str) -> list[float]:
 
 
 def _add_tire_curves_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("tire", type=Path, help="tire YAML file (model: simple or mf61)")
+    parser.add_argument("tire", type=Path,
+                        help="tire YAML file (model: simple or mf61) or an MF-Tyre .tir file")
     parser.add_argument("--out", type=Path, required=True, metavar="FILE.png",
                         help="PNG file to write")
     parser.add_argument("--loads", type=_load_list, default=None, metavar="N1,N2,...",

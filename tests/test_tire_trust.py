@@ -232,3 +232,11 @@ def test_braked_on_a_10pct_grade_it_holds(tmp_path, vehicle):
     assert moved.max() < 5e-3
     held = moved[len(moved) // 2:]
     assert held.max() - held.min() < 1e-9
+
+
+def test_a_tir_file_is_a_tire_file():
+    """``load_tire`` (and so a vehicle's ``tires:`` and ``simserver tire-curves``) reads a
+    .tir directly, as the mf61 tire file that names it with every default."""
+    tp, name = load_tire(SAMPLE_TIR)
+    assert name == "mf61"
+    np.testing.assert_array_equal(tp, MF_SAMPLE)

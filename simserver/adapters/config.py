@@ -49,6 +49,7 @@ from simserver.tire_models import N_MODEL_PARAM_MAX, TIRE_MODEL_NAMES, tire_mode
 # from the parameter tables (core/params.py).
 SUBSYSTEMS: tuple[str, ...] = tuple(table.name for table in P.VEHICLE_SUBSYSTEMS)
 MODEL_OPTION_DEFAULTS: dict[str, Any] = P.MODEL_OPTIONS.defaults
+TIR_SUFFIX = ".tir"  # a tire path with this suffix is an MF-Tyre file (load_tire)
 
 @dataclass
 class VehicleConfig:
@@ -110,7 +111,8 @@ def load_tire(path: Path) -> tuple[np.ndarray, str]:
     model's name.
 
     The file's ``model`` key names a registered tire model (``simserver.tire_models``),
-    whose loader reads the rest. The two built-in forms::
+    whose loader reads the rest. A ``.tir`` file is read as a tire file holding only
+    ``model: mf61`` and ``tir_file: <itself>``. The two built-in forms::
 
         model: simple                       # core.tire_simple
         cornering_stiffness_n_per_rad: 51000
@@ -142,7 +144,10 @@ def load_tire_sided(path: Path) -> tuple[np.ndarray, str, str | None]:
     """``load_tire`` and the side the file's tire is meant for: ``"left"``, ``"right"`` or
     None (a symmetric tire, never mirrored)."""
     path = Path(path)
-    data = read_yaml(path)
+    if path.suffix.lower() == TIR_SUFFIX:  # an MF-Tyre file itself: its defaults throughout
+        data: dict[str, Any] = {"model": "mf61", "tir_file": path.name}
+    else:
+        data = read_yaml(path)
     model = tire_model(choice(path, "model", data.get("model"), TIRE_MODEL_NAMES))
     loaded = model.load(path, data)
     if loaded.model_params.size > N_MODEL_PARAM_MAX:
@@ -260,7 +265,9 @@ def config_reference_markdown() -> str:
               f"`model`: one of {', '.join(f'`{m.name}`' for m in tire_models())}; the "
               "other keys are the model's (from its parameter table in "
               "`simserver/tire_models.py`). A default in words is computed by the loader "
-              "when the key is absent.",
+              "when the key is absent. Wherever a tire file is named (a vehicle's `tires:`, "
+              "`simserver tire-curves`), an MF-Tyre `.tir` file may be named instead: it is "
+              "read as `model: mf61` with `tir_file` itself and every default.",
               "",
               "A tire file describes the tire as measured on one side of a car (`mf61`: the "
               ".tir's `TYRESIDE`, `Left` when absent; `simple`: symmetric). The vehicle's "
