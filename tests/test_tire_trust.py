@@ -240,3 +240,70 @@ def test_a_tir_file_is_a_tire_file():
     tp, name = load_tire(SAMPLE_TIR)
     assert name == "mf61"
     np.testing.assert_array_equal(tp, MF_SAMPLE)
+
+
+# --- camber from the suspension ---------------------------------------------------------------
+def fy_closed_form(fz: float, gamma: float) -> float:
+    """MF 6.1 pure side force at zero slip, (4.E19)-(4.E30) at nominal pressure: at kappa = 0
+    the combined-slip weight is 1 and the kappa-induced side force 0."""
+    from tests.test_tire_mf61 import C, dfz_of, kya_ref, muy_ref, shy_ref
+
+    d, gs = dfz_of(fz), math.sin(gamma)
+    cy = C["PCY1"] * C["LCY"]
+    dy = muy_ref(fz) * (1.0 - C["PDY3"] * gs * gs) * fz
+    by = kya_ref(fz, gamma) / (cy * dy)
+    alpha_y = shy_ref(fz, gamma)
+    ey = ((C["PEY1"] + C["PEY2"] * d)
+          * (1.0 + C["PEY5"] * gs * gs - (C["PEY3"] + C["PEY4"] * gs) * math.copysign(1.0, alpha_y))
+          * C["LEY"])
+    svy = fz * (C["PVY1"] + C["PVY2"] * d) * C["LVY"] * C["LMUY"] + (
+        fz * (C["PVY3"] + C["PVY4"] * d) * gs * C["LKYC"] * C["LMUY"])
+    x = by * alpha_y
+    return dy * math.sin(cy * math.atan(x - ey * (x - math.atan(x)))) + svy
+
+
+@pytest.mark.parametrize("fz", [3000.0, 4500.0])
+def test_camber_thrust_is_mf61s_closed_form(fz):
+    """A left tire at a small inclination (top toward -y) pushes toward -y by the closed
+    form's amount; the mirrored (right-hand) tire at the mirrored camber pushes the other
+    way by the same amount."""
+    gamma = 0.02
+    thrust = forces(MF_SAMPLE, 0.0, 0.0, gamma, fz=fz)[OUT_FY] - forces(
+        MF_SAMPLE, 0.0, 0.0, 0.0, fz=fz)[OUT_FY]
+    expect = fy_closed_form(fz, gamma) - fy_closed_form(fz, 0.0)
+    assert thrust == pytest.approx(expect, rel=1e-9)
+    assert thrust < -0.001 * fz  # toward -y, and not negligible
+    mirrored = MF_SAMPLE.copy()
+    mirrored[TP_MIRRORED] = 1.0
+    thrust_right = forces(mirrored, 0.0, 0.0, -gamma, fz=fz)[OUT_FY] - forces(
+        mirrored, 0.0, 0.0, 0.0, fz=fz)[OUT_FY]
+    assert thrust_right == pytest.approx(-expect, rel=1e-12)
+
+
+def test_a_steady_turn_shows_roll_camber_in_the_history(tmp_path):
+    """The camber columns are the suspension's: static camber, heave gain times the
+    corner's compression, roll gain times the roll (mf_hatchback: front 0.8, rear 0.9)."""
+    from simserver.core import params as P
+
+    vehicle = load_vehicle(HATCH)
+    vp = vehicle.vp
+    r = run(tmp_path, HATCH, 20.0, 0.03, 4.0)
+    roll = r.states[:, L.ROLL_RAD]
+    assert roll[-1] > 0.005  # a left turn lifts the left side: the body leans outward
+    for i, (static, roll_gain, heave_gain, half_track, x_axle) in enumerate([
+        (P.VP_CAMBER_STATIC_FRONT_RAD, P.VP_CAMBER_ROLL_GAIN_FRONT,
+         P.VP_CAMBER_HEAVE_GAIN_FRONT_RADPM, P.VP_TRACK_FRONT_M, P.VP_CG_TO_FRONT_AXLE_M),
+    ] * 2 + [
+        (P.VP_CAMBER_STATIC_REAR_RAD, P.VP_CAMBER_ROLL_GAIN_REAR,
+         P.VP_CAMBER_HEAVE_GAIN_REAR_RADPM, P.VP_TRACK_REAR_M, P.VP_CG_TO_REAR_AXLE_M),
+    ] * 2):
+        y = 0.5 * vp[half_track] * (1.0 if i % 2 == 0 else -1.0)
+        px = vp[x_axle] * (1.0 if i < 2 else -1.0)
+        compression = -(r.states[:, L.HEAVE_M] + y * roll - px * r.states[:, L.PITCH_RAD])
+        camber = vp[static] + vp[heave_gain] * compression
+        inboard = -1.0 if y > 0.0 else 1.0
+        expect = vp[roll_gain] * roll + inboard * camber
+        np.testing.assert_allclose(r.outputs[:, L.O_CAMBER0 + i], expect, rtol=1e-12,
+                                   atol=1e-15)
+    roll_part = vp[P.VP_CAMBER_ROLL_GAIN_FRONT] * roll[-1]
+    assert abs(roll_part) > 0.004  # the roll-induced camber is there, a quarter degree
