@@ -84,18 +84,14 @@ BUILTIN_KERNELS = TireKernels((), ())
 directly); ``simserver.tire_models.tire_kernels()`` adds every other registered model's."""
 
 
-@nb.njit(inline="always", **TIRE_JIT_OPTIONS)
-def _side_sign(tp: np.ndarray) -> float:
-    """-1 for a mirrored tire (``tp[TP_MIRRORED] = 1``), +1 as described.
-
-    Mirroring a tire in the vehicle's x-z plane (MF-Tyre's handling of a tire used on the
-    side opposite to its ``TYRESIDE``): the model is evaluated at the mirrored slip angle
-    and camber, and its side force and aligning moment are mirrored back, so every
-    lateral asymmetry (the shifts SHy, SVy, the camber terms, conicity, ply steer) changes
-    side while Fx, My and the stiffnesses do not. A multiplication by exactly 1.0 for an
-    unmirrored tire: its results stay bit-identical.
-    """
-    return 1.0 - 2.0 * tp[TP_MIRRORED]
+# Mirroring (``tp[TP_MIRRORED] = 1``): a tire used on the side opposite to the one its file
+# describes (MF-Tyre's TYRESIDE) is the mirror image in the vehicle's x-z plane. Every
+# dispatcher evaluates the model at the mirrored slip angle and camber and mirrors its side
+# force and aligning moment back (``side = 1 - 2 tp[TP_MIRRORED]``, -1 or +1), so every
+# lateral asymmetry (the shifts SHy, SVy, the camber terms, conicity, ply steer) changes
+# side while Fx, My and the stiffnesses do not. For an unmirrored tire the factor is
+# exactly 1.0 and the results are bit-identical. (Written out in each dispatcher: a helper
+# function there kept numba from pruning the reference counts of tire_forces.)
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
@@ -193,7 +189,7 @@ def tire_prepare(
         Written (every slot the model uses).
     """
     model = int(tp[TP_MODEL])
-    gamma_rad = gamma_rad * _side_sign(tp)  # a mirrored tire sees the mirrored camber
+    gamma_rad = gamma_rad * 1.0 - 2.0 * tp[TP_MIRRORED]  # a mirrored tire sees the mirrored camber
     if model == TIRE_MODEL_MF61:
         _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
     elif model == TIRE_MODEL_SIMPLE:
@@ -234,7 +230,7 @@ def tire_evaluate(
         Written in place, every ``OUT_*`` slot.
     """
     model = int(tp[TP_MODEL])
-    side = _side_sign(tp)
+    side = 1.0 - 2.0 * tp[TP_MIRRORED]
     tan_alpha = tan_alpha * side
     if not fz_n > 0.0:
         _no_load(out)
@@ -283,19 +279,25 @@ def tire_forces(
         return
     coef = coef_scratch()
     # the model kernels are inlined here (no call, so the view tp[TP_MODEL_BASE:] costs
-    # no reference counting); the same as tire_prepare then tire_evaluate
+    # no reference counting); the same as tire_prepare then tire_evaluate. The mirroring
+    # of the outputs is repeated in each branch: after the branches' merge it kept numba
+    # from pruning the views' reference counts.
     model = int(tp[TP_MODEL])
-    side = _side_sign(tp)
+    side = 1.0 - 2.0 * tp[TP_MIRRORED]
     tan_alpha = tan_alpha * side
     gamma_rad = gamma_rad * side
     if model == TIRE_MODEL_MF61:
         _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
         _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+        out[OUT_FY] *= side
+        out[OUT_MZ] *= side
     elif model == TIRE_MODEL_SIMPLE:
         _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
         _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+        out[OUT_FY] *= side
+        out[OUT_MZ] *= side
     else:
         _registered_prepare(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef)
         _registered_evaluate(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
-    out[OUT_FY] *= side
-    out[OUT_MZ] *= side
+        out[OUT_FY] *= side
+        out[OUT_MZ] *= side
