@@ -894,8 +894,9 @@ def _low_speed_factor(vx_mps: float, vxlow_mps: float) -> float:
     reduced smoothly to zero at standstill: ``s^2 (3 - 2 s)`` with ``s = |vx| / VXLOW``
     below ``VXLOW`` (value and slope continuous at both ends, like MF-Tyre's cosine form
     ``0.5 (1 - cos(pi s))``, which it follows within 0.01, without a libm call), exactly 1
-    above it, so the forces at speed are unchanged to the bit. At rest the lagged slip states (SAE 950311)
-    are then the only source of shear force. ``VXLOW = 0`` switches the reduction off.
+    above it, so the forces at speed are unchanged to the bit. At rest the lagged slip
+    states (SAE 950311) are then the only source of shear force. ``VXLOW = 0`` switches
+    the reduction off.
     """
     s = min(abs(vx_mps) / vxlow_mps, 1.0) if vxlow_mps > 0.0 else 1.0
     return s * s * (3.0 - 2.0 * s)
