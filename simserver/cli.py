@@ -209,6 +209,7 @@ def tire_curve_data(
     combined_alpha_deg: Sequence[float] = COMBINED_SLIP_ANGLES_DEG,
     combined_load_n: float | None = None,
     vx_mps: float = 10.0,
+    gamma_rad: float = 0.0,
 ) -> dict[str, np.ndarray]:
     """Evaluate a tire's steady-state curves with the compiled ``core.tire.tire_forces``.
 
@@ -229,7 +230,11 @@ def tire_curve_data(
     combined_load_n : float, optional
         Load of the combined-slip curves; default the nominal load.
     vx_mps : float, optional
-        Hub speed passed to the model (only rolling resistance depends on it).
+        Hub speed passed to the model (rolling resistance; MF 6.1's shifts fade out below
+        its VXLOW, so keep it above that).
+    gamma_rad : float, optional
+        Inclination (camber) angle of every curve, ISO 8855 (models without camber
+        terms ignore it).
 
     Returns
     -------
@@ -253,7 +258,7 @@ def tire_curve_data(
     tp = np.ascontiguousarray(tp, dtype=np.float64)
 
     def forces(k: float, ta: float, fz: float) -> tuple[float, float, float]:
-        tire_forces(kernels, tp, k, ta, 0.0, fz, mu_scale, vx_mps, out)
+        tire_forces(kernels, tp, k, ta, gamma_rad, fz, mu_scale, vx_mps, out)
         return out[OUT_FX], out[OUT_FY], out[OUT_MZ]
 
     fy_alpha = np.zeros((loads.size, n_points))
@@ -287,6 +292,16 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _camber_deg(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(value) and -15.0 <= value <= 15.0):
+        raise argparse.ArgumentTypeError(f"expected -15 .. 15 degrees, got {text!r}")
+    return value
+
+
 def _load_list(text: str) -> list[float]:
     parts = [p.strip() for p in text.split(",") if p.strip()]
     if not parts:
@@ -307,6 +322,9 @@ def _add_tire_curves_arguments(parser: argparse.ArgumentParser) -> None:
                         help="slip-angle range ±deg (default 20)")
     parser.add_argument("--kappa-max", type=_positive_float, default=1.0, metavar="K",
                         help="longitudinal slip range ± (default 1.0)")
+    parser.add_argument("--camber-deg", type=_camber_deg, default=0.0, metavar="DEG",
+                        help="inclination angle of every curve, ISO 8855, -15 .. 15 "
+                             "(default 0; the brush model has no camber terms)")
 
 
 def tire_curves_command(args: argparse.Namespace) -> int:
@@ -315,7 +333,8 @@ def tire_curves_command(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        ``tire``, ``out``, ``loads``, ``mu``, ``alpha_max_deg``, ``kappa_max``.
+        ``tire``, ``out``, ``loads``, ``mu``, ``alpha_max_deg``, ``kappa_max``,
+        ``camber_deg``.
 
     Returns
     -------
@@ -329,9 +348,10 @@ def tire_curves_command(args: argparse.Namespace) -> int:
     nominal = nominal_load_n(tp)
     loads = args.loads or [f * nominal for f in DEFAULT_LOAD_FACTORS]
     curves = tire_curve_data(tp, loads, mu_scale=args.mu, alpha_max_deg=args.alpha_max_deg,
-                             kappa_max=args.kappa_max)
+                             kappa_max=args.kappa_max, gamma_rad=math.radians(args.camber_deg))
     out: Path = args.out
-    title = f"{args.tire.name} ({model}, nominal load {nominal:,.0f} N, friction x{args.mu:g})"
+    title = f"{args.tire.name} ({model}, nominal load {nominal:,.0f} N, friction x{args.mu:g}"
+    title += f", camber {args.camber_deg:g} deg)" if args.camber_deg else ")"
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         plot_tire_curves(curves, out, title)

@@ -307,3 +307,20 @@ def test_a_steady_turn_shows_roll_camber_in_the_history(tmp_path):
                                    atol=1e-15)
     roll_part = vp[P.VP_CAMBER_ROLL_GAIN_FRONT] * roll[-1]
     assert abs(roll_part) > 0.004  # the roll-induced camber is there, a quarter degree
+
+
+def test_tire_curves_show_camber_where_the_model_has_it():
+    """``tire_curve_data(gamma_rad=...)`` (``simserver tire-curves --camber-deg``): the MF
+    side force at zero slip moves by the camber thrust; the brush model has no camber."""
+    from simserver.cli import tire_curve_data
+
+    fz, gamma = 4000.0, 0.02
+    kwargs = {"n_points": 3, "alpha_max_deg": 1.0}  # the middle point is alpha = 0
+    flat = tire_curve_data(MF_SAMPLE, [fz], **kwargs)["fy_alpha"][0, 1]
+    cambered = tire_curve_data(MF_SAMPLE, [fz], gamma_rad=gamma, **kwargs)["fy_alpha"][0, 1]
+    assert cambered - flat == pytest.approx(
+        fy_closed_form(fz, gamma) - fy_closed_form(fz, 0.0), rel=1e-9)
+    brush, _ = load_tire(CONFIGS / "tires" / "paper_sti.yaml")
+    np.testing.assert_array_equal(tire_curve_data(brush, [fz], **kwargs)["fy_alpha"],
+                                  tire_curve_data(brush, [fz], gamma_rad=gamma,
+                                                  **kwargs)["fy_alpha"])
