@@ -214,6 +214,7 @@ def tire_curve_data(
     combined_alpha_deg: Sequence[float] = COMBINED_SLIP_ANGLES_DEG,
     combined_load_n: float | None = None,
     vx_mps: float = 10.0,
+    gamma_rad: float = 0.0,
 ) -> dict[str, np.ndarray]:
     """Evaluate a tire's steady-state curves with the compiled ``core.tire.tire_forces``.
 
@@ -234,7 +235,11 @@ def tire_curve_data(
     combined_load_n : float, optional
         Load of the combined-slip curves; default the nominal load.
     vx_mps : float, optional
-        Hub speed passed to the model (only rolling resistance depends on it).
+        Hub speed passed to the model (rolling resistance; MF 6.1's shifts fade out below
+        its VXLOW, so keep it above that).
+    gamma_rad : float, optional
+        Inclination (camber) angle of every curve, ISO 8855 (models without camber
+        terms ignore it).
 
     Returns
     -------
@@ -258,7 +263,7 @@ def tire_curve_data(
     tp = np.ascontiguousarray(tp, dtype=np.float64)
 
     def forces(k: float, ta: float, fz: float) -> tuple[float, float, float]:
-        tire_forces(kernels, tp, k, ta, 0.0, fz, mu_scale, vx_mps, out)
+        tire_forces(kernels, tp, k, ta, gamma_rad, fz, mu_scale, vx_mps, out)
         return out[OUT_FX], out[OUT_FY], out[OUT_MZ]
 
     fy_alpha = np.zeros((loads.size, n_points))
@@ -292,6 +297,16 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _camber_deg(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (math.isfinite(value) and -15.0 <= value <= 15.0):
+        raise argparse.ArgumentTypeError(f"expected -15 .. 15 degrees, got {text!r}")
+    return value
+
+
 def _load_list(text: str) -> list[float]:
     parts = [p.strip() for p in text.split(",") if p.strip()]
     if not parts:
@@ -300,7 +315,8 @@ def _load_list(text: str) -> list[float]:
 
 
 def _add_tire_curves_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("tire", type=Path, help="tire YAML file (model: simple or mf61)")
+    parser.add_argument("tire", type=Path,
+                        help="tire YAML file (model: simple or mf61) or an MF-Tyre .tir file")
     parser.add_argument("--out", type=Path, required=True, metavar="FILE.png",
                         help="PNG file to write")
     parser.add_argument("--loads", type=_load_list, default=None, metavar="N1,N2,...",
@@ -311,6 +327,9 @@ def _add_tire_curves_arguments(parser: argparse.ArgumentParser) -> None:
                         help="slip-angle range ±deg (default 20)")
     parser.add_argument("--kappa-max", type=_positive_float, default=1.0, metavar="K",
                         help="longitudinal slip range ± (default 1.0)")
+    parser.add_argument("--camber-deg", type=_camber_deg, default=0.0, metavar="DEG",
+                        help="inclination angle of every curve, ISO 8855, -15 .. 15 "
+                             "(default 0; the brush model has no camber terms)")
 
 
 def tire_curves_command(args: argparse.Namespace) -> int:
@@ -319,7 +338,8 @@ def tire_curves_command(args: argparse.Namespace) -> int:
     Parameters
     ----------
     args : argparse.Namespace
-        ``tire``, ``out``, ``loads``, ``mu``, ``alpha_max_deg``, ``kappa_max``.
+        ``tire``, ``out``, ``loads``, ``mu``, ``alpha_max_deg``, ``kappa_max``,
+        ``camber_deg``.
 
     Returns
     -------
@@ -333,9 +353,10 @@ def tire_curves_command(args: argparse.Namespace) -> int:
     nominal = nominal_load_n(tp)
     loads = args.loads or [f * nominal for f in DEFAULT_LOAD_FACTORS]
     curves = tire_curve_data(tp, loads, mu_scale=args.mu, alpha_max_deg=args.alpha_max_deg,
-                             kappa_max=args.kappa_max)
+                             kappa_max=args.kappa_max, gamma_rad=math.radians(args.camber_deg))
     out: Path = args.out
-    title = f"{args.tire.name} ({model}, nominal load {nominal:,.0f} N, friction x{args.mu:g})"
+    title = f"{args.tire.name} ({model}, nominal load {nominal:,.0f} N, friction x{args.mu:g}"
+    title += f", camber {args.camber_deg:g} deg)" if args.camber_deg else ")"
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         plot_tire_curves(curves, out, title)

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
+from simserver.core.param_table import Param, ParamTable
 from simserver.core.tire import N_BUILTIN_TIRE_MODELS, N_TIRE_PARAM, tire_forces
 from simserver.core.tire_layout import (
     EVALUATE_SIGNATURE,
@@ -82,6 +83,7 @@ class LoadedTire:
     rolling_radius_m: float
     relax_lat_m: float  # b, paper eq. 16
     relax_long_m: float  # B, paper eq. 26
+    side: str | None = None  # "left"/"right": the side the tire was measured on; None: symmetric
 
 
 @dataclass(frozen=True)
@@ -95,6 +97,8 @@ class TireModel:
     prepare: Any  # numba dispatcher compiled with PREPARE_SIGNATURE
     evaluate: Any  # numba dispatcher compiled with EVALUATE_SIGNATURE
     nominal_load_n: Callable[[np.ndarray], float]  # from the model-specific slots
+    params: ParamTable | None = None  # the tire file's numeric keys (docs, validation)
+    path_keys: tuple[tuple[str, str], ...] = ()  # (key, meaning) of its file-path keys
 
 
 _REGISTRY: list[TireModel] = []
@@ -111,19 +115,25 @@ def _check_kernel(name: str, kernel: Any, signature: Any, what: str) -> None:
 
 def register_tire_model(name: str, description: str, load: Callable[[Path, dict], LoadedTire],
                         prepare: Any, evaluate: Any,
-                        nominal_load_n: Callable[[np.ndarray], float]) -> TireModel:
+                        nominal_load_n: Callable[[np.ndarray], float],
+                        params: ParamTable | None = None,
+                        path_keys: tuple[tuple[str, str], ...] = ()) -> TireModel:
     """Add a tire model; it gets the next id. Returns its entry.
 
     ``prepare`` and ``evaluate`` are ``numba.njit`` functions compiled with the explicit
     signatures ``PREPARE_SIGNATURE`` and ``EVALUATE_SIGNATURE`` (core.tire_layout); they
     receive the whole packed tire vector, their own slots from ``TP_MODEL_BASE`` on.
+    ``params`` (a ``ParamTable``) lists the tire file's numeric keys with units, ranges and
+    meanings, ``path_keys`` its file-path keys: both go into docs/configuration.md, and
+    ``read_tire_params`` validates a file against them.
     """
     if name in TIRE_MODEL_NAMES:
         raise ValueError(f"tire model {name!r} is already registered")
     _check_kernel(name, prepare, PREPARE_SIGNATURE, "prepare")
     _check_kernel(name, evaluate, EVALUATE_SIGNATURE, "evaluate")
     entry = TireModel(id=len(_REGISTRY), name=name, description=description, load=load,
-                      prepare=prepare, evaluate=evaluate, nominal_load_n=nominal_load_n)
+                      prepare=prepare, evaluate=evaluate, nominal_load_n=nominal_load_n,
+                      params=params, path_keys=path_keys)
     _REGISTRY.append(entry)
     TIRE_MODEL_NAMES[name] = entry.id
     return entry
@@ -199,63 +209,183 @@ def stiffness_report(tp: np.ndarray, fz_n: float | None = None,
 
 
 # ------------------------------------------------------------------- the built-in models
-COMMON_KEYS = ("relaxation_length_lat_m", "relaxation_length_long_m", "rolling_radius_m")
+def _relaxation_param(name: str, which: str, default: str | None) -> Param:
+    return Param(name, "m", 0.005, 5.0, which, default=default)
+
+
+RADIUS_MEANING = "effective rolling radius R"
+RELAX_LAT_MEANING = "lateral relaxation length b (paper eq. 16)"
+RELAX_LONG_MEANING = "longitudinal relaxation length B (paper eq. 26)"
+AT_NOMINAL = ("; its default is MF 6.1's relaxation length at the nominal load "
+              "Fz = LFZO FNOMIN and zero camber (a .tir key that is missing, not a number "
+              "or not > 0 is an error naming it)")
+
+SIMPLE_TIRE_PARAMS = ParamTable("simple", "the brush combined-slip tire (core/tire_simple.py)", (
+    Param("cornering_stiffness_n_per_rad", "N/rad", 100.0, 1e7,
+          "C_alpha at nominal_load_n, linear in the load"),
+    Param("longitudinal_stiffness_n", "N", 100.0, 1e7,
+          "C_kappa (N per unit slip) at nominal_load_n, linear in the load"),
+    Param("nominal_load_n", "N", 10.0, 1e6, "load at which the stiffnesses are given"),
+    Param("friction_coefficient", "-", 0.01, 3.0,
+          "peak friction mu (times the road's friction scale)"),
+    Param("rolling_resistance_coefficient", "-", 0.0, 0.5, "rolling-resistance force / Fz"),
+    Param("pneumatic_trail_m", "m", 0.0, 0.5,
+          "pneumatic trail at zero slip (Mz = -t Fy, t falls to 0 at full sliding)"),
+    Param("rolling_radius_m", "m", 0.05, 2.0, RADIUS_MEANING),
+    _relaxation_param("relaxation_length_lat_m", RELAX_LAT_MEANING, None),
+    _relaxation_param("relaxation_length_long_m", RELAX_LONG_MEANING, None),
+))
+if tuple(p.name for p in SIMPLE_TIRE_PARAMS)[:len(SIMPLE_PARAM_NAMES)] != SIMPLE_PARAM_NAMES:
+    raise ImportError("SIMPLE_TIRE_PARAMS must list core.tire_simple's slots first, in order")
+
+MF61_TIRE_PARAMS = ParamTable("mf61", "Magic Formula 6.1 from a .tir file (core/tire_mf61.py)", (
+    Param("rolling_radius_m", "m", 0.05, 2.0, RADIUS_MEANING,
+          default="the .tir's UNLOADED_RADIUS"),
+    _relaxation_param("relaxation_length_lat_m", RELAX_LAT_MEANING + AT_NOMINAL,
+                      "PTY1 sin(2 atan(1/PTY2)) R0 LFZO LSGAL"),
+    _relaxation_param("relaxation_length_long_m", RELAX_LONG_MEANING + AT_NOMINAL,
+                      "PTX1 R0 LFZO LSGKP"),
+))
+MF61_PATH_KEYS = (("tir_file", "the MF-Tyre .tir property file (MF 6.1 or 6.2), relative to "
+                               "the tire file; required"),)
+
+MF61_TYRESIDES = {"left": "left", "right": "right", "symmetric": None}
+"""Accepted ``TYRESIDE`` values of a .tir file (any case); absent means ``Left``, as in
+MF-Tyre."""
+
+
+def read_tire_params(path: Path, data: dict[str, Any], table: ParamTable,
+                     path_keys: tuple[str, ...] = ()) -> dict[str, float]:
+    """Validate a tire file's keys against its model's table: key -> number.
+
+    ``model`` and the ``path_keys`` are allowed besides the table's keys (the path keys
+    required). Every number is checked against its range, the error naming file and key.
+    Optional keys absent from the file are absent from the result when their default is a
+    text (a value the loader computes), else they take their default.
+    """
+    from simserver.adapters.config import check_keys, number
+
+    check_keys(path, data, ("model", *path_keys, *table.keys),
+               required=("model", *path_keys, *table.required_keys))
+    values: dict[str, float] = {}
+    for param in table:
+        key = param.yaml_key
+        if key in data:
+            values[key] = number(path, key, data[key], param.lo, param.hi)
+        elif param.default is not None and not isinstance(param.default, str):
+            values[key] = float(param.default)
+    return values
 
 
 def _load_simple(path: Path, data: dict[str, Any]) -> LoadedTire:
-    """``model: simple`` (core.tire_simple): every key of ``SIMPLE_TIRE_RANGES`` and the
-    relaxation lengths, all required."""
-    from simserver.adapters.config import (
-        SIMPLE_TIRE_RANGES,
-        TIRE_COMMON_RANGES,
-        check_keys,
-        number,
-    )
-
-    keys = ("model", *SIMPLE_PARAM_NAMES, *COMMON_KEYS[:2])
-    check_keys(path, data, keys, required=keys)
-    vals = {k: number(path, k, data[k], *SIMPLE_TIRE_RANGES[k]) for k in SIMPLE_PARAM_NAMES}
-    lat, long = COMMON_KEYS[0], COMMON_KEYS[1]
+    """``model: simple`` (core.tire_simple): every key of ``SIMPLE_TIRE_PARAMS``."""
+    vals = read_tire_params(path, data, SIMPLE_TIRE_PARAMS)
     return LoadedTire(
         model_params=simple_param_vector(vals), rolling_radius_m=vals["rolling_radius_m"],
-        relax_lat_m=number(path, lat, data[lat], *TIRE_COMMON_RANGES[lat]),
-        relax_long_m=number(path, long, data[long], *TIRE_COMMON_RANGES[long]))
+        relax_lat_m=vals["relaxation_length_lat_m"],
+        relax_long_m=vals["relaxation_length_long_m"])
+
+
+def mf61_relaxation_lengths(tir: Any, coeffs: dict[str, float]) -> dict[str, float]:
+    """The relaxation lengths MF 6.1 defines in a .tir file, at the nominal load.
+
+    MF-Tyre 6.1 (as in MFeval): ``sigma_kappa = Fz (PTX1 + PTX2 dfz) exp(-PTX3 dfz)
+    (R0 / Fz0) LSGKP`` and ``sigma_alpha = PTY1 sin(2 atan(Fz / (PTY2 Fz0'))) (1 - PKY3
+    |gamma|) R0 LFZO LSGAL``. The lagged slip states of SAE 950311 take one length each
+    (paper eqs. 16 and 26), so they are evaluated at the scaled nominal load
+    ``Fz = Fz0' = LFZO FNOMIN`` (``dfz = 0``) and zero camber::
+
+        relaxation_length_long_m = PTX1 R0 LFZO LSGKP
+        relaxation_length_lat_m  = PTY1 sin(2 atan(1 / PTY2)) R0 LFZO LSGAL
+
+    Returns a dict with the keys that could be computed (a key is absent when a .tir key
+    it needs is absent); raises ``TirError`` naming the .tir key for a value that is not a
+    number or out of its range (``PTX1 > 0``, ``PTY1 > 0``, ``PTY2 > 0``, ``LSGKP > 0``,
+    ``LSGAL > 0``).
+    """
+    from simserver.adapters.tir_file import TirError
+
+    def value(key: str, default: float | None = None) -> float | None:
+        if key in tir.ambiguous:
+            raise TirError(f"{tir.path}: {key}: appears in several sections with different "
+                           "values")
+        if key not in tir.values:
+            return default
+        v = tir.values[key]
+        if isinstance(v, str):
+            raise TirError(f"{tir.where(key)}: {key}: non-numeric value {v!r}")
+        if not v > 0.0:
+            raise TirError(f"{tir.where(key)}: {key} = {v:g}: must be > 0 (relaxation length)")
+        return float(v)
+
+    r0_scaled = coeffs["UNLOADED_RADIUS"] * coeffs["LFZO"]
+    lengths: dict[str, float] = {}
+    ptx1, lsgkp = value("PTX1"), value("LSGKP", 1.0)
+    if ptx1 is not None:
+        lengths["relaxation_length_long_m"] = ptx1 * r0_scaled * lsgkp
+    pty1, pty2, lsgal = value("PTY1"), value("PTY2"), value("LSGAL", 1.0)
+    if pty1 is not None and pty2 is not None:
+        lengths["relaxation_length_lat_m"] = (
+            pty1 * math.sin(2.0 * math.atan(1.0 / pty2)) * r0_scaled * lsgal)
+    return lengths
+
+
+def _mf61_side(tir: Any) -> str | None:
+    """The tire's ``TYRESIDE`` (``MF61_TYRESIDES``): left, right or None (symmetric)."""
+    from simserver.adapters.tir_file import TirError
+
+    raw = tir.values.get("TYRESIDE", "Left")
+    if not isinstance(raw, str) or raw.strip().lower() not in MF61_TYRESIDES:
+        raise TirError(f"{tir.where('TYRESIDE')}: TYRESIDE = {raw!r}: expected one of "
+                       "'Left', 'Right', 'Symmetric'")
+    return MF61_TYRESIDES[raw.strip().lower()]
 
 
 def _load_mf61(path: Path, data: dict[str, Any]) -> LoadedTire:
     """``model: mf61`` (core.tire_mf61): a ``tir_file`` (relative to the tire file) and
-    optional radius and relaxation lengths (defaults from the .tir file)."""
-    from simserver.adapters.config import TIRE_COMMON_RANGES, ConfigError, check_keys, number
+    optional radius and relaxation lengths (defaults from the .tir file, see
+    ``mf61_relaxation_lengths``); the tire's side from the .tir's ``TYRESIDE``."""
+    from simserver.adapters.config import ConfigError, number
     from simserver.adapters.tir_file import TirError, load_tir, mf61_coefficients
     from simserver.adapters.validate import referenced_file
 
-    check_keys(path, data, ("model", "tir_file", *COMMON_KEYS), required=("model", "tir_file"))
+    vals = read_tire_params(path, data, MF61_TIRE_PARAMS, path_keys=("tir_file",))
     tir_path = referenced_file(path, "tir_file", data["tir_file"])
     try:
-        coeffs = mf61_coefficients(load_tir(tir_path))
+        tir = load_tir(tir_path)
+        coeffs = mf61_coefficients(tir)
+        if not coeffs["VXLOW"] >= 0.0:
+            raise TirError(f"{tir.where('VXLOW')}: VXLOW = {coeffs['VXLOW']:g}: must be >= 0")
+        from_tir = mf61_relaxation_lengths(tir, coeffs)
+        side = _mf61_side(tir)
     except TirError as exc:
         raise ConfigError(f"{path}: key 'tir_file': {exc}") from exc
-    r0 = coeffs["UNLOADED_RADIUS"]
-    # MF 6.1 relaxation lengths at the nominal load (Pacejka 2012, eqs. 4.E65 and 4.E67)
-    pty1 = coeffs.get("PTY1", 2.0)
-    pty2 = coeffs.get("PTY2", 2.0)
-    default = {"relaxation_length_lat_m": pty1 * r0 * math.sin(2.0 * math.atan(1.0 / pty2)),
-               "relaxation_length_long_m": coeffs.get("PTX1", 1.0) * r0,
-               "rolling_radius_m": r0}
-    vals = {k: number(path, k, data.get(k, default[k]), *TIRE_COMMON_RANGES[k])
-            for k in COMMON_KEYS}
+    from_tir["rolling_radius_m"] = coeffs["UNLOADED_RADIUS"]
+    needs = {"relaxation_length_long_m": ("PTX1",), "relaxation_length_lat_m": ("PTY1", "PTY2")}
+    for param in MF61_TIRE_PARAMS:
+        key = param.yaml_key
+        if key in vals:
+            continue  # the tire file overrides the .tir
+        if key not in from_tir:
+            missing = ", ".join(k for k in needs[key] if k not in tir.values)
+            raise ConfigError(f"{path}: key 'tir_file': {tir_path}: missing key {missing} "
+                              f"(for the {param.meaning}; or give {key} in the tire file)")
+        vals[key] = number(f"{path} (from {tir_path.name})", key, from_tir[key], param.lo,
+                           param.hi)
     return LoadedTire(model_params=mf61_param_vector(coeffs),
                       rolling_radius_m=vals["rolling_radius_m"],
                       relax_lat_m=vals["relaxation_length_lat_m"],
-                      relax_long_m=vals["relaxation_length_long_m"])
+                      relax_long_m=vals["relaxation_length_long_m"], side=side)
 
 
 _simple = register_tire_model(
     "simple", "brush (Fiala) combined-slip model with explicit stiffnesses (core/tire_simple.py)",
-    _load_simple, simple_prepare_kernel, simple_evaluate_kernel, lambda p: p[SP_FZ_NOM])
+    _load_simple, simple_prepare_kernel, simple_evaluate_kernel, lambda p: p[SP_FZ_NOM],
+    params=SIMPLE_TIRE_PARAMS)
 _mf61 = register_tire_model(
     "mf61", "Magic Formula 6.1 from a .tir property file (core/tire_mf61.py)",
-    _load_mf61, mf61_prepare_kernel, mf61_evaluate_kernel, lambda p: p[P_FNOMIN])
+    _load_mf61, mf61_prepare_kernel, mf61_evaluate_kernel, lambda p: p[P_FNOMIN],
+    params=MF61_TIRE_PARAMS, path_keys=MF61_PATH_KEYS)
 if (_simple.id, _mf61.id, len(_REGISTRY)) != (TIRE_MODEL_SIMPLE, TIRE_MODEL_MF61,
                                                N_BUILTIN_TIRE_MODELS):
     raise ImportError("the built-in tire models must keep the ids of core.tire_layout")

@@ -140,9 +140,10 @@ def test_bad_dt_is_a_config_error(tmp_path, capsys):
     assert "--dt" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("tire", ["paper_sti.yaml", "mf61_sample.yaml"])
+@pytest.mark.parametrize("tire", ["paper_sti.yaml", "mf61_sample.yaml",
+                                  "data/mf61_225_50R17_sample.tir"])
 def test_tire_curves_writes_a_png(tmp_path, tire):
-    out = tmp_path / "curves" / f"{tire}.png"
+    out = tmp_path / "curves" / f"{Path(tire).name}.png"
     proc = simserver("tire-curves", TIRES / tire, "--out", out)
     assert proc.returncode == 0, proc.stderr
     assert out.read_bytes()[:8] == PNG_SIGNATURE

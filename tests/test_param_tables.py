@@ -16,6 +16,7 @@ import yaml
 from simserver.adapters import config as C
 from simserver.core import param_table as T
 from simserver.core import params as P
+from simserver.tire_models import tire_models
 from tests.conftest import CONFIGS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -190,7 +191,30 @@ def test_configuration_reference_lists_every_key():
     for table in P.VEHICLE_PARAM_TABLES:
         for key in table.keys:
             assert f"| `{key}` | {table.by_key(key).unit} |" in doc, key
-    assert set(C.TIRE_MEANING) == set(C.SIMPLE_TIRE_RANGES) | set(C.TIRE_COMMON_RANGES)
+    for model in tire_models():
+        assert model.params is not None, model.name
+        assert f"### `model: {model.name}`" in doc
+        for param in model.params:
+            assert f"| `{param.yaml_key}` | {param.unit} |" in doc, (model.name, param.name)
+        for key, _ in model.path_keys:
+            assert f"- `{key}` (path):" in doc
+
+
+@pytest.mark.parametrize("model", [m for m in tire_models() if m.params is not None],
+                         ids=lambda m: m.name)
+def test_tire_tables_validate_tire_files(tmp_path, model):
+    """Every numeric key of a tire table is range-checked by the loader, naming the key."""
+    source = {"simple": CONFIGS / "tires" / "paper_sti.yaml",
+              "mf61": CONFIGS / "tires" / "mf61_sample.yaml"}[model.name]
+    data = yaml.safe_load(source.read_text())
+    if "tir_file" in data:
+        data["tir_file"] = str((source.parent / data["tir_file"]).resolve())
+    for param in model.params:
+        broken = dict(data, **{param.yaml_key: param.hi * 2.0 + 1.0})
+        path = tmp_path / "tire.yaml"
+        path.write_text(yaml.safe_dump(broken))
+        with pytest.raises(C.ConfigError, match=rf"tire\.yaml: key '{param.yaml_key}'"):
+            C.load_tire(path)
 
 
 def test_stale_reference_is_reported(tmp_path, capsys):

@@ -37,34 +37,20 @@ from simserver.core.param_table import ParamTable, slot_constants_source, with_s
 from simserver.core.road import set_road
 from simserver.core.tire import N_TIRE_PARAM
 from simserver.core.tire_layout import (
+    TP_MIRRORED,
     TP_MODEL,
     TP_MODEL_BASE,
     TP_RADIUS_M,
     TP_RELAX_LAT_M,
     TP_RELAX_LONG_M,
 )
-from simserver.tire_models import N_MODEL_PARAM_MAX, TIRE_MODEL_NAMES, tire_model
+from simserver.tire_models import N_MODEL_PARAM_MAX, TIRE_MODEL_NAMES, tire_model, tire_models
 
 # The vehicle file's subsystem keys, one file each, and the ``model:`` section's defaults,
 # from the parameter tables (core/params.py).
 SUBSYSTEMS: tuple[str, ...] = tuple(table.name for table in P.VEHICLE_SUBSYSTEMS)
 MODEL_OPTION_DEFAULTS: dict[str, Any] = P.MODEL_OPTIONS.defaults
-
-SIMPLE_TIRE_RANGES: dict[str, tuple[float, float]] = {
-    "cornering_stiffness_n_per_rad": (100.0, 1e7),
-    "longitudinal_stiffness_n": (100.0, 1e7),
-    "nominal_load_n": (10.0, 1e6),
-    "friction_coefficient": (0.01, 3.0),
-    "rolling_resistance_coefficient": (0.0, 0.5),
-    "pneumatic_trail_m": (0.0, 0.5),
-    "rolling_radius_m": (0.05, 2.0),
-}
-TIRE_COMMON_RANGES: dict[str, tuple[float, float]] = {
-    "relaxation_length_lat_m": (0.005, 5.0),
-    "relaxation_length_long_m": (0.005, 5.0),
-    "rolling_radius_m": (0.05, 2.0),
-}
-
+TIR_SUFFIX = ".tir"  # a tire path with this suffix is an MF-Tyre file (load_tire)
 
 @dataclass
 class VehicleConfig:
@@ -126,7 +112,8 @@ def load_tire(path: Path, data: dict[str, Any] | None = None) -> tuple[np.ndarra
     model's name.
 
     The file's ``model`` key names a registered tire model (``simserver.tire_models``),
-    whose loader reads the rest. The two built-in forms::
+    whose loader reads the rest. A ``.tir`` file is read as a tire file holding only
+    ``model: mf61`` and ``tir_file: <itself>``. The two built-in forms::
 
         model: simple                       # core.tire_simple
         cornering_stiffness_n_per_rad: 51000
@@ -142,13 +129,29 @@ def load_tire(path: Path, data: dict[str, Any] | None = None) -> tuple[np.ndarra
         model: mf61                         # core.tire_mf61
         tir_file: ../tir/x.tir              # relative to this file
         rolling_radius_m: 0.305             # optional, default UNLOADED_RADIUS
-        relaxation_length_lat_m: 0.48       # optional, default from PTY1/PTY2 at FNOMIN
-        relaxation_length_long_m: 0.62      # optional, default from PTX1 at FNOMIN
+        relaxation_length_lat_m: 0.48       # optional, default from PTY1, PTY2, R0
+        relaxation_length_long_m: 0.62      # optional, default from PTX1, R0
+
+    Every key with its unit, range and meaning: the model's parameter table
+    (``TireModel.params``, docs/configuration.md). The vector is the tire as its file
+    describes it (``tp[TP_MIRRORED] = 0``); ``load_vehicle`` mirrors the corners on the
+    other side (``load_tire_sided``).
 
     ``data``: the file's mapping already read (a resolved vehicle, ``resolve_vehicle``).
     """
+    tp, name, _ = load_tire_sided(path, data)
+    return tp, name
+
+
+def load_tire_sided(path: Path, data: dict[str, Any] | None = None
+                    ) -> tuple[np.ndarray, str, str | None]:
+    """``load_tire`` and the side the file's tire is meant for: ``"left"``, ``"right"`` or
+    None (a symmetric tire, never mirrored)."""
     path = Path(path)
-    data = read_yaml(path) if data is None else data
+    if data is None and path.suffix.lower() == TIR_SUFFIX:  # an MF-Tyre file itself
+        data = {"model": "mf61", "tir_file": path.name}  # its defaults throughout
+    elif data is None:
+        data = read_yaml(path)
     model = tire_model(choice(path, "model", data.get("model"), TIRE_MODEL_NAMES))
     loaded = model.load(path, data)
     if loaded.model_params.size > N_MODEL_PARAM_MAX:
@@ -160,7 +163,7 @@ def load_tire(path: Path, data: dict[str, Any] | None = None) -> tuple[np.ndarra
     tp[TP_RELAX_LAT_M] = loaded.relax_lat_m
     tp[TP_RELAX_LONG_M] = loaded.relax_long_m
     tp[TP_MODEL_BASE:TP_MODEL_BASE + loaded.model_params.size] = loaded.model_params
-    return tp, model.name
+    return tp, model.name, loaded.side
 
 
 def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
@@ -199,17 +202,20 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
     tp = np.zeros((4, N_TIRE_PARAM), dtype=np.float64)
     names = []
     for axle, rows in (("front", (0, 1)), ("rear", (2, 3))):
-        if isinstance(tires[axle], dict) and resolved is not None:
+        if isinstance(tires[axle], dict) and resolved is not None:  # inline (resolved)
             sources[f"tire_{axle}"] = f"{path}.tires.{axle}"
-            vec, model_name = load_tire(Path(sources[f"tire_{axle}"]), tires[axle])
-            tp[rows[0]] = tp[rows[1]] = vec
-            names.append(model_name)
-            continue
-        tire_path = referenced_file(path, f"tires.{axle}", tires[axle])
-        sources[f"tire_{axle}"] = str(tire_path)
-        vec, model_name = load_tire(tire_path)
+            vec, model_name, side = load_tire_sided(Path(sources[f"tire_{axle}"]),
+                                                    tires[axle])
+        else:
+            tire_path = referenced_file(path, f"tires.{axle}", tires[axle])
+            sources[f"tire_{axle}"] = str(tire_path)
+            vec, model_name, side = load_tire_sided(tire_path)
         for row in rows:
             tp[row] = vec
+            # one file per axle: the corner on the other side gets the mirror image
+            # (docs/configuration.md, "Tire files"); rows are left, right (core.layout)
+            corner_side = "left" if row % 2 == 0 else "right"
+            tp[row, TP_MIRRORED] = 1.0 if side is not None and side != corner_side else 0.0
         names.append(model_name)
 
     apply_model_options(vp, model_option_values(model_options, options_source))
@@ -246,19 +252,6 @@ def resolve_vehicle(path: str | Path) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------- the reference doc
-TIRE_MEANING: dict[str, str] = {
-    "cornering_stiffness_n_per_rad": "C_alpha at nominal_load_n, linear in the load",
-    "longitudinal_stiffness_n": "C_kappa (N per unit slip) at nominal_load_n, linear in "
-                                "the load",
-    "nominal_load_n": "load at which the stiffnesses are given",
-    "friction_coefficient": "peak friction mu (times the road's friction scale)",
-    "rolling_resistance_coefficient": "rolling-resistance force / Fz",
-    "pneumatic_trail_m": "pneumatic trail at zero slip (Mz = -t Fy, t falls to 0 at full "
-                         "sliding)",
-    "rolling_radius_m": "effective rolling radius R (mf61: default UNLOADED_RADIUS)",
-    "relaxation_length_lat_m": "b of paper eq. 16 (mf61: default from PTY1, PTY2 at FNOMIN)",
-    "relaxation_length_long_m": "B of paper eq. 26 (mf61: default from PTX1 at FNOMIN)",
-}
 def _param_rows(table: ParamTable, with_default: bool) -> list[str]:
     """A markdown table of a section's keys, from its parameter table."""
     if with_default:
@@ -268,7 +261,14 @@ def _param_rows(table: ParamTable, with_default: bool) -> list[str]:
     for param in table:
         if param.derived:
             continue
-        default = f" `{param.default}` |" if with_default else ""
+        if not with_default:
+            default = ""
+        elif param.default is None:
+            default = " required |"
+        elif isinstance(param.default, str) and param.choices is None:
+            default = f" {param.default} |"  # computed by the loader
+        else:
+            default = f" `{param.default}` |"
         meaning = param.meaning.replace("|", "\\|")  # |v| would end the markdown cell
         lines.append(f"| `{param.yaml_key}` | {param.unit} |{default} {param.range_text()} | "
                      f"{meaning} |")
@@ -297,15 +297,28 @@ def config_reference_markdown() -> str:
         lines += ["", f"## `{table.name}` file", "", f"{table.title.capitalize()}.", ""]
         lines += _param_rows(table, with_default=False)
     lines += ["", "## Tire files", "",
-              f"`model`: one of {', '.join(f'`{m}`' for m in TIRE_MODEL_NAMES)}.", "",
-              "`model: simple` (the brush combined-slip tire, `core/tire_simple.py`) takes "
-              "every key below; `model: mf61` (Magic Formula 6.1, `core/tire_mf61.py`) takes "
-              "`tir_file` (an MF-Tyre .tir property file, relative to the tire file) and, "
-              "optionally, the last three.", "",
-              "| key | range | meaning |", "|---|---|---|"]
-    tire_keys = {**SIMPLE_TIRE_RANGES, **TIRE_COMMON_RANGES}
-    for key, (lo, hi) in tire_keys.items():
-        lines.append(f"| `{key}` | {lo:g} .. {hi:g} | {TIRE_MEANING[key]} |")
+              f"`model`: one of {', '.join(f'`{m.name}`' for m in tire_models())}; the "
+              "other keys are the model's (from its parameter table in "
+              "`simserver/tire_models.py`). A default in words is computed by the loader "
+              "when the key is absent. Wherever a tire file is named (a vehicle's `tires:`, "
+              "`simserver tire-curves`), an MF-Tyre `.tir` file may be named instead: it is "
+              "read as `model: mf61` with `tir_file` itself and every default.",
+              "",
+              "A tire file describes the tire as measured on one side of a car (`mf61`: the "
+              ".tir's `TYRESIDE`, `Left` when absent; `simple`: symmetric). The vehicle's "
+              "`tires: {front, rear}` gives one file per axle: the corner on the file's side "
+              "uses the tire as described, the corner on the other side its mirror image "
+              "(slip angle, camber, side force and aligning moment mirrored, as MF-Tyre "
+              "does), so a left tire's shifts (SHy, SVy, conicity, ply steer) pull the car "
+              "to neither side."]
+    for model in tire_models():
+        if model.params is None:
+            continue
+        lines += ["", f"### `model: {model.name}`", "", f"{model.description}.", ""]
+        lines += [f"- `{key}` (path): {meaning}." for key, meaning in model.path_keys]
+        if model.path_keys:
+            lines.append("")
+        lines += _param_rows(model.params, with_default=True)
     for table, where in ((P.ROAD, "road"), (P.MODEL_OPTIONS, "model")):
         lines += ["", f"## `{where}:` section of a scenario or scene", "",
                   f"{table.title.capitalize()}; every key is optional.", ""]

@@ -121,6 +121,8 @@ _DESCRIPTIONS: dict[str, str] = {
     "tan_alpha_{w}": "{W} tan of the slip angle fed to the tire model (tan a', or kinematic)",
     "fx_body_sum_n": "sum of the tire forces along body x",
     "fy_body_sum_n": "sum of the tire forces along body y",
+    "camber_{w}_rad": "{W} inclination angle fed to the tire model, ISO 8855 (top toward "
+                      "-y +): static camber and the suspension's roll and heave gains",
     # --- inputs
     "input_steer": "driver steering-wheel position, normalised [-1, 1] (full left +1)",
     "input_throttle": "driver throttle pedal [0, 1]",

@@ -273,6 +273,7 @@ MF61_DEFAULTS: dict[str, float] = {
     "PKY4": 2.0,  # MF 5.2's fixed factor in sin(2 atan(Fz / (PKY2 Fz0))), which PKY4 replaced
     "QSY7": 1.0,  # rolling resistance proportional to load, as in MF 5.2
     "LONGVL": 16.7,  # reference speed (60 km/h), only used if QSY3 / QSY4 are absent or 0
+    "VXLOW": 1.0,  # speed below which the shifts fade out (MF-Tyre's default, m/s)
 }
 
 _POSITIVE = ("FNOMIN", "UNLOADED_RADIUS", "LFZO", "LMUX", "LMUY", "PCX1", "PCY1", "PKY2")

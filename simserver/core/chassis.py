@@ -43,6 +43,7 @@ from simserver.core.layout import (
     N_WHEELS,
     O_AX_MPS2,
     O_AY_MPS2,
+    O_CAMBER0,
     O_DAMPING_FX0,
     O_DAMPING_FY0,
     O_DRIVE_TORQUE0,
@@ -129,6 +130,7 @@ from simserver.core.model import (
     W_TY0,
     W_TY1,
     WI_BRAKE_NM,
+    WI_CAMBER_RAD,
     WI_COS_STEER,
     WI_DRIVE_NM,
     WI_HELD,
@@ -141,6 +143,12 @@ from simserver.core.params import (
     VP_AIR_DENSITY_KGPM3,
     VP_ANTIROLL_FRONT_NPM,
     VP_ANTIROLL_REAR_NPM,
+    VP_CAMBER_HEAVE_GAIN_FRONT_RADPM,
+    VP_CAMBER_HEAVE_GAIN_REAR_RADPM,
+    VP_CAMBER_ROLL_GAIN_FRONT,
+    VP_CAMBER_ROLL_GAIN_REAR,
+    VP_CAMBER_STATIC_FRONT_RAD,
+    VP_CAMBER_STATIC_REAR_RAD,
     VP_CG_HEIGHT_M,
     VP_CG_TO_FRONT_AXLE_M,
     VP_CG_TO_REAR_AXLE_M,
@@ -217,6 +225,35 @@ def wheel_position(vp: np.ndarray, i: int) -> tuple[float, float]:
     if is_front(i):
         return vp[VP_CG_TO_FRONT_AXLE_M], (0.5 if i == 0 else -0.5) * vp[VP_TRACK_FRONT_M]
     return -vp[VP_CG_TO_REAR_AXLE_M], (0.5 if i == 2 else -0.5) * vp[VP_TRACK_REAR_M]
+
+
+@nb.njit(cache=True, inline="always")
+def wheel_camber(vp: np.ndarray, x: np.ndarray, i: int) -> float:
+    """Inclination angle of wheel ``i`` to the road (rad), as the tire model takes it.
+
+    ISO 8855 (``docs/model.md`` section 2): positive when the top of the wheel leans
+    toward -y (the car's right). From the suspension (the ``camber_*`` keys, per axle):
+    the static camber plus the heave gain times the corner's compression (the same
+    compression as in ``corner_loads``), both in the vehicle's sense (negative: the top
+    leans inboard, i.e. toward -y on the left and +y on the right), and the roll gain
+    times the body roll (positive roll lifts the left side: the body, and a wheel with
+    gain 1, leans toward -y).
+    """
+    px, py = wheel_position(vp, i)
+    if is_front(i):
+        static = vp[VP_CAMBER_STATIC_FRONT_RAD]
+        roll_gain = vp[VP_CAMBER_ROLL_GAIN_FRONT]
+        heave_gain = vp[VP_CAMBER_HEAVE_GAIN_FRONT_RADPM]
+    else:
+        static = vp[VP_CAMBER_STATIC_REAR_RAD]
+        roll_gain = vp[VP_CAMBER_ROLL_GAIN_REAR]
+        heave_gain = vp[VP_CAMBER_HEAVE_GAIN_REAR_RADPM]
+    compression = -(x[HEAVE_M] + py * x[ROLL_RAD] - px * x[PITCH_RAD])
+    camber = static + heave_gain * compression  # vehicle sense
+    # at camber c < 0 the top leans by -c toward inboard (-y on the left, +y on the right),
+    # which is an inclination of inboard * c in the ISO sense
+    inboard = -1.0 if py > 0.0 else 1.0
+    return roll_gain * x[ROLL_RAD] + inboard * camber
 
 
 @nb.njit(cache=True)
@@ -731,6 +768,7 @@ def record_outputs(ws: Workspace, out: np.ndarray) -> None:
         out[O_DAMPING_FY0 + i] = wheel[i, W_DAMPING_FY]
         out[O_KAPPA0 + i] = wheel[i, W_KAPPA]
         out[O_TAN_ALPHA0 + i] = wheel[i, W_TAN_ALPHA]
+        out[O_CAMBER0 + i] = wheel_in[WI_CAMBER_RAD, i]
     out[O_AX_MPS2] = body[B_AX_MPS2]
     out[O_AY_MPS2] = body[B_AY_MPS2]
     out[O_YAW_ACC_RADPS2] = body[B_YAW_ACC_RADPS2]

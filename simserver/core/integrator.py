@@ -48,6 +48,7 @@ from simserver.core.chassis import (
     record_contacts,
     record_outputs,
     vehicle_rates,
+    wheel_camber,
     wheel_inertia,
 )
 from simserver.core.damping import (
@@ -78,6 +79,7 @@ from simserver.core.layout import (
     TAN_ALPHA0,
     TIME_S,
     WHEEL_HELD0,
+    WHEELS_PER_AXLE,
 )
 from simserver.core.model import (
     G_MU0,
@@ -98,6 +100,7 @@ from simserver.core.model import (
     W_TAN_ALPHA_SLIDE,
     WI_BRAKE_CAP_NM,
     WI_BRAKE_NM,
+    WI_CAMBER_RAD,
     WI_COS_STEER,
     WI_DRIVE_NM,
     WI_HELD,
@@ -113,6 +116,8 @@ from simserver.core.params import (
     VP_SLIP_MODEL,
     VP_STEERING_RATIO,
     VP_STEERING_WHEEL_MAX_RAD,
+    VP_TOE_FRONT_RAD,
+    VP_TOE_REAR_RAD,
 )
 from simserver.core.powertrain import wheel_torques
 from simserver.core.slip import (
@@ -127,10 +132,17 @@ from simserver.core.tire_layout import TP_RADIUS_M, TP_RELAX_LAT_M, TP_RELAX_LON
 
 @nb.njit(cache=True)
 def road_wheel_angles(vp: np.ndarray, steer_input: float, wheel_in: np.ndarray) -> None:
-    """Steering-wheel position [-1, 1] to road-wheel angles (parallel steer, front axle)."""
+    """Steering-wheel position [-1, 1] to road-wheel angles (parallel steer, front axle),
+    plus each axle's static toe (toe-in steers the left wheel right and the right wheel
+    left; no toe: the angles are exactly the steer)."""
     delta = steer_input * vp[VP_STEERING_WHEEL_MAX_RAD] / vp[VP_STEERING_RATIO]
     for i in range(N_WHEELS):
-        wheel_in[WI_STEER_RAD, i] = delta if i < N_FRONT_WHEELS else 0.0
+        front = i < N_FRONT_WHEELS
+        angle = delta if front else 0.0
+        toe = vp[VP_TOE_FRONT_RAD] if front else vp[VP_TOE_REAR_RAD]
+        if toe != 0.0:
+            angle += -toe if i % WHEELS_PER_AXLE == 0 else toe  # left, then right
+        wheel_in[WI_STEER_RAD, i] = angle
 
 
 @nb.njit(cache=True, inline="always")
@@ -159,15 +171,19 @@ def prepare_tires(model: Model, data: Data) -> None:
     none yet, prepared at ``Fz``). The start load becomes the next step's ``Fz_prev``.
     """
     x = data.x
-    tp, tires = model.tp, model.tires
-    wheel, tire_coef = data.ws.wheel, data.ws.tire_coef
+    vp, tp, tires = model.vp, model.tp, model.tires
+    wheel, tire_coef, wheel_in = data.ws.wheel, data.ws.tire_coef, data.ws.wheel_in
     corner_loads(model, data.ws, x)
     ground = data.ws.ground
     for i in range(N_WHEELS):
         fz = wheel[i, W_FZ]
         fz_prev = x[FZ_PREV0 + i]
         fz_pred = fz + 0.5 * (fz - fz_prev) if fz_prev >= 0.0 else fz
-        tire_prepare(tires, tp[i], 0.0, fz_pred, ground[G_MU0 + i], tire_coef[i])
+        # camber from the suspension at the start of the step, held over it like the load
+        # coefficients (the body's roll moves at 1-2 Hz against the 1 kHz step)
+        gamma = wheel_camber(vp, x, i)
+        wheel_in[WI_CAMBER_RAD, i] = gamma
+        tire_prepare(tires, tp[i], gamma, fz_pred, ground[G_MU0 + i], tire_coef[i])
         x[FZ_PREV0 + i] = fz
 
 

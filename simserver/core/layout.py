@@ -108,7 +108,9 @@ O_KAPPA0 = 53  # slip fed to the tire model (k' or the kinematic slip), 4 slots
 O_TAN_ALPHA0 = 57
 O_FX_BODY_SUM_N = 61  # sum of tire forces along body x (N)
 O_FY_BODY_SUM_N = 62
-N_OUT = 63
+# appended by issue 16 (wheel attitude)
+O_CAMBER0 = 63  # inclination angle fed to the tire, ISO 8855 (rad), 4 slots
+N_OUT = 67
 
 OUTPUT_NAMES = (
     ("ax_mps2", "ay_mps2", "yaw_acc_radps2", "gravity_x_mps2", "gravity_y_mps2")
@@ -127,6 +129,7 @@ OUTPUT_NAMES = (
     + tuple(f"kappa_{w}" for w in WHEEL_NAMES)
     + tuple(f"tan_alpha_{w}" for w in WHEEL_NAMES)
     + ("fx_body_sum_n", "fy_body_sum_n")
+    + tuple(f"camber_{w}_rad" for w in WHEEL_NAMES)
 )
 
 # per-wheel blocks: ``x[OMEGA]`` is the four spins (a slice, usable in compiled code too)
@@ -152,6 +155,7 @@ O_DAMPING_FX = slice(O_DAMPING_FX0, O_DAMPING_FX0 + N_WHEELS)
 O_DAMPING_FY = slice(O_DAMPING_FY0, O_DAMPING_FY0 + N_WHEELS)
 O_KAPPA = slice(O_KAPPA0, O_KAPPA0 + N_WHEELS)
 O_TAN_ALPHA = slice(O_TAN_ALPHA0, O_TAN_ALPHA0 + N_WHEELS)
+O_CAMBER = slice(O_CAMBER0, O_CAMBER0 + N_WHEELS)
 
 # ---------------------------------------------------------------- world pose
 # ``core.pose.world_pose`` writes the CG position and the body attitude in world axes

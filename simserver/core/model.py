@@ -30,7 +30,8 @@ WI_DRIVE_NM = 3  # drive torque (N m)
 WI_BRAKE_CAP_NM = 4  # brake capacity (N m)
 WI_BRAKE_NM = 5  # brake + rolling-resistance torque applied, signed (N m)
 WI_HELD = 6  # 1 = wheel held at zero spin by its brake
-N_WI = 7
+WI_CAMBER_RAD = 7  # inclination angle to the road, ISO 8855 (rad), chassis.wheel_camber
+N_WI = 8
 
 # ---- per-wheel quantities of the state being evaluated (ws.wheel[i, W_*])
 W_FZ = 0  # normal load (N)

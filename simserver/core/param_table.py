@@ -24,8 +24,10 @@ class Param:
     ``lo``/``hi`` bound a number (inclusive); ``choices`` maps the accepted names of a named
     choice to the number stored for it (then ``lo``/``hi`` stay None). A parameter with
     neither is *derived*: computed by the code, never read from a file. ``default`` None
-    means the key is required. ``slot`` is the index in the packed vector the table belongs
-    to; ``const`` names its slot constant when that is not ``prefix + NAME``.
+    means the key is required; a text default on a numeric parameter describes a value the
+    loader computes when the key is absent (e.g. "from the .tir file"). ``slot`` is the
+    index in the packed vector the table belongs to; ``const`` names its slot constant when
+    that is not ``prefix + NAME``.
     """
 
     name: str
@@ -89,7 +91,9 @@ class ParamTable:
             elif p.lo is not None:
                 if not (math.isfinite(p.lo) and math.isfinite(p.hi) and p.lo <= p.hi):
                     raise ValueError(f"{where}: bad range [{p.lo}, {p.hi}]")
-                if p.default is not None and not p.lo <= p.default <= p.hi:
+                # a text default names a value the loader computes (e.g. from a .tir file)
+                if (p.default is not None and not isinstance(p.default, str)
+                        and not p.lo <= p.default <= p.hi):
                     raise ValueError(f"{where}: default {p.default} outside its range")
             by_name[p.name] = p
             by_key[p.yaml_key] = p

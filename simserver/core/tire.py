@@ -61,11 +61,14 @@ from simserver.core.tire_layout import (
     N_TIRE_OUT,
     OUT_C_ALPHA,
     OUT_C_KAPPA,
+    OUT_FY,
     OUT_KAPPA_SLIDE,
+    OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
     TIRE_JIT_OPTIONS,
     TIRE_MODEL_MF61,
     TIRE_MODEL_SIMPLE,
+    TP_MIRRORED,
     TP_MODEL,
     TP_MODEL_BASE,
     TireKernels,
@@ -79,6 +82,16 @@ N_TIRE_PARAM = TP_MODEL_BASE + max(N_SIMPLE_PARAM, N_MF61_PARAM)
 BUILTIN_KERNELS = TireKernels((), ())
 """The ``kernels`` argument when only the built-in models are used (they are called
 directly); ``simserver.tire_models.tire_kernels()`` adds every other registered model's."""
+
+
+# Mirroring (``tp[TP_MIRRORED] = 1``): a tire used on the side opposite to the one its file
+# describes (MF-Tyre's TYRESIDE) is the mirror image in the vehicle's x-z plane. Every
+# dispatcher evaluates the model at the mirrored slip angle and camber and mirrors its side
+# force and aligning moment back (``side = 1 - 2 tp[TP_MIRRORED]``, -1 or +1), so every
+# lateral asymmetry (the shifts SHy, SVy, the camber terms, conicity, ply steer) changes
+# side while Fx, My and the stiffnesses do not. For an unmirrored tire the factor is
+# exactly 1.0 and the results are bit-identical. (Written out in each dispatcher: a helper
+# function there kept numba from pruning the reference counts of tire_forces.)
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
@@ -176,6 +189,7 @@ def tire_prepare(
         Written (every slot the model uses).
     """
     model = int(tp[TP_MODEL])
+    gamma_rad = gamma_rad * 1.0 - 2.0 * tp[TP_MIRRORED]  # a mirrored tire sees the mirrored camber
     if model == TIRE_MODEL_MF61:
         _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
     elif model == TIRE_MODEL_SIMPLE:
@@ -216,6 +230,8 @@ def tire_evaluate(
         Written in place, every ``OUT_*`` slot.
     """
     model = int(tp[TP_MODEL])
+    side = 1.0 - 2.0 * tp[TP_MIRRORED]
+    tan_alpha = tan_alpha * side
     if not fz_n > 0.0:
         _no_load(out)
     elif model == TIRE_MODEL_MF61:
@@ -224,6 +240,8 @@ def tire_evaluate(
         _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
     else:
         _registered_evaluate(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
+    out[OUT_FY] *= side
+    out[OUT_MZ] *= side
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)
@@ -261,14 +279,25 @@ def tire_forces(
         return
     coef = coef_scratch()
     # the model kernels are inlined here (no call, so the view tp[TP_MODEL_BASE:] costs
-    # no reference counting); the same as tire_prepare then tire_evaluate
+    # no reference counting); the same as tire_prepare then tire_evaluate. The mirroring
+    # of the outputs is repeated in each branch: after the branches' merge it kept numba
+    # from pruning the views' reference counts.
     model = int(tp[TP_MODEL])
+    side = 1.0 - 2.0 * tp[TP_MIRRORED]
+    tan_alpha = tan_alpha * side
+    gamma_rad = gamma_rad * side
     if model == TIRE_MODEL_MF61:
         _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
         _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+        out[OUT_FY] *= side
+        out[OUT_MZ] *= side
     elif model == TIRE_MODEL_SIMPLE:
         _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
         _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+        out[OUT_FY] *= side
+        out[OUT_MZ] *= side
     else:
         _registered_prepare(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef)
         _registered_evaluate(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
+        out[OUT_FY] *= side
+        out[OUT_MZ] *= side

@@ -30,7 +30,11 @@ TP_MODEL = 0
 TP_RADIUS_M = 1  # effective rolling radius R (m)
 TP_RELAX_LAT_M = 2  # lateral relaxation length b (m), paper eq. 16
 TP_RELAX_LONG_M = 3  # longitudinal relaxation length B (m), paper eq. 26
-TP_MODEL_BASE = 4  # first model-specific slot
+# 1.0: this corner's tire is the mirror image of the tire its file describes (the file's
+# tire is mounted on the other side of the car; MF-Tyre's TYRESIDE), 0.0: as described.
+# The dispatchers of core.tire mirror every model alike (slip angle, camber, Fy, Mz).
+TP_MIRRORED = 4
+TP_MODEL_BASE = 5  # first model-specific slot
 
 # --- outputs ---------------------------------------------------------------------
 OUT_FX = 0  # longitudinal force (N), wheel frame

@@ -54,6 +54,9 @@ bodies are inlined (numba IR) into their callers; the dispatchers of
 :mod:`simserver.core.tire` are compiled with the same options
 (``tire_layout.TIRE_JIT_OPTIONS``).
 
+Low speed: below ``VXLOW`` the shifts SHx, SVx, SHy, SVy fade to zero at standstill
+(:func:`_low_speed_factor`), so that a car at rest with relaxed slip states stays at rest.
+
 Not modelled: turn slip and spin (zeta = 1), speed-dependent friction ``LMUV``,
 overturning moment ``Mx``, low-speed smoothing of ``My`` (the caller applies ``My``
 against wheel spin), transient (relaxation) behaviour, which the lagged slip states of
@@ -119,6 +122,8 @@ MF61_PARAM_NAMES: tuple[str, ...] = (
     "SSZ1", "SSZ2", "SSZ3", "SSZ4", "PPZ1", "PPZ2",
     # rolling resistance (4.E70)
     "QSY1", "QSY2", "QSY3", "QSY4", "QSY5", "QSY6", "QSY7", "QSY8",
+    # low-speed reduction of the shifts (MF-Tyre's VXLOW, see _low_speed_factor)
+    "VXLOW",
 )  # fmt: skip
 N_MF61_PARAM = len(MF61_PARAM_NAMES)
 
@@ -265,6 +270,7 @@ P_QSY5 = _slot("QSY5")
 P_QSY6 = _slot("QSY6")
 P_QSY7 = _slot("QSY7")
 P_QSY8 = _slot("QSY8")
+P_VXLOW = _slot("VXLOW")
 
 # --- load-dependent coefficients: the slots of coef (mf61_prepare -> mf61_evaluate) -------
 # Everything that depends only on Fz, gamma, mu_scale and pressure, at the clamped load
@@ -879,6 +885,24 @@ def _mf61_prepare(
 
 
 @nb.njit(inline="always", **_JIT_OPTIONS)
+def _low_speed_factor(vx_mps: float, vxlow_mps: float) -> float:
+    """The factor on the Magic Formula shifts SHx, SVx, SHy, SVy at hub speed ``vx_mps``.
+
+    The shifts are offsets of the steady-state curves: at zero slip they give a force
+    (the sample tire: 18.8 N forward, 69.9 N sideways) that, at standstill, would push a
+    stopped car with nothing to balance it. As MF-Tyre does below ``VXLOW``, they are
+    reduced smoothly to zero at standstill: ``s^2 (3 - 2 s)`` with ``s = |vx| / VXLOW``
+    below ``VXLOW`` (value and slope continuous at both ends, like MF-Tyre's cosine form
+    ``0.5 (1 - cos(pi s))``, which it follows within 0.01, without a libm call), exactly 1
+    above it, so the forces at speed are unchanged to the bit. At rest the lagged slip
+    states (SAE 950311) are then the only source of shear force. ``VXLOW = 0`` switches
+    the reduction off.
+    """
+    s = min(abs(vx_mps) / vxlow_mps, 1.0) if vxlow_mps > 0.0 else 1.0
+    return s * s * (3.0 - 2.0 * s)
+
+
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _mf61_evaluate(
     p: np.ndarray,
     coef: np.ndarray,
@@ -944,9 +968,10 @@ def _mf61_evaluate(
     dvyk = coef[C_DVYK0] / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)
 
     # --- pure-slip arguments (4.E10), (4.E14), (4.E20), (4.E24) --------------------------
-    kappa_x = kappa + coef[C_SHX]  # (4.E10)
+    low = _low_speed_factor(vx_mps, p[P_VXLOW])  # on SHx, SVx, SHy, SVy; 1 at speed
+    kappa_x = kappa + coef[C_SHX] * low  # (4.E10)
     ex = coef[C_EX_POS] if kappa_x >= 0.0 else coef[C_EX_NEG]  # (4.E14)
-    shy = coef[C_SHY]
+    shy = coef[C_SHY] * low
     alpha_y = tan_alpha + shy  # (4.E20)
     ey = coef[C_EY_POS] if alpha_y >= 0.0 else coef[C_EY_NEG]  # (4.E24)
 
@@ -954,7 +979,7 @@ def _mf61_evaluate(
     alpha_t = tan_alpha + coef[C_SHT]  # (4.E34)
     et = min(coef[C_ET_LOAD] * (1.0 + coef[C_ET_GAMMA] * _atan(coef[C_BT_CT] * alpha_t)), 1.0)
     ct = p[P_QCZ1]  # (4.E41)
-    alpha_r = tan_alpha + shy + coef[C_SVY_KYA]  # (4.E37), (4.E38)
+    alpha_r = tan_alpha + shy + coef[C_SVY_KYA] * low  # (4.E37), (4.E38)
     # (4.E77), (4.E78): sgn(alpha) dropped, t and Mzr are even in alpha_eq
     kk = coef[C_KXK_KYA] * kappa
     alpha_t_eq = math.sqrt(alpha_t * alpha_t + kk * kk)
@@ -972,15 +997,15 @@ def _mf61_evaluate(
     )  # fmt: skip
     gxa = max(s[1] / max(s[0], _TINY), 0.0)  # (4.E51), (4.E52), > 0
     gyk = max(s[3] / max(s[2], _TINY), 0.0)  # (4.E59), (4.E60), > 0
-    fx0 = coef[C_DX] * s[4] + coef[C_SVX]  # (4.E9)
-    fy0 = coef[C_DY] * s[5] + coef[C_SVY]  # (4.E19)
+    fx0 = coef[C_DX] * s[4] + coef[C_SVX] * low  # (4.E9)
+    fy0 = coef[C_DY] * s[5] + coef[C_SVY] * low  # (4.E19)
     t = coef[C_DT] * s[6] * cos_a  # (4.E73)
     svyk = dvyk * s[7] * p[P_LVYKA]  # (4.E66)
     if coef[C_CAMBER] != 0.0:  # Fy0 at gamma = 0 for F'y (4.E74): the curve without camber
-        alpha_y0 = tan_alpha + coef[C_SHY_G0]
+        alpha_y0 = tan_alpha + coef[C_SHY_G0] * low
         ey_g0 = coef[C_EY_G0_POS] if alpha_y0 >= 0.0 else coef[C_EY_G0_NEG]
         s_g0 = _mf_curve(coef[C_BY_G0] * alpha_y0, ey_g0, coef[C_CY])
-        fy0_g0 = coef[C_DY_G0] * s_g0 + coef[C_SVY_G0]
+        fy0_g0 = coef[C_DY_G0] * s_g0 + coef[C_SVY_G0] * low
     else:  # gamma* = 0: every camber term vanishes and the two curves are the same
         fy0_g0 = fy0
 
