@@ -369,6 +369,10 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help="live Rerun view in its own process: serve[:PORT] (loopback "
                              "gRPC + web viewer), save:FILE.rrd, connect:URL, spawn, off "
                              "(default: the config's 'viewer')")
+    parser.add_argument("--ros2", action=argparse.BooleanOptionalAction, default=None,
+                        help="the car on ROS 2 topics: start 'simserver ros2' in its own "
+                             "process, with the config's 'ros2' settings if it has any "
+                             "(default: the config's 'ros2'; see docs/ros2.md)")
     parser.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
 
 
@@ -383,7 +387,8 @@ def serve_command(args: argparse.Namespace) -> int:
     cfg = load_server_config(
         args.config or DEFAULT_SERVER_CONFIG, scene=args.scene, vehicle_id=args.vehicle_id,
         prefix=args.prefix, listen=args.listen, connect=args.connect,
-        zenoh_config=args.zenoh_config, command_log=args.command_log, viewer=args.viewer)
+        zenoh_config=args.zenoh_config, command_log=args.command_log, viewer=args.viewer,
+        ros2=args.ros2)
     from simserver.adapters.zenoh_io import ZenohConfigError, ZenohOpenError
 
     try:

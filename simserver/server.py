@@ -21,6 +21,7 @@ import logging
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +35,7 @@ from simserver.core import layout as L
 from simserver.core.integrator import forget_tire_loads, make_workspace, step
 from simserver.core.params import VP_CG_HEIGHT_M, road_axes, set_road
 from simserver.core.pose import world_pose
+from simserver.ros2 import cli as ros2_cli
 from simserver.scenario import Scene, initial_state, load_scene
 from simserver.server_loop import ServerLoop, SlotPorts
 from simserver.vehicle_slot import VehicleSlot
@@ -61,6 +63,7 @@ SERVER_KEYS: dict[str, tuple[float, float] | None] = {
     "command_log": None,
     "config_dirs": None,
     "viewer": None,
+    "ros2": None,
 }
 
 
@@ -85,6 +88,7 @@ class ServerConfig:
     command_log: Path | None = None
     config_dirs: list[Path] = field(default_factory=list)
     viewer: str = "off"
+    ros2: dict[str, Any] | None = None  # the ROS 2 adapter's settings; None: off
 
 
 def _string_list(path: Path, key: str, value: Any) -> list[str]:
@@ -101,6 +105,7 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
     Paths in the file are relative to it; paths in ``overrides`` to the working directory.
     """
     path = Path(path).resolve()
+    ros2_flag = overrides.pop("ros2", None)  # --ros2/--no-ros2 switch the config's section
     data = read_yaml(path)
     check_keys(path, data, tuple(SERVER_KEYS), required=("scene",))
     base = {k: (path.parent / v).resolve() if k in ("scene", "zenoh_config", "command_log")
@@ -117,7 +122,7 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
             base[k] = Path(v).resolve() if k in ("scene", "zenoh_config", "command_log") else v
     cfg = ServerConfig(path=path, scene=Path(base["scene"]))
     for key, rng in SERVER_KEYS.items():
-        if key not in base or key == "scene" or base[key] is None:
+        if key not in base or key in ("scene", "ros2") or base[key] is None:
             continue
         value = base[key]
         if rng is not None:
@@ -146,6 +151,10 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
             parse_sink(cfg.viewer)
         except RerunSinkError as exc:
             raise ConfigError(f"{path}: key 'viewer': {exc}") from exc
+    try:
+        cfg.ros2 = ros2_cli.serve_settings(base.get("ros2"), ros2_flag, source=f"{path}: ros2")
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     if not cfg.config_dirs:
         cfg.config_dirs = [REPO_CONFIGS, path.parent]
     return cfg
@@ -280,7 +289,7 @@ class SimServer:
         loop = self.loop
         loop.running = True  # before the handlers: a signal from now on ends the loop
         previous = {s: signal.signal(s, self.stop) for s in (signal.SIGINT, signal.SIGTERM)}
-        viewer = None
+        viewer = ros2 = None
         try:
             with ZenohEndpoint(zcfg, prefix=cfg.prefix, vehicle=cfg.vehicle_id) as ep:
                 for slot in self.slots:
@@ -297,11 +306,13 @@ class SimServer:
                 print(f"simserver: ready on {first.keys.base} "
                       f"(listen {cfg.listen or 'tcp/127.0.0.1:7447'})", flush=True)
                 viewer = self._start_viewer()
+                ros2 = self._start_ros2()
                 loop.run()
         finally:
             for s, h in previous.items():
                 signal.signal(s, h)
             self._stop_viewer(viewer)
+            self._stop_viewer(ros2)
             for slot in self.slots:
                 if slot.command_log is not None:
                     slot.command_log.close(slot.steps_total, slot.sim.x)
@@ -314,12 +325,35 @@ class SimServer:
         cfg = self.cfg
         if cfg.viewer == "off":
             return None
-        endpoint = (cfg.listen or ["tcp/127.0.0.1:7447"])[0]
-        endpoint = endpoint.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
         args = [sys.executable, "-m", "simserver", "view", "--sink", cfg.viewer,
-                "--connect", endpoint, "--prefix", cfg.prefix, "--vehicle-id", cfg.vehicle_id]
+                "--connect", self._own_endpoint(), "--prefix", cfg.prefix, "--vehicle-id", cfg.vehicle_id]
         log.info("live view: %s", " ".join(args[2:]))
         return subprocess.Popen(args)
+
+    def _own_endpoint(self) -> str:
+        """The loopback form of the server's first listen endpoint, for its side processes."""
+        endpoint = (self.cfg.listen or ["tcp/127.0.0.1:7447"])[0]
+        return endpoint.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
+
+    def _start_ros2(self) -> subprocess.Popen | None:
+        """Start ``simserver ros2`` in its own process when configured, like the viewer; a
+        thread logs its death while the server runs."""
+        cfg = self.cfg
+        if cfg.ros2 is None:
+            return None
+        args = ros2_cli.adapter_command(self._own_endpoint(), cfg.prefix, cfg.vehicle_id,
+                                        cfg.ros2)
+        log.info("ROS 2 adapter: %s", " ".join(args[2:]))
+        adapter = subprocess.Popen(args)
+
+        def watch() -> None:
+            code = adapter.wait()
+            if self.loop.running:
+                log.error("the ROS 2 adapter (pid %d) ended with exit code %d; the server "
+                          "goes on without it", adapter.pid, code)
+
+        threading.Thread(target=watch, name="ros2-watch", daemon=True).start()
+        return adapter
 
     @staticmethod
     def _stop_viewer(viewer: subprocess.Popen | None) -> None:
