@@ -25,6 +25,8 @@ from __future__ import annotations
 import argparse
 import time
 from collections import deque
+from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
@@ -35,9 +37,10 @@ TICK_S = 1e-3
 """The server's default period: a command's send instant is uniform over one of these."""
 
 
-def run(seconds: float, cmd_hz: float, viewer: str = "off") -> dict:
-    """One server run of ``seconds`` with the live viewer ``viewer`` (a ``--viewer`` value)."""
-    server = ServerProcess(scene=None, log_level="WARNING", viewer=viewer)
+def run(seconds: float, cmd_hz: float, viewer: str = "off", config: Path | None = None) -> dict:
+    """One server run of ``seconds`` with the live viewer ``viewer`` (a ``--viewer`` value)
+    and the server config ``config`` (default ``configs/server/default.yaml``)."""
+    server = ServerProcess(scene=None, log_level="WARNING", viewer=viewer, config=config)
     startup_s = server.ready_s
     latencies_us: list[float] = []
     diags: list[np.ndarray] = []
@@ -109,6 +112,28 @@ def run(seconds: float, cmd_hz: float, viewer: str = "off") -> dict:
         "latency_max_us": float(lat.max()),
         "cmd_rejected": final["cmd_rejected"], "cmd_stale": final["cmd_stale"],
     }
+
+
+def compare_modes(modes: dict[str, Callable[[], dict]], rounds: int, what: str) -> dict:
+    """Run every mode once a round, interleaved over ``rounds`` rounds so that slow drifts
+    of a shared machine's load hit every mode alike; the median over rounds of each mode's
+    tick lateness p50/p99 and late-tick fraction, and its p99 over the first mode's."""
+    results: dict[str, list[dict]] = {m: [] for m in modes}
+    for _ in range(rounds):
+        for name, one_run in modes.items():
+            results[name].append(one_run())
+    summary = {}
+    base = float(np.median([r["lateness_p99_us"] for r in next(iter(results.values()))]))
+    for name, rs in results.items():
+        p50 = float(np.median([r["lateness_p50_us"] for r in rs]))
+        p99 = float(np.median([r["lateness_p99_us"] for r in rs]))
+        late = float(np.median([r["late_fraction"] for r in rs]))
+        summary[name] = {"p50_us": p50, "p99_us": p99, "late_fraction": late,
+                         "p99_vs_off": p99 / base,
+                         "p99_rounds_us": [r["lateness_p99_us"] for r in rs]}
+        print(f"{what} {name:12s}: lateness p50 {p50:6.1f} us, p99 {p99:7.1f} us "
+              f"({p99 / base:5.2f} x off), ticks > 1 ms late {100 * late:.2f} %")
+    return summary
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -326,7 +326,8 @@ class SimServer:
         if cfg.viewer == "off":
             return None
         args = [sys.executable, "-m", "simserver", "view", "--sink", cfg.viewer,
-                "--connect", self._own_endpoint(), "--prefix", cfg.prefix, "--vehicle-id", cfg.vehicle_id]
+                "--connect", self._own_endpoint(), "--prefix", cfg.prefix,
+                "--vehicle-id", cfg.vehicle_id]
         log.info("live view: %s", " ".join(args[2:]))
         return subprocess.Popen(args)
 
