@@ -334,6 +334,15 @@ def _us(x: float) -> str:
     return f"{x:,.1f} us" if x < 1000 else f"{x / 1000:,.2f} ms"
 
 
+def lateness_rows(summary: dict[str, dict], what: str, cmd: str) -> list[Row]:
+    """The rows of a ``compare_modes`` summary: each mode's tick lateness against off's."""
+    return [Row(f"tick lateness p50 / p99, {what}: {mode}",
+                f"{_us(s['p50_us'])} / {_us(s['p99_us'])} ({s['p99_vs_off']:.2f} x off); "
+                f"{100 * s['late_fraction']:.2f} % ticks > 1 ms late", cmd,
+                "" if mode == "off" else "p99 <= 1.10 x off")
+            for mode, s in summary.items()]
+
+
 def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
     """Run the chosen benchmarks in order; collect the rows of the table."""
     from benchmarks import bench_ros2, bench_server, bench_step, bench_viewer
@@ -397,12 +406,7 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
             raw["viewer"] = summary = bench_viewer.main(argv)
         peaks = rss.peaks(simserver_role)
         raw["viewer_peak_rss_kib"] = peaks
-        for mode, s in summary.items():
-            rows.append(Row(f"tick lateness p50 / p99, live viewer: {mode}",
-                            f"{_us(s['p50_us'])} / {_us(s['p99_us'])} "
-                            f"({s['p99_vs_off']:.2f} x off); "
-                            f"{100 * s['late_fraction']:.2f} % ticks > 1 ms late", cmd,
-                            "" if mode == "off" else "p99 <= 1.10 x off"))
+        rows += lateness_rows(summary, "live viewer", cmd)
         for name, label in (("view (viewer save)", "viewer process peak RSS, saving to .rrd"),
                             ("view (viewer connect)",
                              "viewer process peak RSS, stalled viewer")):
@@ -416,12 +420,7 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
                 "--rounds", str(settings.viewer_rounds)]
         cmd = " ".join(["python -m benchmarks.bench_ros2", *argv])
         raw["ros2"] = summary = bench_ros2.main(argv)
-        for mode, s in summary.items():
-            rows.append(Row(f"tick lateness p50 / p99, ROS 2 adapter: {mode}",
-                            f"{_us(s['p50_us'])} / {_us(s['p99_us'])} "
-                            f"({s['p99_vs_off']:.2f} x off); "
-                            f"{100 * s['late_fraction']:.2f} % ticks > 1 ms late", cmd,
-                            "" if mode == "off" else "p99 <= 1.10 x off"))
+        rows += lateness_rows(summary, "ROS 2 adapter", cmd)
 
     if "startup" in sections:
         print("== start-up", flush=True)
