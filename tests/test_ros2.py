@@ -573,13 +573,21 @@ def test_serve_starts_the_adapter_when_configured_and_stops_it(router, ros_node,
 
 
 def test_serve_ros2_flag_and_the_adapters_death_is_logged() -> None:
-    """``serve --ros2`` starts it with the defaults; if it dies, the server says so and
-    serves on."""
+    """``serve --ros2`` starts it with the defaults (idle priority for its own work); if it
+    dies, the server says so and serves on."""
     with ServerProcess(scene="flat_paper_sedan", extra_args=["--ros2"]) as server, \
             Client(server) as client:
         line = server.wait_for_line("simserver ros2: node", timeout_s=120)
         assert "/simserver_car0 on domain" in line
         (adapter_pid,) = ros2_children(server)
+        # its Python thread idles; zenoh's receivers keep normal priority, so the server's
+        # lossless state stream is always drained (a starved reader would block the server)
+        assert os.sched_getscheduler(adapter_pid) == os.SCHED_IDLE
+        receivers = [int(tid) for tid in os.listdir(f"/proc/{adapter_pid}/task")
+                     if Path(f"/proc/{adapter_pid}/task/{tid}/comm").read_text()
+                     .startswith("rx-")]
+        assert receivers and all(os.sched_getscheduler(tid) == os.SCHED_OTHER
+                                 for tid in receivers)
         os.kill(adapter_pid, signal.SIGKILL)
         server.wait_for_line(f"the ROS 2 adapter (pid {adapter_pid}) ended with exit code "
                              f"{-signal.SIGKILL}", timeout_s=10)
