@@ -4,13 +4,14 @@ A real server (``simserver serve`` on the 10 % hill scene), the adapter as a sub
 (``simserver ros2``), and this test as the ROS side: a zenoh session in router mode
 standing in for ``rmw_zenohd``, and a peer session connected to it as a ROS node is (so
 everything between the node and the adapter goes through the router, as on a ROS
-machine). Everything the test checks is
-built here from rmw_zenoh's design document (``docs/design.md`` of github.com/ros2/rmw_zenoh)
-and decoded with rosbags' own type store and CDR deserialiser, not with the adapter's
-modules: key expressions, type hashes, the 33-byte attachment, the liveliness tokens,
-and the messages' contents against the server's state. Commands are published the way
-rmw_zenoh publishes them (key, CDR, attachment, liveliness tokens of a node and its
-publisher).
+machine). Everything the test checks is built here from rmw_zenoh's design document
+(``docs/design.md`` of github.com/ros2/rmw_zenoh) and source (the publisher GID), and
+decoded with rosbags' own type store and CDR deserialiser, not with the adapter's
+modules: key expressions, type hashes, the 33-byte attachment and its GID, the liveliness
+tokens, and the messages' contents against the server's state. Commands are published
+the way rmw_zenoh publishes them (key, CDR, attachment, liveliness tokens of a node and
+its publisher). ``serve`` starting and stopping the adapter from its config is checked
+on servers of its own.
 
 The server, its clients and the adapter's process come from the project's harness
 (``simserver.testing``). Tests wait on conditions with deadlines; the only pacing is the
