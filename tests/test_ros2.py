@@ -49,6 +49,7 @@ from simserver.testing import (
 
 REPO = Path(__file__).resolve().parents[1]
 HILL_SCENE = CONFIGS / "scenes" / "hill_10pct_paper_sedan.yaml"
+FLAT_SCENE = CONFIGS / "scenes" / "flat_paper_sedan.yaml"
 DOMAIN = 7  # not the default 0: the adapter must honour --domain-id
 NODE = "simserver_car0"
 GRAVITY = 9.81  # the scene's model default
@@ -552,7 +553,7 @@ def test_serve_starts_the_adapter_when_configured_and_stops_it(router, ros_node,
     once the server is ready; stopping the server stops the adapter (no orphan)."""
     domain = DOMAIN + 2
     config = tmp_path / "server.yaml"
-    config.write_text(f"scene: {CONFIGS / 'scenes' / 'flat_paper_sedan.yaml'}\n"
+    config.write_text(f"scene: {FLAT_SCENE}\n"
                       f"ros2:\n  router: {router[1]}\n  domain_id: {domain}\n"
                       "  normal_priority: true\n", encoding="utf-8")
     endpoints = len(PUBLISHED) + len(SUBSCRIBED)
@@ -611,7 +612,7 @@ def test_a_bad_ros2_section_is_refused_at_load_naming_file_and_key(section, mess
     from simserver.server import load_server_config
 
     config = tmp_path / "server.yaml"
-    config.write_text(f"scene: flat.yaml\n{section}\n", encoding="utf-8")
+    config.write_text(f"scene: {FLAT_SCENE}\n{section}\n", encoding="utf-8")
     with pytest.raises(ConfigError) as err:
         load_server_config(config)
     assert str(err.value).startswith(f"{config}: ") and message in str(err.value)
@@ -621,14 +622,14 @@ def test_ros2_section_and_flags_decide_together(tmp_path) -> None:
     from simserver.server import load_server_config
 
     config = tmp_path / "server.yaml"
-    config.write_text("scene: flat.yaml\nros2: {domain_id: 3}\n", encoding="utf-8")
+    config.write_text(f"scene: {FLAT_SCENE}\nros2: {{domain_id: 3}}\n", encoding="utf-8")
     assert load_server_config(config).ros2 == {"domain_id": 3}
     assert load_server_config(config, ros2=True).ros2 == {"domain_id": 3}
     assert load_server_config(config, ros2=False).ros2 is None
-    config.write_text("scene: flat.yaml\nros2: off\n", encoding="utf-8")
+    config.write_text(f"scene: {FLAT_SCENE}\nros2: off\n", encoding="utf-8")
     assert load_server_config(config).ros2 is None
     assert load_server_config(config, ros2=True).ros2 == {}
-    config.write_text("scene: flat.yaml\n", encoding="utf-8")
+    config.write_text(f"scene: {FLAT_SCENE}\n", encoding="utf-8")
     assert load_server_config(config).ros2 is None
     assert load_server_config(CONFIGS / "server" / "default.yaml").ros2 is None
 
