@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python -m benchmarks                      # the full runs (about 12 minutes)
+    python -m benchmarks                      # the full runs (about 16 minutes)
     python -m benchmarks --quick              # short runs: a smoke test, not figures
     python -m benchmarks --only startup --only memory
 
@@ -20,10 +20,12 @@ In order:
    leaving a second, a driver at 1 kHz;
 3. ``benchmarks.bench_viewer``: the same with the live viewer off, saving to a file and
    streaming to a stalled viewer (also sampling the viewer process's peak memory);
-4. start-up: ``simserver serve`` from launch to its ``ready`` line (physics compiled or
+4. ``benchmarks.bench_ros2``: the same with the server's ROS 2 adapter off and on (its
+   topics received by a ROS node through a router), with the viewer's run lengths;
+5. start-up: ``simserver serve`` from launch to its ``ready`` line (physics compiled or
    loaded, zenoh session open, before the first tick), cold = ``NUMBA_CACHE_DIR`` an empty
    temporary directory, warm = the same directory again; the median of the repeats;
-5. memory of a headless run: peak RSS (``ru_maxrss`` from ``wait4``) of the README's
+6. memory of a headless run: peak RSS (``ru_maxrss`` from ``wait4``) of the README's
    ``simserver run-scenario`` example, which also reports its real-time factor.
 
 Then it prints a markdown table (figure, value, the target the issues set, the command that
@@ -65,7 +67,7 @@ TABLE_HEADER = ("| figure | value | target | command |", "|---|---|---|---|")
 HEADLESS_SCENARIO = "configs/scenarios/e2_stop_downslope_paper_damping.yaml"
 """The README's headless example, run for the headless memory figure."""
 
-SECTIONS = ("step", "server", "busy", "load", "viewer", "startup", "memory")
+SECTIONS = ("step", "server", "busy", "load", "viewer", "ros2", "startup", "memory")
 """Benchmarks in the order they run (``--only`` takes these names)."""
 
 
@@ -339,9 +341,18 @@ def _us(x: float) -> str:
     return f"{x:,.1f} us" if x < 1000 else f"{x / 1000:,.2f} ms"
 
 
+def lateness_rows(summary: dict[str, dict], what: str, cmd: str) -> list[Row]:
+    """The rows of a ``compare_modes`` summary: each mode's tick lateness against off's."""
+    return [Row(f"tick lateness p50 / p99, {what}: {mode}",
+                f"{_us(s['p50_us'])} / {_us(s['p99_us'])} ({s['p99_vs_off']:.2f} x off); "
+                f"{100 * s['late_fraction']:.2f} % ticks > 1 ms late", cmd,
+                "" if mode == "off" else "p99 <= 1.10 x off")
+            for mode, s in summary.items()]
+
+
 def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
     """Run the chosen benchmarks in order; collect the rows of the table."""
-    from benchmarks import bench_server, bench_step, bench_viewer
+    from benchmarks import bench_ros2, bench_server, bench_step, bench_viewer
 
     report = Report(machine=machine_description(), mode="quick" if quick else "full")
     rows, raw = report.rows, report.raw
@@ -442,18 +453,21 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
             raw["viewer"] = summary = bench_viewer.main(argv)
         peaks = rss.peaks(simserver_role)
         raw["viewer_peak_rss_kib"] = peaks
-        for mode, s in summary.items():
-            rows.append(Row(f"tick lateness p50 / p99, live viewer: {mode}",
-                            f"{_us(s['p50_us'])} / {_us(s['p99_us'])} "
-                            f"({s['p99_vs_off']:.2f} x off); "
-                            f"{100 * s['late_fraction']:.2f} % ticks > 1 ms late", cmd,
-                            "" if mode == "off" else "p99 <= 1.10 x off"))
+        rows += lateness_rows(summary, "live viewer", cmd)
         for name, label in (("view (viewer save)", "viewer process peak RSS, saving to .rrd"),
                             ("view (viewer connect)",
                              "viewer process peak RSS, stalled viewer")):
             if name in peaks:
                 rows.append(Row(f"{label} ({settings.viewer_seconds:g} s)",
                                 _mib(peaks[name]), "python -m benchmarks --only viewer" + suffix))
+
+    if "ros2" in sections:  # measured as the viewer's is, with the viewer's run lengths
+        print("== bench_ros2", flush=True)
+        argv = ["--seconds", f"{settings.viewer_seconds:g}",
+                "--rounds", str(settings.viewer_rounds)]
+        cmd = " ".join(["python -m benchmarks.bench_ros2", *argv])
+        raw["ros2"] = summary = bench_ros2.main(argv)
+        rows += lateness_rows(summary, "ROS 2 adapter", cmd)
 
     if "startup" in sections:
         print("== start-up", flush=True)

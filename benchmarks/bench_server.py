@@ -34,7 +34,9 @@ import subprocess
 import sys
 import time
 from collections import deque
+from collections.abc import Callable
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 import zenoh
@@ -62,21 +64,22 @@ def cpu_hogs(n: int):
 
 
 def run(seconds: float, cmd_hz: float, viewer: str = "off", hogs: int = 0,
-        realtime: str = "auto", client_realtime: str = "auto") -> dict:
+        realtime: str = "auto", client_realtime: str = "auto",
+        config: Path | None = None) -> dict:
     """One server run of ``seconds`` with the live viewer ``viewer`` (a ``--viewer`` value),
     ``hogs`` CPU-bound processes beside it, the server's ``--realtime`` mode and this
-    client's."""
+    client's, and the server config ``config`` (default ``configs/server/default.yaml``)."""
     with cpu_hogs(hogs):
-        return _run(seconds, cmd_hz, viewer, realtime, client_realtime) | {
+        return _run(seconds, cmd_hz, viewer, realtime, client_realtime, config) | {
             "hogs": hogs, "realtime": realtime, "client_realtime": client_realtime,
             "loadavg_1min": os.getloadavg()[0]}
 
 
 def _run(seconds: float, cmd_hz: float, viewer: str, realtime: str,
-         client_realtime: str) -> dict:
+         client_realtime: str, config: Path | None) -> dict:
     from simserver.realtime import RealtimeScheduler, RealtimeSettings
 
-    server = ServerProcess(scene=None, log_level="WARNING", viewer=viewer,
+    server = ServerProcess(scene=None, log_level="WARNING", viewer=viewer, config=config,
                            extra_args=["--realtime", realtime])
     startup_s = server.ready_s
     client_rt = RealtimeScheduler(RealtimeSettings(mode=client_realtime, priority=40))
@@ -157,6 +160,32 @@ def _run(seconds: float, cmd_hz: float, viewer: str, realtime: str,
         "latency_max_us": float(lat.max()),
         "cmd_rejected": final["cmd_rejected"], "cmd_stale": final["cmd_stale"],
     }
+
+
+def compare_modes(modes: dict[str, Callable[[], dict]], rounds: int, what: str) -> dict:
+    """Run every mode once a round, interleaved over ``rounds`` rounds so that slow drifts
+    of a shared machine's load hit every mode alike; the median over rounds of each mode's
+    tick lateness p50/p99 and late-tick fraction, and its p99 over the first mode's."""
+    results: dict[str, list[dict]] = {m: [] for m in modes}
+    for _ in range(rounds):
+        for name, one_run in modes.items():
+            results[name].append(one_run())
+    summary = {}
+    base = float(np.median([r["lateness_p99_us"] for r in next(iter(results.values()))]))
+    for name, rs in results.items():
+        p50 = float(np.median([r["lateness_p50_us"] for r in rs]))
+        p99 = float(np.median([r["lateness_p99_us"] for r in rs]))
+        late = float(np.median([r["late_fraction"] for r in rs]))
+        rounds_p99 = [r["lateness_p99_us"] for r in rs]
+        cpu = float(np.median([r["cpu_percent"] for r in rs]))
+        summary[name] = {"p50_us": p50, "p99_us": p99, "late_fraction": late,
+                         "p99_vs_off": p99 / base, "p99_rounds_us": rounds_p99,
+                         "server_cpu_percent": cpu}
+        print(f"{what} {name:12s}: lateness p50 {p50:6.1f} us, p99 {p99:7.1f} us "
+              f"({p99 / base:5.2f} x off), ticks > 1 ms late {100 * late:.2f} %; "
+              f"p99 by round {', '.join(f'{x:.0f}' for x in rounds_p99)} us; "
+              f"server CPU {cpu:.0f} %")
+    return summary
 
 
 def main(argv: list[str] | None = None) -> dict:

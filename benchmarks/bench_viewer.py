@@ -16,13 +16,12 @@ ratio to ``off``.
 from __future__ import annotations
 
 import argparse
+import functools
 import socket
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
-from benchmarks.bench_server import run
+from benchmarks.bench_server import compare_modes, run
 
 
 def stalled_viewer() -> tuple[socket.socket, str]:
@@ -42,22 +41,10 @@ def main(argv: list[str] | None = None) -> dict:
     tmp = Path(tmp_dir.name)
     stalled, url = stalled_viewer()
     modes = {"off": "off", "file": f"save:{tmp / 'live.rrd'}", "stalled viewer": f"connect:{url}"}
-    results: dict[str, list[dict]] = {m: [] for m in modes}
-    for _ in range(args.rounds):
-        for name, viewer in modes.items():
-            results[name].append(run(args.seconds, 200.0, viewer))
+    summary = compare_modes({name: functools.partial(run, args.seconds, 200.0, viewer)
+                             for name, viewer in modes.items()}, args.rounds, "viewer")
     stalled.close()
     tmp_dir.cleanup()
-    summary = {}
-    base = np.median([r["lateness_p99_us"] for r in results["off"]])
-    for name, rs in results.items():
-        p50 = float(np.median([r["lateness_p50_us"] for r in rs]))
-        p99 = float(np.median([r["lateness_p99_us"] for r in rs]))
-        late = float(np.median([r["late_fraction"] for r in rs]))
-        summary[name] = {"p50_us": p50, "p99_us": p99, "late_fraction": late,
-                         "p99_vs_off": p99 / base}
-        print(f"viewer {name:12s}: lateness p50 {p50:6.1f} us, p99 {p99:7.1f} us "
-              f"({p99 / base:5.2f} x off), ticks > 1 ms late {100 * late:.2f} %")
     return summary
 
 

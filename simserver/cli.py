@@ -400,6 +400,10 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help="pin the server to these CPUs (e.g. 1 or 2-3; default: any)")
     parser.add_argument("--rt-lock-memory", action="store_true", default=None,
                         help="mlockall: no page faults in the tick (needs CAP_IPC_LOCK)")
+    parser.add_argument("--ros2", action=argparse.BooleanOptionalAction, default=None,
+                        help="the car on ROS 2 topics: start 'simserver ros2' in its own "
+                             "process, with the config's 'ros2' settings if it has any "
+                             "(default: the config's 'ros2'; see docs/ros2.md)")
     parser.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
 
 
@@ -416,7 +420,8 @@ def serve_command(args: argparse.Namespace) -> int:
         prefix=args.prefix, listen=args.listen, connect=args.connect,
         zenoh_config=args.zenoh_config, command_log=args.command_log, viewer=args.viewer,
         realtime=args.realtime, rt_priority=args.rt_priority, rt_cpus=args.rt_cpus,
-        rt_lock_memory=args.rt_lock_memory)
+        rt_lock_memory=args.rt_lock_memory,
+        ros2=args.ros2)
     from simserver.adapters.zenoh_io import ZenohConfigError, ZenohOpenError
     from simserver.server import DuplicateVehicleError
 

@@ -43,6 +43,7 @@ from simserver.realtime import (
     RealtimeSettings,
     parse_cpus,
 )
+from simserver.ros2 import cli as ros2_cli
 from simserver.scenario import INITIAL_RANGES, Scene, load_scene
 from simserver.server_loop import ServerLoop, SlotPorts
 from simserver.simulation import Simulation
@@ -75,6 +76,7 @@ SERVER_KEYS: dict[str, tuple[float, float] | None] = {
     "rt_priority": (2, 99),
     "rt_cpus": None,
     "rt_lock_memory": None,
+    "ros2": None,
 }
 
 
@@ -103,6 +105,7 @@ class ServerConfig:
     rt_priority: int = DEFAULT_RT_PRIORITY
     rt_cpus: tuple[int, ...] = ()
     rt_lock_memory: bool = False
+    ros2: dict[str, Any] | None = None  # the ROS 2 adapter's settings; None: off
 
     def realtime_settings(self) -> RealtimeSettings:
         """The real-time scheduling asked for (``simserver.realtime``)."""
@@ -154,6 +157,7 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
     Errors name the file and the key, or the command-line option that set it.
     """
     path = Path(path).resolve()
+    ros2_flag = overrides.pop("ros2", None)  # --ros2/--no-ros2 switch the config's section
     data = read_yaml(path)
     check_keys(path, data, tuple(SERVER_KEYS), required=("scene",))
     for key in ("scene", "zenoh_config", "command_log"):
@@ -181,7 +185,7 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
 
     cfg = ServerConfig(path=path, scene=Path(base["scene"]))
     for key, rng in SERVER_KEYS.items():
-        if key not in base or key == "scene" or base[key] is None:
+        if key not in base or key in ("scene", "ros2") or base[key] is None:
             continue
         value = base[key]
         if key in ("state_every", "max_catchup_ticks", "rt_priority"):
@@ -238,6 +242,10 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
                 _split_host_port(mode, target, "127.0.0.1", 0)  # the port is in 1-65535
         except RerunSinkError as exc:
             raise ConfigError(f"{where('viewer')}: {exc}") from exc
+    try:
+        cfg.ros2 = ros2_cli.serve_settings(base.get("ros2"), ros2_flag, source=f"{path}: ros2")
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     if not cfg.config_dirs:
         cfg.config_dirs = [REPO_CONFIGS, path.parent]
     return cfg
@@ -444,6 +452,7 @@ class SimServer:
         loop = self.loop
         loop.running = True  # before the handlers: a signal from now on ends the loop
         previous = {s: signal.signal(s, self.stop) for s in (signal.SIGINT, signal.SIGTERM)}
+        ros2 = None
         try:
             with ZenohEndpoint(zcfg, prefix=cfg.prefix, vehicle=cfg.vehicle_id) as ep:
                 self._zid = str(ep.session.zid())
@@ -472,11 +481,13 @@ class SimServer:
                     f"connect {', '.join(effective_endpoints(zcfg, 'connect/endpoints'))}"
                 print(f"simserver: ready on {first.keys.base} ({where})", flush=True)
                 self.viewer = self._start_viewer(listen)
+                ros2 = self._start_ros2(listen)
                 loop.run()
         finally:
             for s, h in previous.items():
                 signal.signal(s, h)
             self._stop_viewer(self.viewer)
+            self._stop_viewer(ros2)
             self.preparer.close()
             for slot in self.slots:
                 if slot.command_log is not None:
@@ -561,6 +572,30 @@ class SimServer:
         self.viewer_command = "simserver " + " ".join(args[3:])
         log.info("live viewer: %s", self.viewer_command)
         return subprocess.Popen(args)
+
+    def _start_ros2(self, listen: list[str]) -> subprocess.Popen | None:
+        """Start ``simserver ros2`` in its own process when configured, like the viewer; a
+        thread logs its death while the server runs."""
+        cfg = self.cfg
+        if cfg.ros2 is None:
+            return None
+        if not listen:
+            log.warning("ROS 2 adapter not started: the server listens on no endpoint "
+                        "(run 'simserver ros2 --connect ENDPOINT' yourself)")
+            return None
+        args = ros2_cli.adapter_command(loopback_of(listen[0]), cfg.prefix, cfg.vehicle_id,
+                                        cfg.ros2)
+        log.info("ROS 2 adapter: %s", " ".join(args[2:]))
+        adapter = subprocess.Popen(args)
+
+        def watch() -> None:
+            code = adapter.wait()
+            if self.loop.running:
+                log.error("the ROS 2 adapter (pid %d) ended with exit code %d; the server "
+                          "goes on without it", adapter.pid, code)
+
+        threading.Thread(target=watch, name="ros2-watch", daemon=True).start()
+        return adapter
 
     @staticmethod
     def _stop_viewer(viewer: subprocess.Popen | None) -> None:

@@ -4,44 +4,52 @@ A real server (``simserver serve`` on the 10 % hill scene), the adapter as a sub
 (``simserver ros2``), and this test as the ROS side: a zenoh session in router mode
 standing in for ``rmw_zenohd``, and a peer session connected to it as a ROS node is (so
 everything between the node and the adapter goes through the router, as on a ROS
-machine). Everything the test checks is
-built here from rmw_zenoh's design document (``docs/design.md`` of github.com/ros2/rmw_zenoh)
-and decoded with rosbags' own type store and CDR deserialiser, not with the adapter's
-modules: key expressions, type hashes, the 33-byte attachment, the liveliness tokens,
-and the messages' contents against the server's state. Commands are published the way
-rmw_zenoh publishes them (key, CDR, attachment, liveliness tokens of a node and its
-publisher).
+machine). Everything the test checks is built here from rmw_zenoh's design document
+(``docs/design.md`` of github.com/ros2/rmw_zenoh) and source (the publisher GID), and
+decoded with rosbags' own type store and CDR deserialiser, not with the adapter's
+modules: key expressions, type hashes, the 33-byte attachment and its GID, the liveliness
+tokens, and the messages' contents against the server's state. Commands are published
+the way rmw_zenoh publishes them (key, CDR, attachment, liveliness tokens of a node and
+its publisher). ``serve`` starting and stopping the adapter from its config is checked
+on servers of its own.
 
-The server fixture follows ``tests/serverproc.py`` as it was when this was written (a
-``simserver serve`` subprocess on a free loopback port, output read by a thread, SIGTERM
-to stop); it is kept here so that this file does not depend on that harness changing.
-Tests wait on conditions with deadlines; the only pacing is the 20 Hz at which the ROS
-side publishes commands, as a ROS node would.
+The server, its clients and the adapter's process come from the project's harness
+(``simserver.testing``). Tests wait on conditions with deadlines; the only pacing is the
+20 Hz at which the ROS side publishes commands, as a ROS node would.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import re
-import socket
+import signal
 import struct
-import subprocess
-import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+import xxhash
 import zenoh
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from simserver import protocol as proto
-from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
+from simserver.adapters.zenoh_io import make_zenoh_config
+from simserver.testing import (
+    CONFIGS,
+    Client,
+    OutputProcess,
+    ServerProcess,
+    loopback_endpoint,
+    wait_until,
+)
 
 REPO = Path(__file__).resolve().parents[1]
-HILL_SCENE = REPO / "configs" / "scenes" / "hill_10pct_paper_sedan.yaml"
+HILL_SCENE = CONFIGS / "scenes" / "hill_10pct_paper_sedan.yaml"
+FLAT_SCENE = CONFIGS / "scenes" / "flat_paper_sedan.yaml"
 DOMAIN = 7  # not the default 0: the adapter must honour --domain-id
 NODE = "simserver_car0"
 GRAVITY = 9.81  # the scene's model default
@@ -92,63 +100,42 @@ def topic_key(topic: str, ros_type: str) -> str:
     return f"{DOMAIN}/{topic}/{dds_name(ros_type)}/{TS.hash_rihs01(ros_type)}"
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def rmw_zenoh_gid(token: str) -> bytes:
+    """A publisher's GID by rmw_zenoh's rule (``Entity::Entity`` in its
+    ``liveliness_utils.cpp``): XXH3-128 of the entity's liveliness token key expression,
+    copied as ``low64`` then ``high64``, each in the (little-endian) machine's byte order.
+
+    Written here from the canonical (big-endian ``high64 || low64``) digest, not from the
+    adapter's integer route.
+    """
+    canonical = xxhash.xxh3_128_digest(token.encode())
+    high64, low64 = canonical[:8], canonical[8:]
+    return low64[::-1] + high64[::-1]
 
 
-class Process:
-    """A subprocess whose output a thread collects; ``ready`` is set on a marker line."""
+def start_adapter(endpoint: str, settings: dict[str, Any]) -> OutputProcess:
+    """``simserver ros2`` with the command line serve uses for a config's ``ros2:`` section."""
+    from simserver.ros2.cli import adapter_command
 
-    def __init__(self, args: list[str], marker: str) -> None:
-        self.proc = subprocess.Popen(args, cwd=REPO, stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, text=True)
-        self.output: list[str] = []
-        self.ready = threading.Event()
-
-        def pump() -> None:
-            for line in self.proc.stdout:
-                self.output.append(line)
-                if marker in line:
-                    self.ready.set()
-            self.ready.set()
-
-        self._reader = threading.Thread(target=pump, daemon=True)
-        self._reader.start()
-
-    def wait_ready(self, timeout_s: float) -> None:
-        if not self.ready.wait(timeout_s) or self.proc.poll() is not None:
-            self.stop()
-            raise RuntimeError("process did not start:\n" + "".join(self.output))
-
-    def stop(self) -> str:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._reader.join(timeout=5)
-        return "".join(self.output)
+    proc = OutputProcess(adapter_command(endpoint, "simserver", "car0", settings),
+                         ready="simserver ros2: node")
+    if not proc.wait_ready(120) or not proc.alive():
+        proc.kill()
+        raise RuntimeError("the adapter did not start:\n" + proc.text())
+    return proc
 
 
 @pytest.fixture(scope="module")
-def server() -> Iterator[str]:
-    """``simserver serve`` on the 10 % hill; yields its endpoint."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = Process([sys.executable, "-m", "simserver", "serve", "--listen", endpoint,
-                    "--viewer", "off", "--scene", str(HILL_SCENE)], "ready on")
-    proc.wait_ready(180)
-    yield endpoint
-    proc.stop()
+def server() -> Iterator[ServerProcess]:
+    """``simserver serve`` on the 10 % hill."""
+    with ServerProcess(scene=HILL_SCENE, ready_timeout_s=180) as proc:
+        yield proc
 
 
 @pytest.fixture(scope="module")
 def router() -> Iterator[tuple[zenoh.Session, str]]:
     """A zenoh router session standing in for ``rmw_zenohd``; yields it and its endpoint."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = loopback_endpoint()
     session = zenoh.open(make_zenoh_config(listen=[endpoint], mode="router"))
     yield session, endpoint
     session.close()
@@ -164,31 +151,23 @@ def ros_node(router: tuple[zenoh.Session, str]) -> Iterator[zenoh.Session]:
 
 
 @pytest.fixture(scope="module")
-def watcher(server: str) -> Iterator[ZenohEndpoint]:
-    """A plain protocol client of the server (state history, controls)."""
-    ep = ZenohEndpoint(make_zenoh_config(listen=[], connect=[server]))
-    yield ep
-    ep.close()
+def watcher(server: ServerProcess) -> Iterator[Client]:
+    """A plain protocol client of the server (every state kept, controls)."""
+    with Client(server, state_capacity=1 << 15, keep_history=True) as client:
+        yield client
 
 
 @pytest.fixture(scope="module")
-def adapter(server: str, router: tuple[zenoh.Session, str],
-            ros_node: zenoh.Session) -> Iterator[Process]:
+def adapter(server: ServerProcess, router: tuple[zenoh.Session, str],
+            ros_node: zenoh.Session) -> Iterator[OutputProcess]:
     """``simserver ros2`` connected to the server, its ROS node a client of the router."""
-    from simserver.ros2.cli import adapter_command
-
-    _, router_endpoint = router
-    # the command line serve uses (a server config's ros2: section)
-    args = adapter_command(server, "simserver", "car0", {
-        "router": router_endpoint, "domain_id": DOMAIN, "normal_priority": True})
-    proc = Process(args, "simserver ros2: node")
-    proc.wait_ready(120)
-    deadline = time.monotonic() + 30
-    while not liveliness_tokens(ros_node):  # the node is in the graph, seen from a node
-        assert time.monotonic() < deadline, "no liveliness token from the adapter"
+    proc = start_adapter(server.endpoint, {
+        "router": router[1], "domain_id": DOMAIN, "normal_priority": True})
+    # the node is in the graph, seen from a node
+    wait_until(lambda: liveliness_tokens(ros_node), timeout_s=30,
+               what="a liveliness token from the adapter")
     yield proc
-    out = proc.stop()
-    assert proc.proc.returncode == 0, out
+    assert proc.stop() == 0, proc.text()
 
 
 def liveliness_tokens_of(session: zenoh.Session, domain: int) -> list[str]:
@@ -200,20 +179,25 @@ def liveliness_tokens(session: zenoh.Session) -> list[str]:
     return liveliness_tokens_of(session, DOMAIN)
 
 
-class States:
-    """The server's states, decoded, as an independent observer."""
+def receive(sub: Any, take: Callable[[zenoh.Sample], None], progress: Callable[[], Any],
+            enough: Callable[[Any], bool], timeout_s: float, what: str) -> None:
+    """Hand every sample of ``sub`` to ``take`` until ``enough(progress())``."""
+    def drain() -> Any:
+        while (sample := sub.try_recv()) is not None:
+            take(sample)
+        return progress()
 
-    def __init__(self, ep: ZenohEndpoint) -> None:
-        self.inbox = ep.declare_state_inbox(capacity=1 << 15)
-        self.history: list[np.void] = []
+    wait_until(drain, enough, timeout_s=timeout_s, what=what)
 
-    def poll(self) -> list[np.void]:
-        for payload in self.inbox.drain_newest():
-            self.history.append(proto.decode_state(payload))
-        return self.history
 
-    def close(self) -> None:
-        self.inbox.close()
+def states_of(client: Client) -> list[np.void]:
+    """Every state the client received since its history was last cut."""
+    client.drain_states()
+    return client.history
+
+
+def keep_only_newest(client: Client) -> None:
+    client.history[:] = client.history[-1:]
 
 
 class RosPublisherLikeRmwZenoh:
@@ -263,19 +247,16 @@ def twist(speed: float, yaw_rate: float = 0.0):
                                         angular=v3(x=0.0, y=0.0, z=yaw_rate))
 
 
-def drive_until(pub: RosPublisherLikeRmwZenoh, message, states: States,
+def drive_until(pub: RosPublisherLikeRmwZenoh, message, client: Client,
                 done: Callable[[list[np.void]], bool], timeout_s: float, what: str) -> None:
     """Publish ``message`` at 20 Hz (as a ROS node would) until ``done(history)``."""
-    deadline = time.monotonic() + timeout_s
-    while True:
+    def publish_and_poll() -> np.void | None:
         pub.put(message)
-        history = states.poll()
-        if history and done(history):
-            return
-        assert time.monotonic() < deadline, (
-            f"{what}: not reached within {timeout_s} s; last state u = "
-            f"{float(history[-1]['u_mps']) if history else None}")
-        time.sleep(0.05)
+        client.drain_states()
+        return client.last
+
+    wait_until(publish_and_poll, lambda last: bool(client.history) and done(client.history),
+               timeout_s=timeout_s, what=what, interval_s=0.05)
 
 
 def within(history: list[np.void], since_s: float) -> list[np.void]:
@@ -284,17 +265,17 @@ def within(history: list[np.void], since_s: float) -> list[np.void]:
     return [s for s in history if float(s["sim_time_s"]) >= end - since_s]
 
 
-def assert_reaches_and_holds(pub, message, states: States, target: float) -> None:
+def assert_reaches_and_holds(pub, message, client: Client, target: float) -> None:
     """The car comes within 5 % of ``target``, then stays within 5 % for 3 s."""
     def close(s: np.void) -> bool:
         return abs(float(s["u_mps"]) - target) <= 0.05 * abs(target)
 
-    drive_until(pub, message, states, lambda h: close(h[-1]), 30.0, f"within 5 % of {target}")
-    states.history[:] = states.history[-1:]
-    start = float(states.history[0]["sim_time_s"])
-    drive_until(pub, message, states, lambda h: float(h[-1]["sim_time_s"]) >= start + 3.0,
+    drive_until(pub, message, client, lambda h: close(h[-1]), 30.0, f"within 5 % of {target}")
+    keep_only_newest(client)
+    start = float(client.history[0]["sim_time_s"])
+    drive_until(pub, message, client, lambda h: float(h[-1]["sim_time_s"]) >= start + 3.0,
                 10.0, "3 s more")
-    worst = max(abs(float(s["u_mps"]) - target) for s in states.history)
+    worst = max(abs(float(s["u_mps"]) - target) for s in client.history)
     assert worst <= 0.05 * abs(target), f"left the 5 % band by {worst:.3f} m/s"
 
 
@@ -303,20 +284,25 @@ def stopped_and_held(history: list[np.void]) -> bool:
     return abs(float(s["u_mps"])) < 0.01 and bool(int(s["flags"]) & proto.StateFlag.BRAKE_HOLD)
 
 
-def reset_at_rest(watcher: ZenohEndpoint, states: States) -> None:
-    reply = watcher.request("reset", timeout_s=5.0)
+def reset_at_rest(client: Client) -> None:
+    """``reset``, then forget every state from before it."""
+    reply = client.request("reset", timeout_s=5.0)
     assert reply["ok"], reply
-    states.history.clear()
-    deadline = time.monotonic() + 10
-    while not [s for s in states.poll() if float(s["sim_time_s"]) < 0.5]:
-        assert time.monotonic() < deadline, "no state after the reset"
-        time.sleep(0.01)
+    client.history.clear()
+
+    def first_after_reset() -> int | None:
+        return next((i for i, s in enumerate(states_of(client))
+                     if float(s["sim_time_s"]) < 0.5), None)
+
+    first = wait_until(first_after_reset, lambda i: i is not None, timeout_s=10,
+                       what="a state after the reset")
+    del client.history[:first]
 
 
-def assert_stop_and_hold_without_creep(pub, message, states: States) -> None:
+def assert_stop_and_hold_without_creep(pub, message, client: Client) -> None:
     """Zero target: the car stops, the brake holds, and it does not creep down the 10 %."""
-    drive_until(pub, message, states, stopped_and_held, 20.0, "stop")
-    stop_s = float(states.history[-1]["sim_time_s"])
+    drive_until(pub, message, client, stopped_and_held, 20.0, "stop")
+    stop_s = float(client.history[-1]["sim_time_s"])
 
     def settled(history: list[np.void]) -> bool:
         # the held car rocks on its tires (the paper's 3.5 Hz fore-aft mode) for about a
@@ -325,13 +311,13 @@ def assert_stop_and_hold_without_creep(pub, message, states: States) -> None:
         return float(window[0]["sim_time_s"]) >= stop_s and \
             all(abs(float(s["u_mps"])) < 1e-3 for s in window)
 
-    drive_until(pub, message, states, settled, 5.0, "settle")
-    states.history[:] = states.history[-1:]
-    start = states.history[0]
-    drive_until(pub, message, states,
+    drive_until(pub, message, client, settled, 5.0, "settle")
+    keep_only_newest(client)
+    start = client.history[0]
+    drive_until(pub, message, client,
                 lambda h: float(h[-1]["sim_time_s"]) - float(start["sim_time_s"]) >= 3.0,
                 10.0, "hold for 3 s")
-    held = states.history
+    held = client.history
     creep_m = max(math.hypot(float(s["x_m"]) - float(start["x_m"]),
                              float(s["y_m"]) - float(start["y_m"])) for s in held)
     assert creep_m < 1e-4, f"the car crept {creep_m * 1e3:.3f} mm in 3 s on the 10 % grade"
@@ -362,6 +348,18 @@ def test_wire_format_reproduces_the_design_doc_examples() -> None:
     assert wire.type_hash("ackermann_msgs/msg/AckermannDriveStamped") == ACKERMANN_HASH
     att = wire.encode_attachment(3, 1_700_000_000_123_456_789, bytes(range(16)))
     assert att == struct.pack("<qqB16s", 3, 1_700_000_000_123_456_789, 16, bytes(range(16)))
+
+
+def test_gid_is_rmw_zenohs_xxh3_128_of_the_token() -> None:
+    from simserver.ros2 import wire
+
+    # xxHash's own test vector: XXH3-128 (seed 0) of no bytes is 0x99aa06d3014798d8_
+    # 6001c324468d497f, so rmw_zenoh's GID of it is low64 then high64, little-endian
+    assert wire.gid_for("") == bytes.fromhex("7f498d4624c30160" "d8984701d306aa99")
+    token = ("@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/"
+             f"std_msgs::msg::dds_::String_/{STRING_HASH}/::,7:,:,:,,")
+    assert wire.gid_for(token) == rmw_zenoh_gid(token)
+    assert len(wire.gid_for(token)) == 16
 
 
 def test_docs_tables_are_generated_from_the_code() -> None:
@@ -407,22 +405,19 @@ def test_serve_settings_are_checked_naming_the_key(settings, key) -> None:
 
 def test_published_topics_as_rmw_zenoh_writes_them(adapter, ros_node, watcher) -> None:
     """Keys, type hashes, CDR payloads, attachments and contents of all four topics."""
-    session = ros_node
-    states = States(watcher)
     received: dict[str, list] = {}
-    sub = session.declare_subscriber(f"{DOMAIN}/**", zenoh.handlers.FifoChannel(1 << 14))
+    expected = {topic_key(t, ros_type): t for t, (ros_type, _) in PUBLISHED.items()}
+
+    def take(sample: zenoh.Sample) -> None:
+        received.setdefault(str(sample.key_expr), []).append(
+            (sample.payload.to_bytes(), sample.attachment.to_bytes()
+             if sample.attachment is not None else None, time.time_ns()))
+
+    sub = ros_node.declare_subscriber(f"{DOMAIN}/**", zenoh.handlers.FifoChannel(1 << 14))
     try:
-        expected = {topic_key(t, ros_type): t for t, (ros_type, _) in PUBLISHED.items()}
-        deadline = time.monotonic() + 20
-        while not all(len(received.get(k, [])) >= 20 for k in expected):
-            assert time.monotonic() < deadline, f"received only {list(received)}"
-            sample = sub.try_recv()
-            if sample is None:
-                time.sleep(0.005)
-                continue
-            received.setdefault(str(sample.key_expr), []).append(
-                (sample.payload.to_bytes(), sample.attachment.to_bytes()
-                 if sample.attachment is not None else None, time.time_ns()))
+        receive(sub, take, lambda: {k: len(v) for k, v in received.items()},
+                lambda counts: all(counts.get(k, 0) >= 20 for k in expected), 20.0,
+                "20 samples of each of the four topics")
     finally:
         sub.undeclare()
     assert set(received) == set(expected), "keys other than the four topics'"
@@ -442,9 +437,13 @@ def test_published_topics_as_rmw_zenoh_writes_them(adapter, ros_node, watcher) -
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "sequence gaps"
     assert len({gid for _, gid in gids}) == len(expected), "one GID per publisher"
     assert len(gids) == len(expected)
+    # each GID is rmw_zenoh's for the publisher's liveliness token
+    token_of = {t.split("/")[9].replace("%", "/").lstrip("/"): t
+                for t in liveliness_tokens(ros_node) if t.split("/")[5] == "MP"}
+    for key, gid in gids:
+        assert gid == rmw_zenoh_gid(token_of[expected[key]]), f"GID of {expected[key]}"
     # contents: at rest, held by the server's watchdog (no ROS command yet: no drive)
-    state = states.poll()[-1]
-    states.close()
+    state = watcher.newest()
     assert int(state["last_cmd_seq"]) == 0, "the adapter drove without a ROS command"
     odom = TS.deserialize_cdr(received[topic_key("odom", "nav_msgs/msg/Odometry")][-1][0],
                               "nav_msgs/msg/Odometry")
@@ -503,33 +502,26 @@ def test_liveliness_tokens_announce_the_node_and_its_endpoints(adapter, ros_node
 
 def test_sim_time_stamps_and_clock(server, router, ros_node, watcher) -> None:
     """``stamp: sim``: stamps are the simulated time, also published on /clock."""
-    from simserver.ros2.cli import adapter_command
-
     domain = DOMAIN + 1  # a second adapter beside the first, on its own domain
-    proc = Process(adapter_command(server, "simserver", "car0", {
-        "router": router[1], "domain_id": domain, "stamp": "sim", "normal_priority": True}),
-        "simserver ros2: node")
-    states = States(watcher)
     clock_type = "rosgraph_msgs/msg/Clock"
     clock_key = f"{domain}/clock/{dds_name(clock_type)}/{TS.hash_rihs01(clock_type)}"
+    clocks, odoms = [], []
+
+    def take(sample: zenoh.Sample) -> None:
+        if str(sample.key_expr) == clock_key:
+            msg = TS.deserialize_cdr(sample.payload.to_bytes(), clock_type)
+            clocks.append(msg.clock.sec + 1e-9 * msg.clock.nanosec)
+        elif str(sample.key_expr).startswith(f"{domain}/odom/"):
+            msg = TS.deserialize_cdr(sample.payload.to_bytes(), "nav_msgs/msg/Odometry")
+            odoms.append(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
+
     sub = ros_node.declare_subscriber(f"{domain}/**", zenoh.handlers.FifoChannel(1 << 12))
+    proc = start_adapter(server.endpoint, {
+        "router": router[1], "domain_id": domain, "stamp": "sim", "normal_priority": True})
     try:
-        proc.wait_ready(120)
-        clocks, odoms = [], []
-        deadline = time.monotonic() + 20
-        while len(clocks) < 20 or len(odoms) < 20:
-            assert time.monotonic() < deadline, f"{len(clocks)} clocks, {len(odoms)} odoms"
-            sample = sub.try_recv()
-            if sample is None:
-                time.sleep(0.005)
-                continue
-            if str(sample.key_expr) == clock_key:
-                msg = TS.deserialize_cdr(sample.payload.to_bytes(), clock_type)
-                clocks.append(msg.clock.sec + 1e-9 * msg.clock.nanosec)
-            elif str(sample.key_expr).startswith(f"{domain}/odom/"):
-                msg = TS.deserialize_cdr(sample.payload.to_bytes(), "nav_msgs/msg/Odometry")
-                odoms.append(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
-        sim_now = float(states.poll()[-1]["sim_time_s"])
+        receive(sub, take, lambda: (len(clocks), len(odoms)), lambda n: min(n) >= 20, 20.0,
+                "20 /clock and 20 odom messages")
+        sim_now = float(watcher.newest()["sim_time_s"])
         assert clocks == sorted(clocks) and clocks[-1] > clocks[0]
         assert sim_now - 1.0 < clocks[-1] <= sim_now + 0.1, "not the simulated time"
         assert sim_now - 1.0 < odoms[-1] <= sim_now + 0.1
@@ -539,83 +531,178 @@ def test_sim_time_stamps_and_clock(server, router, ros_node, watcher) -> None:
                                     "2::,1:,:,:,,")  # best effort, keep last 1
     finally:
         sub.undeclare()
-        states.close()
-        out = proc.stop()
-    assert proc.proc.returncode == 0, out
+        code = proc.stop()
+    assert code == 0, proc.text()
+
+
+# ---------------------------------------------------------------- serve starts it
+
+def ros2_children(server: ServerProcess) -> list[int]:
+    """Process ids of the server's ``simserver ros2`` children."""
+    def cmdline(pid: int) -> list[str]:
+        try:
+            return Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+        except OSError:
+            return []
+    return [pid for pid in server.children() if cmdline(pid)[1:4] == ["-m", "simserver", "ros2"]]
+
+
+def test_serve_starts_the_adapter_when_configured_and_stops_it(router, ros_node,
+                                                               tmp_path) -> None:
+    """A server config's ``ros2:`` section: the ROS graph shows the car's node and topics
+    once the server is ready; stopping the server stops the adapter (no orphan)."""
+    domain = DOMAIN + 2
+    config = tmp_path / "server.yaml"
+    config.write_text(f"scene: {FLAT_SCENE}\n"
+                      f"ros2:\n  router: {router[1]}\n  domain_id: {domain}\n"
+                      "  normal_priority: true\n", encoding="utf-8")
+    endpoints = len(PUBLISHED) + len(SUBSCRIBED)
+    with ServerProcess(scene=None, config=config) as server:
+        server.wait_for_line("simserver ros2: node", timeout_s=120)
+        tokens = wait_until(lambda: liveliness_tokens_of(ros_node, domain),
+                            lambda ts: len(ts) == 1 + endpoints, timeout_s=30,
+                            what="the adapter's node and endpoint tokens")
+        assert [t.split("/")[8] for t in tokens if "/NN/" in t] == [NODE]
+        (adapter_pid,) = ros2_children(server)
+    assert server.returncode == 0, server.text()
+    orphan = Path(f"/proc/{adapter_pid}").exists()
+    if orphan:  # leave no process behind, then fail
+        os.kill(adapter_pid, signal.SIGKILL)
+    assert not orphan, "the adapter outlived the server"
+    assert "ros2: " in server.text(), "the adapter did not end cleanly (no summary line)"
+    wait_until(lambda: liveliness_tokens_of(ros_node, domain), lambda ts: not ts,
+               timeout_s=10, what="the adapter's tokens gone from the graph")
+
+
+def test_serve_ros2_flag_and_the_adapters_death_is_logged() -> None:
+    """``serve --ros2`` starts it with the defaults (idle priority for its own work); if it
+    dies, the server says so and serves on."""
+    with ServerProcess(scene="flat_paper_sedan", extra_args=["--ros2"]) as server, \
+            Client(server) as client:
+        line = server.wait_for_line("simserver ros2: node", timeout_s=120)
+        assert "/simserver_car0 on domain" in line
+        (adapter_pid,) = ros2_children(server)
+        # its Python thread idles; zenoh's receivers keep normal priority, so the server's
+        # lossless state stream is always drained (a starved reader would block the server)
+        assert os.sched_getscheduler(adapter_pid) == os.SCHED_IDLE
+        receivers = [int(tid) for tid in os.listdir(f"/proc/{adapter_pid}/task")
+                     if Path(f"/proc/{adapter_pid}/task/{tid}/comm").read_text()
+                     .startswith("rx-")]
+        assert receivers and all(os.sched_getscheduler(tid) == os.SCHED_OTHER
+                                 for tid in receivers)
+        os.kill(adapter_pid, signal.SIGKILL)
+        server.wait_for_line(f"the ROS 2 adapter (pid {adapter_pid}) ended with exit code "
+                             f"{-signal.SIGKILL}", timeout_s=10)
+        tick = int(client.fresh_state()["tick"])
+        client.wait_state(lambda s: int(s["tick"]) > tick + 100, what="the server serving on")
+        assert server.alive()
+    assert server.returncode == 0, server.text()
+
+
+@pytest.mark.parametrize(("section", "message"), [
+    ("ros2: {domain_id: 300}", "ros2: domain_id: 300 is not an integer in [0, 232]"),
+    ("ros2: {domain: 1}", "ros2: unknown key 'domain'"),
+    ("ros2: {rate_hz: fast}", "ros2.rate_hz: expected a float"),
+    ("ros2: {topics: {speed: /x}}", "ros2: topic: 'speed' is not one of"),
+    ("ros2: 5", "ros2: expected off, on or a mapping"),
+])
+def test_a_bad_ros2_section_is_refused_at_load_naming_file_and_key(section, message,
+                                                                   tmp_path) -> None:
+    from simserver.adapters.config import ConfigError
+    from simserver.server import load_server_config
+
+    config = tmp_path / "server.yaml"
+    config.write_text(f"scene: {FLAT_SCENE}\n{section}\n", encoding="utf-8")
+    with pytest.raises(ConfigError) as err:
+        load_server_config(config)
+    assert str(err.value).startswith(f"{config}: ") and message in str(err.value)
+
+
+def test_ros2_section_and_flags_decide_together(tmp_path) -> None:
+    from simserver.server import load_server_config
+
+    config = tmp_path / "server.yaml"
+    config.write_text(f"scene: {FLAT_SCENE}\nros2: {{domain_id: 3}}\n", encoding="utf-8")
+    assert load_server_config(config).ros2 == {"domain_id": 3}
+    assert load_server_config(config, ros2=True).ros2 == {"domain_id": 3}
+    assert load_server_config(config, ros2=False).ros2 is None
+    config.write_text(f"scene: {FLAT_SCENE}\nros2: off\n", encoding="utf-8")
+    assert load_server_config(config).ros2 is None
+    assert load_server_config(config, ros2=True).ros2 == {}
+    config.write_text(f"scene: {FLAT_SCENE}\n", encoding="utf-8")
+    assert load_server_config(config).ros2 is None
+    assert load_server_config(CONFIGS / "server" / "default.yaml").ros2 is None
 
 
 # ---------------------------------------------------------------- driving
 
-def test_ackermann_reaches_and_holds_speed_then_stops_and_holds_on_10pct(
-        adapter, ros_node, watcher) -> None:
-    session = ros_node
-    states = States(watcher)
-    pub = RosPublisherLikeRmwZenoh(session, "ackermann_cmd",
+@pytest.fixture
+def ackermann_pub(adapter, ros_node) -> Iterator[RosPublisherLikeRmwZenoh]:
+    """A ROS node's AckermannDriveStamped publisher on the adapter's command topic."""
+    pub = RosPublisherLikeRmwZenoh(ros_node, "ackermann_cmd",
                                    "ackermann_msgs/msg/AckermannDriveStamped")
-    try:
-        reset_at_rest(watcher, states)
-        assert_reaches_and_holds(pub, ackermann(6.0), states, 6.0)  # up the 10 % grade
-        steer = 0.05
-        drive_until(pub, ackermann(6.0, steer=steer), states,
-                    lambda h: float(h[-1]["steer_rad"][0]) == pytest.approx(steer, rel=1e-3),
-                    5.0, "road-wheel angle 0.05 rad")
-        drive_until(pub, ackermann(6.0), states,
-                    lambda h: abs(float(h[-1]["steer_rad"][0])) < 1e-6, 5.0, "straight")
-        assert_stop_and_hold_without_creep(pub, ackermann(0.0), states)
-        assert_reaches_and_holds(pub, ackermann(-2.0), states, -2.0)  # reverse, downhill
-        assert int(states.history[-1]["gear"]) == proto.Gear.R
-        assert_stop_and_hold_without_creep(pub, ackermann(0.0), states)
-    finally:
-        pub.close()
-        states.close()
+    yield pub
+    pub.close()
+
+
+@pytest.fixture
+def twist_pub(adapter, ros_node) -> Iterator[RosPublisherLikeRmwZenoh]:
+    """A ROS node's Twist publisher on ``cmd_vel``."""
+    pub = RosPublisherLikeRmwZenoh(ros_node, "cmd_vel", "geometry_msgs/msg/Twist")
+    yield pub
+    pub.close()
+
+
+def test_ackermann_reaches_and_holds_speed_then_stops_and_holds_on_10pct(
+        ackermann_pub, watcher) -> None:
+    pub = ackermann_pub
+    reset_at_rest(watcher)
+    assert_reaches_and_holds(pub, ackermann(6.0), watcher, 6.0)  # up the 10 % grade
+    steer = 0.05
+    drive_until(pub, ackermann(6.0, steer=steer), watcher,
+                lambda h: float(h[-1]["steer_rad"][0]) == pytest.approx(steer, rel=1e-3),
+                5.0, "road-wheel angle 0.05 rad")
+    drive_until(pub, ackermann(6.0), watcher,
+                lambda h: abs(float(h[-1]["steer_rad"][0])) < 1e-6, 5.0, "straight")
+    assert_stop_and_hold_without_creep(pub, ackermann(0.0), watcher)
+    assert_reaches_and_holds(pub, ackermann(-2.0), watcher, -2.0)  # reverse, downhill
+    assert int(watcher.history[-1]["gear"]) == proto.Gear.R
+    assert_stop_and_hold_without_creep(pub, ackermann(0.0), watcher)
 
 
 def test_cmd_vel_reaches_and_holds_speed_then_stops_and_holds_on_10pct(
-        adapter, ros_node, watcher) -> None:
-    session = ros_node
-    states = States(watcher)
-    pub = RosPublisherLikeRmwZenoh(session, "cmd_vel", "geometry_msgs/msg/Twist")
-    try:
-        reset_at_rest(watcher, states)
-        assert_reaches_and_holds(pub, twist(4.0), states, 4.0)  # up the 10 % grade
-        wheelbase = 1.35 + 1.55  # configs/vehicles/paper_sedan/chassis.yaml
-        angle = math.atan(wheelbase * 0.2 / 4.0)
-        drive_until(pub, twist(4.0, 0.2), states,
-                    lambda h: float(h[-1]["steer_rad"][0]) == pytest.approx(angle, rel=1e-3),
-                    5.0, "yaw rate 0.2 rad/s as a road-wheel angle")
-        assert_stop_and_hold_without_creep(pub, twist(0.0), states)
-    finally:
-        pub.close()
-        states.close()
+        twist_pub, watcher) -> None:
+    pub = twist_pub
+    reset_at_rest(watcher)
+    assert_reaches_and_holds(pub, twist(4.0), watcher, 4.0)  # up the 10 % grade
+    wheelbase = 1.35 + 1.55  # configs/vehicles/paper_sedan/chassis.yaml
+    angle = math.atan(wheelbase * 0.2 / 4.0)
+    drive_until(pub, twist(4.0, 0.2), watcher,
+                lambda h: float(h[-1]["steer_rad"][0]) == pytest.approx(angle, rel=1e-3),
+                5.0, "yaw rate 0.2 rad/s as a road-wheel angle")
+    assert_stop_and_hold_without_creep(pub, twist(0.0), watcher)
 
 
-def test_no_ros_command_no_drive(adapter, ros_node, watcher) -> None:
+def test_no_ros_command_no_drive(ackermann_pub, watcher) -> None:
     """ROS commands stop (or turn to NaN): the adapter goes silent, the watchdog holds."""
-    session = ros_node
-    states = States(watcher)
-    pub = RosPublisherLikeRmwZenoh(session, "ackermann_cmd",
-                                   "ackermann_msgs/msg/AckermannDriveStamped")
-    try:
-        reset_at_rest(watcher, states)
-        drive_until(pub, ackermann(3.0), states,
-                    lambda h: float(h[-1]["u_mps"]) > 1.0 and not int(h[-1]["flags"]) & WATCHDOG,
-                    20.0, "driving")
-        last_ros_command = time.monotonic()
-        nan_command = ackermann(float("nan"))  # keeps arriving, but is no command
-        drive_until(pub, nan_command, states, lambda h: int(h[-1]["flags"]) & WATCHDOG, 5.0,
-                    "the watchdog engaging")
-        engaged_after_s = time.monotonic() - last_ros_command
-        # the adapter's timeout (0.5 s) plus the server's watchdog (0.2 s), not sooner
-        assert engaged_after_s > 0.6, engaged_after_s
-        seq = int(states.history[-1]["last_cmd_seq"])
-        end = float(states.history[-1]["sim_time_s"]) + 0.5
-        drive_until(pub, nan_command, states, lambda h: float(h[-1]["sim_time_s"]) >= end,
-                    5.0, "0.5 s more")
-        assert int(states.history[-1]["last_cmd_seq"]) == seq, "commands after the timeout"
-        assert float(states.history[-1]["throttle"]) == 0.0
-    finally:
-        pub.close()
-        states.close()
+    pub = ackermann_pub
+    reset_at_rest(watcher)
+    drive_until(pub, ackermann(3.0), watcher,
+                lambda h: float(h[-1]["u_mps"]) > 1.0 and not int(h[-1]["flags"]) & WATCHDOG,
+                20.0, "driving")
+    last_ros_command = time.monotonic()
+    nan_command = ackermann(float("nan"))  # keeps arriving, but is no command
+    drive_until(pub, nan_command, watcher, lambda h: int(h[-1]["flags"]) & WATCHDOG, 5.0,
+                "the watchdog engaging")
+    engaged_after_s = time.monotonic() - last_ros_command
+    # the adapter's timeout (0.5 s) plus the server's watchdog (0.2 s), not sooner
+    assert engaged_after_s > 0.6, engaged_after_s
+    seq = int(watcher.history[-1]["last_cmd_seq"])
+    end = float(watcher.history[-1]["sim_time_s"]) + 0.5
+    drive_until(pub, nan_command, watcher, lambda h: float(h[-1]["sim_time_s"]) >= end,
+                5.0, "0.5 s more")
+    assert int(watcher.history[-1]["last_cmd_seq"]) == seq, "commands after the timeout"
+    assert float(watcher.history[-1]["throttle"]) == 0.0
 
 
 # ---------------------------------------------------------------- the controller alone

@@ -3,9 +3,10 @@
 Like the viewer (``simserver.viewer``), it is a separate process that talks to the server
 only through the protocol: it subscribes to the state (a bounded ring, newest wins),
 sends DriverCommands, and reads the vehicle with the ``get_config`` control. The 1 kHz
-loop never waits for it, and by default it runs at idle CPU priority
-(``viewer.lower_priority``) so that on the server's machine it uses only time the
-physics does not want.
+loop never waits for it, and by default its Python thread runs at idle CPU priority
+(:func:`idle_python_thread`; zenoh's threads keep normal priority, so the state stream
+is always drained) so that on the server's machine its work uses only time the physics
+does not want.
 
 Every ``1 / rate_hz`` seconds (absolute deadlines; a late loop skips, never bursts) it:
 
@@ -32,7 +33,9 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -217,8 +220,9 @@ class RosNode:
 def _vehicle_from_config(config: dict[str, Any]) -> tuple[VehicleLimits, float, str]:
     """Controller limits, gravity and a change marker from a ``get_config`` reply."""
     from simserver.adapters.config import load_vehicle
+    from simserver.viewer import local_config_file
 
-    vehicle_path = config["vehicle"]["path"]
+    vehicle_path = local_config_file(config["vehicle"]["path"])  # shown relative to configs/
     model = config["scene"].get("model") or {}
     vehicle = load_vehicle(vehicle_path, model)
     limits = VehicleLimits.from_vehicle(vehicle.vp, vehicle.tp)
@@ -416,6 +420,30 @@ def open_ros_session(router: str) -> zenoh.Session:
         raise ZenohOpenError(f"cannot join the ROS router at {router}: {exc}") from None
 
 
+def idle_python_thread() -> str:
+    """Put this (the Python) thread, and threads it starts, at idle CPU priority; what was
+    applied, for the log.
+
+    Only this thread: zenoh's threads, started when the sessions opened, keep normal
+    priority, so they drain the server's 1 kHz state stream into the ring as it comes
+    (a few microseconds a sample), while the decoding, control and CDR work of this thread
+    (``SCHED_IDLE``) only uses time the server does not want. A starved zenoh reader would
+    let the link's socket fill, and the server's state publisher (congestion control
+    BLOCK, written from its loop thread) would wait: on a loaded machine that made the
+    server's ticks tens of milliseconds late. Elsewhere this thread's lowest ``nice``.
+    """
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        return "SCHED_IDLE (zenoh's threads normal)"
+    except (AttributeError, OSError):
+        pass
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        return "nice 19 (zenoh's threads normal)"
+    except (AttributeError, OSError) as exc:
+        return f"normal (could not lower: {exc})"
+
+
 def run_ros2(options: Ros2Options) -> Ros2Stats:
     """Run the adapter until SIGINT/SIGTERM (or ``duration_s``); returns its statistics.
 
@@ -427,12 +455,9 @@ def run_ros2(options: Ros2Options) -> Ros2Stats:
         When the server does not answer ``get_config``.
     """
     from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
-    from simserver.viewer import lower_priority
 
     opts = options.check()
     stats = Ros2Stats()
-    if opts.idle_priority:  # before the session: its threads inherit it
-        stats.cpu_priority = lower_priority()
     running = [True]
 
     def stop(*_: Any) -> None:
@@ -446,6 +471,8 @@ def run_ros2(options: Ros2Options) -> Ros2Stats:
             if opts.ros_router is not None:
                 ros_session = open_ros_session(opts.ros_router)
             adapter = Ros2Adapter(opts, ep, stats, ros_session)
+            if opts.idle_priority:  # after the sessions: zenoh's threads keep theirs
+                stats.cpu_priority = idle_python_thread()
             try:
                 print(f"simserver ros2: {adapter.describe()}", flush=True)
                 period = 1.0 / opts.rate_hz

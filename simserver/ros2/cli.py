@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
+from typing import Any
 
 HELP = "the car on ROS 2 topics through rmw_zenoh (a separate process)"
 DESCRIPTION = ("Be a ROS 2 node as rmw_zenoh (ROS 2 Jazzy) makes one: publish the car's "
@@ -138,6 +139,9 @@ def adapter_command(endpoint: str, prefix: str, vehicle_id: str,
             if not isinstance(value, dict):
                 raise ValueError(f"{source}.topics: expected a mapping option: ROS name")
             for option, name in value.items():
+                if not isinstance(name, str):
+                    raise ValueError(f"{source}.topics.{option}: expected a ROS name, "
+                                     f"got {name!r}")
                 args += ["--topic", f"{option}={name}"]
         elif key == "normal_priority":
             if not isinstance(value, bool):
@@ -154,3 +158,56 @@ def adapter_command(endpoint: str, prefix: str, vehicle_id: str,
             raise ValueError(f"{source}: unknown key {key!r} (known: "
                              f"{', '.join([*SERVE_SETTINGS, 'topics', 'normal_priority'])})")
     return args
+
+
+OPTION_OF_SETTING = {"router": "ros_router"}
+"""Settings whose :class:`simserver.ros2.adapter.Ros2Options` field has another name."""
+
+
+def serve_settings(value: Any, flag: bool | None = None,
+                   source: str = "ros2") -> dict[str, Any] | None:
+    """The adapter settings of a server config's ``ros2:`` value; None when it is off.
+
+    Parameters
+    ----------
+    value : None, bool or dict
+        The config's value: ``off``/``false``/absent (no adapter), ``on``/``true`` (the
+        adapter with its defaults) or a mapping of settings (keys of
+        :data:`SERVE_SETTINGS`, ``topics`` and ``normal_priority``).
+    flag : bool, optional
+        ``serve --ros2`` (True: start it, with the config's settings if it has any) or
+        ``--no-ros2`` (False); None lets the config decide.
+    source : str
+        Where ``value`` came from, for the error message (``"server.yaml: ros2"``).
+
+    Raises
+    ------
+    ValueError
+        Naming ``source`` and the key: an unknown key, a value of the wrong type, or one
+        the adapter would refuse (a domain id out of range, a bad namespace, ...).
+    """
+    from simserver.ros2.adapter import Ros2Options
+    from simserver.ros2.wire import Ros2WireError
+
+    if value is None or value is False:
+        settings = None
+    elif value is True:
+        settings = {}
+    elif isinstance(value, dict):
+        settings = dict(value)
+    else:
+        raise ValueError(f"{source}: expected off, on or a mapping of the adapter's settings "
+                         f"({', '.join([*SERVE_SETTINGS, 'topics', 'normal_priority'])}), "
+                         f"got {value!r}")
+    if flag is not None:
+        settings = (settings if settings is not None else {}) if flag else None
+    if settings is None:
+        return None
+    adapter_command("tcp/127.0.0.1:7447", "simserver", "car0", settings, source)  # keys, types
+    options = {OPTION_OF_SETTING.get(k, k): v for k, v in settings.items()
+               if k != "normal_priority"}
+    try:
+        Ros2Options(**options).check()
+    except Ros2WireError as exc:
+        raise ValueError(f"{source}: {exc}") from None
+    return settings

@@ -26,10 +26,11 @@ expressions", "Graph Cache" and "Publishers"):
   rmw_zenoh's default (reliable, volatile, keep-last 42, infinite durations, automatic
   liveliness): ``::,10:,:,:,,`` is a reliable, volatile, keep-last-10 endpoint.
 
-The publisher GID is 16 bytes that identify the publisher; rmw_zenoh derives it with
-XXH3-128 from the token's key expression, this module with BLAKE2b-128 (the standard
-library's) from the same key expression: a receiving node only compares GIDs for
-equality, so the choice of hash is invisible on the wire except in the bytes themselves.
+The publisher GID is 16 bytes that identify the publisher; as rmw_zenoh computes it
+(``Entity::Entity`` in ``rmw_zenoh_cpp/src/detail/liveliness_utils.cpp``): the XXH3-128 hash
+(seed 0, default secret) of the entity's liveliness token key expression, its low 64 bits
+then its high 64 bits, each in the machine's byte order (little-endian on every platform
+ROS 2 supports): the 128-bit hash value as 16 little-endian bytes.
 
 The message types come from rosbags' type store for Jazzy (``Stores.ROS2_JAZZY``), which
 ships the standard definitions and computes RIHS01 hashes offline; ``ackermann_msgs`` is
@@ -40,11 +41,12 @@ hash depends only on field names and types, not on comments).
 from __future__ import annotations
 
 import functools
-import hashlib
 import re
 import struct
 from dataclasses import dataclass
 from typing import Any, Final
+
+import xxhash
 
 ADMIN_SPACE: Final[str] = "@ros2_lv"
 """First chunk of every rmw_zenoh liveliness token (a hermetic zenoh namespace)."""
@@ -234,8 +236,9 @@ def endpoint_token(domain_id: int, session_id: str, node_id: int, entity_id: int
 
 
 def gid_for(token: str) -> bytes:
-    """A 16-byte GID for the entity of ``token`` (BLAKE2b-128 of the token's key)."""
-    return hashlib.blake2b(token.encode(), digest_size=GID_SIZE).digest()
+    """The 16-byte GID rmw_zenoh gives the entity of ``token``: XXH3-128 of the token's
+    key expression, low 64 bits then high 64 bits, little-endian."""
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(GID_SIZE, "little")
 
 
 # ============================================================================ attachment

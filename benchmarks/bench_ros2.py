@@ -1,0 +1,83 @@
+"""Tick timing with the ROS 2 adapter on and off (issue 19: p99 within 10 % of off).
+
+Run from the repository root::
+
+    python -m benchmarks.bench_ros2 [--seconds 60] [--rounds 2]
+
+Measured as the viewer's cost is (``benchmarks.bench_viewer``): ``benchmarks.bench_server``
+runs the server with its ``ros2:`` setting ``off`` and ``on``, interleaved over ``--rounds``
+rounds so that slow drifts of this shared machine's load hit both alike. The two server
+configs differ in that key alone. With it on, ``serve`` starts the adapter as it does for
+a user (its own process, idle CPU priority, 100 Hz); its ROS node joins a zenoh router
+standing in for ``rmw_zenohd``, and a ROS node of this process subscribes to every topic
+of the domain, so the adapter's four topics really travel (their message rate is quoted).
+The benchmark's own client drives the car; the adapter, with no ROS command, only
+publishes. Quotes the median over rounds of each mode's tick lateness p50/p99 and its
+late-tick fraction, and the p99 ratio to ``off``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from benchmarks.bench_server import compare_modes, run
+from simserver.adapters.zenoh_io import make_zenoh_config
+from simserver.testing import CONFIGS, loopback_endpoint
+
+DOMAIN = 42
+"""The ROS domain of the benchmark's adapter (apart from any other on this machine)."""
+
+
+def server_config(folder: Path, name: str, ros2: str) -> Path:
+    """A server config like the default one, with ``ros2: <ros2>`` (a YAML value)."""
+    path = folder / f"{name}.yaml"
+    path.write_text(f"scene: {CONFIGS / 'scenes' / 'flat_paper_sedan.yaml'}\n"
+                    f"ros2: {ros2}\n", encoding="utf-8")
+    return path
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--rounds", type=int, default=2)
+    args = parser.parse_args(argv)
+    router_endpoint = loopback_endpoint()
+    router = zenoh.open(make_zenoh_config(listen=[router_endpoint], mode="router"))
+    ros_node = zenoh.open(make_zenoh_config(listen=["tcp/127.0.0.1:0"],
+                                            connect=[router_endpoint], mode="peer"))
+    received = [0]
+
+    def count(_sample: zenoh.Sample) -> None:
+        received[0] += 1
+
+    sub = ros_node.declare_subscriber(f"{DOMAIN}/**", count)
+    rates: list[float] = []
+    with tempfile.TemporaryDirectory(prefix="simserver_ros2_bench_") as tmp:
+        off = server_config(Path(tmp), "off", "off")
+        on = server_config(Path(tmp), "on", f"{{router: '{router_endpoint}', "
+                                                f"domain_id: {DOMAIN}}}")
+
+        def with_adapter() -> dict:
+            before = received[0]
+            result = run(args.seconds, 200.0, config=on)
+            rates.append((received[0] - before) / args.seconds)
+            return result
+
+        summary = compare_modes({"off": lambda: run(args.seconds, 200.0, config=off),
+                                 "on": with_adapter}, args.rounds, "ROS 2 adapter")
+    sub.undeclare()
+    ros_node.close()
+    router.close()
+    summary["on"]["ros_messages_per_s"] = float(np.median(rates))
+    print(f"ROS messages received from the adapter: {np.median(rates):.0f} per second "
+          "of the run (median over rounds; four topics at 100 Hz)")
+    return summary
+
+
+if __name__ == "__main__":
+    main()
