@@ -616,7 +616,7 @@ def test_command_oracle_agrees_on_known_cases():
     assert command_oracle(command_bytes(throttle=0.5))[0]
     assert command_oracle(command_bytes(steer=-1.0005))[2] == {"steer"}
     assert not command_oracle(command_bytes(steer=-1.0015))[0]
-    assert not command_oracle(command_bytes(version=2))[0]
+    assert not command_oracle(command_bytes(version=proto.PROTOCOL_VERSION + 1))[0]
     assert not command_oracle(command_bytes(flags=2))[0]
     assert not command_oracle(command_bytes(reserved=1))[0]
     assert not command_oracle(command_bytes()[:-1])[0]

@@ -191,7 +191,11 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
             continue
         sub_path = referenced_file(path, subsystem, ref)
         sources[subsystem] = str(sub_path)
-        pack_params(vp, table, read_params(sub_path, read_yaml(sub_path), table))
+        try:
+            sub_data = read_yaml(sub_path)
+        except ConfigError as exc:  # unreadable or not YAML: name the key that refers to it
+            raise ConfigError(f"{path}: key '{subsystem}': {exc}") from None
+        pack_params(vp, table, read_params(sub_path, sub_data, table))
     if vp[P.VP_SPRUNG_MASS_KG] > vp[P.VP_MASS_KG]:
         raise ConfigError(f"{sources['chassis']}: key 'sprung_mass_kg': exceeds mass_kg")
 

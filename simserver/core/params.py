@@ -62,33 +62,30 @@ SUSPENSION = ParamTable("suspension", "springs, dampers, anti-roll bars (rates a
     Param("antiroll_rear_n_per_m", "N/m", 0.0, 1e7,
           "rear anti-roll bar, as a rate at the wheel (0: none)", slot=15,
           const="VP_ANTIROLL_REAR_NPM"),
-    # wheel attitude (issue 16): slots appended after the historical ones; optional (0:
-    # upright wheels, no toe), so vehicle files written before them still load
+    # wheel attitude (issue 16): slots appended after the historical ones
     Param("camber_static_front_rad", "rad", -0.2, 0.2,
-          "static camber of each front wheel (negative: the top leans inboard)",
-          default=0.0, slot=44),
+          "static camber of each front wheel (negative: the top leans inboard)", slot=44),
     Param("camber_static_rear_rad", "rad", -0.2, 0.2,
-          "static camber of each rear wheel (negative: the top leans inboard)",
-          default=0.0, slot=45),
+          "static camber of each rear wheel (negative: the top leans inboard)", slot=45),
     Param("toe_front_rad", "rad", -0.05, 0.05,
           "static toe of each front wheel (positive: toe-in, its front points inboard)",
-          default=0.0, slot=46),
+          slot=46),
     Param("toe_rear_rad", "rad", -0.05, 0.05,
           "static toe of each rear wheel (positive: toe-in, its front points inboard)",
-          default=0.0, slot=47),
+          slot=47),
     Param("camber_roll_gain_front", "rad/rad", -2.0, 2.0,
           "front wheels' inclination to the road per rad of body roll, in the roll's sense "
-          "(1: they lean with the body, 0: they stay upright)", default=0.0, slot=48),
+          "(1: they lean with the body, 0: they stay upright)", slot=48),
     Param("camber_roll_gain_rear", "rad/rad", -2.0, 2.0,
           "rear wheels' inclination to the road per rad of body roll, in the roll's sense "
-          "(1: they lean with the body, 0: they stay upright)", default=0.0, slot=49),
+          "(1: they lean with the body, 0: they stay upright)", slot=49),
     Param("camber_heave_gain_front_rad_per_m", "rad/m", -20.0, 20.0,
           "camber change of a front wheel per metre of its suspension's compression "
-          "(negative: the top leans inboard in bump)", default=0.0, slot=50,
+          "(negative: the top leans inboard in bump)", slot=50,
           const="VP_CAMBER_HEAVE_GAIN_FRONT_RADPM"),
     Param("camber_heave_gain_rear_rad_per_m", "rad/m", -20.0, 20.0,
           "camber change of a rear wheel per metre of its suspension's compression "
-          "(negative: the top leans inboard in bump)", default=0.0, slot=51,
+          "(negative: the top leans inboard in bump)", slot=51,
           const="VP_CAMBER_HEAVE_GAIN_REAR_RADPM"),
 ))
 STEERING = ParamTable("steering", "steering ratio and range", (
