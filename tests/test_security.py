@@ -574,7 +574,7 @@ def test_a_read_only_users_session_and_query_flood_does_not_lock_the_driver_out(
         while not stop.is_set():
             session.get(key, handler=lambda _reply: None, timeout=0.5)
             sent[0] += 1
-            time.sleep(0.0005)
+            time.sleep(0.0005)  # the subject: the flood's pace
 
     threads = []
     try:
@@ -630,7 +630,7 @@ def test_a_get_config_flood_is_rate_limited_per_session_and_spares_the_driver(ac
                 if sent % 50 == 0:
                     name = "pause" if answered % 2 == 0 else "resume"
                     answered += driver.request(name, timeout_s=2.0)["ok"]
-                time.sleep(0.002)
+                time.sleep(0.002)  # the subject: the flood's pace
             flood_s = time.monotonic() - t0
             replies = sum(1 for stream in pending for r in stream if r.ok is not None)
     finally:
