@@ -213,7 +213,10 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
         else:
             tire_path = referenced_file(path, f"tires.{axle}", tires[axle])
             sources[f"tire_{axle}"] = str(tire_path)
-            vec, model_name, side = load_tire_sided(tire_path)
+            try:
+                vec, model_name, side = load_tire_sided(tire_path)
+            except ConfigError as exc:  # name the key that refers to the tire file too
+                raise ConfigError(f"{path}: key 'tires.{axle}': {exc}") from None
         for row in rows:
             tp[row] = vec
             # one file per axle: the corner on the other side gets the mirror image

@@ -189,7 +189,8 @@ def tire_prepare(
         Written (every slot the model uses).
     """
     model = int(tp[TP_MODEL])
-    gamma_rad = gamma_rad * 1.0 - 2.0 * tp[TP_MIRRORED]  # a mirrored tire sees the mirrored camber
+    # a mirrored tire sees the mirrored camber
+    gamma_rad = gamma_rad * (1.0 - 2.0 * tp[TP_MIRRORED])
     if model == TIRE_MODEL_MF61:
         _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
     elif model == TIRE_MODEL_SIMPLE:
