@@ -46,7 +46,7 @@ COUNTER_NAMES: tuple[str, ...] = ("cmd_received", "cmd_rejected", "cmd_clamped",
 
 
 class SimulationAPI(Protocol):
-    """What a slot uses of the simulation (``Physics`` today): nothing else."""
+    """What a slot uses of the simulation (``simserver.simulation.Simulation``): nothing else."""
 
     x: np.ndarray
     inputs: np.ndarray
@@ -285,7 +285,7 @@ class VehicleSlot:
         if inputs[L.IN_PARKING_BRAKE] > 0.0:
             braking[2:] = True
         held = self._held
-        np.logical_and(x[L.WHEEL_HELD0:L.WHEEL_HELD0 + 4] > 0.5, braking, out=held)
+        np.logical_and(x[L.WHEEL_HELD] > 0.5, braking, out=held)
         if held.any():
             flags |= proto.StateFlag.BRAKE_HOLD
         if catching_up:
@@ -302,8 +302,10 @@ class VehicleSlot:
         rec["last_cmd_seq"] = arbiter.last_applied_seq
         rec["last_cmd_sender_time_ns"] = arbiter.last_sender_ns
         rec["cmd_age_s"] = arbiter.cmd_age_s(now_ns)
-        rec["x_m"], rec["y_m"], rec["z_m"] = p.pose[0], p.pose[1], p.pose[2]
-        rec["yaw_rad"], rec["pitch_rad"], rec["roll_rad"] = p.pose[3], p.pose[4], p.pose[5]
+        rec["x_m"], rec["y_m"] = p.pose[L.POSE_X_M], p.pose[L.POSE_Y_M]
+        rec["z_m"] = p.pose[L.POSE_Z_M]
+        rec["yaw_rad"], rec["pitch_rad"] = p.pose[L.POSE_YAW_RAD], p.pose[L.POSE_PITCH_RAD]
+        rec["roll_rad"] = p.pose[L.POSE_ROLL_RAD]
         rec["u_mps"] = x[L.U_MPS]
         rec["v_mps"] = x[L.V_MPS]
         rec["w_mps"] = x[L.HEAVE_RATE_MPS]
@@ -312,16 +314,16 @@ class VehicleSlot:
         rec["yaw_rate_radps"] = x[L.YAW_RATE_RADPS]
         rec["ax_mps2"] = out[L.O_AX_MPS2]
         rec["ay_mps2"] = out[L.O_AY_MPS2]
-        rec["omega_radps"] = x[L.OMEGA0:L.OMEGA0 + 4]
-        rec["kappa_lag"] = x[L.KAPPA0:L.KAPPA0 + 4]
-        rec["tan_alpha_lag"] = x[L.TAN_ALPHA0:L.TAN_ALPHA0 + 4]
-        rec["fx_n"] = out[L.O_FX0:L.O_FX0 + 4]
-        rec["fy_n"] = out[L.O_FY0:L.O_FY0 + 4]
-        rec["fz_n"] = out[L.O_FZ0:L.O_FZ0 + 4]
-        rec["steer_rad"] = out[L.O_STEER0:L.O_STEER0 + 4]
-        rec["damping_active"] = x[L.DAMPING_ACTIVE0:L.DAMPING_ACTIVE0 + 4]
+        rec["omega_radps"] = x[L.OMEGA]
+        rec["kappa_lag"] = x[L.KAPPA]
+        rec["tan_alpha_lag"] = x[L.TAN_ALPHA]
+        rec["fx_n"] = out[L.O_FX]
+        rec["fy_n"] = out[L.O_FY]
+        rec["fz_n"] = out[L.O_FZ]
+        rec["steer_rad"] = out[L.O_STEER]
+        rec["damping_active"] = x[L.DAMPING_ACTIVE]
         rec["brake_held"] = held
-        rec["wheel_contact"] = x[L.IN_CONTACT0:L.IN_CONTACT0 + 4]
+        rec["wheel_contact"] = x[L.IN_CONTACT]
         rec["steer"] = inputs[L.IN_STEER]
         rec["throttle"] = inputs[L.IN_THROTTLE]
         rec["brake"] = inputs[L.IN_BRAKE]
