@@ -404,6 +404,10 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the car on ROS 2 topics: start 'simserver ros2' in its own "
                              "process, with the config's 'ros2' settings if it has any "
                              "(default: the config's 'ros2'; see docs/ros2.md)")
+    parser.add_argument("--tls-front", default=None, choices=("auto", "off"),
+                        help="auto: an accept-filtering front before every tls/ listen "
+                             "endpoint, zenoh on loopback behind it (docs/security.md 5); "
+                             "default: the config's tls_front (auto)")
     parser.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
 
 
@@ -421,13 +425,14 @@ def serve_command(args: argparse.Namespace) -> int:
         zenoh_config=args.zenoh_config, command_log=args.command_log, viewer=args.viewer,
         realtime=args.realtime, rt_priority=args.rt_priority, rt_cpus=args.rt_cpus,
         rt_lock_memory=args.rt_lock_memory,
-        ros2=args.ros2)
+        ros2=args.ros2, tls_front=args.tls_front)
+    from simserver.adapters.tls_front import FrontError
     from simserver.adapters.zenoh_io import ZenohConfigError, ZenohOpenError
     from simserver.server import DuplicateVehicleError
 
     try:
         SimServer(cfg).run()
-    except (ZenohConfigError, ZenohOpenError, DuplicateVehicleError) as exc:
+    except (ZenohConfigError, ZenohOpenError, DuplicateVehicleError, FrontError) as exc:
         raise CliError(str(exc), exit_code=2) from exc
     return 0
 
@@ -548,6 +553,22 @@ def view_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_tls_front_arguments(parser: argparse.ArgumentParser) -> None:
+    from simserver.adapters import tls_front
+
+    tls_front.add_arguments(parser)
+
+
+def tls_front_command(args: argparse.Namespace) -> int:
+    """``simserver tls-front``: the accept-filtering front of a zenoh TLS listener."""
+    from simserver.adapters import tls_front
+
+    try:
+        return tls_front.main(args)
+    except (ValueError, OSError) as exc:
+        raise CliError(f"tls-front: {exc}", exit_code=2) from exc
+
+
 SUBCOMMANDS: dict[str, Subcommand] = {
     "run-scenario": Subcommand(
         help="run a scenario headless; write history.parquet, summary.json and plots",
@@ -603,6 +624,16 @@ SUBCOMMANDS: dict[str, Subcommand] = {
                     "on changing roads) as fast as the CPU allows; check every tick that "
                     "all is finite, speeds and loads bounded, loads never negative and "
                     "held cars never creep. Exit 1 on any violation.",
+    ),
+    "tls-front": Subcommand(
+        help="the accept-filtering front of a zenoh TLS listener (docs/security.md 5)",
+        add_arguments=_add_tls_front_arguments,
+        run=tls_front_command,
+        description="Accept TCP connections on a public address and pass each one, "
+                    "unchanged, to zenoh's TLS listener on loopback only once it has sent "
+                    "the start of a TLS ClientHello; silent, closed or non-TLS connections "
+                    "never reach zenoh (whose TLS listener pauses 100 ms after each failed "
+                    "handshake). 'simserver serve' starts one per tls/ endpoint itself.",
     ),
 }
 """Every subcommand, by name, in ``--help`` order."""

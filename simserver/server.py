@@ -77,7 +77,13 @@ SERVER_KEYS: dict[str, tuple[float, float] | None] = {
     "rt_cpus": None,
     "rt_lock_memory": None,
     "ros2": None,
+    "tls_front": None,
 }
+
+
+TLS_FRONT_MODES = ("auto", "off")
+"""``tls_front``: auto puts :mod:`simserver.adapters.tls_front` before every ``tls/`` listen
+endpoint (docs/security.md section 5); off lets zenoh listen on them itself."""
 
 
 @dataclass
@@ -106,6 +112,7 @@ class ServerConfig:
     rt_cpus: tuple[int, ...] = ()
     rt_lock_memory: bool = False
     ros2: dict[str, Any] | None = None  # the ROS 2 adapter's settings; None: off
+    tls_front: str = "auto"  # auto: an accept-filtering front per tls/ listen endpoint
 
     def realtime_settings(self) -> RealtimeSettings:
         """The real-time scheduling asked for (``simserver.realtime``)."""
@@ -212,7 +219,7 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
             if not isinstance(value, bool):
                 raise ConfigError(f"{path}: key 'rt_lock_memory': expected true or false")
             cfg.rt_lock_memory = value
-        elif key in ("prefix", "vehicle_id", "mode", "viewer", "realtime"):
+        elif key in ("prefix", "vehicle_id", "mode", "viewer", "realtime", "tls_front"):
             if not isinstance(value, str):
                 raise ConfigError(f"{path}: key '{key}': expected a string")
             setattr(cfg, key, value)
@@ -221,6 +228,9 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
     if cfg.realtime not in REALTIME_MODES:
         raise ConfigError(f"{path}: key 'realtime': expected one of "
                           f"{', '.join(REALTIME_MODES)}, got {cfg.realtime!r}")
+    if cfg.tls_front not in TLS_FRONT_MODES:
+        raise ConfigError(f"{where('tls_front')}: expected one of "
+                          f"{', '.join(TLS_FRONT_MODES)}, got {cfg.tls_front!r}")
     if cfg.mode not in (None, "peer", "router", "client"):
         raise ConfigError(f"{path}: key 'mode': expected peer, router or client")
     for key in ("scene", "zenoh_config"):
@@ -419,6 +429,7 @@ class SimServer:
         self._viewer_reported = False
         self._alive_watches: list[Any] = []
         self._zid = ""
+        self.fronts: Any = None  # the TLS fronts (simserver.adapters.tls_front), if any
 
     @property
     def physics(self) -> Simulation:
@@ -452,8 +463,17 @@ class SimServer:
         loop = self.loop
         loop.running = True  # before the handlers: a signal from now on ends the loop
         previous = {s: signal.signal(s, self.stop) for s in (signal.SIGINT, signal.SIGTERM)}
-        ros2 = None
+        ros2 = fronts = None
         try:
+            if cfg.tls_front == "auto" and any(ep.startswith("tls/") for ep in listen):
+                # docs/security.md section 5: the public TLS port is an accept-filtering
+                # front (its own process); zenoh listens on loopback behind it
+                from simserver.adapters.tls_front import FrontSupervisor
+
+                fronts = self.fronts = FrontSupervisor(listen)
+                zcfg = make_zenoh_config(listen=fronts.zenoh_listen, connect=cfg.connect,
+                                         config_file=cfg.zenoh_config, mode=cfg.mode)
+                listen = fronts.public_listen
             with ZenohEndpoint(zcfg, prefix=cfg.prefix, vehicle=cfg.vehicle_id) as ep:
                 self._zid = str(ep.session.zid())
                 for slot in self.slots:
@@ -474,6 +494,8 @@ class SimServer:
                          first.keys.base, first.sim.scene.vehicle.name,
                          1e3 * cfg.period_s, compile_s)
                 summary = self.scheduler.apply()
+                if fronts is not None and self.scheduler.policy == "SCHED_FIFO":
+                    fronts.set_priority(max(1, self.scheduler._rt_priority - 1))
                 log.log(logging.WARNING if self.scheduler.warnings else logging.INFO, "%s",
                         summary)
                 loop.every_second.append(self._housekeeping)
@@ -486,6 +508,8 @@ class SimServer:
         finally:
             for s, h in previous.items():
                 signal.signal(s, h)
+            if fronts is not None:
+                fronts.stop()
             self._stop_viewer(self.viewer)
             self._stop_viewer(ros2)
             self.preparer.close()
