@@ -1,0 +1,128 @@
+"""Command-to-state latency over TLS: zenoh's listener direct, and behind the TLS front.
+
+Run from the repository root::
+
+    python -m benchmarks.bench_tls_front [--seconds 20] [--rounds 3] [--cmd-hz 200]
+
+Each round starts ``simserver serve`` with ``configs/zenoh/server_tls.json5`` (throwaway
+certificates made with ``openssl`` in a temporary folder) twice, once with
+``--tls-front off`` (the client's TLS link ends in zenoh's own listener) and once with
+``--tls-front auto`` (the link passes the accept-filtering front, a process of its own,
+docs/security.md section 5); the two modes alternate, so slow drifts of a shared
+machine's load hit both alike. The client (``client_tls.json5``) publishes driver
+commands at ``--cmd-hz``, each at a random instant within its slot (as
+``benchmarks.bench_server`` does, for the same reason) with ``sender_time_ns``, and times
+the first published state (every tick) whose ``last_cmd_seq`` reflects each command,
+stamped on arrival in zenoh's receiving thread. A state crosses the front on its way to
+the client and a command on its way to the server, so the difference between the modes
+is the front's cost on the round trip. Printed: p50/p99 of each mode by round, the
+medians over rounds, and the differences.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from simserver import protocol as proto
+from simserver.testing import Client, ServerProcess, loopback_endpoint
+from simserver.testing.pki import make_pki, materialize
+
+TICK_S = 1e-3
+"""The server's default period: a command's send instant is uniform over one of these."""
+MODES = ("direct", "front")
+
+
+def one_run(mode: str, seconds: float, cmd_hz: float, pki: Path) -> dict:
+    """One server in ``mode`` (direct: ``--tls-front off``; front: ``auto``), driven for
+    ``seconds``: the latencies of the commands, in microseconds."""
+    endpoint = loopback_endpoint("tls")
+    server_cfg, client_cfg = pki / "server_tls.json5", pki / "client_tls.json5"
+    front = "off" if mode == "direct" else "auto"
+    latencies_us: list[float] = []
+    with ServerProcess(listen=[endpoint], log_level="WARNING", scene=None,
+                       extra_args=["--zenoh-config", str(server_cfg), "--tls-front",
+                                   front]) as server, \
+            Client(endpoint, zenoh_config=client_cfg, state_capacity=0) as client:
+        assert client.wait_controls()["ok"]
+        arrivals: deque[tuple[int, bytes]] = deque()
+
+        def on_state(sample) -> None:  # zenoh's thread: stamp first, decode later
+            arrivals.append((time.monotonic_ns(), sample.payload.to_bytes()))
+
+        states = client.ep.session.declare_subscriber(
+            client.ep.keys.state, zenoh.handlers.Callback(on_state, indirect=False))
+        sent: dict[int, int] = {}
+        seq, period = 0, 1.0 / cmd_hz
+        rng = np.random.default_rng(7)
+        t_slot = time.monotonic()
+        t_end = t_slot + seconds
+        t_next = t_slot + rng.uniform(0.0, TICK_S)
+        while time.monotonic() < t_end:
+            if time.monotonic() >= t_next:
+                seq += 1
+                t_ns = time.monotonic_ns()
+                sent[seq] = t_ns
+                client.pub.put(proto.encode_command(throttle=0.2, seq=seq,
+                                                    sender_time_ns=t_ns))
+                t_slot += period
+                t_next = t_slot + rng.uniform(0.0, TICK_S)
+            while arrivals:
+                t_rx, payload = arrivals.popleft()
+                s = int(proto.decode_state(payload)["last_cmd_seq"])
+                if s in sent:  # the first state reflecting command s
+                    latencies_us.append((t_rx - sent.pop(s)) / 1e3)
+            time.sleep(0.0005)
+        states.undeclare()
+        assert server.alive()
+    lat = np.array(latencies_us)
+    return {"mode": mode, "commands": seq, "acknowledged": int(lat.size),
+            "p50_us": float(np.percentile(lat, 50)), "p99_us": float(np.percentile(lat, 99)),
+            "max_us": float(lat.max())}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=20.0, help="per run (default 20)")
+    parser.add_argument("--rounds", type=int, default=3, help="direct/front pairs (default 3)")
+    parser.add_argument("--cmd-hz", type=float, default=200.0)
+    parser.add_argument("--json", type=Path, default=None, help="write the results here")
+    args = parser.parse_args(argv)
+    runs: dict[str, list[dict]] = {m: [] for m in MODES}
+    with tempfile.TemporaryDirectory() as tmp:
+        pki = make_pki(Path(tmp))
+        materialize("server_tls.json5", pki)
+        materialize("client_tls.json5", pki)
+        for k in range(args.rounds):
+            for mode in MODES if k % 2 == 0 else MODES[::-1]:
+                r = one_run(mode, args.seconds, args.cmd_hz, pki)
+                runs[mode].append(r)
+                print(f"round {k + 1} {mode:6s}: p50 {r['p50_us']:7.1f} us, p99 "
+                      f"{r['p99_us']:7.1f} us, max {r['max_us'] / 1e3:6.2f} ms "
+                      f"({r['acknowledged']} of {r['commands']} commands)", flush=True)
+    summary = {m: {"p50_us": float(np.median([r["p50_us"] for r in rs])),
+                   "p99_us": float(np.median([r["p99_us"] for r in rs]))}
+               for m, rs in runs.items()}
+    d, f = summary["direct"], summary["front"]
+    summary["front_minus_direct"] = {"p50_us": f["p50_us"] - d["p50_us"],
+                                     "p99_us": f["p99_us"] - d["p99_us"]}
+    print(f"median over {args.rounds} rounds: direct p50 {d['p50_us']:.1f} us, p99 "
+          f"{d['p99_us']:.1f} us; front p50 {f['p50_us']:.1f} us, p99 {f['p99_us']:.1f} us; "
+          f"the front adds {f['p50_us'] - d['p50_us']:+.1f} us (p50), "
+          f"{f['p99_us'] - d['p99_us']:+.1f} us (p99)")
+    result = {"runs": runs, "summary": summary, "seconds": args.seconds,
+              "cmd_hz": args.cmd_hz}
+    if args.json is not None:
+        args.json.write_text(json.dumps(result, indent=1), encoding="utf-8")
+    return result
+
+
+if __name__ == "__main__":
+    main()
