@@ -17,12 +17,24 @@ stamped on arrival in zenoh's receiving thread. A state crosses the front on its
 the client and a command on its way to the server, so the difference between the modes
 is the front's cost on the round trip. Printed: p50/p99 of each mode by round, the
 medians over rounds, and the differences.
+
+That difference is tens of microseconds at most, below what the end-to-end figure
+resolves on a loaded machine; so the front's hop is also measured alone (``--hop-rounds``,
+0 to skip): a ping-pong of ``--hop-bytes`` messages (a state is 300-odd bytes) with an
+echo server in a process of its own, straight to it and through a real ``simserver
+tls-front`` process, in alternating blocks of 1000; the front's added round-trip time
+(two passes through it, as a command and its state make) is the difference of the
+medians, and its CPU time per round trip is read from ``/proc/PID/stat``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import socket
+import subprocess
+import sys
 import tempfile
 import time
 from collections import deque
@@ -88,13 +100,99 @@ def one_run(mode: str, seconds: float, cmd_hz: float, pki: Path) -> dict:
             "max_us": float(lat.max())}
 
 
+ECHO = """
+import socket, threading
+def echo(conn):
+    conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    while data := conn.recv(65536):
+        conn.sendall(data)
+    conn.close()
+srv = socket.create_server(("127.0.0.1", 0))
+print(srv.getsockname()[1], flush=True)
+while True:
+    threading.Thread(target=echo, args=(srv.accept()[0],), daemon=True).start()
+"""
+HELLO = bytes([0x16, 0x03, 0x01, 0x02, 0x00, 0x01])  # passes the front's check
+BLOCK = 1000
+
+
+def _cpu_s(pid: int) -> float:
+    fields = open(f"/proc/{pid}/stat", encoding="ascii").read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def hop(rounds: int, size: int) -> dict:
+    """Round-trip times of ``size``-byte ping-pongs, direct and through a front."""
+    echo = subprocess.Popen([sys.executable, "-c", ECHO], stdout=subprocess.PIPE, text=True)
+    echo_port = int(echo.stdout.readline())
+    front = subprocess.Popen([sys.executable, "-m", "simserver", "tls-front", "--listen",
+                              "127.0.0.1:0", "--backend", f"127.0.0.1:{echo_port}",
+                              "--log-level", "WARNING"], stdout=subprocess.PIPE, text=True)
+    try:
+        line = front.stdout.readline()  # tls-front: ready on 127.0.0.1:PORT -> ...
+        front_port = int(line.split(" -> ")[0].rsplit(":", 1)[1])
+        socks = {}
+        for mode, port in (("direct", echo_port), ("front", front_port)):
+            sock = socket.create_connection(("127.0.0.1", port))
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            sock.sendall(HELLO)
+            _recv(sock, len(HELLO))
+            socks[mode] = sock
+        msg = os.urandom(size)
+        rtt: dict[str, list[float]] = {"direct": [], "front": []}
+        cpu0 = _cpu_s(front.pid)
+        for k in range(2 * rounds):
+            mode = ("direct", "front")[k % 2]
+            sock, out = socks[mode], rtt[mode]
+            for _ in range(BLOCK):
+                t0 = time.perf_counter_ns()
+                sock.sendall(msg)
+                _recv(sock, size)
+                out.append((time.perf_counter_ns() - t0) / 1e3)
+        cpu_us = 1e6 * (_cpu_s(front.pid) - cpu0) / len(rtt["front"])
+        for sock in socks.values():
+            sock.close()
+    finally:
+        front.terminate()
+        echo.kill()
+        front.wait()
+        echo.wait()
+    r = {m: {"p50_us": float(np.percentile(v, 50)), "p99_us": float(np.percentile(v, 99))}
+         for m, v in rtt.items()}
+    r["added_p50_us"] = r["front"]["p50_us"] - r["direct"]["p50_us"]
+    r["added_p99_us"] = r["front"]["p99_us"] - r["direct"]["p99_us"]
+    r["front_cpu_us_per_round_trip"] = cpu_us
+    r["round_trips"] = len(rtt["front"])
+    print(f"hop ({size}-byte ping-pong, {r['round_trips']} round trips each): direct p50 "
+          f"{r['direct']['p50_us']:.1f} us, p99 {r['direct']['p99_us']:.1f} us; through the "
+          f"front p50 {r['front']['p50_us']:.1f} us, p99 {r['front']['p99_us']:.1f} us; "
+          f"added {r['added_p50_us']:+.1f} us (p50), {r['added_p99_us']:+.1f} us (p99); "
+          f"front CPU {cpu_us:.1f} us per round trip", flush=True)
+    return r
+
+
+def _recv(sock: socket.socket, n: int) -> bytes:
+    data = bytearray()
+    while len(data) < n:
+        chunk = sock.recv(n - len(data))
+        if not chunk:
+            raise ConnectionError("closed")
+        data += chunk
+    return bytes(data)
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=20.0, help="per run (default 20)")
     parser.add_argument("--rounds", type=int, default=3, help="direct/front pairs (default 3)")
     parser.add_argument("--cmd-hz", type=float, default=200.0)
+    parser.add_argument("--hop-rounds", type=int, default=10,
+                        help="blocks of 1000 ping-pongs per mode for the hop alone "
+                             "(default 10; 0: skip)")
+    parser.add_argument("--hop-bytes", type=int, default=320)
     parser.add_argument("--json", type=Path, default=None, help="write the results here")
     args = parser.parse_args(argv)
+    hop_result = hop(args.hop_rounds, args.hop_bytes) if args.hop_rounds > 0 else None
     runs: dict[str, list[dict]] = {m: [] for m in MODES}
     with tempfile.TemporaryDirectory() as tmp:
         pki = make_pki(Path(tmp))
@@ -117,7 +215,7 @@ def main(argv: list[str] | None = None) -> dict:
           f"{d['p99_us']:.1f} us; front p50 {f['p50_us']:.1f} us, p99 {f['p99_us']:.1f} us; "
           f"the front adds {f['p50_us'] - d['p50_us']:+.1f} us (p50), "
           f"{f['p99_us'] - d['p99_us']:+.1f} us (p99)")
-    result = {"runs": runs, "summary": summary, "seconds": args.seconds,
+    result = {"runs": runs, "summary": summary, "hop": hop_result, "seconds": args.seconds,
               "cmd_hz": args.cmd_hz}
     if args.json is not None:
         args.json.write_text(json.dumps(result, indent=1), encoding="utf-8")

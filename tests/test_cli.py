@@ -298,6 +298,7 @@ SERVER_CASES = {
                                    "key 'command_log'"),
     "missing-scene": ({"scene": "no_such_scene.yaml"}, (), "key 'scene'"),
     "missing-zenoh-config": ({"zenoh_config": "no_such.json5"}, (), "key 'zenoh_config'"),
+    "tls-front-on": ({"tls_front": "on"}, (), "key 'tls_front'"),
 }
 
 

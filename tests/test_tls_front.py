@@ -19,7 +19,9 @@ from contextlib import contextmanager
 import pytest
 
 from simserver.adapters.tls_front import (
+    FrontError,
     FrontLimits,
+    FrontSupervisor,
     TlsFront,
     bind_listener,
     hello_prefix_ok,
@@ -278,3 +280,19 @@ def test_a_stalled_handshake_is_closed_after_handshake_timeout_s():
         assert 0.3 < time.monotonic() - t0 < 5.0
         assert tf.counters.handshake_timeouts == 1
         sock.close()
+
+
+def test_a_public_port_in_use_fails_at_start_naming_the_endpoint():
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        endpoint = f"tls/127.0.0.1:{taken.getsockname()[1]}"
+        with pytest.raises(FrontError, match=f"listen endpoint {endpoint}: cannot bind"):
+            FrontSupervisor([endpoint])
+
+
+def test_bad_limits_are_refused_naming_them():
+    with pytest.raises(ValueError, match="max_pending_per_source"):
+        FrontLimits(max_pending_per_source=0)
+    with pytest.raises(ValueError, match="hello_timeout_s"):
+        FrontLimits(hello_timeout_s=float("nan"))

@@ -37,7 +37,7 @@ Bounds, so a flood cannot exhaust the front either:
 Every refusal is counted and the counters are logged at most once every
 ``log_every_s`` seconds, when they changed.
 
-Forwarding is a single-threaded epoll loop (``selectors``), one 256 KiB buffer,
+Forwarding is a single-threaded ``epoll`` loop, one 256 KiB buffer,
 ``recv_into`` then ``send`` on non-blocking sockets with ``TCP_NODELAY`` on both sides,
 and back-pressure (a side whose peer cannot take more is not read until it can).
 
@@ -53,7 +53,7 @@ import errno
 import json
 import logging
 import os
-import selectors
+import select
 import signal
 import socket
 import time
@@ -208,6 +208,43 @@ def _free_loopback_port() -> int:
 # ============================================================================ the loop
 
 
+READ = select.EPOLLIN
+WRITE = select.EPOLLOUT
+
+
+class _Poller:
+    """``select.epoll`` with each file descriptor's data and interest kept beside it (the
+    ``selectors`` module does the same at several times the cost per event)."""
+
+    def __init__(self) -> None:
+        self.epoll = select.epoll()
+        self.data: dict[int, object] = {}
+        self.events: dict[int, int] = {}
+
+    def set(self, sock: socket.socket, events: int, data: object) -> None:
+        """Watch ``sock`` for ``events`` (0: not at all)."""
+        fd = sock.fileno()
+        now = self.events.get(fd, 0)
+        if events == now:
+            return
+        if events == 0:
+            self.epoll.unregister(fd)
+            del self.events[fd], self.data[fd]
+            return
+        if now == 0:
+            self.epoll.register(fd, events)
+        else:
+            self.epoll.modify(fd, events)
+        self.events[fd] = events
+        self.data[fd] = data
+
+    def forget(self, sock: socket.socket) -> None:
+        """Stop watching ``sock`` (before it is closed)."""
+        fd = sock.fileno()
+        if fd >= 0 and fd in self.events:
+            self.set(sock, 0, None)
+
+
 class _Conn:
     """One client connection: hello stage, then forwarding to zenoh."""
 
@@ -252,7 +289,7 @@ class TlsFront:
         self.limits = limits
         self.parent_pid = parent_pid
         self.counters = FrontCounters()
-        self.sel = selectors.DefaultSelector()
+        self.poller = _Poller()
         self.buffer = bytearray(FORWARD_BUFFER_BYTES)
         self.view = memoryview(self.buffer)
         self.pending_by_source: dict[str, set[_Conn]] = defaultdict(set)
@@ -269,18 +306,28 @@ class TlsFront:
 
     def run(self) -> FrontCounters:
         self.listener.setblocking(False)
-        self.sel.register(self.listener, selectors.EVENT_READ, None)
+        poller = self.poller
+        poller.set(self.listener, READ, None)
+        listen_fd = self.listener.fileno()
+        data = poller.data
         self.running = True
-        t_parent = time.monotonic()
+        t_parent = t_expire = time.monotonic()
         while self.running:
-            for key, mask in self.sel.select(self._select_timeout()):
-                if key.data is None:
+            try:
+                ready = poller.epoll.poll(self._select_timeout())
+            except InterruptedError:
+                ready = ()
+            for fd, mask in ready:
+                if fd == listen_fd:
                     self._accept()
-                else:
-                    conn, side = key.data
-                    self._event(conn, side, mask)
+                    continue
+                item = data.get(fd)
+                if item is not None:  # (None: closed by an earlier event of this batch)
+                    self._event(item[0], item[1], mask)
             now = time.monotonic()
-            self._expire(now)
+            if now - t_expire >= 0.05:
+                t_expire = now
+                self._expire(now)
             if now - t_parent >= 1.0:
                 t_parent = now
                 if self.parent_pid is not None and os.getppid() != self.parent_pid:
@@ -290,7 +337,7 @@ class TlsFront:
             if now - self._t_log >= self.limits.log_every_s:
                 self._log_counters(now)
         self._log_counters(time.monotonic(), force=True)
-        self.sel.close()
+        poller.epoll.close()
         return self.counters
 
     def _select_timeout(self) -> float:
@@ -332,15 +379,15 @@ class TlsFront:
             conn = _Conn(sock, source, time.monotonic())
             self.pending.add(conn)
             self.pending_by_source[source].add(conn)
-            self.sel.register(sock, selectors.EVENT_READ, (conn, "client"))
-            self._event(conn, "client", selectors.EVENT_READ)  # a burst's connect-and-
+            self.poller.set(sock, READ, (conn, "client"))
+            self._event(conn, "client", READ)  # a burst's connect-and-
             # close ends here at once, and a ClientHello already queued goes on
 
     def _reap(self, source: str) -> None:
         """Read the hello-stage connections of ``source`` now: those closed meanwhile
         (a connect-and-close burst queues faster than events are served) are dropped."""
         for conn in [k for k in self.pending_by_source[source] if k.stage == "hello"]:
-            self._event(conn, "client", selectors.EVENT_READ)
+            self._event(conn, "client", READ)
 
     def _release(self, conn: _Conn) -> None:
         """The connection is no longer pending (handshake done, or closed)."""
@@ -360,9 +407,9 @@ class TlsFront:
             elif conn.stage == "connecting":
                 self._connected(conn)
             elif conn.stage == "forward":
-                if mask & selectors.EVENT_WRITE:
+                if mask & WRITE:
                     self._flush(conn, side)
-                if mask & selectors.EVENT_READ and conn.stage == "forward":
+                if mask & ~WRITE and conn.stage == "forward":  # readable, hang-up, error
                     self._pump(conn, side)
         except OSError:
             self._close(conn)
@@ -398,10 +445,10 @@ class TlsFront:
         conn.backend = backend
         conn.to_backend += conn.hello
         conn.stage = "connecting"
-        self.sel.unregister(conn.client)  # not read until zenoh's side is connected
+        self.poller.set(conn.client, 0, None)  # not read until zenoh's side is connected
         err = backend.connect_ex(self.backend)
         if err in (0, errno.EINPROGRESS):
-            self.sel.register(backend, selectors.EVENT_WRITE, (conn, "backend"))
+            self.poller.set(backend, WRITE, (conn, "backend"))
         else:
             self.counters.backend_unreachable += 1
             self._close(conn)
@@ -416,7 +463,7 @@ class TlsFront:
         conn.t_forward = time.monotonic()
         self.counters.forwarded += 1
         self.counters.open_forwarded += 1
-        self.sel.register(conn.client, selectors.EVENT_READ, (conn, "client"))
+        self.poller.set(conn.client, READ, (conn, "client"))
         self._flush(conn, "backend")  # the ClientHello bytes read so far
 
     def _interest(self, conn: _Conn, side: str) -> None:
@@ -428,16 +475,8 @@ class TlsFront:
         else:
             sock, out, peer_out, eof = conn.backend, conn.to_backend, conn.to_client, \
                 conn.eof_backend
-        events = (selectors.EVENT_READ if not eof and not peer_out else 0) | \
-            (selectors.EVENT_WRITE if out else 0)
-        key = self.sel.get_map().get(sock)
-        if events == 0:
-            if key is not None:
-                self.sel.unregister(sock)
-        elif key is None:
-            self.sel.register(sock, events, (conn, side))
-        elif key.events != events:
-            self.sel.modify(sock, events, (conn, side))
+        self.poller.set(sock, (READ if not eof and not peer_out else 0)
+                        | (WRITE if out else 0), (conn, side))
 
     def _pump(self, conn: _Conn, side: str) -> None:
         """Bytes readable on ``side``: pass them to the other side."""
@@ -468,8 +507,9 @@ class TlsFront:
                     sent = dst.send(self.view[:n])
                 except (BlockingIOError, InterruptedError):
                     sent = 0
-                if sent < n:
-                    out += self.view[sent:n]
+                if sent == n:
+                    return  # the usual case: all passed on, nothing else changes
+                out += self.view[sent:n]
         self._after_io(conn)
 
     def _flush(self, conn: _Conn, side: str) -> None:
@@ -538,10 +578,7 @@ class TlsFront:
         for sock in (conn.client, conn.backend):
             if sock is None:
                 continue
-            try:
-                self.sel.unregister(sock)
-            except (KeyError, ValueError):
-                pass
+            self.poller.forget(sock)
             sock.close()
 
     # ------------------------------------------------------------------ log
