@@ -22,10 +22,13 @@ In order:
    streaming to a stalled viewer (also sampling the viewer process's peak memory);
 4. ``benchmarks.bench_ros2``: the same with the server's ROS 2 adapter off and on (its
    topics received by a ROS node through a router), with the viewer's run lengths;
-5. start-up: ``simserver serve`` from launch to its ``ready`` line (physics compiled or
+5. ``benchmarks.bench_tls_front`` (``tls_front``): command-to-state latency over TLS with
+   zenoh's listener direct and behind the accept-filtering TLS front, and the front's hop
+   alone (issue 14);
+6. start-up: ``simserver serve`` from launch to its ``ready`` line (physics compiled or
    loaded, zenoh session open, before the first tick), cold = ``NUMBA_CACHE_DIR`` an empty
    temporary directory, warm = the same directory again; the median of the repeats;
-6. memory of a headless run: peak RSS (``ru_maxrss`` from ``wait4``) of the README's
+7. memory of a headless run: peak RSS (``ru_maxrss`` from ``wait4``) of the README's
    ``simserver run-scenario`` example, which also reports its real-time factor.
 
 Then it prints a markdown table (figure, value, the target the issues set, the command that
@@ -67,7 +70,8 @@ TABLE_HEADER = ("| figure | value | target | command |", "|---|---|---|---|")
 HEADLESS_SCENARIO = "configs/scenarios/e2_stop_downslope_paper_damping.yaml"
 """The README's headless example, run for the headless memory figure."""
 
-SECTIONS = ("step", "server", "busy", "load", "viewer", "ros2", "startup", "memory")
+SECTIONS = ("step", "server", "busy", "load", "viewer", "ros2", "tls_front", "startup",
+            "memory")
 """Benchmarks in the order they run (``--only`` takes these names)."""
 
 
@@ -468,6 +472,24 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
         cmd = " ".join(["python -m benchmarks.bench_ros2", *argv])
         raw["ros2"] = summary = bench_ros2.main(argv)
         rows += lateness_rows(summary, "ROS 2 adapter", cmd)
+
+    if "tls_front" in sections:  # issue 14: the accept-filtering front's cost over TLS
+        print("== bench_tls_front", flush=True)
+        from benchmarks import bench_tls_front
+
+        argv = ["--seconds", f"{settings.viewer_seconds / 3:g}",
+                "--rounds", str(2 * settings.viewer_rounds - 1)]
+        cmd = " ".join(["python -m benchmarks.bench_tls_front", *argv])
+        raw["tls_front"] = r = bench_tls_front.main(argv)
+        d, f = r["summary"]["direct"], r["summary"]["front"]
+        rows.append(Row("command-to-state latency over TLS p50 / p99, zenoh direct vs "
+                        "behind the TLS front", f"{d['p50_us']:.0f} / {d['p99_us']:.0f} us vs "
+                        f"{f['p50_us']:.0f} / {f['p99_us']:.0f} us", cmd))
+        if r["hop"] is not None:
+            h = r["hop"]
+            rows.append(Row("TLS front alone: round-trip time it adds, p50 / p99 (320 B "
+                            "ping-pong)", f"{h['added_p50_us']:+.0f} / {h['added_p99_us']:+.0f}"
+                            " us", cmd))
 
     if "startup" in sections:
         print("== start-up", flush=True)
