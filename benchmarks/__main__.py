@@ -9,7 +9,9 @@ Run from the repository root::
 In order:
 
 1. ``benchmarks.bench_step``: step cost per tire model and the headless real-time factor of
-   the compiled loop;
+   the compiled loop; ``commonroad``: ``benchmarks.bench_commonroad``, our step rate against
+   CommonRoad's multi-body model with RK4 at our step, measured in the same run (CommonRoad
+   runs in the benchmark's own environment, ``.bench-venv/``, made on first use);
 2. ``benchmarks.bench_server``: the live server with its viewer off, driven over zenoh at
    200 Hz: tick lateness p50/p99/max, ticks more than 1 ms late, overruns, drift, command-to-
    state latency p50/p99. While it runs, this harness samples the server's peak resident
@@ -70,8 +72,8 @@ TABLE_HEADER = ("| figure | value | target | command |", "|---|---|---|---|")
 HEADLESS_SCENARIO = "configs/scenarios/e2_stop_downslope_paper_damping.yaml"
 """The README's headless example, run for the headless memory figure."""
 
-SECTIONS = ("step", "server", "busy", "load", "viewer", "ros2", "tls_front", "startup",
-            "memory")
+SECTIONS = ("step", "commonroad", "server", "busy", "load", "viewer", "ros2", "tls_front",
+            "startup", "memory")
 """Benchmarks in the order they run (``--only`` takes these names)."""
 
 
@@ -80,6 +82,7 @@ class Settings:
     """Run lengths of one mode (full or quick)."""
 
     step_args: tuple[str, ...]
+    commonroad_args: tuple[str, ...]
     server_seconds: float
     busy_runs: int
     load_seconds: float
@@ -89,9 +92,12 @@ class Settings:
     startup_warm: int
 
 
-FULL = Settings(step_args=(), server_seconds=60.0, busy_runs=3, load_seconds=30.0,
-                viewer_seconds=60.0, viewer_rounds=2, startup_cold=3, startup_warm=5)
-QUICK = Settings(step_args=("--seconds", "5", "--repeats", "5"), server_seconds=8.0,
+FULL = Settings(step_args=(), commonroad_args=(), server_seconds=60.0, busy_runs=3,
+                load_seconds=30.0, viewer_seconds=60.0, viewer_rounds=2,
+                startup_cold=3, startup_warm=5)
+QUICK = Settings(step_args=("--seconds", "5", "--repeats", "5"),
+                 commonroad_args=("--rounds", "1", "--seconds", "2", "--steps", "300"),
+                 server_seconds=8.0,
                  busy_runs=1, load_seconds=8.0, viewer_seconds=6.0, viewer_rounds=1,
                  startup_cold=1, startup_warm=3)
 """Short runs: long enough for the server's 4096-tick statistics window, no longer."""
@@ -379,6 +385,24 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
                             f"{r['real_time_factor']:,.0f} x", cmd,
                             ">= 200 x" if mf61 else ""))
 
+    if "commonroad" in sections:
+        from benchmarks import bench_commonroad
+
+        print("== bench_commonroad", flush=True)
+        argv = list(settings.commonroad_args)
+        cmd = " ".join(["python -m benchmarks.bench_commonroad", *argv])
+        raw["commonroad"] = r = bench_commonroad.main(argv)
+        figure = "step rate against CommonRoad's multi-body model + RK4, MF 6.1 tires"
+        target = f">= {bench_commonroad.TARGET_RATIO_MF61:.0f} x"
+        if "skipped" in r:
+            rows.append(Row(figure, f"not measured: {r['skipped']}", cmd, target))
+        else:
+            (mf,), (brush,) = ([v for k, v in r["ours"].items() if k.startswith(m)]
+                               for m in ("mf61", "simple"))
+            rows.append(Row(figure, f"{mf['ratio']:,.0f} x (ours {mf['us_per_step']:.2f} us, "
+                            f"CommonRoad {r['commonroad_us_per_step']:.0f} us per step, CPU "
+                            f"time; brush tires {brush['ratio']:,.0f} x)", cmd, target))
+
     if "server" in sections:
         print("== bench_server", flush=True)
         argv = ["--seconds", f"{settings.server_seconds:g}"]
@@ -535,6 +559,10 @@ def render(report: Report, sections: list[str]) -> str:
         "- Step cost: the compiled `simulate` loop over a driving cycle (accelerate and "
         "steer, brake to rest, hold), after compilation; real-time factor = 1 ms / median "
         "step cost.",
+        "- CommonRoad: `commonroad-vehicle-models`' multi-body model (`vehicle_dynamics_mb`, "
+        "pure Python) with classic RK4 at our 1 ms step, in the benchmark's own virtual "
+        "environment (`.bench-venv/commonroad/`, made on first use); rounds interleaved with "
+        "our compiled step, both timed by process CPU time; ratio of the medians.",
         "- Server: `simserver serve` in its own process, state published every tick, driven "
         "at 200 Hz over zenoh on loopback. Lateness p50/p99: median over the server's "
         "4096-tick diagnostic windows; max, late ticks, overruns: the whole run. Latency: "

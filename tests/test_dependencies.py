@@ -25,6 +25,8 @@ def _imported_top_levels(folder: str) -> dict[str, set[str]]:
     local = {p.stem for p in (REPO / folder).glob("*.py")}
     found: dict[str, set[str]] = {}
     for path in sorted((REPO / folder).rglob("*.py")):
+        if (path.parent / "requirements.txt").exists():
+            continue  # run in an environment of its own, made from that file (a benchmark's)
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, ast.Import):
                 names = [a.name for a in node.names]

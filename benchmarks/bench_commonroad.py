@@ -1,0 +1,150 @@
+"""Our vehicle step against CommonRoad's multi-body model with RK4, measured in one run.
+
+Run from the repository root::
+
+    python -m benchmarks.bench_commonroad [--rounds R] [--seconds S] [--steps N]
+
+The peer: CommonRoad's multi-body vehicle model ("MB", ``vehicle_dynamics_mb`` of the
+``commonroad-vehicle-models`` package: pure Python, 29 states, Pacejka tires), integrated
+with classic RK4 at our step ``bench_step.DT_S`` (1 ms) by ``commonroad_env/mb_loop.py``.
+That package is not a dependency of simserver: on first use this benchmark creates its own
+virtual environment, ``.bench-venv/commonroad/`` (git-ignored), with this interpreter's
+``venv`` and installs ``commonroad_env/requirements.txt`` into it with pip; later runs
+reuse it (and reinstall when the requirements file changes). If that fails (no registry,
+no network) the result says so, with pip's last lines, and gives no figure.
+
+Each round, interleaved so that both see the same machine: our step with each vehicle
+(``bench_step.bench_vehicle``: the compiled loop over the driving cycle; MF 6.1 tires on
+mf_hatchback, brush tires on paper_sedan), then CommonRoad's loop in its environment.
+Both sides are timed by their own process's CPU time (on a quiet machine the same as the
+wall time; on a shared one it leaves out the time other processes held the core). The
+ratio is CommonRoad's median cost per step over ours. Target (issue 16): at least 100 x
+with MF 6.1 tires.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import time
+import venv
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmarks.bench_step import DT_S, VEHICLES, bench_vehicle
+
+REPO = Path(__file__).resolve().parents[1]
+ENV_DIR = REPO / ".bench-venv" / "commonroad"
+REQUIREMENTS = Path(__file__).resolve().parent / "commonroad_env" / "requirements.txt"
+LOOP_SCRIPT = Path(__file__).resolve().parent / "commonroad_env" / "mb_loop.py"
+STAMP = "simserver-requirements.txt"
+"""Copy of the requirements the environment was made from (reinstalled when they change)."""
+TARGET_RATIO_MF61 = 100.0
+PIP_TIMEOUT_S = 900.0
+
+
+class EnvironmentUnavailable(RuntimeError):
+    """The benchmark's own environment could not be made (the reason is the message)."""
+
+
+def _env_python(env_dir: Path) -> Path:
+    return env_dir / "bin" / "python"
+
+
+def ensure_environment(env_dir: Path = ENV_DIR) -> Path:
+    """The Python of the benchmark's environment, made and installed on first use.
+
+    Raises
+    ------
+    EnvironmentUnavailable
+        If the environment cannot be created or the requirements cannot be installed.
+    """
+    python = _env_python(env_dir)
+    wanted = REQUIREMENTS.read_text(encoding="utf-8")
+    stamp = env_dir / STAMP
+    if python.exists() and stamp.exists() and stamp.read_text(encoding="utf-8") == wanted:
+        return python
+    print(f"creating the CommonRoad environment {env_dir.relative_to(REPO)} "
+          f"(pip install -r {REQUIREMENTS.relative_to(REPO)})", flush=True)
+    try:
+        venv.EnvBuilder(with_pip=True, clear=True).create(env_dir)
+    except (OSError, subprocess.CalledProcessError) as exc:
+        raise EnvironmentUnavailable(f"cannot create a virtual environment in {env_dir}: "
+                                     f"{exc}") from exc
+    try:
+        done = subprocess.run([str(python), "-m", "pip", "install", "--disable-pip-version-check",
+                               "-q", "-r", str(REQUIREMENTS)], capture_output=True, text=True,
+                              timeout=PIP_TIMEOUT_S, check=False)
+    except subprocess.TimeoutExpired as exc:
+        raise EnvironmentUnavailable(f"pip install timed out after {PIP_TIMEOUT_S:.0f} s") from exc
+    if done.returncode != 0:
+        tail = " / ".join((done.stderr or done.stdout).strip().splitlines()[-3:])
+        raise EnvironmentUnavailable(f"pip install -r {REQUIREMENTS.name} failed "
+                                     f"(exit {done.returncode}): {tail}")
+    stamp.write_text(wanted, encoding="utf-8")
+    return python
+
+
+def run_commonroad(python: Path, steps: int, repeats: int) -> dict[str, Any]:
+    """CommonRoad's MB model with RK4 at ``DT_S``: the loop script's JSON result."""
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    done = subprocess.run([str(python), str(LOOP_SCRIPT), "--dt", repr(DT_S), "--steps",
+                           str(steps), "--repeats", str(repeats)], capture_output=True,
+                          text=True, env=env, timeout=600.0, check=False)
+    if done.returncode != 0:
+        tail = " / ".join(done.stderr.strip().splitlines()[-3:])
+        raise EnvironmentUnavailable(f"the CommonRoad loop failed (exit {done.returncode}): "
+                                     f"{tail}")
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    if not result["finite"]:
+        raise EnvironmentUnavailable("the CommonRoad loop ended in a non-finite state")
+    return result
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds")
+    parser.add_argument("--seconds", type=float, default=5.0,
+                        help="simulated s per repeat of our step")
+    parser.add_argument("--steps", type=int, default=1000, help="CommonRoad steps per repeat")
+    args = parser.parse_args(argv)
+    try:
+        python = ensure_environment()
+    except EnvironmentUnavailable as exc:
+        print(f"CommonRoad comparison skipped: {exc}", flush=True)
+        return {"skipped": str(exc)}
+    ours: dict[str, list[float]] = {name: [] for name in VEHICLES}
+    theirs: list[float] = []
+    package = ""
+    t0 = time.monotonic()
+    try:
+        for _ in range(args.rounds):
+            for name, path in VEHICLES.items():
+                ours[name] += list(bench_vehicle(path, args.seconds, 3, time.process_time_ns))
+            result = run_commonroad(python, args.steps, 3)
+            theirs += result["cpu_us_per_step"]
+            package = result["package"]
+    except EnvironmentUnavailable as exc:
+        print(f"CommonRoad comparison skipped: {exc}", flush=True)
+        return {"skipped": str(exc)}
+    theirs_us = float(np.median(theirs))
+    out: dict[str, Any] = {"package": package, "commonroad_us_per_step": theirs_us,
+                           "commonroad_us_all": theirs, "rounds": args.rounds,
+                           "wall_s": time.monotonic() - t0, "ours": {}}
+    print(f"CommonRoad MB + RK4 ({package}, dt {DT_S * 1e3:g} ms): "
+          f"{theirs_us:8.1f} us per step (CPU time, median of {len(theirs)})")
+    for name, costs in ours.items():
+        us = float(np.median(costs)) / 1e3
+        ratio = theirs_us / us
+        out["ours"][name] = {"us_per_step": us, "ratio": ratio}
+        print(f"ours, {name:22s}: {us:8.2f} us per step -> {ratio:6.0f} x CommonRoad's rate"
+              + (f" (target >= {TARGET_RATIO_MF61:.0f} x)" if name.startswith("mf61") else ""))
+    return out
+
+
+if __name__ == "__main__":
+    main()
