@@ -55,8 +55,9 @@ def weight(result) -> float:
 def test_e1_oscillates_about_zero_at_the_tire_spring_frequency():
     """Undamped, the stopped car rings on its tire springs: f = sqrt(sum C_kappa/(B m))/2 pi.
 
-    15 % tolerance (issue 3): the pitch and heave of the body on its suspension couple
-    into the fore-aft mode and lower it a few per cent.
+    15 % tolerance (issue 3): the brush tire is softer than its zero-slip stiffness around
+    the pre-stressed rest point, which lowers the frequency a few per cent (measured 3.38
+    against 3.50 Hz; ``test_e1_frequency_is_lowered_by_the_tire_not_the_pitch``).
     """
     r = run("e1_stop_downslope_no_damping")
     stop = first_stop_index(r, after_s=1.0)
@@ -74,6 +75,66 @@ def test_e1_oscillates_about_zero_at_the_tire_spring_frequency():
     assert abs(measured / expected - 1.0) < 0.15, (measured, expected)
     assert abs(expected - 3.5) < 0.05  # the paper's 3.5 Hz
     assert np.abs(u).max() < 1.0  # an oscillation about zero, not a runaway
+
+
+
+def e1_ringing(stiffer: float):
+    """E1 with the suspension springs and anti-roll bars ``stiffer`` times stiffer (dampers
+    sqrt(stiffer): the body modes keep their damping ratio). Returns the half-period
+    frequencies of u after the stop (Hz), their times, the load-weighted slope of the brush
+    curve at each row (1 = the zero-slip stiffness) and the pitch's peak-to-peak (rad)."""
+    from simserver.core.params import (
+        VP_ANTIROLL_FRONT_NPM,
+        VP_ANTIROLL_REAR_NPM,
+        VP_DAMPER_FRONT_NSPM,
+        VP_DAMPER_REAR_NSPM,
+        VP_SPRING_FRONT_NPM,
+        VP_SPRING_REAR_NPM,
+    )
+
+    sc = load_scenario(SCEN / "e1_stop_downslope_no_damping.yaml")
+    vp = sc.scene.vehicle.vp
+    for k in (VP_SPRING_FRONT_NPM, VP_SPRING_REAR_NPM, VP_ANTIROLL_FRONT_NPM,
+              VP_ANTIROLL_REAR_NPM):
+        vp[k] *= stiffer
+    for k in (VP_DAMPER_FRONT_NSPM, VP_DAMPER_REAR_NSPM):
+        vp[k] *= math.sqrt(stiffer)
+    r = run_scenario(sc)
+    stop = first_stop_index(r, after_s=1.0)
+    u, t = r.state(L.U_MPS)[stop:], r.time_s[stop:]
+    crossings = t[np.nonzero(np.diff(np.signbit(u)))[0]]
+    # configs/tires/paper_sti.yaml, the simple (brush) model: C = C_nom Fz / Fz_nom, so the
+    # normalised slip is s = C_nom |k'| / (mu Fz_nom) and the curve's slope f'(s) is
+    # 1 - 2 s/3 + s^2/9 (tire_simple.py); each wheel's stiffness is C_nom Fz/Fz_nom f'(s).
+    s_norm = np.minimum(22500.0 * np.abs(r.states[stop:, L.KAPPA]) / (0.9 * 5005.0), 3.0)
+    fz = r.outputs[stop:, L.O_FZ]
+    slope = ((1.0 - 2.0 * s_norm / 3.0 + s_norm**2 / 9.0) * fz).sum(axis=1) / fz.sum(axis=1)
+    return (1.0 / (2.0 * np.diff(crossings)), crossings[1:], slope, t,
+            np.ptp(r.state(L.PITCH_RAD)[stop:]))
+
+
+def test_e1_frequency_is_lowered_by_the_tire_not_the_pitch():
+    """Why E1 rings below the linear 3.50 Hz (README, E1). Not the body's pitch: with the
+    springs 100 times stiffer the pitch swings 80 times less and the frequency stays within
+    2 % (a pitch coupling worth the 3.5 % deficit would move it at least twice that toward
+    3.50 Hz). The brush tire: around the rest point, pre-stressed by the 1000 N that holds
+    the car on the slope, and over the swing its slope is below the zero-slip stiffness;
+    the time-averaged slope predicts the frequency of the decaying second half of the
+    ringing within 2 % (the average of a tangent stiffness is a first-order estimate)."""
+    f1, _, _, _, pitch1 = e1_ringing(1.0)
+    f100, tc, slope, t, pitch100 = e1_ringing(100.0)
+    linear_hz = math.sqrt(4 * 22500.0 / (0.091 * 2041.0)) / (2 * math.pi)
+    late = tc >= tc[len(tc) // 2]
+    rows = (t >= tc[late][0] - 1.0 / (2.0 * f100[late][0])) & (t <= tc[-1])
+    predicted = linear_hz * math.sqrt(slope[rows].mean())
+    print(f"E1: {np.median(f1):.3f} Hz (pitch p-p {math.degrees(pitch1):.2f} deg); springs x100: "
+          f"{np.median(f100):.3f} Hz (pitch p-p {math.degrees(pitch100):.3f} deg); linear tire "
+          f"{linear_hz:.3f} Hz; second half {np.median(f100[late]):.3f} Hz, tire slope "
+          f"{slope[rows].mean():.3f} -> {predicted:.3f} Hz")
+    assert pitch100 < pitch1 / 50.0
+    assert abs(np.median(f100) / np.median(f1) - 1.0) < 0.02
+    assert np.median(f100) < 0.98 * linear_hz  # still well below the linear value
+    assert abs(np.median(f100[late]) / predicted - 1.0) < 0.02
 
 
 # ---------------------------------------------------------------- E2
