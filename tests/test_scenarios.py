@@ -20,7 +20,7 @@ from scenario_checks import (
 
 from simserver.adapters.config import apply_model_options, model_option_values
 from simserver.core import layout as L
-from simserver.core.params import VP_GRAVITY_MPS2, VP_MASS_KG
+from simserver.core.params import VP_DAMPING_TRIGGER_V_MPS, VP_GRAVITY_MPS2, VP_MASS_KG
 from simserver.scenario import load_scenario, run_scenario
 from tests.conftest import CONFIGS
 
@@ -55,8 +55,9 @@ def weight(result) -> float:
 def test_e1_oscillates_about_zero_at_the_tire_spring_frequency():
     """Undamped, the stopped car rings on its tire springs: f = sqrt(sum C_kappa/(B m))/2 pi.
 
-    15 % tolerance (issue 3): the pitch and heave of the body on its suspension couple
-    into the fore-aft mode and lower it a few per cent.
+    15 % tolerance (issue 3): the brush tire is softer than its zero-slip stiffness around
+    the pre-stressed rest point, which lowers the frequency a few per cent (measured 3.38
+    against 3.50 Hz; ``test_e1_frequency_is_lowered_by_the_tire_not_the_pitch``).
     """
     r = run("e1_stop_downslope_no_damping")
     stop = first_stop_index(r, after_s=1.0)
@@ -74,6 +75,66 @@ def test_e1_oscillates_about_zero_at_the_tire_spring_frequency():
     assert abs(measured / expected - 1.0) < 0.15, (measured, expected)
     assert abs(expected - 3.5) < 0.05  # the paper's 3.5 Hz
     assert np.abs(u).max() < 1.0  # an oscillation about zero, not a runaway
+
+
+
+def e1_ringing(stiffer: float):
+    """E1 with the suspension springs and anti-roll bars ``stiffer`` times stiffer (dampers
+    sqrt(stiffer): the body modes keep their damping ratio). Returns the half-period
+    frequencies of u after the stop (Hz), their times, the load-weighted slope of the brush
+    curve at each row (1 = the zero-slip stiffness) and the pitch's peak-to-peak (rad)."""
+    from simserver.core.params import (
+        VP_ANTIROLL_FRONT_NPM,
+        VP_ANTIROLL_REAR_NPM,
+        VP_DAMPER_FRONT_NSPM,
+        VP_DAMPER_REAR_NSPM,
+        VP_SPRING_FRONT_NPM,
+        VP_SPRING_REAR_NPM,
+    )
+
+    sc = load_scenario(SCEN / "e1_stop_downslope_no_damping.yaml")
+    vp = sc.scene.vehicle.vp
+    for k in (VP_SPRING_FRONT_NPM, VP_SPRING_REAR_NPM, VP_ANTIROLL_FRONT_NPM,
+              VP_ANTIROLL_REAR_NPM):
+        vp[k] *= stiffer
+    for k in (VP_DAMPER_FRONT_NSPM, VP_DAMPER_REAR_NSPM):
+        vp[k] *= math.sqrt(stiffer)
+    r = run_scenario(sc)
+    stop = first_stop_index(r, after_s=1.0)
+    u, t = r.state(L.U_MPS)[stop:], r.time_s[stop:]
+    crossings = t[np.nonzero(np.diff(np.signbit(u)))[0]]
+    # configs/tires/paper_sti.yaml, the simple (brush) model: C = C_nom Fz / Fz_nom, so the
+    # normalised slip is s = C_nom |k'| / (mu Fz_nom) and the curve's slope f'(s) is
+    # 1 - 2 s/3 + s^2/9 (tire_simple.py); each wheel's stiffness is C_nom Fz/Fz_nom f'(s).
+    s_norm = np.minimum(22500.0 * np.abs(r.states[stop:, L.KAPPA]) / (0.9 * 5005.0), 3.0)
+    fz = r.outputs[stop:, L.O_FZ]
+    slope = ((1.0 - 2.0 * s_norm / 3.0 + s_norm**2 / 9.0) * fz).sum(axis=1) / fz.sum(axis=1)
+    return (1.0 / (2.0 * np.diff(crossings)), crossings[1:], slope, t,
+            np.ptp(r.state(L.PITCH_RAD)[stop:]))
+
+
+def test_e1_frequency_is_lowered_by_the_tire_not_the_pitch():
+    """Why E1 rings below the linear 3.50 Hz (README, E1). Not the body's pitch: with the
+    springs 100 times stiffer the pitch swings 80 times less and the frequency stays within
+    2 % (a pitch coupling worth the 3.5 % deficit would move it at least twice that toward
+    3.50 Hz). The brush tire: around the rest point, pre-stressed by the 1000 N that holds
+    the car on the slope, and over the swing its slope is below the zero-slip stiffness;
+    the time-averaged slope predicts the frequency of the decaying second half of the
+    ringing within 2 % (the average of a tangent stiffness is a first-order estimate)."""
+    f1, _, _, _, pitch1 = e1_ringing(1.0)
+    f100, tc, slope, t, pitch100 = e1_ringing(100.0)
+    linear_hz = math.sqrt(4 * 22500.0 / (0.091 * 2041.0)) / (2 * math.pi)
+    late = tc >= tc[len(tc) // 2]
+    rows = (t >= tc[late][0] - 1.0 / (2.0 * f100[late][0])) & (t <= tc[-1])
+    predicted = linear_hz * math.sqrt(slope[rows].mean())
+    print(f"E1: {np.median(f1):.3f} Hz (pitch p-p {math.degrees(pitch1):.2f} deg); springs x100: "
+          f"{np.median(f100):.3f} Hz (pitch p-p {math.degrees(pitch100):.3f} deg); linear tire "
+          f"{linear_hz:.3f} Hz; second half {np.median(f100[late]):.3f} Hz, tire slope "
+          f"{slope[rows].mean():.3f} -> {predicted:.3f} Hz")
+    assert pitch100 < pitch1 / 50.0
+    assert abs(np.median(f100) / np.median(f1) - 1.0) < 0.02
+    assert np.median(f100) < 0.98 * linear_hz  # still well below the linear value
+    assert abs(np.median(f100[late]) / predicted - 1.0) < 0.02
 
 
 # ---------------------------------------------------------------- E2
@@ -129,6 +190,82 @@ def test_e4_braked_spinout_on_a_sideslope_comes_to_rest():
     assert u.min() < 0.0 < u.max()  # u changes sign: the car slides backwards
     assert speed(r)[-1] < 1e-3
     assert speed(r)[r.time_s > r.time_s[-1] - 2.0].max() < 1e-3
+
+
+
+def plain_form_spinout_60s(steer: float | None = None):
+    """E4 with the paper's plain form (``lagged_paper`` + Appendix A ``paper`` damping) run
+    for 60 s; ``steer``: another steering-wheel position for the turn (the file: 0.12)."""
+    sc = load_scenario(SCEN / "e4_spinout_sideslope.yaml")
+    opts = dict(sc.scene.model_options)
+    opts.update(slip_model="lagged_paper", damping_model="paper")
+    apply_model_options(sc.scene.vehicle.vp, model_option_values(opts, "test"))
+    sc.duration_s = 60.0
+    if steer is not None:
+        for key in sc.keyframes:
+            if key.get("steer", 0.0) > 0.0:
+                key["steer"] = steer
+    result = run_scenario(sc)
+    assert np.all(np.isfinite(result.states)) and np.all(np.isfinite(result.outputs))
+    return result
+
+
+def hub_u_crossings(r) -> list[np.ndarray]:
+    """Per wheel, |v| of the hub (wheel frame, m/s) at every sign change of its u."""
+    out = []
+    for i in range(L.N_WHEELS):
+        hub_u, hub_v = r.output(L.O_HUB_U0 + i), r.output(L.O_HUB_V0 + i)
+        changed = np.nonzero(np.diff(np.signbit(hub_u)))[0] + 1
+        out.append(np.abs(hub_v[changed]))
+    return out
+
+
+def test_e4_papers_plain_form_never_stops_on_the_files_inputs():
+    """The paper's plain form on E4 (docs/model.md section 4b item 5): the Appendix A
+    trigger (u changes sign while |v| < eps = 0.15 m/s, per wheel, hub velocity in the
+    wheel frame) is never met, so nothing damps the car; it keeps sliding sideways back and
+    forth on its wound-up lateral tire springs, braked, and walks down the slope.
+
+    Thresholds: the car "at rest" elsewhere in this file is below 1 mm/s; here its speed
+    from 15 s to 60 s averages more than 1 m/s (measured 2.39) and it loses more than
+    0.5 m of height (measured 1.05 m; 0.1 m would already be a car that is not held).
+    """
+    r = plain_form_spinout_60s()
+    t = r.time_s
+    vp = r.scenario.scene.vehicle.vp
+    eps = vp[VP_DAMPING_TRIGGER_V_MPS]
+    assert eps == 0.15  # the paper's value
+    closest = [float(v.min()) for v in hub_u_crossings(r)]
+    crossings = [v.size for v in hub_u_crossings(r)]
+    late = t >= 15.0
+    v_mean = speed(r)[late].mean()
+    height_m = r.state(L.Y_M) * 0.1 / math.sqrt(1.01)  # 10 % cross slope rises along y
+    drop_m = height_m[late][0] - height_m[-1]
+    braked = (r.inputs[late, L.IN_PARKING_BRAKE] > 0.5).all()
+    print(f"E4 paper's plain form, 60 s: hub u sign changes {crossings}, |v| at them >= "
+          f"{min(closest):.3f} m/s (eps {eps}); mean speed 15-60 s {v_mean:.2f} m/s, "
+          f"height lost {drop_m:.2f} m, "
+          f"max |tan a'| {np.abs(r.states[late, L.TAN_ALPHA]).max():.2f}")
+    assert min(crossings) > 20  # u keeps changing sign ...
+    assert min(closest) > eps  # ... never with |v| < eps
+    assert not r.states[:, L.DAMPING_ACTIVE].any()  # so the damping never switches on
+    assert braked and v_mean > 1.0 and drop_m > 0.5  # braked, never at rest, going down
+
+
+def test_e4_papers_plain_form_stops_when_one_crossing_meets_the_trigger():
+    """Beside it: 8 % less steer (0.11 instead of 0.12) and a hub's u changes sign with
+    |v| < eps during the spin-out; the damping latches and the same equations bring the car
+    to rest (below 1 mm/s, this file's rest threshold) well before 20 s (measured 15.5 s).
+    Whether the paper's form stops on E4 hangs on one crossing, not on the equations."""
+    r = plain_form_spinout_60s(steer=0.11)
+    t = r.time_s
+    eps = r.scenario.scene.vehicle.vp[VP_DAMPING_TRIGGER_V_MPS]
+    assert min(float(v.min()) for v in hub_u_crossings(r)) < eps
+    assert r.states[:, L.DAMPING_ACTIVE].any()
+    moving = speed(r) > 1e-3
+    last_moving_s = t[np.nonzero(moving)[0][-1]]
+    print(f"E4 paper's plain form, steer 0.11: at rest from {last_moving_s:.2f} s")
+    assert last_moving_s < 20.0
 
 
 # ---------------------------------------------------------------- E5
