@@ -229,6 +229,7 @@ class Road:
     elevation: list[Cubic]
     superelevation: list[Cubic]
     lane_sections: list[LaneSection]
+    rule: str = "RHT"  # traffic rule: RHT, the right lanes (t < 0) travel along +s; LHT
 
     def reference(self, s: float) -> tuple[float, float, float]:
         """World ``(x, y, heading)`` of the reference line at ``s``."""
@@ -338,8 +339,11 @@ def load_opendrive(path: str | Path) -> OpenDrive:
             if not any(lane.id != 0 for lane in lanes):
                 raise OpenDriveError(f"{path}: {swhat}: no lanes")
             sections.append(LaneSection(s0, lanes))
+        rule = road_el.get("rule", "RHT")
+        if rule not in ("RHT", "LHT"):
+            raise OpenDriveError(f"{path}: {what}: rule {rule!r} (expected RHT or LHT)")
         roads.append(Road(rid, _num(path, road_el, what, "length"), geometries, elevation,
-                          superelevation, sections))
+                          superelevation, sections, rule))
     if not roads:
         raise OpenDriveError(f"{path}: no <road>")
     return OpenDrive(path, roads)
@@ -385,6 +389,51 @@ def road_extents(road: Road, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             else:
                 right[sel] -= width
     return right, left
+
+
+class LaneStartError(ValueError):
+    """A start by road, s and lane that the roads do not have; ``key`` names which."""
+
+    def __init__(self, key: str, message: str) -> None:
+        super().__init__(message)
+        self.key = key
+
+
+def lane_start(od: OpenDrive, road_id: str, s: float, lane_id: int
+               ) -> tuple[float, float, float]:
+    """World ``(x, y, yaw)`` of the centre of lane ``lane_id`` of road ``road_id`` at
+    ``s``, heading along the lane's direction of travel (right-hand traffic, ``rule="RHT"``,
+    the default: the right lanes, ids < 0, travel along +s, the left lanes against it;
+    ``LHT`` the other way round). The centre is at ``t`` half the lane's width beyond the
+    lanes between it and the reference line, placed horizontally as ``rasterise`` places
+    the surface (``t cos(superelevation)`` across the heading). ``LaneStartError`` (its
+    ``key`` one of ``road``, ``s``, ``lane``) when the road, ``s`` or the lane does not
+    exist there."""
+    roads = {road.id: road for road in od.roads}
+    road = roads.get(str(road_id))
+    if road is None:
+        raise LaneStartError("road", f"no road {road_id!r} in {od.path.name} (roads: "
+                                     f"{', '.join(roads)})")
+    if not 0.0 <= s <= road.length:
+        raise LaneStartError("s", f"s = {s} m is off road {road.id} (0 .. {road.length} m)")
+    sec = _section_at(road, s)
+    widths = {} if sec is None else {
+        lane.id: max(0.0, profile_at(lane.widths, s - sec.s)) if lane.widths
+        and lane.widths[0].s <= s - sec.s + 1e-9 else 0.0 for lane in sec.lanes if lane.id != 0}
+    if lane_id == 0 or lane_id not in widths or widths[lane_id] <= 0.0:
+        have = sorted(k for k, w in widths.items() if w > 0.0)
+        raise LaneStartError("lane", f"road {road.id} has no lane {lane_id} at s = {s} m "
+                                     f"(lanes there: {have})")
+    side = 1 if lane_id > 0 else -1
+    inner = sum(w for k, w in widths.items() if k * side > 0 and abs(k) < abs(lane_id))
+    t = side * (inner + 0.5 * widths[lane_id])
+    ref_x, ref_y, hdg = road.reference(s)
+    roll = profile_at(road.superelevation, s)
+    lateral = t * math.cos(roll)
+    along_s = (lane_id < 0) == (road.rule == "RHT")
+    yaw = hdg if along_s else hdg + math.pi
+    yaw = (yaw + math.pi) % (2.0 * math.pi) - math.pi
+    return ref_x - math.sin(hdg) * lateral, ref_y + math.cos(hdg) * lateral, yaw
 
 
 @nb.njit(cache=True)
