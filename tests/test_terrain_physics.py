@@ -234,3 +234,67 @@ def test_friction_map_holds_on_grip_and_slides_on_the_low_mu_half():
     expected = g * (math.sin(slope) - 0.3 * tire_mu(sim) * math.cos(slope))
     assert fitted_acceleration(t[window], d[window]) == pytest.approx(expected, rel=0.05)
     assert abs(cg[-1, 1] - cg[0, 1]) < 0.05  # straight down the slope
+
+
+# ---------------------------------------------------------------- a live load of a bad terrain
+BAD_XODR = ('<OpenDRIVE><header/><road id="7" length="10"><planView>'
+            '<geometry s="0" x="0" y="0" hdg="0" length="10"><clothoid/></geometry>'
+            '</planView><lanes><laneSection s="0"><center><lane id="0" type="none"/>'
+            '</center><right><lane id="-1" type="driving"><width sOffset="0" a="3.5" b="0" '
+            'c="0" d="0"/></lane></right></laneSection></lanes></road></OpenDRIVE>\n')
+
+
+def bad_terrain_scenes(folder: Path) -> dict[str, tuple[Path, str, str]]:
+    """Scene files whose terrain is bad: name -> (scene, the file, what the error names)."""
+    vehicle = REPO / "configs" / "vehicles" / "paper_sedan" / "vehicle.yaml"
+    grid = np.zeros((6, 7))
+    np.savez(folder / "trunc.npz", heights=grid)
+    data = (folder / "trunc.npz").read_bytes()
+    (folder / "trunc.npz").write_bytes(data[: len(data) // 2])
+    grid[3, 2] = np.nan
+    np.savez(folder / "nan.npz", heights=grid)
+    (folder / "clothoid.xodr").write_text(BAD_XODR, encoding="utf-8")
+    cases = {"missing": ("nope.npz", "heightmap", "no such file"),
+             "truncated": ("trunc.npz", "heightmap", "unreadable"),
+             "nan": ("nan.npz", "heightmap", "row 3, column 2"),
+             "unknown geometry": ("clothoid.xodr", "opendrive", "road 7 <geometry> #0")}
+    scenes = {}
+    for name, (file, kind, element) in cases.items():
+        scene = folder / f"bad_{file.split('.')[0]}.yaml"
+        scene.write_text(f"vehicle: {vehicle}\nterrain: {{kind: {kind}, file: {file}, "
+                         "cell_m: 1.0}\n", encoding="utf-8")
+        scenes[name] = (scene, file, element)
+    return scenes
+
+
+def test_a_live_load_of_a_bad_terrain_is_refused_and_the_car_stays_on_its_terrain(tmp_path):
+    """A server on the hills height map (the car held near the top of the 6 m hill, its CG
+    about 4.7 m up); ``load`` of a scene whose terrain file is missing, truncated, has a
+    NaN in its grid or an unknown OpenDRIVE geometry: each reply is an error naming the
+    file and the element, and the state stream goes on on the same terrain (the tick is
+    not reset, the CG stays up the hill: a refused load changed nothing). The published
+    pose is the world pose on the terrain (before, the slot posed the car on the plane)."""
+    from simserver.testing import Client, ServerProcess
+
+    scenes = bad_terrain_scenes(tmp_path)
+    cfg = tmp_path / "server.yaml"
+    cfg.write_text(f"scene: {SCENES / 'hills_paper_sedan.yaml'}\n"
+                   f"config_dirs: [{tmp_path}, {REPO / 'configs'}]\nviewer: off\n",
+                   encoding="utf-8")
+    with ServerProcess(config=cfg, scene=None, vehicle_id="car_badterrain") as server, \
+            Client(server) as client:
+        client.wait_controls()
+        before = client.wait_state(lambda s: s["tick"] > 100)
+        assert before["z_m"] > 4.0  # up the hill (the flat plane would give 0.5 m)
+        for name, (scene, file, element) in scenes.items():
+            reply = client.request("load", {"scene": str(scene)}, timeout_s=60.0)
+            assert reply["ok"] is False, (name, reply)
+            assert file in reply["error"] and element in reply["error"], (name, reply)
+            after = client.wait_state(lambda s, t=before["tick"]: s["tick"] > t + 50)
+            # the same run on the same terrain: ticks go on, the car is where it was
+            assert after["tick"] > before["tick"], name
+            assert after["z_m"] == pytest.approx(before["z_m"], abs=0.05), name
+            assert np.hypot(after["x_m"] - before["x_m"], after["y_m"] - before["y_m"]) < 0.05
+            before = after
+        config = client.request("get_config")["config"]
+        assert config["scene"]["path"].endswith("hills_paper_sedan.yaml")
