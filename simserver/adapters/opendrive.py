@@ -391,6 +391,18 @@ def road_extents(road: Road, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return right, left
 
 
+START_KEYS: dict[str, tuple[str, str]] = {
+    "road": ("-", "id of a road of the scene's OpenDRIVE terrain (`terrain: {kind: "
+                  "opendrive}`), as written in the file"),
+    "s": ("m", "distance along the road's reference line, 0 .. the road's length"),
+    "lane": ("-", "lane id at `s`: negative right of the reference line, positive left, "
+                  "not 0"),
+}
+"""The keys of a start by road, s and lane (a scene's ``start:``, ``reset``'s ``lane``):
+the car at rest on the lane's centre, heading along its direction of travel, on the
+surface (``lane_start``). One table for the validation and the docs."""
+
+
 class LaneStartError(ValueError):
     """A start by road, s and lane that the roads do not have; ``key`` names which."""
 
