@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from simserver import protocol as proto
+from simserver.adapters.opendrive import LaneStartError, lane_start
 from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
 from simserver.core import layout as L
 from simserver.scenario import Scene, load_scene
@@ -367,16 +368,36 @@ class VehicleSlot:
     # the members of its success reply, or raises ProtocolError / ConfigError naming the
     # field (docs/protocol.md section 3). The loop's table maps control names to them.
     def ctl_reset(self, args: dict[str, Any]) -> dict[str, Any]:
-        """``reset``: the scene's initial state, or at rest at ``pose``; tick 0."""
+        """``reset``: the scene's initial state, or at rest at ``pose`` or on ``lane`` (road,
+        s and lane of the scene's OpenDRIVE roads, ``lane_start``); tick 0. The log keeps
+        the world pose, so a replay needs no roads."""
         pose = args.get("pose")
         p = self.sim
+        if "lane" in args:
+            if pose is not None:
+                raise proto.ProtocolError("lane", "give pose or lane, not both")
+            pose = self._lane_pose(args["lane"])
         p.reset(pose)
         self.tick = 0
         self.fault = False
         self.arbiter.last_seq = None  # docs/protocol.md 2.1: a new client may start from 0
         self._log({"step": self.steps_total, "reset": pose})
-        return {"tick": 0, "pose": {"x_m": p.x[L.X_M], "y_m": p.x[L.Y_M],
-                                    "yaw_rad": p.x[L.YAW_RAD]}}
+        # the start pose as the scene's initial takes it (on the plane, the state's own
+        # x, y and yaw; on a terrain the state lives on the step's reference plane)
+        start = pose if pose is not None else p.scene.initial
+        return {"tick": 0, "pose": {key: float(start[key]) for key in ("x_m", "y_m", "yaw_rad")}}
+
+    def _lane_pose(self, lane: dict[str, Any]) -> dict[str, float]:
+        """The world pose of a reset by road, s and lane (microseconds: the roads are
+        parsed already, ``Scene.roads``)."""
+        roads = self.sim.scene.roads
+        if roads is None:
+            raise proto.ProtocolError("lane", "the scene's terrain is not an OpenDRIVE road")
+        try:
+            x_m, y_m, yaw_rad = lane_start(roads, lane["road"], lane["s"], lane["lane"])
+        except LaneStartError as exc:
+            raise proto.ProtocolError(f"lane.{exc.key}", str(exc)) from None
+        return {"x_m": x_m, "y_m": y_m, "yaw_rad": yaw_rad}
 
     def ctl_pause(self, args: dict[str, Any]) -> dict[str, Any]:
         """``pause``: stop stepping (the state is still published)."""

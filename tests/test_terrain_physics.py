@@ -298,3 +298,38 @@ def test_a_live_load_of_a_bad_terrain_is_refused_and_the_car_stays_on_its_terrai
             before = after
         config = client.request("get_config")["config"]
         assert config["scene"]["path"].endswith("hills_paper_sedan.yaml")
+
+
+# ---------------------------------------------------------------- reset by road, s and lane
+def test_reset_by_road_s_and_lane(crest_scene):
+    """``reset`` with ``lane`` puts the car at rest on the lane's centre along its travel
+    (``lane_start``), on the surface: the published pose is there, its CG a body's height
+    above the crest's 6 m; a place the road does not have is refused naming the key, and
+    changes nothing."""
+    from test_server_logic import Rig
+
+    rig = Rig(crest_scene)
+    state = rig.run(5)
+    reply = rig.control("reset", {"lane": {"road": "0", "s": 100.0, "lane": 1}})
+    x, y, yaw = lane_start(crest_scene.roads, "0", 100.0, 1)
+    assert reply == {"ok": True, "tick": 0, "pose": {"x_m": x, "y_m": y, "yaw_rad": yaw}}
+    state = rig.run()
+    assert math.hypot(state["x_m"] - x, state["y_m"] - y) < 0.05
+    assert math.cos(state["yaw_rad"] - yaw) > 0.9999 and state["u_mps"] == 0.0
+    reply = rig.control("reset", {"lane": {"road": "0", "s": 270.0, "lane": -1}})
+    state = rig.run()
+    assert 6.3 < state["z_m"] < 6.8  # on the crest (6 m), CG about 0.5 m up
+    tick = rig.slot.tick
+    for lane, field in (({"road": "5", "s": 1.0, "lane": -1}, "lane.road"),
+                        ({"road": "0", "s": 401.0, "lane": -1}, "lane.s"),
+                        ({"road": "0", "s": 10.0, "lane": -3}, "lane.lane"),
+                        ({"road": "0", "s": 10.0}, "lane.lane")):
+        reply = rig.control("reset", {"lane": lane})
+        assert reply["ok"] is False and reply["field"] == field, reply
+    reply = rig.control("reset", {"lane": {"road": "0", "s": 1.0, "lane": -1},
+                                  "pose": {"x_m": 0.0, "y_m": 0.0, "yaw_rad": 0.0}})
+    assert reply["ok"] is False and reply["field"] == "lane"
+    assert rig.slot.tick == tick + 5  # one tick per control served, none reset
+    flat = Rig(load_scene(SCENES / "flat_paper_sedan.yaml"))
+    reply = flat.control("reset", {"lane": {"road": "0", "s": 1.0, "lane": -1}})
+    assert reply["ok"] is False and reply["field"] == "lane" and "OpenDRIVE" in reply["error"]
