@@ -38,7 +38,7 @@ import numpy as np
 
 # ============================================================================ version
 
-PROTOCOL_VERSION: Final[int] = 2  # 2: see the history in docs/protocol.md section 6
+PROTOCOL_VERSION: Final[int] = 3  # 3: see the history in docs/protocol.md section 6
 """Carried in the first two bytes of every binary payload; bumped on any layout change."""
 
 DEFAULT_PREFIX: Final[str] = "simserver"
@@ -905,7 +905,8 @@ class ArgSpec:
         JSON key.
     kind : str
         ``"number"`` (int or float, finite), ``"integer"``, ``"path"`` (a YAML file path
-        string) or ``"object"`` (with ``children``).
+        string), ``"name"`` (a short printable string: an id) or ``"object"`` (with
+        ``children``).
     required : bool
         Must be present.
     unit : str
@@ -941,6 +942,7 @@ class ControlSpec:
 
 
 _MAX_PATH = 1024
+_MAX_NAME = 100
 YAW_BOUND_RAD: Final[float] = 6.28319
 """The ``reset`` yaw bound: 2 pi rounded up to the digits the docs show, so that the
 documented bound itself is accepted (both ends inclusive)."""
@@ -954,8 +956,11 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
     for spec in (
         ControlSpec(
             "reset",
-            "Reset the vehicle to the scene's initial pose at rest, or to `pose` at rest. "
-            "Tick and sim time restart at 0; counters are kept.",
+            "Reset the vehicle to the scene's initial pose at rest, or to `pose` at rest, "
+            "or at rest on a lane of the scene's OpenDRIVE road (`lane`: on the lane's "
+            "centre, heading along its direction of travel; an error names `lane.road`, "
+            "`lane.s` or `lane.lane` when the road has no such place). Not both. Tick and "
+            "sim time restart at 0; counters are kept.",
             (
                 ArgSpec("pose", "object", False, "", None, None,
                         "pose on the road plane, at rest",
@@ -964,6 +969,18 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
                             ArgSpec("y_m", "number", True, "m", -1e6, 1e6, "position y"),
                             ArgSpec("yaw_rad", "number", True, "rad", -YAW_BOUND_RAD,
                                     YAW_BOUND_RAD, "heading, + = left of world x"),
+                        )),
+                ArgSpec("lane", "object", False, "", None, None,
+                        "start by road, s and lane on an OpenDRIVE terrain, at rest (the "
+                        "`start:` keys of a scene, docs/configuration.md)",
+                        (
+                            ArgSpec("road", "name", True, "", None, None,
+                                    "road id, as written in the .xodr file"),
+                            ArgSpec("s", "number", True, "m", 0.0, 1e6,
+                                    "distance along the road's reference line"),
+                            ArgSpec("lane", "integer", True, "", -1000, 1000,
+                                    "lane id: negative right of the reference line, "
+                                    "positive left, not 0"),
                         )),
             ),
             reply='"tick": 0, "pose": {"x_m": number, "y_m": number, "yaw_rad": number}',
@@ -1084,6 +1101,12 @@ def _check_arg(spec: ArgSpec, value: Any, path: str) -> Any:
             raise ProtocolError(path, "is not valid Unicode (a lone surrogate)") from None
         if not value.endswith((".yaml", ".yml")):
             raise ProtocolError(path, f"{value!r} is not a .yaml/.yml file")
+        return value
+    if spec.kind == "name":
+        if not isinstance(value, str) or not value:
+            raise ProtocolError(path, f"must be a non-empty string, got {type(value).__name__}")
+        if len(value) > _MAX_NAME or not value.isprintable():
+            raise ProtocolError(path, f"must be at most {_MAX_NAME} printable characters")
         return value
     if spec.kind == "object":
         return _check_object(spec.children, value, path, at_least_one=False)
@@ -1289,6 +1312,8 @@ def _arg_rows(args: Sequence[ArgSpec], prefix: str = "") -> list[str]:
             rng = f"[{_num(a.lo)}, {_num(a.hi)}]"
         elif a.kind == "path":
             rng = f"string ending .yaml/.yml, at most {_MAX_PATH} chars"
+        elif a.kind == "name":
+            rng = f"string, at most {_MAX_NAME} printable chars"
         else:
             rng = "object"
         req = "required" if a.required else "optional"

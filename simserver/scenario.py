@@ -13,6 +13,8 @@ Scenario YAML (paths relative to the scenario file)::
     model: {slip_model: lagged_paper, damping_model: paper}   # optional, see config
     terrain: {kind: heightmap, file: ../roads/hills.npz, cell_m: 1.0}  # optional, default
                              # the plane of road: (keys: simserver.adapters.terrain_files)
+    start: {road: "1", s: 250.0, lane: -2}  # optional, on an OpenDRIVE terrain only: the
+                             # initial x_m, y_m, yaw_rad from a road, s and lane
     inputs:                  # keyframes
       - {t: 0.0, gear: D}
       - {t: 1.0, brake: 0.0}
@@ -43,10 +45,17 @@ from simserver.adapters.config import (
     read_yaml,
     resolve_vehicle,
 )
+from simserver.adapters.opendrive import (
+    START_KEYS,
+    LaneStartError,
+    OpenDrive,
+    lane_start,
+    load_opendrive,
+)
 from simserver.adapters.terrain_files import load_terrain
-from simserver.adapters.validate import integer, referenced_file
+from simserver.adapters.validate import integer, referenced_file, short_repr
 from simserver.core import layout as L
-from simserver.core.terrain import Terrain, plane_terrain
+from simserver.core.terrain import TERRAIN_OPENDRIVE, Terrain, plane_terrain
 from simserver.keyframes import input_table, read_keyframe_file
 from simserver.simulation import Simulation
 
@@ -87,6 +96,7 @@ class Scene:
     initial: dict[str, float]
     model_options: dict[str, Any] = field(default_factory=dict)
     terrain: Terrain = field(default_factory=plane_terrain)  # core.terrain
+    roads: OpenDrive | None = None  # an OpenDRIVE terrain's roads: starts by road, s, lane
 
 
 @dataclass
@@ -135,7 +145,9 @@ class ScenarioResult:
         return self.outputs[:, index]
 
 
-SCENE_KEYS = ("vehicle", "road", "initial", "model", "terrain")
+SCENE_KEYS = ("vehicle", "road", "initial", "model", "terrain", "start")
+START_POSE_KEYS = ("x_m", "y_m", "yaw_rad")
+"""The ``initial`` keys a ``start:`` gives (so they may not be given with it)."""
 
 
 def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = None) -> Scene:
@@ -166,8 +178,42 @@ def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = No
     initial = {key: number(path, f"initial.{key}", init_raw.get(key, 0.0), lo, hi)
                for key, (lo, hi) in INITIAL_RANGES.items()}
     terrain = load_terrain(path, data.get("terrain"))
+    roads = None
+    if terrain.kind == TERRAIN_OPENDRIVE:  # read again for its roads (milliseconds)
+        roads = load_opendrive(referenced_file(path, "terrain.file", data["terrain"]["file"]))
+    if data.get("start") is not None:
+        clash = [key for key in START_POSE_KEYS if key in init_raw]
+        if clash:
+            raise ConfigError(f"{path}: key 'initial.{clash[0]}': the start pose is given by "
+                              "'start'; give one or the other")
+        initial.update(start_by_lane(path, "start", data["start"], roads))
     return Scene(path=path, vehicle=vehicle, road=road, initial=initial,
-                 model_options=dict(model_options), terrain=terrain)
+                 model_options=dict(model_options), terrain=terrain, roads=roads)
+
+
+def start_by_lane(path: Path | str, key: str, raw: Any, roads: OpenDrive | None
+                  ) -> dict[str, float]:
+    """``x_m``, ``y_m``, ``yaw_rad`` of a start by road, s and lane (``START_KEYS``,
+    ``simserver.adapters.opendrive.lane_start``); ``ConfigError`` naming ``path`` and the
+    key (``start.road``, ``start.s``, ``start.lane``) at fault."""
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: key '{key}': expected a mapping {{road, s, lane}}, got "
+                          f"{short_repr(raw)}")
+    check_keys(f"{path} ({key})", raw, tuple(START_KEYS), required=tuple(START_KEYS))
+    if roads is None:
+        raise ConfigError(f"{path}: key '{key}': a start by road, s and lane needs an "
+                          "OpenDRIVE terrain (terrain: {kind: opendrive, ...})")
+    road_id = raw["road"]
+    if isinstance(road_id, bool) or not isinstance(road_id, (str, int)):
+        raise ConfigError(f"{path}: key '{key}.road': expected a road id, got "
+                          f"{short_repr(road_id)}")
+    s_m = number(path, f"{key}.s", raw["s"], -1e7, 1e7)
+    lane = integer(path, f"{key}.lane", raw["lane"], -1000, 1000)
+    try:
+        x_m, y_m, yaw_rad = lane_start(roads, str(road_id), s_m, lane)
+    except LaneStartError as exc:
+        raise ConfigError(f"{path}: key '{key}.{exc.key}': {exc}") from None
+    return {"x_m": x_m, "y_m": y_m, "yaw_rad": yaw_rad}
 
 
 SCENARIO_ONLY_KEYS = ("duration_s", "dt_s", "record_every", "inputs")
@@ -216,8 +262,10 @@ def resolve_scenario(path: str | Path) -> dict[str, Any]:
     data = dict(read_yaml(path))
     if isinstance(data.get("vehicle"), str):
         data["vehicle"] = resolve_vehicle((path.parent / data["vehicle"]).resolve())
+    initial_keys = [key for key in INITIAL_RANGES  # a start: gives the pose
+                    if not (data.get("start") is not None and key in START_POSE_KEYS)]
     defaults = {"road": {"grade_pct": 0.0, "cross_slope_pct": 0.0, "friction_scale": 1.0},
-                "initial": dict.fromkeys(INITIAL_RANGES, 0.0),
+                "initial": dict.fromkeys(initial_keys, 0.0),
                 "model": dict(MODEL_OPTION_DEFAULTS)}
     for section, values in defaults.items():
         given = data.get(section) or {}

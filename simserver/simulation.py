@@ -25,7 +25,7 @@ from simserver.core.integrator import simulate, step
 from simserver.core.model import Data, Model, make_data
 from simserver.core.params import VP_CG_HEIGHT_M, VP_DAMPING_MODEL, VP_SLIP_MODEL
 from simserver.core.pose import world_pose
-from simserver.core.road import road_axes, set_road
+from simserver.core.road import road_axes, road_frame, set_road
 from simserver.core.slip import SLIP_MODELS
 from simserver.core.terrain import TERRAIN_PLANE
 from simserver.core.tire_layout import TP_RADIUS_M
@@ -68,6 +68,7 @@ class Simulation:
         self.dt_s = float(dt_s)
         self.data: Data = make_data()
         self.pose = np.zeros(L.N_POSE)
+        self._reference_axes = np.zeros((3, 3))  # update_pose's scratch: no allocation
         self.load(scene)
 
     # ---- the model
@@ -146,7 +147,8 @@ class Simulation:
         if self.model.terrain.kind == TERRAIN_PLANE:
             world_pose(x, self.axes, self.model.vp[VP_CG_HEIGHT_M], self.pose)
         else:  # the states live on the reference plane of the last step
-            axes = road_axes(x[L.REF_GRADE_PCT], x[L.REF_CROSS_SLOPE_PCT])
+            axes = self._reference_axes
+            road_frame(x[L.REF_GRADE_PCT], x[L.REF_CROSS_SLOPE_PCT], axes)
             world_pose(x, axes, self.model.vp[VP_CG_HEIGHT_M], self.pose)
             self.pose[L.POSE_Z_M] += x[L.REF_HEIGHT_M]
         return self.pose

@@ -10,8 +10,8 @@ runs in-process on a fake clock (``tests/test_server_logic.py``).
 
 The simulation is called through its public API only (``x``, ``inputs``, ``out``, ``vp``,
 ``scene``, ``road``, ``axes``, ``pose``, ``dt_s``, ``step()``, ``reset(pose)``,
-``set_road(...)``, ``load(scene)``, ``warm_up()``); the rules it applies to commands and
-controls are those of ``docs/protocol.md`` (sections 2.1 and 3).
+``set_road(...)``, ``load(scene)``, ``warm_up()``, ``update_pose()``); the rules it
+applies to commands and controls are those of ``docs/protocol.md`` (sections 2.1 and 3).
 """
 
 from __future__ import annotations
@@ -27,10 +27,9 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from simserver import protocol as proto
+from simserver.adapters.opendrive import LaneStartError, lane_start
 from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
 from simserver.core import layout as L
-from simserver.core.params import VP_CG_HEIGHT_M
-from simserver.core.pose import world_pose
 from simserver.scenario import Scene, load_scene
 
 if TYPE_CHECKING:
@@ -64,6 +63,7 @@ class SimulationAPI(Protocol):
                  friction_scale: float) -> None: ...
     def load(self, scene: Scene) -> None: ...
     def warm_up(self) -> None: ...
+    def update_pose(self) -> np.ndarray: ...
 
 
 class RateLimitedLog:
@@ -269,7 +269,7 @@ class VehicleSlot:
         """Write the state record from the simulation and return its bytes."""
         p = self.sim
         x, out, rec = p.x, p.out, self.record
-        world_pose(x, p.axes, p.vp[VP_CG_HEIGHT_M], p.pose)
+        p.update_pose()  # on a terrain: from the reference plane of the last step
         flags = 0
         if self.watchdog.engaged:
             flags |= proto.StateFlag.WATCHDOG
@@ -368,16 +368,36 @@ class VehicleSlot:
     # the members of its success reply, or raises ProtocolError / ConfigError naming the
     # field (docs/protocol.md section 3). The loop's table maps control names to them.
     def ctl_reset(self, args: dict[str, Any]) -> dict[str, Any]:
-        """``reset``: the scene's initial state, or at rest at ``pose``; tick 0."""
+        """``reset``: the scene's initial state, or at rest at ``pose`` or on ``lane`` (road,
+        s and lane of the scene's OpenDRIVE roads, ``lane_start``); tick 0. The log keeps
+        the world pose, so a replay needs no roads."""
         pose = args.get("pose")
         p = self.sim
+        if "lane" in args:
+            if pose is not None:
+                raise proto.ProtocolError("lane", "give pose or lane, not both")
+            pose = self._lane_pose(args["lane"])
         p.reset(pose)
         self.tick = 0
         self.fault = False
         self.arbiter.last_seq = None  # docs/protocol.md 2.1: a new client may start from 0
         self._log({"step": self.steps_total, "reset": pose})
-        return {"tick": 0, "pose": {"x_m": p.x[L.X_M], "y_m": p.x[L.Y_M],
-                                    "yaw_rad": p.x[L.YAW_RAD]}}
+        # the start pose as the scene's initial takes it (on the plane, the state's own
+        # x, y and yaw; on a terrain the state lives on the step's reference plane)
+        start = pose if pose is not None else p.scene.initial
+        return {"tick": 0, "pose": {key: float(start[key]) for key in ("x_m", "y_m", "yaw_rad")}}
+
+    def _lane_pose(self, lane: dict[str, Any]) -> dict[str, float]:
+        """The world pose of a reset by road, s and lane (microseconds: the roads are
+        parsed already, ``Scene.roads``)."""
+        roads = self.sim.scene.roads
+        if roads is None:
+            raise proto.ProtocolError("lane", "the scene's terrain is not an OpenDRIVE road")
+        try:
+            x_m, y_m, yaw_rad = lane_start(roads, lane["road"], lane["s"], lane["lane"])
+        except LaneStartError as exc:
+            raise proto.ProtocolError(f"lane.{exc.key}", str(exc)) from None
+        return {"x_m": x_m, "y_m": y_m, "yaw_rad": yaw_rad}
 
     def ctl_pause(self, args: dict[str, Any]) -> dict[str, Any]:
         """``pause``: stop stepping (the state is still published)."""

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from simserver.adapters.opendrive import (
@@ -141,3 +142,92 @@ def test_bad_files_name_the_file_and_element(tmp_path, text, needle):
 def test_missing_file_is_named(tmp_path):
     with pytest.raises(OpenDriveError, match="nope.xodr: no such file"):
         load_opendrive(tmp_path / "nope.xodr")
+
+
+# ---------------------------------------------------------------- start by road, s and lane
+def test_lane_start_on_the_lane_centre_heading_along_its_travel():
+    """The velodrome's straight (s = 250 m, heading 0 along +x, three 3 m right lanes): lane
+    -2's centre is at t = -(3 + 1.5) m, heading along +s (right-hand traffic). On the
+    crest road's straight (heading 0), the left lane 1 (3.2 m) travels against s."""
+    from simserver.adapters.opendrive import lane_start
+
+    velodrome = load_opendrive(ROADS / "velodrome.xodr")
+    assert lane_start(velodrome, "1", 250.0, -2) == pytest.approx((250.0, -4.5, 0.0), abs=1e-12)
+    assert lane_start(velodrome, "1", 250.0, -3) == pytest.approx((250.0, -7.5, 0.0), abs=1e-12)
+    # mid-turn (arc of radius 125 m, 60 degree bank): t cos(roll) across the heading
+    ref_x, ref_y, hdg = velodrome.roads[0].reference(750.0)
+    x, y, yaw = lane_start(velodrome, "1", 750.0, -1)
+    lateral = -1.5 * math.cos(math.radians(60.0))
+    assert (x, y) == (pytest.approx(ref_x - math.sin(hdg) * lateral, abs=1e-9),
+                      pytest.approx(ref_y + math.cos(hdg) * lateral, abs=1e-9))
+    assert angle_diff(yaw, hdg) < 1e-12
+    crest = load_opendrive(ROADS / "crest-curve.xodr")
+    x, y, yaw = lane_start(crest, "0", 50.0, 1)
+    ref_x, ref_y, hdg = crest.roads[0].reference(50.0)
+    assert math.hypot(x - ref_x, y - ref_y) == pytest.approx(1.6, abs=1e-12)
+    assert angle_diff(yaw, hdg + math.pi) < 1e-12
+
+
+def _scene(tmp_path, start: str, initial: str = "{u_mps: 0.0}",
+           terrain: str = "{kind: opendrive, file: road.xodr, cell_m: 1.0}"):
+    import shutil
+
+    shutil.copy(ROADS / "velodrome.xodr", tmp_path / "road.xodr")
+    vehicle = ROADS.parent / "vehicles" / "paper_sedan" / "vehicle.yaml"
+    path = tmp_path / "scene.yaml"
+    path.write_text(f"vehicle: {vehicle}\nterrain: {terrain}\nstart: {start}\n"
+                    f"initial: {initial}\n", encoding="utf-8")
+    return path
+
+
+def test_a_scene_starts_by_road_s_and_lane_on_the_surface(tmp_path):
+    """``start: {road, s, lane}`` gives the initial x, y and yaw of ``lane_start``; the
+    car is put on the surface (its wheels on the 60 degree bank, all four in contact)."""
+    from simserver.adapters.opendrive import lane_start
+    from simserver.core import layout as L
+    from simserver.scenario import load_scene
+    from simserver.simulation import Simulation
+
+    scene = load_scene(_scene(tmp_path, '{road: "1", s: 750.0, lane: -2}'))
+    x, y, yaw = lane_start(scene.roads, "1", 750.0, -2)
+    assert (scene.initial["x_m"], scene.initial["y_m"], scene.initial["yaw_rad"]) == (x, y, yaw)
+    sim = Simulation(scene, 0.001)
+    pose = sim.update_pose()
+    assert math.hypot(pose[L.POSE_X_M] - x, pose[L.POSE_Y_M] - y) < 0.6  # CG above the lane
+    # the surface of lane -2's centre: t = -4.5 m up the 60 degree bank
+    assert pose[L.POSE_Z_M] > 4.5 * math.sin(math.radians(60.0))
+    assert abs(pose[L.POSE_ROLL_RAD]) == pytest.approx(math.radians(60.0), abs=0.02)
+    sim.step()
+    assert np.all(sim.x[L.IN_CONTACT] == 1.0)
+
+
+@pytest.mark.parametrize("start, initial, terrain, needle", [
+    ('{road: "9", s: 10.0, lane: -1}', "{}", None, "key 'start.road': no road '9'"),
+    ('{road: 1, s: 2500.0, lane: -1}', "{}", None, "key 'start.s'"),
+    ('{road: "1", s: 10.0, lane: -4}', "{}", None, "key 'start.lane': road 1 has no lane -4"),
+    ('{road: "1", s: 10.0, lane: 0}', "{}", None, "key 'start.lane'"),
+    ('{road: "1", s: 10.0}', "{}", None, "missing key 'lane'"),
+    ('{road: "1", s: 10.0, lane: -1}', "{x_m: 3.0}", None, "key 'initial.x_m'"),
+    ('{road: "1", s: 10.0, lane: -1}', "{}", "{kind: plane}", "key 'start': a start by road"),
+])
+def test_a_bad_start_names_the_key(tmp_path, start, initial, terrain, needle):
+    from simserver.adapters.validate import ConfigError
+    from simserver.scenario import load_scene
+
+    path = _scene(tmp_path, start, initial, *([terrain] if terrain else []))
+    with pytest.raises(ConfigError) as err:
+        load_scene(path)
+    assert str(path) in str(err.value) and needle in str(err.value), str(err.value)
+
+
+def test_a_scenario_with_a_start_resolves_to_the_same_run(tmp_path):
+    from simserver.scenario import load_scenario, resolve_scenario
+
+    path = _scene(tmp_path, '{road: "1", s: 100.0, lane: -1}')
+    text = path.read_text(encoding="utf-8")
+    path.write_text("name: s\nduration_s: 0.01\ninputs: [{t: 0.0, gear: N}]\n" + text,
+                    encoding="utf-8")
+    direct = load_scenario(path)
+    resolved = load_scenario(path, resolve_scenario(path))
+    assert direct.scene.initial == resolved.scene.initial
+    assert direct.scene.initial["x_m"] == pytest.approx(100.0)

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from simserver.adapters.opendrive import START_KEYS
 from simserver.adapters.validate import (  # re-exported: callers import them from here
     ConfigError,
     check_keys,
@@ -330,6 +331,15 @@ def config_reference_markdown() -> str:
         lines += ["", f"## `{where}:` section of a scenario or scene", "",
                   f"{table.title.capitalize()}; every key is optional.", ""]
         lines += _param_rows(table, with_default=True)
+    lines += ["", "## `start:` of a scenario or scene on an OpenDRIVE road", "",
+              "The car's start by road, s and lane (instead of `initial`'s `x_m`, `y_m`, "
+              "`yaw_rad`; `initial`'s speeds still apply): at rest on the lane's centre, "
+              "heading along the lane's direction of travel (right-hand traffic unless the "
+              "road says `rule=\"LHT\"`), on the surface. Every key is required; a road, s "
+              "or lane the file does not have is an error naming the key. The `reset` "
+              "control takes the same keys as `lane` (docs/protocol.md).", "",
+              "| key | unit | meaning |", "|---|---|---|"]
+    lines += [f"| `{key}` | {unit} | {meaning} |" for key, (unit, meaning) in START_KEYS.items()]
     lines += ["", "Scenario files (initial state, duration, input keyframes) are described in "
               "the README; the server's own config, key by key, in "
               "`configs/server/default.yaml`.", ""]
