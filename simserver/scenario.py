@@ -43,7 +43,7 @@ from simserver.adapters.config import (
     read_yaml,
     resolve_vehicle,
 )
-from simserver.adapters.terrain_files import load_terrain
+from simserver.adapters.terrain_files import terrain_from_spec, terrain_spec
 from simserver.adapters.validate import integer, referenced_file
 from simserver.core import layout as L
 from simserver.core.terrain import Terrain, plane_terrain
@@ -87,6 +87,7 @@ class Scene:
     initial: dict[str, float]
     model_options: dict[str, Any] = field(default_factory=dict)
     terrain: Terrain = field(default_factory=plane_terrain)  # core.terrain
+    terrain_spec: dict[str, Any] | None = None  # adapters.terrain_files.terrain_spec
 
 
 @dataclass
@@ -165,9 +166,10 @@ def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = No
     check_keys(f"{path} (initial)", init_raw, tuple(INITIAL_RANGES))
     initial = {key: number(path, f"initial.{key}", init_raw.get(key, 0.0), lo, hi)
                for key, (lo, hi) in INITIAL_RANGES.items()}
-    terrain = load_terrain(path, data.get("terrain"))
+    spec = terrain_spec(path, data.get("terrain"))
     return Scene(path=path, vehicle=vehicle, road=road, initial=initial,
-                 model_options=dict(model_options), terrain=terrain)
+                 model_options=dict(model_options), terrain=terrain_from_spec(spec),
+                 terrain_spec=spec)
 
 
 SCENARIO_ONLY_KEYS = ("duration_s", "dt_s", "record_every", "inputs")
@@ -210,12 +212,17 @@ def load_scenario(path: str | Path, data: dict[str, Any] | None = None) -> Scena
 
 def resolve_scenario(path: str | Path) -> dict[str, Any]:
     """A scenario file as one mapping holding everything it refers to: the vehicle with its
-    subsystem and tire files inline (``resolve_vehicle``) and every default written out.
+    subsystem and tire files inline (``resolve_vehicle``), the terrain section with every
+    default written out and its files as absolute paths (``terrain_spec``: a height map or
+    an ``.xodr`` is data too large to inline; a run's hash covers their contents,
+    ``simserver.sweep.resolved.run_id``) and every other default written out.
     ``load_scenario(path, resolve_scenario(path))`` is ``load_scenario(path)``."""
     path = Path(path)
     data = dict(read_yaml(path))
     if isinstance(data.get("vehicle"), str):
         data["vehicle"] = resolve_vehicle((path.parent / data["vehicle"]).resolve())
+    if data.get("terrain") is not None:
+        data["terrain"] = terrain_spec(path, data["terrain"])
     defaults = {"road": {"grade_pct": 0.0, "cross_slope_pct": 0.0, "friction_scale": 1.0},
                 "initial": dict.fromkeys(INITIAL_RANGES, 0.0),
                 "model": dict(MODEL_OPTION_DEFAULTS)}
