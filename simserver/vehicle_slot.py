@@ -10,8 +10,8 @@ runs in-process on a fake clock (``tests/test_server_logic.py``).
 
 The simulation is called through its public API only (``x``, ``inputs``, ``out``, ``vp``,
 ``scene``, ``road``, ``axes``, ``pose``, ``dt_s``, ``step()``, ``reset(pose)``,
-``set_road(...)``, ``load(scene)``, ``warm_up()``); the rules it applies to commands and
-controls are those of ``docs/protocol.md`` (sections 2.1 and 3).
+``set_road(...)``, ``load(scene)``, ``warm_up()``, ``update_pose()``); the rules it
+applies to commands and controls are those of ``docs/protocol.md`` (sections 2.1 and 3).
 """
 
 from __future__ import annotations
@@ -29,8 +29,6 @@ import numpy as np
 from simserver import protocol as proto
 from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
 from simserver.core import layout as L
-from simserver.core.params import VP_CG_HEIGHT_M
-from simserver.core.pose import world_pose
 from simserver.scenario import Scene, load_scene
 
 if TYPE_CHECKING:
@@ -64,6 +62,7 @@ class SimulationAPI(Protocol):
                  friction_scale: float) -> None: ...
     def load(self, scene: Scene) -> None: ...
     def warm_up(self) -> None: ...
+    def update_pose(self) -> np.ndarray: ...
 
 
 class RateLimitedLog:
@@ -269,7 +268,7 @@ class VehicleSlot:
         """Write the state record from the simulation and return its bytes."""
         p = self.sim
         x, out, rec = p.x, p.out, self.record
-        world_pose(x, p.axes, p.vp[VP_CG_HEIGHT_M], p.pose)
+        p.update_pose()  # world axes; on a terrain from the reference plane of the step
         flags = 0
         if self.watchdog.engaged:
             flags |= proto.StateFlag.WATCHDOG
