@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from simserver.adapters.terrain_files import TERRAIN_SCHEMAS, terrain_spec
 from simserver.adapters.validate import ConfigError, confined_to
@@ -195,3 +197,30 @@ def test_the_terrain_keys_in_the_docs_are_the_loaders(tmp_path):
         # the loader refuses a key the docs do not list
         with pytest.raises(ConfigError, match=r"unknown key 'wobble'"):
             terrain_spec(tmp_path / "s.yaml", {"kind": kind, "wobble": 1})
+
+
+# ------------------------------------------------------------------------ fuzz
+_hostile = st.one_of(
+    st.none(), st.booleans(), st.integers(), st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=12), st.sampled_from(["hill.npy", "../x.npy", "/proc/self/status",
+                                           "hill.png", "", "\0"]),
+    st.lists(st.floats(allow_nan=True), max_size=3), st.dictionaries(st.text(max_size=3),
+                                                                     st.integers(),
+                                                                     max_size=2))
+
+
+@settings(max_examples=150, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(kind=st.one_of(st.sampled_from(["plane", "heightmap", "opendrive"]), _hostile),
+       values=st.dictionaries(
+           st.sampled_from(["file", "cell_m", "origin_m", "height_scale_m", "height_offset_m",
+                            "friction_file", "margin_m", "other"]), _hostile, max_size=5))
+def test_terrain_sections_never_traceback(tmp_path, kind, values):
+    """Any ``terrain:`` mapping is read or refused with a ConfigError (never another
+    exception), under the confinement as the server reads it."""
+    _hill(tmp_path / "hill.npy")
+    with confined_to([tmp_path]):
+        try:
+            terrain_spec(tmp_path / "scene.yaml", {"kind": kind, **values})
+        except ConfigError:
+            pass
