@@ -3,10 +3,10 @@
 The driver sends a DriverCommand at a steady rate (``--rate``, default 200 Hz: the
 server applies the newest one each 1 ms tick and holds the car with its watchdog if none
 arrives for 200 ms), each with the next ``seq`` and ``sender_time_ns`` on this process's
-monotonic clock, and shows what comes back: speed, gear, parking brake, slope (from the
-pose's pitch), the watchdog / paused / brake-hold flags, the command-to-state latency and
-the server's health from the diagnostics (tick lateness p99, overruns, rejected
-commands).
+monotonic clock, and shows what comes back: speed, gear, parking brake, the grade and
+cross-slope of the ground under the car and which wheels touch it, the watchdog / paused /
+brake-hold flags, the command-to-state latency and the server's health from the
+diagnostics (tick lateness p99, overruns, rejected commands).
 
 Input modes
 -----------
@@ -255,16 +255,22 @@ class JoystickSource:
 # ---------------------------------------------------------------------------- status
 
 
-def road_slope_pct(road: dict[str, float], yaw_rad: float) -> float:
-    """Slope of the road plane along a heading, in per cent (+ = uphill ahead).
+WHEEL_LABELS = ("fl", "fr", "rl", "rr")
+"""The order of the state's per-wheel fields (docs/protocol.md: FL, FR, RL, RR)."""
 
-    The plane rises ``grade_pct`` per 100 m along world x and ``cross_slope_pct`` along
-    world y (``ctl/set_road``); along the horizontal direction of ``yaw_rad`` it rises by
-    their projection. The pose's pitch would also show the body's pitch on its
-    suspension (about 1 degree under full throttle or braking), so it is shown apart.
-    """
-    return (float(road.get("grade_pct", 0.0)) * math.cos(yaw_rad)
-            + float(road.get("cross_slope_pct", 0.0)) * math.sin(yaw_rad))
+
+def ground_text(state: np.void) -> str:
+    """The ground under the car, from the state: its grade along the heading (+ = uphill
+    ahead) and cross-slope (+ = the left side higher), in per cent (the plane fitted under
+    the wheels on a terrain, the road on a plane: ``ground_grade_pct``,
+    ``ground_cross_slope_pct``), and which wheels touch it (``wheel_contact``). The pose's
+    pitch would also show the body's pitch on its suspension (about 1 degree under full
+    throttle or braking), so it is shown apart."""
+    contact = [bool(c) for c in state["wheel_contact"]]
+    wheels = ("all 4" if all(contact) else " ".join(
+        name.upper() for name, on in zip(WHEEL_LABELS, contact, strict=True) if on) or "none")
+    return (f"grade {float(state['ground_grade_pct']):+5.1f} %  cross "
+            f"{float(state['ground_cross_slope_pct']):+5.1f} %  wheels on ground {wheels}")
 
 
 class StatusView:
@@ -297,7 +303,7 @@ class StatusView:
                  f"{gear_name(c['gear'])}  park {'ON' if c['parking_brake'] else 'off'}  "
                  f"seq {d.seq}")
         if s is None:
-            car = ["car     (no state received yet)", ""]
+            car = ["car     (no state received yet)", "", ""]
             server = ["server  -", ""]
         else:
             u = float(s["u_mps"])
@@ -307,12 +313,12 @@ class StatusView:
                                       ("HOLD", proto.StateFlag.BRAKE_HOLD)) if flags & bit]
             yaw = float(s["yaw_rad"])
             heading = (math.degrees(yaw) + 180.0) % 360.0 - 180.0
-            slope = "?" if d.road is None else f"{road_slope_pct(d.road, yaw):+5.1f} %"
             car = [f"car     speed {3.6 * u:+7.1f} km/h ({u:+7.2f} m/s)  gear "
                    f"{gear_name(int(s['gear']))}  park "
                    f"{'ON' if s['parking_brake'] else 'off'}",
-                   f"        slope {slope}  nose up {-math.degrees(float(s['pitch_rad'])):+5.1f}"
-                   f" deg  heading {heading:+6.1f} deg"]
+                   f"        {ground_text(s)}",
+                   f"        nose up {-math.degrees(float(s['pitch_rad'])):+5.1f} deg  heading "
+                   f"{heading:+6.1f} deg"]
             age = float(s["cmd_age_s"])
             silent = time.monotonic() - d.state_wall
             server = [f"server  t {float(s['sim_time_s']):9.3f} s  [{' '.join(names) or 'ok'}]"
@@ -388,7 +394,6 @@ class Driver:
         self.diag: np.void | None = None
         self._latencies: deque[float] = deque(maxlen=200)
         self._seen_seq = -1
-        self.road: dict[str, float] | None = conn.config.get("road")
         self.hold = StartHold()
         self.message = "the brake is held until you press the throttle"
         self.sent = 0
@@ -488,7 +493,6 @@ class Driver:
         last_t = 0.0
         next_draw = 0.0
         next_alive = 0.5
-        next_road = 2.0
         c = self.controls
         while not stop.stopped:
             t = pacer.wait(self.poll_states)
@@ -507,11 +511,6 @@ class Driver:
                 seq=self.seq, sender_time_ns=now_ns))
             self.sent += 1
             self._read_diagnostics()
-            if t >= next_road:
-                next_road = t + 2.0
-                reply = self._control("get_config")
-                if reply is not None:
-                    self.road = (reply.get("config") or {}).get("road", self.road)
             if t >= next_alive:
                 next_alive = t + 0.25
                 was_present = self.presence.present

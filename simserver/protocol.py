@@ -426,7 +426,13 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
     FieldSpec("gear", "u1", 1, "-", 0, 3, "applied gear, 0 = P, 1 = R, 2 = N, 3 = D"),
     FieldSpec("wheel_contact", "u1", 4, "-", 0, 1,
               f"wheel touches the ground (carries load) (0/1); {_WHEELS}"),
-    FieldSpec("reserved", "u1", 2, "-", 0, 0, "zero (pads the payload to 256 bytes)"),
+    FieldSpec("reserved", "u1", 2, "-", 0, 0, "zero"),
+    FieldSpec("ground_grade_pct", "<f4", 1, "%", None, None,
+              "slope of the ground under the car along its heading, + = uphill ahead: the "
+              "plane fitted under the four wheels (docs/model.md section 11; on the plane "
+              "kind, the road)"),
+    FieldSpec("ground_cross_slope_pct", "<f4", 1, "%", None, None,
+              "slope of that plane across the heading, + = the left side higher"),
 )
 
 _WINDOW = "over the last window_ticks ticks"
@@ -511,7 +517,7 @@ STATE_SIZE: Final[int] = STATE_DTYPE.itemsize
 DIAGNOSTICS_SIZE: Final[int] = DIAGNOSTICS_DTYPE.itemsize
 
 assert _COMMAND_STRUCT.size == COMMAND_SIZE == 32
-assert _STATE_STRUCT.size == STATE_SIZE == 256
+assert _STATE_STRUCT.size == STATE_SIZE == 264
 assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 160
 
 

@@ -52,7 +52,7 @@ from simserver.adapters.opendrive import (
     lane_start,
     load_opendrive,
 )
-from simserver.adapters.terrain_files import load_terrain
+from simserver.adapters.terrain_files import terrain_from_spec, terrain_spec
 from simserver.adapters.validate import integer, referenced_file, short_repr
 from simserver.core import layout as L
 from simserver.core.terrain import TERRAIN_OPENDRIVE, Terrain, plane_terrain
@@ -97,6 +97,7 @@ class Scene:
     model_options: dict[str, Any] = field(default_factory=dict)
     terrain: Terrain = field(default_factory=plane_terrain)  # core.terrain
     roads: OpenDrive | None = None  # an OpenDRIVE terrain's roads: starts by road, s, lane
+    terrain_spec: dict[str, Any] | None = None  # adapters.terrain_files.terrain_spec
 
 
 @dataclass
@@ -177,10 +178,11 @@ def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = No
     check_keys(f"{path} (initial)", init_raw, tuple(INITIAL_RANGES))
     initial = {key: number(path, f"initial.{key}", init_raw.get(key, 0.0), lo, hi)
                for key, (lo, hi) in INITIAL_RANGES.items()}
-    terrain = load_terrain(path, data.get("terrain"))
+    spec = terrain_spec(path, data.get("terrain"))
+    terrain = terrain_from_spec(spec)
     roads = None
     if terrain.kind == TERRAIN_OPENDRIVE:  # read again for its roads (milliseconds)
-        roads = load_opendrive(referenced_file(path, "terrain.file", data["terrain"]["file"]))
+        roads = load_opendrive(Path(spec["file"]))
     if data.get("start") is not None:
         clash = [key for key in START_POSE_KEYS if key in init_raw]
         if clash:
@@ -188,7 +190,8 @@ def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = No
                               "'start'; give one or the other")
         initial.update(start_by_lane(path, "start", data["start"], roads))
     return Scene(path=path, vehicle=vehicle, road=road, initial=initial,
-                 model_options=dict(model_options), terrain=terrain, roads=roads)
+                 model_options=dict(model_options), terrain=terrain, roads=roads,
+                 terrain_spec=spec)
 
 
 def start_by_lane(path: Path | str, key: str, raw: Any, roads: OpenDrive | None
@@ -256,7 +259,10 @@ def load_scenario(path: str | Path, data: dict[str, Any] | None = None) -> Scena
 
 def resolve_scenario(path: str | Path) -> dict[str, Any]:
     """A scenario file as one mapping holding everything it refers to: the vehicle with its
-    subsystem and tire files inline (``resolve_vehicle``) and every default written out.
+    subsystem and tire files inline (``resolve_vehicle``), the terrain section with every
+    default written out and its files as absolute paths (``terrain_spec``: a height map or
+    an ``.xodr`` is data too large to inline; a run's hash covers their contents,
+    ``simserver.sweep.resolved.run_id``) and every other default written out.
     ``load_scenario(path, resolve_scenario(path))`` is ``load_scenario(path)``."""
     path = Path(path)
     data = dict(read_yaml(path))
@@ -264,6 +270,8 @@ def resolve_scenario(path: str | Path) -> dict[str, Any]:
         data["vehicle"] = resolve_vehicle((path.parent / data["vehicle"]).resolve())
     initial_keys = [key for key in INITIAL_RANGES  # a start: gives the pose
                     if not (data.get("start") is not None and key in START_POSE_KEYS)]
+    if data.get("terrain") is not None:
+        data["terrain"] = terrain_spec(path, data["terrain"])
     defaults = {"road": {"grade_pct": 0.0, "cross_slope_pct": 0.0, "friction_scale": 1.0},
                 "initial": dict.fromkeys(initial_keys, 0.0),
                 "model": dict(MODEL_OPTION_DEFAULTS)}

@@ -30,6 +30,7 @@ from simserver import protocol as proto
 from simserver.adapters.opendrive import LaneStartError, lane_start
 from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
 from simserver.core import layout as L
+from simserver.core.terrain import TERRAIN_PLANE
 from simserver.scenario import Scene, load_scene
 
 if TYPE_CHECKING:
@@ -64,6 +65,21 @@ class SimulationAPI(Protocol):
     def load(self, scene: Scene) -> None: ...
     def warm_up(self) -> None: ...
     def update_pose(self) -> np.ndarray: ...
+
+
+def ground_slopes_pct(sim: SimulationAPI, yaw_rad: float) -> tuple[float, float]:
+    """The slopes of the ground under the car along and across its heading ``yaw_rad``
+    (%; + = uphill ahead, + = the left side higher): the plane fitted under its wheels
+    (the state's ``REF_*`` slots, docs/model.md section 11), or on the plane kind the road.
+
+    A plane ``Z = (g X + c Y) / 100`` rises ``g cos(yaw) + c sin(yaw)`` per cent along the
+    horizontal heading and ``-g sin(yaw) + c cos(yaw)`` to its left."""
+    if sim.scene.terrain.kind == TERRAIN_PLANE:
+        grade, cross = sim.road["grade_pct"], sim.road["cross_slope_pct"]
+    else:
+        grade, cross = sim.x[L.REF_GRADE_PCT], sim.x[L.REF_CROSS_SLOPE_PCT]
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return grade * c + cross * s, -grade * s + cross * c
 
 
 class RateLimitedLog:
@@ -269,7 +285,7 @@ class VehicleSlot:
         """Write the state record from the simulation and return its bytes."""
         p = self.sim
         x, out, rec = p.x, p.out, self.record
-        p.update_pose()  # on a terrain: from the reference plane of the last step
+        p.update_pose()  # world axes; on a terrain from the reference plane of the step
         flags = 0
         if self.watchdog.engaged:
             flags |= proto.StateFlag.WATCHDOG
@@ -324,6 +340,8 @@ class VehicleSlot:
         rec["damping_active"] = x[L.DAMPING_ACTIVE]
         rec["brake_held"] = held
         rec["wheel_contact"] = x[L.IN_CONTACT]
+        rec["ground_grade_pct"], rec["ground_cross_slope_pct"] = ground_slopes_pct(
+            p, p.pose[L.POSE_YAW_RAD])
         rec["steer"] = inputs[L.IN_STEER]
         rec["throttle"] = inputs[L.IN_THROTTLE]
         rec["brake"] = inputs[L.IN_BRAKE]

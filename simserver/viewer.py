@@ -23,8 +23,12 @@ tick lateness p99 about tenfold):
 
 The wire state carries the world pose; the scene is drawn in the road's frame, so the road
 (from the ``get_config`` control, re-read once a second to follow ``set_road``) turns the
-pose back into road-plane coordinates (``core.pose.road_pose``). Quantities the wire does
-not carry (friction use, the damping share of the forces) are drawn as missing.
+pose back into road-plane coordinates (``core.pose.road_pose``). On a terrain (a height
+map or an OpenDRIVE road, read from the scene file ``get_config`` names, once per scene:
+an OpenDRIVE road takes seconds) the plane is the one fitted under the car's wheels at
+each frame (``rerun_scene.terrain_plane_under``), the terrain is drawn once and the
+wheels stand on it. Quantities the wire does not carry (friction use, the damping share
+of the forces) are drawn as missing.
 
 One recording per segment: a reset or a ``load`` restarts the server's tick and
 ``sim_time``, so when the tick goes back the viewer ends the current recording and starts
@@ -71,6 +75,24 @@ def local_config_file(shown: str) -> Path:
     return Path.cwd() / path
 
 
+_TERRAINS: dict[tuple[str, int], tuple[Any, Any]] = {}
+
+
+def scene_terrain(scene_file: Path) -> tuple[Any, dict[str, Any] | None]:
+    """The terrain of a scene file and its ``terrain_spec`` (``adapters.terrain_files``),
+    kept per file and modification time: a reset starts a segment of the same scene, and
+    an OpenDRIVE road takes seconds to rasterise."""
+    from simserver.adapters.config import read_yaml
+    from simserver.adapters.terrain_files import terrain_from_spec, terrain_spec
+
+    key = (str(scene_file), scene_file.stat().st_mtime_ns)
+    if key not in _TERRAINS:
+        spec = terrain_spec(scene_file, read_yaml(scene_file).get("terrain"))
+        _TERRAINS.clear()
+        _TERRAINS[key] = (terrain_from_spec(spec), spec)
+    return _TERRAINS[key]
+
+
 @dataclass
 class ViewerStats:
     """What the viewer process did."""
@@ -83,8 +105,15 @@ class ViewerStats:
 
 
 def rows_from_state(rec: np.ndarray, axes: np.ndarray, cg_height_m: float,
-                    x: np.ndarray, out: np.ndarray, inputs: np.ndarray) -> None:
-    """Fill core-layout rows from one decoded VehicleState (missing quantities = NaN)."""
+                    x: np.ndarray, out: np.ndarray, inputs: np.ndarray,
+                    plane: tuple[float, float, float] | None = None) -> None:
+    """Fill core-layout rows from one decoded VehicleState (missing quantities = NaN).
+
+    The planar states are expressed on the road ``axes``, or on ``plane`` (grade %,
+    cross-slope %, height at the world origin: a terrain's reference plane under the car,
+    ``rerun_scene.terrain_plane_under``), whose slots ``REF_*`` are then set as the
+    step's are. Either way the world pose is kept exactly.
+    """
     from simserver.core.pose import road_pose
 
     pose = np.empty(L.N_POSE)
@@ -92,6 +121,11 @@ def rows_from_state(rec: np.ndarray, axes: np.ndarray, cg_height_m: float,
     pose[L.POSE_YAW_RAD] = rec["yaw_rad"]
     pose[L.POSE_PITCH_RAD] = rec["pitch_rad"]
     pose[L.POSE_ROLL_RAD] = rec["roll_rad"]
+    if plane is not None:
+        grade, cross, height = plane
+        axes = road_axes(grade, cross)
+        pose[L.POSE_Z_M] -= height  # the plane passes through (0, 0, height)
+        x[L.REF_GRADE_PCT], x[L.REF_CROSS_SLOPE_PCT], x[L.REF_HEIGHT_M] = grade, cross, height
     road_pose(pose, axes, cg_height_m, x)
     x[L.U_MPS] = rec["u_mps"]
     x[L.V_MPS] = rec["v_mps"]
@@ -288,7 +322,8 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
                     time_s = float(rec["sim_time_s"])
                     if not frame_gate.due(time_s):
                         continue
-                    rows_from_state(rec, scene.axes, scene.h_cg, x, out, inputs)
+                    rows_from_state(rec, scene.axes, scene.h_cg, x, out, inputs,
+                                    scene.plane_under(rec))
                     if scene.logger.log_frame(time_s, x, out, inputs):
                         stats.frames_logged += 1
                 for payload in diags.drain_newest():
@@ -391,6 +426,7 @@ class _SegmentScene:
         self.vehicle = load_vehicle(local_config_file(config["vehicle"]["path"]))
         self.scene_path = str(config["scene"]["path"])
         self.vehicle_path = str(config["vehicle"]["path"])
+        self.terrain, self.terrain_spec = scene_terrain(local_config_file(self.scene_path))
         rec_stream.send_recording_name(
             f"{vehicle_id} segment {segment}: {Path(self.scene_path).stem}")
         self._set_road(config["road"], send_blueprint=True)
@@ -400,10 +436,20 @@ class _SegmentScene:
 
         self.road = road
         self.logger = SceneLogger(self.rec_stream, self.vehicle.vp, self.vehicle.tp,
-                                  road["grade_pct"], road["cross_slope_pct"], fps=None,
+                                  road["grade_pct"], road["cross_slope_pct"], self.terrain,
+                                  self.terrain_spec, fps=None,
                                   send_blueprint=send_blueprint)  # decimated by the caller
         self.axes = road_axes(road["grade_pct"], road["cross_slope_pct"])
         self.h_cg = float(self.vehicle.vp[VP_CG_HEIGHT_M])
+
+    def plane_under(self, rec: np.ndarray) -> tuple[float, float, float] | None:
+        """On a terrain, the reference plane under the car of state ``rec``; else None."""
+        if not self.logger.ground.on_terrain:
+            return None
+        from simserver.adapters.rerun_scene import terrain_plane_under
+
+        return terrain_plane_under(self.terrain, self.logger.geometry, float(rec["x_m"]),
+                                   float(rec["y_m"]), float(rec["yaw_rad"]))
 
     def follow_road(self, config: dict[str, Any]) -> None:
         """A ``set_road`` within the segment: draw on the new road from now on.

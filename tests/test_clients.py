@@ -667,6 +667,7 @@ def test_keyboard_driver_in_a_pseudo_terminal(flat_server):
     held = sum(bool(int(s["flags"]) & proto.StateFlag.WATCHDOG) for s in driving)
     assert driving and held < 0.05 * len(driving)  # commands kept coming at 200 Hz
     assert "gear R" in screen and "park ON" in screen and "tick late p99" in screen
+    assert "grade " in screen and "wheels on ground all 4" in screen  # the flat road
 
 
 @pytest.mark.skipif(not HAVE_PYGAME, reason="pygame (the 'joystick' extra) is not installed")

@@ -340,10 +340,38 @@ def config_reference_markdown() -> str:
               "control takes the same keys as `lane` (docs/protocol.md).", "",
               "| key | unit | meaning |", "|---|---|---|"]
     lines += [f"| `{key}` | {unit} | {meaning} |" for key, (unit, meaning) in START_KEYS.items()]
+    lines += _terrain_section()
     lines += ["", "Scenario files (initial state, duration, input keyframes) are described in "
               "the README; the server's own config, key by key, in "
               "`configs/server/default.yaml`.", ""]
     return "\n".join(lines)
+
+
+def _terrain_section() -> list[str]:
+    """The ``terrain:`` keys of each kind, from ``adapters.terrain_files.TERRAIN_SCHEMAS``."""
+    from simserver.adapters.terrain_files import TERRAIN_SCHEMAS
+    from simserver.core.terrain import TERRAIN_KINDS
+
+    lines = ["", "## `terrain:` section of a scenario or scene", "",
+             "The ground under the wheels; optional (default `kind: plane`). Files are "
+             "relative to the scene or scenario file and, on a server, must lie in its "
+             "config folders like every other file a config names. Keys by `kind`:"]
+    for variant in TERRAIN_KINDS:
+        schema = TERRAIN_SCHEMAS[variant.name]
+        meaning = variant.meaning[0].upper() + variant.meaning[1:]
+        lines += ["", f"### `kind: {variant.name}`", "", f"{meaning}."]
+        if variant.name == "plane":
+            lines[-1] += " No other key: the `road:` section gives them."
+            continue
+        lines.append("")
+        for k in schema.other_keys:
+            unit = "path" if k.kind == "file" else "`[x, y]`, m"
+            presence = "required" if k.required else (
+                "optional" if k.default is None else f"default `{k.default}`")
+            lines.append(f"- `{k.key}` ({unit}, {presence}): {k.meaning}.")
+        lines.append("")
+        lines += _param_rows(schema.numbers, with_default=True)
+    return lines
 
 
 def slot_constants() -> str:

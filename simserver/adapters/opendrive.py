@@ -209,10 +209,22 @@ def profile_at(pieces: list[Cubic], s: float) -> float:
 
 
 @dataclass(frozen=True)
+class RoadMark:
+    """A ``<roadMark>`` on a lane's outer border from ``s_offset`` (section-relative) on:
+    its ``type`` (``solid``, ``broken``, ``none``, ...), ``color`` and ``width`` (m)."""
+
+    s_offset: float
+    type: str
+    color: str
+    width: float
+
+
+@dataclass(frozen=True)
 class Lane:
     id: int
     type: str
     widths: list[Cubic]  # s = sOffset from the section start
+    marks: list[RoadMark] = field(default_factory=list)  # drawn only (adapters.rerun_terrain)
 
 
 @dataclass(frozen=True)
@@ -335,7 +347,14 @@ def load_opendrive(path: str | Path) -> OpenDrive:
                     widths = _cubics(path, lane, "width", lwhat, s_key="sOffset")
                     if side != "center" and not widths:
                         raise OpenDriveError(f"{path}: {lwhat}: no <width>")
-                    lanes.append(Lane(lane_id, lane.get("type", "none"), widths))
+                    marks = []
+                    for j, m in enumerate(lane.findall("roadMark")):
+                        mwhat = f"{lwhat} <roadMark> #{j}"
+                        marks.append(RoadMark(
+                            _num(path, m, mwhat, "sOffset"), m.get("type", "none"),
+                            m.get("color", "standard"),
+                            _num(path, m, mwhat, "width") if "width" in m.attrib else 0.12))
+                    lanes.append(Lane(lane_id, lane.get("type", "none"), widths, marks))
             if not any(lane.id != 0 for lane in lanes):
                 raise OpenDriveError(f"{path}: {swhat}: no lanes")
             sections.append(LaneSection(s0, lanes))

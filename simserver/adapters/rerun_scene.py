@@ -17,19 +17,29 @@ Entity paths (constants below; ``RESULT_ENTITY_PATHS`` lists what ``log_result``
 
     world                          view coordinates: right-handed, Z up (gravity is -Z)
     world/origin                   world axes at the origin (static)
-    world/road                     the road plane through the origin (static):
+    world/road                     the plane kind: the road plane through the origin
+                                   (static):
     world/road/surface               its surface, a rectangle around the run
     world/road/grid                  a 10 m grid on it, bold every 50 m
     world/road/axes                  the plane's axes e1, e2, n (core.road.road_axes)
+    world/terrain/...              a height map or OpenDRIVE kind instead (static): the
+                                   ground mesh, the lanes and road marks
+                                   (adapters.rerun_terrain)
     world/trail                    the trajectory so far: a line strip on the road
-    world/car                      transform: the car's pose in the plane: origin on the
-                                   road below the CG (X e1 + Y e2), x forward along the
-                                   heading, z along the road normal n
+    world/car                      transform: the car's pose on the plane its planar
+                                   states live on (the road, or on a terrain the
+                                   reference plane fitted under the wheels, the state's
+                                   REF_* slots: core.terrain): origin on that plane below
+                                   the CG (X e1 + Y e2 + its height), x forward along the
+                                   heading, z along the plane's normal n
     world/car/body                 transform: the sprung mass at its CG, heave along n,
                                    pitch then roll (nose down and left side up positive)
     world/car/body/shell           the body's boxes (static)
     world/car/wheel_{w}            transform: the hub (above the contact point by the
-                                   rolling radius), steered, spun by the integral of Omega
+                                   rolling radius), steered, spun by the integral of Omega;
+                                   on a terrain raised along n to the ground under it, or
+                                   hanging at its spring's free length when it has left
+                                   the ground (``wheel_hub_offsets``)
     world/car/wheel_{w}/tire       a cylinder (static)
     world/car/wheel_{w}/spokes     spokes that make the spin visible, one red (static)
     world/car/forces/{w}           arrows Fx, Fy (wheel heading frame) and Fz from the
@@ -70,16 +80,21 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from simserver.adapters.rerun_terrain import log_terrain
 from simserver.core import layout as L
-from simserver.core.chassis import wheel_position
+from simserver.core.chassis import static_share, wheel_position
 from simserver.core.params import (
     VP_CG_HEIGHT_M,
     VP_CG_TO_FRONT_AXLE_M,
     VP_CG_TO_REAR_AXLE_M,
+    VP_GRAVITY_MPS2,
+    VP_SPRING_FRONT_NPM,
+    VP_SPRING_REAR_NPM,
     VP_TRACK_FRONT_M,
     VP_TRACK_REAR_M,
 )
 from simserver.core.road import road_axes
+from simserver.core.terrain import TERRAIN_PLANE, Terrain, fit_plane, plane_terrain, surface_at
 from simserver.core.tire_layout import TP_RADIUS_M
 
 if TYPE_CHECKING:  # scenario imports the compiled core at run time only where needed
@@ -318,7 +333,8 @@ def quat_from_matrix(m: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------- per-frame quantities
-def car_pose(states: np.ndarray, axes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def car_pose(states: np.ndarray, axes: np.ndarray, heights_m: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
     """Pose of ``world/car`` in the world: the plane point below the CG, heading frame.
 
     Parameters
@@ -326,18 +342,95 @@ def car_pose(states: np.ndarray, axes: np.ndarray) -> tuple[np.ndarray, np.ndarr
     states : ndarray
         ``(n, N_STATE)``.
     axes : ndarray
-        ``road_axes(grade, cross)``: rows e1, e2, n.
+        ``road_axes(grade, cross)``: rows e1, e2, n; or ``(n, 3, 3)``, one plane per row
+        (``reference_planes``).
+    heights_m : ndarray, optional
+        ``(n,)``: each row's plane height at the world origin (default 0).
 
     Returns
     -------
     translation : ndarray
-        ``(n, 3)``: ``X e1 + Y e2``.
+        ``(n, 3)``: ``X e1 + Y e2`` (plus the height along world z).
     quaternion : ndarray
-        ``(n, 4)``: the road's rotation (columns e1, e2, n), then the yaw about n.
+        ``(n, 4)``: the plane's rotation (columns e1, e2, n), then the yaw about n.
     """
-    translation = states[:, L.X_M, None] * axes[0] + states[:, L.Y_M, None] * axes[1]
-    q_road = quat_from_matrix(axes.T)
+    axes = np.asarray(axes, dtype=np.float64)
+    if axes.ndim == 2:
+        translation = states[:, L.X_M, None] * axes[0] + states[:, L.Y_M, None] * axes[1]
+        q_road = quat_from_matrix(axes.T)
+    else:
+        translation = (states[:, L.X_M, None] * axes[:, 0]
+                       + states[:, L.Y_M, None] * axes[:, 1])
+        q_road = np.array([quat_from_matrix(a.T) for a in axes]).reshape(-1, 4)
+    if heights_m is not None:
+        translation = translation + np.asarray(heights_m)[:, None] * [0.0, 0.0, 1.0]
     return translation, quat_mul(q_road, quat_axis(2, states[:, L.YAW_RAD]))
+
+
+def reference_planes(states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The plane each row's planar states live on (on a terrain, the one fitted under the
+    wheels: ``REF_GRADE_PCT``, ``REF_CROSS_SLOPE_PCT``, ``REF_HEIGHT_M``, core.terrain):
+    ``(n, 3, 3)`` axes (``road_axes``) and ``(n,)`` heights at the world origin."""
+    grades = states[:, L.REF_GRADE_PCT]
+    crosses = states[:, L.REF_CROSS_SLOPE_PCT]
+    pairs, inverse = np.unique(np.stack([grades, crosses], axis=1), axis=0,
+                               return_inverse=True)
+    axes = np.array([road_axes(g, c) for g, c in pairs]).reshape(-1, 3, 3)
+    return axes[np.ravel(inverse)], states[:, L.REF_HEIGHT_M].copy()
+
+
+def terrain_plane_under(terrain: Terrain, geometry: CarGeometry, x_m: float, y_m: float,
+                        yaw_rad: float) -> tuple[float, float, float]:
+    """A reference plane under a car whose CG is above the world point ``(x_m, y_m)``
+    heading ``yaw_rad``: the least-squares plane through the surface under its four wheels
+    (``core.terrain.fit_plane``, as the step fits its own), as ``(grade_pct,
+    cross_slope_pct, height_m)``. For the live viewer, which receives world poses only."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    px, py = geometry.wheel_xy_m[:, 0], geometry.wheel_xy_m[:, 1]
+    wx = x_m + px * c - py * s
+    wy = y_m + px * s + py * c
+    wz = np.array([surface_at(terrain, a, b)[0] for a, b in zip(wx, wy, strict=True)])
+    slope_x, slope_y, height = fit_plane(wx, wy, wz)
+    return 100.0 * slope_x, 100.0 * slope_y, height
+
+
+def wheel_hub_offsets(
+    states: np.ndarray, axes: np.ndarray, heights_m: np.ndarray, terrain: Terrain,
+    vp: np.ndarray, geometry: CarGeometry, motion_scale: float = 1.0,
+) -> np.ndarray:
+    """How far each hub sits above its place on the row's plane, along its normal.
+
+    A wheel on the ground stands on the surface under its contact point: the gap from
+    the plane to the surface ``(h_surface - h_plane) n_z`` (as ``core.chassis``
+    measures it). A wheel off the ground hangs with its spring at free length: the body
+    corner's lift ``heave + y roll - x pitch`` less the spring's static deflection
+    (static load / stiffness). Which applies is whichever is higher (a hub never goes
+    below the ground; the damper and anti-roll bar are left out: a picture, not the
+    force). ``(n, 4)``; zeros on the plane kind.
+    """
+    n = states.shape[0]
+    offsets = np.zeros((n, L.N_WHEELS))
+    if terrain.kind == TERRAIN_PLANE:
+        return offsets
+    g = float(vp[VP_GRAVITY_MPS2])
+    psi = states[:, L.YAW_RAD]
+    c, s = np.cos(psi), np.sin(psi)
+    heave = motion_scale * states[:, L.HEAVE_M]
+    roll = motion_scale * states[:, L.ROLL_RAD]
+    pitch = motion_scale * states[:, L.PITCH_RAD]
+    for i in range(L.N_WHEELS):
+        px, py = geometry.wheel_xy_m[i]
+        s1 = states[:, L.X_M] + px * c - py * s
+        s2 = states[:, L.Y_M] + px * s + py * c
+        world = s1[:, None] * axes[:, 0] + s2[:, None] * axes[:, 1]
+        plane_z = world[:, 2] + heights_m
+        surface = np.array([surface_at(terrain, wx, wy)[0] for wx, wy in world[:, :2]])
+        gap = (surface - plane_z) * axes[:, 2, 2]
+        k_spring = float(vp[VP_SPRING_FRONT_NPM if i < L.N_FRONT_WHEELS
+                            else VP_SPRING_REAR_NPM])
+        droop = static_share(vp, i, g) / k_spring
+        offsets[:, i] = np.maximum(gap, heave + py * roll - px * pitch - droop)
+    return offsets
 
 
 def body_pose(
@@ -397,16 +490,20 @@ def integrate_spin(
 
 
 def wheel_poses(
-    outputs: np.ndarray, spin_rad: np.ndarray, geometry: CarGeometry
+    outputs: np.ndarray, spin_rad: np.ndarray, geometry: CarGeometry,
+    hub_offsets_m: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Hub poses in the car frame: ``(n, 4, 3)`` translations and ``(n, 4, 4)`` quaternions.
 
-    The hub sits a rolling radius above its contact point; the rotation is the steer
+    The hub sits a rolling radius above its contact point (raised by ``hub_offsets_m``,
+    ``(n, 4)``, on a terrain: ``wheel_hub_offsets``); the rotation is the steer
     (road-wheel angle, about z) then the spin about the axle (y; positive rolls forward).
     """
     n = outputs.shape[0]
     hub = np.column_stack([geometry.wheel_xy_m, geometry.wheel_radius_m])
     translation = np.broadcast_to(hub, (n, L.N_WHEELS, 3)).copy()
+    if hub_offsets_m is not None:
+        translation[:, :, 2] += hub_offsets_m
     steer = outputs[:, L.O_STEER0:L.O_STEER0 + L.N_WHEELS]
     return translation, quat_mul(quat_axis(2, steer), quat_axis(1, spin_rad))
 
@@ -508,19 +605,62 @@ def _send(rec: rr.RecordingStream, batch: _Batch, times: np.ndarray) -> None:
                     columns=columns, recording=rec)
 
 
+@dataclass(frozen=True)
+class Ground:
+    """What the car is drawn on: the road plane (``axes``) or a terrain.
+
+    Attributes
+    ----------
+    axes : ndarray
+        ``road_axes`` of the road (the plane kind).
+    terrain : Terrain
+        The scene's terrain; on any kind but the plane the car is drawn on each row's
+        reference plane and the wheels on the ground (``reference_planes``,
+        ``wheel_hub_offsets``).
+    vp : ndarray
+        Vehicle parameters (the springs, for a wheel off the ground).
+    """
+
+    axes: np.ndarray
+    terrain: Terrain
+    vp: np.ndarray
+
+    @property
+    def on_terrain(self) -> bool:
+        return self.terrain.kind != TERRAIN_PLANE
+
+    def planes(self, states: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The axes (one, or one per row) and heights the rows' planar states live on."""
+        if self.on_terrain:
+            return reference_planes(states)
+        return self.axes, None
+
+    def points(self, states: np.ndarray, lift_m: float) -> np.ndarray:
+        """The plane points below the CG of ``states``, lifted ``lift_m`` along n."""
+        axes, heights = self.planes(states)
+        translation, _ = car_pose(states, axes, heights)
+        normal = axes[2] if axes.ndim == 2 else axes[:, 2]
+        return translation + lift_m * normal
+
+
 def _frame_batches(
     states: np.ndarray,
     outputs: np.ndarray,
     spin_rad: np.ndarray,
     geometry: CarGeometry,
-    axes: np.ndarray,
+    ground: Ground,
     force_scale_m_per_n: float,
     motion_scale: float,
 ) -> list[_Batch]:
     """The 3D frame (car, body, wheels, force arrows) for ``n`` rows."""
-    car_t, car_q = car_pose(states, axes)
+    axes, heights = ground.planes(states)
+    car_t, car_q = car_pose(states, axes, heights)
     body_t, body_q = body_pose(states, geometry.cg_height_m, motion_scale)
-    wheel_t, wheel_q = wheel_poses(outputs, spin_rad, geometry)
+    offsets = None
+    if ground.on_terrain:
+        offsets = wheel_hub_offsets(states, axes, heights, ground.terrain, ground.vp,
+                                    geometry, motion_scale)
+    wheel_t, wheel_q = wheel_poses(outputs, spin_rad, geometry, offsets)
     origins, vectors, colors = force_arrows(outputs, geometry, force_scale_m_per_n)
     batches = [
         _Batch(CAR, rr.Transform3D, {"translation": car_t, "quaternion": car_q}),
@@ -591,8 +731,11 @@ def log_static_scene(
     y_range: tuple[float, float],
     force_scale_m_per_n: float = FORCE_SCALE_M_PER_N,
     road_text: str = "",
+    terrain: Terrain | None = None,
+    terrain_spec: dict[str, Any] | None = None,
 ) -> None:
-    """Log what never changes: frames, road, the car's body and wheel geometry, a note.
+    """Log what never changes: frames, road or terrain, the car's body and wheel geometry,
+    a note.
 
     Parameters
     ----------
@@ -610,11 +753,18 @@ def log_static_scene(
         Stated in the note.
     road_text : str
         The road's description for the note.
+    terrain, terrain_spec : optional
+        ``Scene.terrain`` and ``Scene.terrain_spec``: on any kind but the plane, the
+        terrain is drawn (``rerun_terrain.log_terrain``) instead of the road plane.
     """
     rec.log(WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     rec.log(ORIGIN_AXES, rr.TransformAxes3D(5.0), static=True)
-    rec.log(ROAD_AXES, rr.Transform3D(mat3x3=axes.T), rr.TransformAxes3D(3.0), static=True)
-    log_road(rec, axes, x_range, y_range)
+    if terrain is not None and terrain.kind != TERRAIN_PLANE:
+        road_text = log_terrain(rec, terrain, terrain_spec)
+    else:
+        rec.log(ROAD_AXES, rr.Transform3D(mat3x3=axes.T), rr.TransformAxes3D(3.0),
+                static=True)
+        log_road(rec, axes, x_range, y_range)
     rec.log(TRAIL, rr.LineStrips3D.from_fields(colors=[[20, 60, 160, 255]], radii=[0.07]),
             static=True)
     centers, half_sizes = geometry.body_boxes(vp)
@@ -638,11 +788,16 @@ def log_static_scene(
         rec.log(WHEEL_SPOKES[i], rr.LineStrips3D(strips, colors=colors, radii=0.015),
                 static=True)
         rec.log(FORCES[i], rr.Arrows3D.from_fields(radii=[ARROW_RADIUS_M]), static=True)
+    if terrain is not None and terrain.kind != TERRAIN_PLANE:
+        ground_line = (f"- Terrain: {road_text}; the car on the plane fitted under its "
+                       "wheels, each wheel on the ground under it.\n")
+    else:
+        ground_line = (f"- Road: {road_text or 'plane through the origin'}; grid "
+                       f"{GRID_SPACING_M:g} m, bold every {GRID_SPACING_M * GRID_MAJOR_EVERY:g}"
+                       " m; axes: world (5 m) and road e1, e2, n (3 m).\n")
     note = (
         "### simserver scene\n\n"
-        f"- Road: {road_text or 'plane through the origin'}; grid {GRID_SPACING_M:g} m, "
-        f"bold every {GRID_SPACING_M * GRID_MAJOR_EVERY:g} m; axes: world (5 m) and "
-        "road e1, e2, n (3 m).\n"
+        + ground_line +
         f"- Force arrows at each contact point: Fx along the wheel, Fy to its left, Fz "
         f"along the road normal; 1 m per {1.0 / force_scale_m_per_n / 1000.0:g} kN.\n"
         "- Arrow colour: friction use |F_shear| / available, green 0 -> yellow 0.5 -> "
@@ -811,6 +966,7 @@ def log_result(
     vp, tp = sc.scene.vehicle.vp, sc.scene.vehicle.tp
     grade, cross = sc.scene.road["grade_pct"], sc.scene.road["cross_slope_pct"]
     axes = road_axes(grade, cross)
+    ground = Ground(axes, sc.scene.terrain, vp)
     geometry = CarGeometry.from_params(vp, tp)
     states, outputs, inputs, t = result.states, result.outputs, result.inputs, result.time_s
     if t.size == 0:
@@ -818,16 +974,17 @@ def log_result(
 
     x_range, y_range = (_road_range(states[:, col]) for col in (L.X_M, L.Y_M))
     log_static_scene(rec, vp, geometry, axes, x_range, y_range, force_scale_m_per_n,
-                     _road_text(grade, cross))
+                     _road_text(grade, cross), sc.scene.terrain, sc.scene.terrain_spec)
     if send_blueprint:
-        start, _ = car_pose(states[:1], axes)
-        eye, target = _eye_for(start[0], axes)
+        start_axes, _ = ground.planes(states[:1])
+        start_axes = start_axes if start_axes.ndim == 2 else start_axes[0]
+        eye, target = _eye_for(ground.points(states[:1], 0.0)[0], start_axes)
         rec.send_blueprint(scene_blueprint(eye_position=eye, look_target=target))
 
     spin = integrate_spin(t, states[:, L.OMEGA0:L.OMEGA0 + L.N_WHEELS])
     frames = decimate(t, fps)
-    for batch in _frame_batches(states[frames], outputs[frames], spin[frames], geometry, axes,
-                                force_scale_m_per_n, motion_scale):
+    for batch in _frame_batches(states[frames], outputs[frames], spin[frames], geometry,
+                                ground, force_scale_m_per_n, motion_scale):
         _send(rec, batch, time_ns(t[frames]))
     rows = decimate(t, plot_fps if plot_fps is not None else fps)
     for batch in _plot_batches(states[rows], outputs[rows], inputs[rows]):
@@ -836,8 +993,7 @@ def log_result(
     # A long run gets a coarser trail, so that its strips stay within TRAIL_MAX_POINTS rows
     # of at most TRAIL_MAX_POINTS points.
     trail_rows = decimate(t, min(trail_hz, TRAIL_MAX_POINTS / max(t[-1] - t[0], 1e-9)))
-    points, _ = car_pose(states[trail_rows], axes)
-    points = points + TRAIL_OFFSET_M * axes[2]
+    points = ground.points(states[trail_rows], TRAIL_OFFSET_M)
     strips = [points[max(0, k + 1 - TRAIL_MAX_POINTS):k + 1].astype(np.float32)
               for k in range(trail_rows.size)]
     _send(rec, _Batch(TRAIL, rr.LineStrips3D, {"strips": strips}, instances=-1),
@@ -903,6 +1059,12 @@ class SceneLogger:
         ``(4, N_TIRE_PARAM)`` tire parameters.
     grade_pct, cross_slope_pct : float
         The road plane.
+    terrain : Terrain, optional
+        The scene's terrain (default the plane): on any other kind it is drawn once
+        (``rerun_terrain``) and the rows' planar states are on their own reference
+        planes (their ``REF_*`` slots, as ``viewer.rows_from_state`` fills them).
+    terrain_spec : dict, optional
+        ``Scene.terrain_spec`` (an OpenDRIVE road's lanes are read from its file).
     fps : float, optional
         At most this many frames per simulated second; None keeps every call.
     flush_every : int
@@ -924,6 +1086,8 @@ class SceneLogger:
         tp: np.ndarray,
         grade_pct: float = 0.0,
         cross_slope_pct: float = 0.0,
+        terrain: Terrain | None = None,
+        terrain_spec: dict[str, Any] | None = None,
         fps: float | None = DEFAULT_FPS,
         flush_every: int = 5,
         trail_hz: float = TRAIL_HZ,
@@ -940,6 +1104,9 @@ class SceneLogger:
         self.grade_pct = float(grade_pct)
         self.cross_slope_pct = float(cross_slope_pct)
         self.axes = road_axes(self.grade_pct, self.cross_slope_pct)
+        self.terrain = plane_terrain() if terrain is None else terrain
+        self.terrain_spec = terrain_spec
+        self.ground = Ground(self.axes, self.terrain, self.vp)
         self.flush_every = int(flush_every)
         self.force_scale_m_per_n = force_scale_m_per_n
         self.motion_scale = motion_scale
@@ -965,14 +1132,16 @@ class SceneLogger:
         self._trail_gate.reset()
         self._trail.clear()
 
-    def _ensure_road(self, x_m: float, y_m: float) -> None:
+    def _ensure_road(self, state: np.ndarray) -> None:
         """Log the static scene once, and re-centre the road when the car nears its edge."""
         half = LIVE_ROAD_HALF_SIZE_M
+        x_m, y_m = float(state[L.X_M]), float(state[L.Y_M])
         pos = np.array([x_m, y_m])
         if not np.all(np.isfinite(pos)):
             return
-        if self._road_center is not None and np.all(np.abs(pos - self._road_center)
-                                                    < half - ROAD_MARGIN_M / 3.0):
+        if self._road_center is not None and (
+                self.ground.on_terrain  # a terrain is drawn whole, once
+                or np.all(np.abs(pos - self._road_center) < half - ROAD_MARGIN_M / 3.0)):
             return
         center = GRID_SPACING_M * np.round(pos / GRID_SPACING_M)
         x_range = (center[0] - half, center[0] + half)
@@ -980,9 +1149,16 @@ class SceneLogger:
         if self._road_center is None:
             log_static_scene(self.rec, self.vp, self.geometry, self.axes, x_range, y_range,
                              self.force_scale_m_per_n,
-                             _road_text(self.grade_pct, self.cross_slope_pct))
+                             _road_text(self.grade_pct, self.cross_slope_pct), self.terrain,
+                             self.terrain_spec)
             if self.send_blueprint:
-                eye, target = _eye_for(x_m * self.axes[0] + y_m * self.axes[1], self.axes)
+                if self.ground.on_terrain:
+                    start = state[None]
+                    eye, target = _eye_for(self.ground.points(start, 0.0)[0],
+                                           self.ground.planes(start)[0][0])
+                else:
+                    eye, target = _eye_for(x_m * self.axes[0] + y_m * self.axes[1],
+                                           self.axes)
                 self.rec.send_blueprint(scene_blueprint(self.plot_window_s, eye, target,
                                                         play_state="following"))
         else:
@@ -1024,8 +1200,7 @@ class SceneLogger:
         self._rows.append((t, state, np.array(output_row, dtype=np.float64),
                            np.array(input_row, dtype=np.float64), spin))
         if self._trail_gate.due(t):
-            point = state[L.X_M] * self.axes[0] + state[L.Y_M] * self.axes[1]
-            self._trail.append(point + TRAIL_OFFSET_M * self.axes[2])
+            self._trail.append(self.ground.points(state[None], TRAIL_OFFSET_M)[0])
             self._trail_rows.append((t, np.array(self._trail, dtype=np.float32)))
         if len(self._rows) >= self.flush_every:
             self.flush()
@@ -1041,9 +1216,9 @@ class SceneLogger:
         inputs = np.stack([r[3] for r in self._rows])
         spin = np.stack([r[4] for r in self._rows])
         self._rows.clear()
-        self._ensure_road(float(states[-1, L.X_M]), float(states[-1, L.Y_M]))
+        self._ensure_road(states[-1])
         stamps = time_ns(times)
-        for batch in _frame_batches(states, outputs, spin, self.geometry, self.axes,
+        for batch in _frame_batches(states, outputs, spin, self.geometry, self.ground,
                                     self.force_scale_m_per_n, self.motion_scale):
             _send(self.rec, batch, stamps)
         for batch in _plot_batches(states, outputs, inputs):

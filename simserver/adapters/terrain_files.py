@@ -1,25 +1,27 @@
 """Terrain files: a scene's ``terrain:`` section to a ``core.terrain.Terrain``.
 
-``terrain:`` keys, by kind (``core.terrain.TERRAIN_KINDS``):
+The keys of each kind (``core.terrain.TERRAIN_KINDS``) are defined once, in
+``TERRAIN_SCHEMAS`` below: the loader checks a section against them and
+``docs/configuration.md`` is generated from them (``adapters.config``).
 
 - ``kind: plane`` (the default when there is no ``terrain:``): the road of the scene's
   ``road:`` section. No other key.
-- ``kind: heightmap``:
-  - ``file`` (required): ``.npy`` (a 2-D array of heights, m), ``.npz`` (array
-    ``heights``, m, and optionally ``friction``, a friction scale per grid point) or a
-    16-bit grayscale ``.png`` (value 0 -> ``height_offset_m``, 65535 ->
-    ``height_offset_m + height_scale_m``), relative to the scene file. Row ``j``, column
-    ``i`` of the grid is the point ``(origin_m[0] + i cell_m, origin_m[1] + j cell_m)``.
-  - ``cell_m`` (required): grid spacing (m).
-  - ``origin_m``: world ``[x, y]`` of the grid's first sample (default ``[0, 0]``).
-  - ``height_scale_m``, ``height_offset_m``: for a PNG (``height_scale_m`` required there).
-  - ``friction_file``: ``.npy`` friction scale per grid point (instead of the ``.npz``'s).
-
-- ``kind: opendrive``: ``file`` (required, ``.xodr``), ``cell_m`` (default 0.5) and
-  ``margin_m`` (default 20): the road is rasterised into a height grid of ``cell_m`` cells
+- ``kind: heightmap``: a grid of heights from ``.npy`` (a 2-D array of heights, m),
+  ``.npz`` (array ``heights``, m, and optionally ``friction``, a friction scale per grid
+  point) or a 16-bit grayscale ``.png`` (value 0 -> ``height_offset_m``, 65535 ->
+  ``height_offset_m + height_scale_m``). Row ``j``, column ``i`` of the grid is the point
+  ``(origin_m[0] + i cell_m, origin_m[1] + j cell_m)``.
+- ``kind: opendrive``: an ``.xodr`` road rasterised into a height grid of ``cell_m`` cells
   when loaded (``simserver.adapters.opendrive.rasterise``: the lanes' edges extend flat
   for ``margin_m``, farther cells take the nearest surface cell's height along their grid
   row or column); seconds per kilometre of road.
+
+Files are named relative to the scene file and read like every other nested reference
+(``adapters.validate.referenced_file``): inside ``confined_to`` (the server's ``load``)
+a terrain file outside the config folders is refused without being opened or quoted.
+``terrain_spec`` gives the section validated, every default written out and its files as
+absolute paths: what ``Scene.terrain_spec`` keeps (the viewer draws the lanes from it)
+and what ``resolve_scenario`` writes into a resolved scenario.
 
 Every error names the file and the key (``ConfigError``); nothing is kept of a terrain
 that failed to load.
@@ -28,28 +30,143 @@ that failed to load.
 from __future__ import annotations
 
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from simserver.adapters.opendrive import load_opendrive, rasterise
-from simserver.adapters.validate import ConfigError, check_keys, number
+from simserver.adapters.validate import ConfigError, check_keys, number, referenced_file
+from simserver.core.param_table import Param, ParamTable
 from simserver.core.terrain import (
     TERRAIN_HEIGHTMAP,
     TERRAIN_KINDS,
     TERRAIN_OPENDRIVE,
-    TERRAIN_PLANE,
     Terrain,
     heightmap_terrain,
     plane_terrain,
 )
 from simserver.core.variants import UnknownVariantError
 
-OPENDRIVE_KEYS = ("kind", "file", "cell_m", "margin_m")
-HEIGHTMAP_KEYS = ("kind", "file", "cell_m", "origin_m", "height_scale_m", "height_offset_m",
-                  "friction_file")
 PNG_FULL_SCALE = 65535.0
+
+
+@dataclass(frozen=True)
+class TerrainKey:
+    """A key of a ``terrain:`` section that is not a number: a file or a point.
+
+    ``kind``: ``"file"`` (a path relative to the scene file) or ``"xy"`` (``[x, y]`` in
+    metres, each within ``lo`` .. ``hi``). ``required``: no default; an optional file
+    key has none (left out of the spec when absent), an optional ``xy`` key ``default``."""
+
+    key: str
+    kind: str
+    meaning: str
+    required: bool = True
+    default: Any = None
+    lo: float = -1e7
+    hi: float = 1e7
+
+
+@dataclass(frozen=True)
+class TerrainSchema:
+    """The keys of one terrain kind: its file and point keys, and its numbers."""
+
+    kind: str
+    other_keys: tuple[TerrainKey, ...]
+    numbers: ParamTable
+
+    @property
+    def keys(self) -> tuple[str, ...]:
+        return ("kind", *(k.key for k in self.other_keys), *self.numbers.keys)
+
+    @property
+    def required(self) -> tuple[str, ...]:
+        return (*(k.key for k in self.other_keys if k.required),
+                *self.numbers.required_keys)
+
+
+PNG_ONLY = ("height_scale_m", "height_offset_m")
+"""Height-map keys that only a ``.png`` file takes."""
+
+TERRAIN_SCHEMAS: dict[str, TerrainSchema] = {
+    "plane": TerrainSchema("plane", (), ParamTable("terrain_plane", "no key but kind", ())),
+    "heightmap": TerrainSchema(
+        "heightmap",
+        (TerrainKey("file", "file", "the heights: `.npy` (2-D array, m), `.npz` (array "
+                    "`heights`, m; optional `friction`, a friction scale per grid point) or "
+                    "a 16-bit grayscale `.png`"),
+         TerrainKey("origin_m", "xy", "world `[x, y]` of the grid's first sample (row 0, "
+                    "column 0); row j, column i is at `origin_m + (i, j) cell_m`",
+                    required=False, default=[0.0, 0.0]),
+         TerrainKey("friction_file", "file", "`.npy` friction scale per grid point, same "
+                    "shape as the heights (instead of the `.npz`'s `friction`)",
+                    required=False)),
+        ParamTable("terrain_heightmap", "a regular grid of heights", (
+            Param("cell_m", "m", 1e-3, 1e4, "grid spacing along x and y"),
+            Param("height_scale_m", "m", 1e-6, 1e5,
+                  "`.png` only: the height of pixel value 65535 above `height_offset_m`",
+                  default="required for a .png"),
+            Param("height_offset_m", "m", -1e5, 1e5,
+                  "`.png` only: the height of pixel value 0", default=0.0),
+        ))),
+    "opendrive": TerrainSchema(
+        "opendrive",
+        (TerrainKey("file", "file", "the ASAM OpenDRIVE road network (`.xodr`)"),),
+        ParamTable("terrain_opendrive", "an OpenDRIVE road rasterised into a height grid", (
+            Param("cell_m", "m", 0.05, 10.0, "cell of the height grid the road is "
+                  "rasterised into when loaded", default=0.5),
+            Param("margin_m", "m", 0.0, 1e3, "the outer lanes' edges extend flat this far "
+                  "across; farther cells take the nearest surface cell's height",
+                  default=20.0),
+        ))),
+}
+"""The keys of each terrain kind (one source: the loader's checks and the docs)."""
+
+assert tuple(TERRAIN_SCHEMAS) == tuple(TERRAIN_KINDS.names)  # one schema per kind
+
+
+def terrain_spec(source: Path, raw: Any) -> dict[str, Any] | None:
+    """The ``terrain:`` section of scene file ``source`` validated against its kind's
+    schema, with every default written out and its files resolved to absolute paths
+    (``referenced_file``: they must exist, be regular files and lie in the confinement).
+    None for no section (the plane of ``road:``)."""
+    if raw is None:
+        return None
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{source}: key 'terrain': expected a mapping")
+    kind_name = raw.get("kind", "plane")
+    try:
+        TERRAIN_KINDS.by_name(kind_name)
+    except UnknownVariantError as exc:
+        raise ConfigError(f"{source}: key 'terrain.kind': {exc}") from None
+    schema = TERRAIN_SCHEMAS[kind_name]
+    check_keys(f"{source} (terrain)", raw, schema.keys, required=schema.required)
+    spec: dict[str, Any] = {"kind": kind_name}
+    for k in schema.other_keys:
+        value = raw.get(k.key, k.default)
+        if k.kind == "file":
+            if k.key not in raw:
+                continue
+            value = str(referenced_file(source, f"terrain.{k.key}", value))
+        elif not (isinstance(value, list | tuple) and len(value) == 2):
+            raise ConfigError(f"{source}: key 'terrain.{k.key}': expected [x, y]")
+        else:
+            value = [number(source, f"terrain.{k.key}[{i}]", v, k.lo, k.hi)
+                     for i, v in enumerate(value)]
+        spec[k.key] = value
+    is_png = kind_name == "heightmap" and Path(spec["file"]).suffix.lower() == ".png"
+    for p in schema.numbers:
+        if kind_name == "heightmap" and p.name in PNG_ONLY and not is_png:
+            if p.name in raw:
+                raise ConfigError(f"{source}: key 'terrain.{p.name}': only for a .png file")
+            continue
+        if p.name not in raw and isinstance(p.default, str):
+            raise ConfigError(f"{source}: key 'terrain.{p.name}': {p.default}")
+        spec[p.name] = number(source, f"terrain.{p.name}", raw.get(p.name, p.default),
+                              p.lo, p.hi)
+    return spec
 
 
 def _read_array(path: Path, what: str, name: str | None) -> np.ndarray:
@@ -96,70 +213,45 @@ def _read_png16(path: Path, what: str) -> np.ndarray:
 def load_terrain(source: Path, raw: Any) -> Terrain:
     """The terrain of a scene file ``source`` from its ``terrain:`` mapping (``None``: the
     plane)."""
-    if raw is None:
+    return terrain_from_spec(terrain_spec(source, raw))
+
+
+def terrain_from_spec(spec: dict[str, Any] | None) -> Terrain:
+    """The terrain of a ``terrain_spec`` (read from its files; errors name the file)."""
+    if spec is None or spec["kind"] == "plane":
         return plane_terrain()
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{source}: key 'terrain': expected a mapping")
-    kind_name = raw.get("kind", "plane")
-    try:
-        kind = TERRAIN_KINDS.by_name(kind_name).id
-    except UnknownVariantError as exc:
-        raise ConfigError(f"{source}: key 'terrain.kind': {exc}") from None
-    if kind == TERRAIN_PLANE:
-        check_keys(f"{source} (terrain)", raw, ("kind",))
-        return plane_terrain()
+    kind = TERRAIN_KINDS.by_name(spec["kind"]).id
     if kind == TERRAIN_HEIGHTMAP:
-        return _load_heightmap(source, raw)
+        return _load_heightmap(spec)
     if kind == TERRAIN_OPENDRIVE:
-        return _load_opendrive(source, raw)
-    raise ConfigError(f"{source}: key 'terrain.kind': {kind_name!r} is not loadable here")
+        return _load_opendrive(spec)
+    raise ConfigError(f"terrain kind {spec['kind']!r} is not loadable here")
 
 
-def _load_heightmap(source: Path, raw: dict[str, Any]) -> Terrain:
-    check_keys(f"{source} (terrain)", raw, HEIGHTMAP_KEYS, required=("file", "cell_m"))
-    if not isinstance(raw["file"], str):
-        raise ConfigError(f"{source}: key 'terrain.file': expected a file path")
-    path = (source.parent / raw["file"]).resolve()
-    cell = number(source, "terrain.cell_m", raw["cell_m"], 1e-3, 1e4)
-    origin = raw.get("origin_m", [0.0, 0.0])
-    if not (isinstance(origin, list) and len(origin) == 2):
-        raise ConfigError(f"{source}: key 'terrain.origin_m': expected [x, y]")
-    x0 = number(source, "terrain.origin_m[0]", origin[0], -1e7, 1e7)
-    y0 = number(source, "terrain.origin_m[1]", origin[1], -1e7, 1e7)
+def _load_heightmap(spec: dict[str, Any]) -> Terrain:
+    path = Path(spec["file"])
     friction = None
-    if path.suffix == ".png":
-        if "height_scale_m" not in raw:
-            raise ConfigError(f"{source}: key 'terrain.height_scale_m': required for a PNG")
-        scale = number(source, "terrain.height_scale_m", raw["height_scale_m"], 1e-6, 1e5)
-        offset = number(source, "terrain.height_offset_m", raw.get("height_offset_m", 0.0),
-                        -1e5, 1e5)
-        heights = offset + _read_png16(path, "terrain.file") * (scale / PNG_FULL_SCALE)
+    if path.suffix.lower() == ".png":
+        heights = spec["height_offset_m"] + _read_png16(path, "terrain.file") * (
+            spec["height_scale_m"] / PNG_FULL_SCALE)
     else:
-        for key in ("height_scale_m", "height_offset_m"):
-            if key in raw:
-                raise ConfigError(f"{source}: key 'terrain.{key}': only for a .png file")
         heights = _read_array(path, "terrain.file", "heights")
         if path.suffix == ".npz":
             with np.load(path, allow_pickle=False) as npz:
                 if "friction" in npz.files:
                     friction = _read_array(path, "terrain.file", "friction")
-    if "friction_file" in raw:
-        if not isinstance(raw["friction_file"], str):
-            raise ConfigError(f"{source}: key 'terrain.friction_file': expected a file path")
-        fpath = (source.parent / raw["friction_file"]).resolve()
-        friction = _read_array(fpath, "terrain.friction_file", "friction")
+    if "friction_file" in spec:
+        friction = _read_array(Path(spec["friction_file"]), "terrain.friction_file",
+                               "friction")
+    x0, y0 = spec["origin_m"]
     try:
-        return heightmap_terrain(heights, cell, cell, x0, y0, friction)
+        return heightmap_terrain(heights, spec["cell_m"], spec["cell_m"], x0, y0, friction)
     except ValueError as exc:
         raise ConfigError(f"{path}: terrain: {exc}") from None
 
 
-def _load_opendrive(source: Path, raw: dict[str, Any]) -> Terrain:
-    check_keys(f"{source} (terrain)", raw, OPENDRIVE_KEYS, required=("file",))
-    if not isinstance(raw["file"], str):
-        raise ConfigError(f"{source}: key 'terrain.file': expected a file path")
-    cell = number(source, "terrain.cell_m", raw.get("cell_m", 0.5), 0.05, 10.0)
-    margin = number(source, "terrain.margin_m", raw.get("margin_m", 20.0), 0.0, 1e3)
-    od = load_opendrive((source.parent / raw["file"]).resolve())
-    heights, x0, y0 = rasterise(od, cell, margin)
-    return heightmap_terrain(heights, cell, cell, x0, y0)._replace(kind=TERRAIN_OPENDRIVE)
+def _load_opendrive(spec: dict[str, Any]) -> Terrain:
+    od = load_opendrive(Path(spec["file"]))
+    heights, x0, y0 = rasterise(od, spec["cell_m"], spec["margin_m"])
+    return heightmap_terrain(heights, spec["cell_m"], spec["cell_m"], x0,
+                             y0)._replace(kind=TERRAIN_OPENDRIVE)

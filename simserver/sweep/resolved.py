@@ -84,12 +84,14 @@ def with_overrides(resolved: dict[str, Any], overrides: dict[str, Any], origin: 
 
 def _canonical(obj: Any) -> Any:
     """Numbers as floats (``25`` and ``25.0`` are the same configuration), files named by
-    a key ending in ``_file`` also by the SHA-256 of their contents."""
+    a key ending in ``_file`` or called ``file`` (a terrain's) also by the SHA-256 of their
+    contents."""
     if isinstance(obj, dict):
         out = {}
         for key, value in obj.items():
             out[str(key)] = _canonical(value)
-            if str(key).endswith("_file") and isinstance(value, str) and Path(value).is_file():
+            if (str(key) == "file" or str(key).endswith("_file")) and isinstance(value, str) \
+                    and Path(value).is_file():
                 out[f"{key}#sha256"] = hashlib.sha256(Path(value).read_bytes()).hexdigest()
         return out
     if isinstance(obj, (list, tuple)):
