@@ -401,12 +401,16 @@ def test_the_live_path_draws_the_wire_pose_on_the_terrain(hill_run, tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-def test_simserver_view_draws_the_terrain_and_the_car_on_it(tmp_path):
+def test_simserver_view_draws_the_terrain_and_the_car_on_it(tmp_path, request):
     """``simserver view`` against a server on the height-map scene: its recording holds
     the ground mesh and the car at the published world pose, wheels on the ground.
 
     About 75 s on a loaded machine (a server and a viewer process); the default suite's
     short form is ``test_the_live_path_draws_the_wire_pose_on_the_terrain``."""
+    from tests.conftest import slow_enabled
+
+    if not slow_enabled(request.config.getoption("markexpr")):
+        pytest.skip("long form: run with -m slow or SIMSERVER_SLOW=1")
     from simserver.testing import Client, OutputProcess, ServerProcess, wait_until
 
     rrd = tmp_path / "live.rrd"
