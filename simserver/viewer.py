@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -426,7 +427,14 @@ class _SegmentScene:
         self.vehicle = load_vehicle(local_config_file(config["vehicle"]["path"]))
         self.scene_path = str(config["scene"]["path"])
         self.vehicle_path = str(config["vehicle"]["path"])
-        self.terrain, self.terrain_spec = scene_terrain(local_config_file(self.scene_path))
+        try:
+            self.terrain, self.terrain_spec = scene_terrain(local_config_file(self.scene_path))
+        except (OSError, ValueError) as exc:  # ConfigError is a ValueError
+            from simserver.core.terrain import plane_terrain
+
+            print(f"simserver view: the scene's terrain cannot be read here ({exc}); "
+                  "drawing the road plane", file=sys.stderr, flush=True)
+            self.terrain, self.terrain_spec = plane_terrain(), None
         rec_stream.send_recording_name(
             f"{vehicle_id} segment {segment}: {Path(self.scene_path).stem}")
         self._set_road(config["road"], send_blueprint=True)

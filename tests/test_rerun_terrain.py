@@ -193,6 +193,49 @@ def test_the_wheels_stand_on_the_ground_under_them(hill_run):
     assert checked >= 80
 
 
+def test_a_wheel_off_the_ground_hangs_and_a_loaded_one_stands_on_it():
+    """Over a 1 m cliff at 8 m/s: while a front wheel carries load its hub is drawn on the
+    ground under it; while it carries none with the ground far below, it hangs near the
+    body (its spring at free length), not down on the ground."""
+    import dataclasses
+
+    from simserver.core.terrain import heightmap_terrain
+    from simserver.scenario import load_scene
+    from simserver.simulation import Simulation
+
+    scene = load_scene(REPO / "configs" / "scenes" / "flat_paper_sedan.yaml")
+    x = np.arange(0.0, 60.01, 0.5)
+    terrain = heightmap_terrain(np.tile(np.where(x < 20.0, 1.0, 0.0), (21, 1)), 0.5, 0.5,
+                                0.0, -5.0)
+    scene = dataclasses.replace(scene, terrain=terrain,
+                                initial={**scene.initial, "x_m": 14.0, "u_mps": 8.0})
+    n = 1200
+    inputs = np.zeros((n, L.N_INPUT))
+    inputs[:, L.IN_GEAR] = L.GEAR_N
+    states, out = np.zeros((n, L.N_STATE)), np.zeros((n, L.N_OUT))
+    Simulation(scene, 0.001).run(inputs, states, out, 1)
+    assert np.isfinite(states).all() and states[-1, L.X_M] > 21.0  # over the edge
+    geometry = S.CarGeometry.from_params(scene.vehicle.vp, scene.vehicle.tp)
+    axes, heights = S.reference_planes(states)
+    offsets = S.wheel_hub_offsets(states, out, axes, heights, terrain, scene.vehicle.vp,
+                                  geometry)
+    car_t, car_q = S.car_pose(states, axes, heights)
+    radius = geometry.wheel_radius_m
+    for i in range(L.N_FRONT_WHEELS):
+        hub = np.column_stack([np.tile(geometry.wheel_xy_m[i], (n, 1)),
+                               radius[i] + offsets[:, i]])
+        rot = np.array([quat_matrix(q) for q in car_q])
+        contact = car_t + np.einsum("nij,nj->ni", rot, hub) - radius[i] * rot[:, :, 2]
+        above = contact[:, 2] - [surface_at(terrain, a, b)[0] for a, b in contact[:, :2]]
+        loaded = out[:, L.O_FZ0 + i] > 0.0
+        # on the ground while loaded (1 cm: the plane's gap is taken at the contact
+        # point's foot on the plane, and the 1 m step is smoothed over a 0.5 m cell)
+        assert np.all(np.abs(above[loaded]) < 0.01), i
+        # unloaded past the edge: it hangs with the body, well above the ground below
+        assert np.sum(~loaded & (above > 0.2)) > 50, i
+        assert np.all(above[~loaded] > -0.01), i
+
+
 # --------------------------------------------------------------------- OpenDRIVE
 XODR = """\
 <?xml version="1.0" standalone="yes"?>
@@ -358,12 +401,16 @@ def test_the_live_path_draws_the_wire_pose_on_the_terrain(hill_run, tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-def test_simserver_view_draws_the_terrain_and_the_car_on_it(tmp_path):
+def test_simserver_view_draws_the_terrain_and_the_car_on_it(tmp_path, request):
     """``simserver view`` against a server on the height-map scene: its recording holds
     the ground mesh and the car at the published world pose, wheels on the ground.
 
     About 75 s on a loaded machine (a server and a viewer process); the default suite's
     short form is ``test_the_live_path_draws_the_wire_pose_on_the_terrain``."""
+    from tests.conftest import slow_enabled
+
+    if not slow_enabled(request.config.getoption("markexpr")):
+        pytest.skip("long form: run with -m slow or SIMSERVER_SLOW=1")
     from simserver.testing import Client, OutputProcess, ServerProcess, wait_until
 
     rrd = tmp_path / "live.rrd"

@@ -395,18 +395,18 @@ def terrain_plane_under(terrain: Terrain, geometry: CarGeometry, x_m: float, y_m
 
 
 def wheel_hub_offsets(
-    states: np.ndarray, axes: np.ndarray, heights_m: np.ndarray, terrain: Terrain,
-    vp: np.ndarray, geometry: CarGeometry, motion_scale: float = 1.0,
+    states: np.ndarray, outputs: np.ndarray, axes: np.ndarray, heights_m: np.ndarray,
+    terrain: Terrain, vp: np.ndarray, geometry: CarGeometry, motion_scale: float = 1.0,
 ) -> np.ndarray:
     """How far each hub sits above its place on the row's plane, along its normal.
 
-    A wheel on the ground stands on the surface under its contact point: the gap from
-    the plane to the surface ``(h_surface - h_plane) n_z`` (as ``core.chassis``
-    measures it). A wheel off the ground hangs with its spring at free length: the body
-    corner's lift ``heave + y roll - x pitch`` less the spring's static deflection
-    (static load / stiffness). Which applies is whichever is higher (a hub never goes
-    below the ground; the damper and anti-roll bar are left out: a picture, not the
-    force). ``(n, 4)``; zeros on the plane kind.
+    A wheel that carries load (``O_FZ`` > 0) stands on the surface under its contact
+    point: the gap from the plane to the surface ``(h_surface - h_plane) n_z`` (as
+    ``core.chassis`` measures it). A wheel without load hangs with its spring at free
+    length, the body corner's lift ``heave + y roll - x pitch`` less the spring's static
+    deflection (static load / stiffness), unless the ground is higher there (a wheel the
+    damper lifts off a bump stays drawn on it: the wheels are massless in the model).
+    ``(n, 4)``; zeros on the plane kind.
     """
     n = states.shape[0]
     offsets = np.zeros((n, L.N_WHEELS))
@@ -429,7 +429,8 @@ def wheel_hub_offsets(
         k_spring = float(vp[VP_SPRING_FRONT_NPM if i < L.N_FRONT_WHEELS
                             else VP_SPRING_REAR_NPM])
         droop = static_share(vp, i, g) / k_spring
-        offsets[:, i] = np.maximum(gap, heave + py * roll - px * pitch - droop)
+        hanging = np.maximum(gap, heave + py * roll - px * pitch - droop)
+        offsets[:, i] = np.where(outputs[:, L.O_FZ0 + i] > 0.0, gap, hanging)
     return offsets
 
 
@@ -658,8 +659,8 @@ def _frame_batches(
     body_t, body_q = body_pose(states, geometry.cg_height_m, motion_scale)
     offsets = None
     if ground.on_terrain:
-        offsets = wheel_hub_offsets(states, axes, heights, ground.terrain, ground.vp,
-                                    geometry, motion_scale)
+        offsets = wheel_hub_offsets(states, outputs, axes, heights, ground.terrain,
+                                    ground.vp, geometry, motion_scale)
     wheel_t, wheel_q = wheel_poses(outputs, spin_rad, geometry, offsets)
     origins, vectors, colors = force_arrows(outputs, geometry, force_scale_m_per_n)
     batches = [
