@@ -121,12 +121,23 @@ def front_counters(server: ServerProcess) -> dict[str, int]:
 
 
 def no_reply(probe: Client, name: str, args: dict | None = None) -> bool:
-    """True if a control request got no reply at all (denied, or nobody serving)."""
-    try:
-        probe.request(name, args, timeout_s=1.0)
-    except TimeoutError:
-        return True
-    return False
+    """True if a control request got no reply from any server (denied, or nobody serving).
+
+    Asked directly rather than with ``Client.request``: zenoh itself may end a query that
+    nobody answered with an error reply of its own (not a server's JSON body), which
+    ``request`` reports as a malformed reply; that is no reply too. Any reply with a JSON
+    body (a server's answer, ok or error) is a reply.
+    """
+    replies = probe.ep.session.get(probe.ep.keys.control(name),
+                                   payload=proto.encode_control(name, args), timeout=1.0)
+    for reply in replies:
+        body = (reply.ok if reply.ok is not None else reply.err).payload.to_bytes()
+        try:
+            json.loads(body)
+        except ValueError:
+            continue  # zenoh's own error (a timeout), not a server's reply
+        return False
+    return True
 
 
 # ============================================================================ defaults
@@ -268,14 +279,17 @@ def test_no_session_without_valid_credentials(acl_server):
             peer.drive(0.5, brake=1.0, gear=proto.Gear.R)
             assert no_reply(peer, "reset") and no_reply(peer, "pause")
             assert peer.received == 0  # and it reads nothing either
-        driver.drive(0.3, throttle=0.3)
+        # the driver's own commands apply (read while it commands: once it stops, the
+        # watchdog zeroes the throttle after 200 ms, which a loaded machine can exceed
+        # before the state is read)
+        state = driver.drive_until(lambda s: s["throttle"] > 0.29, throttle=0.3,
+                                   what="the driver's throttle applied")
+        assert state["gear"] == proto.Gear.D  # not reversed
+        assert not state["flags"] & proto.StateFlag.PAUSED
         after = driver.diagnostics()
         sent_by_driver = driver.seq
         assert after["cmd_received"] - before["cmd_received"] <= sent_by_driver
         assert after["cmd_rejected"] == before["cmd_rejected"]
-        state = driver.fresh_state()
-        assert state["gear"] == proto.Gear.D and state["throttle"] > 0.29  # not reversed
-        assert not state["flags"] & proto.StateFlag.PAUSED
     assert server.alive()
 
 
