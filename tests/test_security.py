@@ -233,6 +233,24 @@ def test_tls_client_that_trusts_the_ca_drives_and_plain_tcp_cannot_talk(pki):
     assert server.returncode == 0
 
 
+def test_tls_front_off_lets_zenoh_listen_on_the_public_port_itself(pki):
+    """``--tls-front off``: no front process; zenoh's TLS listener is the public port (the
+    configuration the connect burst locked out, kept for access-control subjects by
+    interface, docs/security.md 5.1)."""
+    server_cfg = materialize("server_tls.json5", pki)
+    client_cfg = materialize("client_tls.json5", pki)
+    port = free_port()
+    tls_ep = f"tls/127.0.0.1:{port}"
+    with ServerProcess(listen=[tls_ep], extra_args=["--zenoh-config", str(server_cfg),
+                                                    "--tls-front", "off"]) as server:
+        assert front_pids(server) == []
+        assert [(s.local_ip, s.local_port) for s in process_sockets(server.pid)
+                if s.listening] == [("127.0.0.1", port)]
+        with Client(tls_ep, zenoh_config=client_cfg) as client:
+            assert client.wait_controls()["ok"]
+    assert server.returncode == 0
+
+
 # ============================================================================ user/password + ACL
 
 
@@ -558,7 +576,10 @@ def test_a_tcp_connect_burst_does_not_lock_authenticated_sessions_out(acl_server
     port = int(endpoint.rsplit(":", 1)[1])
     with ServerProcess(listen=[endpoint], extra_args=["--zenoh-config",
                                                       str(configs["server"])]) as server:
-        assert _open_timed(endpoint, configs["driver"]) < NEW_SESSION_WITHIN_S
+        baseline = _open_timed(endpoint, configs["driver"])
+        assert baseline < NEW_SESSION_WITHIN_S, (
+            f"with no attack a session took {baseline:.2f} s to open (load average "
+            f"{os.getloadavg()[0]:.1f}): the machine is too loaded to judge the 2 s bound")
         with Burst(port, _connect_and_close, BURST_CONNECTS) as burst:
             wait_until(lambda: burst.count, lambda n: n >= 20, timeout_s=10,
                        what="the burst under way")
@@ -603,6 +624,10 @@ def test_floods_from_another_host_do_not_lock_authenticated_sessions_out(acl_ser
     one = {"hello_then_garbage": _hello_then_garbage, "held_silent": _held_silent}[attack]
     with ServerProcess(listen=[endpoint], extra_args=["--zenoh-config",
                                                       str(configs["server"])]) as server:
+        baseline = _open_timed(endpoint, configs["driver"])
+        assert baseline < NEW_SESSION_WITHIN_S, (
+            f"with no attack a session took {baseline:.2f} s to open (load average "
+            f"{os.getloadavg()[0]:.1f}): the machine is too loaded to judge the 2 s bound")
         bursts = [Burst(port, one, 10, source="127.0.0.2") for _ in range(16)]
         for burst in bursts:
             burst.__enter__()
