@@ -651,7 +651,8 @@ def test_floods_from_another_host_do_not_lock_authenticated_sessions_out(acl_ser
         # zenoh saw only a few of them: each failure bars the source for 1, 2, 4 ... s
         assert counters["handshakes_failed"] <= 5 + made // 100, counters
     else:
-        assert counters["refused_source_cap"] > 0 and counters["forwarded"] == 4
+        # only the driver's 5 sessions (baseline, 3 during, 1 after) reached zenoh
+        assert counters["refused_source_cap"] > 0 and counters["forwarded"] == 5
 
 
 def test_the_front_is_restarted_if_it_dies_and_the_port_stays_open(acl_server):
