@@ -121,12 +121,23 @@ def front_counters(server: ServerProcess) -> dict[str, int]:
 
 
 def no_reply(probe: Client, name: str, args: dict | None = None) -> bool:
-    """True if a control request got no reply at all (denied, or nobody serving)."""
-    try:
-        probe.request(name, args, timeout_s=1.0)
-    except TimeoutError:
-        return True
-    return False
+    """True if a control request got no reply from any server (denied, or nobody serving).
+
+    Asked directly rather than with ``Client.request``: zenoh itself may end a query that
+    nobody answered with an error reply of its own (not a server's JSON body), which
+    ``request`` reports as a malformed reply; that is no reply too. Any reply with a JSON
+    body (a server's answer, ok or error) is a reply.
+    """
+    replies = probe.ep.session.get(probe.ep.keys.control(name),
+                                   payload=proto.encode_control(name, args), timeout=1.0)
+    for reply in replies:
+        body = (reply.ok if reply.ok is not None else reply.err).payload.to_bytes()
+        try:
+            json.loads(body)
+        except ValueError:
+            continue  # zenoh's own error (a timeout), not a server's reply
+        return False
+    return True
 
 
 # ============================================================================ defaults
@@ -222,6 +233,24 @@ def test_tls_client_that_trusts_the_ca_drives_and_plain_tcp_cannot_talk(pki):
     assert server.returncode == 0
 
 
+def test_tls_front_off_lets_zenoh_listen_on_the_public_port_itself(pki):
+    """``--tls-front off``: no front process; zenoh's TLS listener is the public port (the
+    configuration the connect burst locked out, kept for access-control subjects by
+    interface, docs/security.md 5.1)."""
+    server_cfg = materialize("server_tls.json5", pki)
+    client_cfg = materialize("client_tls.json5", pki)
+    port = free_port()
+    tls_ep = f"tls/127.0.0.1:{port}"
+    with ServerProcess(listen=[tls_ep], extra_args=["--zenoh-config", str(server_cfg),
+                                                    "--tls-front", "off"]) as server:
+        assert front_pids(server) == []
+        assert [(s.local_ip, s.local_port) for s in process_sockets(server.pid)
+                if s.listening] == [("127.0.0.1", port)]
+        with Client(tls_ep, zenoh_config=client_cfg) as client:
+            assert client.wait_controls()["ok"]
+    assert server.returncode == 0
+
+
 # ============================================================================ user/password + ACL
 
 
@@ -268,14 +297,17 @@ def test_no_session_without_valid_credentials(acl_server):
             peer.drive(0.5, brake=1.0, gear=proto.Gear.R)
             assert no_reply(peer, "reset") and no_reply(peer, "pause")
             assert peer.received == 0  # and it reads nothing either
-        driver.drive(0.3, throttle=0.3)
+        # the driver's own commands apply (read while it commands: once it stops, the
+        # watchdog zeroes the throttle after 200 ms, which a loaded machine can exceed
+        # before the state is read)
+        state = driver.drive_until(lambda s: s["throttle"] > 0.29, throttle=0.3,
+                                   what="the driver's throttle applied")
+        assert state["gear"] == proto.Gear.D  # not reversed
+        assert not state["flags"] & proto.StateFlag.PAUSED
         after = driver.diagnostics()
         sent_by_driver = driver.seq
         assert after["cmd_received"] - before["cmd_received"] <= sent_by_driver
         assert after["cmd_rejected"] == before["cmd_rejected"]
-        state = driver.fresh_state()
-        assert state["gear"] == proto.Gear.D and state["throttle"] > 0.29  # not reversed
-        assert not state["flags"] & proto.StateFlag.PAUSED
     assert server.alive()
 
 
@@ -544,7 +576,10 @@ def test_a_tcp_connect_burst_does_not_lock_authenticated_sessions_out(acl_server
     port = int(endpoint.rsplit(":", 1)[1])
     with ServerProcess(listen=[endpoint], extra_args=["--zenoh-config",
                                                       str(configs["server"])]) as server:
-        assert _open_timed(endpoint, configs["driver"]) < NEW_SESSION_WITHIN_S
+        baseline = _open_timed(endpoint, configs["driver"])
+        assert baseline < NEW_SESSION_WITHIN_S, (
+            f"with no attack a session took {baseline:.2f} s to open (load average "
+            f"{os.getloadavg()[0]:.1f}): the machine is too loaded to judge the 2 s bound")
         with Burst(port, _connect_and_close, BURST_CONNECTS) as burst:
             wait_until(lambda: burst.count, lambda n: n >= 20, timeout_s=10,
                        what="the burst under way")
@@ -589,6 +624,10 @@ def test_floods_from_another_host_do_not_lock_authenticated_sessions_out(acl_ser
     one = {"hello_then_garbage": _hello_then_garbage, "held_silent": _held_silent}[attack]
     with ServerProcess(listen=[endpoint], extra_args=["--zenoh-config",
                                                       str(configs["server"])]) as server:
+        baseline = _open_timed(endpoint, configs["driver"])
+        assert baseline < NEW_SESSION_WITHIN_S, (
+            f"with no attack a session took {baseline:.2f} s to open (load average "
+            f"{os.getloadavg()[0]:.1f}): the machine is too loaded to judge the 2 s bound")
         bursts = [Burst(port, one, 10, source="127.0.0.2") for _ in range(16)]
         for burst in bursts:
             burst.__enter__()
@@ -612,7 +651,8 @@ def test_floods_from_another_host_do_not_lock_authenticated_sessions_out(acl_ser
         # zenoh saw only a few of them: each failure bars the source for 1, 2, 4 ... s
         assert counters["handshakes_failed"] <= 5 + made // 100, counters
     else:
-        assert counters["refused_source_cap"] > 0 and counters["forwarded"] == 4
+        # only the driver's 5 sessions (baseline, 3 during, 1 after) reached zenoh
+        assert counters["refused_source_cap"] > 0 and counters["forwarded"] == 5
 
 
 def test_the_front_is_restarted_if_it_dies_and_the_port_stays_open(acl_server):

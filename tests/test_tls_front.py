@@ -255,6 +255,18 @@ def test_a_handshake_that_fails_bars_its_source_for_a_doubling_backoff():
                    what="the second failure counted")
         assert tf.barred_until["127.0.0.2"] - time.monotonic() > 0.6  # 1.0 s now
         assert tf.failures["127.0.0.2"] == 2
+        # on probation after it: one pending connection of 127.0.0.2 at a time
+        barred_until = tf.barred_until["127.0.0.2"]
+        wait_until(time.monotonic, lambda t: t > barred_until, timeout_s=5,
+                   what="the second backoff over")
+        first = connect(port, "127.0.0.2")
+        wait_until(lambda: len(tf.pending), lambda n: n == 1, timeout_s=5,
+                   what="127.0.0.2's connection pending")
+        second = connect(port, "127.0.0.2")
+        assert closed_by_front(second)
+        assert tf.counters.refused_backoff == 2
+        first.close()
+        second.close()
         # a handshake that completes (server spoke, then the client's second flight)
         # clears the source's failures
         barred_until = tf.barred_until["127.0.0.3"]

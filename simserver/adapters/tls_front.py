@@ -30,9 +30,11 @@ Bounds, so a flood cannot exhaust the front either:
   handshake fails); the per-source pending cap bounds how many one source holds at once.
 - ``failure_backoff_s``: a forwarded connection that ends before its handshake is done
   (a failed handshake, which cost zenoh 100 ms) bars its source from new connections for
-  this long, doubling with each further failure up to ``failure_backoff_max_s``; a
-  completed handshake clears it. So one source cannot keep zenoh's accept loop asleep
-  with ClientHellos followed by garbage or a close (at most 100 ms per backoff period).
+  this long, doubling with each further failure up to ``failure_backoff_max_s``, and
+  until a handshake of it completes it may have only one pending connection at a time.
+  So one source cannot keep zenoh's accept loop asleep with ClientHellos followed by
+  garbage or a close: after its first failures (up to ``max_pending_per_source`` at
+  once), at most one per backoff period, 100 ms each.
 
 Every refusal is counted and the counters are logged at most once every
 ``log_every_s`` seconds, when they changed.
@@ -364,6 +366,14 @@ class TlsFront:
                     _abort(sock)
                     continue
                 del self.barred_until[source]
+            if source in self.failures and source in self.pending_by_source:
+                # on probation after a failed handshake: one pending connection at a time,
+                # so a backoff's end lets one more failure through, not a cap's worth
+                self._reap(source)
+                if source in self.pending_by_source:
+                    c.refused_backoff += 1
+                    _abort(sock)
+                    continue
             if len(self.pending) >= lim.max_pending:
                 c.refused_total_cap += 1
                 _abort(sock)
