@@ -88,6 +88,8 @@ from simserver.core.model import (
     B_GRAVITY_Y_MPS2,
     B_YAW_ACC_RADPS2,
     G_AXES,
+    G_AXES_CROSS_SLOPE_PCT,
+    G_AXES_GRADE_PCT,
     G_COS_YAW0,
     G_GRAVITY_E1_MPS2,
     G_GRAVITY_E2_MPS2,
@@ -316,7 +318,13 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
     axes_old = ws.axes[0]
     axes_new = ws.axes[1]
     contact = ws.contact
-    road_frame(x[REF_GRADE_PCT], x[REF_CROSS_SLOPE_PCT], axes_old)
+    if (ground[G_AXES_GRADE_PCT] == x[REF_GRADE_PCT]
+            and ground[G_AXES_CROSS_SLOPE_PCT] == x[REF_CROSS_SLOPE_PCT]):
+        for r in range(3):  # the last step's new plane is this step's old one
+            for k in range(3):
+                axes_old[r, k] = ground[G_AXES + 3 * r + k]
+    else:
+        road_frame(x[REF_GRADE_PCT], x[REF_CROSS_SLOPE_PCT], axes_old)
     psi = x[YAW_RAD]
     c = np.cos(psi)
     s = np.sin(psi)
@@ -334,8 +342,8 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
         wheel[i, W_GAP_D1] = grad_x  # the gradient, until contact_frames below
         wheel[i, W_GAP_D2] = grad_y
     slope_x, slope_y, height0 = fit_plane(contact[0], contact[1], contact[2])
-    rebase_reference_plane(x, 100.0 * slope_x, 100.0 * slope_y, height0, vp[VP_CG_HEIGHT_M],
-                           axes_old, axes_new)
+    c, s = rebase_reference_plane(x, 100.0 * slope_x, 100.0 * slope_y, height0,
+                                  vp[VP_CG_HEIGHT_M], axes_old, axes_new, c, s)
     g = vp[VP_GRAVITY_MPS2]
     ground[G_GRAVITY_E1_MPS2] = -g * axes_new[0, 2]
     ground[G_GRAVITY_E2_MPS2] = -g * axes_new[1, 2]
@@ -343,11 +351,13 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
     for r in range(3):
         for k in range(3):
             ground[G_AXES + 3 * r + k] = axes_new[r, k]
-    contact_frames(model, ws, x)
+    ground[G_AXES_GRADE_PCT] = x[REF_GRADE_PCT]
+    ground[G_AXES_CROSS_SLOPE_PCT] = x[REF_CROSS_SLOPE_PCT]
+    contact_frames(model, ws, x, c, s)
 
 
 @nb.njit(cache=True, inline="always")
-def contact_frames(model: Model, ws: Workspace, x: np.ndarray) -> None:
+def contact_frames(model: Model, ws: Workspace, x: np.ndarray, c: float, s: float) -> None:
     """Once per step, per wheel on a terrain: the surface under the wheel as its tangent
     plane at the step start, in the reference plane's terms (the gap ``W_GAP0_M`` at the
     contact point ``W_CONTACT_S1_M``, ``W_CONTACT_S2_M`` and its gradient ``W_GAP_D1``,
@@ -355,7 +365,7 @@ def contact_frames(model: Model, ws: Workspace, x: np.ndarray) -> None:
     projected onto the tangent plane, and their cross product (docs/model.md section 11).
     Frozen over the step, as the tires' coefficients are. Reads the world gradient that
     ``follow_terrain`` left in ``W_GAP_D1``, ``W_GAP_D2`` and the queried points and
-    heights in ``ws.contact``."""
+    heights in ``ws.contact``; ``c``, ``s``: the cosine and sine of the yaw."""
     vp = model.vp
     ground, wheel, wheel_in, contact = ws.ground, ws.wheel, ws.wheel_in, ws.contact
     slope_x = x[REF_GRADE_PCT] / 100.0
@@ -364,8 +374,6 @@ def contact_frames(model: Model, ws: Workspace, x: np.ndarray) -> None:
     e2x, e2y, e2z = ground[G_AXES + 3], ground[G_AXES + 4], ground[G_AXES + 5]
     n_z = ground[G_AXES + 8]
     psi = x[YAW_RAD]
-    c = np.cos(psi)
-    s = np.sin(psi)
     ground[G_X0_M] = x[X_M]
     ground[G_Y0_M] = x[Y_M]
     ground[G_YAW0_RAD] = psi

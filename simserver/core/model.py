@@ -92,7 +92,9 @@ G_Y0_M = 17
 G_YAW0_RAD = 18
 G_COS_YAW0 = 19
 G_SIN_YAW0 = 20
-N_GROUND = 21
+G_AXES_GRADE_PCT = 21  # the grade and cross-slope G_AXES were computed for: the next step
+G_AXES_CROSS_SLOPE_PCT = 22  # starts on that plane and reuses them (NaN: none yet)
+N_GROUND = 23
 
 # ---- rows of the Runge-Kutta scratch (ws.rk[RK_*]; the derivative rows use the first
 # N_INTEGRATED columns)
@@ -115,7 +117,10 @@ class Model(NamedTuple):
 
 class Workspace(NamedTuple):
     """Scratch of one step (``make_workspace``): nothing here lives from one step to the
-    next. Few arrays with named slots, so that the stages pass little."""
+    next but a memo keyed by its own inputs (the reference plane's axes, ``G_AXES`` with
+    ``G_AXES_GRADE_PCT``, ``G_AXES_CROSS_SLOPE_PCT``: a pure function of the two, so a
+    workspace shared between states is never wrong). Few arrays with named slots, so that
+    the stages pass little."""
 
     rk: np.ndarray  # float64[N_RK, N_STATE]
     wheel_in: np.ndarray  # float64[N_WI, N_WHEELS]
@@ -140,10 +145,12 @@ class Data(NamedTuple):
 def make_workspace() -> Workspace:
     """Allocate the scratch ``step`` needs (once, before the loop)."""
     n_w = L.N_WHEELS
+    ground = np.zeros(N_GROUND)
+    ground[G_AXES_GRADE_PCT] = ground[G_AXES_CROSS_SLOPE_PCT] = np.nan  # no axes memo yet
     return Workspace(rk=np.zeros((N_RK, L.N_STATE)), wheel_in=np.zeros((N_WI, n_w)),
                      wheel=np.zeros((n_w, N_W)), body=np.zeros(N_BODY),
                      tire_out=np.zeros(N_TIRE_OUT), tire_coef=np.zeros((n_w, N_TIRE_COEF)),
-                     ground=np.zeros(N_GROUND), axes=np.zeros((2, 3, 3)),
+                     ground=ground, axes=np.zeros((2, 3, 3)),
                      contact=np.zeros((3, n_w)))
 
 

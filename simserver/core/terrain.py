@@ -120,60 +120,64 @@ def _catmull_rom(t: float) -> tuple[float, float, float, float, float, float, fl
 
 
 @nb.njit(cache=True, inline="always")
-def _cell(pos: float, origin: float, spacing: float, n: int) -> tuple[int, float]:
-    """Grid cell index and fraction of a position, clamped to the grid."""
+def _cell(pos: float, origin: float, spacing: float, n: int) -> tuple[int, float, bool]:
+    """Grid cell index and fraction of a position, clamped to the grid, and whether the
+    position is strictly inside the grid."""
     f = (pos - origin) / spacing
     if not f > 0.0:  # also NaN: the grid's first cell
-        return 0, 0.0
+        return 0, 0.0, False
     if f >= n - 1:
-        return n - 2, 1.0
+        return n - 2, 1.0, False
     i = int(f)
-    return i, f - i
+    return i, f - i, True
+
+
+@nb.njit(cache=True, inline="always")
+def _row(h: np.ndarray, jj: int, i0: int, i: int, i3: int, wx0: float, wx1: float,
+         wx2: float, wx3: float, dwx0: float, dwx1: float, dwx2: float, dwx3: float
+         ) -> tuple[float, float]:
+    """One grid row's Catmull-Rom value and x-derivative (``surface_at``)."""
+    h0 = h[jj, i0]
+    h1 = h[jj, i]
+    h2 = h[jj, i + 1]
+    h3 = h[jj, i3]
+    return (wx0 * h0 + wx1 * h1 + wx2 * h2 + wx3 * h3,
+            dwx0 * h0 + dwx1 * h1 + dwx2 * h2 + dwx3 * h3)
 
 
 @nb.njit(cache=True, inline="always")
 def surface_at(terrain: Terrain, wx: float, wy: float) -> tuple[float, float, float, float]:
     """Height (m), gradient ``(dh/dx, dh/dy)`` and friction scale of a height map at the
     world point ``(wx, wy)``. Catmull-Rom in each axis (C1); the samples beyond the edge
-    are the edge's own (clamped indices); off the grid the point is clamped to the edge."""
+    are the edge's own (clamped indices); off the grid the point is clamped to the edge.
+    The four rows are written out (no loop, no per-row branch): it runs four times a
+    step."""
     h = terrain.heights
     grid = terrain.grid
     ny, nx = h.shape
     dx = grid[GRID_DX_M]
     dy = grid[GRID_DY_M]
-    i, tx = _cell(wx, grid[GRID_X0_M], dx, nx)
-    j, ty = _cell(wy, grid[GRID_Y0_M], dy, ny)
+    i, tx, inside_x = _cell(wx, grid[GRID_X0_M], dx, nx)
+    j, ty, inside_y = _cell(wy, grid[GRID_Y0_M], dy, ny)
     wx0, wx1, wx2, wx3, dwx0, dwx1, dwx2, dwx3 = _catmull_rom(tx)
     wy0, wy1, wy2, wy3, dwy0, dwy1, dwy2, dwy3 = _catmull_rom(ty)
-    height = 0.0
-    grad_x = 0.0
-    grad_y = 0.0
-    for m in range(4):
-        jj = min(max(j - 1 + m, 0), ny - 1)
-        if m == 0:
-            wy_m, dwy_m = wy0, dwy0
-        elif m == 1:
-            wy_m, dwy_m = wy1, dwy1
-        elif m == 2:
-            wy_m, dwy_m = wy2, dwy2
-        else:
-            wy_m, dwy_m = wy3, dwy3
-        i0 = max(i - 1, 0)
-        i3 = min(i + 2, nx - 1)
-        row_v = wx0 * h[jj, i0] + wx1 * h[jj, i] + wx2 * h[jj, i + 1] + wx3 * h[jj, i3]
-        row_d = dwx0 * h[jj, i0] + dwx1 * h[jj, i] + dwx2 * h[jj, i + 1] + dwx3 * h[jj, i3]
-        height += wy_m * row_v
-        grad_x += wy_m * row_d
-        grad_y += dwy_m * row_v
+    i0 = max(i - 1, 0)
+    i3 = min(i + 2, nx - 1)
+    v0, d0 = _row(h, max(j - 1, 0), i0, i, i3, wx0, wx1, wx2, wx3, dwx0, dwx1, dwx2, dwx3)
+    v1, d1 = _row(h, j, i0, i, i3, wx0, wx1, wx2, wx3, dwx0, dwx1, dwx2, dwx3)
+    v2, d2 = _row(h, j + 1, i0, i, i3, wx0, wx1, wx2, wx3, dwx0, dwx1, dwx2, dwx3)
+    v3, d3 = _row(h, min(j + 2, ny - 1), i0, i, i3, wx0, wx1, wx2, wx3, dwx0, dwx1, dwx2,
+                  dwx3)
+    height = wy0 * v0 + wy1 * v1 + wy2 * v2 + wy3 * v3
+    grad_x = wy0 * d0 + wy1 * d1 + wy2 * d2 + wy3 * d3
+    grad_y = dwy0 * v0 + dwy1 * v1 + dwy2 * v2 + dwy3 * v3
     mu_map = terrain.friction
     mu = ((1.0 - ty) * ((1.0 - tx) * mu_map[j, i] + tx * mu_map[j, i + 1])
           + ty * ((1.0 - tx) * mu_map[j + 1, i] + tx * mu_map[j + 1, i + 1]))
     # clamped outside the grid: flat there
-    f_x = (wx - grid[GRID_X0_M]) / dx
-    f_y = (wy - grid[GRID_Y0_M]) / dy
-    if not (0.0 < f_x < nx - 1):
+    if not inside_x:
         grad_x = 0.0
-    if not (0.0 < f_y < ny - 1):
+    if not inside_y:
         grad_y = 0.0
     return height, grad_x / dx, grad_y / dy, mu
 
@@ -215,20 +219,19 @@ def fit_plane(px: np.ndarray, py: np.ndarray, pz: np.ndarray) -> tuple[float, fl
 @nb.njit(cache=True, inline="always")
 def rebase_reference_plane(x: np.ndarray, grade_pct: float, cross_slope_pct: float,
                            height_m: float, cg_height_m: float, axes_old: np.ndarray,
-                           axes_new: np.ndarray) -> None:
+                           axes_new: np.ndarray, c: float, s: float) -> tuple[float, float]:
     """Re-express the body's planar states on another reference plane
     ``Z = grade/100 X + cross/100 Y + height``, keeping its world CG position, velocity and
     attitude (docs/model.md section 11); the plane's slots of ``x`` are set to it.
 
     Roll and pitch change by the tilt between the planes (small-angle: the plane moves by
-    micro-radians a step); the angular rates are unchanged. ``axes_old`` and ``axes_new``
-    are float64[3, 3] scratch."""
-    road_frame(x[REF_GRADE_PCT], x[REF_CROSS_SLOPE_PCT], axes_old)
+    micro-radians a step); the angular rates are unchanged. ``axes_old`` holds the axes of
+    the plane ``x`` is on (``core.road.road_frame``), ``c``, ``s`` the cosine and sine of
+    its yaw (the caller has them); ``axes_new`` (float64[3, 3]) is written with the new
+    plane's. Returns the cosine and sine of the new yaw."""
     road_frame(grade_pct, cross_slope_pct, axes_new)
     lift = cg_height_m + x[HEAVE_M]
     psi = x[YAW_RAD]
-    c = np.cos(psi)
-    s = np.sin(psi)
     a = x[U_MPS] * c - x[V_MPS] * s
     b = x[U_MPS] * s + x[V_MPS] * c
     dz0 = x[REF_HEIGHT_M] - height_m
@@ -275,3 +278,4 @@ def rebase_reference_plane(x: np.ndarray, grade_pct: float, cross_slope_pct: flo
     x[REF_GRADE_PCT] = grade_pct
     x[REF_CROSS_SLOPE_PCT] = cross_slope_pct
     x[REF_HEIGHT_M] = height_m
+    return c, s
