@@ -143,7 +143,8 @@ def test_wheel_turned_at_standstill_keeps_its_torque_and_relaxes_when_rolling(tm
     # no longer binds (the load moves off the front axle as the car pulls away), over two
     # relaxation lengths rolled:
     tw = res.states[:, L.PATCH_TWIST0]
-    limit = p["patch_bore_arm_m"] * res.outputs[:, L.O_FZ0] / p["patch_torsion_stiffness_nm_per_rad"]
+    limit = (p["patch_bore_arm_m"] * res.outputs[:, L.O_FZ0]
+             / p["patch_torsion_stiffness_nm_per_rad"])
     k0 = np.argmax((t > 4.0) & (np.abs(np.roll(tw, -1)) < 0.99 * limit))
     rolled = np.cumsum(np.abs(res.outputs[:, L.O_HUB_U0 + L.FL])) * res.scenario.dt_s
     k1 = np.argmax(rolled > rolled[k0] + 2.0 * b)

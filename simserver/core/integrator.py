@@ -120,13 +120,13 @@ from simserver.core.params import (
     VP_TOE_REAR_RAD,
 )
 from simserver.core.powertrain import wheel_torques
-from simserver.core.steering import steering_system
 from simserver.core.slip import (
     SLIP_KINEMATIC,
     SLIP_LAGGED_PAPER,
     SLIP_LAGGED_PASSIVE,
     project_to_sliding_limit,
 )
+from simserver.core.steering import steering_system
 from simserver.core.tire import tire_prepare
 from simserver.core.tire_layout import TP_RADIUS_M, TP_RELAX_LAT_M, TP_RELAX_LONG_M
 
