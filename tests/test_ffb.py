@@ -148,6 +148,25 @@ def _fade_checks(wheel: RecordingWheel, since: float, until: float) -> None:
     assert wheel.value_at(F.FF_DAMPER, until) == round(F.LEVEL_MAX * PROFILE.damper)
 
 
+def _judgeable(arr: np.ndarray, loop_times: list[float], t0: float) -> np.ndarray:
+    """The states whose 20 ms can be judged: from 0.5 s (the fade-in is over), not within
+    0.25 s of the last one seen (the wheel's session may hold newer ones not seen here),
+    and not in a stall of this whole process (its 2 ms loop did not run for 10 ms: the OS
+    did not schedule it on this shared, loaded machine, and no thread of it could update
+    anything then)."""
+    if len(arr) == 0:
+        return np.zeros(0, dtype=int)
+    times = np.asarray(loop_times)
+    gaps = np.nonzero(np.diff(times) > 0.010)[0]
+    lo, hi = times[gaps], times[gaps + 1]
+    keep = []
+    for k in np.nonzero((arr[:, 0] > t0 + 0.5) & (arr[:, 0] < arr[-1, 0] - 0.25))[0]:
+        a = arr[k, 0]
+        if not np.any((lo < a + 0.020) & (hi > a - 0.005)):
+            keep.append(k)
+    return np.array(keep, dtype=int)
+
+
 def test_the_wheel_follows_the_server_and_fades_to_the_spring_when_it_goes() -> None:
     server = ServerProcess(vehicle_id="car_ffb")
     driver = Client(server, keep_history=True)
@@ -169,13 +188,21 @@ def test_the_wheel_follows_the_server_and_fades_to_the_spring_when_it_goes() -> 
         arrivals: list[tuple[float, int, float]] = []  # (arrival, tick, torque)
         loop_times: list[float] = []
         t0 = time.monotonic()
-        while (now := time.monotonic()) - t0 < 3.0:
+        next_check = t0 + 4.0
+        while True:
+            now = time.monotonic()
             loop_times.append(now)
             steer = 0.5 * np.sin(2.0 * np.pi * 0.5 * (now - t0))
             driver.send(steer=float(steer), brake=0.5, gear=proto.Gear.D)
             for st in driver.drain_states():
                 arrivals.append((time.monotonic(), int(st["tick"]),
                                  float(st["steering_wheel_torque_nm"])))
+            # until enough states can be judged (below), at most 30 s
+            if now > next_check:
+                next_check = now + 1.0
+                if len(_judgeable(np.array(arrivals), loop_times, t0)) >= 300 \
+                        or now - t0 > 30.0:
+                    break
             time.sleep(0.002)  # the pace of the driver's command stream (500 Hz)
         arr = np.array(arrivals)
         torques = arr[:, 2]
@@ -185,32 +212,20 @@ def test_the_wheel_follows_the_server_and_fades_to_the_spring_when_it_goes() -> 
         assert np.abs(levels).max() == PROFILE.level_max
         assert PROFILE.level_max * PROFILE.device_torque_nm / F.LEVEL_MAX <= PROFILE.max_torque_nm
         # follows within 20 ms: 20 ms after a state arrived here, the wheel's level is the
-        # one of that state or of one published up to 30 ms after it (the two sessions
-        # receive the same states a little apart). From 0.5 s: the fade-in is over.
-        # Not judged: a state whose 20 ms fall in a stall of this whole process (its 2 ms
-        # loop did not run for 10 ms: the OS did not schedule it on this shared, loaded
-        # machine, and no thread of it can update anything then).
-        gaps = np.diff(loop_times)
-        stalls = [(loop_times[i], loop_times[i + 1]) for i in np.nonzero(gaps > 0.010)[0]]
+        # one of that state or of a newer one (the two sessions receive the same states a
+        # little apart: the wheel's may be ahead; the window ends 200 ms on so that a stale
+        # level cannot pass as a much later state's)
         expected = np.array([PROFILE.level(T) for T in torques])
         ticks = arr[:, 1]
+        judged = _judgeable(arr, loop_times, t0)
         late = []
-        judged = 0
-        for k in np.nonzero(arr[:, 0] > t0 + 0.5)[0]:
-            a = arr[k, 0]
-            if a + 0.020 > arr[-1, 0]:
-                break
-            if any(lo < a + 0.020 and hi > a - 0.005 for lo, hi in stalls):
-                continue
-            judged += 1
-            level = wheel.value_at(F.FF_CONSTANT, a + 0.020)
-            window = (ticks >= ticks[k]) & (ticks <= ticks[k] + 30)
+        for k in judged:
+            level = wheel.value_at(F.FF_CONSTANT, arr[k, 0] + 0.020)
+            window = (ticks >= ticks[k]) & (ticks <= ticks[k] + 200)
             if level not in set(expected[window]):
-                near = ticks[(expected == level) & (np.abs(ticks - ticks[k]) < 200)]
-                late.append((a - t0, ticks[k], level, near.min(initial=-1),
-                             near.max(initial=-1)))
+                late.append((arr[k, 0] - t0, ticks[k], level))
         assert not late, f"{len(late)} states not on the wheel 20 ms later: {late[:5]}"
-        assert judged >= 100, (judged, len(stalls))  # enough states judged to mean something
+        assert len(judged) >= 300, len(judged)  # enough states judged to mean something
         assert len(set(expected)) > 50  # the level really moved
 
         # paused: the torque fades out, the centring spring in
