@@ -64,6 +64,7 @@ from clients.common import (
     connect,
     gear_name,
 )
+from clients.ffb import FfbError, FfbLoop, ForceFeedback, open_ff_wheel
 from clients.joystick import (
     ButtonEdges,
     JoystickError,
@@ -662,6 +663,15 @@ def _run(args: argparse.Namespace) -> int:
                 joystick.terminal = terminal
                 source = joystick
             driver = Driver(conn, source, args.rate, int(proto.Gear[args.gear]), sys.stdout)
+            ffb = joystick.profile.force_feedback if joystick is not None else None
+            if ffb is not None and ffb.enabled and joystick.script is None:
+                try:  # the wheel's force feedback, on its own thread (clients.ffb)
+                    loop = FfbLoop(conn.ep.declare_state_inbox(capacity=16),
+                                   ForceFeedback(open_ff_wheel(ffb.device), ffb)).start()
+                    stack.callback(loop.stop)
+                    print(f"{PROG}: force feedback on ({ffb.device})", flush=True)
+                except (FfbError, OSError) as exc:
+                    print(f"{PROG}: no force feedback: {exc}", file=sys.stderr, flush=True)
             try:
                 code = driver.run(stop)
             except JoystickError as exc:  # a device lost mid-run

@@ -37,6 +37,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, Protocol
 
+from clients.ffb import FfbProfile, parse_ffb_profile
 from clients.profile import (
     ProfileError,
     boolean,
@@ -148,6 +149,8 @@ class JoystickProfile:
     throttle, brake : PedalAxis
     buttons : Mapping[str, int]
         Driver action (values of :data:`BUTTON_ACTIONS`) -> SDL button index.
+    force_feedback : FfbProfile
+        The wheel's force feedback (``clients.ffb``; disabled when the key is absent).
     """
 
     path: Path | None
@@ -158,6 +161,7 @@ class JoystickProfile:
     throttle: PedalAxis
     brake: PedalAxis
     buttons: Mapping[str, int]
+    force_feedback: FfbProfile = FfbProfile(enabled=False)
 
     def where(self, key: str) -> str:
         """``"FILE: key 'KEY'"`` for messages about this profile."""
@@ -217,7 +221,7 @@ def load_joystick_profile(path: str | Path) -> JoystickProfile:
     ----------
     path : str or Path
         YAML with ``kind: joystick``, ``steer``, ``throttle``, ``brake`` (required),
-        ``device``, ``buttons`` and ``name`` (optional).
+        ``device``, ``buttons``, ``force_feedback`` and ``name`` (optional).
 
     Returns
     -------
@@ -232,7 +236,8 @@ def load_joystick_profile(path: str | Path) -> JoystickProfile:
     path = Path(path)
     data = read_profile(path, "joystick")
     check_mapping(path, "", data, ("kind", "name", "device", "steer", "throttle", "brake",
-                                   "buttons"), required=("steer", "throttle", "brake"))
+                                   "buttons", "force_feedback"),
+                  required=("steer", "throttle", "brake"))
     name = data.get("name", path.stem)
     if not isinstance(name, str):
         raise ProfileError(path, "name", f"expected a string, got {name!r}")
@@ -267,7 +272,8 @@ def load_joystick_profile(path: str | Path) -> JoystickProfile:
         used[b] = key
         buttons[BUTTON_ACTIONS[key]] = b
     return JoystickProfile(path=path, name=name, name_contains=name_contains, index=index,
-                           steer=steer, throttle=throttle, brake=brake, buttons=buttons)
+                           steer=steer, throttle=throttle, brake=brake, buttons=buttons,
+                           force_feedback=parse_ffb_profile(path, data.get("force_feedback")))
 
 
 # ---------------------------------------------------------------------------- mapping

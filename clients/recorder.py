@@ -150,11 +150,15 @@ HISTORY_NAMED: tuple[Column, ...] = (
     *_wheel_columns("kappa_lag_{w}", "1", "lagged slip state k' (eq. 26)"),
     *_wheel_columns("damping_active_{w}", "1", "low-speed damping active (0 or 1)"),
     *_wheel_columns("wheel_held_{w}", "1", "wheel held at zero spin by its brake (0 or 1)"),
+    Column("steering_wheel_angle_rad", _F64, "rad", "steering-wheel angle (left +)"),
+    Column("steering_wheel_torque_nm", _F64, "N m", "torque the steering system applies to "
+           "the driver's hands (toward the left +; docs/model.md section 12)"),
     Column("ax_mps2", _F64, "m/s^2", "CG acceleration along body x (step ending at the row)"),
     Column("ay_mps2", _F64, "m/s^2", "CG acceleration along body y (step ending at the row)"),
     *_wheel_columns("fx_{w}_n", "N", "tire Fx, wheel frame (step ending at the row)"),
     *_wheel_columns("fy_{w}_n", "N", "tire Fy, wheel frame (step ending at the row)"),
     *_wheel_columns("fz_{w}_n", "N", "tire normal load Fz (step ending at the row)"),
+    *_wheel_columns("mz_{w}_nm", "N m", "tire aligning moment Mz (step ending at the row)"),
     *_wheel_columns("steer_{w}_rad", "rad", "road-wheel steer angle, left + (step ending at "
                     "the row)"),
     Column("input_steer", _F64, "1", "applied steer [-1, 1] (step ending at the row)"),
@@ -320,6 +324,8 @@ def state_columns(rec: np.ndarray, grade_pct: np.ndarray, cross_slope_pct: np.nd
         "input_brake": rec["brake"].astype(f64),
         "input_parking_brake": rec["parking_brake"].astype(f64),
         "input_gear": rec["gear"].astype(f64),
+        "steering_wheel_angle_rad": rec["steering_wheel_angle_rad"].astype(f64),
+        "steering_wheel_torque_nm": rec["steering_wheel_torque_nm"].astype(f64),
         "tick": rec["tick"].astype(np.uint64), "flags": rec["flags"].astype(np.uint16),
         "last_cmd_seq": rec["last_cmd_seq"].astype(np.uint32),
         "last_cmd_sender_time_ns": rec["last_cmd_sender_time_ns"].astype(np.uint64),
@@ -333,7 +339,7 @@ def state_columns(rec: np.ndarray, grade_pct: np.ndarray, cross_slope_pct: np.nd
     per_wheel = {"omega_{w}_radps": "omega_radps", "tan_alpha_lag_{w}": "tan_alpha_lag",
                  "kappa_lag_{w}": "kappa_lag", "damping_active_{w}": "damping_active",
                  "wheel_held_{w}": "brake_held", "fx_{w}_n": "fx_n", "fy_{w}_n": "fy_n",
-                 "fz_{w}_n": "fz_n", "steer_{w}_rad": "steer_rad"}
+                 "fz_{w}_n": "fz_n", "mz_{w}_nm": "mz_nm", "steer_{w}_rad": "steer_rad"}
     for template, field in per_wheel.items():
         values = rec[field].astype(f64)
         for i, w in enumerate(WHEELS):

@@ -418,6 +418,13 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
     FieldSpec("fz_n", "<f4", 4, "N", 0.0, None, f"normal load; {_WHEELS}"),
     FieldSpec("steer_rad", "<f4", 4, "rad", None, None,
               f"road-wheel steer angle, + = left; {_WHEELS}"),
+    FieldSpec("mz_nm", "<f4", 4, "N m", None, None,
+              f"tire aligning moment, + turns the wheel left (z up); {_WHEELS}"),
+    FieldSpec("steering_wheel_angle_rad", "<f4", 1, "rad", None, None,
+              "steering-wheel angle, + = left (steer x steering_wheel_max_rad)"),
+    FieldSpec("steering_wheel_torque_nm", "<f4", 1, "N m", None, None,
+              "torque the steering system applies to the driver's hands, + = toward the "
+              "left; a force-feedback wheel produces it (docs/model.md section 12)"),
     FieldSpec("damping_active", "u1", 4, "-", 0, 1,
               f"low-speed auxiliary damping active (0/1); {_WHEELS}"),
     FieldSpec("brake_held", "u1", 4, "-", 0, 1,
@@ -517,7 +524,7 @@ STATE_SIZE: Final[int] = STATE_DTYPE.itemsize
 DIAGNOSTICS_SIZE: Final[int] = DIAGNOSTICS_DTYPE.itemsize
 
 assert _COMMAND_STRUCT.size == COMMAND_SIZE == 32
-assert _STATE_STRUCT.size == STATE_SIZE == 264
+assert _STATE_STRUCT.size == STATE_SIZE == 288
 assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 160
 
 

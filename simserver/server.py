@@ -723,10 +723,10 @@ def _check_log_entry(where: str, entry: Any, last_step: int) -> int:
             raise ConfigError(f"{where}: key 'end': expected an integer step in "
                               f"[{last_step}, {MAX_REPLAY_STEPS}], got {short_repr(end)}")
         state = entry["state"]
-        # a log of the first release holds its shorter layout, a prefix of this one
-        if not isinstance(state, list) or len(state) not in (L.N_STATE_V1, L.N_STATE):
-            raise ConfigError(f"{where}: key 'state': expected {L.N_STATE} (or, from the "
-                              f"first release, {L.N_STATE_V1}) hex floats")
+        # a log of an earlier release holds its shorter layout, a prefix of this one
+        if not isinstance(state, list) or not L.N_STATE_V1 <= len(state) <= L.N_STATE:
+            raise ConfigError(f"{where}: key 'state': expected {L.N_STATE} (or, from an "
+                              f"earlier release, {L.N_STATE_V1} or more) hex floats")
         for k, v in enumerate(state):
             try:
                 if not isinstance(v, str):

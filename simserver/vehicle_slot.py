@@ -337,6 +337,9 @@ class VehicleSlot:
         rec["fy_n"] = out[L.O_FY]
         rec["fz_n"] = out[L.O_FZ]
         rec["steer_rad"] = out[L.O_STEER]
+        rec["mz_nm"] = out[L.O_MZ]
+        rec["steering_wheel_angle_rad"] = x[L.STEERING_WHEEL_ANGLE_RAD]
+        rec["steering_wheel_torque_nm"] = x[L.STEERING_WHEEL_TORQUE_NM]
         rec["damping_active"] = x[L.DAMPING_ACTIVE]
         rec["brake_held"] = held
         rec["wheel_contact"] = x[L.IN_CONTACT]

@@ -99,6 +99,14 @@ _DESCRIPTIONS: dict[str, str] = {
     "ref_cross_slope_pct": "reference plane under the car: rise along world y per 100 m",
     "ref_height_m": "reference plane under the car: its height at the world origin",
     "in_contact_{w}": "{W} wheel carried load (touched the ground) at the step start (0 or 1)",
+    "steering_wheel_angle_rad": "steering-wheel angle (left +; docs/model.md section 12)",
+    "steering_wheel_rate_radps": "steering-wheel rate, low-pass filtered (the column damping's)",
+    "steering_wheel_torque_nm": "torque the steering system applies to the driver's hands "
+                                "(toward the left +), from the forces of the row before",
+    "steering_friction_nm": "column friction (Dahl), with the sign of the last motion",
+    "patch_twist_{w}_rad": "{W} contact-patch torsion: the rim turned against the patch "
+                           "(left +), relaxing over the lateral relaxation length as it rolls",
+    "steering_primed": "1 once a step has set the steering-wheel angle (0: a fresh state)",
     # --- outputs
     "ax_mps2": "CG acceleration along body x",
     "ay_mps2": "CG acceleration along body y",

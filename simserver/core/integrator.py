@@ -126,6 +126,7 @@ from simserver.core.slip import (
     SLIP_LAGGED_PASSIVE,
     project_to_sliding_limit,
 )
+from simserver.core.steering import steering_system
 from simserver.core.tire import tire_prepare
 from simserver.core.tire_layout import TP_RADIUS_M, TP_RELAX_LAT_M, TP_RELAX_LONG_M
 
@@ -353,7 +354,8 @@ def step(model: Model, data: Data) -> None:
     The stages, in order: 1 ``freeze_inputs`` and ``follow_terrain``, 2 ``prepare_tires``,
     3 ``vehicle_rates`` at the start state, ``record_outputs`` and ``record_contacts``,
     4 ``resolve_brakes``, 5 ``freeze_decay_rates`` and ``lawson_rk4``, 6 ``catch_stopped_wheels``,
-    7 ``update_discrete_states``.
+    7 ``update_discrete_states``, 8 ``steering_system`` (the steering-wheel torque from the
+    forces of stage 3: an output, fed back into nothing).
     """
     freeze_inputs(model, data)  # 1. inputs held over the step
     follow_terrain(model, data.ws, data.x)  # 1b. the reference plane, contact frames
@@ -366,6 +368,7 @@ def step(model: Model, data: Data) -> None:
     lawson_rk4(model, data)  # 5. the exponential RK4
     catch_stopped_wheels(data)  # 6. brakes catch a wheel crossing zero spin
     update_discrete_states(model, data)  # 7. slip projection, damping latch
+    steering_system(model, data)  # 8. the steering-wheel torque (core.steering)
     data.x[TIME_S] += model.dt_s
 
 

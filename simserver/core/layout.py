@@ -55,7 +55,16 @@ REF_GRADE_PCT = 41  # reference plane's rise along world x (%)
 REF_CROSS_SLOPE_PCT = 42  # its rise along world y (%)
 REF_HEIGHT_M = 43  # its height at the world origin (m)
 IN_CONTACT0 = 44  # 1 when the wheel carried load at the start of the last step, 4 slots
-N_STATE = 48
+# Appended for the steering system (issue 17, core.steering, docs/model.md section 12): an
+# output of the step (from the forces at the start of the last step, the outputs O_*; the
+# per-wheel aligning moments are the outputs O_MZ), fed back into nothing
+STEERING_WHEEL_ANGLE_RAD = 48  # steering-wheel angle, + = left (rad)
+STEERING_WHEEL_RATE_RADPS = 49  # its rate, low-pass filtered (rad/s)
+STEERING_WHEEL_TORQUE_NM = 50  # torque on the driver's hands, + = toward the left (N m)
+STEERING_FRICTION_NM = 51  # column friction (Dahl), with the sign of the motion (N m)
+PATCH_TWIST0 = 52  # front tires' contact-patch torsion, rim against patch (rad), 2 slots
+STEERING_PRIMED = 54  # 1 once a step has set the steering-wheel angle (0: fresh state)
+N_STATE = 55
 FZ_PREV_NONE = -1.0  # FZ_PREV value of a fresh start: no previous load to extrapolate from
 
 STATE_NAMES = (
@@ -71,6 +80,10 @@ STATE_NAMES = (
     + tuple(f"fz_prev_{w}_n" for w in WHEEL_NAMES)
     + ("ref_grade_pct", "ref_cross_slope_pct", "ref_height_m")
     + tuple(f"in_contact_{w}" for w in WHEEL_NAMES)
+    + ("steering_wheel_angle_rad", "steering_wheel_rate_radps", "steering_wheel_torque_nm",
+       "steering_friction_nm")
+    + tuple(f"patch_twist_{w}_rad" for w in WHEEL_NAMES[:N_FRONT_WHEELS])
+    + ("steering_primed",)
 )
 
 # ---------------------------------------------------------------- driver inputs
@@ -141,6 +154,7 @@ HUB_U_PREV = slice(HUB_U_PREV0, HUB_U_PREV0 + N_WHEELS)
 WHEEL_HELD = slice(WHEEL_HELD0, WHEEL_HELD0 + N_WHEELS)
 FZ_PREV = slice(FZ_PREV0, FZ_PREV0 + N_WHEELS)
 IN_CONTACT = slice(IN_CONTACT0, IN_CONTACT0 + N_WHEELS)
+PATCH_TWIST = slice(PATCH_TWIST0, PATCH_TWIST0 + N_FRONT_WHEELS)
 O_FX = slice(O_FX0, O_FX0 + N_WHEELS)
 O_FY = slice(O_FY0, O_FY0 + N_WHEELS)
 O_FZ = slice(O_FZ0, O_FZ0 + N_WHEELS)

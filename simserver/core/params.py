@@ -88,11 +88,48 @@ SUSPENSION = ParamTable("suspension", "springs, dampers, anti-roll bars (rates a
           "(negative: the top leans inboard in bump)", slot=51,
           const="VP_CAMBER_HEAVE_GAIN_REAR_RADPM"),
 ))
-STEERING = ParamTable("steering", "steering ratio and range", (
+STEERING = ParamTable("steering", "steering ratio and range, kingpin geometry, assist, column", (
     Param("steering_ratio", "-", 1.0, 50.0,
           "steering-wheel angle / road-wheel angle (parallel steer)", slot=18),
     Param("steering_wheel_max_rad", "rad", 0.05, 30.0, "steering-wheel angle at steer = 1",
           slot=19),
+    # the steering system (issue 17, core/steering.py, docs/model.md section 12): slots
+    # appended after the historical ones; the torque is an output, the motion is unchanged
+    Param("caster_trail_m", "m", -0.1, 0.2,
+          "mechanical trail: the contact patch's centre behind the kingpin axis' ground "
+          "point", slot=52),
+    Param("scrub_radius_m", "m", -0.1, 0.1,
+          "kingpin offset at the ground: the patch centre outboard of the axis' ground "
+          "point (negative: inboard)", slot=53),
+    Param("kingpin_inclination_rad", "rad", 0.0, 0.4,
+          "kingpin axis leaning inboard at the top, seen from the front (0: no weight "
+          "lift)", slot=54),
+    Param("patch_torsion_stiffness_nm_per_rad", "N m/rad", 1.0, 1e6,
+          "torsional stiffness of a front tire's contact patch (rim turned against a patch "
+          "that sticks)", slot=55, const="VP_PATCH_TORSION_STIFFNESS_NM_PER_RAD"),
+    Param("patch_bore_arm_m", "m", 0.0, 0.5,
+          "bore (turning at rest) torque limit per newton of load and unit friction scale: "
+          "(2/3) mu r of a disc patch of radius r", slot=56),
+    Param("assist_boost_parking", "-", 0.0, 100.0,
+          "power assist torque per unit driver torque at rest (0: no assist)", slot=57),
+    Param("assist_boost_highway", "-", 0.0, 100.0,
+          "power assist torque per unit driver torque at high speed", slot=58),
+    Param("assist_fade_speed_mps", "m/s", 0.1, 100.0,
+          "speed at which the boost is halfway from its parking to its highway value",
+          slot=59),
+    Param("assist_torque_max_nm", "N m", 0.0, 1000.0,
+          "most torque the assist adds, at the steering column", slot=60),
+    Param("column_friction_nm", "N m", 0.0, 50.0,
+          "Coulomb friction of column and rack, at the steering wheel", slot=61),
+    Param("column_friction_stiffness_nm_per_rad", "N m/rad", 0.1, 1e5,
+          "Dahl stiffness of that friction: its slope when the motion reverses", slot=62,
+          const="VP_COLUMN_FRICTION_STIFFNESS_NM_PER_RAD"),
+    Param("column_damping_nm_s_per_rad", "N m s/rad", 0.0, 50.0,
+          "viscous damping of column and rack, at the steering wheel", slot=63,
+          const="VP_COLUMN_DAMPING_NMS_PER_RAD"),
+    Param("column_rate_filter_s", "s", 0.0, 1.0,
+          "time constant of the low-pass filter on the steering-wheel rate the damping "
+          "acts on (commands arrive in steps)", slot=64),
 ))
 BRAKES = ParamTable("brakes", "service and parking brakes", (
     Param("brake_torque_max_nm", "N m", 0.0, 1e6,
@@ -225,4 +262,17 @@ VP_CAMBER_ROLL_GAIN_FRONT = 48  # rad/rad, suspension
 VP_CAMBER_ROLL_GAIN_REAR = 49  # rad/rad, suspension
 VP_CAMBER_HEAVE_GAIN_FRONT_RADPM = 50  # rad/m, suspension
 VP_CAMBER_HEAVE_GAIN_REAR_RADPM = 51  # rad/m, suspension
+VP_CASTER_TRAIL_M = 52  # m, steering
+VP_SCRUB_RADIUS_M = 53  # m, steering
+VP_KINGPIN_INCLINATION_RAD = 54  # rad, steering
+VP_PATCH_TORSION_STIFFNESS_NM_PER_RAD = 55  # N m/rad, steering
+VP_PATCH_BORE_ARM_M = 56  # m, steering
+VP_ASSIST_BOOST_PARKING = 57  # -, steering
+VP_ASSIST_BOOST_HIGHWAY = 58  # -, steering
+VP_ASSIST_FADE_SPEED_MPS = 59  # m/s, steering
+VP_ASSIST_TORQUE_MAX_NM = 60  # N m, steering
+VP_COLUMN_FRICTION_NM = 61  # N m, steering
+VP_COLUMN_FRICTION_STIFFNESS_NM_PER_RAD = 62  # N m/rad, steering
+VP_COLUMN_DAMPING_NMS_PER_RAD = 63  # N m s/rad, steering
+VP_COLUMN_RATE_FILTER_S = 64  # s, steering
 # --- end of generated slot constants
