@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import gc
 import logging
-import sys
 import time
 from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future
@@ -44,15 +43,6 @@ if TYPE_CHECKING:
     from simserver.server import ServerConfig
 
 log = logging.getLogger("simserver.server")
-
-GIL_SWITCH_INTERVAL_S = 0.0002
-"""How long the tick thread waits for the GIL before asking its holder to drop it.
-
-Python's default is 5 ms: a normal-priority thread of the server (zenoh's Python side,
-the load worker's result reader) holding the GIL kept the real-time tick waiting that
-long, which is the 5.4-5.7 ms lateness measured during ``load`` beside CPU hogs
-(issue 13). 200 us keeps such a wait within a fifth of a tick.
-"""
 
 JOB_TIMEOUT_S = 10.0
 """A control's off-tick job (``load``) not done after this long is abandoned."""
@@ -300,12 +290,10 @@ class ServerLoop:
 
         Before it, the heap built so far (compiled kernels, configs, the transport) is
         collected once and frozen: a garbage collection that falls in a tick then walks
-        only what was allocated since, not the whole heap; and the GIL's switch interval
-        is shortened (:data:`GIL_SWITCH_INTERVAL_S`).
+        only what was allocated since, not the whole heap.
         """
         gc.collect()
         gc.freeze()
-        sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
         self.t0_ns = self.clock()
         self.cpu.percent()  # the first diagnostics' CPU reading starts here, not at compile
         self.pacer.start()
