@@ -143,7 +143,7 @@ KEY_SPECS: Final[tuple[KeySpec, ...]] = (
         "server -> clients (put)",
         "Diagnostics (binary)",
         ENCODING_DIAGNOSTICS,
-        "DATA, BLOCK",
+        "DATA, DROP (waits at most 50 us for a full link)",
         "a few Hz (server config)",
     ),
     *(

@@ -274,8 +274,10 @@ class ControlRequest:
         query, self._query = self._query, None
         if query is None:
             raise RuntimeError(f"control {self.name!r} was already answered")
-        try:
-            query.reply(self.key, body, encoding=zenoh.Encoding(ENCODING_CONTROL))
+        try:  # DROP: zenoh's replies default to BLOCK, and this runs in the server's
+            # loop thread; a requester that stopped reading loses its reply, not our tick
+            query.reply(self.key, body, encoding=zenoh.Encoding(ENCODING_CONTROL),
+                        congestion_control=zenoh.CongestionControl.DROP)
         finally:
             query.drop()
 
@@ -578,9 +580,15 @@ class ZenohEndpoint:
                                zenoh.Priority.REAL_TIME, True, congestion_control)
 
     def declare_diag_publisher(self, keys: VehicleKeys | None = None) -> zenoh.Publisher:
-        """Publisher on ``diag``: DATA priority, batched, BLOCK."""
+        """Publisher on ``diag``: DATA priority, batched, DROP.
+
+        DROP as the state (was BLOCK): the server puts it from its loop thread, and a
+        subscriber that stops reading (a viewer whose threads run at ``SCHED_IDLE`` on a
+        busy machine, a frozen process) would otherwise hold that put up to
+        :data:`DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US` once its link is full.
+        """
         return self._publisher((keys or self.keys).diag, ENCODING_DIAGNOSTICS,
-                               zenoh.Priority.DATA, False, zenoh.CongestionControl.BLOCK)
+                               zenoh.Priority.DATA, False, zenoh.CongestionControl.DROP)
 
     def declare_vehicle_publisher(self, keys: VehicleKeys | None = None,
                                   states_per_s: float = 1000.0) -> VehiclePublisher:
