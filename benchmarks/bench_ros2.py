@@ -16,8 +16,8 @@ publishes. The adapter's rounds are timed once it publishes (it takes seconds to
 20 s and more on a busy machine). This process, which hosts the router, stays at normal
 priority (``bench_server``'s ``client_realtime="off"``): with its threads real-time, the
 adapter never got through to the router here. The tick lateness, which is what is
-compared, is the server's own. Quotes the median over rounds of each mode's tick lateness p50/p99 and its
-late-tick fraction, and the p99 ratio to ``off``.
+compared, is the server's own. Quotes the median over rounds of each mode's tick
+lateness p50/p99 and its late-tick fraction, and the p99 ratio to ``off``.
 """
 
 from __future__ import annotations
