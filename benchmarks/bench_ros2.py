@@ -64,35 +64,37 @@ def main(argv: list[str] | None = None) -> dict:
 
     sub = ros_node.declare_subscriber(f"{DOMAIN}/**", count)
     rates: list[float] = []
-    with tempfile.TemporaryDirectory(prefix="simserver_ros2_bench_") as tmp:
-        off = server_config(Path(tmp), "off", "off")
-        normal = ", normal_priority: true" if args.normal_priority else ""
-        on = server_config(Path(tmp), "on", f"{{router: '{router_endpoint}', "
-                                                f"domain_id: {DOMAIN}{normal}}}")
+    try:  # a failed round must not leave the callback subscriber holding the exit
+        with tempfile.TemporaryDirectory(prefix="simserver_ros2_bench_") as tmp:
+            off = server_config(Path(tmp), "off", "off")
+            normal = ", normal_priority: true" if args.normal_priority else ""
+            on = server_config(Path(tmp), "on", f"{{router: '{router_endpoint}', "
+                                                    f"domain_id: {DOMAIN}{normal}}}")
 
-        def with_adapter() -> dict:
-            # measured once the adapter publishes: its start (imports, sessions) takes
-            # seconds, 20 s and more on a busy machine, and would otherwise be all a short
-            # run saw of it
-            start = [received[0]]
+            def with_adapter() -> dict:
+                # measured once the adapter publishes: its start (imports, sessions) takes
+                # seconds, 20 s and more on a busy machine, and would otherwise be all a short
+                # run saw of it
+                start = [received[0]]
 
-            def publishing() -> bool:
-                if received[0] - start[0] >= 40:  # every topic a few times
-                    start[0] = received[0]
-                    return True
-                return False
+                def publishing() -> bool:
+                    if received[0] - start[0] >= 40:  # every topic a few times
+                        start[0] = received[0]
+                        return True
+                    return False
 
-            result = run(args.seconds, 200.0, config=on, ready=publishing,
-                         client_realtime="off")
-            rates.append((received[0] - start[0]) / args.seconds)
-            return result
+                result = run(args.seconds, 200.0, config=on, ready=publishing,
+                             client_realtime="off")
+                rates.append((received[0] - start[0]) / args.seconds)
+                return result
 
-        summary = compare_modes({"off": lambda: run(args.seconds, 200.0, config=off,
-                                                    client_realtime="off"),
-                                 "on": with_adapter}, args.rounds, "ROS 2 adapter")
-    sub.undeclare()
-    ros_node.close()
-    router.close()
+            summary = compare_modes({"off": lambda: run(args.seconds, 200.0, config=off,
+                                                        client_realtime="off"),
+                                     "on": with_adapter}, args.rounds, "ROS 2 adapter")
+    finally:
+        sub.undeclare()
+        ros_node.close()
+        router.close()
     summary["on"]["ros_messages_per_s"] = float(np.median(rates))
     print(f"ROS messages received from the adapter: {np.median(rates):.0f} per second "
           "of the run (median over rounds; four topics at 100 Hz)")

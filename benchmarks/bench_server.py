@@ -80,11 +80,19 @@ def run(seconds: float, cmd_hz: float, viewer: str = "off", hogs: int = 0,
 def _run(seconds: float, cmd_hz: float, viewer: str, realtime: str,
          client_realtime: str, config: Path | None,
          ready: Callable[[], bool] | None = None) -> dict:
-    from simserver.realtime import RealtimeScheduler, RealtimeSettings
-
     server = ServerProcess(scene=None, log_level="WARNING", viewer=viewer, config=config,
                            extra_args=["--realtime", realtime])
     startup_s = server.ready_s
+    try:
+        return _measure(server, startup_s, seconds, cmd_hz, client_realtime, ready)
+    finally:
+        server.stop()  # also when the measurement failed: no server left behind
+
+
+def _measure(server: ServerProcess, startup_s: float, seconds: float, cmd_hz: float,
+             client_realtime: str, ready: Callable[[], bool] | None) -> dict:
+    from simserver.realtime import RealtimeScheduler, RealtimeSettings
+
     client_rt = RealtimeScheduler(RealtimeSettings(mode=client_realtime, priority=40))
     latencies_us: list[float] = []
     diags: list[np.ndarray] = []
