@@ -42,7 +42,7 @@ import numpy as np
 import zenoh
 
 from simserver import protocol as proto
-from simserver.testing import Client, ServerProcess
+from simserver.testing import Client, ServerProcess, wait_until
 
 TICK_S = 1e-3
 """The server's default period: a command's send instant is uniform over one of these."""
@@ -65,23 +65,34 @@ def cpu_hogs(n: int):
 
 def run(seconds: float, cmd_hz: float, viewer: str = "off", hogs: int = 0,
         realtime: str = "auto", client_realtime: str = "auto",
-        config: Path | None = None) -> dict:
+        config: Path | None = None, ready: Callable[[], bool] | None = None) -> dict:
     """One server run of ``seconds`` with the live viewer ``viewer`` (a ``--viewer`` value),
     ``hogs`` CPU-bound processes beside it, the server's ``--realtime`` mode and this
-    client's, and the server config ``config`` (default ``configs/server/default.yaml``)."""
+    client's, and the server config ``config`` (default ``configs/server/default.yaml``).
+    With ``ready``, the measured ``seconds`` start once it returns True (a process the
+    server starts, such as the ROS 2 adapter, is then running; at most 120 s)."""
     with cpu_hogs(hogs):
-        return _run(seconds, cmd_hz, viewer, realtime, client_realtime, config) | {
+        return _run(seconds, cmd_hz, viewer, realtime, client_realtime, config, ready) | {
             "hogs": hogs, "realtime": realtime, "client_realtime": client_realtime,
             "loadavg_1min": os.getloadavg()[0]}
 
 
 def _run(seconds: float, cmd_hz: float, viewer: str, realtime: str,
-         client_realtime: str, config: Path | None) -> dict:
-    from simserver.realtime import RealtimeScheduler, RealtimeSettings
-
+         client_realtime: str, config: Path | None,
+         ready: Callable[[], bool] | None = None) -> dict:
     server = ServerProcess(scene=None, log_level="WARNING", viewer=viewer, config=config,
                            extra_args=["--realtime", realtime])
     startup_s = server.ready_s
+    try:
+        return _measure(server, startup_s, seconds, cmd_hz, client_realtime, ready)
+    finally:
+        server.stop()  # also when the measurement failed: no server left behind
+
+
+def _measure(server: ServerProcess, startup_s: float, seconds: float, cmd_hz: float,
+             client_realtime: str, ready: Callable[[], bool] | None) -> dict:
+    from simserver.realtime import RealtimeScheduler, RealtimeSettings
+
     client_rt = RealtimeScheduler(RealtimeSettings(mode=client_realtime, priority=40))
     latencies_us: list[float] = []
     diags: list[np.ndarray] = []
@@ -99,6 +110,11 @@ def _run(seconds: float, cmd_hz: float, viewer: str, realtime: str,
         states = ep.session.declare_subscriber(
             ep.keys.state, zenoh.handlers.Callback(on_state, indirect=False))
         client_rt.apply()  # this thread and the client's zenoh threads
+        if ready is not None:
+            wait_until(ready, timeout_s=120.0, what="the server's companion process",
+                       interval_s=0.05)
+            arrivals.clear()
+            client.diag.drain_newest()  # the windows of the wait are not measured
         diag = client.diag
         sent: dict[int, int] = {}
         seq = 0

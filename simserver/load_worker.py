@@ -40,6 +40,7 @@ class ProcessPreparer:
     def __init__(self) -> None:
         self._pool: ProcessPoolExecutor | None = None
         self.restarts = 0
+        self._promoted: set[int] = set()
 
     def _executor(self) -> ProcessPoolExecutor:
         if self._pool is None:
@@ -55,7 +56,29 @@ class ProcessPreparer:
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
         """Run ``fn(*args)`` in the worker; the future of its result."""
-        return self._executor().submit(fn, *args)
+        pool = self._executor()
+        future = pool.submit(fn, *args)
+        self._promote_reader(pool)
+        return future
+
+    def _promote_reader(self, pool: ProcessPoolExecutor) -> None:
+        """Give the pool's result-reading thread (it holds the GIL while it unpickles a
+        result) the caller's real-time policy, one priority lower: at normal priority,
+        preempted by CPU hogs while it held the GIL, it stalled the real-time tick 5 ms
+        and more (issue 13). It sleeps on a pipe otherwise."""
+        thread = getattr(pool, "_executor_manager_thread", None)
+        tid = getattr(thread, "native_id", None)
+        if tid is None or tid in self._promoted:
+            return
+        self._promoted.add(tid)
+        try:
+            if os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK != os.SCHED_FIFO:
+                return
+            priority = max(1, os.sched_getparam(0).sched_priority - 1)
+            os.sched_setscheduler(tid, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK,
+                                  os.sched_param(priority))
+        except (OSError, AttributeError):
+            pass  # not permitted, or the thread ended: it keeps its policy
 
     def restart(self) -> None:
         """Kill the worker (stuck or broken) and start a new one on the next submit."""

@@ -105,6 +105,13 @@ ENCODING_STATE: Final[str] = "application/octet-stream;simserver.VehicleState.v1
 ENCODING_DIAGNOSTICS: Final[str] = "application/octet-stream;simserver.Diagnostics.v1"
 ENCODING_CONTROL: Final[str] = "application/json"
 
+STATE_DECIMATED_HZ: Final[int] = 100
+"""Rate of the decimated state key ``state/100hz``: one of every
+``states per second / STATE_DECIMATED_HZ`` states the server publishes (every 10th at
+1 kHz). For
+consumers that do not need every tick (the ROS 2 adapter at its default 100 Hz): they
+receive and wake a tenth as often, and the 1 kHz key has one subscriber less (issue 19)."""
+
 KEY_SPECS: Final[tuple[KeySpec, ...]] = (
     KeySpec(
         "cmd",
@@ -123,11 +130,20 @@ KEY_SPECS: Final[tuple[KeySpec, ...]] = (
         "every tick (1 kHz) by default; server-side decimation",
     ),
     KeySpec(
+        f"state/{STATE_DECIMATED_HZ}hz",
+        "server -> clients (put)",
+        "VehicleState (binary)",
+        ENCODING_STATE,
+        "REAL_TIME, express, DROP (as `state`)",
+        f"{STATE_DECIMATED_HZ} Hz: one of every (states per second / {STATE_DECIMATED_HZ}) "
+        "states published, for consumers that need no more (the ROS 2 adapter)",
+    ),
+    KeySpec(
         "diag",
         "server -> clients (put)",
         "Diagnostics (binary)",
         ENCODING_DIAGNOSTICS,
-        "DATA, BLOCK",
+        "DATA, DROP (waits at most 50 us for a full link)",
         "a few Hz (server config)",
     ),
     *(
@@ -226,6 +242,8 @@ class VehicleKeys:
         ``"{prefix}/{vehicle}"``.
     cmd, state, diag, alive : str
         Driver commands in, state out, diagnostics out, liveliness token.
+    state_decimated : str
+        ``"{base}/state/100hz"``: the state at :data:`STATE_DECIMATED_HZ`.
     ctl : Mapping[str, str]
         Control name -> queryable key (``"{base}/ctl/{name}"``) for every
         :data:`CONTROL_NAMES`.
@@ -244,6 +262,7 @@ class VehicleKeys:
     alive: str
     ctl: Mapping[str, str]
     ctl_wildcard: str
+    state_decimated: str
 
     def control(self, name: str) -> str:
         """Key of control ``name``; raises :class:`ProtocolError` for an unknown name."""
@@ -296,6 +315,7 @@ def vehicle_keys(prefix: str = DEFAULT_PREFIX, vehicle: str = DEFAULT_VEHICLE) -
         alive=f"{base}/alive",
         ctl={name: f"{base}/ctl/{name}" for name in CONTROL_NAMES},
         ctl_wildcard=f"{base}/ctl/**",
+        state_decimated=f"{base}/state/{STATE_DECIMATED_HZ}hz",
     )
 
 

@@ -486,7 +486,8 @@ class SimServer:
                     keys = slot.keys
                     commands = ep.declare_command_inbox(capacity=proto.COMMAND_RING_SLOTS,
                                                         keys=keys)
-                    publisher = ep.declare_vehicle_publisher(keys=keys)
+                    publisher = ep.declare_vehicle_publisher(
+                        keys=keys, states_per_s=1.0 / (cfg.period_s * cfg.state_every))
                     controls = ep.declare_control_inbox(keys=keys, validate=False)
                     loop.add(slot, SlotPorts(commands, controls, publisher))
                 first = self.slots[0]

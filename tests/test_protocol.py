@@ -78,7 +78,7 @@ def test_bad_prefixes_rejected(prefix):
 def test_key_table_matches_keys():
     k = P.vehicle_keys("p", "v")
     table = {f"p/v/{s.suffix}" for s in P.KEY_SPECS}
-    assert table == {k.cmd, k.state, k.diag, k.alive, *k.ctl.values()}
+    assert table == {k.cmd, k.state, k.state_decimated, k.diag, k.alive, *k.ctl.values()}
 
 
 # ============================================================================ layouts

@@ -108,8 +108,9 @@ def test_default_config_is_loopback_only():
     assert _json(cfg, "transport/shared_memory/enabled") is False
     block = _json(cfg, "transport/link/tx/queue/congestion_control/block")
     assert block["wait_before_close"] == DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US
-    assert _json(cfg, "transport/unicast/lowlatency") is True
-    assert _json(cfg, "transport/unicast/qos/enabled") is False
+    # zenoh's own transport (issue 13: a low-latency server lost default clients' commands)
+    assert _json(cfg, "transport/unicast/lowlatency") is False
+    assert _json(cfg, "transport/unicast/qos/enabled") is True
     assert config_warnings(cfg) == []
     # zenoh's own defaults are what config_warnings warns about.
     assert len(config_warnings(zenoh.Config())) == 3
@@ -243,10 +244,49 @@ def test_state_and_diagnostics_reach_a_client():
         assert got["tick"] == 42 and got["fz_n"].tolist() == [4000.0, 4100.0, 3900.0, 3800.0]
 
 
+def test_the_servers_publications_never_block_and_the_decimated_key_gets_every_tenth():
+    """Issue 13: nothing the server's loop puts may wait for a reader that stopped (a
+    viewer at SCHED_IDLE, a frozen process): the state, its 100 Hz key and the diagnostics
+    are DROP (the diagnostics were BLOCK). Issue 19: the ``state/100hz`` key carries one
+    of every ten states at 1 kHz."""
+    with pair() as (srv, cli):
+        pub = srv.declare_vehicle_publisher(states_per_s=1000.0)
+        for p in (pub.state, pub.decimated, pub.diagnostics):
+            assert p.congestion_control == zenoh.CongestionControl.DROP, p.key_expr
+        assert str(pub.decimated.key_expr) == srv.keys.state_decimated
+        assert pub.decimate_every == 1000 // P.STATE_DECIMATED_HZ
+        slow = cli.declare_state_inbox(capacity=1024, decimated=True)
+        full = cli.declare_state_inbox(capacity=1024)
+        rec = P.new_state_record()
+
+        def publish(n: int) -> None:
+            for _ in range(n):
+                rec["tick"] += 1
+                pub.publish_state(rec.tobytes())
+                time.sleep(0.001)  # the server's pace: a burst would meet DROP's limit
+
+        eventually(lambda: publish(10) or slow.wait_newest(0.05),
+                   what="a first decimated state")
+        full.drain_newest()
+        first = int(rec["tick"])
+        publish(200)
+        got = []
+        eventually(lambda: got.extend(int(P.decode_state(b)["tick"])
+                                      for b in slow.drain_newest()) or len(got) >= 15,
+                   what="15 decimated states")
+        full_ticks = [int(P.decode_state(b)["tick"]) for b in full.drain_newest()]
+        assert len(full_ticks) > 150  # the 1 kHz key still carries every state
+        # every tenth state of those published since: ticks ten apart (one lost to DROP on
+        # a loaded machine would show as a gap of 20, still a multiple of ten)
+        assert all(t > first for t in got)
+        gaps = {b - a for a, b in zip(got, got[1:], strict=False)}
+        assert 10 in gaps and all(g % 10 == 0 for g in gaps), got
+
+
 @pytest.mark.parametrize("ours", ["listens", "connects"])
-def test_low_latency_default_talks_to_a_peer_with_zenohs_defaults(ours):
-    """The default's low-latency transport falls back for a peer that does not have it
-    (zenoh's own defaults: QoS on, low latency off), whichever side opens the link."""
+def test_default_config_talks_to_a_peer_with_zenohs_defaults(ours):
+    """The default config and zenoh's own defaults (QoS on, low latency off) connect and
+    carry commands, whichever side opens the link."""
     port = free_port()
     plain = zenoh.Config()
     plain.insert_json5("scouting/multicast/enabled", "false")

@@ -39,6 +39,7 @@ from simserver.protocol import (
     ENCODING_CONTROL,
     ENCODING_DIAGNOSTICS,
     ENCODING_STATE,
+    STATE_DECIMATED_HZ,
     ProtocolError,
     VehicleKeys,
     decode_reply,
@@ -163,13 +164,11 @@ def make_zenoh_config(
     _insert(cfg, "connect/endpoints", _endpoints("connect", connect or []), origin)
     _insert(cfg, "scouting/multicast/enabled", False, origin)
     _insert(cfg, "transport/shared_memory/enabled", False, origin)
-    # Zenoh's low-latency transport writes to the link from the publishing thread instead
-    # of waking a TX task: one hop on loopback here went from 202 to 131 us (p50; 1800
-    # commands). It excludes QoS (priorities), which a link that carries one car's
-    # traffic does not need. Peers with zenoh's defaults still connect: the transport
-    # falls back to the normal one for that link.
-    _insert(cfg, "transport/unicast/qos/enabled", False, origin)
-    _insert(cfg, "transport/unicast/lowlatency", True, origin)
+    # zenoh's normal transport with QoS on (its defaults), not its low-latency transport
+    # (issue 13): a low-latency server lost the commands of clients on zenoh's defaults
+    # for 0.4-1.9 s in 2-5 of 8-12 two-second sessions, while the same clients against
+    # this transport lost none (tests/test_drop_publishers.py). A client written with
+    # zenoh's defaults therefore speaks the server's transport with nothing to configure.
     _insert(
         cfg,
         "transport/link/tx/queue/congestion_control/block/wait_before_close",
@@ -275,8 +274,10 @@ class ControlRequest:
         query, self._query = self._query, None
         if query is None:
             raise RuntimeError(f"control {self.name!r} was already answered")
-        try:
-            query.reply(self.key, body, encoding=zenoh.Encoding(ENCODING_CONTROL))
+        try:  # DROP: zenoh's replies default to BLOCK, and this runs in the server's
+            # loop thread; a requester that stopped reading loses its reply, not our tick
+            query.reply(self.key, body, encoding=zenoh.Encoding(ENCODING_CONTROL),
+                        congestion_control=zenoh.CongestionControl.DROP)
         finally:
             query.drop()
 
@@ -410,19 +411,29 @@ class VehiclePublisher:
     ``slow_publishes`` counts state publications that took longer than ``slow_ns``: the
     state publisher never waits for a subscriber (congestion control DROP, with
     :data:`STATE_DROP_WAIT_US`), so these are the ticks a congested link cost something.
+
+    With ``decimated`` (the ``state/100hz`` publisher) every ``decimate_every``-th state is
+    put there too (:data:`simserver.protocol.STATE_DECIMATED_HZ`).
     """
 
     def __init__(self, state: zenoh.Publisher, diagnostics: zenoh.Publisher,
-                 slow_ns: int = 250_000) -> None:
+                 slow_ns: int = 250_000, decimated: zenoh.Publisher | None = None,
+                 decimate_every: int = 1) -> None:
         self.state = state
         self.diagnostics = diagnostics
         self.slow_ns = slow_ns
         self.slow_publishes = 0
+        self.decimated = decimated
+        self.decimate_every = max(1, decimate_every)
+        self._states = 0
 
     def publish_state(self, payload: bytes) -> None:
-        """Put one VehicleState."""
+        """Put one VehicleState (and every ``decimate_every``-th on the decimated key)."""
         t0 = time.perf_counter_ns()
         self.state.put(payload)
+        self._states += 1
+        if self.decimated is not None and self._states % self.decimate_every == 0:
+            self.decimated.put(payload)
         if time.perf_counter_ns() - t0 > self.slow_ns:
             self.slow_publishes += 1
 
@@ -569,17 +580,30 @@ class ZenohEndpoint:
                                zenoh.Priority.REAL_TIME, True, congestion_control)
 
     def declare_diag_publisher(self, keys: VehicleKeys | None = None) -> zenoh.Publisher:
-        """Publisher on ``diag``: DATA priority, batched, BLOCK."""
-        return self._publisher((keys or self.keys).diag, ENCODING_DIAGNOSTICS,
-                               zenoh.Priority.DATA, False, zenoh.CongestionControl.BLOCK)
+        """Publisher on ``diag``: DATA priority, batched, DROP.
 
-    def declare_vehicle_publisher(self, keys: VehicleKeys | None = None) -> VehiclePublisher:
+        DROP as the state (was BLOCK): the server puts it from its loop thread, and a
+        subscriber that stops reading (a viewer whose threads run at ``SCHED_IDLE`` on a
+        busy machine, a frozen process) would otherwise hold that put up to
+        :data:`DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US` once its link is full.
+        """
+        return self._publisher((keys or self.keys).diag, ENCODING_DIAGNOSTICS,
+                               zenoh.Priority.DATA, False, zenoh.CongestionControl.DROP)
+
+    def declare_vehicle_publisher(self, keys: VehicleKeys | None = None,
+                                  states_per_s: float = 1000.0) -> VehiclePublisher:
         """The server loop's publisher: ``state`` with congestion control DROP (a
         subscriber that stops reading loses states, the loop never waits for it: see
-        :data:`STATE_DROP_WAIT_US`) and ``diag`` as above."""
+        :data:`STATE_DROP_WAIT_US`), the same every ``states_per_s / STATE_DECIMATED_HZ``-th
+        state on ``state/100hz``, and ``diag`` as above."""
+        keys = keys or self.keys
         return VehiclePublisher(
             self.declare_state_publisher(zenoh.CongestionControl.DROP, keys=keys),
-            self.declare_diag_publisher(keys=keys))
+            self.declare_diag_publisher(keys=keys),
+            decimated=self._publisher(keys.state_decimated, ENCODING_STATE,
+                                      zenoh.Priority.REAL_TIME, True,
+                                      zenoh.CongestionControl.DROP),
+            decimate_every=round(states_per_s / STATE_DECIMATED_HZ))
 
     def declare_control_inbox(self, per_client: int = 16, keys: VehicleKeys | None = None,
                               validate: bool = True) -> ControlInbox:
@@ -604,9 +628,11 @@ class ZenohEndpoint:
         return self._publisher(self.keys.cmd, ENCODING_COMMAND, zenoh.Priority.REAL_TIME,
                                True, congestion_control)
 
-    def declare_state_inbox(self, capacity: int = 1024) -> Inbox:
-        """Subscriber on ``state`` with a ring of ``capacity``."""
-        return self._keep(Inbox(self.session, self.keys.state, capacity))
+    def declare_state_inbox(self, capacity: int = 1024, decimated: bool = False) -> Inbox:
+        """Subscriber on ``state`` (or with ``decimated`` on ``state/100hz``) with a ring
+        of ``capacity``."""
+        key = self.keys.state_decimated if decimated else self.keys.state
+        return self._keep(Inbox(self.session, key, capacity))
 
     def declare_diag_inbox(self, capacity: int = 64) -> Inbox:
         """Subscriber on ``diag`` with a ring of ``capacity``."""

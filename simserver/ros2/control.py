@@ -91,10 +91,11 @@ class VehicleLimits:
     def from_vehicle(cls, vp: Any, tp: Any) -> VehicleLimits:
         """From a packed vehicle (``adapters.config.load_vehicle``'s ``vp`` and ``tp``)."""
         from simserver.core import params as P
+        from simserver.core.layout import N_WHEELS
         from simserver.core.tire_layout import TP_RADIUS_M
 
         mass = float(vp[P.VP_MASS_KG])
-        radius = float(sum(tp[i][TP_RADIUS_M] for i in range(4)) / 4.0)
+        radius = float(sum(tp[i][TP_RADIUS_M] for i in range(N_WHEELS)) / N_WHEELS)
         return cls(
             steering_ratio=float(vp[P.VP_STEERING_RATIO]),
             steering_wheel_max_rad=float(vp[P.VP_STEERING_WHEEL_MAX_RAD]),
