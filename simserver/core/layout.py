@@ -55,7 +55,17 @@ REF_GRADE_PCT = 41  # reference plane's rise along world x (%)
 REF_CROSS_SLOPE_PCT = 42  # its rise along world y (%)
 REF_HEIGHT_M = 43  # its height at the world origin (m)
 IN_CONTACT0 = 44  # 1 when the wheel carried load at the start of the last step, 4 slots
-N_STATE = 48
+# Appended for the automatic powertrain and hill-start assist (core.powertrain,
+# docs/model.md section 12); discrete states, updated once per step
+ENGINE_SPEED_RADPS = 48  # engine (pump) speed (rad/s); 0 on the simple powertrain
+GEAR_ENGAGED = 49  # gear engaged: 1 .. n forward, -1 reverse, 0 none (P, N)
+LOCKUP_ENGAGED = 50  # 1 while the converter's lock-up clutch is closed
+IDLE_CONTROL_NM = 51  # the idle speed controller's integral term (N m)
+SHIFT_TIMER_S = 52  # time since the last gear change (s)
+HILL_HOLD_PEDAL = 53  # brake pedal the hill-start assist keeps (0: not armed)
+HILL_HOLD_ACTIVE = 54  # 1 while the assist holds the brakes beyond the driver's pedal
+HILL_HOLD_TIME_S = 55  # time since the driver released the pedal under the hold (s)
+N_STATE = 56
 FZ_PREV_NONE = -1.0  # FZ_PREV value of a fresh start: no previous load to extrapolate from
 
 STATE_NAMES = (
@@ -71,6 +81,8 @@ STATE_NAMES = (
     + tuple(f"fz_prev_{w}_n" for w in WHEEL_NAMES)
     + ("ref_grade_pct", "ref_cross_slope_pct", "ref_height_m")
     + tuple(f"in_contact_{w}" for w in WHEEL_NAMES)
+    + ("engine_speed_radps", "gear_engaged", "lockup_engaged", "idle_control_nm",
+       "shift_timer_s", "hill_hold_pedal", "hill_hold_active", "hill_hold_time_s")
 )
 
 # ---------------------------------------------------------------- driver inputs
