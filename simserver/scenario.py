@@ -54,7 +54,10 @@ ROAD_RANGES = {"grade_pct": (-100.0, 100.0), "cross_slope_pct": (-100.0, 100.0),
                "friction_scale": (0.0, 3.0)}
 INITIAL_RANGES = {"x_m": (-1e7, 1e7), "y_m": (-1e7, 1e7), "yaw_rad": (-1e3, 1e3),
                   "u_mps": (-100.0, 100.0), "v_mps": (-100.0, 100.0),
-                  "yaw_rate_radps": (-10.0, 10.0)}
+                  "yaw_rate_radps": (-10.0, 10.0), "relaxed": (0.0, 1.0)}
+"""``initial.relaxed``: 0 (the default, the paper's starts) the wheels spin at ``u / R``
+with the slip states at zero; 1 the wheels, slip states and powertrain start relaxed to
+their steady values at the initial velocity (``Simulation.reset``, ``core.start``)."""
 
 
 MAX_SCENARIO_STEPS = 10_000_000
@@ -165,6 +168,8 @@ def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = No
     check_keys(f"{path} (initial)", init_raw, tuple(INITIAL_RANGES))
     initial = {key: number(path, f"initial.{key}", init_raw.get(key, 0.0), lo, hi)
                for key, (lo, hi) in INITIAL_RANGES.items()}
+    if initial["relaxed"] not in (0.0, 1.0):
+        raise ConfigError(f"{path}: key 'initial.relaxed': expected 0 or 1")
     terrain = load_terrain(path, data.get("terrain"))
     return Scene(path=path, vehicle=vehicle, road=road, initial=initial,
                  model_options=dict(model_options), terrain=terrain)

@@ -59,7 +59,7 @@ class SimulationAPI(Protocol):
     road: dict[str, float]
 
     def step(self) -> None: ...
-    def reset(self, pose: dict[str, float] | None) -> None: ...
+    def reset(self, pose: dict[str, float] | None, u_mps: float | None = None) -> None: ...
     def set_road(self, grade_pct: float, cross_slope_pct: float,
                  friction_scale: float) -> None: ...
     def load(self, scene: Scene) -> None: ...
@@ -288,6 +288,8 @@ class VehicleSlot:
         np.logical_and(x[L.WHEEL_HELD] > 0.5, braking, out=held)
         if held.any():
             flags |= proto.StateFlag.BRAKE_HOLD
+        if x[L.HILL_HOLD_ACTIVE] > 0.5:
+            flags |= proto.StateFlag.HILL_HOLD
         if catching_up:
             flags |= proto.StateFlag.CATCHUP
         if self.fault:
@@ -329,6 +331,9 @@ class VehicleSlot:
         rec["brake"] = inputs[L.IN_BRAKE]
         rec["parking_brake"] = inputs[L.IN_PARKING_BRAKE]
         rec["gear"] = inputs[L.IN_GEAR]
+        rec["gear_engaged"] = x[L.GEAR_ENGAGED]
+        rec["lockup_engaged"] = x[L.LOCKUP_ENGAGED]
+        rec["engine_speed_radps"] = x[L.ENGINE_SPEED_RADPS]
         return rec.tobytes()
 
     def check_finite(self) -> bool:
@@ -368,16 +373,25 @@ class VehicleSlot:
     # the members of its success reply, or raises ProtocolError / ConfigError naming the
     # field (docs/protocol.md section 3). The loop's table maps control names to them.
     def ctl_reset(self, args: dict[str, Any]) -> dict[str, Any]:
-        """``reset``: the scene's initial state, or at rest at ``pose``; tick 0."""
+        """``reset``: the scene's initial state, or at rest at ``pose``, or with ``u_mps``
+        driving straight on at that speed (wheels, slips and powertrain relaxed); tick 0."""
         pose = args.get("pose")
+        u_mps = args.get("u_mps")
         p = self.sim
-        p.reset(pose)
+        p.reset(pose, u_mps)
         self.tick = 0
         self.fault = False
         self.arbiter.last_seq = None  # docs/protocol.md 2.1: a new client may start from 0
-        self._log({"step": self.steps_total, "reset": pose})
-        return {"tick": 0, "pose": {"x_m": p.x[L.X_M], "y_m": p.x[L.Y_M],
-                                    "yaw_rad": p.x[L.YAW_RAD]}}
+        logged = pose
+        if u_mps is not None:  # the log names the pose it started from and the speed
+            logged = {"x_m": p.x[L.X_M], "y_m": p.x[L.Y_M], "yaw_rad": p.x[L.YAW_RAD],
+                      "u_mps": float(u_mps)}
+        self._log({"step": self.steps_total, "reset": logged})
+        reply = {"tick": 0, "pose": {"x_m": p.x[L.X_M], "y_m": p.x[L.Y_M],
+                                     "yaw_rad": p.x[L.YAW_RAD]}}
+        if u_mps is not None:
+            reply["u_mps"] = p.x[L.U_MPS]
+        return reply
 
     def ctl_pause(self, args: dict[str, Any]) -> dict[str, Any]:
         """``pause``: stop stepping (the state is still published)."""

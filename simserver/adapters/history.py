@@ -99,6 +99,15 @@ _DESCRIPTIONS: dict[str, str] = {
     "ref_cross_slope_pct": "reference plane under the car: rise along world y per 100 m",
     "ref_height_m": "reference plane under the car: its height at the world origin",
     "in_contact_{w}": "{W} wheel carried load (touched the ground) at the step start (0 or 1)",
+    "engine_speed_radps": "engine speed (automatic powertrain, docs/model.md section 12; 0 "
+                          "on the simple one)",
+    "gear_engaged": "gear engaged: 1 .. n forward, -1 reverse, 0 none (P, N)",
+    "lockup_engaged": "torque converter's lock-up clutch closed (0 or 1)",
+    "idle_control_nm": "engine idle speed controller's integral term",
+    "shift_timer_s": "time since the last gear change",
+    "hill_hold_pedal": "brake pedal the hill-start assist keeps (0: not armed)",
+    "hill_hold_active": "hill-start assist holds the brakes beyond the driver's pedal (0 or 1)",
+    "hill_hold_time_s": "time since the pedal was released under the hill-start hold",
     # --- outputs
     "ax_mps2": "CG acceleration along body x",
     "ay_mps2": "CG acceleration along body y",

@@ -448,3 +448,20 @@ def wheel_torques(
             brake_cap_nm[i] = 0.5 * (1.0 - front) * brake_total + park
         if gear == GEAR_P and share > 0.0:
             brake_cap_nm[i] = PARK_LOCK_TORQUE_NM
+
+
+def creep_torque_at_stall_nm(vp: np.ndarray) -> float:
+    """The automatic's drive torque at the wheels at rest in D with the engine idling:
+    first gear times the converter's stall torque ratio times its stall torque at idle,
+    ``G_1 TR(0) (omega_idle / K(0))^2`` (0 on the simple powertrain, which has no creep)."""
+    if int(vp[VP_POWERTRAIN_KIND]) != POWERTRAIN_AUTOMATIC:
+        return 0.0
+    k0 = vp[VP_CONVERTER_K_FACTOR_RPM_PER_SQRT_NM] * RADPS_PER_RPM
+    idle = vp[VP_ENGINE_IDLE_SPEED_RPM] * RADPS_PER_RPM
+    return float(overall_ratio(vp, 1) * vp[VP_CONVERTER_TORQUE_RATIO] * (idle / k0) ** 2)
+
+
+def creep_hold_brake_pedal(vp: np.ndarray) -> float:
+    """The brake pedal above which the car stays at rest in D on the flat: its brake
+    torque (all four wheels) equals the creep torque at stall (docs/model.md section 12)."""
+    return creep_torque_at_stall_nm(vp) / vp[VP_BRAKE_TORQUE_MAX_NM]
