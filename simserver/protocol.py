@@ -1259,7 +1259,8 @@ def _range_text(f: FieldSpec) -> str:
     return f"[{lo}, {hi}]"
 
 
-_TYPE_NAMES = {"u1": "u8", "i1": "i8", "u2": "u16", "u4": "u32", "u8": "u64", "f4": "f32", "f8": "f64"}
+_TYPE_NAMES = {"u1": "u8", "i1": "i8", "u2": "u16", "u4": "u32", "u8": "u64", "f4": "f32",
+               "f8": "f64"}
 
 
 def fields_markdown(fields: Sequence[FieldSpec], *, with_rule: bool = False) -> str:

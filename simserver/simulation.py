@@ -19,11 +19,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from simserver.core import layout as L
+from simserver.core import params as P
 from simserver.core.chassis import place_on_terrain
 from simserver.core.damping import DAMPING_MODELS
 from simserver.core.integrator import simulate, step
 from simserver.core.model import Data, Model, make_data
-from simserver.core import params as P
 from simserver.core.params import VP_CG_HEIGHT_M, VP_DAMPING_MODEL, VP_SLIP_MODEL
 from simserver.core.pose import world_pose
 from simserver.core.powertrain import RADPS_PER_RPM
@@ -56,8 +56,10 @@ def initial_state(scene: Scene) -> np.ndarray:
         x[L.HUB_U_PREV0 + i] = init["u_mps"]
     x[L.FZ_PREV] = L.FZ_PREV_NONE
     vp = scene.vehicle.vp
-    if int(vp[P.VP_POWERTRAIN_KIND]) == P.POWERTRAIN_AUTOMATIC:  # the engine idles
+    if int(vp[P.VP_POWERTRAIN_KIND]) == P.POWERTRAIN_AUTOMATIC:  # the engine idles,
         x[L.ENGINE_SPEED_RADPS] = vp[P.VP_ENGINE_IDLE_SPEED_RPM] * RADPS_PER_RPM
+        # its idle controller settled against the drag torque (as in P or N)
+        x[L.IDLE_CONTROL_NM] = vp[P.VP_ENGINE_DRAG_TORQUE_NM]
     return x
 
 

@@ -37,8 +37,10 @@ def test_slot_constants_are_the_generated_block():
 def test_slot_constants_match_the_tables():
     """Every parameter has one VP_ constant holding its slot, in order, and nothing else."""
     layout = P.VEHICLE_PARAMS
-    assert [p.slot for p in layout] == list(range(P.N_VEHICLE_PARAM))
-    assert P.N_VEHICLE_PARAM == len(P.VEHICLE_PARAM_NAMES) == sum(map(len, P.VEHICLE_PARAM_TABLES))
+    # a list parameter (size > 1: a curve, the gear ratios) takes size consecutive slots
+    assert [p.slot + k for p in layout for k in range(p.size)] == list(range(P.N_VEHICLE_PARAM))
+    assert len(P.VEHICLE_PARAM_NAMES) == sum(map(len, P.VEHICLE_PARAM_TABLES))
+    assert P.N_VEHICLE_PARAM == sum(p.size for p in layout)
     assert P.VEHICLE_PARAM_NAMES == tuple(p.name for p in layout)
     consts = {name: value for name, value in vars(P).items()
               if name.startswith("VP_") and type(value) is int}

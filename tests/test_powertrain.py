@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -69,9 +71,11 @@ def test_engine_idles_against_the_converter_with_the_brake_on():
     idle = idle_radps(sim)
     assert states[-1, L.GEAR_ENGAGED] == 1
     assert abs(states[-1, L.U_MPS]) < 1e-6
-    # converged within 0.1 % (the PI's integral removes the droop); never below 97 %
+    # converged within 0.1 % (the PI's integral removes the droop); engaging D from the
+    # start dips the idle by the stall load over the proportional gain at most (25 N m
+    # / 0.5 N m/rpm = 50 rpm, 7 %), less as the integral takes over: above 93 %
     assert abs(states[-1, L.ENGINE_SPEED_RADPS] - idle) < 1e-3 * idle
-    assert states[:, L.ENGINE_SPEED_RADPS].min() > 0.97 * idle
+    assert states[:, L.ENGINE_SPEED_RADPS].min() > 0.93 * idle
     # the controller's torque is the drag plus the converter's stall torque at idle:
     # T_p = (omega_idle / K(0))^2 (the converter's definition of K)
     k0 = sim.vp[P.VP_CONVERTER_K_FACTOR_RPM_PER_SQRT_NM] * RADPS_PER_RPM
@@ -111,8 +115,11 @@ def test_a_brake_pedal_above_the_creep_hold_level_holds_the_car():
     assert 0.0 < level < 0.2  # an ordinary light pedal
     drive(sim, 2.0, L.GEAR_D, brake=1.0)
     states, _ = drive(sim, 5.0, L.GEAR_D, brake=1.2 * level)
-    assert abs(states[-1, L.X_M]) < 1e-3  # the tires' compliance only: under 1 mm
-    assert abs(states[-1, L.U_MPS]) < 1e-4
+    # the tires' compliance only: the braked front tires carry the creep force, 800 N
+    # each, at k' = 800 / C_kappa (22.5 kN) = 0.036, a deflection B k' = 3.2 mm (eq. 26);
+    # then nothing moves (no creep: 10 um over the last 2 s)
+    assert abs(states[-1, L.X_M]) < 5e-3
+    assert abs(states[-1, L.X_M] - states[-2000, L.X_M]) < 1e-5
     states, _ = drive(sim, 5.0, L.GEAR_D, brake=0.5 * level)
     assert states[-1, L.X_M] > 0.05  # it creeps
 
@@ -120,7 +127,10 @@ def test_a_brake_pedal_above_the_creep_hold_level_holds_the_car():
 def test_neutral_and_park_leave_the_car_free_or_locked():
     sim = make_sim(grade_pct=5.0)
     states, _ = drive(sim, 3.0, L.GEAR_P)
-    assert abs(states[-1, L.X_M]) < 2e-3  # the park lock holds (tire compliance)
+    # the park lock holds: the rear tires' deflection under the grade's 1 kN, B F / (2
+    # C_kappa) = 2 mm (eq. 26), then nothing moves
+    assert abs(states[-1, L.X_M]) < 5e-3
+    assert abs(states[-1, L.X_M] - states[-1000, L.X_M]) < 1e-5
     assert states[-1, L.GEAR_ENGAGED] == 0
     states, _ = drive(sim, 3.0, L.GEAR_N)
     assert states[-1, L.U_MPS] < -0.5  # rolls back freely
@@ -143,7 +153,9 @@ def test_full_throttle_shifts_up_through_every_gear_and_kickdown_drops_gears():
     assert states[-1, L.LOCKUP_ENGAGED] == 1
     locked_rpm = states[-1, L.ENGINE_SPEED_RADPS]
     ratio = sim.vp[P.VP_GEAR_RATIOS + 4] * sim.vp[P.VP_FINAL_DRIVE_RATIO]
-    assert locked_rpm == pytest.approx(ratio * states[-1, L.OMEGA0 + 2:L.OMEGA0 + 4].mean())
+    # the engine takes the turbine's speed at the start of each step: one step behind
+    wheels = states[-2, L.OMEGA0 + 2:L.OMEGA0 + 4].mean()
+    assert locked_rpm == pytest.approx(ratio * wheels, rel=1e-9)
     # kick-down: at once (no shift delay), several gears if the schedule says so
     u = states[-1, L.U_MPS]
     states, _ = drive(sim, 0.01, L.GEAR_D, throttle=1.0)
@@ -292,38 +304,56 @@ def test_a_reset_at_speed_starts_without_a_force_transient(vehicle):
     assert jump_unrelaxed > 0.05 * size + 5.0
 
 
-def test_a_live_session_reset_at_speed_drives_on(tmp_path):
-    """A real server: ``ctl/reset`` with ``u_mps`` 20 on the flat, then coasting in D. The
-    tire forces of the first states differ from the steady ones that follow by no more
-    than the steady forces themselves fluctuate, and the car rolls on at speed."""
-    with ServerProcess(scene=REPO / "configs/scenes/flat_paper_sedan_automatic.yaml") as server, \
-            Client(server) as client:
+def test_a_live_session_reset_at_speed_drives_on():
+    """A real server: ``ctl/reset`` with ``u_mps`` 20 on the flat while a driver streams
+    commands (coasting in D). The tire forces of the first states after the reset stay
+    within the band the steady ones that follow span, and the car rolls on at speed."""
+    scene = REPO / "configs/scenes/flat_paper_sedan_automatic.yaml"
+    with ServerProcess(scene=scene) as server, Client(server) as client:
         client.wait_state()
-        client.send(gear=proto.Gear.D)
-        reply = client.request("reset", {"u_mps": 20.0})
-        assert reply["ok"] and reply["u_mps"] == pytest.approx(20.0)
-        first = client.drive_until(lambda s: s["tick"] >= 1 and s["tick"] < 100,
-                                   gear=proto.Gear.D, what="a state just after the reset")
-        history = [first]
-        while history[-1]["tick"] < 1500:
-            client.send(gear=proto.Gear.D)
-            history += [s for s in client.drain_states() if s["tick"] > history[-1]["tick"]]
-            client.wait_state(lambda s: s["tick"] > history[-1]["tick"], timeout_s=5.0)
-        ticks = np.array([s["tick"] for s in history])
-        fx = np.array([s["fx_n"] for s in history])
-        fy = np.array([s["fy_n"] for s in history])
-        u = np.array([s["u_mps"] for s in history])
-        early, steady = ticks < 500, (ticks >= 500) & (ticks <= 1500)
-        assert early.sum() > 0 and steady.sum() > 10
-        assert u.min() > 19.0  # drives on
-        assert np.all(np.array([s["gear_engaged"] for s in history]) >= 1)
-        # coasting: the rear (driven) wheels carry the engine braking and rolling
-        # resistance, a few hundred N; the first states sit within 5 % + 10 N of the
-        # steady band (its spread plus the coast-down's slow drift)
-        for k in range(4):
-            band_lo, band_hi = fx[steady, k].min(), fx[steady, k].max()
-            margin = 0.05 * np.abs(fx[steady, k]).max() + 10.0
-            assert fx[early, k].min() > band_lo - margin
-            assert fx[early, k].max() < band_hi + margin
-        assert np.abs(fy).max() < 5.0  # straight on: no side force appears
-        assert all(s["engine_speed_radps"] > 0.0 for s in history)
+        streaming = threading.Event()
+        streaming.set()
+
+        def stream() -> None:  # a driver holding D, throttle and brake off, at 200 Hz
+            while streaming.is_set():
+                client.send(gear=proto.Gear.D)
+                time.sleep(0.005)  # the pace of the command stream
+
+        sender = threading.Thread(target=stream, daemon=True)
+        sender.start()
+        try:
+            client.wait_state(lambda s: not s["flags"] & proto.StateFlag.WATCHDOG)
+            reply = client.request("reset", {"u_mps": 20.0})
+            assert reply["ok"] and reply["u_mps"] == pytest.approx(20.0)
+            client.keep_history = True
+            client.history = []
+            client.wait_state(lambda s: s["tick"] >= 1500, timeout_s=30.0,
+                              what="1.5 s after the reset")
+        finally:
+            streaming.clear()
+            sender.join()
+        # the states since the reset: from where the tick restarts (states published
+        # before it may still have been queued when the history was cleared)
+        ticks = [int(s["tick"]) for s in client.history]
+        since = max((k for k in range(1, len(ticks)) if ticks[k] < ticks[k - 1]), default=0)
+        history = [s for s in client.history[since:] if 1 <= s["tick"] <= 1500]
+    ticks = np.array([s["tick"] for s in history])
+    assert ticks.min() < 50  # the states from just after the reset are there
+    assert not any(s["flags"] & proto.StateFlag.WATCHDOG for s in history)
+    fx = np.array([s["fx_n"] for s in history], dtype=np.float64)
+    fy = np.array([s["fy_n"] for s in history], dtype=np.float64)
+    u = np.array([s["u_mps"] for s in history])
+    early, steady = ticks < 500, ticks >= 500
+    assert early.sum() > 0 and steady.sum() > 10
+    assert u.min() > 19.0  # drives on
+    assert all(s["gear_engaged"] >= 1 and s["engine_speed_radps"] > 0.0 for s in history)
+    # coasting: each tire carries rolling resistance (and the rear, driven ones the
+    # engine's drag), 60-110 N; the early states sit within the steady band widened by
+    # 5 % + 5 N (the coast-down's slow drift; the unrelaxed start is off by its full size,
+    # test_a_reset_at_speed_starts_without_a_force_transient)
+    for k in range(4):
+        band = fx[steady, k]
+        margin = 0.05 * np.abs(band).max() + 5.0
+        assert band.min() - margin < fx[early, k].min()
+        assert fx[early, k].max() < band.max() + margin
+    assert np.abs(fy).max() < 5.0  # straight on: no side force appears

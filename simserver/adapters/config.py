@@ -146,23 +146,24 @@ def read_powertrain(path: Path | str, data: dict[str, Any], vp: np.ndarray) -> N
                            ("converter_speed_ratio", "converter_torque_ratio")):
         if len(auto[ys_key]) != len(auto[xs_key]):
             fail(ys_key, f"expected {len(auto[xs_key])} values, one per {xs_key}")
-        if any(b <= a for a, b in zip(auto[xs_key], auto[xs_key][1:])):
+        if any(b <= a for a, b in zip(auto[xs_key], auto[xs_key][1:], strict=False)):
             fail(xs_key, "expected increasing values")
     if auto["converter_speed_ratio"][0] != 0.0:
         fail("converter_speed_ratio", "expected the first point at 0 (stall)")
     if auto["converter_speed_ratio"][-1] >= 1.0:
         fail("converter_speed_ratio", "expected the last point below 1 (the coupling)")
     n_gears = len(auto["gear_ratios"])
-    if any(b >= a for a, b in zip(auto["gear_ratios"], auto["gear_ratios"][1:])):
+    if any(b >= a for a, b in zip(auto["gear_ratios"], auto["gear_ratios"][1:],
+                                        strict=False)):
         fail("gear_ratios", "expected decreasing ratios, first gear first")
     for key in ("upshift_speed_light_mps", "upshift_speed_full_mps"):
         if len(auto[key]) != max(n_gears - 1, 1):
             fail(key, f"expected {max(n_gears - 1, 1)} values: one per upshift of the "
                  f"{n_gears} gears")
-        if any(b <= a for a, b in zip(auto[key], auto[key][1:])):
+        if any(b <= a for a, b in zip(auto[key], auto[key][1:], strict=False)):
             fail(key, "expected increasing speeds")
     if any(f < lo for lo, f in zip(auto["upshift_speed_light_mps"],
-                                   auto["upshift_speed_full_mps"])):
+                                   auto["upshift_speed_full_mps"], strict=True)):
         fail("upshift_speed_full_mps", "an upshift at full throttle comes before the same "
              "upshift at closed throttle")
     if auto["lockup_release_speed_rpm"] > auto["lockup_engage_speed_rpm"]:
