@@ -357,3 +357,36 @@ def test_a_live_session_reset_at_speed_drives_on():
         assert band.min() - margin < fx[early, k].min()
         assert fx[early, k].max() < band.max() + margin
     assert np.abs(fy).max() < 5.0  # straight on: no side force appears
+
+
+def test_a_scenario_starts_relaxed_when_it_asks(tmp_path):
+    """``initial.relaxed: 1``: the scenario starts at speed with the slips and powertrain
+    relaxed (settled with its first inputs); 0, the default, keeps the paper's start."""
+    from simserver.scenario import load_scenario, run_scenario
+
+    def first_fx_jump(relaxed) -> float:
+        path = tmp_path / f"s{relaxed}.yaml"
+        path.write_text(
+            f"name: s\nvehicle: {AUTOMATIC}\n"
+            f"initial: {{u_mps: 20.0, relaxed: {relaxed}}}\n"
+            "duration_s: 0.5\ninputs:\n  - {t: 0.0, gear: D}\n", encoding="utf-8")
+        result = run_scenario(load_scenario(path))
+        fx = result.outputs[:, L.O_FX0:L.O_FX0 + 4]
+        if relaxed:  # in gear from the start
+            assert result.states[0, L.GEAR_ENGAGED] == sim_gear_for_20_mps()
+        return float(np.abs(fx[0] - fx[300]).max())  # 0.3 s on: relaxed (b/u = 45 ms)
+
+    assert first_fx_jump(1) < 5.0  # the coast-down's drift over 0.3 s: a few N
+    assert first_fx_jump(0) > 20.0
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(f"name: s\nvehicle: {AUTOMATIC}\ninitial: {{relaxed: 0.5}}\n"
+                   "duration_s: 0.1\ninputs:\n  - {t: 0.0, gear: D}\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="'initial.relaxed': expected 0 or 1"):
+        load_scenario(bad)
+
+
+def sim_gear_for_20_mps() -> int:
+    """Top gear: 20 m/s is above every closed-throttle upshift of paper_sedan_automatic."""
+    vp = load_vehicle(AUTOMATIC).vp
+    assert 20.0 > vp[P.VP_UPSHIFT_SPEED_LIGHT_MPS + int(vp[P.VP_GEAR_COUNT]) - 2]
+    return int(vp[P.VP_GEAR_COUNT])
