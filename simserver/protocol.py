@@ -394,8 +394,9 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
               "bit 3 tick run late as part of a catch-up; bit 4 fault: the state went "
               "non-finite, the car was put at rest at the scene's start pose and paused "
               "until a reset or load; bit 5 the first state after skipped deadlines (a "
-              "stall beyond the catch-up bound, see Diagnostics.skipped_ticks); bits 6-15 "
-              "are 0"),
+              "stall beyond the catch-up bound, see Diagnostics.skipped_ticks); bit 6 "
+              "hill-start assist holds the brakes after the driver released the pedal "
+              "(docs/model.md section 13); bits 7-15 are 0"),
     FieldSpec("last_cmd_seq", "<u4", 1, "-", None, None,
               "seq of the last command applied (0 before the first)"),
     FieldSpec("tick", "<u8", 1, "-", None, None,
@@ -453,13 +454,21 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
     FieldSpec("gear", "u1", 1, "-", 0, 3, "applied gear, 0 = P, 1 = R, 2 = N, 3 = D"),
     FieldSpec("wheel_contact", "u1", 4, "-", 0, 1,
               f"wheel touches the ground (carries load) (0/1); {_WHEELS}"),
-    FieldSpec("reserved", "u1", 2, "-", 0, 0, "zero"),
+    FieldSpec("gear_engaged", "i1", 1, "-", -1, 10,
+              "gear engaged by the gearbox: 1 .. n forward, -1 reverse, 0 none (P, N); the "
+              "simple powertrain: 1 in D, -1 in R"),
+    FieldSpec("lockup_engaged", "u1", 1, "-", 0, 1,
+              "torque converter's lock-up clutch closed (0/1; 0 on the simple powertrain)"),
     FieldSpec("ground_grade_pct", "<f4", 1, "%", None, None,
               "slope of the ground under the car along its heading, + = uphill ahead: the "
               "plane fitted under the four wheels (docs/model.md section 11; on the plane "
               "kind, the road)"),
     FieldSpec("ground_cross_slope_pct", "<f4", 1, "%", None, None,
               "slope of that plane across the heading, + = the left side higher"),
+    FieldSpec("engine_speed_radps", "<f4", 1, "rad/s", 0.0, None,
+              "engine speed (automatic powertrain; 0 on the simple powertrain, which has "
+              "no engine)"),
+    FieldSpec("reserved", "u1", 4, "-", 0, 0, "zero (pads the payload to 296 bytes)"),
 )
 
 _WINDOW = "over the last window_ticks ticks"
@@ -514,7 +523,7 @@ DIAGNOSTICS_FIELDS: Final[tuple[FieldSpec, ...]] = (
               "link; the publication never waits for a subscriber)"),
 )
 
-_STRUCT_CODES = {"u1": "B", "u2": "H", "u4": "I", "u8": "Q", "f4": "f", "f8": "d"}
+_STRUCT_CODES = {"u1": "B", "i1": "b", "u2": "H", "u4": "I", "u8": "Q", "f4": "f", "f8": "d"}
 
 
 def _make_dtype(fields: Sequence[FieldSpec]) -> np.dtype:
@@ -544,7 +553,7 @@ STATE_SIZE: Final[int] = STATE_DTYPE.itemsize
 DIAGNOSTICS_SIZE: Final[int] = DIAGNOSTICS_DTYPE.itemsize
 
 assert _COMMAND_STRUCT.size == COMMAND_SIZE == 32
-assert _STATE_STRUCT.size == STATE_SIZE == 288
+assert _STATE_STRUCT.size == STATE_SIZE == 296
 assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 160
 
 
@@ -573,6 +582,7 @@ class StateFlag(enum.IntFlag):
     CATCHUP = 0x08
     FAULT = 0x10
     SKIPPED = 0x20  # the first state after deadlines were skipped (a stall: SIGSTOP, ...)
+    HILL_HOLD = 0x40  # hill-start assist holds the brakes (docs/model.md section 13)
 
 
 @dataclass(frozen=True, slots=True)
@@ -989,11 +999,15 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
     for spec in (
         ControlSpec(
             "reset",
-            "Reset the vehicle to the scene's initial pose at rest, or to `pose` at rest, "
-            "or at rest on a lane of the scene's OpenDRIVE road (`lane`: on the lane's "
-            "centre, heading along its direction of travel; an error names `lane.road`, "
-            "`lane.s` or `lane.lane` when the road has no such place). Not both. Tick and "
-            "sim time restart at 0; counters are kept.",
+            "Reset the vehicle to the scene's initial state, to `pose` at rest, or at rest "
+            "on a lane of the scene's OpenDRIVE road (`lane`: on the lane's centre, heading "
+            "along its direction of travel; an error names `lane.road`, `lane.s` or "
+            "`lane.lane` when the road has no such place); `pose` and `lane` not both. With "
+            "`u_mps`, driving straight on at that speed (from `pose`, `lane` or the scene's "
+            "initial pose), the wheels spinning at u / R and the slip states and the "
+            "powertrain relaxed to their steady values at that speed, so that a session "
+            "starts on the move without a transient. Tick and sim time restart at 0; "
+            "counters are kept.",
             (
                 ArgSpec("pose", "object", False, "", None, None,
                         "pose on the road plane, at rest",
@@ -1015,8 +1029,11 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
                                     "lane id: negative right of the reference line, "
                                     "positive left, not 0"),
                         )),
+                ArgSpec("u_mps", "number", False, "m/s", -30.0, 80.0,
+                        "initial speed along the heading (negative: reversing)"),
             ),
-            reply='"tick": 0, "pose": {"x_m": number, "y_m": number, "yaw_rad": number}',
+            reply='"tick": 0, "pose": {"x_m": number, "y_m": number, "yaw_rad": number}, '
+                  'with u_mps: "u_mps": number',
         ),
         ControlSpec("pause", "Stop stepping the physics; state is still published with "
                     "flags bit 1 set. Idempotent.", reply='"tick": int, "paused": true'),
@@ -1298,7 +1315,8 @@ def _range_text(f: FieldSpec) -> str:
     return f"[{lo}, {hi}]"
 
 
-_TYPE_NAMES = {"u1": "u8", "u2": "u16", "u4": "u32", "u8": "u64", "f4": "f32", "f8": "f64"}
+_TYPE_NAMES = {"u1": "u8", "i1": "i8", "u2": "u16", "u4": "u32", "u8": "u64", "f4": "f32",
+               "f8": "f64"}
 
 
 def fields_markdown(fields: Sequence[FieldSpec], *, with_rule: bool = False) -> str:

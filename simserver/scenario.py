@@ -63,7 +63,10 @@ ROAD_RANGES = {"grade_pct": (-100.0, 100.0), "cross_slope_pct": (-100.0, 100.0),
                "friction_scale": (0.0, 3.0)}
 INITIAL_RANGES = {"x_m": (-1e7, 1e7), "y_m": (-1e7, 1e7), "yaw_rad": (-1e3, 1e3),
                   "u_mps": (-100.0, 100.0), "v_mps": (-100.0, 100.0),
-                  "yaw_rate_radps": (-10.0, 10.0)}
+                  "yaw_rate_radps": (-10.0, 10.0), "relaxed": (0.0, 1.0)}
+"""``initial.relaxed``: 0 (the default, the paper's starts) the wheels spin at ``u / R``
+with the slip states at zero; 1 the wheels, slip states and powertrain start relaxed to
+their steady values at the initial velocity (``Simulation.reset``, ``core.start``)."""
 
 
 MAX_SCENARIO_STEPS = 10_000_000
@@ -178,6 +181,8 @@ def parse_scene(path: Path, data: dict[str, Any], vehicle_path: Path | None = No
     check_keys(f"{path} (initial)", init_raw, tuple(INITIAL_RANGES))
     initial = {key: number(path, f"initial.{key}", init_raw.get(key, 0.0), lo, hi)
                for key, (lo, hi) in INITIAL_RANGES.items()}
+    if initial["relaxed"] not in (0.0, 1.0):
+        raise ConfigError(f"{path}: key 'initial.relaxed': expected 0 or 1")
     spec = terrain_spec(path, data.get("terrain"))
     terrain = terrain_from_spec(spec)
     roads = None
@@ -301,6 +306,9 @@ def run_scenario(
     chunk_steps = max(every, chunk_steps - chunk_steps % every)
     times = np.arange(n) * scenario.dt_s
     inputs = input_table(scenario.keyframes, times)
+    if scenario.scene.initial.get("relaxed", 0.0) and n > 0:
+        sim.inputs[:] = inputs[0]  # a relaxed start settles with the first inputs
+        sim.reset(None)
     n_rec = (n + every - 1) // every
     states = np.zeros((n_rec, L.N_STATE))
     outputs = np.zeros((n_rec, L.N_OUT))

@@ -759,8 +759,10 @@ def _check_log_entry(where: str, entry: Any, last_step: int) -> int:
                                   "number")
     elif kind == "reset":
         if value is not None:  # a reset control's pose, or a scene's start (a fault stop)
-            _log_numbers(where, "reset", value,
-                         {k: INITIAL_RANGES[k] for k in ("x_m", "y_m", "yaw_rad")})
+            spec = {k: INITIAL_RANGES[k] for k in ("x_m", "y_m", "yaw_rad")}
+            if isinstance(value, dict) and "u_mps" in value:  # a reset at speed (issue 17)
+                spec["u_mps"] = _control_ranges("reset")["u_mps"]
+            _log_numbers(where, "reset", value, spec)
     elif kind == "set_road":
         _log_numbers(where, "set_road", value, _control_ranges("set_road"))
     else:
@@ -847,7 +849,8 @@ def replay_command_log(path: str | Path, progress: Any = None) -> Replay:
             if "inputs" in e:
                 physics.inputs[:] = e["inputs"]
             elif "reset" in e:
-                physics.reset(e["reset"])
+                pose = None if e["reset"] is None else dict(e["reset"])
+                physics.reset(pose, None if pose is None else pose.pop("u_mps", None))
             elif "set_road" in e:
                 physics.set_road(**e["set_road"])
             elif "load" in e:

@@ -19,14 +19,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from simserver.core import layout as L
+from simserver.core import params as P
 from simserver.core.chassis import place_on_terrain
 from simserver.core.damping import DAMPING_MODELS
 from simserver.core.integrator import simulate, step
 from simserver.core.model import Data, Model, make_data
 from simserver.core.params import VP_CG_HEIGHT_M, VP_DAMPING_MODEL, VP_SLIP_MODEL
 from simserver.core.pose import world_pose
+from simserver.core.powertrain import RADPS_PER_RPM
 from simserver.core.road import road_axes, road_frame, set_road
 from simserver.core.slip import SLIP_MODELS
+from simserver.core.start import BODY_SLOTS, settle_at_velocity, settle_steps, start_powertrain
 from simserver.core.terrain import TERRAIN_PLANE
 from simserver.core.tire_layout import TP_RADIUS_M
 from simserver.tire_models import check_tire_vectors, tire_kernels
@@ -37,7 +40,8 @@ if TYPE_CHECKING:
 
 def initial_state(scene: Scene) -> np.ndarray:
     """The state at t = 0: given pose and velocities, wheels rolling freely, springs
-    static, no previous wheel loads."""
+    static, no previous wheel loads, the engine (automatic powertrain) at idle, no gear
+    engaged yet."""
     x = np.zeros(L.N_STATE, dtype=np.float64)
     init = scene.initial
     x[L.X_M] = init["x_m"]
@@ -51,6 +55,11 @@ def initial_state(scene: Scene) -> np.ndarray:
         x[L.OMEGA0 + i] = init["u_mps"] / tp[i, TP_RADIUS_M]
         x[L.HUB_U_PREV0 + i] = init["u_mps"]
     x[L.FZ_PREV] = L.FZ_PREV_NONE
+    vp = scene.vehicle.vp
+    if int(vp[P.VP_POWERTRAIN_KIND]) == P.POWERTRAIN_AUTOMATIC:  # the engine idles,
+        x[L.ENGINE_SPEED_RADPS] = vp[P.VP_ENGINE_IDLE_SPEED_RPM] * RADPS_PER_RPM
+        # its idle controller settled against the drag torque (as in P or N)
+        x[L.IDLE_CONTROL_NM] = vp[P.VP_ENGINE_DRAG_TORQUE_NM]
     return x
 
 
@@ -117,16 +126,45 @@ class Simulation:
         """Forces and accelerations at the start of the last step (``core.layout.O_*``)."""
         return self.data.out
 
-    def reset(self, pose: dict[str, float] | None) -> None:
-        """Back to the scene's initial state, or at rest at ``pose`` (x_m, y_m, yaw_rad)."""
+    def reset(self, pose: dict[str, float] | None, u_mps: float | None = None) -> None:
+        """Back to the scene's initial state, or to ``pose`` (x_m, y_m, yaw_rad) at rest or,
+        with ``u_mps``, driving straight on at that speed.
+
+        A start at speed with ``u_mps`` (or the scene's ``initial.relaxed: 1``) has the
+        wheels, slip states and powertrain relaxed to their steady values at the initial
+        velocity (``core.start``), with the current steer, throttle and gear (P as N) and
+        the brakes off; the inputs are kept.
+        """
         scene = self.scene
-        if pose is not None:
-            at_rest = {**scene.initial, **pose, "u_mps": 0.0, "v_mps": 0.0,
-                       "yaw_rate_radps": 0.0}
-            scene = dataclasses.replace(scene, initial=at_rest)
+        relaxed = bool(scene.initial.get("relaxed", 0.0))
+        if pose is not None or u_mps is not None:
+            start = {**scene.initial, **(pose or {}), "u_mps": 0.0, "v_mps": 0.0,
+                     "yaw_rate_radps": 0.0}
+            if u_mps is not None:
+                start["u_mps"] = float(u_mps)
+                relaxed = True
+            scene = dataclasses.replace(scene, initial=start)
         self.data.x[:] = initial_state(scene)
         if self.model.terrain.kind != TERRAIN_PLANE:
             place_on_terrain(self.model, self.data.ws, self.data.x)
+        if relaxed:
+            self.settle()
+
+    def settle(self) -> None:
+        """Relax the wheels, slip states and powertrain at the state's velocity (body held,
+        ``core.start``); the inputs are kept."""
+        n = settle_steps(self.model, self.data.x[L.U_MPS])
+        inputs = self.data.inputs
+        kept = inputs.copy()
+        inputs[L.IN_BRAKE] = 0.0
+        inputs[L.IN_PARKING_BRAKE] = 0.0
+        if inputs[L.IN_GEAR] == L.GEAR_P:
+            inputs[L.IN_GEAR] = L.GEAR_N
+        try:
+            start_powertrain(self.model, self.data)
+            settle_at_velocity(self.model, self.data, n, np.zeros(BODY_SLOTS))
+        finally:
+            inputs[:] = kept
 
     # ---- stepping
     def step(self) -> None:
@@ -162,3 +200,5 @@ class Simulation:
         world_pose(self.data.x, self.axes, self.model.vp[VP_CG_HEIGHT_M], self.pose)
         simulate(self.model, saved, np.zeros((1, L.N_INPUT)), np.zeros((1, L.N_STATE)),
                  np.zeros((1, L.N_OUT)), 1)
+        start_powertrain(self.model, saved)
+        settle_at_velocity(self.model, saved, 1, np.zeros(BODY_SLOTS))

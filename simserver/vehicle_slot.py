@@ -59,7 +59,7 @@ class SimulationAPI(Protocol):
     road: dict[str, float]
 
     def step(self) -> None: ...
-    def reset(self, pose: dict[str, float] | None) -> None: ...
+    def reset(self, pose: dict[str, float] | None, u_mps: float | None = None) -> None: ...
     def set_road(self, grade_pct: float, cross_slope_pct: float,
                  friction_scale: float) -> None: ...
     def load(self, scene: Scene) -> None: ...
@@ -304,6 +304,8 @@ class VehicleSlot:
         np.logical_and(x[L.WHEEL_HELD] > 0.5, braking, out=held)
         if held.any():
             flags |= proto.StateFlag.BRAKE_HOLD
+        if x[L.HILL_HOLD_ACTIVE] > 0.5:
+            flags |= proto.StateFlag.HILL_HOLD
         if catching_up:
             flags |= proto.StateFlag.CATCHUP
         if self.fault:
@@ -350,6 +352,9 @@ class VehicleSlot:
         rec["brake"] = inputs[L.IN_BRAKE]
         rec["parking_brake"] = inputs[L.IN_PARKING_BRAKE]
         rec["gear"] = inputs[L.IN_GEAR]
+        rec["gear_engaged"] = x[L.GEAR_ENGAGED]
+        rec["lockup_engaged"] = x[L.LOCKUP_ENGAGED]
+        rec["engine_speed_radps"] = x[L.ENGINE_SPEED_RADPS]
         return rec.tobytes()
 
     def check_finite(self) -> bool:
@@ -390,23 +395,31 @@ class VehicleSlot:
     # field (docs/protocol.md section 3). The loop's table maps control names to them.
     def ctl_reset(self, args: dict[str, Any]) -> dict[str, Any]:
         """``reset``: the scene's initial state, or at rest at ``pose`` or on ``lane`` (road,
-        s and lane of the scene's OpenDRIVE roads, ``lane_start``); tick 0. The log keeps
-        the world pose, so a replay needs no roads."""
+        s and lane of the scene's OpenDRIVE roads, ``lane_start``), or with ``u_mps`` driving
+        straight on at that speed (wheels, slips and powertrain relaxed); tick 0. The log
+        keeps the world pose, so a replay needs no roads."""
         pose = args.get("pose")
+        u_mps = args.get("u_mps")
         p = self.sim
         if "lane" in args:
             if pose is not None:
                 raise proto.ProtocolError("lane", "give pose or lane, not both")
             pose = self._lane_pose(args["lane"])
-        p.reset(pose)
+        p.reset(pose, u_mps)
         self.tick = 0
         self.fault = False
         self.arbiter.last_seq = None  # docs/protocol.md 2.1: a new client may start from 0
-        self._log({"step": self.steps_total, "reset": pose})
         # the start pose as the scene's initial takes it (on the plane, the state's own
-        # x, y and yaw; on a terrain the state lives on the step's reference plane)
+        # x, y and yaw; on a terrain the state lives on the step's reference plane); a start
+        # at speed holds the body while it settles, so the pose is where it began
         start = pose if pose is not None else p.scene.initial
-        return {"tick": 0, "pose": {key: float(start[key]) for key in ("x_m", "y_m", "yaw_rad")}}
+        start_pose = {key: float(start[key]) for key in ("x_m", "y_m", "yaw_rad")}
+        logged = pose if u_mps is None else {**start_pose, "u_mps": float(u_mps)}
+        self._log({"step": self.steps_total, "reset": logged})
+        reply = {"tick": 0, "pose": start_pose}
+        if u_mps is not None:
+            reply["u_mps"] = float(p.x[L.U_MPS])
+        return reply
 
     def _lane_pose(self, lane: dict[str, Any]) -> dict[str, float]:
         """The world pose of a reset by road, s and lane (microseconds: the roads are

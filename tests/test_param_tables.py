@@ -22,6 +22,8 @@ from tests.conftest import CONFIGS
 REPO = Path(__file__).resolve().parents[1]
 VEHICLE = CONFIGS / "vehicles" / "paper_sedan"
 FILE_PARAMS = [pytest.param(t, p, id=p.name) for t in P.VEHICLE_SUBSYSTEMS for p in t]
+REQUIRED_FILE_PARAMS = [pytest.param(t, p, id=p.name) for t in P.VEHICLE_SUBSYSTEMS for p in t
+                        if p.required]
 OPTION_PARAMS = [pytest.param(p, id=p.name) for p in P.MODEL_OPTIONS]
 
 
@@ -37,8 +39,10 @@ def test_slot_constants_are_the_generated_block():
 def test_slot_constants_match_the_tables():
     """Every parameter has one VP_ constant holding its slot, in order, and nothing else."""
     layout = P.VEHICLE_PARAMS
-    assert [p.slot for p in layout] == list(range(P.N_VEHICLE_PARAM))
-    assert P.N_VEHICLE_PARAM == len(P.VEHICLE_PARAM_NAMES) == sum(map(len, P.VEHICLE_PARAM_TABLES))
+    # a list parameter (size > 1: a curve, the gear ratios) takes size consecutive slots
+    assert [p.slot + k for p in layout for k in range(p.size)] == list(range(P.N_VEHICLE_PARAM))
+    assert len(P.VEHICLE_PARAM_NAMES) == sum(map(len, P.VEHICLE_PARAM_TABLES))
+    assert P.N_VEHICLE_PARAM == sum(p.size for p in layout)
     assert P.VEHICLE_PARAM_NAMES == tuple(p.name for p in layout)
     consts = {name: value for name, value in vars(P).items()
               if name.startswith("VP_") and type(value) is int}
@@ -50,14 +54,16 @@ def test_every_key_has_unit_range_and_meaning():
         assert table.title
         for p in table:
             assert p.unit and p.meaning, p.name
-            if p.derived:
-                assert table is P.ROAD and p.default is None, p.name
+            if p.derived:  # computed by the loader: the road's gravity, the gear count
+                assert table in (P.ROAD, P.AUTOMATIC) and p.default is None, p.name
             elif p.choices is not None:
                 assert all(isinstance(v, int) for v in p.choices.values()), p.name
             else:
                 assert p.lo <= p.hi, p.name
     for table in P.VEHICLE_SUBSYSTEMS:  # a vehicle file has no defaults: every key required
-        assert table.required_keys == table.keys
+        # but the powertrain's kind (simple by default: the files before it stay valid)
+        optional = ("kind",) if table is P.POWERTRAIN else ()
+        assert table.required_keys == tuple(k for k in table.keys if k not in optional)
 
 
 @pytest.mark.parametrize("bad, needle", [
@@ -115,7 +121,8 @@ def test_each_file_key_lands_in_its_slot():
     for table in P.VEHICLE_SUBSYSTEMS:
         data = yaml.safe_load((VEHICLE / f"{table.name}.yaml").read_text())
         for p in table:
-            want = p.choices[data[p.yaml_key]] if p.choices is not None else data[p.yaml_key]
+            value = data.get(p.yaml_key, p.default)  # the powertrain's kind has a default
+            want = p.choices[value] if p.choices is not None else value
             assert cfg.vp[p.slot] == want, p.name
     for p in (*P.ROAD, *P.MODEL_OPTIONS):  # the road starts flat, the options at defaults
         if not p.derived:
@@ -132,7 +139,7 @@ def test_out_of_range_file_key_names_file_and_key(vehicle_copy, table, param):
     assert str(sub.resolve()) in str(err.value) and f"'{param.yaml_key}'" in str(err.value)
 
 
-@pytest.mark.parametrize("table, param", FILE_PARAMS)
+@pytest.mark.parametrize("table, param", REQUIRED_FILE_PARAMS)
 def test_missing_file_key_names_file_and_key(vehicle_copy, table, param):
     sub = vehicle_copy / f"{table.name}.yaml"
     edit(sub, **{param.yaml_key: None})

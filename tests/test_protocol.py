@@ -86,7 +86,7 @@ def test_key_table_matches_keys():
 
 @pytest.mark.parametrize(
     ("fields", "dtype", "size"),
-    [(P.COMMAND_FIELDS, P.COMMAND_DTYPE, 32), (P.STATE_FIELDS, P.STATE_DTYPE, 288),
+    [(P.COMMAND_FIELDS, P.COMMAND_DTYPE, 32), (P.STATE_FIELDS, P.STATE_DTYPE, 296),
      (P.DIAGNOSTICS_FIELDS, P.DIAGNOSTICS_DTYPE, 160)],
 )
 def test_layouts_packed_aligned_little_endian(fields, dtype, size):
@@ -310,7 +310,7 @@ def test_state_round_trip_and_record_path_agree():
     values["tick"] = 2**63 + 5
     values["flags"] = int(P.StateFlag.WATCHDOG | P.StateFlag.BRAKE_HOLD)
     payload = P.encode_state(**values)
-    assert len(payload) == P.STATE_SIZE == 288
+    assert len(payload) == P.STATE_SIZE == 296
     rec = P.decode_state(payload)
     for f in P.STATE_FIELDS:
         if f.name in values:

@@ -34,7 +34,12 @@ from simserver.adapters.validate import (  # re-exported: callers import them fr
     referenced_file,
 )
 from simserver.core import params as P
-from simserver.core.param_table import ParamTable, slot_constants_source, with_slot_constants
+from simserver.core.param_table import (
+    ParamTable,
+    pad_list,
+    slot_constants_source,
+    with_slot_constants,
+)
 from simserver.core.road import set_road
 from simserver.core.tire import N_TIRE_PARAM
 from simserver.core.tire_layout import (
@@ -82,17 +87,92 @@ def read_params(path: Path | str, data: dict[str, Any], table: ParamTable,
         key = param.yaml_key
         label = key if section is None else f"{section}.{key}"
         value = data.get(key, param.default)
+        if isinstance(value, bool) and param.choices is not None and set(param.choices) == {
+                "off", "on"}:
+            value = "on" if value else "off"  # YAML reads a bare on/off as a boolean
         if param.choices is not None:
             values[key] = choice(path, label, value, param.choices)
+        elif param.size > 1:
+            values[key] = number_list(path, label, value, param)
         else:
             values[key] = number(path, label, value, param.lo, param.hi)
     return values
 
 
-def pack_params(vp: np.ndarray, table: ParamTable, values: dict[str, float]) -> None:
-    """Write values keyed as ``read_params`` returns them into their slots of ``vp``."""
+def number_list(path: Path | str, label: str, value: Any, param: Any) -> list[float]:
+    """A list parameter: 1 .. ``param.size`` numbers, each in range (unpadded)."""
+    if not isinstance(value, list) or not 1 <= len(value) <= param.size:
+        raise ConfigError(f"{path}: key '{label}': expected a list of 1 to {param.size} "
+                          f"numbers")
+    return [number(path, f"{label}[{k}]", v, param.lo, param.hi) for k, v in enumerate(value)]
+
+
+def pack_params(vp: np.ndarray, table: ParamTable, values: dict[str, Any]) -> None:
+    """Write values keyed as ``read_params`` returns them into their slots of ``vp`` (a list
+    padded with its last value, ``core.param_table.pad_list``)."""
     for key, value in values.items():
-        vp[table.by_key(key).slot] = value
+        param = table.by_key(key)
+        if param.size > 1:
+            vp[param.slot:param.slot + param.size] = pad_list(value, param.size)
+        else:
+            vp[param.slot] = value
+
+
+AUTOMATIC_SECTION = "automatic"  # the powertrain file's section for ``kind: automatic``
+
+
+def read_powertrain(path: Path | str, data: dict[str, Any], vp: np.ndarray) -> None:
+    """The powertrain file: its own keys, and with ``kind: automatic`` its ``automatic:``
+    section (``core.params.AUTOMATIC``), checked for consistent list lengths."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping")
+    data = dict(data)
+    section = data.pop(AUTOMATIC_SECTION, None)
+    values = read_params(path, data, P.POWERTRAIN)
+    pack_params(vp, P.POWERTRAIN, values)
+    if values["kind"] != P.POWERTRAIN_AUTOMATIC:
+        if section is not None:
+            raise ConfigError(f"{path}: key '{AUTOMATIC_SECTION}': only with kind: automatic")
+        return
+    if not isinstance(section, dict):
+        raise ConfigError(f"{path}: key '{AUTOMATIC_SECTION}': kind: automatic needs this "
+                          "section (a mapping; docs/configuration.md)")
+    auto = read_params(path, section, P.AUTOMATIC, section=AUTOMATIC_SECTION)
+
+    def fail(key: str, why: str) -> None:
+        raise ConfigError(f"{path}: key '{AUTOMATIC_SECTION}.{key}': {why}")
+
+    for xs_key, ys_key in (("engine_curve_speed_rpm", "engine_full_load_torque_nm"),
+                           ("converter_speed_ratio", "converter_k_factor_rpm_per_sqrt_nm"),
+                           ("converter_speed_ratio", "converter_torque_ratio")):
+        if len(auto[ys_key]) != len(auto[xs_key]):
+            fail(ys_key, f"expected {len(auto[xs_key])} values, one per {xs_key}")
+        if any(b <= a for a, b in zip(auto[xs_key], auto[xs_key][1:], strict=False)):
+            fail(xs_key, "expected increasing values")
+    if auto["converter_speed_ratio"][0] != 0.0:
+        fail("converter_speed_ratio", "expected the first point at 0 (stall)")
+    if auto["converter_speed_ratio"][-1] >= 1.0:
+        fail("converter_speed_ratio", "expected the last point below 1 (the coupling)")
+    n_gears = len(auto["gear_ratios"])
+    if any(b >= a for a, b in zip(auto["gear_ratios"], auto["gear_ratios"][1:],
+                                        strict=False)):
+        fail("gear_ratios", "expected decreasing ratios, first gear first")
+    for key in ("upshift_speed_light_mps", "upshift_speed_full_mps"):
+        if len(auto[key]) != max(n_gears - 1, 1):
+            fail(key, f"expected {max(n_gears - 1, 1)} values: one per upshift of the "
+                 f"{n_gears} gears")
+        if any(b <= a for a, b in zip(auto[key], auto[key][1:], strict=False)):
+            fail(key, "expected increasing speeds")
+    if any(f < lo for lo, f in zip(auto["upshift_speed_light_mps"],
+                                   auto["upshift_speed_full_mps"], strict=True)):
+        fail("upshift_speed_full_mps", "an upshift at full throttle comes before the same "
+             "upshift at closed throttle")
+    if auto["lockup_release_speed_rpm"] > auto["lockup_engage_speed_rpm"]:
+        fail("lockup_release_speed_rpm", "exceeds lockup_engage_speed_rpm")
+    if auto["engine_speed_max_rpm"] <= auto["engine_idle_speed_rpm"]:
+        fail("engine_speed_max_rpm", "not above engine_idle_speed_rpm")
+    pack_params(vp, P.AUTOMATIC, auto)
+    vp[P.VP_GEAR_COUNT] = n_gears
 
 
 def model_option_values(options: dict[str, Any] | None, source: str) -> dict[str, float]:
@@ -188,7 +268,10 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
         ref = top[subsystem]
         if isinstance(ref, dict) and resolved is not None:
             sources[subsystem] = f"{path}.{subsystem}"
-            pack_params(vp, table, read_params(sources[subsystem], ref, table))
+            if table is P.POWERTRAIN:
+                read_powertrain(sources[subsystem], ref, vp)
+            else:
+                pack_params(vp, table, read_params(sources[subsystem], ref, table))
             continue
         sub_path = referenced_file(path, subsystem, ref)
         sources[subsystem] = str(sub_path)
@@ -196,7 +279,10 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
             sub_data = read_yaml(sub_path)
         except ConfigError as exc:  # unreadable or not YAML: name the key that refers to it
             raise ConfigError(f"{path}: key '{subsystem}': {exc}") from None
-        pack_params(vp, table, read_params(sub_path, sub_data, table))
+        if table is P.POWERTRAIN:
+            read_powertrain(sub_path, sub_data, vp)
+        else:
+            pack_params(vp, table, read_params(sub_path, sub_data, table))
     if vp[P.VP_SPRUNG_MASS_KG] > vp[P.VP_MASS_KG]:
         raise ConfigError(f"{sources['chassis']}: key 'sprung_mass_kg': exceeds mass_kg")
 
@@ -303,7 +389,14 @@ def config_reference_markdown() -> str:
     ]
     for table in P.VEHICLE_SUBSYSTEMS:
         lines += ["", f"## `{table.name}` file", "", f"{table.title.capitalize()}.", ""]
-        lines += _param_rows(table, with_default=False)
+        lines += _param_rows(table, with_default=table is P.POWERTRAIN)
+    lines += ["", f"### `{AUTOMATIC_SECTION}:` section of the powertrain file", "",
+              f"{P.AUTOMATIC.title.capitalize()}: required with `kind: automatic`, refused "
+              "otherwise; every key required. A list key takes 1 to the number of values "
+              "shown; the curves' lists are as long as their points' list (the engine's "
+              "speeds, the converter's speed ratios), the upshift speeds one fewer than the "
+              "gears.", ""]
+    lines += _param_rows(P.AUTOMATIC, with_default=False)
     lines += ["", "## Tire files", "",
               f"`model`: one of {', '.join(f'`{m.name}`' for m in tire_models())}; the "
               "other keys are the model's (from its parameter table in "

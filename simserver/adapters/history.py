@@ -107,6 +107,15 @@ _DESCRIPTIONS: dict[str, str] = {
     "patch_twist_{w}_rad": "{W} contact-patch torsion: the rim turned against the patch "
                            "(left +), relaxing over the lateral relaxation length as it rolls",
     "steering_primed": "1 once a step has set the steering-wheel angle (0: a fresh state)",
+    "engine_speed_radps": "engine speed (automatic powertrain, docs/model.md section 13; 0 "
+                          "on the simple one)",
+    "gear_engaged": "gear engaged: 1 .. n forward, -1 reverse, 0 none (P, N)",
+    "lockup_engaged": "torque converter's lock-up clutch closed (0 or 1)",
+    "idle_control_nm": "engine idle speed controller's integral term",
+    "shift_timer_s": "time since the last gear change",
+    "hill_hold_pedal": "brake pedal the hill-start assist keeps (0: not armed)",
+    "hill_hold_active": "hill-start assist holds the brakes beyond the driver's pedal (0 or 1)",
+    "hill_hold_time_s": "time since the pedal was released under the hill-start hold",
     # --- outputs
     "ax_mps2": "CG acceleration along body x",
     "ay_mps2": "CG acceleration along body y",

@@ -155,8 +155,8 @@ def freeze_inputs(model: Model, data: Data) -> None:
     for i in range(N_WHEELS):
         wheel_in[WI_COS_STEER, i] = np.cos(wheel_in[WI_STEER_RAD, i])
         wheel_in[WI_SIN_STEER, i] = np.sin(wheel_in[WI_STEER_RAD, i])
-    wheel_torques(data.x, model.vp, data.inputs, wheel_in[WI_DRIVE_NM],
-                  wheel_in[WI_BRAKE_CAP_NM])
+    wheel_torques(data.x, model.vp, data.inputs, data.out, model.tp[:, TP_RADIUS_M],
+                  model.dt_s, wheel_in[WI_DRIVE_NM], wheel_in[WI_BRAKE_CAP_NM])
     for i in range(N_WHEELS):
         wheel_in[WI_HELD, i] = 0.0
         wheel_in[WI_BRAKE_NM, i] = 0.0

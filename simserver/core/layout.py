@@ -64,7 +64,17 @@ STEERING_WHEEL_TORQUE_NM = 50  # torque on the driver's hands, + = toward the le
 STEERING_FRICTION_NM = 51  # column friction (Dahl), with the sign of the motion (N m)
 PATCH_TWIST0 = 52  # front tires' contact-patch torsion, rim against patch (rad), 2 slots
 STEERING_PRIMED = 54  # 1 once a step has set the steering-wheel angle (0: fresh state)
-N_STATE = 55
+# Appended for the automatic powertrain and hill-start assist (core.powertrain,
+# docs/model.md section 13); discrete states, updated once per step
+ENGINE_SPEED_RADPS = 55  # engine (pump) speed (rad/s); 0 on the simple powertrain
+GEAR_ENGAGED = 56  # gear engaged: 1 .. n forward, -1 reverse, 0 none (P, N)
+LOCKUP_ENGAGED = 57  # 1 while the converter's lock-up clutch is closed
+IDLE_CONTROL_NM = 58  # the idle speed controller's integral term (N m)
+SHIFT_TIMER_S = 59  # time since the last gear change (s)
+HILL_HOLD_PEDAL = 60  # brake pedal the hill-start assist keeps (0: not armed)
+HILL_HOLD_ACTIVE = 61  # 1 while the assist holds the brakes beyond the driver's pedal
+HILL_HOLD_TIME_S = 62  # time since the driver released the pedal under the hold (s)
+N_STATE = 63
 FZ_PREV_NONE = -1.0  # FZ_PREV value of a fresh start: no previous load to extrapolate from
 
 STATE_NAMES = (
@@ -84,6 +94,8 @@ STATE_NAMES = (
        "steering_friction_nm")
     + tuple(f"patch_twist_{w}_rad" for w in WHEEL_NAMES[:N_FRONT_WHEELS])
     + ("steering_primed",)
+    + ("engine_speed_radps", "gear_engaged", "lockup_engaged", "idle_control_nm",
+       "shift_timer_s", "hill_hold_pedal", "hill_hold_active", "hill_hold_time_s")
 )
 
 # ---------------------------------------------------------------- driver inputs

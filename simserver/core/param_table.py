@@ -27,7 +27,9 @@ class Param:
     means the key is required; a text default on a numeric parameter describes a value the
     loader computes when the key is absent (e.g. "from the .tir file"). ``slot`` is the
     index in the packed vector the table belongs to; ``const`` names its slot constant when
-    that is not ``prefix + NAME``.
+    that is not ``prefix + NAME``. ``size`` > 1 makes the key a list (a curve's points, the
+    gear ratios) of 1 .. ``size`` numbers, each within ``lo``/``hi``, packed into ``size``
+    consecutive slots and padded with its last value (``pad_list``).
     """
 
     name: str
@@ -40,6 +42,7 @@ class Param:
     slot: int | None = None
     const: str | None = None
     key: str | None = None  # the YAML key when it differs from the slot name
+    size: int = 1  # > 1: a list of 1 .. size numbers in slots slot .. slot + size - 1
 
     @property
     def yaml_key(self) -> str:
@@ -131,15 +134,26 @@ class ParamTable:
         return {p.yaml_key: p.default for p in self.params if p.default is not None}
 
 
+def pad_list(values: list[float], size: int) -> list[float]:
+    """A list parameter's values padded to ``size`` with its last value."""
+    return list(values) + [values[-1]] * (size - len(values))
+
+
 def slot_layout(tables: tuple[ParamTable, ...]) -> tuple[Param, ...]:
-    """Every parameter of ``tables`` in slot order; the slots must be exactly 0 .. n-1."""
+    """Every parameter of ``tables`` in slot order; the slots (a list parameter takes
+    ``size`` of them) must be exactly 0 .. n-1."""
     params = sorted((p for t in tables for p in t), key=lambda p: -1 if p.slot is None
                     else p.slot)
-    slots = [p.slot for p in params]
-    if slots != list(range(len(params))):
+    slots = [p.slot + k if p.slot is not None else None for p in params for k in range(p.size)]
+    if slots != list(range(len(slots))):
         raise ValueError(f"the slots of tables {[t.name for t in tables]} are not 0 .. "
-                         f"{len(params) - 1} each once: {slots}")
+                         f"{len(slots) - 1} each once: {slots}")
     return tuple(params)
+
+
+def slot_count(params: tuple[Param, ...]) -> int:
+    """How many slots ``params`` (from ``slot_layout``) take."""
+    return sum(p.size for p in params)
 
 
 def slot_const(param: Param, prefix: str) -> str:
@@ -157,8 +171,9 @@ def slot_constants_source(tables: tuple[ParamTable, ...], prefix: str) -> str:
     lines = []
     for param in slot_layout(tables):
         table, _ = by_slot[param.slot]
+        size = f", {param.size} slots" if param.size > 1 else ""
         lines.append(f"{slot_const(param, prefix)} = {param.slot}  # {param.unit}, "
-                     f"{table.name}")
+                     f"{table.name}{size}")
     return "\n".join(lines) + "\n"
 
 

@@ -21,11 +21,17 @@ from simserver.core.damping import (
     PAPER_DAMPING_RATIO,
     PAPER_TRIGGER_LATERAL_SPEED_MPS,
 )
-from simserver.core.param_table import Param, ParamTable, slot_layout
+from simserver.core.param_table import Param, ParamTable, slot_count, slot_layout
 from simserver.core.slip import SLIP_MODEL_NAMES
 
 DRIVEN_FRONT, DRIVEN_REAR, DRIVEN_BOTH = 0, 1, 2
 DRIVEN_AXLE_NAMES = {"front": DRIVEN_FRONT, "rear": DRIVEN_REAR, "both": DRIVEN_BOTH}
+POWERTRAIN_SIMPLE, POWERTRAIN_AUTOMATIC = 0, 1
+POWERTRAIN_KIND_NAMES = {"simple": POWERTRAIN_SIMPLE, "automatic": POWERTRAIN_AUTOMATIC}
+HILL_START_ASSIST_NAMES = {"off": 0, "on": 1}
+ENGINE_CURVE_POINTS = 12  # most points of the engine's full-load curve
+CONVERTER_CURVE_POINTS = 12  # most points of the converter's K and torque-ratio curves
+GEARS_MAX = 10  # most forward gears
 
 # --- the vehicle's subsystem files (every key required)
 CHASSIS = ParamTable("chassis", "mass, inertias, geometry, aerodynamics", (
@@ -139,6 +145,16 @@ BRAKES = ParamTable("brakes", "service and parking brakes", (
           "rest, docs/model.md section 4b item 4)", slot=21),
     Param("parking_brake_torque_nm", "N m", 0.0, 1e6, "parking-brake torque per rear wheel",
           slot=22),
+    # hill-start assist (issue 17, docs/model.md section 12)
+    Param("hill_start_assist", "-", None, None,
+          "hill-start assist: releasing the brake at rest on a grade keeps the brakes on "
+          "until the drive overcomes the grade or for hill_start_assist_hold_s",
+          choices=HILL_START_ASSIST_NAMES, slot=66),
+    Param("hill_start_assist_hold_s", "s", 0.0, 10.0,
+          "longest hold after the pedal is released (production cars: about 2 s)", slot=67),
+    Param("hill_start_assist_min_grade_pct", "%", 0.0, 50.0,
+          "the assist acts on grades steeper than this, against the selected direction",
+          slot=68),
 ))
 POWERTRAIN = ParamTable("powertrain", "drive torque and power, driven axles, wheel inertias", (
     Param("drive_torque_max_nm", "N m", 0.0, 1e6,
@@ -156,8 +172,78 @@ POWERTRAIN = ParamTable("powertrain", "drive torque and power, driven axles, whe
           "spin inertia of a front wheel with disc and driveline share", slot=16),
     Param("wheel_inertia_rear_kgm2", "kg m^2", 0.05, 500.0,
           "spin inertia of a rear wheel with disc and driveline share", slot=17),
+    Param("kind", "-", None, None,
+          "simple (a torque map at the wheels: the drive_* and reverse_* keys) or "
+          "automatic (engine, torque converter, automatic gearbox: the file's "
+          "`automatic:` section)", default="simple", choices=POWERTRAIN_KIND_NAMES, slot=65,
+          const="VP_POWERTRAIN_KIND"),
 ))
 VEHICLE_SUBSYSTEMS = (CHASSIS, SUSPENSION, STEERING, BRAKES, POWERTRAIN)
+
+# --- the powertrain file's ``automatic:`` section (required with ``kind: automatic``)
+_RPM_MAX = 20000.0
+AUTOMATIC = ParamTable("automatic", "engine, torque converter and automatic gearbox "
+                       "(docs/model.md section 12)", (
+    Param("engine_idle_speed_rpm", "rpm", 300.0, 3000.0,
+          "idle speed the idle controller holds", slot=69),
+    Param("engine_speed_max_rpm", "rpm", 1000.0, _RPM_MAX,
+          "fuel cut: no throttle torque above this speed", slot=70),
+    Param("engine_inertia_kgm2", "kg m^2", 0.01, 10.0,
+          "engine, flywheel and converter pump about the crankshaft", slot=71),
+    Param("engine_curve_speed_rpm", "rpm", 0.0, _RPM_MAX,
+          "engine speeds of the full-load curve's points, increasing", slot=72,
+          size=ENGINE_CURVE_POINTS),
+    Param("engine_full_load_torque_nm", "N m", 0.0, 1e5,
+          "full-load (wide-open throttle) torque at those speeds, net of the drag torque "
+          "(linear between points, constant beyond)", slot=84, size=ENGINE_CURVE_POINTS),
+    Param("engine_drag_torque_nm", "N m", 0.0, 1e4,
+          "friction and pumping torque at idle speed, throttle closed", slot=96),
+    Param("engine_drag_torque_per_krpm_nm", "N m", 0.0, 1e4,
+          "drag torque added per 1000 rpm above idle", slot=97),
+    Param("idle_control_gain_nm_per_rpm", "N m/rpm", 0.0, 100.0,
+          "idle controller, proportional: torque per rpm below idle speed", slot=98),
+    Param("idle_control_integral_time_s", "s", 0.01, 10.0,
+          "idle controller, integral time", slot=99),
+    Param("idle_control_torque_max_nm", "N m", 0.0, 1e4,
+          "idle controller's authority (more than the drag plus the converter's load at "
+          "idle and stall: the engine never stalls)", slot=100),
+    Param("converter_speed_ratio", "-", 0.0, 1.0,
+          "turbine / pump speed at the converter curves' points, increasing from 0; "
+          "above the last point K rises to infinity at 1 and the torque ratio is 1",
+          slot=101, size=CONVERTER_CURVE_POINTS),
+    Param("converter_k_factor_rpm_per_sqrt_nm", "rpm/sqrt(N m)", 1.0, 1e4,
+          "capacity factor K = pump speed / sqrt(pump torque) at those points", slot=113,
+          size=CONVERTER_CURVE_POINTS),
+    Param("converter_torque_ratio", "-", 0.5, 10.0,
+          "turbine / pump torque at those points (about 2 at stall, 1 at coupling)",
+          slot=125, size=CONVERTER_CURVE_POINTS),
+    Param("lockup_engage_speed_rpm", "rpm", 0.0, _RPM_MAX,
+          "the lock-up clutch closes above this turbine speed (in gear lockup_gear_min or "
+          "higher, not in kick-down)", slot=137),
+    Param("lockup_release_speed_rpm", "rpm", 0.0, _RPM_MAX,
+          "and opens below this one (below lockup_engage_speed_rpm: hysteresis)", slot=138),
+    Param("lockup_gear_min", "-", 1.0, GEARS_MAX, "lowest gear with the lock-up closed",
+          slot=139),
+    Param("gear_ratios", "-", 0.2, 10.0, "forward gear ratios, first gear first", slot=140,
+          size=GEARS_MAX),
+    Param("gear_count", "-", None, None, "number of forward gears (the list's length)",
+          slot=150),
+    Param("reverse_gear_ratio", "-", 0.2, 10.0, "reverse gear ratio (a magnitude)", slot=151),
+    Param("final_drive_ratio", "-", 0.5, 20.0, "final drive (differential) ratio", slot=152),
+    Param("upshift_speed_light_mps", "m/s", 0.0, 150.0,
+          "vehicle speed of each upshift (1-2, 2-3, ...) at closed throttle: one fewer than "
+          "the gears", slot=153, size=GEARS_MAX - 1),
+    Param("upshift_speed_full_mps", "m/s", 0.0, 150.0,
+          "the same at full throttle (linear in the throttle between them)", slot=162,
+          size=GEARS_MAX - 1),
+    Param("downshift_hysteresis_mps", "m/s", 0.0, 50.0,
+          "a downshift waits until the speed is this far below the upshift speed", slot=171),
+    Param("kickdown_throttle", "-", 0.5, 1.0,
+          "throttle beyond this is kick-down: the full-throttle schedule at once (no "
+          "shift delay, several gears if need be) and the lock-up open", slot=172),
+    Param("shift_delay_s", "s", 0.0, 10.0, "shortest time between two gear changes",
+          slot=173),
+))
 
 # --- the scenario's or scene's ``road:`` section (set_road keeps the gravity slots in step)
 ROAD = ParamTable("road", "the road plane under the car", (
@@ -202,10 +288,10 @@ MODEL_OPTIONS = ParamTable("model", "slip and damping variants, gravity", (
           slot=33),
 ))
 
-VEHICLE_PARAM_TABLES = (*VEHICLE_SUBSYSTEMS, ROAD, MODEL_OPTIONS)
+VEHICLE_PARAM_TABLES = (*VEHICLE_SUBSYSTEMS, AUTOMATIC, ROAD, MODEL_OPTIONS)
 VEHICLE_PARAMS = slot_layout(VEHICLE_PARAM_TABLES)  # every parameter, in slot order
 VEHICLE_PARAM_NAMES = tuple(p.name for p in VEHICLE_PARAMS)
-N_VEHICLE_PARAM = len(VEHICLE_PARAMS)
+N_VEHICLE_PARAM = slot_count(VEHICLE_PARAMS)  # a list parameter takes several slots
 
 # The slot constants, generated from the tables above (a test fails when they drift):
 # python -m simserver.adapters.config --write --slots simserver/core/params.py
@@ -275,4 +361,33 @@ VP_COLUMN_FRICTION_NM = 61  # N m, steering
 VP_COLUMN_FRICTION_STIFFNESS_NM_PER_RAD = 62  # N m/rad, steering
 VP_COLUMN_DAMPING_NMS_PER_RAD = 63  # N m s/rad, steering
 VP_COLUMN_RATE_FILTER_S = 64  # s, steering
+VP_POWERTRAIN_KIND = 65  # -, powertrain
+VP_HILL_START_ASSIST = 66  # -, brakes
+VP_HILL_START_ASSIST_HOLD_S = 67  # s, brakes
+VP_HILL_START_ASSIST_MIN_GRADE_PCT = 68  # %, brakes
+VP_ENGINE_IDLE_SPEED_RPM = 69  # rpm, automatic
+VP_ENGINE_SPEED_MAX_RPM = 70  # rpm, automatic
+VP_ENGINE_INERTIA_KGM2 = 71  # kg m^2, automatic
+VP_ENGINE_CURVE_SPEED_RPM = 72  # rpm, automatic, 12 slots
+VP_ENGINE_FULL_LOAD_TORQUE_NM = 84  # N m, automatic, 12 slots
+VP_ENGINE_DRAG_TORQUE_NM = 96  # N m, automatic
+VP_ENGINE_DRAG_TORQUE_PER_KRPM_NM = 97  # N m, automatic
+VP_IDLE_CONTROL_GAIN_NM_PER_RPM = 98  # N m/rpm, automatic
+VP_IDLE_CONTROL_INTEGRAL_TIME_S = 99  # s, automatic
+VP_IDLE_CONTROL_TORQUE_MAX_NM = 100  # N m, automatic
+VP_CONVERTER_SPEED_RATIO = 101  # -, automatic, 12 slots
+VP_CONVERTER_K_FACTOR_RPM_PER_SQRT_NM = 113  # rpm/sqrt(N m), automatic, 12 slots
+VP_CONVERTER_TORQUE_RATIO = 125  # -, automatic, 12 slots
+VP_LOCKUP_ENGAGE_SPEED_RPM = 137  # rpm, automatic
+VP_LOCKUP_RELEASE_SPEED_RPM = 138  # rpm, automatic
+VP_LOCKUP_GEAR_MIN = 139  # -, automatic
+VP_GEAR_RATIOS = 140  # -, automatic, 10 slots
+VP_GEAR_COUNT = 150  # -, automatic
+VP_REVERSE_GEAR_RATIO = 151  # -, automatic
+VP_FINAL_DRIVE_RATIO = 152  # -, automatic
+VP_UPSHIFT_SPEED_LIGHT_MPS = 153  # m/s, automatic, 9 slots
+VP_UPSHIFT_SPEED_FULL_MPS = 162  # m/s, automatic, 9 slots
+VP_DOWNSHIFT_HYSTERESIS_MPS = 171  # m/s, automatic
+VP_KICKDOWN_THROTTLE = 172  # -, automatic
+VP_SHIFT_DELAY_S = 173  # s, automatic
 # --- end of generated slot constants
