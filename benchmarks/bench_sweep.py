@@ -45,7 +45,9 @@ def sweep_rate(workers: int, out: Path) -> dict:
     return {"workers": workers, "runs": outcome.ran, "wall_time_s": outcome.wall_time_s,
             "runs_per_min": 60.0 * outcome.ran / outcome.wall_time_s,
             "cluster_ready_s": outcome.ready_s,
-            "steady_runs_per_min": 60.0 * outcome.ran / (outcome.wall_time_s - outcome.ready_s)}
+            "steady_runs_per_min": 60.0 * outcome.ran / (outcome.wall_time_s - outcome.ready_s),
+            "client_cpu_ms_per_run": 1e3 * outcome.client_cpu_s / outcome.ran,
+            "worker_cpu_ms_per_run": 1e3 * outcome.worker_cpu_s / outcome.ran}
 
 
 def loop_rate(n: int, tmp: Path) -> dict:
