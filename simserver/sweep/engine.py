@@ -199,7 +199,9 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
             if warm is not None:
                 client.register_plugin(WarmUp(warm.resolved, warm.base))
             client.wait_for_workers(1, timeout=120)
-            n_workers = len(client.scheduler_info(n_workers=-1)["workers"])
+            # asked of the scheduler now: ``scheduler_info()`` returns the client's cached
+            # identity, which its periodic refresh (that lists no workers) can overwrite
+            n_workers = len(client.nthreads())
             ready_s = time.perf_counter() - t0
             client_cpu0, worker_cpu0 = time.process_time(), workers_cpu_s(client)
             futures = {}
