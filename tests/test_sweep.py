@@ -250,10 +250,15 @@ def test_numba_cache_is_the_workers_cache_and_only_theirs(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.timeout(1800)
-def test_numba_cache_a_sweep_compiles_into_it_once(tmp_path):
-    """The long form: ``simserver sweep --numba-cache DIR`` on an empty DIR compiles the
-    kernels into it (index files appear), and a second sweep on it adds none: loaded,
-    not compiled again. The rows equal a serial run (as every sweep's)."""
+def test_numba_cache_a_sweep_compiles_into_it_once(tmp_path, request):
+    """The long form (run with ``-m slow`` or ``SIMSERVER_SLOW=1``): ``simserver sweep
+    --numba-cache DIR`` on an empty DIR compiles the kernels into it (index files
+    appear), and a second sweep on it adds none: loaded, not compiled again. The rows
+    equal a serial run (as every sweep's)."""
+    from tests.conftest import slow_enabled
+
+    if not slow_enabled(request.config.getoption("markexpr")):
+        pytest.skip("long form: run with -m slow or SIMSERVER_SLOW=1")
     cache = tmp_path / "cache"
     path = write_sweep(tmp_path, "cached", scenarios=[str(E2)], cases=[{}, {B_LONG: 0.2}])
     args = [PY, "-m", "simserver", "sweep", str(path), "--workers", "2", "--numba-cache",
