@@ -9,6 +9,9 @@ Run from the repository root::
   fresh embedded LocalCluster of N worker processes, from the cluster's start (workers
   spawned, kernels warmed) to the last row of the table written; plots excluded. Also
   the steady rate: runs over the time after the workers were up and warm.
+  CPU: process CPU time per run over that steady part, summed over the workers, and of
+  this process (the client, and the LocalCluster's scheduler and nannies): on two cores
+  this process's CPU is taken from the second worker.
 - process loop: ``simserver run-scenario CASE --out DIR`` (history, summary and plots,
   as a user runs it today) on the study's first cases, each written out as a resolved
   scenario file; runs per minute = 60 / mean wall time per process.
@@ -45,7 +48,9 @@ def sweep_rate(workers: int, out: Path) -> dict:
     return {"workers": workers, "runs": outcome.ran, "wall_time_s": outcome.wall_time_s,
             "runs_per_min": 60.0 * outcome.ran / outcome.wall_time_s,
             "cluster_ready_s": outcome.ready_s,
-            "steady_runs_per_min": 60.0 * outcome.ran / (outcome.wall_time_s - outcome.ready_s)}
+            "steady_runs_per_min": 60.0 * outcome.ran / (outcome.wall_time_s - outcome.ready_s),
+            "client_cpu_ms_per_run": 1e3 * outcome.client_cpu_s / outcome.ran,
+            "worker_cpu_ms_per_run": 1e3 * outcome.worker_cpu_s / outcome.ran}
 
 
 def loop_rate(n: int, tmp: Path) -> dict:
@@ -86,7 +91,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sweep, {r['workers']} worker(s): {r['runs_per_min']:.0f} runs/min "
               f"({r['runs']} runs in {r['wall_time_s']:.1f} s, cluster start included), "
               f"{x:.0f} x the loop (target >= 20 x); {r['steady_runs_per_min']:.0f} runs/min "
-              f"once the {r['workers']} warm worker(s) were up ({r['cluster_ready_s']:.1f} s)")
+              f"once the {r['workers']} warm worker(s) were up ({r['cluster_ready_s']:.1f} s); "
+              f"CPU per run {r['worker_cpu_ms_per_run']:.1f} ms in the workers, "
+              f"{r['client_cpu_ms_per_run']:.1f} ms in this process (client, scheduler)")
     steady = two["steady_runs_per_min"] / one["steady_runs_per_min"]
     res["x_2_over_1_steady"] = steady
     print(f"2 workers / 1 worker: {res['x_2_over_1']:.2f} x, {steady:.2f} x steady "

@@ -217,3 +217,60 @@ def test_soak_case_is_run_soak_of_its_scene_and_seed(tmp_path):
         assert row["metrics"]["max_speed_mps"] == report.max_speed_mps
         assert row["metrics"]["min_fz_n"] == report.min_fz_n
         assert row["metrics"]["max_hold_creep_m"] == report.max_hold_creep_m
+
+
+def _workers_numba_cache_dirs(client) -> set[str]:
+    return set(client.run(lambda: __import__("numba").core.config.CACHE_DIR).values())
+
+
+def test_numba_cache_is_the_workers_cache_and_only_theirs(tmp_path):
+    """``--numba-cache DIR``: every LocalCluster worker has numba's cache in DIR (so a
+    machine compiles once); this process keeps its own."""
+    from simserver.sweep.engine import open_client
+
+    cache = tmp_path / "numba-cache"
+    before = os.environ.get("NUMBA_CACHE_DIR")
+    client = open_client(None, 2, cache)
+    try:
+        assert os.environ.get("NUMBA_CACHE_DIR") == before  # this process: unchanged
+        assert cache.is_dir()
+        assert _workers_numba_cache_dirs(client) == {str(cache.resolve())}
+    finally:
+        cluster = client.cluster
+        client.close()
+        cluster.close()
+    plain = open_client(None, 1, None)  # without the option: numba's own default
+    try:
+        assert _workers_numba_cache_dirs(plain) == {os.environ.get("NUMBA_CACHE_DIR", "")}
+    finally:
+        cluster = plain.cluster
+        plain.close()
+        cluster.close()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_numba_cache_a_sweep_compiles_into_it_once(tmp_path, request):
+    """The long form (run with ``-m slow`` or ``SIMSERVER_SLOW=1``): ``simserver sweep
+    --numba-cache DIR`` on an empty DIR compiles the kernels into it (index files
+    appear), and a second sweep on it adds none: loaded, not compiled again. The rows
+    equal a serial run (as every sweep's)."""
+    from tests.conftest import slow_enabled
+
+    if not slow_enabled(request.config.getoption("markexpr")):
+        pytest.skip("long form: run with -m slow or SIMSERVER_SLOW=1")
+    cache = tmp_path / "cache"
+    path = write_sweep(tmp_path, "cached", scenarios=[str(E2)], cases=[{}, {B_LONG: 0.2}])
+    args = [PY, "-m", "simserver", "sweep", str(path), "--workers", "2", "--numba-cache",
+            str(cache), "--quiet", "--no-plots"]
+    first = OutputProcess([*args, "--out", str(tmp_path / "one")], ready="runs/min")
+    assert first.wait(1500) == 0, first.text()
+    index = sorted(p.relative_to(cache) for p in cache.rglob("*.nbi"))
+    assert any("integrator" in str(p) for p in index), index
+    stamps = {p: (cache / p).stat().st_mtime_ns for p in index}
+    second = OutputProcess([*args, "--out", str(tmp_path / "two")], ready="runs/min")
+    assert second.wait(600) == 0, second.text()
+    assert sorted(p.relative_to(cache) for p in cache.rglob("*.nbi")) == index
+    assert {p: (cache / p).stat().st_mtime_ns for p in index} == stamps
+    assert_rows_match(pq.read_table(tmp_path / "two" / RESULTS_FILE).to_pylist(),
+                      serial_rows(path))

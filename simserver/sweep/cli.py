@@ -25,7 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", action="store_true",
                         help="skip the runs already in DIR/results.parquet (by run id)")
     parser.add_argument("--batch", type=int, default=None, metavar="RUNS",
-                        help="runs per Dask task (default: about 8 tasks per worker)")
+                        help="runs per Dask task (default: batches that shrink toward the end, "
+                             "each lasting 0.1 s or more)")
     parser.add_argument("--numba-cache", type=Path, default=None, metavar="DIR",
                         help="NUMBA_CACHE_DIR of the LocalCluster's workers (shared: a "
                              "machine compiles once; the workers of --scheduler take theirs "

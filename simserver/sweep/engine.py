@@ -32,8 +32,10 @@ from simserver.sweep.worker import FAILED, OK, WarmUp, run_batch
 RESULTS_FILE = "results.parquet"
 HISTORY_DIR = "histories"
 CHECKPOINT_EVERY_S = 0.5
-TASKS_PER_WORKER = 8  # batches per worker: large tasks, yet a lost worker costs little
-MAX_BATCH = 64
+GUIDED_ROUNDS = 4  # a batch is the remaining runs / (GUIDED_ROUNDS x workers), see batches
+MAX_BATCH = 64  # runs: a lost worker costs little
+MIN_TASK_S = 0.1  # Dask's guidance: a task lasts 100 ms or more
+STEP_COST_S = 2.5e-6  # s per simulated step (benchmarks/bench_step.py: 1.5-4 us), task sizes only
 TASK_RETRIES = 2
 FIRST_COLUMNS = ("run_id", "case", "base", "scenario")
 LAST_COLUMNS = ("status", "error", "wall_time_s", "sim_wall_time_s", "worker")
@@ -49,6 +51,10 @@ class SweepOutcome:
     workers: int
     ready_s: float = 0.0  # of wall_time_s, until the workers were up and warm
     metric_columns: list[str] = field(default_factory=list)
+    # process CPU seconds from the first task submitted to the last row in: this process
+    # (client, and for a LocalCluster its scheduler and nannies) and the workers, summed
+    client_cpu_s: float = math.nan
+    worker_cpu_s: float = math.nan
 
 
 def flat_row(row: dict[str, Any], parameters: tuple[str, ...]) -> dict[str, Any]:
@@ -89,24 +95,74 @@ def read_table(path: Path) -> list[dict[str, Any]]:
     return pq.read_table(path).to_pylist() if path.is_file() else []
 
 
+def estimated_run_s(case: Case) -> float:
+    """A rough wall time of one case: its simulated steps x ``STEP_COST_S``."""
+    if case.resolved is None:
+        return 0.0
+    soak = case.resolved.get("soak")
+    duration = float(soak["duration_s"] if isinstance(soak, dict)
+                     else case.resolved.get("duration_s", 0.0))
+    return duration / float(case.resolved.get("dt_s", 0.001)) * STEP_COST_S
+
+
 def batches(cases: list[Case], n_workers: int, batch_runs: int | None) -> list[list[Case]]:
-    size = batch_runs or max(1, min(MAX_BATCH, math.ceil(len(cases)
-                                                         / (TASKS_PER_WORKER * n_workers))))
-    return [cases[i:i + size] for i in range(0, len(cases), size)]
+    """The cases in tasks of several runs each.
+
+    ``batch_runs``: that many runs per task. Otherwise guided self-scheduling: each batch
+    takes the remaining runs / (``GUIDED_ROUNDS`` x workers), so the batches shrink toward
+    the end and the workers finish within one small batch of each other (equal batches of
+    n / (8 workers) left one worker idle for up to a whole batch at the tail: 0.3 s of
+    the relaxation study's 2.4 s on two workers). A batch holds at most ``MAX_BATCH`` runs
+    and enough runs to last ``MIN_TASK_S`` (estimated from the runs' step counts), the
+    task size Dask's per-task overhead asks for.
+    """
+    if batch_runs:
+        return [cases[i:i + batch_runs] for i in range(0, len(cases), batch_runs)]
+    typical_s = sorted(estimated_run_s(c) for c in cases)[len(cases) // 2] if cases else 0.0
+    min_runs = max(1, min(MAX_BATCH, math.ceil(MIN_TASK_S / typical_s)
+                          if typical_s > 0.0 else MAX_BATCH))
+    out, start = [], 0
+    while start < len(cases):
+        remaining = len(cases) - start
+        size = min(MAX_BATCH, max(min_runs,
+                                  math.ceil(remaining / (GUIDED_ROUNDS * max(1, n_workers)))))
+        out.append(cases[start:start + size])
+        start += size
+    return out
+
+
+def workers_cpu_s(client: Any) -> float:
+    """The process CPU seconds of every worker, summed (``time.process_time`` there)."""
+    return float(sum(client.run(time.process_time).values()))
 
 
 def open_client(scheduler: str | None, workers: int | None, numba_cache: Path | None) -> Any:
     """A Dask client: to ``scheduler``, or to a new ``LocalCluster`` of worker processes."""
     from dask.distributed import Client, LocalCluster
 
-    if numba_cache is not None:  # the worker processes inherit it
-        numba_cache.mkdir(parents=True, exist_ok=True)
-        os.environ["NUMBA_CACHE_DIR"] = str(numba_cache.resolve())
     if scheduler is not None:
         return Client(scheduler, timeout="30s")
-    cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1,
-                           processes=True, dashboard_address=None,
-                           silence_logs=logging.ERROR)
+    env: dict[str, str] = {}
+    if numba_cache is not None:
+        numba_cache.mkdir(parents=True, exist_ok=True)
+        env["NUMBA_CACHE_DIR"] = str(numba_cache.resolve())
+    # The worker processes are spawned with this process's environment: NUMBA_CACHE_DIR
+    # must be there before they import numba. It is set only while the cluster starts, so
+    # this process (a test, a library user) keeps its own. A worker the nanny restarts
+    # later is given it as ``env`` (Dask sets it in the new process before the worker
+    # starts).
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1,
+                               threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=logging.ERROR, env=env)
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
     return Client(cluster)
 
 
@@ -135,6 +191,7 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
     failed = 0
     n_workers = 0
     ready_s = 0.0
+    client_cpu_s = worker_cpu_s = math.nan
     client = open_client(scheduler, workers, numba_cache) if todo else None
     try:
         if client is not None:
@@ -142,8 +199,11 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
             if warm is not None:
                 client.register_plugin(WarmUp(warm.resolved, warm.base))
             client.wait_for_workers(1, timeout=120)
-            n_workers = len(client.scheduler_info(n_workers=-1)["workers"])
+            # asked of the scheduler now: ``scheduler_info()`` returns the client's cached
+            # identity, which its periodic refresh (that lists no workers) can overwrite
+            n_workers = len(client.nthreads())
             ready_s = time.perf_counter() - t0
+            client_cpu0, worker_cpu0 = time.process_time(), workers_cpu_s(client)
             futures = {}
             for i, chunk in enumerate(batches(todo, max(1, n_workers), batch_runs)):
                 future = client.submit(run_batch, chunk, sweep.metrics, history_dir,
@@ -167,6 +227,8 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
                     if time.perf_counter() - last_write >= CHECKPOINT_EVERY_S:
                         write_table(rows, table_path)
                         last_write = time.perf_counter()
+            client_cpu_s = time.process_time() - client_cpu0
+            worker_cpu_s = workers_cpu_s(client) - worker_cpu0
     finally:
         if rows:
             write_table(rows, table_path)
@@ -181,7 +243,8 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
                         skipped=skipped, failed=failed,
                         wall_time_s=time.perf_counter() - t0, workers=n_workers,
                         ready_s=ready_s,
-                        metric_columns=list(dict.fromkeys(metric_columns)))
+                        metric_columns=list(dict.fromkeys(metric_columns)),
+                        client_cpu_s=client_cpu_s, worker_cpu_s=worker_cpu_s)
 
 
 def lost_row(case: Case, exc: BaseException) -> dict[str, Any]:
