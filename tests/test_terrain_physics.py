@@ -254,7 +254,7 @@ def bad_terrain_scenes(folder: Path) -> dict[str, tuple[Path, str, str]]:
     grid[3, 2] = np.nan
     np.savez(folder / "nan.npz", heights=grid)
     (folder / "clothoid.xodr").write_text(BAD_XODR, encoding="utf-8")
-    cases = {"missing": ("nope.npz", "heightmap", "no such file"),
+    cases = {"missing": ("nope.npz", "heightmap", "No such file"),
              "truncated": ("trunc.npz", "heightmap", "unreadable"),
              "nan": ("nan.npz", "heightmap", "row 3, column 2"),
              "unknown geometry": ("clothoid.xodr", "opendrive", "road 7 <geometry> #0")}
