@@ -595,32 +595,6 @@ def _atan_sin_lanes(
     )
 
 
-N_ROOT_LANES = 4
-
-
-@nb.njit(inline="always", **_JIT_OPTIONS)
-def _over_root_lanes(num: tuple[float, ...], y: tuple[float, ...]) -> tuple[float, ...]:
-    """Four ``num_i / sqrt(1 + y_i^2)`` in one vectorised loop.
-
-    The evaluation needs four of these (``|cos'alpha|`` (4.E6) and the slip factors of
-    (4.E54), (4.E62), (4.E67)); one at a time they are four scalar square roots and four
-    divisions, which share the core's one divider and are the slowest operations of the
-    step. Four lanes are one vector square root and one vector division. Both operations
-    are correctly rounded (IEEE 754) in vector form as in scalar form: the same values.
-    Inlined like :func:`_mf_lanes`.
-    """
-    nb_ = nb.carray(_stack_lanes(), (N_LANES,))
-    yb = nb.carray(_stack_lanes(), (N_LANES,))
-    rb = nb.carray(_stack_lanes(), (N_LANES,))
-    for i in range(N_ROOT_LANES):
-        nb_[i] = num[i]
-        yb[i] = y[i]
-    for i in range(N_ROOT_LANES):  # one vector loop
-        yi = yb[i]
-        rb[i] = nb_[i] / math.sqrt(1.0 + yi * yi)
-    return (rb[0], rb[1], rb[2], rb[3])
-
-
 # --- peak of a Magic Formula curve ------------------------------------------------------------
 
 
@@ -977,19 +951,21 @@ def _mf61_evaluate(
     kappa = min(max(kappa, -SLIP_INPUT_MAX), SLIP_INPUT_MAX)
     tan_alpha = min(max(tan_alpha, -SLIP_INPUT_MAX), SLIP_INPUT_MAX)
     scale = max(min(fz_n, FZ_INPUT_MAX_N), 0.0) / coef[C_FZ_PREP]
-    # --- |cos'alpha| (4.E6) and the combined-slip weights' slip factors (4.E53), (4.E54),
-    # (4.E61), (4.E62), (4.E67): each x / sqrt(1 + y^2), the four in one round ---------------
-    cos_a, bxa, byk, dvyk = _over_root_lanes(
-        (1.0, coef[C_BXA0], coef[C_BYK0], coef[C_DVYK0]),
-        (tan_alpha, p[P_RBX2] * kappa, p[P_RBY2] * (tan_alpha - p[P_RBY3]),
-         p[P_RVY4] * tan_alpha),
-    )  # fmt: skip
+    cos_a = 1.0 / math.sqrt(1.0 + tan_alpha * tan_alpha)  # |cos'alpha| (4.E6)
+
+    # --- combined-slip weights: slip factors (4.E53), (4.E54), (4.E61), (4.E62), (4.E67) --
+    rbx2k = p[P_RBX2] * kappa
+    bxa = coef[C_BXA0] / math.sqrt(1.0 + rbx2k * rbx2k)  # (4.E54)
     exa = coef[C_EXA]
     cxa = p[P_RCX1]  # (4.E55)
     shxa = p[P_RHX1]  # (4.E57); alpha_s = tan_alpha + SHxa (4.E53)
+    rby2a = p[P_RBY2] * (tan_alpha - p[P_RBY3])
+    byk = coef[C_BYK0] / math.sqrt(1.0 + rby2a * rby2a)  # (4.E62)
     eyk = coef[C_EYK]
     cyk = p[P_RCY1]  # (4.E63)
     shyk = coef[C_SHYK]  # kappa_s = kappa + SHyk (4.E61)
+    rvy4a = p[P_RVY4] * tan_alpha
+    dvyk = coef[C_DVYK0] / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)
 
     # --- pure-slip arguments (4.E10), (4.E14), (4.E20), (4.E24) --------------------------
     low = _low_speed_factor(vx_mps, p[P_VXLOW])  # on SHx, SVx, SHy, SVy; 1 at speed
