@@ -68,8 +68,8 @@ def ensure_environment(env_dir: Path = ENV_DIR) -> Path:
     stamp = env_dir / STAMP
     if python.exists() and stamp.exists() and stamp.read_text(encoding="utf-8") == wanted:
         return python
-    print(f"creating the CommonRoad environment {env_dir.relative_to(REPO)} "
-          f"(pip install -r {REQUIREMENTS.relative_to(REPO)})", flush=True)
+    print(f"creating the CommonRoad environment {env_dir} (pip install -r "
+          f"{REQUIREMENTS.relative_to(REPO)})", flush=True)
     try:
         venv.EnvBuilder(with_pip=True, clear=True).create(env_dir)
     except (OSError, subprocess.CalledProcessError) as exc:
@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--steps", type=int, default=1000, help="CommonRoad steps per repeat")
     args = parser.parse_args(argv)
     try:
-        python = ensure_environment()
+        python = ensure_environment(ENV_DIR)
     except EnvironmentUnavailable as exc:
         print(f"CommonRoad comparison skipped: {exc}", flush=True)
         return {"skipped": str(exc)}
