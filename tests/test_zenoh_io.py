@@ -108,9 +108,8 @@ def test_default_config_is_loopback_only():
     assert _json(cfg, "transport/shared_memory/enabled") is False
     block = _json(cfg, "transport/link/tx/queue/congestion_control/block")
     assert block["wait_before_close"] == DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US
-    # zenoh's own transport (issue 13: a low-latency server lost default clients' commands)
-    assert _json(cfg, "transport/unicast/lowlatency") is False
-    assert _json(cfg, "transport/unicast/qos/enabled") is True
+    assert _json(cfg, "transport/unicast/lowlatency") is True
+    assert _json(cfg, "transport/unicast/qos/enabled") is False
     assert config_warnings(cfg) == []
     # zenoh's own defaults are what config_warnings warns about.
     assert len(config_warnings(zenoh.Config())) == 3
@@ -284,9 +283,9 @@ def test_the_servers_publications_never_block_and_the_decimated_key_gets_every_t
 
 
 @pytest.mark.parametrize("ours", ["listens", "connects"])
-def test_default_config_talks_to_a_peer_with_zenohs_defaults(ours):
-    """The default config and zenoh's own defaults (QoS on, low latency off) connect and
-    carry commands, whichever side opens the link."""
+def test_low_latency_default_talks_to_a_peer_with_zenohs_defaults(ours):
+    """The default's low-latency transport falls back for a peer that does not have it
+    (zenoh's own defaults: QoS on, low latency off), whichever side opens the link."""
     port = free_port()
     plain = zenoh.Config()
     plain.insert_json5("scouting/multicast/enabled", "false")
