@@ -69,6 +69,10 @@ NOT_RUN_HERE = {
     "simserver view": "the main command already runs the view on its default port",
     "simserver view --sink serve --web-port 9090": "Rerun binds the web viewer to every "
                                                    "interface; tests listen on loopback only",
+    "simserver sweep SWEEP.yaml --out DIR": "a placeholder: test_sweep.py runs sweeps",
+    "simserver sweep configs/sweeps/relaxation_study.yaml --out out/relax":
+        "225 runs: python -m benchmarks.bench_sweep runs this study; test_sweep.py runs "
+        "smaller sweeps on the same engine",
     "python -m benchmarks": "minutes long, run by hand; test_readme.py checks the README's "
                             "table is its report",
     "python -m benchmarks.bench_step": "the same",
