@@ -276,10 +276,9 @@ class ControlRequest:
         query, self._query = self._query, None
         if query is None:
             raise RuntimeError(f"control {self.name!r} was already answered")
-        try:  # DROP: zenoh's replies default to BLOCK, and this runs in the server's
-            # loop thread; a requester that stopped reading loses its reply, not our tick
-            query.reply(self.key, body, encoding=zenoh.Encoding(ENCODING_CONTROL),
-                        congestion_control=zenoh.CongestionControl.DROP)
+        try:  # zenoh 1.x takes no congestion control per reply (the argument is
+            # deprecated and ignored): a reply goes out as zenoh's queries do
+            query.reply(self.key, body, encoding=zenoh.Encoding(ENCODING_CONTROL))
         finally:
             query.drop()
 
