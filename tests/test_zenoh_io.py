@@ -23,6 +23,7 @@ import zenoh
 from simserver import protocol as P
 from simserver.adapters.zenoh_io import (
     DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US,
+    MISMATCHED_LINK_QUEUE_BATCHES,
     ZenohConfigError,
     ZenohEndpoint,
     ZenohOpenError,
@@ -110,6 +111,8 @@ def test_default_config_is_loopback_only():
     assert block["wait_before_close"] == DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US
     assert _json(cfg, "transport/unicast/lowlatency") is True
     assert _json(cfg, "transport/unicast/qos/enabled") is False
+    # a peer on zenoh's normal transport gets one queue of this many batches (issue 13)
+    assert _json(cfg, "transport/link/tx/queue/size/data") == MISMATCHED_LINK_QUEUE_BATCHES
     assert config_warnings(cfg) == []
     # zenoh's own defaults are what config_warnings warns about.
     assert len(config_warnings(zenoh.Config())) == 3

@@ -69,6 +69,20 @@ reading stalled the 1 kHz loop 100 ms (:data:`DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US
 time its socket buffers filled; zenoh's own DROP wait is 1 ms, a whole tick.
 """
 
+MISMATCHED_LINK_QUEUE_BATCHES = 16
+"""Batches in the transmit queue of a link that falls back to zenoh's normal transport.
+
+A peer without the low-latency transport (zenoh's defaults) gets a normal-transport link
+with QoS off (this side has it off), so one queue, sized by ``queue/size/data`` (zenoh's
+default 2, at most 16). Zenoh 1.x (zenoh-transport's ``pipeline.rs``) marks a
+one-queue pipeline congested under the bit of ``Priority::DEFAULT`` when a DROP message
+finds no free batch, but a returned batch clears the bit of queue index 0
+(``Priority::Control``): the mark is never cleared, and every later DROP message on that
+link is dropped at once, for the rest of the session (issue 13's "DROP publishers lose
+their stream"). An express state takes a whole batch, so with 2 batches and the 50 us
+:data:`STATE_DROP_WAIT_US` a TX task held off for 2 ms was enough; 16 batches absorb a
+16 ms hold. Links on the low-latency transport have no queue and ignore this."""
+
 _RUST_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
 
 
@@ -129,8 +143,10 @@ def make_zenoh_config(
     -------
     zenoh.Config
         Without a file: ``mode``, the endpoints above, multicast scouting off, shared
-        memory off, and the BLOCK wait bounded to
-        :data:`DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US`.
+        memory off, zenoh's low-latency transport (QoS off), the BLOCK wait bounded to
+        :data:`DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US`, the DROP wait to
+        :data:`STATE_DROP_WAIT_US`, and :data:`MISMATCHED_LINK_QUEUE_BATCHES` transmit
+        batches for a peer on zenoh's normal transport.
 
     Raises
     ------
@@ -171,6 +187,7 @@ def make_zenoh_config(
     # falls back to the normal one for that link.
     _insert(cfg, "transport/unicast/qos/enabled", False, origin)
     _insert(cfg, "transport/unicast/lowlatency", True, origin)
+    _insert(cfg, "transport/link/tx/queue/size/data", MISMATCHED_LINK_QUEUE_BATCHES, origin)
     _insert(
         cfg,
         "transport/link/tx/queue/congestion_control/block/wait_before_close",
@@ -598,11 +615,18 @@ class ZenohEndpoint:
         :data:`STATE_DROP_WAIT_US`), the same every ``states_per_s / STATE_DECIMATED_HZ``-th
         state on ``state/100hz``, and ``diag`` as above."""
         keys = keys or self.keys
+        # Not express: the low-latency transport ignores it (every message goes straight
+        # to the socket), and on a link that falls back to zenoh's normal transport an
+        # express message takes a whole transmit batch, so a transmit thread held off a
+        # few ticks left no free batch and the link lost every later state (see
+        # MISMATCHED_LINK_QUEUE_BATCHES); batched, a held-off thread finds the states of
+        # 200 ticks in one batch. That queue sends a batch at once when idle.
         return VehiclePublisher(
-            self.declare_state_publisher(zenoh.CongestionControl.DROP, keys=keys),
+            self._publisher(keys.state, ENCODING_STATE, zenoh.Priority.REAL_TIME, False,
+                            zenoh.CongestionControl.DROP),
             self.declare_diag_publisher(keys=keys),
             decimated=self._publisher(keys.state_decimated, ENCODING_STATE,
-                                      zenoh.Priority.REAL_TIME, True,
+                                      zenoh.Priority.REAL_TIME, False,
                                       zenoh.CongestionControl.DROP),
             decimate_every=round(states_per_s / STATE_DECIMATED_HZ))
 
