@@ -126,7 +126,7 @@ KEY_SPECS: Final[tuple[KeySpec, ...]] = (
         "server -> clients (put)",
         "VehicleState (binary)",
         ENCODING_STATE,
-        "REAL_TIME, express, DROP (waits at most 50 us for a full link)",
+        "REAL_TIME, DROP (waits at most 50 us for a full link); not express",
         "every tick (1 kHz) by default; server-side decimation",
     ),
     KeySpec(
@@ -134,7 +134,7 @@ KEY_SPECS: Final[tuple[KeySpec, ...]] = (
         "server -> clients (put)",
         "VehicleState (binary)",
         ENCODING_STATE,
-        "REAL_TIME, express, DROP (as `state`)",
+        "REAL_TIME, DROP, not express (as `state`)",
         f"{STATE_DECIMATED_HZ} Hz: one of every (states per second / {STATE_DECIMATED_HZ}) "
         "states published, for consumers that need no more (the ROS 2 adapter)",
     ),

@@ -117,3 +117,61 @@ def test_drop_publishers_under_cpu_load_keep_their_command_stream(defaults, serv
     print(f"\n[DROP sessions] {SESSIONS} x {SECONDS:.0f} s beside {HOGS} CPU hogs: "
           f"worst lags {[round(r['worst_lag_s'], 3) for r in results]} s")
     assert not lost, f"{len(lost)} of {SESSIONS} sessions lost their command stream"
+
+
+def _link(port: int, listen: bool, qos: bool) -> zenoh.Config:
+    """A peer on zenoh's normal transport, QoS ``qos``, one transmit batch per queue and a
+    1 us DROP wait: the smallest queue, so that a burst of express messages overflows it."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"peer"')
+    cfg.insert_json5("listen/endpoints" if listen else "connect/endpoints",
+                     f'["tcp/127.0.0.1:{port}"]')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("transport/unicast/qos/enabled", "true" if qos else "false")
+    cfg.insert_json5("transport/link/tx/queue/size/data", "1")
+    cfg.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", "1")
+    return cfg
+
+
+@pytest.mark.parametrize("qos", [False, True], ids=["one-queue", "qos-queues"])
+def test_zenoh_drops_every_drop_message_after_one_congestion_of_a_one_queue_link(qos):
+    """The zenoh defect behind the lost streams, alone: after a burst overflows the queue
+    of a link with QoS off (one queue), a DROP publisher's later messages, sent one every
+    2 ms with the link idle, never arrive; with QoS on (a queue per priority) they do.
+    (The queue is marked congested under ``Priority::DEFAULT`` and a returned batch clears
+    the mark of queue 0; zenoh-transport's ``pipeline.rs``.)
+
+    If the one-queue case starts passing, zenoh has fixed the defect, and the server's
+    MISMATCHED_LINK_QUEUE_BATCHES and states without express are no longer needed for it."""
+    from simserver.testing import free_port, wait_until
+
+    port = free_port()
+    with zenoh.open(_link(port, True, qos)) as rx_session, \
+            zenoh.open(_link(port, False, qos)) as tx_session:
+        sub = rx_session.declare_subscriber("drop/test", zenoh.handlers.RingChannel(1 << 16))
+        pub = tx_session.declare_publisher("drop/test", express=True,
+                                           congestion_control=zenoh.CongestionControl.DROP)
+        wait_until(lambda: pub.put(b"probe") or sub.try_recv(), timeout_s=10.0,
+                   what="the subscription", interval_s=0.01)
+        for _ in range(5000):  # the burst: 1 batch, 1 us wait: some must be dropped
+            pub.put(b"x" * 200)
+        time.sleep(0.2)  # the link drains and is idle again
+        while sub.try_recv() is not None:
+            pass
+        for i in range(50):
+            pub.put(b"after %d" % i)
+            time.sleep(0.002)
+        deadline = time.monotonic() + 1.0
+        after = []
+        while time.monotonic() < deadline and len(after) < 50:
+            sample = sub.try_recv()
+            if sample is None:
+                time.sleep(0.005)
+            else:
+                after.append(sample.payload.to_bytes())
+    if qos:  # the stream recovers (a busy machine may still drop a few of the 50)
+        assert after, "with QoS on, none of 50 paced messages arrived"
+    else:
+        assert after == [], (
+            f"{len(after)} of 50 paced messages arrived after the congestion: zenoh "
+            "clears the one-queue link's congestion mark now (see the docstring)")
