@@ -285,13 +285,12 @@ class Pacer:
         lat = self._lateness[:n_lat]
         per = self._period[:n_per]
         if n_lat:
-            l50, l99 = np.percentile(lat, (50.0, 99.0))
-            lmax = float(lat.max())
+            l50, l99, lmax = window_percentiles(lat)
         else:
             l50 = l99 = lmax = 0.0
         if n_per:
-            p50, p99 = np.percentile(per, (50.0, 99.0))
-            pmax, pmin = float(per.max()), float(per.min())
+            p50, p99, pmax = window_percentiles(per)
+            pmin = float(per.min())
         else:
             p50 = p99 = pmax = pmin = 0.0
         mean = self._period_sum_ns / self._per_n if self._per_n else 0.0
@@ -329,6 +328,26 @@ class Pacer:
             return buf[:n].copy()
         i = n % self.window
         return np.concatenate((buf[i:], buf[:i]))
+
+
+def window_percentiles(samples: np.ndarray) -> tuple[float, float, float]:
+    """p50, p99 (``np.percentile``'s linear interpolation) and maximum of ``samples``.
+
+    One ``np.partition`` of a copy instead of ``np.percentile``: the diagnostics compute
+    this in the tick a few times a second, and for 4096 samples it costs about a fifth
+    (``np.percentile`` 43 us, a partition 9 us on this machine, fastest of 300).
+    """
+    n = samples.size
+    ranks = [q * (n - 1) for q in (0.50, 0.99)]
+    kth = sorted({int(r) for r in ranks} | {min(int(r) + 1, n - 1) for r in ranks} | {n - 1})
+    part = np.partition(samples, kth)
+    out = []
+    for r in ranks:
+        lo = int(r)
+        hi = min(lo + 1, n - 1)
+        a, b = float(part[lo]), float(part[hi])
+        out.append(a + (b - a) * (r - lo))
+    return out[0], out[1], float(part[n - 1])
 
 
 class CpuMeter:

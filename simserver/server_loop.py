@@ -320,7 +320,8 @@ class ServerLoop:
         now = self.clock()
         count = self.loop_count
         publish_state = count % self.state_every == 0
-        diag = self._diagnostics_source() if count % self.diag_every == 0 else None
+        diag_tick = count % self.diag_every == 0
+        diag = None
         for index, (slot, ports) in enumerate(self.slots):
             if skipped:
                 slot.skipped_before = True
@@ -331,7 +332,8 @@ class ServerLoop:
             slot.check_finite()  # before publishing: no non-finite state leaves the server
             if publish_state:
                 ports.publisher.publish_state(slot.state_payload(now, catching_up))
-            if diag is not None:
+            if diag_tick:  # after the state: the window's percentiles never delay it
+                diag = diag or self._diagnostics_source()
                 self._port_counters(index, slot, ports)
                 ports.publisher.publish_diagnostics(self._diagnostics(slot, *diag))
             self._serve_controls(index, slot, ports, now)

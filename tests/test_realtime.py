@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from simserver.realtime import CpuMeter, Pacer
+from simserver.realtime import CpuMeter, Pacer, window_percentiles
 
 P = 1_000_000  # 1 ms in ns
 T0 = 5_000_000_000
@@ -191,6 +191,18 @@ def test_statistics_window_and_percentiles():
     assert len(per) == 100
     assert s.period_max_us == 1700.0 and s.period_min_us == 300.0
     assert s.max_lateness_us == 700.0
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 99, 100, 101, 4095, 4096])
+def test_window_percentiles_equal_numpys_linear_percentiles(n):
+    """The partition-based p50/p99/max of the diagnostics give np.percentile's values
+    (linear interpolation between ranks; the only difference is float rounding)."""
+    rng = np.random.default_rng(n)
+    for samples in (rng.integers(-5_000, 10_000_000, n), np.full(n, 7), np.arange(n)[::-1]):
+        p50, p99, top = window_percentiles(samples)
+        np.testing.assert_allclose([p50, p99], np.percentile(samples, (50.0, 99.0)),
+                                   rtol=1e-12, atol=1e-9)
+        assert top == samples.max()
 
 
 def test_late_ticks_threshold_counts_exactly():
