@@ -25,6 +25,7 @@ from pathlib import Path
 import pytest
 
 from simserver import protocol as proto
+from simserver.load_worker import SHARE_DIR
 from simserver.realtime import thread_policy
 from simserver.server import CompileProgress
 from simserver.testing import (
@@ -118,6 +119,11 @@ def test_hostile_loads_never_stall_the_loop(tmp_path):
             # a later valid load still works (the worker was replaced where it hung)
             ok = client.request("load", {"scene": "scenes/hill_10pct_paper_sedan.yaml"},
                                 timeout_s=30.0)
+            # a terrain's grids (6.6 MB) come as a shared block the server maps, unlinked
+            terrain = client.request("load", {"scene": "scenes/crest_curve_paper_sedan.yaml"},
+                                     timeout_s=30.0)
+            maps = Path(f"/proc/{server.pid}/maps").read_text(encoding="utf-8")
+            blocks = [line for line in maps.splitlines() if "simserver-load-" in line]
             # the diagnostics published during the loads (5 Hz, the inbox keeps 256)
             windows = [proto.decode_diagnostics(p) for p in client.diag.drain_newest()]
             d1 = client.diagnostics()
@@ -130,6 +136,9 @@ def test_hostile_loads_never_stall_the_loop(tmp_path):
     for name, (reply, took) in replies.items():
         print(f"\n[load {name}] {took:.2f} s: {reply}")
     assert ok["ok"] is True, ok
+    assert terrain["ok"] is True, terrain
+    assert blocks and all(line.endswith("(deleted)") for line in blocks), blocks
+    assert not list(SHARE_DIR.glob(f"simserver-load-{server.pid}-*"))
     for name in ("bomb", "deep", "fifo"):
         assert replies[name][0]["ok"] is False and replies[name][0]["field"] in (
             "scene", "load"), replies[name]
