@@ -248,6 +248,7 @@ class PendingJob:
     future: Future | None
     submitted_ns: int
     staged: StagedStart | None = None
+    make: Callable[[], StagedStart] | None = None  # a job's result, mapped: staged next tick
 
 
 # ---------------------------------------------------------------------- the loop
@@ -371,8 +372,11 @@ class ServerLoop:
         up: late ticks come first) and commit it when ready; serve the quick controls; hand
         slow ones to the preparer."""
         pending = self.pending.get(index)
-        if pending is not None:
-            if pending.staged is not None:
+        if pending is not None:  # one piece of its work per tick (each well under 1 ms)
+            if pending.make is not None:
+                self._begin_stage(index, pending.request, pending.control, pending.make, now,
+                                  settle_now=False)
+            elif pending.staged is not None:
                 if not catching_up:
                     self._settle(index, pending)
             else:
@@ -405,17 +409,25 @@ class ServerLoop:
                 continue
             job = self.pending[index] = PendingJob(request, control,
                                                    self.preparer.submit(fn, *job_args), now)
-            if job.future.done():  # an inline preparer: answered in this tick
+            if job.future.done():  # an inline preparer: all of it, answered in this tick
                 self._finish_job(index, slot, job, now)
+                while (job := self.pending.get(index)) is not None and job.make is not None:
+                    self._begin_stage(index, job.request, job.control, job.make, now)
+                    if (job := self.pending.get(index)) is not None:
+                        job.staged.prepared.finish()
+                        self._settle(index, job)
 
     def _begin_stage(self, index: int, request: ControlRequest, control: Control,
-                     make: Callable[[], StagedStart], now: int) -> None:
-        """Make a staged start (errors answered, nothing changed) and take its first piece
-        of settling now; committed and answered at once when that was all."""
+                     make: Callable[[], StagedStart], now: int, settle_now: bool = True) -> None:
+        """Make a staged start (errors answered, nothing changed) and, with ``settle_now``,
+        take its first piece of settling now: committed and answered at once when that was
+        all (a reset at rest is answered in its tick); else from the next tick on."""
+        self.pending.pop(index, None)
         staged = _attempt(request, request.name, make)
         if staged is not None:
             pending = self.pending[index] = PendingJob(request, control, None, now, staged)
-            self._settle(index, pending)
+            if settle_now:
+                self._settle(index, pending)
 
     def _settle(self, index: int, pending: PendingJob) -> None:
         """Advance a staged start by ``SETTLE_STEPS_PER_TICK`` steps; commit and answer it
@@ -452,10 +464,14 @@ class ServerLoop:
                 self.preparer.restart()
                 return
             # a worker's result maps its big arrays (shared memory: no copy, no unpickling
-            # of megabytes in the tick; simserver.load_worker); what is left (a relaxed
-            # start's settling) runs in pieces like a reset's
-            self._begin_stage(index, pending.request, pending.control,
-                              lambda: pending.control.apply(slot, opened(future.result())), now)
+            # of megabytes in the tick; simserver.load_worker) in this tick; the next one
+            # builds its model and start state, the ones after settle (a relaxed start) and
+            # commit it: a few hundred microseconds of work per tick at most
+            value = _attempt(pending.request, name, lambda: opened(future.result()))
+            if value is not None:
+                self.pending[index] = PendingJob(
+                    pending.request, pending.control, None, now,
+                    make=lambda: pending.control.apply(slot, value))
         elif now - pending.submitted_ns > self.job_timeout_ns:
             del self.pending[index]
             log.error("control %s: not prepared after %.0f s: worker restarted", name,

@@ -213,11 +213,16 @@ class Simulation:
         return PreparedStart(scene=scene, model=model, road=road, data=data,
                              steps_left=steps, settled=relaxed)
 
-    def commit(self, prepared: PreparedStart) -> None:
+    def commit(self, prepared: PreparedStart) -> tuple[Scene, Model] | None:
         """Swap a finished :class:`PreparedStart` in: its state (and, for a load, its scene,
-        model and road); the inputs are kept."""
+        model and road); the inputs are kept. Returns the scene and model a load replaced
+        (None otherwise): dropping them frees a terrain's grids, which the live server does
+        outside the tick (``simserver.load_worker.release_later``)."""
         assert prepared.steps_left == 0, "commit a prepared start once it is settled"
+        replaced = None
         if prepared.model is not getattr(self, "model", None):  # a load (or the first)
+            if hasattr(self, "model"):
+                replaced = (self.scene, self.model)
             self.scene = prepared.scene
             self.model = prepared.model
             self.road = prepared.road
@@ -227,6 +232,7 @@ class Simulation:
             live[...] = ready
         if prepared.settled:  # the forces of the last settling step, as before
             self.data.out[:] = prepared.data.out
+        return replaced
 
     def settle(self) -> None:
         """Relax the wheels, slip states and powertrain at the state's velocity (body held,

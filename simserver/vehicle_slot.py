@@ -32,6 +32,7 @@ from simserver.adapters.opendrive import LaneStartError, lane_start
 from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
 from simserver.core import layout as L
 from simserver.core.terrain import TERRAIN_PLANE
+from simserver.load_worker import release_later
 from simserver.scenario import Scene, load_scene
 
 if TYPE_CHECKING:
@@ -68,7 +69,7 @@ class SimulationAPI(Protocol):
     def prepare_reset(self, pose: dict[str, float] | None,
                       u_mps: float | None = None) -> PreparedStart: ...
     def prepare_load(self, scene: Scene) -> PreparedStart: ...
-    def commit(self, prepared: PreparedStart) -> None: ...
+    def commit(self, prepared: PreparedStart) -> Any: ...
     def warm_up(self) -> None: ...
     def update_pose(self) -> np.ndarray: ...
 
@@ -520,7 +521,10 @@ class VehicleSlot:
         staged = self.sim.prepare_load(scene)
 
         def commit() -> dict[str, Any]:
-            self.sim.commit(staged)
+            replaced = self.sim.commit(staged)
+            if replaced is not None:  # its grids are freed off the tick (a munmap: ms)
+                release_later(replaced)
+                del replaced
             self.sim.warm_up()  # microseconds: a dispatch of each kernel on a copy
             self.scene_path = scene_path
             self.tick = 0
