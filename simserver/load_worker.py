@@ -20,12 +20,16 @@ unlinks its name at once, and the arrays are views on the mapping: the memory is
 when the last of them goes, i.e. when the model holding them is swapped out.
 
 Lifetime bound: a block's name exists only between the worker writing it and the server
-mapping it (one result; at most the size limit of a load's files, ``docs/protocol.md``).
-If the server dies in between, or a late result is abandoned, the block is left in
-``SHARE_DIR``; its name carries the server's pid, and :func:`remove_stale_blocks` (run
-when a :class:`ProcessPreparer` is made, restarted or closed) deletes the blocks of this
-server and of servers no longer running. So at most one block per crashed server
-outlives it, until the next server starts on the machine.
+mapping it (one result at a time: the loop prepares one load per vehicle; a block is the
+size of one scene's big arrays, 18 MB for the largest shipped terrain). If the server
+dies in between, or a late result is abandoned, the block is left in ``SHARE_DIR``; its
+name carries the server's pid, and :func:`remove_stale_blocks` (run when a
+:class:`ProcessPreparer` is made, restarted or closed) deletes the blocks of this server
+and of servers no longer running. So at most one block per vehicle of a crashed server
+outlives it, until the next server starts on the machine. A block that does not fit
+(tmpfs full) is not made: the result then comes through the pipe as before. Mapped and
+unlinked, a block still counts against the tmpfs until unmapped: the running model's and
+the one being swapped in, at most twice a scene's arrays.
 """
 
 from __future__ import annotations
@@ -144,7 +148,9 @@ def share_result(value: Any, server_pid: int) -> SharedResult:
     except OSError:  # no room or no tmpfs: through the pipe, as before
         return SharedResult(pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL), None)
     try:
-        os.ftruncate(fd, block.size)
+        # the pages reserved first: a full tmpfs (a container's 64 MB /dev/shm) is then an
+        # ENOSPC here, not a SIGBUS while writing through the mapping
+        os.posix_fallocate(fd, 0, block.size)
         with mmap.mmap(fd, block.size) as out:
             for offset, array in pickler.arrays:
                 out[offset:offset + array.nbytes] = memoryview(array).cast("B")

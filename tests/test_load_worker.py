@@ -99,3 +99,17 @@ def test_blocks_of_this_server_and_of_dead_servers_are_removed(tmp_path):
     assert remove_stale_blocks(os.getpid(), tmp_path) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         f"{SHARE_PREFIX}{alive_pid}-1-0", "unrelated"]
+
+
+def test_a_block_that_does_not_fit_falls_back_to_the_pipe(tmp_path, monkeypatch):
+    import errno
+
+    def full(fd, offset, length):  # a full tmpfs (a container's 64 MB /dev/shm)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr("simserver.load_worker.SHARE_DIR", tmp_path)
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    grid = np.arange(100_000.0).reshape(100, 1000)
+    result = share_result({"grid": grid}, os.getpid())
+    assert result.path is None and list(tmp_path.iterdir()) == []  # nothing left behind
+    assert np.array_equal(opened(result)["grid"], grid)
