@@ -202,7 +202,7 @@ class Simulation:
         if model.terrain.kind != TERRAIN_PLANE:
             place_on_terrain(model, data.ws, data.x)
         steps = 0
-        if relaxed:  # the settling's inputs (settle): brakes off, P as N
+        if relaxed:  # settled with the inputs of now, but the brakes off and P as N
             steps = settle_steps(model, data.x[L.U_MPS])
             inputs = data.inputs
             inputs[L.IN_BRAKE] = 0.0
@@ -233,22 +233,6 @@ class Simulation:
         if prepared.settled:  # the forces of the last settling step, as before
             self.data.out[:] = prepared.data.out
         return replaced
-
-    def settle(self) -> None:
-        """Relax the wheels, slip states and powertrain at the state's velocity (body held,
-        ``core.start``); the inputs are kept."""
-        n = settle_steps(self.model, self.data.x[L.U_MPS])
-        inputs = self.data.inputs
-        kept = inputs.copy()
-        inputs[L.IN_BRAKE] = 0.0
-        inputs[L.IN_PARKING_BRAKE] = 0.0
-        if inputs[L.IN_GEAR] == L.GEAR_P:
-            inputs[L.IN_GEAR] = L.GEAR_N
-        try:
-            start_powertrain(self.model, self.data)
-            settle_at_velocity(self.model, self.data, n, np.zeros(BODY_SLOTS))
-        finally:
-            inputs[:] = kept
 
     # ---- stepping
     def step(self) -> None:
