@@ -483,6 +483,10 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
         argv = ["--hostile", "--rounds", str(settings.hostile_rounds)]
         cmd = " ".join(["python -m benchmarks.bench_load", *argv])
         raw["hostile"] = r = bench_load.main(argv)
+        raw["pieces"] = work = bench_load.main(["--pieces", "--rounds",
+                                                str(2 + settings.hostile_rounds)])
+        piece_us = max(max(v) for row in work.values() for v in row.values())
+        cmd += "; python -m benchmarks.bench_load --pieces"
         gaps = {label: max(e["gap_ms"]) for label, e in r["actions"].items()}
         worst = max(gaps, key=gaps.get)
         base = sorted(r["baseline_gap_ms"])
@@ -493,7 +497,8 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
             f"{max(max(e['lateness_ms']) for e in r['actions'].values()):.2f} ms; no-load "
             f"baseline windows: median "
             f"{base[len(base) // 2]:.2f}, max {base[-1]:.2f} ms; commands {r['cmd_sent']} "
-            f"sent, {r['cmd_received']} received + {r['cmd_dropped']} counted",
+            f"sent, {r['cmd_received']} received + {r['cmd_dropped']} counted; the "
+            f"largest piece of work a tick does for them {piece_us:.0f} us CPU",
             cmd, "<= 2 ms"))
 
     if "viewer" in sections:

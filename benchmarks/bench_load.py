@@ -5,6 +5,7 @@ Run from the repository root::
 
     python -m benchmarks.bench_load [--seconds 30] [--subscribers 20] [--churn 10]
     python -m benchmarks.bench_load --hostile [--rounds 3]
+    python -m benchmarks.bench_load --pieces [--rounds 5]
 
 ``--hostile`` (issue 13: the loop never stalls more than 2 ms while a ``load`` is prepared;
 issue 17: a ``reset`` with ``u_mps`` never makes a tick late): a driver at 1 kHz, a state
@@ -30,6 +31,7 @@ diagnostics), the states each subscriber missed, and the joins answered.
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import tempfile
 import threading
@@ -191,6 +193,78 @@ def hostile(rounds: int = 3, baseline_s: float = 1.0, realtime: str = "auto") ->
             "loadavg_1min": os.getloadavg()[0], "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
 
 
+PIECE_SCENES = ("scenes/velodrome_paper_sedan.yaml", "scenes/flat_paper_sedan.yaml",
+                "scenes/crest_curve_paper_sedan.yaml", "scenes/hills_paper_sedan.yaml")
+
+
+def pieces(rounds: int = 5) -> dict:
+    """Per-tick work of a load (each scene of ``PIECE_SCENES``) and of a reset at 1 and
+    20 m/s, in microseconds: ``{label: {piece: [per round]}}``."""
+    from simserver.load_worker import ProcessPreparer, opened
+    from simserver.scenario import load_scene
+    from simserver.server import load_server_config, new_simulation
+    from simserver.server_loop import SETTLE_STEPS_PER_TICK
+    from simserver.vehicle_slot import VehicleSlot, unwrap_prepared
+
+    cfg = load_server_config(CONFIGS / "server" / "default.yaml", viewer="off")
+    slot = VehicleSlot(cfg, new_simulation(load_scene(cfg.scene), cfg.period_s))
+    slot.warm_up()
+    gc.collect()  # as the server's loop does before its clock starts (ServerLoop.start)
+    gc.freeze()
+    clock = time.thread_time_ns  # the work itself: CPU time, not the VM's stalls
+    out: dict[str, dict[str, list[float]]] = {}
+
+    def settle(staged, row: dict[str, list[float]]) -> None:
+        longest = 0
+        while True:
+            t = clock()
+            done = staged.advance(SETTLE_STEPS_PER_TICK)
+            longest = max(longest, clock() - t)
+            if done:
+                break
+        row.setdefault("settle piece (max)", []).append(longest / 1e3)
+        t = clock()
+        staged.commit()
+        row.setdefault("commit", []).append((clock() - t) / 1e3)
+
+    preparer = ProcessPreparer()
+    try:
+        for _ in range(rounds):
+            for scene in PIECE_SCENES:
+                fn, args = slot.load_job({"scene": scene})
+                result = preparer.submit(fn, *args).result(timeout=120)
+                row = out.setdefault(f"load {scene}", {})
+                t0 = clock()
+                value = opened(result)
+                t1 = clock()
+                staged = slot.apply_load(unwrap_prepared(value))
+                t2 = clock()
+                del value
+                row.setdefault("map result", []).append((t1 - t0) / 1e3)
+                row.setdefault("build", []).append((t2 - t1) / 1e3)
+                settle(staged, row)
+                for _ in range(100):
+                    slot.sim.step()
+            for u_mps in (1.0, 20.0):
+                row = out.setdefault(f"reset u_mps {u_mps:g}", {})
+                t0 = clock()
+                staged = slot.begin_reset({"u_mps": u_mps})
+                row.setdefault("build", []).append((clock() - t0) / 1e3)
+                settle(staged, row)
+    finally:
+        preparer.close()
+    return out
+
+
+def print_pieces(out: dict) -> None:
+    """The figures of :func:`pieces`."""
+    print("per-tick work of a load / reset in the server (thread CPU time, us, median [max] "
+          "over the rounds)")
+    for label, row in out.items():
+        print(f"{label:42s} " + "; ".join(
+            f"{name} {np.median(v):.0f} [{max(v):.0f}]" for name, v in row.items()))
+
+
 def print_hostile(r: dict) -> None:
     """The figures of :func:`hostile`."""
     base = np.array(r["baseline_gap_ms"])
@@ -218,10 +292,17 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--realtime", default="auto", choices=("auto", "off"))
     parser.add_argument("--hostile", action="store_true",
                         help="the loop during hostile loads and resets at speed instead")
-    parser.add_argument("--rounds", type=int, default=3, help="with --hostile")
+    parser.add_argument("--pieces", action="store_true",
+                        help="the per-tick work of loads and resets, in-process, instead")
+    parser.add_argument("--rounds", type=int, default=None,
+                        help="with --hostile (default 3) or --pieces (default 5)")
     args = parser.parse_args(argv)
+    if args.pieces:
+        r = pieces(args.rounds or 5)
+        print_pieces(r)
+        return r
     if args.hostile:
-        r = hostile(args.rounds, realtime=args.realtime)
+        r = hostile(args.rounds or 3, realtime=args.realtime)
         print_hostile(r)
         return r
     r = run(args.seconds, args.subscribers, args.churn, args.realtime)

@@ -270,3 +270,6 @@ class Simulation:
                  np.zeros((1, L.N_OUT)), 1)
         start_powertrain(self.model, saved)
         settle_at_velocity(self.model, saved, 1, np.zeros(BODY_SLOTS))
+        # a later load of a terrain places the car with it: loaded now, not in a tick (it
+        # took 10 ms from the cache on the first terrain load of a server started flat)
+        place_on_terrain(self.model, saved.ws, saved.x.copy())
