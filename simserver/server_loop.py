@@ -14,7 +14,11 @@ One thread, one loop; every tick (:meth:`ServerLoop.tick`), for each vehicle slo
 6. publish the state (every ``state_every`` ticks) and, a few times a second, the
    diagnostics;
 7. serve control requests through :data:`CONTROLS` (name -> handler), each validated
-   first (:func:`simserver.protocol.validate_control`).
+   first (:func:`simserver.protocol.validate_control`). A ``load`` is read by a worker
+   process; a ``load``'s result and a ``reset`` with ``u_mps`` are then applied one piece
+   a tick after the tick's step (the result mapped, the model and start state built,
+   ``SETTLE_STEPS_PER_TICK`` settling steps at a time, committed), each piece well under
+   a millisecond (``python -m benchmarks.bench_load --pieces``), and answered when done.
 
 What the loop talks to is injected: the clock and sleep of its pacer, and per slot a
 :class:`SlotPorts` (a command inbox, a control inbox, a publisher). The zenoh adapter is
