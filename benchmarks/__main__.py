@@ -20,6 +20,9 @@ In order:
    client under their default real-time scheduling (issue 13);
    ``load``: ``benchmarks.bench_load``, 20 state subscribers and 10 clients joining and
    leaving a second, a driver at 1 kHz;
+   ``hostile``: ``benchmarks.bench_load --hostile``, the largest gap in the state stream
+   while hostile loads, terrain loads and resets at speed are prepared, beside
+   no-load baseline windows of the same run (issues 13 and 17);
 3. ``benchmarks.bench_viewer``: the same with the live viewer off, saving to a file and
    streaming to a stalled viewer (also sampling the viewer process's peak memory);
 4. ``benchmarks.bench_ros2``: the same with the server's ROS 2 adapter off and on (its
@@ -72,8 +75,8 @@ TABLE_HEADER = ("| figure | value | target | command |", "|---|---|---|---|")
 HEADLESS_SCENARIO = "configs/scenarios/e2_stop_downslope_paper_damping.yaml"
 """The README's headless example, run for the headless memory figure."""
 
-SECTIONS = ("step", "commonroad", "server", "busy", "load", "viewer", "ros2", "tls_front",
-            "startup", "memory")
+SECTIONS = ("step", "commonroad", "server", "busy", "load", "hostile", "viewer", "ros2",
+            "tls_front", "startup", "memory")
 """Benchmarks in the order they run (``--only`` takes these names)."""
 
 
@@ -88,18 +91,19 @@ class Settings:
     load_seconds: float
     viewer_seconds: float
     viewer_rounds: int
+    hostile_rounds: int
     startup_cold: int
     startup_warm: int
 
 
 FULL = Settings(step_args=(), commonroad_args=(), server_seconds=60.0, busy_runs=3,
-                load_seconds=30.0, viewer_seconds=60.0, viewer_rounds=2,
+                load_seconds=30.0, viewer_seconds=60.0, viewer_rounds=2, hostile_rounds=3,
                 startup_cold=3, startup_warm=5)
 QUICK = Settings(step_args=("--seconds", "5", "--repeats", "5"),
                  commonroad_args=("--rounds", "1", "--seconds", "2", "--steps", "300"),
                  server_seconds=8.0,
                  busy_runs=1, load_seconds=8.0, viewer_seconds=6.0, viewer_rounds=1,
-                 startup_cold=1, startup_warm=3)
+                 hostile_rounds=1, startup_cold=1, startup_warm=3)
 """Short runs: long enough for the server's 4096-tick statistics window, no longer."""
 
 
@@ -472,6 +476,31 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
                 f"{r['config_ok']} get_config answered)", cmd, "0"),
         ]
 
+    if "hostile" in sections:
+        from benchmarks import bench_load
+
+        print("== bench_load --hostile", flush=True)
+        argv = ["--hostile", "--rounds", str(settings.hostile_rounds)]
+        cmd = " ".join(["python -m benchmarks.bench_load", *argv])
+        raw["hostile"] = r = bench_load.main(argv)
+        raw["pieces"] = work = bench_load.main(["--pieces", "--rounds",
+                                                str(2 + settings.hostile_rounds)])
+        piece_us = max(max(v) for row in work.values() for v in row.values())
+        cmd += "; python -m benchmarks.bench_load --pieces"
+        gaps = {label: max(e["gap_ms"]) for label, e in r["actions"].items()}
+        worst = max(gaps, key=gaps.get)
+        base = sorted(r["baseline_gap_ms"])
+        rows.append(Row(
+            "largest gap in the 1 kHz state stream during hostile loads (10 MB, alias bomb, "
+            "deep nesting, FIFO), terrain loads and resets at speed",
+            f"{gaps[worst]:.2f} ms ({worst}), server tick lateness max "
+            f"{max(max(e['lateness_ms']) for e in r['actions'].values()):.2f} ms; no-load "
+            f"baseline windows: median "
+            f"{base[len(base) // 2]:.2f}, max {base[-1]:.2f} ms; commands {r['cmd_sent']} "
+            f"sent, {r['cmd_received']} received + {r['cmd_dropped']} counted; the "
+            f"largest piece of work a tick does for them {piece_us:.0f} us CPU",
+            cmd, "<= 2 ms"))
+
     if "viewer" in sections:
         print("== bench_viewer", flush=True)
         argv = ["--seconds", f"{settings.viewer_seconds:g}",
@@ -576,6 +605,12 @@ def render(report: Report, sections: list[str]) -> str:
         "own zenoh session) checking every tick arrives, and 10 sessions a second joining "
         "(state subscription, `get_config`) and leaving a second later; late ticks from the "
         "server's diagnostics over the loaded period.",
+        "- Hostile loads: `benchmarks.bench_load --hostile`: a driver at 1 kHz and a state "
+        "subscriber stamping each state's arrival; per round a 1 s no-load window, then each "
+        "`load` (10 MB scene, alias bomb, deep nesting, FIFO, two OpenDRIVE terrains, flat) "
+        "and `reset` at 1 and 20 m/s from request to reply + 0.1 s; the largest gap between "
+        "two states received (1 ms when nothing stalls) and the server's worst tick lateness. "
+        "The baseline windows show what the machine stalls by itself.",
         "- Start-up: launch of `python -m simserver serve --viewer off` to its `ready` line "
         "(kernels compiled or loaded, zenoh open, before the first tick). Cold: "
         "`NUMBA_CACHE_DIR` an empty directory (Python bytecode already compiled); warm: the "

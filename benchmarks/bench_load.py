@@ -1,8 +1,23 @@
-"""The live server under client load: many state subscribers while clients join and leave.
+"""The live server under client load: many state subscribers while clients join and leave;
+and (``--hostile``) the loop while ``ctl/load`` and ``ctl/reset`` are prepared.
 
 Run from the repository root::
 
     python -m benchmarks.bench_load [--seconds 30] [--subscribers 20] [--churn 10]
+    python -m benchmarks.bench_load --hostile [--rounds 3]
+    python -m benchmarks.bench_load --pieces [--rounds 5]
+
+``--hostile`` (issue 13: the loop never stalls more than 2 ms while a ``load`` is prepared;
+issue 17: a ``reset`` with ``u_mps`` never makes a tick late): a driver at 1 kHz, a state
+subscriber stamping every state's arrival, and per round, one after the other: a no-load
+baseline window, then a ``load`` of a 10 MB scene, a YAML alias bomb, a deeply nested
+file, a FIFO, two terrain scenes (OpenDRIVE, 6.6 and 18 MB of grids through shared memory)
+and back, and ``reset`` at 1 and 20 m/s (2000 and 230 settling steps), each from its
+request to its reply plus 0.1 s. Reports per action the largest gap between two states
+received (the state stream, 1 kHz: 1 ms when nothing stalls) and the server's worst tick
+lateness (its pacer) over the rounds, beside the baseline windows' (this VM stalls 1-6 ms
+with nothing running: ``python -m benchmarks.bench_clock``), and whether every command
+sent was received or counted.
 
 Starts ``simserver serve`` (its default real-time scheduling) on a free loopback port, a
 driver at 1 kHz, ``--subscribers`` state subscribers (each its own zenoh session, in one
@@ -16,10 +31,17 @@ diagnostics), the states each subscriber missed, and the joins answered.
 from __future__ import annotations
 
 import argparse
+import gc
 import os
+import tempfile
+import threading
 import time
+from pathlib import Path
 
-from simserver.testing import Client, RoleProcess, ServerProcess
+import numpy as np
+
+from simserver import protocol as proto
+from simserver.testing import CONFIGS, Client, RoleProcess, ServerProcess, wait_until
 
 
 def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto") -> dict:
@@ -57,13 +79,232 @@ def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto") 
             "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
 
 
+def hostile_files(tmp: Path) -> dict[str, Path]:
+    """The hostile ``load`` files of issue 13 in ``tmp``: a 10 MB scene (valid YAML), an
+    alias bomb, a deeply nested file, a FIFO."""
+    vehicle = CONFIGS / "vehicles" / "paper_sedan" / "vehicle.yaml"
+    big = tmp / "big_scene.yaml"
+    filler = "# " + "x" * 98 + "\n"
+    big.write_text(f"name: big\nvehicle: {vehicle}\n"
+                   "road: {grade_pct: 2.0, cross_slope_pct: 0.0, friction_scale: 1.0}\n"
+                   "initial: {x_m: 0.0, y_m: 0.0, yaw_rad: 0.0, u_mps: 0.0}\n"
+                   + filler * (10 * 1024 * 1024 // len(filler)), encoding="utf-8")
+    bomb = tmp / "bomb.yaml"
+    lines = ['a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
+    for i, name in enumerate("bcdefg"):
+        lines.append(f"{name}: &{name} [" + ",".join([f"*{'abcdefg'[i]}"] * 9) + "]")
+    bomb.write_text("\n".join(lines) + f"\nvehicle: {vehicle}\n", encoding="utf-8")
+    deep = tmp / "deep.yaml"
+    deep.write_text("vehicle: " + "[" * 50_000 + "]" * 50_000 + "\n", encoding="utf-8")
+    fifo = tmp / "fifo.yaml"
+    os.mkfifo(fifo)
+    return {"big": big, "bomb": bomb, "deep": deep, "fifo": fifo}
+
+
+class StampedStates:
+    """A state subscriber that stamps each arrival (``perf_counter_ns``) with its tick."""
+
+    def __init__(self, client: Client) -> None:
+        self.lock = threading.Lock()
+        self.stamps: list[tuple[int, int]] = []
+        self.sub = client.ep.session.declare_subscriber(client.ep.keys.state, self._on)
+
+    def _on(self, sample) -> None:
+        now = time.perf_counter_ns()
+        tick = int(proto.decode_state(bytes(sample.payload))["tick"])
+        with self.lock:
+            self.stamps.append((now, tick))
+
+    def largest_gap_ms(self, t0_ns: int, t1_ns: int) -> float:
+        """The longest time between two states received in ``[t0_ns, t1_ns]``."""
+        with self.lock:
+            times = np.array([t for t, _ in self.stamps if t0_ns <= t <= t1_ns], dtype=np.int64)
+        return float(np.diff(times).max()) / 1e6 if len(times) > 1 else float("nan")
+
+
+HOSTILE_ACTIONS: tuple[tuple[str, str, dict], ...] = (
+    ("load 10 MB scene", "load", {"scene": "big"}),
+    ("load alias bomb", "load", {"scene": "bomb"}),
+    ("load deep nesting", "load", {"scene": "deep"}),
+    ("load FIFO", "load", {"scene": "fifo"}),
+    ("load OpenDRIVE crest (6.6 MB grids)", "load",
+     {"scene": "scenes/crest_curve_paper_sedan.yaml"}),
+    ("load OpenDRIVE velodrome (18 MB grids)", "load",
+     {"scene": "scenes/velodrome_paper_sedan.yaml"}),
+    ("load flat", "load", {"scene": "scenes/flat_paper_sedan.yaml"}),
+    ("reset u_mps 1 (2000 settling steps)", "reset", {"u_mps": 1.0}),
+    ("reset u_mps 20 (230 settling steps)", "reset", {"u_mps": 20.0}),
+)
+
+
+def hostile(rounds: int = 3, baseline_s: float = 1.0, realtime: str = "auto") -> dict:
+    """The loop during hostile loads and resets at speed against no-load baselines."""
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        files = hostile_files(tmp)
+        cfg = tmp / "server.yaml"
+        cfg.write_text(f"scene: {CONFIGS / 'scenes' / 'flat_paper_sedan.yaml'}\n"
+                       f"config_dirs: [{tmp}, {CONFIGS}]\nviewer: off\n", encoding="utf-8")
+        per: dict[str, dict[str, list]] = {}
+        with ServerProcess(config=cfg, scene=None, log_level="WARNING",
+                           extra_args=["--realtime", realtime]) as server, \
+                Client(server, state_capacity=0) as client:
+            stamps = StampedStates(client)
+            driver = RoleProcess("driver", [*server.client_args(), "--rate", "1000",
+                                            "--profile", "throttle:0.2"])
+            try:
+                wait_until(lambda: len(stamps.stamps) > 100, what="the state stream")
+                for _ in range(rounds):
+                    for label, name, args in HOSTILE_ACTIONS:
+                        args = {k: str(files.get(v, v)) if k == "scene" else v
+                                for k, v in args.items()}
+                        d0 = client.diagnostics()
+                        b0 = time.perf_counter_ns()
+                        time.sleep(baseline_s)  # the no-load baseline just before
+                        b1 = time.perf_counter_ns()
+                        client.diag.drain_newest()
+                        reply = client.request(name, args, timeout_s=30.0)
+                        time.sleep(0.1)
+                        t1 = time.perf_counter_ns()
+                        windows = [proto.decode_diagnostics(p)
+                                   for p in client.diag.drain_newest()]
+                        d1 = client.diagnostics()
+                        windows.append(d1)
+                        entry = per.setdefault(label, {"gap_ms": [], "base_gap_ms": [],
+                                                       "lateness_ms": [], "ok": [],
+                                                       "took_s": [], "error": []})
+                        entry["gap_ms"].append(stamps.largest_gap_ms(b1, t1))
+                        entry["base_gap_ms"].append(stamps.largest_gap_ms(b0, b1))
+                        entry["lateness_ms"].append(
+                            max(float(w["lateness_max_us"]) for w in windows) / 1e3)
+                        entry["ok"].append(bool(reply["ok"]))
+                        entry["took_s"].append((t1 - b1) / 1e9 - 0.1)
+                        entry["error"].append(reply.get("error", ""))
+                        entry.setdefault("skipped", []).append(
+                            int(d1["skipped_ticks"] - d0["skipped_ticks"]))
+                sent = driver.stop()
+            finally:
+                driver.kill()
+        final = server.final_stats()
+    all_base = [g for e in per.values() for g in e["base_gap_ms"]]
+    return {"rounds": rounds, "actions": per, "baseline_gap_ms": all_base,
+            "cmd_sent": sent["sent"] if sent else None,
+            "cmd_received": final["cmd_received"], "cmd_dropped": final["cmd_dropped"],
+            "loadavg_1min": os.getloadavg()[0], "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
+
+
+PIECE_SCENES = ("scenes/velodrome_paper_sedan.yaml", "scenes/flat_paper_sedan.yaml",
+                "scenes/crest_curve_paper_sedan.yaml", "scenes/hills_paper_sedan.yaml")
+
+
+def pieces(rounds: int = 5) -> dict:
+    """Per-tick work of a load (each scene of ``PIECE_SCENES``) and of a reset at 1 and
+    20 m/s, in microseconds: ``{label: {piece: [per round]}}``."""
+    from simserver.load_worker import ProcessPreparer, opened
+    from simserver.scenario import load_scene
+    from simserver.server import load_server_config, new_simulation
+    from simserver.server_loop import SETTLE_STEPS_PER_TICK
+    from simserver.vehicle_slot import VehicleSlot, unwrap_prepared
+
+    cfg = load_server_config(CONFIGS / "server" / "default.yaml", viewer="off")
+    slot = VehicleSlot(cfg, new_simulation(load_scene(cfg.scene), cfg.period_s))
+    slot.warm_up()
+    gc.collect()  # as the server's loop does before its clock starts (ServerLoop.start)
+    gc.freeze()
+    clock = time.thread_time_ns  # the work itself: CPU time, not the VM's stalls
+    out: dict[str, dict[str, list[float]]] = {}
+
+    def settle(staged, row: dict[str, list[float]]) -> None:
+        longest = 0
+        while True:
+            t = clock()
+            done = staged.advance(SETTLE_STEPS_PER_TICK)
+            longest = max(longest, clock() - t)
+            if done:
+                break
+        row.setdefault("settle piece (max)", []).append(longest / 1e3)
+        t = clock()
+        staged.commit()
+        row.setdefault("commit", []).append((clock() - t) / 1e3)
+
+    preparer = ProcessPreparer()
+    try:
+        for _ in range(rounds):
+            for scene in PIECE_SCENES:
+                fn, args = slot.load_job({"scene": scene})
+                result = preparer.submit(fn, *args).result(timeout=120)
+                row = out.setdefault(f"load {scene}", {})
+                t0 = clock()
+                value = opened(result)
+                t1 = clock()
+                staged = slot.apply_load(unwrap_prepared(value))
+                t2 = clock()
+                del value
+                row.setdefault("map result", []).append((t1 - t0) / 1e3)
+                row.setdefault("build", []).append((t2 - t1) / 1e3)
+                settle(staged, row)
+                for _ in range(100):
+                    slot.sim.step()
+            for u_mps in (1.0, 20.0):
+                row = out.setdefault(f"reset u_mps {u_mps:g}", {})
+                t0 = clock()
+                staged = slot.begin_reset({"u_mps": u_mps})
+                row.setdefault("build", []).append((clock() - t0) / 1e3)
+                settle(staged, row)
+    finally:
+        preparer.close()
+    return out
+
+
+def print_pieces(out: dict) -> None:
+    """The figures of :func:`pieces`."""
+    print("per-tick work of a load / reset in the server (thread CPU time, us, median [max] "
+          "over the rounds)")
+    for label, row in out.items():
+        print(f"{label:42s} " + "; ".join(
+            f"{name} {np.median(v):.0f} [{max(v):.0f}]" for name, v in row.items()))
+
+
+def print_hostile(r: dict) -> None:
+    """The figures of :func:`hostile`."""
+    base = np.array(r["baseline_gap_ms"])
+    print(f"hostile loads and resets at speed, {r['rounds']} rounds, driver at 1 kHz, load "
+          f"average {r['loadavg_1min']:.2f}; largest gap between two states received, ms")
+    print(f"no-load baseline windows (1 s each, {len(base)}): p50 "
+          f"{np.nanpercentile(base, 50):.2f}, p90 {np.nanpercentile(base, 90):.2f}, max "
+          f"{np.nanmax(base):.2f}")
+    for label, e in r["actions"].items():
+        gaps = np.array(e["gap_ms"])
+        print(f"{label:42s} gap max {np.nanmax(gaps):6.2f} (median of rounds "
+              f"{np.nanmedian(gaps):5.2f}); baseline before it {np.nanmax(e['base_gap_ms']):5.2f}; "
+              f"tick lateness max {max(e['lateness_ms']):5.2f}; skipped {sum(e['skipped'])}; "
+              f"answered in {max(e['took_s']):.3f} s; "
+              + ("ok" if all(e["ok"]) else f"error: {e['error'][0]}"))
+    print(f"commands: {r['cmd_sent']} sent, {r['cmd_received']} received + "
+          f"{r['cmd_dropped']} counted as dropped")
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--subscribers", type=int, default=20)
     parser.add_argument("--churn", type=float, default=10.0, help="joins per second")
     parser.add_argument("--realtime", default="auto", choices=("auto", "off"))
+    parser.add_argument("--hostile", action="store_true",
+                        help="the loop during hostile loads and resets at speed instead")
+    parser.add_argument("--pieces", action="store_true",
+                        help="the per-tick work of loads and resets, in-process, instead")
+    parser.add_argument("--rounds", type=int, default=None,
+                        help="with --hostile (default 3) or --pieces (default 5)")
     args = parser.parse_args(argv)
+    if args.pieces:
+        r = pieces(args.rounds or 5)
+        print_pieces(r)
+        return r
+    if args.hostile:
+        r = hostile(args.rounds or 3, realtime=args.realtime)
+        print_hostile(r)
+        return r
     r = run(args.seconds, args.subscribers, args.churn, args.realtime)
     print(f"load run {r['seconds']:.0f} s: {r['subscribers']} state subscribers, "
           f"{r['churn_per_s']:g} clients joining and leaving per second ({r['joined']} "

@@ -14,7 +14,11 @@ One thread, one loop; every tick (:meth:`ServerLoop.tick`), for each vehicle slo
 6. publish the state (every ``state_every`` ticks) and, a few times a second, the
    diagnostics;
 7. serve control requests through :data:`CONTROLS` (name -> handler), each validated
-   first (:func:`simserver.protocol.validate_control`).
+   first (:func:`simserver.protocol.validate_control`). A ``load`` is read by a worker
+   process; a ``load``'s result and a ``reset`` with ``u_mps`` are then applied one piece
+   a tick after the tick's step (the result mapped, the model and start state built,
+   ``SETTLE_STEPS_PER_TICK`` settling steps at a time, committed), each piece well under
+   a millisecond (``python -m benchmarks.bench_load --pieces``), and answered when done.
 
 What the loop talks to is injected: the clock and sleep of its pacer, and per slot a
 :class:`SlotPorts` (a command inbox, a control inbox, a publisher). The zenoh adapter is
@@ -26,6 +30,7 @@ recording publisher. The rules are those of ``docs/protocol.md``.
 
 from __future__ import annotations
 
+import functools
 import gc
 import logging
 import time
@@ -36,8 +41,9 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from simserver import protocol as proto
 from simserver.adapters.config import ConfigError
+from simserver.load_worker import opened
 from simserver.realtime import DEFAULT_SPIN_NS, NS_PER_S, CpuMeter, Pacer, PacerStats
-from simserver.vehicle_slot import VehicleSlot, unwrap_prepared
+from simserver.vehicle_slot import StagedStart, VehicleSlot, unwrap_prepared
 
 if TYPE_CHECKING:
     from simserver.server import ServerConfig
@@ -46,6 +52,10 @@ log = logging.getLogger("simserver.server")
 
 JOB_TIMEOUT_S = 10.0
 """A control's off-tick job (``load``) not done after this long is abandoned."""
+SETTLE_STEPS_PER_TICK = 50
+"""Settling steps of a start at speed (``reset`` with ``u_mps``, a relaxed scene's
+``load``) run after a tick's work, per tick: about 0.2 ms of the 1 ms period (4 us a
+step); up to ``core.start.SETTLE_STEPS_MAX`` = 2000 steps are then ready in 40 ticks."""
 CONTROLS_PER_TICK = 4
 """Control requests served per slot and tick at most; more wait in the inbox (bounded,
 per client: ``simserver.adapters.zenoh_io.ControlInbox``)."""
@@ -124,20 +134,26 @@ class Control:
         steps and returns the reply members. ``handler`` is then the in-one-go form
         (tools, tests).
     apply : callable, optional
-        See ``job``.
+        See ``job``; it returns a :class:`simserver.vehicle_slot.StagedStart`, settled and
+        committed like ``stage``'s.
+    stage : callable, optional
+        For a control that starts the car anew (``reset``): ``stage(slot, args) ->
+        StagedStart``, quick; the loop runs its settling ``SETTLE_STEPS_PER_TICK`` steps
+        per tick after the tick's work, then commits it between two ticks and answers.
     """
 
     handler: Callable[[VehicleSlot, dict[str, Any]], dict[str, Any]]
     job: Callable[[VehicleSlot, dict[str, Any]], tuple[Callable[..., Any], tuple]] | None = None
-    apply: Callable[[VehicleSlot, Any], dict[str, Any]] | None = None
+    apply: Callable[[VehicleSlot, Any], StagedStart] | None = None
+    stage: Callable[[VehicleSlot, dict[str, Any]], StagedStart] | None = None
 
 
-def _apply_load(slot: VehicleSlot, result: Any) -> dict[str, Any]:
+def _apply_load(slot: VehicleSlot, result: Any) -> StagedStart:
     return slot.apply_load(unwrap_prepared(result))
 
 
 CONTROLS: Mapping[str, Control] = {
-    "reset": Control(VehicleSlot.ctl_reset),
+    "reset": Control(VehicleSlot.ctl_reset, stage=VehicleSlot.begin_reset),
     "pause": Control(VehicleSlot.ctl_pause),
     "resume": Control(VehicleSlot.ctl_resume),
     "step": Control(VehicleSlot.ctl_step),
@@ -171,22 +187,33 @@ class InlinePreparer:
         """Nothing to restart."""
 
 
-def _answer(request: ControlRequest, name: str, run: Callable[[], dict[str, Any]]) -> bool:
-    """Run ``run`` and answer ``request`` with its members or the error; True if it succeeded."""
-    try:
-        body = proto.reply_ok(**run())
-    except proto.ProtocolError as exc:
+def _reply_error(request: ControlRequest, name: str, exc: Exception) -> None:
+    """Answer ``request`` with the error ``exc`` (a bug is logged and answered too)."""
+    if isinstance(exc, proto.ProtocolError):
         request.reply(proto.reply_error(exc))
-        return False
-    except ConfigError as exc:
+    elif isinstance(exc, ConfigError):
         request.reply(proto.reply_error(f"{name}: {exc}", field=name))
-        return False
-    except Exception as exc:  # a bug must not stop the 1 kHz loop: answer, log, go on
-        log.exception("control %s failed", name)
+    else:  # a bug must not stop the 1 kHz loop: answer, log, go on
+        log.error("control %s failed", name, exc_info=exc)
         request.reply(proto.reply_error(f"{name}: internal error ({type(exc).__name__})",
                                         field=name))
+
+
+def _attempt(request: ControlRequest, name: str, run: Callable[[], Any]) -> Any:
+    """``run()``, or None when it raised (then ``request`` is answered with the error)."""
+    try:
+        return run()
+    except Exception as exc:
+        _reply_error(request, name, exc)
+        return None
+
+
+def _answer(request: ControlRequest, name: str, run: Callable[[], dict[str, Any]]) -> bool:
+    """Run ``run`` and answer ``request`` with its members or the error; True if it succeeded."""
+    members = _attempt(request, name, run)
+    if members is None:
         return False
-    request.reply(body)
+    request.reply(proto.reply_ok(**members))
     return True
 
 
@@ -217,12 +244,15 @@ def _validated(name: str, payload: bytes) -> dict[str, Any]:
 
 @dataclass
 class PendingJob:
-    """A control whose job runs off the tick: answered when its result is applied."""
+    """A control whose job runs off the tick, or whose start settles in pieces (``staged``):
+    answered when it is applied."""
 
     request: ControlRequest
     control: Control
-    future: Future
+    future: Future | None
     submitted_ns: int
+    staged: StagedStart | None = None
+    make: Callable[[], StagedStart] | None = None  # a job's result, mapped: staged next tick
 
 
 # ---------------------------------------------------------------------- the loop
@@ -336,22 +366,31 @@ class ServerLoop:
                 diag = diag or self._diagnostics_source()
                 self._port_counters(index, slot, ports)
                 ports.publisher.publish_diagnostics(self._diagnostics(slot, *diag))
-            self._serve_controls(index, slot, ports, now)
+            self._serve_controls(index, slot, ports, now, catching_up)
         if count % self.second_every == self.second_every // 2:  # between diagnostics
             for job in self.every_second:
                 job()
         self.loop_count += 1
 
     def _serve_controls(self, index: int, slot: VehicleSlot, ports: SlotPorts,
-                        now: int) -> None:
-        """Apply a finished job; serve the quick controls; hand slow ones to the preparer."""
+                        now: int, catching_up: bool = False) -> None:
+        """Apply a finished job; settle a staged start a little further (not while catching
+        up: late ticks come first) and commit it when ready; serve the quick controls; hand
+        slow ones to the preparer."""
         pending = self.pending.get(index)
-        if pending is not None:
-            self._finish_job(index, slot, pending, now)
+        if pending is not None:  # one piece of its work per tick (each well under 1 ms)
+            if pending.make is not None:
+                self._begin_stage(index, pending.request, pending.control, pending.make, now,
+                                  settle_now=False)
+            elif pending.staged is not None:
+                if not catching_up:
+                    self._settle(index, pending)
+            else:
+                self._finish_job(index, slot, pending, now)
         for request in ports.controls.poll(self.controls_per_tick):
             name = request.name
             control = CONTROLS.get(name)
-            if control is None or control.job is None:
+            if control is None or (control.job is None and control.stage is None):
                 serve_control(slot, request)
                 continue
             try:  # bad arguments are named first, busy or not
@@ -365,6 +404,10 @@ class ServerLoop:
                     f"{name}: busy: a {self.pending[index].request.name} is still being "
                     "prepared; ask again when it has been answered", field=name))
                 continue
+            if control.stage is not None:
+                self._begin_stage(index, request, control,
+                                  functools.partial(control.stage, slot, args), now)
+                continue
             try:
                 fn, job_args = control.job(slot, args)
             except proto.ProtocolError as exc:
@@ -372,8 +415,38 @@ class ServerLoop:
                 continue
             job = self.pending[index] = PendingJob(request, control,
                                                    self.preparer.submit(fn, *job_args), now)
-            if job.future.done():  # an inline preparer: answered in this tick
+            if job.future.done():  # an inline preparer: all of it, answered in this tick
                 self._finish_job(index, slot, job, now)
+                while (job := self.pending.get(index)) is not None and job.make is not None:
+                    self._begin_stage(index, job.request, job.control, job.make, now)
+                    if (job := self.pending.get(index)) is not None:
+                        job.staged.prepared.finish()
+                        self._settle(index, job)
+
+    def _begin_stage(self, index: int, request: ControlRequest, control: Control,
+                     make: Callable[[], StagedStart], now: int, settle_now: bool = True) -> None:
+        """Make a staged start (errors answered, nothing changed) and, with ``settle_now``,
+        take its first piece of settling now: committed and answered at once when that was
+        all (a reset at rest is answered in its tick); else from the next tick on."""
+        self.pending.pop(index, None)
+        staged = _attempt(request, request.name, make)
+        if staged is not None:
+            pending = self.pending[index] = PendingJob(request, control, None, now, staged)
+            if settle_now:
+                self._settle(index, pending)
+
+    def _settle(self, index: int, pending: PendingJob) -> None:
+        """Advance a staged start by ``SETTLE_STEPS_PER_TICK`` steps; commit and answer it
+        when it is settled (between this tick's step and the next)."""
+        staged = pending.staged
+        assert staged is not None
+        done = _attempt(pending.request, pending.request.name,
+                        lambda: staged.advance(SETTLE_STEPS_PER_TICK))
+        if done is None:  # answered with the error; the running car is untouched
+            del self.pending[index]
+        elif done:
+            del self.pending[index]
+            _answer(pending.request, pending.request.name, staged.commit)
 
     def _port_counters(self, index: int, slot: VehicleSlot, ports: SlotPorts) -> None:
         """The transport's counters into the slot's (diagnostics, the stopped line)."""
@@ -396,8 +469,15 @@ class ServerLoop:
                     "nothing changed", field=name))
                 self.preparer.restart()
                 return
-            result = future.result()
-            _answer(pending.request, name, lambda: pending.control.apply(slot, result))
+            # a worker's result maps its big arrays (shared memory: no copy, no unpickling
+            # of megabytes in the tick; simserver.load_worker) in this tick; the next one
+            # builds its model and start state, the ones after settle (a relaxed start) and
+            # commit it: a few hundred microseconds of work per tick at most
+            value = _attempt(pending.request, name, lambda: opened(future.result()))
+            if value is not None:
+                self.pending[index] = PendingJob(
+                    pending.request, pending.control, None, now,
+                    make=lambda: pending.control.apply(slot, value))
         elif now - pending.submitted_ns > self.job_timeout_ns:
             del self.pending[index]
             log.error("control %s: not prepared after %.0f s: worker restarted", name,

@@ -23,7 +23,7 @@ from simserver.core import params as P
 from simserver.core.chassis import place_on_terrain
 from simserver.core.damping import DAMPING_MODELS
 from simserver.core.integrator import simulate, step
-from simserver.core.model import Data, Model, make_data
+from simserver.core.model import Data, Model, Workspace, make_data
 from simserver.core.params import VP_CG_HEIGHT_M, VP_DAMPING_MODEL, VP_SLIP_MODEL
 from simserver.core.pose import world_pose
 from simserver.core.powertrain import RADPS_PER_RPM
@@ -70,6 +70,37 @@ def check_model(vp: np.ndarray, tp: np.ndarray) -> None:
     check_tire_vectors(tp)
 
 
+@dataclasses.dataclass
+class PreparedStart:
+    """A reset or load made ready beside the running simulation (``Simulation.prepare_reset``,
+    ``prepare_load``): its own state, inputs and workspace, and the settling steps of a start
+    at speed still to run (``core.start.settle_at_velocity``: up to ``SETTLE_STEPS_MAX``,
+    8 ms). The live server runs them a few at a time between ticks (:meth:`advance`), so no
+    tick waits for them; run in pieces or at once the result is the same to the bit (each
+    piece holds the body at the values the previous one left)."""
+
+    scene: Scene
+    model: Model
+    road: dict[str, float]
+    data: Data
+    steps_left: int
+    settled: bool  # the wheels are relaxed (a start at speed): the out vector is its forces
+    _body: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(BODY_SLOTS))
+
+    def advance(self, max_steps: int) -> bool:
+        """Run up to ``max_steps`` of the settling; True when it is done."""
+        n = min(self.steps_left, max_steps)
+        if n > 0:
+            settle_at_velocity(self.model, self.data, n, self._body)
+            self.steps_left -= n
+        return self.steps_left == 0
+
+    def finish(self) -> PreparedStart:
+        """Run what is left of the settling at once (headless runs, replays, tools)."""
+        self.advance(self.steps_left)
+        return self
+
+
 class Simulation:
     """A vehicle on its road: the model, the data and the step (module docstring)."""
 
@@ -84,14 +115,21 @@ class Simulation:
     def load(self, scene: Scene) -> None:
         """Take a scene (vehicle, road, initial state); the state is reset to it and the
         inputs are kept."""
+        self.commit(self.prepare_load(scene).finish())
+
+    def prepare_load(self, scene: Scene) -> PreparedStart:
+        """A ``load`` of ``scene`` made ready beside the running model (which is not
+        touched): its model and initial state, the settling left to :meth:`PreparedStart.advance`;
+        :meth:`commit` swaps it in."""
         vp = scene.vehicle.vp.copy()
         tp = np.ascontiguousarray(scene.vehicle.tp, dtype=np.float64).copy()
         check_model(vp, tp)
-        self.scene = scene
-        self.model = Model(vp=vp, tp=tp, dt_s=self.dt_s, tires=tire_kernels(),
-                           terrain=scene.terrain)
-        self.set_road(**scene.road)
-        self.reset(None)
+        model = Model(vp=vp, tp=tp, dt_s=self.dt_s, tires=tire_kernels(),
+                      terrain=scene.terrain)
+        road = {key: scene.road[key] for key in ("grade_pct", "cross_slope_pct",
+                                                  "friction_scale")}
+        set_road(model.vp, **road)
+        return self._prepare(scene, model, road, None, None)
 
     def set_road(self, grade_pct: float, cross_slope_pct: float, friction_scale: float) -> None:
         """Change the road plane (takes effect at the next step)."""
@@ -135,36 +173,66 @@ class Simulation:
         velocity (``core.start``), with the current steer, throttle and gear (P as N) and
         the brakes off; the inputs are kept.
         """
-        scene = self.scene
+        self.commit(self.prepare_reset(pose, u_mps).finish())
+
+    def prepare_reset(self, pose: dict[str, float] | None,
+                      u_mps: float | None = None) -> PreparedStart:
+        """A :meth:`reset` made ready beside the running state (untouched until
+        :meth:`commit`), with the inputs of now; the settling of a start at speed is left to
+        :meth:`PreparedStart.advance`, so the live server runs it in small pieces."""
+        return self._prepare(self.scene, self.model, self.road, pose, u_mps)
+
+    def _prepare(self, scene: Scene, model: Model, road: dict[str, float],
+                 pose: dict[str, float] | None, u_mps: float | None) -> PreparedStart:
         relaxed = bool(scene.initial.get("relaxed", 0.0))
+        start_scene = scene
         if pose is not None or u_mps is not None:
             start = {**scene.initial, **(pose or {}), "u_mps": 0.0, "v_mps": 0.0,
                      "yaw_rate_radps": 0.0}
             if u_mps is not None:
                 start["u_mps"] = float(u_mps)
                 relaxed = True
-            scene = dataclasses.replace(scene, initial=start)
-        self.data.x[:] = initial_state(scene)
-        if self.model.terrain.kind != TERRAIN_PLANE:
-            place_on_terrain(self.model, self.data.ws, self.data.x)
-        if relaxed:
-            self.settle()
+            start_scene = dataclasses.replace(scene, initial=start)
+        # the workspace copied, not new: the MF 6.1 path reads some of it before writing it
+        # (the last bits of its forces differ with a fresh one), and a reset prepared
+        # aside must give the very state a reset in place gives
+        ws = Workspace(*(a.copy() for a in self.data.ws))
+        data = Data(x=initial_state(start_scene), inputs=self.data.inputs.copy(),
+                    out=self.data.out.copy(), ws=ws)
+        if model.terrain.kind != TERRAIN_PLANE:
+            place_on_terrain(model, data.ws, data.x)
+        steps = 0
+        if relaxed:  # settled with the inputs of now, but the brakes off and P as N
+            steps = settle_steps(model, data.x[L.U_MPS])
+            inputs = data.inputs
+            inputs[L.IN_BRAKE] = 0.0
+            inputs[L.IN_PARKING_BRAKE] = 0.0
+            if inputs[L.IN_GEAR] == L.GEAR_P:
+                inputs[L.IN_GEAR] = L.GEAR_N
+            start_powertrain(model, data)
+        return PreparedStart(scene=scene, model=model, road=road, data=data,
+                             steps_left=steps, settled=relaxed)
 
-    def settle(self) -> None:
-        """Relax the wheels, slip states and powertrain at the state's velocity (body held,
-        ``core.start``); the inputs are kept."""
-        n = settle_steps(self.model, self.data.x[L.U_MPS])
-        inputs = self.data.inputs
-        kept = inputs.copy()
-        inputs[L.IN_BRAKE] = 0.0
-        inputs[L.IN_PARKING_BRAKE] = 0.0
-        if inputs[L.IN_GEAR] == L.GEAR_P:
-            inputs[L.IN_GEAR] = L.GEAR_N
-        try:
-            start_powertrain(self.model, self.data)
-            settle_at_velocity(self.model, self.data, n, np.zeros(BODY_SLOTS))
-        finally:
-            inputs[:] = kept
+    def commit(self, prepared: PreparedStart) -> tuple[Scene, Model] | None:
+        """Swap a finished :class:`PreparedStart` in: its state (and, for a load, its scene,
+        model and road); the inputs are kept. Returns the scene and model a load replaced
+        (None otherwise): dropping them frees a terrain's grids, which the live server does
+        outside the tick (``simserver.load_worker.release_later``)."""
+        assert prepared.steps_left == 0, "commit a prepared start once it is settled"
+        replaced = None
+        if prepared.model is not getattr(self, "model", None):  # a load (or the first)
+            if hasattr(self, "model"):
+                replaced = (self.scene, self.model)
+            self.scene = prepared.scene
+            self.model = prepared.model
+            self.road = prepared.road
+            self.axes = road_axes(prepared.road["grade_pct"], prepared.road["cross_slope_pct"])
+        self.data.x[:] = prepared.data.x
+        for live, ready in zip(self.data.ws, prepared.data.ws, strict=True):  # see _prepare
+            live[...] = ready
+        if prepared.settled:  # the forces of the last settling step, as before
+            self.data.out[:] = prepared.data.out
+        return replaced
 
     # ---- stepping
     def step(self) -> None:
@@ -202,3 +270,6 @@ class Simulation:
                  np.zeros((1, L.N_OUT)), 1)
         start_powertrain(self.model, saved)
         settle_at_velocity(self.model, saved, 1, np.zeros(BODY_SLOTS))
+        # a later load of a terrain places the car with it: loaded now, not in a tick (it
+        # took 10 ms from the cache on the first terrain load of a server started flat)
+        place_on_terrain(self.model, saved.ws, saved.x.copy())

@@ -10,7 +10,8 @@ runs in-process on a fake clock (``tests/test_server_logic.py``).
 
 The simulation is called through its public API only (``x``, ``inputs``, ``out``, ``vp``,
 ``scene``, ``road``, ``axes``, ``pose``, ``dt_s``, ``step()``, ``reset(pose)``,
-``set_road(...)``, ``load(scene)``, ``warm_up()``, ``update_pose()``); the rules it
+``prepare_reset(...)``, ``prepare_load(scene)``, ``commit(prepared)``, ``set_road(...)``,
+``load(scene)``, ``warm_up()``, ``update_pose()``); the rules it
 applies to commands and controls are those of ``docs/protocol.md`` (sections 2.1 and 3).
 """
 
@@ -31,10 +32,12 @@ from simserver.adapters.opendrive import LaneStartError, lane_start
 from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
 from simserver.core import layout as L
 from simserver.core.terrain import TERRAIN_PLANE
+from simserver.load_worker import release_later
 from simserver.scenario import Scene, load_scene
 
 if TYPE_CHECKING:
     from simserver.server import CommandLog, ServerConfig
+    from simserver.simulation import PreparedStart
 
 log = logging.getLogger("simserver.server")
 
@@ -63,6 +66,10 @@ class SimulationAPI(Protocol):
     def set_road(self, grade_pct: float, cross_slope_pct: float,
                  friction_scale: float) -> None: ...
     def load(self, scene: Scene) -> None: ...
+    def prepare_reset(self, pose: dict[str, float] | None,
+                      u_mps: float | None = None) -> PreparedStart: ...
+    def prepare_load(self, scene: Scene) -> PreparedStart: ...
+    def commit(self, prepared: PreparedStart) -> Any: ...
     def warm_up(self) -> None: ...
     def update_pose(self) -> np.ndarray: ...
 
@@ -394,10 +401,24 @@ class VehicleSlot:
     # the members of its success reply, or raises ProtocolError / ConfigError naming the
     # field (docs/protocol.md section 3). The loop's table maps control names to them.
     def ctl_reset(self, args: dict[str, Any]) -> dict[str, Any]:
+        """``reset`` in one go (tools, tests): :meth:`begin_reset` settled at once, applied.
+
+        The server's loop runs the settling of a start at speed in pieces between ticks
+        instead (``simserver.server_loop``) and applies it when it is done."""
+        staged = self.begin_reset(args)
+        staged.prepared.finish()
+        return staged.commit()
+
+    def begin_reset(self, args: dict[str, Any]) -> StagedStart:
         """``reset``: the scene's initial state, or at rest at ``pose`` or on ``lane`` (road,
         s and lane of the scene's OpenDRIVE roads, ``lane_start``), or with ``u_mps`` driving
         straight on at that speed (wheels, slips and powertrain relaxed); tick 0. The log
-        keeps the world pose, so a replay needs no roads."""
+        keeps the world pose, so a replay needs no roads.
+
+        Prepared beside the running car (microseconds, with the inputs of now), then the
+        settling of a start at speed (up to ``core.start.SETTLE_STEPS_MAX`` steps) is left
+        to :meth:`StagedStart.advance`; :meth:`StagedStart.commit` swaps it in and gives the
+        reply. Bad arguments raise here and change nothing."""
         pose = args.get("pose")
         u_mps = args.get("u_mps")
         p = self.sim
@@ -405,21 +426,26 @@ class VehicleSlot:
             if pose is not None:
                 raise proto.ProtocolError("lane", "give pose or lane, not both")
             pose = self._lane_pose(args["lane"])
-        p.reset(pose, u_mps)
-        self.tick = 0
-        self.fault = False
-        self.arbiter.last_seq = None  # docs/protocol.md 2.1: a new client may start from 0
-        # the start pose as the scene's initial takes it (on the plane, the state's own
-        # x, y and yaw; on a terrain the state lives on the step's reference plane); a start
-        # at speed holds the body while it settles, so the pose is where it began
-        start = pose if pose is not None else p.scene.initial
-        start_pose = {key: float(start[key]) for key in ("x_m", "y_m", "yaw_rad")}
-        logged = pose if u_mps is None else {**start_pose, "u_mps": float(u_mps)}
-        self._log({"step": self.steps_total, "reset": logged})
-        reply = {"tick": 0, "pose": start_pose}
-        if u_mps is not None:
-            reply["u_mps"] = float(p.x[L.U_MPS])
-        return reply
+        prepared = p.prepare_reset(pose, u_mps)
+
+        def commit() -> dict[str, Any]:
+            p.commit(prepared)
+            self.tick = 0
+            self.fault = False
+            self.arbiter.last_seq = None  # docs/protocol.md 2.1: a new client may start from 0
+            # the start pose as the scene's initial takes it (on the plane, the state's own
+            # x, y and yaw; on a terrain the state lives on the step's reference plane); a
+            # start at speed holds the body while it settles, so the pose is where it began
+            start = pose if pose is not None else p.scene.initial
+            start_pose = {key: float(start[key]) for key in ("x_m", "y_m", "yaw_rad")}
+            logged = pose if u_mps is None else {**start_pose, "u_mps": float(u_mps)}
+            self._log({"step": self.steps_total, "reset": logged})
+            reply = {"tick": 0, "pose": start_pose}
+            if u_mps is not None:
+                reply["u_mps"] = float(p.x[L.U_MPS])
+            return reply
+
+        return StagedStart(prepared, commit)
 
     def _lane_pose(self, lane: dict[str, Any]) -> dict[str, float]:
         """The world pose of a reset by road, s and lane (microseconds: the roads are
@@ -466,7 +492,9 @@ class VehicleSlot:
         and calls :meth:`apply_load` between two ticks.
         """
         fn, job_args = self.load_job(args)
-        return self.apply_load(unwrap_prepared(fn(*job_args)))
+        staged = self.apply_load(unwrap_prepared(fn(*job_args)))
+        staged.prepared.finish()
+        return staged.commit()
 
     def load_job(self, args: dict[str, Any]) -> tuple[Callable[..., Any], tuple[Any, ...]]:
         """The file reading of a ``load``, as a picklable ``(function, arguments)``.
@@ -482,23 +510,32 @@ class VehicleSlot:
         fn, job_args = self.load_job(args)
         return unwrap_prepared(fn(*job_args))
 
-    def apply_load(self, prepared: tuple[Scene, Path, Path | None]) -> dict[str, Any]:
-        """Swap a prepared scene in: the simulation reset to it, tick 0, logged.
-
-        Fast (tens of microseconds): the kernels are those already compiled (the model's
-        array signature does not change with the vehicle).
-        """
+    def apply_load(self, prepared: tuple[Scene, Path, Path | None]) -> StagedStart:
+        """A prepared scene made ready beside the running car: its model and initial state
+        (tens of microseconds: the kernels are those already compiled, the model's array
+        signature does not change with the vehicle; a terrain's grids are views of the
+        worker's shared block, ``simserver.load_worker``), a relaxed start's settling left
+        to :meth:`StagedStart.advance`; :meth:`StagedStart.commit` swaps it in (tick 0,
+        logged) and gives the reply."""
         scene, scene_path, vehicle_path = prepared
-        self.sim.load(scene)
-        self.sim.warm_up()
-        self.scene_path = scene_path
-        self.tick = 0
-        self.fault = False
-        self._log({"step": self.steps_total, "load": {
-            "scene": str(scene_path), "vehicle": None if vehicle_path is None
-            else str(vehicle_path)}})
-        return {"vehicle": self._shown(self.sim.scene.vehicle.path),
-                "scene": self._shown(scene_path)}
+        staged = self.sim.prepare_load(scene)
+
+        def commit() -> dict[str, Any]:
+            replaced = self.sim.commit(staged)
+            if replaced is not None:  # its grids are freed off the tick (a munmap: ms)
+                release_later(replaced)
+                del replaced
+            self.sim.warm_up()  # microseconds: a dispatch of each kernel on a copy
+            self.scene_path = scene_path
+            self.tick = 0
+            self.fault = False
+            self._log({"step": self.steps_total, "load": {
+                "scene": str(scene_path), "vehicle": None if vehicle_path is None
+                else str(vehicle_path)}})
+            return {"vehicle": self._shown(self.sim.scene.vehicle.path),
+                    "scene": self._shown(scene_path)}
+
+        return StagedStart(staged, commit)
 
     def ctl_get_config(self, args: dict[str, Any]) -> dict[str, Any]:
         """``get_config``: the active configuration."""
@@ -526,6 +563,20 @@ class VehicleSlot:
 
 
 # ---------------------------------------------------------------------- load, off the tick
+class StagedStart:
+    """A ``reset`` or ``load`` made ready beside the running car: the start state
+    (``Simulation.prepare_reset`` / ``prepare_load``) whose settling runs in pieces
+    (:meth:`advance`), and the ``commit`` that swaps it in and returns the reply."""
+
+    def __init__(self, prepared: PreparedStart, commit: Callable[[], dict[str, Any]]) -> None:
+        self.prepared = prepared
+        self.commit = commit
+
+    def advance(self, max_steps: int) -> bool:
+        """Up to ``max_steps`` settling steps; True when ready to commit."""
+        return self.prepared.advance(max_steps)
+
+
 def resolve_config_path(field: str, value: str, config_dirs: tuple[Path, ...],
                         cwd: str | Path, config_folder: Path | None = None) -> Path:
     """The file a ``load`` names: absolute, or relative to the server's working directory

@@ -24,7 +24,9 @@ from pathlib import Path
 
 import pytest
 
+from benchmarks.bench_load import hostile_files
 from simserver import protocol as proto
+from simserver.load_worker import SHARE_DIR
 from simserver.realtime import thread_policy
 from simserver.server import CompileProgress
 from simserver.testing import (
@@ -79,29 +81,8 @@ def _server_config(tmp: Path) -> Path:
     return cfg
 
 
-def _hostile_files(tmp: Path) -> dict[str, Path]:
-    vehicle = CONFIGS / "vehicles" / "paper_sedan" / "vehicle.yaml"
-    big = tmp / "big_scene.yaml"
-    filler = "# " + "x" * 98 + "\n"
-    big.write_text(f"name: big\nvehicle: {vehicle}\n"
-                   "road: {grade_pct: 2.0, cross_slope_pct: 0.0, friction_scale: 1.0}\n"
-                   "initial: {x_m: 0.0, y_m: 0.0, yaw_rad: 0.0, u_mps: 0.0}\n"
-                   + filler * (10 * 1024 * 1024 // len(filler)), encoding="utf-8")
-    bomb = tmp / "bomb.yaml"
-    lines = ['a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
-    for i, name in enumerate("bcdefg"):
-        prev = "abcdefg"[i]
-        lines.append(f"{name}: &{name} [" + ",".join([f"*{prev}"] * 9) + "]")
-    bomb.write_text("\n".join(lines) + f"\nvehicle: {vehicle}\n", encoding="utf-8")
-    deep = tmp / "deep.yaml"
-    deep.write_text("vehicle: " + "[" * 50_000 + "]" * 50_000 + "\n", encoding="utf-8")
-    fifo = tmp / "fifo.yaml"
-    os.mkfifo(fifo)
-    return {"big": big, "bomb": bomb, "deep": deep, "fifo": fifo}
-
-
 def test_hostile_loads_never_stall_the_loop(tmp_path):
-    files = _hostile_files(tmp_path)
+    files = hostile_files(tmp_path)  # the benchmark's own: bench_load --hostile
     assert files["big"].stat().st_size >= 10 * 1024 * 1024
     with ServerProcess(config=_server_config(tmp_path), scene=None) as server, \
             Client(server) as client:
@@ -118,6 +99,11 @@ def test_hostile_loads_never_stall_the_loop(tmp_path):
             # a later valid load still works (the worker was replaced where it hung)
             ok = client.request("load", {"scene": "scenes/hill_10pct_paper_sedan.yaml"},
                                 timeout_s=30.0)
+            # a terrain's grids (6.6 MB) come as a shared block the server maps, unlinked
+            terrain = client.request("load", {"scene": "scenes/crest_curve_paper_sedan.yaml"},
+                                     timeout_s=30.0)
+            maps = Path(f"/proc/{server.pid}/maps").read_text(encoding="utf-8")
+            blocks = [line for line in maps.splitlines() if "simserver-load-" in line]
             # the diagnostics published during the loads (5 Hz, the inbox keeps 256)
             windows = [proto.decode_diagnostics(p) for p in client.diag.drain_newest()]
             d1 = client.diagnostics()
@@ -130,6 +116,9 @@ def test_hostile_loads_never_stall_the_loop(tmp_path):
     for name, (reply, took) in replies.items():
         print(f"\n[load {name}] {took:.2f} s: {reply}")
     assert ok["ok"] is True, ok
+    assert terrain["ok"] is True, terrain
+    assert blocks and all(line.endswith("(deleted)") for line in blocks), blocks
+    assert not list(SHARE_DIR.glob(f"simserver-load-{server.pid}-*"))
     for name in ("bomb", "deep", "fifo"):
         assert replies[name][0]["ok"] is False and replies[name][0]["field"] in (
             "scene", "load"), replies[name]

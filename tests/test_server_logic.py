@@ -386,6 +386,42 @@ def test_reset_goes_back_to_the_scene_or_to_a_pose_at_rest(rig):
     assert rig.counters["cmd_received"] == 1
 
 
+def test_a_reset_at_speed_settles_between_ticks_and_equals_a_reset_in_one_go(flat_scene):
+    """Issue 17: the settling of a start at speed (2000 steps at 1 m/s) runs
+    SETTLE_STEPS_PER_TICK steps per tick beside the running car, which keeps its ticks and
+    its commands; the state swapped in is the one a reset in place gives, to the bit."""
+    from simserver.core.start import settle_steps
+    from simserver.server_loop import SETTLE_STEPS_PER_TICK
+
+    rig = Rig(flat_scene)
+    rig.send(throttle=0.3, gear=proto.Gear.D, steer=0.02)
+    rig.run(50)
+    reference = new_simulation(flat_scene, rig.cfg.period_s)  # the same car, reset in place
+    reference.inputs[:] = rig.slot.sim.inputs
+    reference.reset(None, 1.0)
+    req = LocalRequest("reset", b'{"u_mps": 1.0}')
+    rig.controls.pending.append(req)
+    rig.run()
+    ticks_needed = -(-settle_steps(rig.slot.sim.model, 1.0) // SETTLE_STEPS_PER_TICK)
+    assert ticks_needed > 10 and req.body is None  # not answered within its first tick
+    before = int(rig.run()["tick"])
+    busy = rig.control("reset", {"u_mps": 5.0})  # one start at a time, counted busy
+    assert busy["ok"] is False and "busy" in busy["error"] and busy["field"] == "reset"
+    ticks = 3  # the request's tick, before's and busy's
+    while req.body is None and ticks < 2 * ticks_needed:  # the car runs on, commands apply
+        rig.send(throttle=0.3, gear=proto.Gear.D, steer=0.02)
+        state = rig.run()
+        ticks += 1
+        assert int(state["tick"]) == before + ticks - 2
+        assert rig.slot.arbiter.last_applied_seq == rig.seq
+    assert ticks == ticks_needed  # answered in the tick of its last piece
+    assert req.answer == {"ok": True, "tick": 0, "u_mps": 1.0,
+                          "pose": {"x_m": 0.0, "y_m": 0.0, "yaw_rad": 0.0}}
+    assert rig.slot.tick == 0  # swapped in after that tick's step: the next one is tick 1
+    assert np.array_equal(rig.slot.sim.x, reference.x)
+    assert np.array_equal(rig.slot.sim.out, reference.out)
+
+
 def test_a_bad_reset_changes_nothing(rig):
     rig.run(20)
     reply = rig.control("reset", {"pose": {"x_m": 1.0, "y_m": 0.0, "yaw_rad": 7.0}})
@@ -512,10 +548,15 @@ def test_load_is_prepared_off_the_tick_and_applied_between_two_ticks(flat_scene)
     assert bad["ok"] is False and bad["field"] == "N"
     assert rig.control("get_config")["ok"] is True  # quick controls are still served
     held.finish()
-    state = rig.run()  # applied between this tick's step and its controls
+    # applied in pieces, one a tick after that tick's step: the result mapped, the model
+    # and start state built, committed (simserver.server_loop: each well under a tick)
+    before = int(rig.run()["tick"])
+    assert int(rig.run()["tick"]) == before + 1 and req.body is None
+    assert rig.slot.sim.road["grade_pct"] == 0  # not yet swapped in
+    rig.run()
     assert req.answer["ok"] is True and req.answer["scene"] == "scenes/hill_10pct_paper_sedan.yaml"
     assert rig.slot.sim.road["grade_pct"] == 10.0 and rig.slot.tick == 0
-    assert rig.run()["tick"] == 1 and state is not None
+    assert rig.run()["tick"] == 1
     rig.run(int(1 / (rig.cfg.diag_hz * rig.cfg.period_s)))
     assert int(rig.out.diags[-1]["ctl_busy"]) == 1
 
