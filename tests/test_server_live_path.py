@@ -24,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.bench_load import hostile_files
+from simserver.testing.hostile import hostile_files
 from simserver import protocol as proto
 from simserver.load_worker import SHARE_DIR
 from simserver.realtime import thread_policy
@@ -82,7 +82,7 @@ def _server_config(tmp: Path) -> Path:
 
 
 def test_hostile_loads_never_stall_the_loop(tmp_path):
-    files = hostile_files(tmp_path)  # the benchmark's own: bench_load --hostile
+    files = hostile_files(tmp_path)  # the same files as bench_load --hostile
     assert files["big"].stat().st_size >= 10 * 1024 * 1024
     with ServerProcess(config=_server_config(tmp_path), scene=None) as server, \
             Client(server) as client:
