@@ -24,7 +24,6 @@ from pathlib import Path
 
 import pytest
 
-from simserver.testing.hostile import hostile_files
 from simserver import protocol as proto
 from simserver.load_worker import SHARE_DIR
 from simserver.realtime import thread_policy
@@ -37,6 +36,7 @@ from simserver.testing import (
     free_port,
     wait_until,
 )
+from simserver.testing.hostile import hostile_files
 
 pytestmark = pytest.mark.timeout(300)
 
