@@ -32,7 +32,8 @@ REPO = Path(__file__).resolve().parents[1]
 GRADE_PCT, CROSS_PCT = 3.0, 2.0
 
 
-def simulations() -> dict[str, Simulation]:
+def simulations(only: str | None = None) -> dict[str, Simulation]:
+    """The four terrains' simulations (or only the one named ``only``)."""
     flat = load_scene(REPO / "configs/scenes/flat_paper_sedan.yaml")
     start = {**flat.initial, "u_mps": 5.0}
     road = {"grade_pct": GRADE_PCT, "cross_slope_pct": CROSS_PCT, "friction_scale": 1.0}
@@ -40,18 +41,26 @@ def simulations() -> dict[str, Simulation]:
     xx, yy = np.meshgrid(xs, xs)
     plane_map = heightmap_terrain(GRADE_PCT / 100 * xx + CROSS_PCT / 100 * yy, 1.0, 1.0,
                                   -500.0, -500.0)
-    hills = load_scene(REPO / "configs/scenes/hills_paper_sedan.yaml")
-    crest = load_scene(REPO / "configs/scenes/crest_curve_paper_sedan.yaml")
-    return {
-        "plane": Simulation(dataclasses.replace(flat, road=road, initial=start), DT_S),
-        "plane as height map": Simulation(
+
+    def hills() -> Simulation:
+        scene = load_scene(REPO / "configs/scenes/hills_paper_sedan.yaml")
+        return Simulation(dataclasses.replace(
+            scene, initial={**scene.initial, "x_m": 0.0, "u_mps": 5.0}), DT_S)
+
+    def crest() -> Simulation:
+        scene = load_scene(REPO / "configs/scenes/crest_curve_paper_sedan.yaml")
+        return Simulation(dataclasses.replace(
+            scene, initial={**scene.initial, "u_mps": 5.0}), DT_S)
+
+    makers = {
+        "plane": lambda: Simulation(
+            dataclasses.replace(flat, road=road, initial=start), DT_S),
+        "plane as height map": lambda: Simulation(
             dataclasses.replace(flat, terrain=plane_map, initial=start), DT_S),
-        "hills height map": Simulation(
-            dataclasses.replace(hills, initial={**hills.initial, "x_m": 0.0, "u_mps": 5.0}),
-            DT_S),
-        "OpenDRIVE crest-curve": Simulation(
-            dataclasses.replace(crest, initial={**crest.initial, "u_mps": 5.0}), DT_S),
+        "hills height map": hills,
+        "OpenDRIVE crest-curve": crest,
     }
+    return {name: make() for name, make in makers.items() if only in (None, name)}
 
 
 def main(argv: list[str] | None = None) -> list[dict]:

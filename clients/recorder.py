@@ -27,6 +27,17 @@ and ``cross_slope_pct`` % along world y; ``e1`` is its direction above world x, 
 its upward normal, ``e2 = n x e1`` (the server's convention; the tests check this
 inverse against it).
 
+On a terrain (a height map or an OpenDRIVE road: ``get_config``'s ``scene.terrain``) the
+headless history's planar states live on the *reference plane* fitted under the four
+wheels each step (docs/model.md section 11), ``Z = (grade X + cross Y) / 100 + height``,
+not on the road of ``set_road``. The state carries that plane's slopes
+(``ground_grade_pct``, ``ground_cross_slope_pct``, along and across the world heading),
+so each row's ``road_grade_pct``, ``road_cross_slope_pct`` are that plane's, turned to
+world x and y, and ``yaw_rad``, ``pitch_rad``, ``roll_rad`` are relative to it, as in the
+history. The plane's height is not on the wire, and the position along a tilted plane
+depends on it: on a terrain ``x_m``, ``y_m`` and ``cg_above_road_m`` are NaN (the
+position is ``world_x_m``, ``world_y_m``, ``world_z_m``).
+
 Timing
 ------
 Row ``time_s`` is the state's ``sim_time_s``. Pose, velocities, wheel spins and slip
@@ -182,7 +193,8 @@ STATE_ONLY: tuple[Column, ...] = (
     Column("road_grade_pct", _F64, "%", "road grade used for the road-frame columns"),
     Column("road_cross_slope_pct", _F64, "%", "road cross slope used for the road-frame "
            "columns"),
-    Column("cg_above_road_m", _F64, "m", "CG height above the road plane (along n)"),
+    Column("cg_above_road_m", _F64, "m", "CG height above the road plane (along n; NaN on "
+           "a terrain)"),
     Column("world_x_m", _F64, "m", "CG position, world x (the state's x_m)"),
     Column("world_y_m", _F64, "m", "CG position, world y (the state's y_m)"),
     Column("world_z_m", _F64, "m", "CG position, world z, up (the state's z_m)"),
@@ -199,7 +211,8 @@ COLUMNS: tuple[Column, ...] = HISTORY_NAMED + STATE_ONLY
 FRAME_NOTE = (
     "x_m, y_m, yaw_rad, roll_rad, pitch_rad: road-plane frame as in history.parquet, "
     "converted from the VehicleState's world pose with the road of ctl/get_config "
-    "(road_grade_pct, road_cross_slope_pct per row); world_*: the VehicleState pose, "
+    "(road_grade_pct, road_cross_slope_pct per row; on a terrain the state's reference "
+    "plane, with x_m, y_m NaN: its height is not on the wire); world_*: the VehicleState pose, "
     "world axes (ISO 8855 earth-fixed, z up)")
 TIMING_NOTE = (
     "one row per VehicleState; pose, velocities, wheel spins and slip states at time_s; "
@@ -302,14 +315,36 @@ def world_to_road(pos: np.ndarray, yaw: np.ndarray, pitch: np.ndarray, roll: np.
     }
 
 
-def state_columns(rec: np.ndarray, grade_pct: np.ndarray, cross_slope_pct: np.ndarray
-                  ) -> dict[str, np.ndarray]:
-    """Every history-named and world column of decoded states (``STATE_DTYPE`` rows)."""
+def reference_plane_slopes(yaw: np.ndarray, ground_grade_pct: np.ndarray,
+                           ground_cross_slope_pct: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """A terrain's reference plane under the car, ``(grade_pct, cross_slope_pct)`` along
+    world x and y, from the state's slopes along and across the world heading ``yaw``
+    (the server's ``vehicle_slot.ground_slopes_pct`` turned back)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    along = np.asarray(ground_grade_pct, dtype=np.float64)
+    across = np.asarray(ground_cross_slope_pct, dtype=np.float64)
+    return along * c - across * s, along * s + across * c
+
+
+def state_columns(rec: np.ndarray, grade_pct: np.ndarray, cross_slope_pct: np.ndarray,
+                  on_terrain: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Every history-named and world column of decoded states (``STATE_DTYPE`` rows).
+
+    ``grade_pct``, ``cross_slope_pct``: the road of each row; rows where ``on_terrain``
+    is true use the state's reference plane instead (module docstring, Frames)."""
     pos = np.stack([rec["x_m"], rec["y_m"], rec["z_m"]], axis=-1).astype(np.float64)
     yaw = rec["yaw_rad"].astype(np.float64)
     pitch = rec["pitch_rad"].astype(np.float64)
     roll = rec["roll_rad"].astype(np.float64)
+    grade_pct = np.array(grade_pct, dtype=np.float64)
+    cross_slope_pct = np.array(cross_slope_pct, dtype=np.float64)
+    terrain = np.zeros(yaw.shape, dtype=bool) if on_terrain is None else on_terrain
+    grade_pct[terrain], cross_slope_pct[terrain] = reference_plane_slopes(
+        yaw[terrain], rec["ground_grade_pct"][terrain], rec["ground_cross_slope_pct"][terrain])
     road = world_to_road(pos, yaw, pitch, roll, grade_pct, cross_slope_pct)
+    for name in ("x_m", "y_m", "cg_above_road_m"):  # the plane's height is not on the wire
+        road[name][terrain] = np.nan
     f64 = np.float64
     cols: dict[str, np.ndarray] = {
         "time_s": rec["sim_time_s"].astype(f64),
@@ -365,6 +400,7 @@ class StateBuffer:
         self.grade = np.zeros(rows)
         self.cross = np.zeros(rows)
         self.segment = np.zeros(rows, dtype=np.int32)
+        self.on_terrain = np.zeros(rows, dtype=bool)
         self.n = 0
 
     @property
@@ -373,20 +409,22 @@ class StateBuffer:
         return self.n >= self.raw.shape[0]
 
     def add(self, payload: bytes, recv_s: float, road: tuple[float, float],
-            segment: int) -> None:
-        """Append one state payload (``STATE_SIZE`` bytes, already checked)."""
+            segment: int, on_terrain: bool = False) -> None:
+        """Append one state payload (``STATE_SIZE`` bytes, already checked); ``road``
+        (grade, cross-slope %) is not used when ``on_terrain``."""
         i = self.n
         self.raw[i] = np.frombuffer(payload, dtype=np.uint8)
         self.recv[i] = recv_s
         self.grade[i], self.cross[i] = road
         self.segment[i] = segment
+        self.on_terrain[i] = on_terrain
         self.n += 1
 
     def table(self, schema: pa.Schema) -> pa.Table:
         """The buffered rows as an Arrow table (then :meth:`clear`)."""
         n = self.n
         rec = self.raw[:n].view(proto.STATE_DTYPE).reshape(n)
-        cols = state_columns(rec, self.grade[:n], self.cross[:n])
+        cols = state_columns(rec, self.grade[:n], self.cross[:n], self.on_terrain[:n])
         cols["recv_time_s"] = self.recv[:n].copy()
         cols["segment"] = self.segment[:n].copy()
         return pa.Table.from_arrays([pa.array(cols[f.name], type=f.type) for f in schema],
@@ -428,6 +466,7 @@ class Recorder:
         cfg = conn.config
         self.state_every = int((cfg.get("server") or {}).get("state_every", 1)) or 1
         self.road = self._road_of(cfg)
+        self.on_terrain = self._on_terrain(cfg)
         self.segments: list[dict[str, Any]] = [self._segment_entry(0, cfg)]
         self.rows = 0
         self.diag_count = 0
@@ -458,6 +497,11 @@ class Recorder:
         return float(road.get("grade_pct", 0.0)), float(road.get("cross_slope_pct", 0.0))
 
     @staticmethod
+    def _on_terrain(cfg: dict[str, Any]) -> bool:
+        """Whether the scene runs on a terrain (``scene.terrain``; absent: the plane)."""
+        return ((cfg.get("scene") or {}).get("terrain") or "plane") != "plane"
+
+    @staticmethod
     def _segment_entry(segment: int, cfg: dict[str, Any] | None) -> dict[str, Any]:
         """The metadata of a segment that begins now (``cfg``: ``get_config``'s config)."""
         vehicle = (cfg or {}).get("vehicle") or {}
@@ -478,6 +522,7 @@ class Recorder:
         cfg = self._get_config()
         if cfg is not None:
             self.road = self._road_of(cfg)
+            self.on_terrain = self._on_terrain(cfg)
 
     def new_segment(self) -> None:
         """A reset or load: the next segment, described by the server's config now."""
@@ -485,6 +530,7 @@ class Recorder:
         cfg = self._get_config()
         if cfg is not None:
             self.road = self._road_of(cfg)  # a load may have changed the road
+            self.on_terrain = self._on_terrain(cfg)  # or the terrain
         self.segments.append(self._segment_entry(self.segment, cfg))
 
     def take(self, payload: bytes, recv_s: float) -> None:
@@ -510,7 +556,7 @@ class Recorder:
             entry["first_tick"] = tick
         entry["rows"] += 1
         self.last_tick = tick
-        self.buffer.add(payload, recv_s, self.road, self.segment)
+        self.buffer.add(payload, recv_s, self.road, self.segment, self.on_terrain)
         self.rows += 1
         if self.buffer.full:
             self.flush()

@@ -31,7 +31,7 @@ from simserver import protocol as proto
 from simserver.adapters.opendrive import LaneStartError, lane_start
 from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
 from simserver.core import layout as L
-from simserver.core.terrain import TERRAIN_PLANE
+from simserver.core.terrain import TERRAIN_KINDS, TERRAIN_PLANE
 from simserver.load_worker import release_later
 from simserver.scenario import Scene, load_scene
 
@@ -547,7 +547,8 @@ class VehicleSlot:
             "vehicle": {"name": p.scene.vehicle.name, "path": self._shown(p.scene.vehicle.path),
                         "tire_models": list(p.scene.vehicle.tire_models)},
             "scene": {"path": self._shown(self.scene_path), "initial": p.scene.initial,
-                      "model": p.scene.model_options},
+                      "model": p.scene.model_options,
+                      "terrain": TERRAIN_KINDS.by_id(p.scene.terrain.kind).name},
             "road": dict(p.road),
             "keys": {"cmd": keys.cmd, "state": keys.state, "diag": keys.diag,
                      "alive": keys.alive},

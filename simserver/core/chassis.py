@@ -194,6 +194,7 @@ from simserver.core.terrain import (
     fit_plane,
     rebase_reference_plane,
     surface_at,
+    surface_under_wheel,
 )
 from simserver.core.tire import tire_evaluate
 from simserver.core.tire_layout import (
@@ -334,7 +335,7 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
         s2 = x[Y_M] + px * s + py * c
         wx = s1 * axes_old[0, 0] + s2 * axes_old[1, 0]
         wy = s1 * axes_old[0, 1] + s2 * axes_old[1, 1]
-        height, grad_x, grad_y, mu = surface_at(terrain, wx, wy)
+        height, grad_x, grad_y, mu = surface_under_wheel(terrain, ws.cells[i], wx, wy)
         contact[0, i] = wx
         contact[1, i] = wy
         contact[2, i] = height
@@ -407,17 +408,16 @@ def contact_frames(model: Model, ws: Workspace, x: np.ndarray, c: float, s: floa
         slope_long = c_h * d_gap_1 + s_h * d_gap_2
         slope_lat = -s_h * d_gap_1 + c_h * d_gap_2
         tilt = np.sqrt(1.0 + slope_long * slope_long + slope_lat * slope_lat)
-        n_0 = -slope_long / tilt
-        n_1 = -slope_lat / tilt
         n_2 = 1.0 / tilt
-        # t_x: the wheel heading (1, 0, 0) projected onto the tangent plane; t_y = n x t_x
+        n_0 = -slope_long * n_2
+        n_1 = -slope_lat * n_2
+        # t_x: the wheel heading (1, 0, 0) projected onto the tangent plane, whose length
+        # is sqrt(1 - n_0^2) (|n| = 1); t_y = n x t_x
         t_x0 = 1.0 - n_0 * n_0
-        t_x1 = -n_0 * n_1
-        t_x2 = -n_0 * n_2
-        t_norm = np.sqrt(t_x0 * t_x0 + t_x1 * t_x1 + t_x2 * t_x2)
-        t_x0 /= t_norm
-        t_x1 /= t_norm
-        t_x2 /= t_norm
+        inv_t_norm = 1.0 / np.sqrt(t_x0)
+        t_x1 = -n_0 * n_1 * inv_t_norm
+        t_x2 = -n_0 * n_2 * inv_t_norm
+        t_x0 *= inv_t_norm
         wheel[i, W_TILT] = tilt
         wheel[i, W_N0] = n_0
         wheel[i, W_N1] = n_1

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from simserver.core import layout as L
-from simserver.core.terrain import Terrain
+from simserver.core.terrain import Terrain, empty_cell_memo
 from simserver.core.tire_layout import N_TIRE_COEF, N_TIRE_OUT, TireKernels
 
 # ---- per-wheel inputs held over a step (ws.wheel_in[WI_*, i]: a row per quantity)
@@ -117,9 +117,10 @@ class Model(NamedTuple):
 
 class Workspace(NamedTuple):
     """Scratch of one step (``make_workspace``): nothing here lives from one step to the
-    next but a memo keyed by its own inputs (the reference plane's axes, ``G_AXES`` with
-    ``G_AXES_GRADE_PCT``, ``G_AXES_CROSS_SLOPE_PCT``: a pure function of the two, so a
-    workspace shared between states is never wrong). Few arrays with named slots, so that
+    next but memos keyed by their own inputs (the reference plane's axes, ``G_AXES`` with
+    ``G_AXES_GRADE_PCT``, ``G_AXES_CROSS_SLOPE_PCT``: a pure function of the two; each
+    wheel's height-map cell, ``cells``: of the terrain's contents and the cell), so a
+    workspace shared between states is never wrong. Few arrays with named slots, so that
     the stages pass little."""
 
     rk: np.ndarray  # float64[N_RK, N_STATE]
@@ -131,6 +132,7 @@ class Workspace(NamedTuple):
     ground: np.ndarray  # float64[N_GROUND]: the reference plane of the step (G_*)
     axes: np.ndarray  # float64[2, 3, 3]: scratch of the reference plane's rebase
     contact: np.ndarray  # float64[3, N_WHEELS]: scratch of the plane fit (x, y, z)
+    cells: np.ndarray  # float64[N_WHEELS, N_CELL]: each wheel's height-map cell memo
 
 
 class Data(NamedTuple):
@@ -151,7 +153,7 @@ def make_workspace() -> Workspace:
                      wheel=np.zeros((n_w, N_W)), body=np.zeros(N_BODY),
                      tire_out=np.zeros(N_TIRE_OUT), tire_coef=np.zeros((n_w, N_TIRE_COEF)),
                      ground=ground, axes=np.zeros((2, 3, 3)),
-                     contact=np.zeros((3, n_w)))
+                     contact=np.zeros((3, n_w)), cells=empty_cell_memo(n_w))
 
 
 def make_data(x: np.ndarray | None = None) -> Data:

@@ -29,7 +29,7 @@ from simserver.core.params import (
 E1, E2, NORMAL = 0, 1, 2  # rows of the axes array
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")  # once a step on a terrain (core.terrain)
 def road_frame(grade_pct: float, cross_slope_pct: float, axes: np.ndarray) -> None:
     """Write the world-frame unit vectors ``e1``, ``e2``, ``n`` of the plane as rows of
     ``axes`` (float64[3, 3])."""

@@ -24,6 +24,7 @@ enters the wheel's suspension and its own contact frame (``core.chassis``).
 
 from __future__ import annotations
 
+import hashlib
 from typing import NamedTuple
 
 import numba as nb
@@ -62,7 +63,28 @@ TERRAIN_KINDS = VariantRegistry("terrain kind", (
 
 # slots of Terrain.grid
 GRID_X0_M, GRID_Y0_M, GRID_DX_M, GRID_DY_M = 0, 1, 2, 3
-N_GRID = 4
+GRID_KEY = 4  # a 48-bit hash of the grid's contents: the key of the per-wheel cell memo
+N_GRID = 5
+
+# slots of the per-wheel cell memo (``Workspace.cells[i, CELL_*]``, ``surface_under_wheel``):
+# the cell of the grid the wheel was last in and the power-basis coefficients of the
+# surface there, keyed by the terrain's GRID_KEY and the cell's indices (a pure function
+# of the three, so a memo shared between states or carried across a terrain change is
+# never wrong). A wheel moves a centimetre a step: it stays in its cell for tens to
+# hundreds of steps on a 0.25 to 1 m grid.
+CELL_KEY = 0  # the terrain's GRID_KEY (NaN: empty)
+CELL_I = 1  # the cell's column and row (float)
+CELL_J = 2
+CELL_H = 3  # 16 slots: c[m, p] of height = sum c[m, p] tx^m ty^p at CELL_H + 4 p + m
+CELL_MU = 19  # 4 slots: mu = m0 + m1 tx + m2 ty + m3 tx ty (the bilinear friction)
+N_CELL = 23
+
+
+def empty_cell_memo(n_wheels: int) -> np.ndarray:
+    """An empty cell memo per wheel (``CELL_*``): float64[n_wheels, N_CELL]."""
+    memo = np.zeros((n_wheels, N_CELL))
+    memo[:, CELL_KEY] = np.nan
+    return memo
 
 
 class Terrain(NamedTuple):
@@ -78,6 +100,7 @@ def plane_terrain() -> Terrain:
     """The plane kind: the road of ``core.road`` (the arrays are placeholders)."""
     grid = np.zeros(N_GRID)
     grid[GRID_DX_M] = grid[GRID_DY_M] = 1.0
+    grid[GRID_KEY] = -1.0  # never a hash (those are >= 0): the plane has no cells
     return Terrain(TERRAIN_PLANE, np.zeros((1, 1)), np.ones((1, 1)), grid)
 
 
@@ -103,7 +126,11 @@ def heightmap_terrain(heights: np.ndarray, dx_m: float, dy_m: float, x0_m: float
             raise ValueError("friction: every value must be finite and >= 0")
     if not (dx_m > 0.0 and dy_m > 0.0 and np.isfinite(dx_m) and np.isfinite(dy_m)):
         raise ValueError(f"grid spacing must be positive, got dx={dx_m}, dy={dy_m}")
-    grid = np.array([x0_m, y0_m, dx_m, dy_m], dtype=np.float64)
+    grid = np.array([x0_m, y0_m, dx_m, dy_m, 0.0], dtype=np.float64)
+    digest = hashlib.blake2b(digest_size=6)
+    for part in (h, mu, grid[:GRID_KEY], np.array(h.shape, dtype=np.int64)):
+        digest.update(part.tobytes())
+    grid[GRID_KEY] = float(int.from_bytes(digest.digest(), "little"))  # < 2^48: exact
     return Terrain(TERRAIN_HEIGHTMAP, h, mu, grid)
 
 
@@ -179,6 +206,91 @@ def surface_at(terrain: Terrain, wx: float, wy: float) -> tuple[float, float, fl
         grad_x = 0.0
     if not inside_y:
         grad_y = 0.0
+    return height, grad_x / dx, grad_y / dy, mu
+
+
+@nb.njit(cache=True, inline="always")
+def _spline_coefficients(h0: float, h1: float, h2: float, h3: float
+                         ) -> tuple[float, float, float, float]:
+    """Power-basis coefficients ``(a0, a1, a2, a3)`` of the Catmull-Rom segment through
+    four samples (``_catmull_rom``'s weights collected by powers of ``t``)."""
+    return (h1, 0.5 * (h2 - h0), h0 - 2.5 * h1 + 2.0 * h2 - 0.5 * h3,
+            0.5 * (3.0 * (h1 - h2) + h3 - h0))
+
+
+@nb.njit(cache=True, inline="always")
+def _fill_cell(terrain: Terrain, memo: np.ndarray, i: int, j: int) -> None:
+    """Write the memo of cell ``(i, j)`` (``CELL_*``): the bicubic's 16 power-basis
+    coefficients (the same Catmull-Rom surface as ``surface_at``, clamped samples beyond
+    the edge) and the bilinear friction's 4. Once per cell a wheel enters."""
+    h = terrain.heights
+    ny, nx = h.shape
+    i0 = max(i - 1, 0)
+    i3 = min(i + 2, nx - 1)
+    j0 = max(j - 1, 0)
+    j3 = min(j + 2, ny - 1)
+    # x-coefficients of each row, then each x-coefficient's y-coefficients
+    row0 = _spline_coefficients(h[j0, i0], h[j0, i], h[j0, i + 1], h[j0, i3])
+    row1 = _spline_coefficients(h[j, i0], h[j, i], h[j, i + 1], h[j, i3])
+    row2 = _spline_coefficients(h[j + 1, i0], h[j + 1, i], h[j + 1, i + 1], h[j + 1, i3])
+    row3 = _spline_coefficients(h[j3, i0], h[j3, i], h[j3, i + 1], h[j3, i3])
+    for m in range(4):
+        c0, c1, c2, c3 = _spline_coefficients(row0[m], row1[m], row2[m], row3[m])
+        memo[CELL_H + m] = c0
+        memo[CELL_H + 4 + m] = c1
+        memo[CELL_H + 8 + m] = c2
+        memo[CELL_H + 12 + m] = c3
+    mu = terrain.friction
+    m00 = mu[j, i]
+    memo[CELL_MU] = m00
+    memo[CELL_MU + 1] = mu[j, i + 1] - m00
+    memo[CELL_MU + 2] = mu[j + 1, i] - m00
+    memo[CELL_MU + 3] = mu[j + 1, i + 1] - mu[j + 1, i] - mu[j, i + 1] + m00
+    memo[CELL_I] = i
+    memo[CELL_J] = j
+    memo[CELL_KEY] = terrain.grid[GRID_KEY]
+
+
+@nb.njit(cache=True, inline="always")
+def surface_under_wheel(terrain: Terrain, memo: np.ndarray, wx: float, wy: float
+                        ) -> tuple[float, float, float, float]:
+    """``surface_at`` for a wheel, through its cell memo ``memo`` (float64[N_CELL],
+    ``CELL_*``): the same surface, equal to rounding, evaluated from the cell's
+    power-basis coefficients (15 multiply-adds for the height, 15 for the gradient)
+    instead of the 16 samples and the spline weights. Off the grid (clamped, flat) it is
+    ``surface_at`` itself."""
+    grid = terrain.grid
+    dx = grid[GRID_DX_M]
+    dy = grid[GRID_DY_M]
+    fx = (wx - grid[GRID_X0_M]) / dx
+    fy = (wy - grid[GRID_Y0_M]) / dy
+    tx = fx - memo[CELL_I]
+    ty = fy - memo[CELL_J]
+    if not (memo[CELL_KEY] == grid[GRID_KEY] and 0.0 <= tx <= 1.0 and 0.0 <= ty <= 1.0):
+        ny, nx = terrain.heights.shape
+        if not (fx > 0.0 and fy > 0.0 and fx < nx - 1 and fy < ny - 1):
+            return surface_at(terrain, wx, wy)
+        i = int(fx)
+        j = int(fy)
+        _fill_cell(terrain, memo, i, j)
+        tx = fx - i
+        ty = fy - j
+    # per power p of ty: the x-polynomial r_p(tx) and its derivative
+    r0 = ((memo[CELL_H + 3] * tx + memo[CELL_H + 2]) * tx + memo[CELL_H + 1]) * tx + memo[CELL_H]
+    r1 = (((memo[CELL_H + 7] * tx + memo[CELL_H + 6]) * tx + memo[CELL_H + 5]) * tx
+          + memo[CELL_H + 4])
+    r2 = (((memo[CELL_H + 11] * tx + memo[CELL_H + 10]) * tx + memo[CELL_H + 9]) * tx
+          + memo[CELL_H + 8])
+    r3 = (((memo[CELL_H + 15] * tx + memo[CELL_H + 14]) * tx + memo[CELL_H + 13]) * tx
+          + memo[CELL_H + 12])
+    d0 = (3.0 * memo[CELL_H + 3] * tx + 2.0 * memo[CELL_H + 2]) * tx + memo[CELL_H + 1]
+    d1 = (3.0 * memo[CELL_H + 7] * tx + 2.0 * memo[CELL_H + 6]) * tx + memo[CELL_H + 5]
+    d2 = (3.0 * memo[CELL_H + 11] * tx + 2.0 * memo[CELL_H + 10]) * tx + memo[CELL_H + 9]
+    d3 = (3.0 * memo[CELL_H + 15] * tx + 2.0 * memo[CELL_H + 14]) * tx + memo[CELL_H + 13]
+    height = ((r3 * ty + r2) * ty + r1) * ty + r0
+    grad_x = ((d3 * ty + d2) * ty + d1) * ty + d0
+    grad_y = (3.0 * r3 * ty + 2.0 * r2) * ty + r1
+    mu = memo[CELL_MU] + memo[CELL_MU + 1] * tx + (memo[CELL_MU + 2] + memo[CELL_MU + 3] * tx) * ty
     return height, grad_x / dx, grad_y / dy, mu
 
 
@@ -262,10 +374,14 @@ def rebase_reference_plane(x: np.ndarray, grade_pct: float, cross_slope_pct: flo
         head_e2 += head_k * axes_new[1, k]
         head_n += head_k * axes_new[2, k]
         left_n += left_k * axes_new[2, k]
-    diff = np.arctan2(head_e2, head_e1) - psi
-    psi_new = psi + ((diff + np.pi) % (2.0 * np.pi) - np.pi)
-    c = np.cos(psi_new)
-    s = np.sin(psi_new)
+    # the heading on the new plane, normalised, is (cos, sin) of the new yaw; the yaw
+    # moves by the (small) angle between the two headings
+    head_norm = np.sqrt(head_e1 * head_e1 + head_e2 * head_e2)
+    c_new = head_e1 / head_norm
+    s_new = head_e2 / head_norm
+    psi_new = psi + np.arctan2(s_new * c - c_new * s, c_new * c + s_new * s)
+    c = c_new
+    s = s_new
     x[X_M] = new_pos0
     x[Y_M] = new_pos1
     x[HEAVE_M] = new_pos2 - cg_height_m
