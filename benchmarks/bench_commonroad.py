@@ -48,7 +48,7 @@ MEASURED = (
     "per step, four calls of vehicle_dynamics_mb as shipped (29 states, parameters_vehicle2 "
     "built once before the loop, not per step) and the RK4 sums, the state a list of Python "
     "floats; process CPU time. Not included: building the parameters (tens of milliseconds a call "
-    "in 3.0.2 (OmegaConf), numpy. A numpy-array state (as scipy's odeint passes it, "
+    "in 3.0.2: OmegaConf) or numpy. A numpy-array state (as scipy's odeint passes it, "
     "every x[i] a numpy scalar) makes the same loop about 2x slower; this figure is the "
     "faster, list form (versions 2.0.0 and 3.0.2 run the same right-hand side: 1.05 and "
     "1.04 million instructions a step under callgrind). Ours: the compiled simulate loop "
