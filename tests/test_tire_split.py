@@ -75,6 +75,7 @@ from simserver.core.tire_layout import (
     OUT_MY,
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
+    TIRE_DISPATCH_JIT_OPTIONS,
     TIRE_JIT_OPTIONS,
     TP_MODEL_BASE,
 )
@@ -407,7 +408,9 @@ def test_jit_equals_py_func(name: str) -> None:
 def _main_function_ir(fn: nb.core.registry.CPUDispatcher, *args: object) -> str:
     """LLVM IR of ``fn`` (recompiled uncached, so that it can be inspected) without the
     Python wrappers."""
-    copy = nb.njit(**dict(TIRE_JIT_OPTIONS, cache=False))(fn.py_func)
+    options = TIRE_DISPATCH_JIT_OPTIONS if fn in (tire.tire_prepare, tire.tire_evaluate) else (
+        TIRE_JIT_OPTIONS)
+    copy = nb.njit(**dict(options, cache=False))(fn.py_func)
     copy(*args)
     module = copy.inspect_llvm(copy.signatures[0])
     bodies = [b for b in re.split(r"\n(?=define )", module) if b.startswith("define")]

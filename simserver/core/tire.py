@@ -65,6 +65,7 @@ from simserver.core.tire_layout import (
     OUT_KAPPA_SLIDE,
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
+    TIRE_DISPATCH_JIT_OPTIONS,
     TIRE_JIT_OPTIONS,
     TIRE_MODEL_MF61,
     TIRE_MODEL_SIMPLE,
@@ -162,7 +163,7 @@ def _registered_evaluate_compiled(kernels, model, tp, coef, kappa, tan_alpha, fz
     return impl
 
 
-@nb.njit(**TIRE_JIT_OPTIONS)
+@nb.njit(**TIRE_DISPATCH_JIT_OPTIONS)
 def tire_prepare(
     kernels: TireKernels,
     tp: np.ndarray,
@@ -199,7 +200,7 @@ def tire_prepare(
         _registered_prepare(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef)
 
 
-@nb.njit(**TIRE_JIT_OPTIONS)
+@nb.njit(**TIRE_DISPATCH_JIT_OPTIONS)
 def tire_evaluate(
     kernels: TireKernels,
     tp: np.ndarray,

@@ -63,10 +63,18 @@ N_TIRE_COEF = max(N_SIMPLE_COEF, N_MF61_COEF)
 # simserver.core.tire, and inlined code is compiled with the *caller's* options: every
 # function that inlines a model body must use exactly these.
 # ``_nrt`` is set explicitly because numba hands an unset one down from the caller being
-# compiled, and the integrator's step is compiled without reference counting; the MF 6.1
-# lanes (``nb.carray`` on the stack) need it.
+# compiled, and the integrator's step is compiled without reference counting; the
+# kernels that allocate a stack scratch as an array (``coef_scratch`` in tire_forces)
+# need it.
 TIRE_JIT_OPTIONS = {"cache": True, "fastmath": {"contract"}, "error_model": "numpy",
                     "_nrt": True}
+# The dispatchers the step calls (core.tire.tire_prepare, tire_evaluate) are compiled
+# without reference counting: they allocate nothing and hold only their caller's arrays
+# and views of them, which the caller keeps alive, so the counts protect nothing. numba
+# did not prune them there (three atomic increments and decrements a call, 20 calls a
+# step). Their inlined bodies use no array made inside (the MF 6.1 lanes index a stack
+# pointer).
+TIRE_DISPATCH_JIT_OPTIONS = dict(TIRE_JIT_OPTIONS, _nrt=False)
 
 # --- the compiled interface of a tire model --------------------------------------------
 # A model is two functions compiled with these explicit signatures (first-class function

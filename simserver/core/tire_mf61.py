@@ -508,7 +508,10 @@ def _stack_lanes(typingctx: object) -> tuple:
     """Pointer to ``N_LANES`` float64 on the stack of the compiled caller (an alloca).
 
     Stack scratch, not a heap allocation: it lets the compiler vectorise the lane loop of
-    :func:`_mf_lanes` (numba has no other allocation-free local array).
+    :func:`_mf_lanes` (numba has no other allocation-free local array). Indexed as a raw
+    pointer, not wrapped in ``nb.carray``: an array made in a function needs numba's
+    reference counting, which the dispatchers that inline these bodies are compiled
+    without (``tire_layout.TIRE_DISPATCH_JIT_OPTIONS``).
     """
     sig = types.CPointer(types.float64)()
 
@@ -545,12 +548,12 @@ def _mf_lanes(
     array arguments lets their reference counting survive (an out-of-line call here
     costs three atomic increments and decrements of ``p``, ``coef``, ``out``).
     """
-    yb = nb.carray(_stack_lanes(), (N_LANES,))
-    eb = nb.carray(_stack_lanes(), (N_LANES,))
-    cb = nb.carray(_stack_lanes(), (N_LANES,))
-    kb = nb.carray(_stack_lanes(), (N_LANES,))
-    tb = nb.carray(_stack_lanes(), (N_LANES,))
-    sb = nb.carray(_stack_lanes(), (N_LANES,))
+    yb = _stack_lanes()
+    eb = _stack_lanes()
+    cb = _stack_lanes()
+    kb = _stack_lanes()
+    tb = _stack_lanes()
+    sb = _stack_lanes()
     for i in range(N_LANES):
         yb[i] = y[i]
         eb[i] = e[i]
@@ -578,10 +581,10 @@ def _atan_sin_lanes(
     the peak searches (:func:`_peak_step`); one ``atan`` per lane where
     :func:`_mf_lanes` takes two. Inlined like :func:`_mf_lanes`.
     """
-    yb = nb.carray(_stack_lanes(), (N_LANES,))
-    cb = nb.carray(_stack_lanes(), (N_LANES,))
-    tb = nb.carray(_stack_lanes(), (N_LANES,))
-    sb = nb.carray(_stack_lanes(), (N_LANES,))
+    yb = _stack_lanes()
+    cb = _stack_lanes()
+    tb = _stack_lanes()
+    sb = _stack_lanes()
     for i in range(N_LANES):
         yb[i] = y[i]
         cb[i] = c[i]
