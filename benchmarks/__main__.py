@@ -359,7 +359,9 @@ def _us(x: float) -> str:
 def lateness_rows(summary: dict[str, dict], what: str, cmd: str) -> list[Row]:
     """The rows of a ``compare_modes`` summary: each mode's tick lateness against off's."""
     return [Row(f"tick lateness p50 / p99, {what}: {mode}",
-                f"{_us(s['p50_us'])} / {_us(s['p99_us'])} ({s['p99_vs_off']:.2f} x off); "
+                f"{_us(s['p50_us'])} / {_us(s['p99_us'])} ({s['p99_vs_off']:.2f} x off"
+                + (f", {s['p99_paired_vs_off']:.2f} x paired by round"
+                   if "p99_paired_vs_off" in s and mode != "off" else "") + "); "
                 f"{100 * s['late_fraction']:.2f} % ticks > 1 ms late", cmd,
                 "" if mode in ("off", CLOCK_FLOOR) else "p99 <= 1.10 x off")
             for mode, s in summary.items()]
