@@ -3,6 +3,7 @@
 Run from the repository root::
 
     python -m benchmarks.bench_clock [--seconds 10] [--period-us 1000] [--spin-us 200]
+        [--realtime off|auto] [--json]
 
 Runs :class:`simserver.realtime.Pacer` for the given wall time with an empty loop body and
 prints, over every tick: start lateness p50 / p99 / max, the number and share of ticks
@@ -21,7 +22,22 @@ import sys
 
 import numpy as np
 
-from simserver.realtime import CpuMeter, Pacer
+from simserver.realtime import CpuMeter, Pacer, RealtimeScheduler, RealtimeSettings
+
+WINDOW_TICKS = 4096
+"""The server's statistics window (``diagnostics``' ``window_ticks``)."""
+WINDOW_EVERY = 200
+"""Ticks between two windows: the server's diagnostics at 5 Hz (``diag_hz``)."""
+
+
+def windowed_p99_median(lateness_us: np.ndarray) -> float:
+    """The median over sliding ``WINDOW_TICKS``-tick windows, one every ``WINDOW_EVERY``
+    ticks, of each window's lateness p99: the figure ``benchmarks.bench_server`` quotes
+    from the server's diagnostics, computed the same way from every tick of this run."""
+    if lateness_us.size <= WINDOW_TICKS:
+        return float(np.percentile(lateness_us, 99))
+    windows = np.lib.stride_tricks.sliding_window_view(lateness_us, WINDOW_TICKS)
+    return float(np.median(np.percentile(windows[::WINDOW_EVERY], 99, axis=1)))
 
 
 def run(seconds: float, period_us: float, spin_us: float, max_catchup: int) -> dict:
@@ -52,6 +68,7 @@ def run(seconds: float, period_us: float, spin_us: float, max_catchup: int) -> d
     sim_span_ns = (pacer.ticks - 1) * period_ns
     drift_us = (last_start_ns - first_start_ns - sim_span_ns) / 1000.0
     return {
+        "lateness_p99_windows_median_us": windowed_p99_median(lat_us),
         "seconds": seconds,
         "period_us": period_us,
         "spin_us": spin_us,
@@ -85,13 +102,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spin-us", type=float, default=200.0,
                         help="sleep until this long before each deadline, then spin (0: sleep)")
     parser.add_argument("--max-catchup", type=int, default=100)
+    parser.add_argument("--realtime", default="off", choices=("off", "auto"),
+                        help="the pacer's thread scheduled as the server's tick thread is "
+                        "(auto: SCHED_FIFO at its default priority, if permitted): the floor "
+                        "under a real-time server's figures (default off)")
     parser.add_argument("--json", action="store_true", help="also print the figures as JSON")
     args = parser.parse_args(argv)
 
+    scheduling = RealtimeScheduler(RealtimeSettings(mode=args.realtime)).apply()
     r = run(args.seconds, args.period_us, args.spin_us, args.max_catchup)
+    r["scheduling"] = scheduling
     print(f"pacer: {r['ticks']} ticks of {r['period_us']:g} us over {r['wall_s']:.2f} s "
           f"(spin {r['spin_us']:g} us), Python {platform.python_version()}, "
-          f"{platform.machine()}")
+          f"{platform.machine()}; {r['scheduling']}")
     print(f"  lateness   p50 {r['lateness_p50_us']:8.1f} us   p99 {r['lateness_p99_us']:8.1f} us"
           f"   p99.9 {r['lateness_p999_us']:8.1f} us   max {r['lateness_max_us']:9.1f} us")
     print(f"  late > 1 ms  {r['late_over_1ms']} ticks ({r['late_over_1ms_percent']:.3f} %)"

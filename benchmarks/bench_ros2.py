@@ -2,22 +2,27 @@
 
 Run from the repository root::
 
-    python -m benchmarks.bench_ros2 [--seconds 60] [--rounds 2]
+    python -m benchmarks.bench_ros2 [--seconds 12] [--rounds 8] [--floor-seconds 5]
 
-Measured as the viewer's cost is (``benchmarks.bench_viewer``): ``benchmarks.bench_server``
-runs the server with its ``ros2:`` setting ``off`` and ``on``, interleaved over ``--rounds``
-rounds so that slow drifts of this shared machine's load hit both alike. The two server
-configs differ in that key alone. With it on, ``serve`` starts the adapter as it does for
-a user (its own process, idle CPU priority, 100 Hz); its ROS node joins a zenoh router
-standing in for ``rmw_zenohd``, and a ROS node of this process subscribes to every topic
-of the domain, so the adapter's four topics really travel (their message rate is quoted).
-The benchmark's own client drives the car; the adapter, with no ROS command, only
-publishes. The adapter's rounds are timed once it publishes (it takes seconds to start,
-20 s and more on a busy machine). This process, which hosts the router, stays at normal
-priority (``bench_server``'s ``client_realtime="off"``): with its threads real-time, the
-adapter never got through to the router here. The tick lateness, which is what is
-compared, is the server's own. Quotes the median over rounds of each mode's tick
-lateness p50/p99 and its late-tick fraction, and the p99 ratio to ``off``.
+Measured as the viewer's cost is (``benchmarks.bench_viewer``), with the same helper
+(``benchmarks.interleaved.compare_modes``): ``benchmarks.bench_server`` runs the server
+with its ``ros2:`` setting ``off`` and ``on``, interleaved (off, on, off, on ...) over
+``--rounds`` short rounds, and after each round the bare pacer (``bench_clock``, scheduled
+as the server's tick thread) measures this VM's own stall floor in the same minutes. The
+figure per mode is the median over rounds of its per-round p99, quoted with the per-round
+values, the paired per-round ratio and the floor: one "off" round caught in a VM stall
+(5 % of ticks late with nothing running) no longer decides the comparison.
+
+The two server configs differ in that key alone. With it on, ``serve`` starts the adapter
+as it does for a user (its own process, idle CPU priority, 100 Hz); its ROS node joins a
+zenoh router standing in for ``rmw_zenohd``, and a ROS node of this process subscribes to
+every topic of the domain, so the adapter's four topics really travel (their message rate
+is quoted). The benchmark's own client drives the car; the adapter, with no ROS command,
+only publishes. The adapter's rounds are timed once it publishes (it takes seconds to
+start, 20 s and more on a busy machine). This process, which hosts the router, stays at
+normal priority (``bench_server``'s ``client_realtime="off"``): with its threads
+real-time, the adapter never got through to the router here. The tick lateness, which is
+what is compared, is the server's own.
 """
 
 from __future__ import annotations
@@ -29,7 +34,8 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from benchmarks.bench_server import compare_modes, run
+from benchmarks.bench_server import run
+from benchmarks.interleaved import compare_modes
 from simserver.adapters.zenoh_io import make_zenoh_config
 from simserver.testing import CONFIGS, loopback_endpoint
 
@@ -47,8 +53,11 @@ def server_config(folder: Path, name: str, ros2: str) -> Path:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=60.0)
-    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--seconds", type=float, default=12.0,
+                        help="measured seconds of one mode in one round (default 12)")
+    parser.add_argument("--rounds", type=int, default=8)
+    parser.add_argument("--floor-seconds", type=float, default=5.0,
+                        help="the bare pacer's run after each round (0: none)")
     parser.add_argument("--normal-priority", action="store_true",
                         help="the adapter at normal CPU priority (default idle: on a busy "
                         "machine its loop may then never run, and it publishes nothing)")
@@ -90,7 +99,8 @@ def main(argv: list[str] | None = None) -> dict:
 
             summary = compare_modes({"off": lambda: run(args.seconds, 200.0, config=off,
                                                         client_realtime="off"),
-                                     "on": with_adapter}, args.rounds, "ROS 2 adapter")
+                                     "on": with_adapter}, args.rounds, "ROS 2 adapter",
+                                    floor_seconds=args.floor_seconds)
     finally:
         sub.undeclare()
         ros_node.close()

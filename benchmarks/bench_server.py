@@ -178,32 +178,6 @@ def _measure(server: ServerProcess, startup_s: float, seconds: float, cmd_hz: fl
     }
 
 
-def compare_modes(modes: dict[str, Callable[[], dict]], rounds: int, what: str) -> dict:
-    """Run every mode once a round, interleaved over ``rounds`` rounds so that slow drifts
-    of a shared machine's load hit every mode alike; the median over rounds of each mode's
-    tick lateness p50/p99 and late-tick fraction, and its p99 over the first mode's."""
-    results: dict[str, list[dict]] = {m: [] for m in modes}
-    for _ in range(rounds):
-        for name, one_run in modes.items():
-            results[name].append(one_run())
-    summary = {}
-    base = float(np.median([r["lateness_p99_us"] for r in next(iter(results.values()))]))
-    for name, rs in results.items():
-        p50 = float(np.median([r["lateness_p50_us"] for r in rs]))
-        p99 = float(np.median([r["lateness_p99_us"] for r in rs]))
-        late = float(np.median([r["late_fraction"] for r in rs]))
-        rounds_p99 = [r["lateness_p99_us"] for r in rs]
-        cpu = float(np.median([r["cpu_percent"] for r in rs]))
-        summary[name] = {"p50_us": p50, "p99_us": p99, "late_fraction": late,
-                         "p99_vs_off": p99 / base, "p99_rounds_us": rounds_p99,
-                         "server_cpu_percent": cpu}
-        print(f"{what} {name:12s}: lateness p50 {p50:6.1f} us, p99 {p99:7.1f} us "
-              f"({p99 / base:5.2f} x off), ticks > 1 ms late {100 * late:.2f} %; "
-              f"p99 by round {', '.join(f'{x:.0f}' for x in rounds_p99)} us; "
-              f"server CPU {cpu:.0f} %")
-    return summary
-
-
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=60.0)

@@ -19,8 +19,11 @@ Two kinds of checks:
   every kernel in ``NUMBA_CACHE_DIR``). Then the image's ``ENTRYPOINT`` + ``CMD`` is started
   with the listen endpoint moved from ``tcp/0.0.0.0:7447`` to a free loopback port: it must
   report ready within ``READY_WITHIN_S`` (a cold compile takes 15-30 s here), answer the
-  image's ``HEALTHCHECK`` and stop cleanly on SIGTERM. About 2 minutes on CI's 2-vCPU
-  machine: ``pip install .`` 40 s, the cold warm-up 40 s; kept in the default suite.
+  image's ``HEALTHCHECK`` and stop cleanly on SIGTERM. About 3 minutes on CI's 2-vCPU
+  machine (``pip install .`` 40 s, the cold warm-up 40-80 s): the long form, run with
+  ``-m slow`` or ``SIMSERVER_SLOW=1``. The default suite runs its short form,
+  ``test_image_install_steps_short_form``: the same emulation with ``PIP_NO_DEPS=1`` and
+  without the warm-up and the server start.
 """
 
 from __future__ import annotations
@@ -443,15 +446,18 @@ class Emulation:
 
 
 def run_dockerfile(stages: list[Stage], root: ImageRoot, context: Path,
-                   base_bin: Path) -> Emulation:
+                   base_bin: Path, extra_env: dict[str, str] | None = None,
+                   skip_run: re.Pattern[str] | None = None) -> Emulation:
     """Carry out every stage's COPY, ENV, WORKDIR and RUN below ``root`` (see the module
-    docstring); stages share one root, so ``COPY --from`` to the same path is a no-op."""
+    docstring); stages share one root, so ``COPY --from`` to the same path is a no-op.
+    ``extra_env`` is added to every stage's environment and a RUN matching ``skip_run`` is
+    logged, not run (the short form's choices)."""
     log: list[str] = []
     env: dict[str, str] = {}
     cwd = root.root
     for st in stages:
         env = clean_env({"PATH": f"{base_bin}:{os.environ.get('PATH', '/usr/bin:/bin')}",
-                         "HOME": str(root.path("/root"))})
+                         "HOME": str(root.path("/root")), **(extra_env or {})})
         root.path("/root").mkdir(parents=True, exist_ok=True)
         cwd = root.root
         for ins in st.instructions:
@@ -488,6 +494,9 @@ def run_dockerfile(stages: list[Stage], root: ImageRoot, context: Path,
                         Path(cache).mkdir(parents=True, exist_ok=True)
                     log.append(f"line {ins.line}: skipped (creates a system user)")
                     continue
+                if skip_run is not None and skip_run.search(ins.args):
+                    log.append(f"line {ins.line}: skipped (short form): {ins.args}")
+                    continue
                 command = root.remap(ins.args)
                 t0 = time.monotonic()
                 proc = subprocess.run(["sh", "-c", command], cwd=cwd, env=env,
@@ -498,20 +507,81 @@ def run_dockerfile(stages: list[Stage], root: ImageRoot, context: Path,
     return Emulation(env=env, cwd=cwd, log=log)
 
 
-def test_image_steps_in_fresh_venv(stages: list[Stage], final: Stage, tmp_path: Path) -> None:
+def image_context(tmp_path: Path) -> tuple[ImageRoot, Path, Path]:
+    """``(image root, build context, base bin)`` below ``tmp_path``: the context copied
+    through ``.dockerignore`` and the base image's ``python``, this interpreter's base (not
+    its virtual environment)."""
     root = ImageRoot(tmp_path / "root")
     context = tmp_path / "context"
     copied = build_context(context)
     assert "pyproject.toml" in copied and "docker/warmup.py" in copied
     assert not [c for c in copied if c.endswith((".nbi", ".nbc", ".pyc"))]
-    # the base image's `python`: this interpreter's base (not its virtual environment)
     base_bin = tmp_path / "base-bin"
     base_bin.mkdir()
     base_python = Path(getattr(sys, "_base_executable", sys.executable)).resolve()
     wrapper = base_bin / "python"
     wrapper.write_text(f'#!/bin/sh\nexec {shlex.quote(str(base_python))} "$@"\n')
     wrapper.chmod(0o755)
+    return root, context, base_bin
 
+
+@pytest.fixture
+def only_when_slow(request: pytest.FixtureRequest) -> None:
+    """Skip the long form unless asked for (``-m slow`` or ``SIMSERVER_SLOW=1``)."""
+    from tests.conftest import slow_enabled
+
+    if not slow_enabled(request.config.getoption("markexpr")):
+        pytest.skip("long form: run with -m slow or SIMSERVER_SLOW=1")
+
+
+WARM_UP_RUN = re.compile(r"\bwarmup\.py\b")
+
+
+def test_image_install_steps_short_form(stages: list[Stage], final: Stage,
+                                        tmp_path: Path) -> None:
+    """The short form of ``test_image_steps_in_fresh_venv`` (about 3 minutes, ``-m slow``):
+    every COPY, ENV, WORKDIR and RUN carried out the same way, the builder's very
+    ``pip install .`` from the build context into a fresh venv, but with ``PIP_NO_DEPS=1``
+    (the dependencies' download and install is most of its time) and without the warm-up
+    RUN (a cold compile of every kernel) and the server start that needs both. What it
+    still proves: the context has everything the package build needs, the install has
+    every module of the package and the ``simserver`` entry point of the ENTRYPOINT, the
+    runtime stage's COPYs find their sources, and nothing compiled is in the install."""
+    root, context, base_bin = image_context(tmp_path)
+    emu = run_dockerfile(stages, root, context, base_bin, extra_env={"PIP_NO_DEPS": "1"},
+                         skip_run=WARM_UP_RUN)
+    assert any("skipped (short form)" in line and "warmup.py" in line for line in emu.log)
+    venv = root.path("/opt/simserver")
+    installed = [p for p in venv.glob("lib/python*/site-packages/simserver")]
+    assert len(installed) == 1, "\n".join(emu.log)
+    modules = {p.relative_to(context).as_posix() for p in (context / "simserver").rglob("*.py")}
+    assert modules and modules <= {p.relative_to(installed[0].parent).as_posix()
+                                   for p in installed[0].rglob("*.py")}
+    assert not list(venv.rglob("*.nbi")), "numba cache files inside the install"
+    entry = final.all("ENTRYPOINT")[-1].exec_form()
+    assert entry is not None
+    exe = shutil.which(entry[0], path=emu.env["PATH"])
+    assert exe is not None and Path(exe).is_relative_to(venv)
+    # the ENTRYPOINT's script runs the venv's own interpreter, and the files the
+    # HEALTHCHECK, the warm-up and the CMD name are where the image has them
+    assert str(venv / "bin" / "python") in Path(exe).read_text()
+    health = [root.remap(w) for w in final.all("HEALTHCHECK")[-1].healthcheck()[1]]
+    assert Path(health[1]).is_file()
+    warm = [r.args for r in final.all("RUN") if WARM_UP_RUN.search(r.args)]
+    assert warm
+    for path in IMAGE_PATH.findall(" ".join(warm)):
+        assert root.path(path).exists(), path  # warmup.py and its --configs
+    cmd = final.all("CMD")[-1].exec_form()
+    assert cmd is not None
+    assert Path(root.remap(cmd[cmd.index("--config") + 1])).is_file()
+    assert Path(emu.env["NUMBA_CACHE_DIR"]).is_dir()
+    shutil.rmtree(root.root, ignore_errors=True)
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("only_when_slow")
+def test_image_steps_in_fresh_venv(stages: list[Stage], final: Stage, tmp_path: Path) -> None:
+    root, context, base_bin = image_context(tmp_path)
     emu = run_dockerfile(stages, root, context, base_bin)
     for entry in emu.log:
         head, *rest = entry.splitlines()

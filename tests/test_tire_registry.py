@@ -89,10 +89,12 @@ def load_linear(path, data):  # noqa: ANN001, ANN201
         relax_long_m=float(data["relaxation_length_long_m"]))
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def linear_model():
-    """The toy model, registered for this module's tests and removed after them (the
-    registry is global: the docs and the config loader of later tests read it)."""
+    """The toy model, registered for one test and removed after it (the registry is
+    global: the docs and the config loader of later tests read it, and while it is
+    registered every new ``Simulation`` compiles the step once more for the longer kernel
+    tuple, a minute on CI's machine)."""
     entry = register_tire_model("toy_linear", "linear tire, saturating at mu Fz (a test)",
                                 load_linear, linear_prepare, linear_evaluate,
                                 lambda p: p[LIN_FZ_NOM])
@@ -137,6 +139,46 @@ inputs:
 """
 
 
+@pytest.fixture
+def only_when_slow(request: pytest.FixtureRequest) -> None:
+    """Skip the long form unless asked for (``-m slow`` or ``SIMSERVER_SLOW=1``)."""
+    from tests.conftest import slow_enabled
+
+    if not slow_enabled(request.config.getoption("markexpr")):
+        pytest.skip("long form: run with -m slow or SIMSERVER_SLOW=1")
+
+
+def test_a_registered_toy_tire_gives_its_forces_through_the_compiled_dispatch(
+        tmp_path, linear_model):
+    """The short form of the scenario test below (which compiles the whole step once more
+    for the longer kernel tuple, a minute on CI's machine): the toy loaded through the
+    config loader and evaluated through ``tire_forces`` with the registry's kernels, the
+    compiled dispatch the step and ``simserver tire-curves`` use, over slips on both sides
+    of the friction limit and at two loads."""
+    from simserver.core.tire import tire_forces
+    from simserver.core.tire_layout import N_TIRE_OUT
+    from simserver.tire_models import tire_kernels
+
+    (tmp_path / "toy_tire.yaml").write_text(TOY_TIRE)
+    tp, name = load_tire(tmp_path / "toy_tire.yaml")
+    assert name == "toy_linear" and tp[TP_MODEL] == linear_model.id >= 2
+    tp = np.ascontiguousarray(tp)
+    out = np.full(N_TIRE_OUT, np.nan)
+    kernels = tire_kernels()
+    for fz in (2500.0, 5005.0):
+        limit = 0.9 * fz
+        for kappa, tan_alpha in ((0.01, 0.0), (0.0, -0.02), (0.2, 0.3), (-0.5, 0.01)):
+            tire_forces(kernels, tp, kappa, tan_alpha, 0.0, fz, 1.0, 10.0, out)
+            # the toy's own law: linear in the slip, scaled with the load, clipped at mu Fz
+            assert out[OUT_FX] == pytest.approx(
+                np.clip(22500.0 * fz / 5005.0 * kappa, -limit, limit), rel=1e-12)
+            assert out[OUT_FY] == pytest.approx(
+                np.clip(-51000.0 * fz / 5005.0 * tan_alpha, -limit, limit), rel=1e-12)
+            assert out[OUT_FX_PEAK] == out[OUT_FY_PEAK] == pytest.approx(limit)
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("only_when_slow")
 def test_a_registered_toy_tire_runs_a_scenario(tmp_path, linear_model):
     (tmp_path / "toy_tire.yaml").write_text(TOY_TIRE)
     (tmp_path / "toy_vehicle.yaml").write_text(TOY_VEHICLE)

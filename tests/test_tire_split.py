@@ -405,13 +405,18 @@ def test_jit_equals_py_func(name: str) -> None:
         assert_close(out, ref, fz)
 
 
-def _main_function_ir(fn: nb.core.registry.CPUDispatcher, *args: object) -> str:
+def _main_function_ir(fn: nb.core.registry.CPUDispatcher, *calls: tuple) -> str:
     """LLVM IR of ``fn`` (recompiled uncached, so that it can be inspected) without the
-    Python wrappers."""
+    Python wrappers, after calling it with each argument tuple of ``calls``: they must all
+    share one compiled specialisation, so that this IR is the code every one of them ran.
+    Recompiled with the options of the real function (the step's dispatchers run without
+    reference counting)."""
     options = TIRE_DISPATCH_JIT_OPTIONS if fn in (tire.tire_prepare, tire.tire_evaluate) else (
         TIRE_JIT_OPTIONS)
     copy = nb.njit(**dict(options, cache=False))(fn.py_func)
-    copy(*args)
+    for args in calls:
+        copy(*args)
+    assert len(copy.signatures) == 1, (fn.__name__, copy.signatures)
     module = copy.inspect_llvm(copy.signatures[0])
     bodies = [b for b in re.split(r"\n(?=define )", module) if b.startswith("define")]
     names = [re.search(r'@"?([\w.$]+)', b.splitlines()[0]).group(1) for b in bodies]
@@ -422,20 +427,24 @@ def _main_function_ir(fn: nb.core.registry.CPUDispatcher, *args: object) -> str:
     return body
 
 
-@pytest.mark.parametrize("name", ["mf61", "simple"])
-def test_dispatchers_neither_allocate_nor_count_references(name: str) -> None:
+def test_dispatchers_neither_allocate_nor_count_references() -> None:
     """No heap allocation in prepare, evaluate (nor tire_forces, whose scratch is on the
     stack); and no reference counting either: the model bodies are inlined, so the
-    arrays' NRT increments and decrements are pruned (20 ns a call otherwise)."""
-    tp = TIRES[name]
-    coef = np.zeros(N_TIRE_COEF)
+    arrays' NRT increments and decrements are pruned (20 ns a call otherwise).
+
+    Every tire model runs through the same compiled code (the model is chosen at run time
+    from ``tp[TP_MODEL]``), so one compile per dispatcher, run with each tire, is checked
+    for all of them (``_main_function_ir`` asserts they share the specialisation)."""
     out = np.zeros(N_TIRE_OUT)
-    tire_prepare(BUILTIN_KERNELS, tp, 0.0, 4000.0, 1.0, coef)
-    calls = {
-        tire.tire_prepare: (BUILTIN_KERNELS, tp, 0.0, 4000.0, 1.0, coef),
-        tire.tire_evaluate: (BUILTIN_KERNELS, tp, coef, 0.01, 0.02, 4000.0, 10.0, out),
-        tire.tire_forces: (BUILTIN_KERNELS, tp, 0.01, 0.02, 0.0, 4000.0, 1.0, 10.0, out),
-    }
+    calls: dict = {tire.tire_prepare: [], tire.tire_evaluate: [], tire.tire_forces: []}
+    for name in ("mf61", "simple"):
+        tp, coef = TIRES[name], np.zeros(N_TIRE_COEF)
+        tire_prepare(BUILTIN_KERNELS, tp, 0.0, 4000.0, 1.0, coef)
+        calls[tire.tire_prepare].append((BUILTIN_KERNELS, tp, 0.0, 4000.0, 1.0, coef))
+        calls[tire.tire_evaluate].append(
+            (BUILTIN_KERNELS, tp, coef, 0.01, 0.02, 4000.0, 10.0, out))
+        calls[tire.tire_forces].append(
+            (BUILTIN_KERNELS, tp, 0.01, 0.02, 0.0, 4000.0, 1.0, 10.0, out))
     for fn, args in calls.items():
         body = _main_function_ir(fn, *args)
         called = set(re.findall(r"call [^@]*@\"?([A-Za-z_][\w.]*)", body))
