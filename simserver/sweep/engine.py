@@ -31,7 +31,24 @@ from simserver.sweep.worker import FAILED, OK, WarmUp, run_batch
 
 RESULTS_FILE = "results.parquet"
 HISTORY_DIR = "histories"
-CHECKPOINT_EVERY_S = 0.5
+CHECKPOINT_EVERY_S = 0.5  # the first checkpoint of the table; then see CHECKPOINT_COST
+# the table is rewritten whole: a later checkpoint waits this many times the last write's
+# duration (and 2 s or more), so the writes take at most 2 % of this process's core, which
+# on a machine with one core per worker is taken from a worker
+CHECKPOINT_COST = 50.0
+CHECKPOINT_LATER_S = 2.0
+# The embedded LocalCluster's Dask settings: its default housekeeping runs in this
+# process (scheduler, nannies) and in the workers, on the cores that do the runs. Every
+# 20 ms an event-loop health tick, every 100 ms a memory check, every 10 ms a statistical
+# profile of the task's thread: 56 ms of CPU per second in this process and 40 per
+# worker with two idle workers (benchmarks/bench_sweep.py). Slower housekeeping does the
+# same checks: a worker over its memory limit is still stopped, within a second.
+LOCAL_CLUSTER_CONFIG = {
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.worker.profile.enabled": False,
+}
 GUIDED_ROUNDS = 4  # a batch is the remaining runs / (GUIDED_ROUNDS x workers), see batches
 MAX_BATCH = 64  # runs: a lost worker costs little
 MIN_TASK_S = 0.1  # Dask's guidance: a task lasts 100 ms or more
@@ -138,6 +155,7 @@ def workers_cpu_s(client: Any) -> float:
 
 def open_client(scheduler: str | None, workers: int | None, numba_cache: Path | None) -> Any:
     """A Dask client: to ``scheduler``, or to a new ``LocalCluster`` of worker processes."""
+    import dask
     from dask.distributed import Client, LocalCluster
 
     if scheduler is not None:
@@ -154,16 +172,18 @@ def open_client(scheduler: str | None, workers: int | None, numba_cache: Path | 
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)
     try:
-        cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1,
-                               threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR, env=env)
+        with dask.config.set(LOCAL_CLUSTER_CONFIG):
+            cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1,
+                                   threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.ERROR,
+                                   env=env)
+            return Client(cluster)
     finally:
         for key, value in saved.items():
             if value is None:
                 os.environ.pop(key, None)
             else:
                 os.environ[key] = value
-    return Client(cluster)
 
 
 def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
@@ -211,7 +231,7 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
                                        key=f"sweep-{sweep.name}-{i}-{chunk[0].run_id}")
                 futures[future] = chunk
             show = not quiet and sys.stderr.isatty()
-            last_write = 0.0
+            next_write = time.perf_counter() + CHECKPOINT_EVERY_S
             with tqdm(total=len(todo), desc=sweep.name, unit="run", file=sys.stderr,
                       disable=not show) as bar:
                 for future in as_completed(futures):
@@ -224,9 +244,12 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
                         failed += row["status"] != OK
                     bar.update(len(new))
                     bar.set_postfix(failed=failed)
-                    if time.perf_counter() - last_write >= CHECKPOINT_EVERY_S:
+                    if time.perf_counter() >= next_write:
+                        t_write = time.perf_counter()
                         write_table(rows, table_path)
-                        last_write = time.perf_counter()
+                        now = time.perf_counter()
+                        next_write = now + max(CHECKPOINT_LATER_S,
+                                               CHECKPOINT_COST * (now - t_write))
             client_cpu_s = time.process_time() - client_cpu0
             worker_cpu_s = workers_cpu_s(client) - worker_cpu0
     finally:
