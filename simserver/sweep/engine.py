@@ -43,6 +43,7 @@ CHECKPOINT_LATER_S = 2.0
 # profile of the task's thread: 56 ms of CPU per second in this process and 40 per
 # worker with two idle workers (benchmarks/bench_sweep.py). Slower housekeeping does the
 # same checks: a worker over its memory limit is still stopped, within a second.
+FORK_WORKERS = True
 LOCAL_CLUSTER_CONFIG = {
     "distributed.admin.tick.interval": "1s",
     "distributed.admin.system-monitor.interval": "2s",
@@ -67,6 +68,7 @@ class SweepOutcome:
     wall_time_s: float
     workers: int
     ready_s: float = 0.0  # of wall_time_s, until the workers were up and warm
+    close_s: float = 0.0  # of wall_time_s, closing the client and the LocalCluster
     metric_columns: list[str] = field(default_factory=list)
     # process CPU seconds from the first task submitted to the last row in: this process
     # (client, and for a LocalCluster its scheduler and nannies) and the workers, summed
@@ -171,8 +173,11 @@ def open_client(scheduler: str | None, workers: int | None, numba_cache: Path | 
     # starts).
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)
+    config = dict(LOCAL_CLUSTER_CONFIG)
+    if numba_cache is None and FORK_WORKERS:
+        config["distributed.worker.multiprocessing-method"] = "fork"
     try:
-        with dask.config.set(LOCAL_CLUSTER_CONFIG):
+        with dask.config.set(config):
             cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1,
                                    threads_per_worker=1, processes=True,
                                    dashboard_address=None, silence_logs=logging.ERROR,
@@ -210,7 +215,7 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
     t0 = time.perf_counter()
     failed = 0
     n_workers = 0
-    ready_s = 0.0
+    ready_s = close_s = 0.0
     client_cpu_s = worker_cpu_s = math.nan
     client = open_client(scheduler, workers, numba_cache) if todo else None
     try:
@@ -256,16 +261,18 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
         if rows:
             write_table(rows, table_path)
         if client is not None:
+            t_close = time.perf_counter()
             cluster = client.cluster
             client.close()
             if cluster is not None:
                 cluster.close()
+            close_s = time.perf_counter() - t_close
     metric_columns = [k for r in rows for k in r
                       if k not in (*FIRST_COLUMNS, *LAST_COLUMNS, *sweep.parameters)]
     return SweepOutcome(rows=sorted(rows, key=lambda r: r["case"]), ran=len(todo),
                         skipped=skipped, failed=failed,
                         wall_time_s=time.perf_counter() - t0, workers=n_workers,
-                        ready_s=ready_s,
+                        ready_s=ready_s, close_s=close_s,
                         metric_columns=list(dict.fromkeys(metric_columns)),
                         client_cpu_s=client_cpu_s, worker_cpu_s=worker_cpu_s)
 
