@@ -1,7 +1,8 @@
 """Running a sweep on Dask distributed: the client, the batches, the results table, resume.
 
 The engine is Dask's: an embedded ``LocalCluster`` (one single-threaded worker process
-per core) by default, or an existing scheduler (``tcp://HOST:8786``). Every worker warms
+per core, forked from this process, see ``FORK_WORKERS``) by default, or an existing
+scheduler (``tcp://HOST:8786``). Every worker warms
 its compiled kernels once when it joins (``worker.WarmUp``, a worker plugin); workers
 that share ``NUMBA_CACHE_DIR`` (``--numba-cache``; the default is numba's own cache next
 to the sources) load what one of them compiled. Cases go out in batches, several runs per
@@ -41,15 +42,21 @@ CHECKPOINT_LATER_S = 2.0
 # process (scheduler, nannies) and in the workers, on the cores that do the runs. Every
 # 20 ms an event-loop health tick, every 100 ms a memory check, every 10 ms a statistical
 # profile of the task's thread: 56 ms of CPU per second in this process and 40 per
-# worker with two idle workers (benchmarks/bench_sweep.py). Slower housekeeping does the
-# same checks: a worker over its memory limit is still stopped, within a second.
-FORK_WORKERS = True
+# worker, measured with two idle workers (10 and 29 with these settings). Slower
+# housekeeping does the same checks: a worker over its memory limit is still stopped,
+# within a second.
 LOCAL_CLUSTER_CONFIG = {
     "distributed.admin.tick.interval": "1s",
     "distributed.admin.system-monitor.interval": "2s",
     "distributed.worker.memory.monitor-interval": "1s",
     "distributed.worker.profile.enabled": False,
 }
+# The LocalCluster's worker processes are forked from this process, which has imported
+# distributed, numba and simserver (and loaded the tire kernels) already; spawned, each
+# worker imported them again, 1.5 s of CPU before its first run. With ``--numba-cache``
+# they are spawned: NUMBA_CACHE_DIR takes effect only in a process that has not imported
+# numba yet. A worker its nanny restarts later is spawned either way.
+FORK_WORKERS = True
 GUIDED_ROUNDS = 4  # a batch is the remaining runs / (GUIDED_ROUNDS x workers), see batches
 MAX_BATCH = 64  # runs: a lost worker costs little
 MIN_TASK_S = 0.1  # Dask's guidance: a task lasts 100 ms or more
