@@ -71,8 +71,8 @@ NOT_RUN_HERE = {
                                                    "interface; tests listen on loopback only",
     "simserver sweep SWEEP.yaml --out DIR": "a placeholder: test_sweep.py runs sweeps",
     "simserver sweep configs/sweeps/relaxation_study.yaml --out out/relax":
-        "225 runs: python -m benchmarks.bench_sweep runs this study; test_sweep.py runs "
-        "smaller sweeps on the same engine",
+        "225 runs: python -m benchmarks.bench_sweep runs its finer form "
+        "(relaxation_study_dense.yaml); test_sweep.py runs smaller sweeps on the same engine",
     "python -m benchmarks": "minutes long, run by hand; test_readme.py checks the README's "
                             "table is its report",
     "python -m benchmarks.bench_step": "the same",

@@ -1,7 +1,8 @@
 """Running a sweep on Dask distributed: the client, the batches, the results table, resume.
 
 The engine is Dask's: an embedded ``LocalCluster`` (one single-threaded worker process
-per core) by default, or an existing scheduler (``tcp://HOST:8786``). Every worker warms
+per core, forked from this process, see ``FORK_WORKERS``) by default, or an existing
+scheduler (``tcp://HOST:8786``). Every worker warms
 its compiled kernels once when it joins (``worker.WarmUp``, a worker plugin); workers
 that share ``NUMBA_CACHE_DIR`` (``--numba-cache``; the default is numba's own cache next
 to the sources) load what one of them compiled. Cases go out in batches, several runs per
@@ -31,7 +32,31 @@ from simserver.sweep.worker import FAILED, OK, WarmUp, run_batch
 
 RESULTS_FILE = "results.parquet"
 HISTORY_DIR = "histories"
-CHECKPOINT_EVERY_S = 0.5
+CHECKPOINT_EVERY_S = 0.5  # the first checkpoint of the table; then see CHECKPOINT_COST
+# the table is rewritten whole: a later checkpoint waits this many times the last write's
+# duration (and 2 s or more), so the writes take at most 2 % of this process's core, which
+# on a machine with one core per worker is taken from a worker
+CHECKPOINT_COST = 50.0
+CHECKPOINT_LATER_S = 2.0
+# The embedded LocalCluster's Dask settings: its default housekeeping runs in this
+# process (scheduler, nannies) and in the workers, on the cores that do the runs. Every
+# 20 ms an event-loop health tick, every 100 ms a memory check, every 10 ms a statistical
+# profile of the task's thread: 56 ms of CPU per second in this process and 40 per
+# worker, measured with two idle workers (10 and 29 with these settings). Slower
+# housekeeping does the same checks: a worker over its memory limit is still stopped,
+# within a second.
+LOCAL_CLUSTER_CONFIG = {
+    "distributed.admin.tick.interval": "1s",
+    "distributed.admin.system-monitor.interval": "2s",
+    "distributed.worker.memory.monitor-interval": "1s",
+    "distributed.worker.profile.enabled": False,
+}
+# The LocalCluster's worker processes are forked from this process, which has imported
+# distributed, numba and simserver (and loaded the tire kernels) already; spawned, each
+# worker imported them again, 1.5 s of CPU before its first run. With ``--numba-cache``
+# they are spawned: NUMBA_CACHE_DIR takes effect only in a process that has not imported
+# numba yet. A worker its nanny restarts later is spawned either way.
+FORK_WORKERS = True
 GUIDED_ROUNDS = 4  # a batch is the remaining runs / (GUIDED_ROUNDS x workers), see batches
 MAX_BATCH = 64  # runs: a lost worker costs little
 MIN_TASK_S = 0.1  # Dask's guidance: a task lasts 100 ms or more
@@ -50,6 +75,7 @@ class SweepOutcome:
     wall_time_s: float
     workers: int
     ready_s: float = 0.0  # of wall_time_s, until the workers were up and warm
+    close_s: float = 0.0  # of wall_time_s, closing the client and the LocalCluster
     metric_columns: list[str] = field(default_factory=list)
     # process CPU seconds from the first task submitted to the last row in: this process
     # (client, and for a LocalCluster its scheduler and nannies) and the workers, summed
@@ -138,6 +164,7 @@ def workers_cpu_s(client: Any) -> float:
 
 def open_client(scheduler: str | None, workers: int | None, numba_cache: Path | None) -> Any:
     """A Dask client: to ``scheduler``, or to a new ``LocalCluster`` of worker processes."""
+    import dask
     from dask.distributed import Client, LocalCluster
 
     if scheduler is not None:
@@ -153,17 +180,22 @@ def open_client(scheduler: str | None, workers: int | None, numba_cache: Path | 
     # starts).
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)
+    config = dict(LOCAL_CLUSTER_CONFIG)
+    if numba_cache is None and FORK_WORKERS:
+        config["distributed.worker.multiprocessing-method"] = "fork"
     try:
-        cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1,
-                               threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR, env=env)
+        with dask.config.set(config):
+            cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1,
+                                   threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.ERROR,
+                                   env=env)
+            return Client(cluster)
     finally:
         for key, value in saved.items():
             if value is None:
                 os.environ.pop(key, None)
             else:
                 os.environ[key] = value
-    return Client(cluster)
 
 
 def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
@@ -190,7 +222,7 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
     t0 = time.perf_counter()
     failed = 0
     n_workers = 0
-    ready_s = 0.0
+    ready_s = close_s = 0.0
     client_cpu_s = worker_cpu_s = math.nan
     client = open_client(scheduler, workers, numba_cache) if todo else None
     try:
@@ -211,7 +243,7 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
                                        key=f"sweep-{sweep.name}-{i}-{chunk[0].run_id}")
                 futures[future] = chunk
             show = not quiet and sys.stderr.isatty()
-            last_write = 0.0
+            next_write = time.perf_counter() + CHECKPOINT_EVERY_S
             with tqdm(total=len(todo), desc=sweep.name, unit="run", file=sys.stderr,
                       disable=not show) as bar:
                 for future in as_completed(futures):
@@ -224,25 +256,30 @@ def run_sweep(sweep: Sweep, out: Path, *, scheduler: str | None = None,
                         failed += row["status"] != OK
                     bar.update(len(new))
                     bar.set_postfix(failed=failed)
-                    if time.perf_counter() - last_write >= CHECKPOINT_EVERY_S:
+                    if time.perf_counter() >= next_write:
+                        t_write = time.perf_counter()
                         write_table(rows, table_path)
-                        last_write = time.perf_counter()
+                        now = time.perf_counter()
+                        next_write = now + max(CHECKPOINT_LATER_S,
+                                               CHECKPOINT_COST * (now - t_write))
             client_cpu_s = time.process_time() - client_cpu0
             worker_cpu_s = workers_cpu_s(client) - worker_cpu0
     finally:
         if rows:
             write_table(rows, table_path)
         if client is not None:
+            t_close = time.perf_counter()
             cluster = client.cluster
             client.close()
             if cluster is not None:
                 cluster.close()
+            close_s = time.perf_counter() - t_close
     metric_columns = [k for r in rows for k in r
                       if k not in (*FIRST_COLUMNS, *LAST_COLUMNS, *sweep.parameters)]
     return SweepOutcome(rows=sorted(rows, key=lambda r: r["case"]), ran=len(todo),
                         skipped=skipped, failed=failed,
                         wall_time_s=time.perf_counter() - t0, workers=n_workers,
-                        ready_s=ready_s,
+                        ready_s=ready_s, close_s=close_s,
                         metric_columns=list(dict.fromkeys(metric_columns)),
                         client_cpu_s=client_cpu_s, worker_cpu_s=worker_cpu_s)
 

@@ -9,6 +9,7 @@ stops the batch.
 
 from __future__ import annotations
 
+import asyncio
 import functools
 import os
 import socket
@@ -92,8 +93,11 @@ class WarmUp(WorkerPlugin):
         self.resolved = resolved
         self.label = label
 
-    def setup(self, worker: Any) -> None:
-        warm_up(self.resolved, self.label)
+    async def setup(self, worker: Any) -> None:
+        # in a thread: a first compile takes minutes on a loaded machine, and a worker
+        # whose event loop is blocked sends no heartbeat (the scheduler removes it after
+        # its worker-ttl, 5 minutes by default, and the plugin's registration fails)
+        await asyncio.to_thread(warm_up, self.resolved, self.label)
 
 
 def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -> dict[str, Any]:
