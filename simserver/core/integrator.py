@@ -153,8 +153,15 @@ def freeze_inputs(model: Model, data: Data) -> None:
     wheel_in = data.ws.wheel_in
     road_wheel_angles(model.vp, data.inputs[IN_STEER], wheel_in)
     for i in range(N_WHEELS):
-        wheel_in[WI_COS_STEER, i] = np.cos(wheel_in[WI_STEER_RAD, i])
-        wheel_in[WI_SIN_STEER, i] = np.sin(wheel_in[WI_STEER_RAD, i])
+        angle = wheel_in[WI_STEER_RAD, i]
+        # the right wheel of an axle without toe has the left one's angle (the same value,
+        # zero's sign included): the same cosine and sine, not computed again
+        if i % WHEELS_PER_AXLE != 0 and angle == wheel_in[WI_STEER_RAD, i - 1]:
+            wheel_in[WI_COS_STEER, i] = wheel_in[WI_COS_STEER, i - 1]
+            wheel_in[WI_SIN_STEER, i] = wheel_in[WI_SIN_STEER, i - 1]
+        else:
+            wheel_in[WI_COS_STEER, i] = np.cos(angle)
+            wheel_in[WI_SIN_STEER, i] = np.sin(angle)
     wheel_torques(data.x, model.vp, data.inputs, data.out, model.tp[:, TP_RADIUS_M],
                   model.dt_s, wheel_in[WI_DRIVE_NM], wheel_in[WI_BRAKE_CAP_NM])
     for i in range(N_WHEELS):
@@ -222,7 +229,7 @@ def resolve_brakes(model: Model, data: Data) -> None:
             rk[RK_K1, OMEGA0 + i] += wheel_in[WI_BRAKE_NM, i] / wheel_inertia(vp, i)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _copy_discrete(src: np.ndarray, dst: np.ndarray) -> None:
     for j in range(N_INTEGRATED, N_STATE):
         dst[j] = src[j]

@@ -52,7 +52,6 @@ from simserver.core.layout import (
     O_FZ0,
     O_HUB_U0,
     O_MZ0,
-    O_STEER0,
     PATCH_TWIST0,
     STEERING_FRICTION_NM,
     STEERING_PRIMED,
@@ -61,7 +60,7 @@ from simserver.core.layout import (
     STEERING_WHEEL_TORQUE_NM,
     WHEELS_PER_AXLE,
 )
-from simserver.core.model import G_MU0, Data, Model
+from simserver.core.model import G_MU0, WI_SIN_STEER, Data, Model
 from simserver.core.params import (
     VP_ASSIST_BOOST_HIGHWAY,
     VP_ASSIST_BOOST_PARKING,
@@ -83,19 +82,27 @@ from simserver.core.tire_layout import TP_RADIUS_M, TP_RELAX_LAT_M
 
 
 @nb.njit(cache=True)
+def kingpin_lift_arm_m(vp: np.ndarray, radius: float) -> float:
+    """The kingpin inclination's lift arm ``d_c sin(sigma)`` (m) of a front wheel of rolling
+    radius ``radius`` (m): ``d_c = r_s + R tan(sigma)`` the spindle's offset from the axis at
+    the wheel centre. Module docstring, docs/model.md section 12."""
+    sigma = vp[VP_KINGPIN_INCLINATION_RAD]
+    spindle_offset = vp[VP_SCRUB_RADIUS_M] + radius * np.tan(sigma)
+    return spindle_offset * np.sin(sigma)
+
+
+@nb.njit(cache=True)
 def kingpin_moment(vp: np.ndarray, side: float, fx: float, fy: float, fz: float, mz: float,
-                   delta: float, radius: float, twist: float) -> float:
+                   sin_delta: float, lift_arm_m: float, twist: float) -> float:
     """The moment about one front wheel's kingpin (N m, + turns the wheel left).
 
     ``side`` +1 for a left wheel, -1 for a right one; forces in the wheel frame (N),
-    ``delta`` the road-wheel angle (rad), ``radius`` the tire's rolling radius (m),
-    ``twist`` the patch torsion phi (rad). Module docstring, docs/model.md section 12.
+    ``sin_delta`` the sine of the road-wheel angle (the step's, ``WI_SIN_STEER``),
+    ``lift_arm_m`` the wheel's :func:`kingpin_lift_arm_m`, ``twist`` the patch torsion phi
+    (rad). Module docstring, docs/model.md section 12.
     """
-    sigma = vp[VP_KINGPIN_INCLINATION_RAD]
-    scrub = vp[VP_SCRUB_RADIUS_M]
-    spindle_offset = scrub + radius * np.tan(sigma)
-    return (mz - vp[VP_CASTER_TRAIL_M] * fy - side * scrub * fx
-            - spindle_offset * np.sin(sigma) * fz * np.sin(delta)
+    return (mz - vp[VP_CASTER_TRAIL_M] * fy - side * vp[VP_SCRUB_RADIUS_M] * fx
+            - lift_arm_m * fz * sin_delta
             - vp[VP_PATCH_TORSION_STIFFNESS_NM_PER_RAD] * twist)
 
 
@@ -146,6 +153,8 @@ def steering_system(model: Model, data: Data) -> None:
     x, out = data.x, data.out
     vp, tp, h = model.vp, model.tp, model.dt_s
     mu = data.ws.ground
+    sin_steer = data.ws.wheel_in[WI_SIN_STEER]
+    lift_arm = 0.0
     ratio = vp[VP_STEERING_RATIO]
     angle = data.inputs[IN_STEER] * vp[VP_STEERING_WHEEL_MAX_RAD]
     # a fresh state has no previous angle: the first step does not turn the wheel
@@ -166,8 +175,13 @@ def steering_system(model: Model, data: Data) -> None:
         x[PATCH_TWIST0 + i] = twist
         speed += hub_u / N_FRONT_WHEELS
         side = 1.0 if i % WHEELS_PER_AXLE == 0 else -1.0
+        # the arm and the sine are those of the step (the same tire radii, the road-wheel
+        # angle's sine of stage 1): no trigonometry repeated here
+        radius = tp[i, TP_RADIUS_M]
+        if i == 0 or radius != tp[i - 1, TP_RADIUS_M]:
+            lift_arm = kingpin_lift_arm_m(vp, radius)
         load += kingpin_moment(vp, side, out[O_FX0 + i], out[O_FY0 + i], out[O_FZ0 + i],
-                               out[O_MZ0 + i], out[O_STEER0 + i], tp[i, TP_RADIUS_M], twist)
+                               out[O_MZ0 + i], sin_steer[i], lift_arm, twist)
     load /= ratio
     t_d = driver_torque(load, assist_boost(vp, speed), vp[VP_ASSIST_TORQUE_MAX_NM])
     tau = vp[VP_COLUMN_RATE_FILTER_S]
