@@ -42,8 +42,10 @@ import multiprocessing
 import os
 import pickle
 import queue
+import select
 import tempfile
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
@@ -237,7 +239,29 @@ def remove_stale_blocks(server_pid: int | None = None, directory: Path | None = 
     return removed
 
 
-def _worker_init() -> None:
+def _exit_with(server_pid: int) -> None:
+    """End this worker when the server ``server_pid`` is gone, however it ended.
+
+    A ``ProcessPoolExecutor`` worker waits on its call queue, whose pipe it also holds
+    open for writing (the queue is pickled to it whole), so a server killed with SIGKILL
+    never gives it an end of file: it would wait for ever, an orphan. A pidfd of the server
+    becomes readable when the server exits (Linux 5.3+); elsewhere the worker looks at its
+    parent once a second."""
+    try:
+        fd = os.pidfd_open(server_pid)
+    except (AttributeError, OSError):
+        fd = None
+    if fd is not None:
+        select.select([fd], [], [])
+    else:
+        while os.getppid() == server_pid:
+            time.sleep(1.0)
+    os._exit(0)
+
+
+def _worker_init(server_pid: int) -> None:
+    threading.Thread(target=_exit_with, args=(server_pid,), name="simserver-exit-with-server",
+                     daemon=True).start()
     try:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         os.nice(WORKER_NICE)
@@ -259,7 +283,7 @@ class ProcessPreparer:
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
                 max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_worker_init)
+                initializer=_worker_init, initargs=(self.server_pid,))
         return self._pool
 
     def warm(self, fn: Callable[..., Any], *args: Any) -> Future:

@@ -48,6 +48,7 @@ from simserver.testing import (
     ServerProcess,
     loopback_endpoint,
     state_is_finite,
+    wait_until,
 )
 from simserver.testing.realtime_soak import format_report, run_realtime_soak
 from tests.conftest import slow_enabled
@@ -577,6 +578,42 @@ def test_kill_9_loses_at_most_the_last_100_ms_of_the_command_log(tmp_path):
     assert compared > 1000
     print(f"\n[kill -9] log holds {last_step} of >= {seen_tick} steps (lost {lost_ms} ms); "
           f"{compared} published states replayed identically")
+
+
+def _running(pid: int) -> bool:
+    """True while ``pid`` exists and is not a zombie waiting for its new parent to reap it."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_kill_9_leaves_no_process_of_the_server_behind():
+    """The control worker (a ``ProcessPoolExecutor`` process) holds its own call queue's
+    pipe open for writing, so a server killed with SIGKILL gave it no end of file: it and
+    its resource tracker stayed for ever, one pair per killed server (found after a CI run).
+    It now watches the server's pidfd and ends with it."""
+    server = ServerProcess()
+    try:
+        # the worker is started and warmed before the clock: a spawned multiprocessing child
+        wait_until(lambda: any("multiprocessing" in " ".join(_cmdline(p))
+                               for p in server.children()),
+                   timeout_s=60.0, what="the control worker")
+        kids = server.children()
+        server.kill()
+        wait_until(lambda: not any(_running(p) for p in kids), timeout_s=10.0,
+                   what=f"the server's children {kids} to end after its SIGKILL")
+    finally:
+        server.stop()
+
+
+def _cmdline(pid: int) -> list[str]:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            return fh.read().decode(errors="replace").split("\0")
+    except OSError:
+        return []
 
 
 def test_a_torn_last_line_is_ignored_but_a_broken_complete_line_is_an_error(tmp_path):
