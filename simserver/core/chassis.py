@@ -676,28 +676,20 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
     """
     tp, tires, wheel = model.tp, model.tires, ws.wheel
     tire_out, tire_coef = ws.tire_out, ws.tire_coef
-    if all_mf61(tp):
-        for i in range(N_WHEELS):
-            u_w, v_w, kappa, tan_alpha, d_tan_alpha, d_kappa = wheel_slip(model, ws, x, i)
-            wheel[i, W_HUB_U] = u_w
-            wheel[i, W_HUB_V] = v_w
-            wheel[i, W_KAPPA] = kappa
-            wheel[i, W_TAN_ALPHA] = tan_alpha
-            dx[TAN_ALPHA0 + i] = d_tan_alpha
-            dx[KAPPA0 + i] = d_kappa
+    if all_mf61(tp):  # the four wheels written out: constant indices, slips in registers
+        u0, v0, k0, t0, dt0, dk0 = wheel_slip(model, ws, x, 0)
+        u1, v1, k1, t1, dt1, dk1 = wheel_slip(model, ws, x, 1)
+        u2, v2, k2, t2, dt2, dk2 = wheel_slip(model, ws, x, 2)
+        u3, v3, k3, t3, dt3, dk3 = wheel_slip(model, ws, x, 3)
         tire_evaluate_mf61_wheels(
-            tp, tire_coef,
-            (wheel[0, W_KAPPA], wheel[1, W_KAPPA], wheel[2, W_KAPPA], wheel[3, W_KAPPA]),
-            (wheel[0, W_TAN_ALPHA], wheel[1, W_TAN_ALPHA], wheel[2, W_TAN_ALPHA],
-             wheel[3, W_TAN_ALPHA]),
+            tp, tire_coef, (k0, k1, k2, k3), (t0, t1, t2, t3),
             (wheel[0, W_FZ], wheel[1, W_FZ], wheel[2, W_FZ], wheel[3, W_FZ]),
-            (wheel[0, W_HUB_U], wheel[1, W_HUB_U], wheel[2, W_HUB_U], wheel[3, W_HUB_U]),
-            tire_out,
+            (u0, u1, u2, u3), tire_out,
         )  # fmt: skip
-        for i in range(N_WHEELS):
-            wheel_finish(model, ws, x, dx, i, tire_out[i], wheel[i, W_HUB_U],
-                         wheel[i, W_HUB_V], wheel[i, W_KAPPA], wheel[i, W_TAN_ALPHA],
-                         dx[TAN_ALPHA0 + i], dx[KAPPA0 + i])
+        wheel_finish(model, ws, x, dx, 0, tire_out[0], u0, v0, k0, t0, dt0, dk0)
+        wheel_finish(model, ws, x, dx, 1, tire_out[1], u1, v1, k1, t1, dt1, dk1)
+        wheel_finish(model, ws, x, dx, 2, tire_out[2], u2, v2, k2, t2, dt2, dk2)
+        wheel_finish(model, ws, x, dx, 3, tire_out[3], u3, v3, k3, t3, dt3, dk3)
     else:
         for i in range(N_WHEELS):
             u_w, v_w, kappa, tan_alpha, d_tan_alpha, d_kappa = wheel_slip(model, ws, x, i)
