@@ -47,6 +47,8 @@ from simserver.testing import (
     RoleProcess,
     ServerProcess,
     loopback_endpoint,
+    process_argv,
+    process_running,
     state_is_finite,
     wait_until,
 )
@@ -580,15 +582,6 @@ def test_kill_9_loses_at_most_the_last_100_ms_of_the_command_log(tmp_path):
           f"{compared} published states replayed identically")
 
 
-def _running(pid: int) -> bool:
-    """True while ``pid`` exists and is not a zombie waiting for its new parent to reap it."""
-    try:
-        with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as fh:
-            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
-
-
 def test_kill_9_leaves_no_process_of_the_server_behind():
     """The control worker (a ``ProcessPoolExecutor`` process) holds its own call queue's
     pipe open for writing, so a server killed with SIGKILL gave it no end of file: it and
@@ -597,23 +590,15 @@ def test_kill_9_leaves_no_process_of_the_server_behind():
     server = ServerProcess()
     try:
         # the worker is started and warmed before the clock: a spawned multiprocessing child
-        wait_until(lambda: any("multiprocessing" in " ".join(_cmdline(p))
+        wait_until(lambda: any("multiprocessing" in " ".join(process_argv(p))
                                for p in server.children()),
                    timeout_s=60.0, what="the control worker")
         kids = server.children()
         server.kill()
-        wait_until(lambda: not any(_running(p) for p in kids), timeout_s=10.0,
+        wait_until(lambda: not any(process_running(p) for p in kids), timeout_s=10.0,
                    what=f"the server's children {kids} to end after its SIGKILL")
     finally:
         server.stop()
-
-
-def _cmdline(pid: int) -> list[str]:
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as fh:
-            return fh.read().decode(errors="replace").split("\0")
-    except OSError:
-        return []
 
 
 def test_a_torn_last_line_is_ignored_but_a_broken_complete_line_is_an_error(tmp_path):

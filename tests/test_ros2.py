@@ -44,6 +44,7 @@ from simserver.testing import (
     OutputProcess,
     ServerProcess,
     loopback_endpoint,
+    process_argv,
     wait_until,
 )
 
@@ -543,12 +544,8 @@ def test_sim_time_stamps_and_clock(server, router, ros_node, watcher) -> None:
 
 def ros2_children(server: ServerProcess) -> list[int]:
     """Process ids of the server's ``simserver ros2`` children."""
-    def cmdline(pid: int) -> list[str]:
-        try:
-            return Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
-        except OSError:
-            return []
-    return [pid for pid in server.children() if cmdline(pid)[1:4] == ["-m", "simserver", "ros2"]]
+    return [pid for pid in server.children()
+            if process_argv(pid)[1:4] == ["-m", "simserver", "ros2"]]
 
 
 def test_serve_starts_the_adapter_when_configured_and_stops_it(router, ros_node,

@@ -179,6 +179,23 @@ def child_pids(pid: int) -> list[int]:
     return kids
 
 
+def process_argv(pid: int) -> list[str]:
+    """The command line of ``pid`` (empty once it has ended)."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace").split("\0")
+    except OSError:
+        return []
+
+
+def process_running(pid: int) -> bool:
+    """True while ``pid`` exists and is not a zombie waiting for its parent to reap it."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
 class OutputProcess:
     """A subprocess whose merged stdout/stderr a thread collects line by line.
 
