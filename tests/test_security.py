@@ -52,6 +52,7 @@ from simserver.testing import (
     ServerProcess,
     free_port,
     loopback_endpoint,
+    process_argv,
     process_sockets,
     state_is_finite,
     wait_until,
@@ -100,15 +101,7 @@ def driver_and_viewer(endpoint: str, driver_cfg: Path,
 
 def front_pids(server: ServerProcess) -> list[int]:
     """The server's TLS front processes (``simserver tls-front``)."""
-    pids = []
-    for pid in server.children():
-        try:
-            argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if b"tls-front" in argv:
-            pids.append(pid)
-    return pids
+    return [pid for pid in server.children() if "tls-front" in process_argv(pid)]
 
 
 def front_counters(server: ServerProcess) -> dict[str, int]:

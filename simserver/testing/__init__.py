@@ -423,15 +423,8 @@ class ServerProcess(OutputProcess):
     def viewer_pids(self) -> list[int]:
         """Its children that are live viewers (``simserver view``), not its other children
         (the ``load`` worker, multiprocessing's resource tracker)."""
-        pids = []
-        for pid in self.children():
-            try:
-                argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-            except OSError:
-                continue
-            if b"simserver" in argv and b"view" in argv:
-                pids.append(pid)
-        return pids
+        return [pid for pid in self.children()
+                if {"simserver", "view"} <= set(process_argv(pid))]
 
     def client_args(self) -> list[str]:
         """The connection flags of a client program of this server."""
