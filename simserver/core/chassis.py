@@ -792,7 +792,7 @@ def place_on_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
     wheels there, the springs left static, and the planar velocities kept (docs/model.md
     section 11)."""
     u, v, r = x[U_MPS], x[V_MPS], x[YAW_RATE_RADPS]
-    world_x, world_y = x[X_M], x[Y_M]
+    world_x, world_y, world_yaw = x[X_M], x[Y_M], x[YAW_RAD]
     x[REF_GRADE_PCT] = 0.0
     x[REF_CROSS_SLOPE_PCT] = 0.0
     x[REF_HEIGHT_M] = surface_at(model.terrain, world_x, world_y)[0]
@@ -807,4 +807,11 @@ def place_on_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
         rise = (x[REF_GRADE_PCT] * world_x + x[REF_CROSS_SLOPE_PCT] * world_y) / 100.0
         x[X_M] = world_x * axes[0, 0] + world_y * axes[0, 1] + rise * axes[0, 2]
         x[Y_M] = world_x * axes[1, 0] + world_y * axes[1, 1] + rise * axes[1, 2]
+    # the heading from world x is that of the forward axis seen from above: the horizontal
+    # direction lifted onto the plane. (The re-expression above projects along the plane's
+    # normal instead, which turns the heading seen from above by about grade x cross slope:
+    # 6e-4 rad on a 3 %, 2 % plane.)
+    c, s = np.cos(world_yaw), np.sin(world_yaw)
+    lifted = np.array((c, s, (x[REF_GRADE_PCT] * c + x[REF_CROSS_SLOPE_PCT] * s) / 100.0))
+    x[YAW_RAD] = np.arctan2(lifted @ axes[1], lifted @ axes[0])
     x[U_MPS], x[V_MPS], x[YAW_RATE_RADPS] = u, v, r
