@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import json
 import os
 import tempfile
 import threading
@@ -41,25 +42,45 @@ from pathlib import Path
 import numpy as np
 
 from simserver import protocol as proto
+from simserver.realtime import TickTrace
+from simserver.server import TICK_TRACE_ENV
 from simserver.testing import CONFIGS, Client, RoleProcess, ServerProcess, wait_until
 from simserver.testing.hostile import hostile_files
 
 
-def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto") -> dict:
-    """One loaded run of ``seconds``; the figures."""
-    with ServerProcess(scene=None, log_level="WARNING",
-                       extra_args=["--realtime", realtime]) as server, \
+def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto",
+        trace: bool = True) -> dict:
+    """One loaded run of ``seconds``; the figures (with ``trace``, also what made the late
+    ticks late: :func:`late_tick_causes` of the server's :class:`TickTrace`)."""
+    tmp = tempfile.TemporaryDirectory()
+    trace_path = os.path.join(tmp.name, "ticks.npy")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    if trace:
+        env[TICK_TRACE_ENV] = trace_path
+    with tmp, ServerProcess(scene=None, log_level="WARNING", env=env,
+                            extra_args=["--realtime", realtime]) as server, \
             Client(server, state_capacity=0) as probe:
         conn = server.client_args()
         driver = RoleProcess("driver", [*conn, "--rate", "1000"])
         subs = RoleProcess("multisub", [*conn, "--sessions", str(subscribers)])
         d0 = probe.diagnostics()
+        p0 = time.perf_counter_ns()  # CLOCK_MONOTONIC: the server's trace's clock too
         churner = RoleProcess("churn", [*conn, "--rate", str(churn), "--life", "1.0",
                                         "--seconds", str(seconds)])
         churned = churner.wait(seconds + 60)
+        p1 = time.perf_counter_ns()
         d1 = probe.diagnostics()
         subs_result = subs.stop()
         driver.stop()
+        server.stop()
+        causes = threads = None
+        if trace and os.path.exists(trace_path + ".threads.json"):
+            rows = np.load(trace_path)
+            start = rows[:, TickTrace.COLUMNS.index("start")]
+            inside = np.flatnonzero((start >= p0) & (start <= p1))
+            causes = late_tick_causes(rows[inside], int(inside[0]) if inside.size else 0)
+            with open(trace_path + ".threads.json", encoding="utf-8") as fh:
+                threads = json.load(fh)
     final = server.final_stats()
     ticks = int(d1["tick"] - d0["tick"])
 
@@ -76,8 +97,105 @@ def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto") 
             "config_ok": churned["config_ok"] if churned else 0,
             "subscriber_missing_total": subs_result["missing_total"] if subs_result else None,
             "subscriber_states_min": subs_result["states_min"] if subs_result else None,
-            "server_final": final, "loadavg_1min": os.getloadavg()[0],
+            "server_final": final, "late_causes": causes, "threads": threads,
+            "loadavg_1min": os.getloadavg()[0],
             "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
+
+
+LATE_NS = 1_000_000
+CAUSES = ("work CPU", "work run-queue wait", "work blocked", "work in GC",
+          "sleep overshoot run-queue wait", "sleep overshoot blocked", "spin preempted")
+
+
+def late_tick_causes(rows: np.ndarray, first_index: int = 0) -> dict:
+    """Where the time went in the episodes of late ticks of a :class:`TickTrace`.
+
+    An episode is a run of ticks more than 1 ms late; it starts with the tick before it
+    (whose work or whose wait made the first one late) and ends with its last late tick.
+    Its time is split into the tick thread's own CPU time during the ticks' work, its
+    run-queue wait (runnable, not running: other threads or processes on its core), the
+    time it was blocked during work (the GIL, a lock; or not counted at all: a stall of
+    the VM's vCPU, when it was never switched out), garbage collection, and in the
+    pacer's wait the sleep's overshoot past its end (run-queue wait, or blocked: the GIL
+    after the sleep, a late timer, the VM). Returns the episodes, the totals per cause in
+    ms and the count of episodes each cause dominated, and the ticks of most CPU (their
+    loop count: ``first_index`` is the first row's).
+    """
+    c = {name: rows[:, i].astype(np.int64) for i, name in enumerate(TickTrace.COLUMNS)}
+    late = (c["start"] - c["deadline"]) > LATE_NS
+    totals = dict.fromkeys(CAUSES, 0.0)
+    dominated = dict.fromkeys(CAUSES, 0)
+    episodes = []
+    i, n = 1, len(rows)
+    while i < n:
+        if not late[i] or late[i - 1]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < n and late[j + 1]:
+            j += 1
+        part = dict.fromkeys(CAUSES, 0.0)
+        switched_out = 0
+        for k in range(i - 1, j + 1):  # the work of ticks i-1 .. j-1 and the waits before i..j
+            if k < j:
+                wall = c["end"][k] - c["start"][k]
+                cpu = c["cpu_end"][k] - c["cpu_start"][k]
+                delay = c["delay_end"][k] - c["delay_start"][k]
+                gc_ns = c["gc"][k] - (c["gc"][k - 1] if k else 0)
+                part["work CPU"] += cpu - gc_ns
+                part["work in GC"] += gc_ns
+                part["work run-queue wait"] += delay
+                part["work blocked"] += max(wall - cpu - delay, 0)
+                switched_out += int(c["runs_end"][k] - c["runs_start"][k])
+            if k >= i and c["sleep_until"][k] and c["end"][k - 1] < c["deadline"][k]:
+                over = max(c["woke"][k] - c["sleep_until"][k], 0)
+                delay = c["delay_start"][k] - c["delay_end"][k - 1]
+                part["sleep overshoot run-queue wait"] += min(delay, over)
+                part["sleep overshoot blocked"] += max(over - delay, 0)
+            elif k >= i and c["end"][k - 1] < c["deadline"][k]:
+                part["spin preempted"] += c["delay_start"][k] - c["delay_end"][k - 1]
+        part = {k: v / 1e6 for k, v in part.items()}
+        for k, v in part.items():
+            totals[k] += v
+        dominated[max(part, key=part.get)] += 1
+        episodes.append({"first": i, "ticks": j - i + 1,
+                         "lateness_ms": float(c["start"][i] - c["deadline"][i]) / 1e6,
+                         "switched_out": switched_out, **part})
+        i = j + 1
+    work_cpu = (c["cpu_end"] - c["cpu_start"]) / 1e3
+    heaviest = np.argsort(work_cpu)[::-1][:8]
+    return {"heaviest_ticks": [(int(k) + first_index, float(work_cpu[k])) for k in heaviest],
+            "ticks": n, "late": int(late.sum()), "episodes": episodes,
+            "totals_ms": totals, "dominated": dominated,
+            "work_cpu_us_p50_p99_max": [float(np.percentile(work_cpu, 50)),
+                                        float(np.percentile(work_cpu, 99)),
+                                        float(work_cpu.max())] if n else [],
+            "gc_ms_total": float(c["gc"][-1] - c["gc"][0]) / 1e6 if n else 0.0}
+
+
+def print_causes(r: dict) -> None:
+    """The late-tick causes and the server's busiest threads."""
+    lc = r.get("late_causes")
+    if lc:
+        print(f"tick trace: {lc['late']} late ticks of {lc['ticks']} in "
+              f"{len(lc['episodes'])} episodes; tick work CPU us p50/p99/max "
+              + "/".join(f"{v:.0f}" for v in lc["work_cpu_us_p50_p99_max"])
+              + f"; GC {lc['gc_ms_total']:.1f} ms in all")
+        print("  time in the late episodes by cause, ms (episodes it dominated): " + "; ".join(
+            f"{k} {v:.1f} ({lc['dominated'][k]})" for k, v in lc["totals_ms"].items() if v))
+        print("  heaviest ticks (loop count: work CPU us): " + ", ".join(
+            f"{k}: {v:.0f}" for k, v in lc["heaviest_ticks"]))
+        worst = sorted(lc["episodes"], key=lambda e: -e["lateness_ms"])[:5]
+        for e in worst:
+            print(f"  episode at tick {e['first']}: {e['ticks']} late, first "
+                  f"{e['lateness_ms']:.2f} ms, switched out {e['switched_out']}x: " + ", ".join(
+                      f"{k} {e[k]:.2f}" for k in CAUSES if e[k] >= 0.01))
+    threads = r.get("threads")
+    if threads:
+        busiest = sorted(threads, key=lambda t: -t["cpu_s"])[:8]
+        print("  server threads (CPU s / run-queue wait s, whole run): " + "; ".join(
+            f"{t['name']} {t['policy'][6:]}{t['priority'] or ''} {t['cpu_s']:.1f}/"
+            f"{t['run_delay_s']:.2f}" for t in busiest))
 
 
 class StampedStates:
@@ -296,6 +414,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"states missed by the {r['subscribers']} subscribers: "
           f"{r['subscriber_missing_total']} (fewest received by one: "
           f"{r['subscriber_states_min']}); commands dropped {r['cmd_dropped']}")
+    print_causes(r)
     return r
 
 
