@@ -22,6 +22,7 @@ For the server this module is the adapter of the loop's ports
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import threading
@@ -51,6 +52,8 @@ from simserver.protocol import (
     validate_control,
     vehicle_keys,
 )
+
+log = logging.getLogger("simserver.server")
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 """The embedded default: a peer on loopback only."""
@@ -457,6 +460,7 @@ class VehiclePublisher:
         self.decimated = decimated
         self.decimate_every = max(1, decimate_every)
         self._states = 0
+        self.dropped = 0  # by the sender thread's full queue (also in slow_publishes)
         self._queue: deque[tuple[bool, bytes]] | None = None
         self._thread: threading.Thread | None = None
         if sender_thread:
@@ -494,14 +498,21 @@ class VehiclePublisher:
         if len(queue) >= self.SENDER_QUEUE:
             queue.popleft()
             self.slow_publishes += 1
+            self.dropped += 1
         queue.append((is_state, payload))
         os.eventfd_write(self._wake, 1)
 
     def _send_loop(self) -> None:
         """The ``state-tx`` thread: put what is queued, in order; wait (GIL released)."""
         queue = self._queue
+        reported = last = 0
         while True:
             os.eventfd_read(self._wake)
+            if self.dropped != reported and time.monotonic() - last > 1.0:
+                reported, last = self.dropped, time.monotonic()  # not in the tick; 1/s
+                log.warning("state-tx: %d publications dropped so far: the sender was %d "
+                            "behind (a link or this thread stalled)", self.dropped,
+                            self.SENDER_QUEUE)
             while queue:
                 is_state, payload = queue.popleft()
                 if payload is None:
