@@ -40,8 +40,10 @@ def windowed_p99_median(lateness_us: np.ndarray) -> float:
     return float(np.median(np.percentile(windows[::WINDOW_EVERY], 99, axis=1)))
 
 
-def run(seconds: float, period_us: float, spin_us: float, max_catchup: int) -> dict:
-    """Run the pacer for ``seconds`` of wall time; return the figures as a dict."""
+def run(seconds: float, period_us: float, spin_us: float, max_catchup: int,
+        save: str | None = None) -> dict:
+    """Run the pacer for ``seconds`` of wall time; return the figures as a dict (with
+    ``save``, every tick's start time goes to that file)."""
     period_ns = round(period_us * 1000)
     n_ticks = int(round(seconds * 1e9 / period_ns))
     pacer = Pacer(
@@ -52,10 +54,21 @@ def run(seconds: float, period_us: float, spin_us: float, max_catchup: int) -> d
         window=n_ticks + 1,  # keep every tick
     )
     cpu = CpuMeter()
+    starts = np.zeros(n_ticks, dtype=np.int64) if save else None
     pacer.start()
     wait = pacer.wait
-    for _ in range(n_ticks):
-        wait()
+    if starts is None:
+        for _ in range(n_ticks):
+            wait()
+    else:
+        i = 0
+        try:  # a peer is ended by SIGINT: it saves what it has
+            for i in range(n_ticks):
+                starts[i] = wait() + pacer.deadline_ns
+            i = n_ticks
+        except KeyboardInterrupt:
+            pass
+        np.save(save, starts[:i])
     end_ns = pacer.clock()
     cpu_percent = cpu.percent()
     s = pacer.stats()
@@ -107,10 +120,14 @@ def main(argv: list[str] | None = None) -> int:
                         "(auto: SCHED_FIFO at its default priority, if permitted): the floor "
                         "under a real-time server's figures (default off)")
     parser.add_argument("--json", action="store_true", help="also print the figures as JSON")
+    parser.add_argument("--save", metavar="FILE", default=None,
+                        help="write every tick's start time (CLOCK_MONOTONIC ns, numpy .npy): "
+                        "a peer of a server run, whose stalls are the VM's (benchmarks."
+                        "bench_load compares them with the server's)")
     args = parser.parse_args(argv)
 
     scheduling = RealtimeScheduler(RealtimeSettings(mode=args.realtime)).apply()
-    r = run(args.seconds, args.period_us, args.spin_us, args.max_catchup)
+    r = run(args.seconds, args.period_us, args.spin_us, args.max_catchup, args.save)
     r["scheduling"] = scheduling
     print(f"pacer: {r['ticks']} ticks of {r['period_us']:g} us over {r['wall_s']:.2f} s "
           f"(spin {r['spin_us']:g} us), Python {platform.python_version()}, "
