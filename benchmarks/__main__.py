@@ -663,13 +663,27 @@ def render(report: Report, sections: list[str]) -> str:
         "- Load: `benchmarks.bench_load`: a driver at 1 kHz, 20 state subscribers (each its "
         "own zenoh session) checking every tick arrives, and 10 sessions a second joining "
         "(state subscription, `get_config`) and leaving a second later; late ticks from the "
-        "server's diagnostics over the loaded period.",
+        "server's diagnostics over the loaded period. Their causes from the server's tick "
+        "trace (`SIMSERVER_TICK_TRACE`, `simserver.realtime.TickTrace`: per tick the tick "
+        "thread's CPU time, run-queue wait and switches from `/proc/thread-self/schedstat`, "
+        "the pacer's sleep, GC): per episode of late ticks, the time in the ticks' own CPU, "
+        "in run-queue waits (other processes at its priority or above), blocked in the work "
+        "(never switched out: the vCPU not running), and the sleeps' overshoot.",
         "- Hostile loads: `benchmarks.bench_load --hostile`: a driver at 1 kHz and a state "
         "subscriber stamping each state's arrival; per round a 1 s no-load window, then each "
         "`load` (10 MB scene, alias bomb, deep nesting, FIFO, two OpenDRIVE terrains, flat) "
         "and `reset` at 1 and 20 m/s from request to reply + 0.1 s; the largest gap between "
         "two states received (1 ms when nothing stalls) and the server's worst tick lateness. "
-        "The baseline windows show what the machine stalls by itself.",
+        "The baseline windows show what the machine stalls by itself. The stalls are split "
+        "by whose they are: the server's tick trace gives the gaps between tick starts and "
+        "per tick the server's own part (its CPU time, and waits for the GIL or a lock after "
+        "being switched out) apart from run-queue waits and the VM's (blocked while never "
+        "switched out, sleeps returning late with no other wake-up); the bare pacer "
+        "(`benchmarks.bench_clock`) runs beside it in a process of its own as a peer that "
+        "the VM's stalls delay too.",
+        "- Clock floor of the server rows: `benchmarks.bench_server` runs the bare pacer, "
+        "scheduled as the tick thread and beside the same hogs, 10 s just before and after "
+        "the server (`--floor-seconds`): the VM's own lateness in the same minutes.",
         "- Start-up: launch of `python -m simserver serve --viewer off` to its `ready` line "
         "(kernels compiled or loaded, zenoh open, before the first tick). Cold: "
         "`NUMBA_CACHE_DIR` an empty directory (Python bytecode already compiled); warm: the "
