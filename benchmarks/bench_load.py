@@ -69,7 +69,7 @@ def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto",
                                         "--seconds", str(seconds)])
         churned = churner.wait(seconds + 60)
         p1 = time.perf_counter_ns()
-        d1 = probe.diagnostics()
+        d1 = probe.diagnostics(timeout_s=30.0)  # a loaded machine: 5 s was seen to pass
         subs_result = subs.stop()
         driver.stop()
         server.stop()
@@ -83,6 +83,10 @@ def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto",
                 threads = json.load(fh)
     final = server.final_stats()
     ticks = int(d1["tick"] - d0["tick"])
+    sender_dropped = 0  # the server's state-tx queue (logged, also in publish_slow)
+    for line in server.output:
+        if "state-tx: " in line and "publications dropped" in line:
+            sender_dropped = int(line.split("state-tx: ")[1].split()[0])
 
     def delta(name: str) -> int:
         return int(d1[name] - d0[name])
@@ -97,7 +101,8 @@ def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto",
             "config_ok": churned["config_ok"] if churned else 0,
             "subscriber_missing_total": subs_result["missing_total"] if subs_result else None,
             "subscriber_states_min": subs_result["states_min"] if subs_result else None,
-            "server_final": final, "late_causes": causes, "threads": threads,
+            "server_final": final, "sender_dropped": sender_dropped, "late_causes": causes,
+            "threads": threads,
             "loadavg_1min": os.getloadavg()[0],
             "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
 
@@ -519,7 +524,8 @@ def main(argv: list[str] | None = None) -> dict:
           f"{r['publish_slow']}")
     print(f"states missed by the {r['subscribers']} subscribers: "
           f"{r['subscriber_missing_total']} (fewest received by one: "
-          f"{r['subscriber_states_min']}); commands dropped {r['cmd_dropped']}")
+          f"{r['subscriber_states_min']}); commands dropped {r['cmd_dropped']}; dropped "
+          f"by the server's sender queue (at least) {r['sender_dropped']}")
     print_causes(r)
     return r
 

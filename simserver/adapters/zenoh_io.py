@@ -524,6 +524,8 @@ class VehiclePublisher:
                         self.diagnostics.put(payload)
                 except zenoh.ZError:
                     pass  # undeclared meanwhile (the session closing)
+                except Exception:  # never let the thread end: no state would go out again
+                    log.exception("state-tx: a publication failed")
 
     def close(self) -> None:
         """Stop the sender thread after what is queued (idempotent); the publishers are
