@@ -12,7 +12,8 @@ One thread, one loop; every tick (:meth:`ServerLoop.tick`), for each vehicle slo
 5. check the state is finite, else stop the car in a safe state
    (:meth:`simserver.vehicle_slot.VehicleSlot.check_finite`): before publishing;
 6. publish the state (every ``state_every`` ticks) and, a few times a second, the
-   diagnostics;
+   diagnostics (the zenoh adapter's publisher only queues them: its ``state-tx`` thread
+   puts them, beside the tick);
 7. serve control requests through :data:`CONTROLS` (name -> handler), each validated
    first (:func:`simserver.protocol.validate_control`). A ``load`` is read by a worker
    process; a ``load``'s result and a ``reset`` with ``u_mps`` are then applied one piece
