@@ -278,6 +278,29 @@ class PeakRss:
         return out
 
 
+def _floor_row(r: dict, cmd: str, prefix: str = "") -> Row:
+    """The clock floor measured before and after a bench_server run (same command)."""
+    f = r["clock_floor"]
+    return Row(f"{prefix}clock floor: the bare pacer as the tick thread, {f['seconds'] / 2:g} s "
+               "before and after the server in the same command: ticks > 1 ms late / "
+               "lateness p99",
+               f"{100 * f['before']['late_fraction']:.2f} % / "
+               f"{100 * f['after']['late_fraction']:.2f} %; {f['before']['lateness_p99_us']:.0f}"
+               f" / {f['after']['lateness_p99_us']:.0f} us (the server: "
+               f"{100 * r['late_fraction']:.2f} %, {r['lateness_p99_us']:.0f} us)", cmd)
+
+
+def _nanmax(values: list[float]) -> str:
+    """The largest of ``values`` that is a number, two decimals ("-" if none)."""
+    numbers = [v for v in values if v == v]
+    return f"{max(numbers):.2f}" if numbers else "-"
+
+
+def _ms_max(r: dict, key: str) -> str:
+    """The largest ``key`` over the hostile actions and rounds, in ms."""
+    return _nanmax([v for e in r["actions"].values() for v in e[key]])
+
+
 def simserver_role(argv: list[str], parent: list[str] | None) -> str | None:
     """``serve (viewer off|save|connect)`` or ``view (save|connect)`` for simserver processes."""
     def viewer_mode(args: list[str]) -> str:
@@ -440,6 +463,8 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
                 f"(max {_us(r['latency_max_us'])})", cmd, "< 1 ms / < 2 ms"),
             Row("server CPU", f"{r['cpu_percent']:.0f} % of one core", cmd),
         ]
+        if "clock_floor" in r:
+            rows.append(_floor_row(r, cmd))
         if "serve (viewer off)" in peaks:
             rows.append(Row(f"server peak RSS ({span})", _mib(peaks["serve (viewer off)"]),
                             "python -m benchmarks --only server" + suffix))
@@ -466,6 +491,8 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
                 f"{_us(med('latency_p50_us'))} / {_us(med('latency_p99_us'))} (p99 runs: "
                 + ", ".join(_us(r["latency_p99_us"]) for r in runs) + ")", cmd, "p99 < 1.5 ms"),
         ]
+        rows += [_floor_row(r, cmd, f"busy machine, run {i + 1}: ")
+                 for i, r in enumerate(runs) if "clock_floor" in r]
 
     if "load" in sections:
         from benchmarks import bench_load
@@ -483,6 +510,15 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
                 f"{r['subscriber_missing_total']} ({r['joined']} clients joined, "
                 f"{r['config_ok']} get_config answered)", cmd, "0"),
         ]
+        lc = r.get("late_causes")
+        if lc:
+            cpu50, cpu99, _ = lc["work_cpu_us_p50_p99_max"]
+            rows.append(Row(
+                "the same: what made the late ticks late (the server's tick trace; ms in "
+                "the late episodes, episodes dominated)", "; ".join(
+                    f"{k} {v:.0f} ({lc['dominated'][k]})" for k, v in lc["totals_ms"].items()
+                    if v >= 0.5) + f"; a tick's work {cpu50:.0f} us CPU p50, {cpu99:.0f} us "
+                f"p99; GC {lc['gc_ms_total']:.1f} ms in all", cmd))
 
     if "hostile" in sections:
         from benchmarks import bench_load
@@ -508,6 +544,22 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
             f"sent, {r['cmd_received']} received + {r['cmd_dropped']} counted; the "
             f"largest piece of work a tick does for them {piece_us:.0f} us CPU",
             cmd, "<= 2 ms"))
+        if all("own_ms" in e for e in r["actions"].values()):
+            own = {label: max(e["own_ms"], key=lambda v: -1.0 if v != v else v)
+                   for label, e in r["actions"].items()}  # NaN (no ticks traced) last
+            worst_own = max(own, key=own.get)
+            split = r["baseline_split"]
+            rows.append(Row(
+                "the same, the loop's stalls by whose they are (the server's tick trace and "
+                "a clock-floor peer process in the same run; max over the actions)",
+                f"the server's own work and waits {own[worst_own]:.2f} ms ({worst_own}); "
+                "tick-start gap " + _ms_max(r, "tick_gap_ms") + ", the VM "
+                + _ms_max(r, "vm_ms") + ", run-queue wait " + _ms_max(r, "others_ms")
+                + ", clock-floor peer " + _ms_max(r, "peer_ms") + "; no-load baselines: "
+                "own " + _nanmax(split["own_ms"]) + ", tick-start gap "
+                + _nanmax(split["tick_gap_ms"]) + ", peer " + _nanmax(split["peer_ms"])
+                + " ms",
+                cmd, "own <= 2 ms"))
 
     if "viewer" in sections:
         print("== bench_viewer", flush=True)
@@ -611,13 +663,27 @@ def render(report: Report, sections: list[str]) -> str:
         "- Load: `benchmarks.bench_load`: a driver at 1 kHz, 20 state subscribers (each its "
         "own zenoh session) checking every tick arrives, and 10 sessions a second joining "
         "(state subscription, `get_config`) and leaving a second later; late ticks from the "
-        "server's diagnostics over the loaded period.",
+        "server's diagnostics over the loaded period. Their causes from the server's tick "
+        "trace (`SIMSERVER_TICK_TRACE`, `simserver.realtime.TickTrace`: per tick the tick "
+        "thread's CPU time, run-queue wait and switches from `/proc/thread-self/schedstat`, "
+        "the pacer's sleep, GC): per episode of late ticks, the time in the ticks' own CPU, "
+        "in run-queue waits (other processes at its priority or above), blocked in the work "
+        "(never switched out: the vCPU not running), and the sleeps' overshoot.",
         "- Hostile loads: `benchmarks.bench_load --hostile`: a driver at 1 kHz and a state "
         "subscriber stamping each state's arrival; per round a 1 s no-load window, then each "
         "`load` (10 MB scene, alias bomb, deep nesting, FIFO, two OpenDRIVE terrains, flat) "
         "and `reset` at 1 and 20 m/s from request to reply + 0.1 s; the largest gap between "
         "two states received (1 ms when nothing stalls) and the server's worst tick lateness. "
-        "The baseline windows show what the machine stalls by itself.",
+        "The baseline windows show what the machine stalls by itself. The stalls are split "
+        "by whose they are: the server's tick trace gives the gaps between tick starts and "
+        "per tick the server's own part (its CPU time, and waits for the GIL or a lock after "
+        "being switched out) apart from run-queue waits and the VM's (blocked while never "
+        "switched out, sleeps returning late with no other wake-up); the bare pacer "
+        "(`benchmarks.bench_clock`) runs beside it in a process of its own as a peer that "
+        "the VM's stalls delay too.",
+        "- Clock floor of the server rows: `benchmarks.bench_server` runs the bare pacer, "
+        "scheduled as the tick thread and beside the same hogs, 10 s just before and after "
+        "the server (`--floor-seconds`): the VM's own lateness in the same minutes.",
         "- Start-up: launch of `python -m simserver serve --viewer off` to its `ready` line "
         "(kernels compiled or loaded, zenoh open, before the first tick). Cold: "
         "`NUMBA_CACHE_DIR` an empty directory (Python bytecode already compiled); warm: the "

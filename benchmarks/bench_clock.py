@@ -3,7 +3,8 @@
 Run from the repository root::
 
     python -m benchmarks.bench_clock [--seconds 10] [--period-us 1000] [--spin-us 200]
-        [--realtime off|auto] [--json]
+        [--realtime off|auto] [--cpu-latency-us N] [--save FILE] [--json]
+    python -m benchmarks.bench_clock --compare 8 --seconds 5
 
 Runs :class:`simserver.realtime.Pacer` for the given wall time with an empty loop body and
 prints, over every tick: start lateness p50 / p99 / max, the number and share of ticks
@@ -40,8 +41,10 @@ def windowed_p99_median(lateness_us: np.ndarray) -> float:
     return float(np.median(np.percentile(windows[::WINDOW_EVERY], 99, axis=1)))
 
 
-def run(seconds: float, period_us: float, spin_us: float, max_catchup: int) -> dict:
-    """Run the pacer for ``seconds`` of wall time; return the figures as a dict."""
+def run(seconds: float, period_us: float, spin_us: float, max_catchup: int,
+        save: str | None = None) -> dict:
+    """Run the pacer for ``seconds`` of wall time; return the figures as a dict (with
+    ``save``, every tick's start time goes to that file)."""
     period_ns = round(period_us * 1000)
     n_ticks = int(round(seconds * 1e9 / period_ns))
     pacer = Pacer(
@@ -52,10 +55,21 @@ def run(seconds: float, period_us: float, spin_us: float, max_catchup: int) -> d
         window=n_ticks + 1,  # keep every tick
     )
     cpu = CpuMeter()
+    starts = np.zeros(n_ticks, dtype=np.int64) if save else None
     pacer.start()
     wait = pacer.wait
-    for _ in range(n_ticks):
-        wait()
+    if starts is None:
+        for _ in range(n_ticks):
+            wait()
+    else:
+        i = 0
+        try:  # a peer is ended by SIGINT: it saves what it has
+            for i in range(n_ticks):
+                starts[i] = wait() + pacer.deadline_ns
+            i = n_ticks
+        except KeyboardInterrupt:
+            pass
+        np.save(save, starts[:i])
     end_ns = pacer.clock()
     cpu_percent = cpu.percent()
     s = pacer.stats()
@@ -94,6 +108,49 @@ def run(seconds: float, period_us: float, spin_us: float, max_catchup: int) -> d
     }
 
 
+def hold_cpu_latency(us: int) -> int:
+    """Ask the kernel (PM QoS) to keep every CPU's wake-up latency under ``us``; held while
+    the returned descriptor stays open (the process's life)."""
+    import os
+    import struct
+
+    fd = os.open("/dev/cpu_dma_latency", os.O_WRONLY)
+    os.write(fd, struct.pack("i", int(us)))
+    return fd
+
+
+COMPARED = {"spin 200 us": ["--spin-us", "200"], "spin 500 us": ["--spin-us", "500"],
+            "spin 200 us, cpu_dma_latency 0": ["--spin-us", "200", "--cpu-latency-us", "0"]}
+"""The pacer's variants of ``--compare`` (issue 13: ``--hogs 0`` was worse than ``--hogs
+2``, the idle vCPU waking late: does a longer spin or a polling idle keep the tick from
+depending on that wake-up?)."""
+
+
+def compare(rounds: int, seconds: float) -> dict:
+    """The variants of :data:`COMPARED`, interleaved over ``rounds``; printed medians."""
+    import subprocess
+
+    out: dict[str, list[dict]] = {name: [] for name in COMPARED}
+    for i in range(rounds):
+        for name, extra in COMPARED.items():
+            proc = subprocess.run(
+                [sys.executable, "-m", "benchmarks.bench_clock", "--seconds", f"{seconds:g}",
+                 "--realtime", "auto", "--json", *extra], capture_output=True, text=True,
+                timeout=seconds + 120, check=True)
+            out[name].append(json.loads(proc.stdout.strip().splitlines()[-1]))
+        print(f"round {i + 1}: " + "; ".join(
+            f"{name} {rs[-1]['late_over_1ms_percent']:.2f} % late, p99 "
+            f"{rs[-1]['lateness_p99_windows_median_us']:.0f} us" for name, rs in out.items()),
+            flush=True)
+    for name, rs in out.items():
+        late = np.median([r["late_over_1ms_percent"] for r in rs])
+        print(f"{name:32s}: ticks > 1 ms late {late:.3f} % (median of {rounds} rounds), "
+              "lateness p99 "
+              f"{np.median([r['lateness_p99_windows_median_us'] for r in rs]):.0f} us, CPU "
+              f"{np.median([r['cpu_percent'] for r in rs]):.0f} %")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, run, print a table (and optionally JSON)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -106,11 +163,29 @@ def main(argv: list[str] | None = None) -> int:
                         help="the pacer's thread scheduled as the server's tick thread is "
                         "(auto: SCHED_FIFO at its default priority, if permitted): the floor "
                         "under a real-time server's figures (default off)")
+    parser.add_argument("--cpu-latency-us", type=int, default=None,
+                        help="hold /dev/cpu_dma_latency at this many us while running (0: "
+                        "the idle vCPU polls instead of halting, so its wake-up does not "
+                        "wait for the hypervisor; needs root)")
+    parser.add_argument("--compare", type=int, default=0, metavar="ROUNDS",
+                        help="instead: the pacer as the tick thread with spin 200 us, spin "
+                        "500 us, and spin 200 us with --cpu-latency-us 0, each --seconds "
+                        "per round, in ROUNDS interleaved rounds (own processes); medians")
     parser.add_argument("--json", action="store_true", help="also print the figures as JSON")
+    parser.add_argument("--save", metavar="FILE", default=None,
+                        help="write every tick's start time (CLOCK_MONOTONIC ns, numpy .npy): "
+                        "a peer of a server run, whose stalls are the VM's (benchmarks."
+                        "bench_load compares them with the server's)")
     args = parser.parse_args(argv)
-
+    if args.compare:
+        compare(args.compare, args.seconds)
+        return 0
+    latency_fd = hold_cpu_latency(args.cpu_latency_us) \
+        if args.cpu_latency_us is not None else None
     scheduling = RealtimeScheduler(RealtimeSettings(mode=args.realtime)).apply()
-    r = run(args.seconds, args.period_us, args.spin_us, args.max_catchup)
+    if latency_fd is not None:
+        scheduling += f"; /dev/cpu_dma_latency held at {args.cpu_latency_us} us"
+    r = run(args.seconds, args.period_us, args.spin_us, args.max_catchup, args.save)
     r["scheduling"] = scheduling
     print(f"pacer: {r['ticks']} ticks of {r['period_us']:g} us over {r['wall_s']:.2f} s "
           f"(spin {r['spin_us']:g} us), Python {platform.python_version()}, "

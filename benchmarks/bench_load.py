@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import json
 import os
 import tempfile
 import threading
@@ -41,27 +42,51 @@ from pathlib import Path
 import numpy as np
 
 from simserver import protocol as proto
+from simserver.realtime import TickTrace
+from simserver.server import TICK_TRACE_ENV
 from simserver.testing import CONFIGS, Client, RoleProcess, ServerProcess, wait_until
 from simserver.testing.hostile import hostile_files
 
 
-def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto") -> dict:
-    """One loaded run of ``seconds``; the figures."""
-    with ServerProcess(scene=None, log_level="WARNING",
-                       extra_args=["--realtime", realtime]) as server, \
+def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto",
+        trace: bool = True) -> dict:
+    """One loaded run of ``seconds``; the figures (with ``trace``, also what made the late
+    ticks late: :func:`late_tick_causes` of the server's :class:`TickTrace`)."""
+    tmp = tempfile.TemporaryDirectory()
+    trace_path = os.path.join(tmp.name, "ticks.npy")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    if trace:
+        env[TICK_TRACE_ENV] = trace_path
+    with tmp, ServerProcess(scene=None, log_level="WARNING", env=env,
+                            extra_args=["--realtime", realtime]) as server, \
             Client(server, state_capacity=0) as probe:
         conn = server.client_args()
         driver = RoleProcess("driver", [*conn, "--rate", "1000"])
         subs = RoleProcess("multisub", [*conn, "--sessions", str(subscribers)])
         d0 = probe.diagnostics()
+        p0 = time.perf_counter_ns()  # CLOCK_MONOTONIC: the server's trace's clock too
         churner = RoleProcess("churn", [*conn, "--rate", str(churn), "--life", "1.0",
                                         "--seconds", str(seconds)])
         churned = churner.wait(seconds + 60)
-        d1 = probe.diagnostics()
+        p1 = time.perf_counter_ns()
+        d1 = probe.diagnostics(timeout_s=30.0)  # a loaded machine: 5 s was seen to pass
         subs_result = subs.stop()
         driver.stop()
+        server.stop()
+        causes = threads = None
+        if trace and os.path.exists(trace_path + ".threads.json"):
+            rows = np.load(trace_path)
+            start = rows[:, TickTrace.COLUMNS.index("start")]
+            inside = np.flatnonzero((start >= p0) & (start <= p1))
+            causes = late_tick_causes(rows[inside], int(inside[0]) if inside.size else 0)
+            with open(trace_path + ".threads.json", encoding="utf-8") as fh:
+                threads = json.load(fh)
     final = server.final_stats()
     ticks = int(d1["tick"] - d0["tick"])
+    sender_dropped = 0  # the server's state-tx queue (logged, also in publish_slow)
+    for line in server.output:
+        if "state-tx: " in line and "publications dropped" in line:
+            sender_dropped = int(line.split("state-tx: ")[1].split()[0])
 
     def delta(name: str) -> int:
         return int(d1[name] - d0[name])
@@ -76,8 +101,181 @@ def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto") 
             "config_ok": churned["config_ok"] if churned else 0,
             "subscriber_missing_total": subs_result["missing_total"] if subs_result else None,
             "subscriber_states_min": subs_result["states_min"] if subs_result else None,
-            "server_final": final, "loadavg_1min": os.getloadavg()[0],
+            "server_final": final, "sender_dropped": sender_dropped, "late_causes": causes,
+            "threads": threads,
+            "loadavg_1min": os.getloadavg()[0],
             "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
+
+
+LATE_NS = 1_000_000
+CAUSES = ("work CPU", "work run-queue wait", "work blocked", "work in GC",
+          "sleep overshoot run-queue wait", "sleep overshoot blocked", "spin preempted")
+
+
+def late_tick_causes(rows: np.ndarray, first_index: int = 0) -> dict:
+    """Where the time went in the episodes of late ticks of a :class:`TickTrace`.
+
+    An episode is a run of ticks more than 1 ms late; it starts with the tick before it
+    (whose work or whose wait made the first one late) and ends with its last late tick.
+    Its time is split into the tick thread's own CPU time during the ticks' work, its
+    run-queue wait (runnable, not running: other threads or processes on its core), the
+    time it was blocked during work (the GIL, a lock; or not counted at all: a stall of
+    the VM's vCPU, when it was never switched out), garbage collection, and in the
+    pacer's wait the sleep's overshoot past its end (run-queue wait, or blocked: the GIL
+    after the sleep, a late timer, the VM; ``extra_wakes`` counts the times the thread was
+    scheduled in during the waits beyond once per sleep: 0 means no wait for the GIL or a
+    lock, so a blocked overshoot was the timer or the VM). Returns the episodes, the
+    totals per cause in ms and the count of episodes each cause dominated, and the ticks of
+    most CPU (their loop count: ``first_index`` is the first row's).
+    """
+    c = {name: rows[:, i].astype(np.int64) for i, name in enumerate(TickTrace.COLUMNS)}
+    late = (c["start"] - c["deadline"]) > LATE_NS
+    totals = dict.fromkeys(CAUSES, 0.0)
+    dominated = dict.fromkeys(CAUSES, 0)
+    episodes = []
+    i, n = 1, len(rows)
+    while i < n:
+        if not late[i] or late[i - 1]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < n and late[j + 1]:
+            j += 1
+        part = dict.fromkeys(CAUSES, 0.0)
+        switched_out = 0
+        extra_wakes = 0  # in the waits, beyond the sleep's own: the GIL, a lock
+        for k in range(i - 1, j + 1):  # the work of ticks i-1 .. j-1 and the waits before i..j
+            if k < j:
+                wall = c["end"][k] - c["start"][k]
+                cpu = c["cpu_end"][k] - c["cpu_start"][k]
+                delay = c["delay_end"][k] - c["delay_start"][k]
+                gc_ns = c["gc"][k] - (c["gc"][k - 1] if k else 0)
+                part["work CPU"] += cpu - gc_ns
+                part["work in GC"] += gc_ns
+                part["work run-queue wait"] += delay
+                part["work blocked"] += max(wall - cpu - delay, 0)
+                switched_out += int(c["runs_end"][k] - c["runs_start"][k])
+            if k >= i and c["sleep_until"][k] and c["end"][k - 1] < c["deadline"][k]:
+                over = max(c["woke"][k] - c["sleep_until"][k], 0)
+                delay = c["delay_start"][k] - c["delay_end"][k - 1]
+                part["sleep overshoot run-queue wait"] += min(delay, over)
+                part["sleep overshoot blocked"] += max(over - delay, 0)
+                extra_wakes += max(int(c["runs_start"][k] - c["runs_end"][k - 1]) - 1, 0)
+            elif k >= i and c["end"][k - 1] < c["deadline"][k]:
+                part["spin preempted"] += c["delay_start"][k] - c["delay_end"][k - 1]
+        part = {k: v / 1e6 for k, v in part.items()}
+        for k, v in part.items():
+            totals[k] += v
+        dominated[max(part, key=part.get)] += 1
+        episodes.append({"first": i, "ticks": j - i + 1,
+                         "lateness_ms": float(c["start"][i] - c["deadline"][i]) / 1e6,
+                         "switched_out": switched_out, "extra_wakes": extra_wakes, **part})
+        i = j + 1
+    work_cpu = (c["cpu_end"] - c["cpu_start"]) / 1e3
+    heaviest = np.argsort(work_cpu)[::-1][:8]
+    return {"heaviest_ticks": [(int(k) + first_index, float(work_cpu[k])) for k in heaviest],
+            "ticks": n, "late": int(late.sum()), "episodes": episodes,
+            "totals_ms": totals, "dominated": dominated,
+            "work_cpu_us_p50_p99_max": [float(np.percentile(work_cpu, 50)),
+                                        float(np.percentile(work_cpu, 99)),
+                                        float(work_cpu.max())] if n else [],
+            "gc_ms_total": float(c["gc"][-1] - c["gc"][0]) / 1e6 if n else 0.0}
+
+
+def print_causes(r: dict) -> None:
+    """The late-tick causes and the server's busiest threads."""
+    lc = r.get("late_causes")
+    if lc:
+        print(f"tick trace: {lc['late']} late ticks of {lc['ticks']} in "
+              f"{len(lc['episodes'])} episodes; tick work CPU us p50/p99/max "
+              + "/".join(f"{v:.0f}" for v in lc["work_cpu_us_p50_p99_max"])
+              + f"; GC {lc['gc_ms_total']:.1f} ms in all")
+        print("  time in the late episodes by cause, ms (episodes it dominated): " + "; ".join(
+            f"{k} {v:.1f} ({lc['dominated'][k]})" for k, v in lc["totals_ms"].items() if v))
+        print("  heaviest ticks (loop count: work CPU us): " + ", ".join(
+            f"{k}: {v:.0f}" for k, v in lc["heaviest_ticks"]))
+        worst = sorted(lc["episodes"], key=lambda e: -e["lateness_ms"])[:5]
+        for e in worst:
+            print(f"  episode at tick {e['first']}: {e['ticks']} late, first "
+                  f"{e['lateness_ms']:.2f} ms, switched out in work {e['switched_out']}x, "
+                  f"woken beyond the sleeps {e['extra_wakes']}x: " + ", ".join(
+                      f"{k} {e[k]:.2f}" for k in CAUSES if e[k] >= 0.01))
+    threads = r.get("threads")
+    if threads:
+        busiest = sorted(threads, key=lambda t: -t["cpu_s"])[:8]
+        print("  server threads (CPU s / run-queue wait s, whole run): " + "; ".join(
+            f"{t['name']} {t['policy'][6:]}{t['priority'] or ''} {t['cpu_s']:.1f}/"
+            f"{t['run_delay_s']:.2f}" for t in busiest))
+
+
+class ClockPeer:
+    """The bare pacer (``benchmarks.bench_clock --realtime auto``, scheduled as the server's
+    tick thread) in a process of its own beside a run: a stall of the whole VM delays it
+    too, the server's own work does not (it costs it at most a share of the other core)."""
+
+    def __init__(self, path: str) -> None:
+        import subprocess
+        import sys
+
+        from simserver.testing import REPO
+
+        self.path = path
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "benchmarks.bench_clock", "--seconds", "36000",
+             "--realtime", "auto", "--save", path], cwd=REPO,
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def stop(self) -> np.ndarray:
+        """End it (SIGINT: it saves its ticks' start times); those start times."""
+        import signal
+
+        self.proc.send_signal(signal.SIGINT)
+        self.proc.wait(timeout=60)
+        return np.load(self.path)
+
+
+def stall_split(rows: np.ndarray, peer: np.ndarray, t0: int, t1: int) -> dict:
+    """The loop's stalls in ``[t0, t1]`` (CLOCK_MONOTONIC ns) split by whose they are.
+
+    From the server's :class:`TickTrace` rows: ``tick_gap_ms``, the longest time between
+    two tick starts (the state stream's gap without the transport and the subscriber);
+    per tick ``own_ms``, the tick thread's CPU time in its work plus the time it waited
+    for the GIL or a lock of the server's own threads (blocked after being switched out,
+    in the work or beyond the pacer's sleep; each part's largest: ``own_cpu_ms``,
+    ``own_wait_ms``); ``others_ms``, its run-queue wait (other
+    processes at its priority or above: the server's own threads run below it); and
+    ``vm_ms``, the rest of the stalls: blocked while never switched out (the vCPU not
+    running) and sleeps that returned late with no other wake-up (a late timer or the VM).
+    ``peer_ms``: the bare pacer's largest lateness in the same window (:class:`ClockPeer`):
+    a stall there too is the VM's. The largest of each, in milliseconds."""
+    c = {name: rows[:, i].astype(np.int64) for i, name in enumerate(TickTrace.COLUMNS)}
+    inside = np.flatnonzero((c["start"] >= t0) & (c["start"] <= t1))
+    out = {"tick_gap_ms": np.nan, "own_ms": np.nan, "own_cpu_ms": np.nan,
+           "own_wait_ms": np.nan, "others_ms": np.nan, "vm_ms": np.nan, "peer_ms": np.nan}
+    if inside.size > 1:
+        k = inside[inside > 0]
+        gap = c["start"][k] - c["start"][k - 1]
+        wall = c["end"][k] - c["start"][k]
+        cpu = c["cpu_end"][k] - c["cpu_start"][k]
+        delay = c["delay_end"][k] - c["delay_start"][k]
+        blocked = np.maximum(wall - cpu - delay, 0)
+        switched = (c["runs_end"][k] - c["runs_start"][k]) > 0
+        slept = c["sleep_until"][k] > 0
+        over = np.where(slept, np.maximum(c["woke"][k] - c["sleep_until"][k], 0), 0)
+        wait_delay = c["delay_start"][k] - c["delay_end"][k - 1]
+        over_blocked = np.maximum(over - wait_delay, 0)
+        extra = (c["runs_start"][k] - c["runs_end"][k - 1]) > 1
+        own_wait = np.where(switched, blocked, 0) + np.where(extra, over_blocked, 0)
+        own = cpu + own_wait
+        vm = np.where(switched, 0, blocked) + np.where(extra, 0, over_blocked)
+        out.update(tick_gap_ms=gap.max() / 1e6, own_ms=own.max() / 1e6,
+                   own_cpu_ms=cpu.max() / 1e6, own_wait_ms=own_wait.max() / 1e6,
+                   others_ms=(delay + wait_delay).max() / 1e6, vm_ms=vm.max() / 1e6)
+    if peer.size > 1:
+        p = peer[(peer >= t0) & (peer <= t1)]
+        if p.size > 1:
+            out["peer_ms"] = float(np.diff(p).max() - 1_000_000) / 1e6
+    return {k: float(v) for k, v in out.items()}
 
 
 class StampedStates:
@@ -125,13 +323,18 @@ def hostile(rounds: int = 3, baseline_s: float = 1.0, realtime: str = "auto") ->
         cfg.write_text(f"scene: {CONFIGS / 'scenes' / 'flat_paper_sedan.yaml'}\n"
                        f"config_dirs: [{tmp}, {CONFIGS}]\nviewer: off\n", encoding="utf-8")
         per: dict[str, dict[str, list]] = {}
-        with ServerProcess(config=cfg, scene=None, log_level="WARNING",
+        windows_ns: list[tuple[str, int, int, int]] = []  # label, baseline from, to, end
+        trace_path = str(tmp / "ticks.npy")
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **{TICK_TRACE_ENV: trace_path})
+        with ServerProcess(config=cfg, scene=None, log_level="WARNING", env=env,
                            extra_args=["--realtime", realtime]) as server, \
                 Client(server, state_capacity=0) as client:
             stamps = StampedStates(client)
-            driver = RoleProcess("driver", [*server.client_args(), "--rate", "1000",
-                                            "--profile", "throttle:0.2"])
+            peer = ClockPeer(str(tmp / "peer.npy"))
+            driver = None
             try:
+                driver = RoleProcess("driver", [*server.client_args(), "--rate", "1000",
+                                                "--profile", "throttle:0.2"])
                 wait_until(lambda: len(stamps.stamps) > 100, what="the state stream")
                 for _ in range(rounds):
                     for label, name, args in HOSTILE_ACTIONS:
@@ -161,12 +364,27 @@ def hostile(rounds: int = 3, baseline_s: float = 1.0, realtime: str = "auto") ->
                         entry["error"].append(reply.get("error", ""))
                         entry.setdefault("skipped", []).append(
                             int(d1["skipped_ticks"] - d0["skipped_ticks"]))
+                        windows_ns.append((label, b0, b1, t1))
                 sent = driver.stop()
             finally:
-                driver.kill()
+                if driver is not None:
+                    driver.kill()
+                server.stop()
+                peer_starts = peer.stop()
         final = server.final_stats()
+        rows = np.load(trace_path)
+        for label, b0, b1, t1 in windows_ns:
+            entry = per[label]
+            for key, value in stall_split(rows, peer_starts, b1, t1).items():
+                entry.setdefault(key, []).append(value)
+            for key, value in stall_split(rows, peer_starts, b0, b1).items():
+                entry.setdefault("base_" + key, []).append(value)
     all_base = [g for e in per.values() for g in e["base_gap_ms"]]
+    base_split = {k: [v for e in per.values() for v in e["base_" + k]]
+                  for k in ("tick_gap_ms", "own_ms", "own_cpu_ms", "own_wait_ms",
+                            "others_ms", "vm_ms", "peer_ms")}
     return {"rounds": rounds, "actions": per, "baseline_gap_ms": all_base,
+            "baseline_split": base_split,
             "cmd_sent": sent["sent"] if sent else None,
             "cmd_received": final["cmd_received"], "cmd_dropped": final["cmd_dropped"],
             "loadavg_1min": os.getloadavg()[0], "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
@@ -252,6 +470,10 @@ def print_hostile(r: dict) -> None:
     print(f"no-load baseline windows (1 s each, {len(base)}): p50 "
           f"{np.nanpercentile(base, 50):.2f}, p90 {np.nanpercentile(base, 90):.2f}, max "
           f"{np.nanmax(base):.2f}")
+    bs = r.get("baseline_split")
+    if bs:
+        print("  baseline windows, max: " + ", ".join(
+            f"{k[:-3]} {np.nanmax(v):.2f}" for k, v in bs.items()))
     for label, e in r["actions"].items():
         gaps = np.array(e["gap_ms"])
         print(f"{label:42s} gap max {np.nanmax(gaps):6.2f} (median of rounds "
@@ -259,6 +481,13 @@ def print_hostile(r: dict) -> None:
               f"tick lateness max {max(e['lateness_ms']):5.2f}; skipped {sum(e['skipped'])}; "
               f"answered in {max(e['took_s']):.3f} s; "
               + ("ok" if all(e["ok"]) else f"error: {e['error'][0]}"))
+        if "own_ms" in e:
+            print(f"{'':42s} split (max over rounds, ms): tick-start gap "
+                  f"{np.nanmax(e['tick_gap_ms']):5.2f}, the server's own "
+                  f"{np.nanmax(e['own_ms']):5.2f} (CPU {np.nanmax(e['own_cpu_ms']):5.2f}, "
+                  f"waits {np.nanmax(e['own_wait_ms']):5.2f}), run-queue wait "
+                  f"{np.nanmax(e['others_ms']):5.2f}, VM {np.nanmax(e['vm_ms']):5.2f}; "
+                  f"clock-floor peer {np.nanmax(e['peer_ms']):5.2f}")
     print(f"commands: {r['cmd_sent']} sent, {r['cmd_received']} received + "
           f"{r['cmd_dropped']} counted as dropped")
 
@@ -295,7 +524,9 @@ def main(argv: list[str] | None = None) -> dict:
           f"{r['publish_slow']}")
     print(f"states missed by the {r['subscribers']} subscribers: "
           f"{r['subscriber_missing_total']} (fewest received by one: "
-          f"{r['subscriber_states_min']}); commands dropped {r['cmd_dropped']}")
+          f"{r['subscriber_states_min']}); commands dropped {r['cmd_dropped']}; dropped "
+          f"by the server's sender queue (at least) {r['sender_dropped']}")
+    print_causes(r)
     return r
 
 

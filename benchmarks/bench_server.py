@@ -19,6 +19,11 @@ the median of the windows' p50 and p99 are quoted) and from its final statistics
 SIGTERM (maximum and late ticks over the whole run). Drift: simulated time (ticks x
 1 ms) against the wall time between the first and last state received.
 
+``--floor-seconds S`` (default 10) runs the bare pacer (``benchmarks.bench_clock``, the
+VM's clock floor) S seconds just before and just after the server in the same command,
+beside the same hogs: the server's figures are compared with what this VM gave an empty
+loop in the same minutes.
+
 ``--hogs N`` starts N CPU-bound processes at normal priority for the whole run (a busy
 machine). The server uses its default real-time scheduling (``--realtime auto``; pass
 ``--realtime off`` to compare) and so does this client, for its own zenoh threads and the
@@ -65,16 +70,32 @@ def cpu_hogs(n: int):
 
 def run(seconds: float, cmd_hz: float, viewer: str = "off", hogs: int = 0,
         realtime: str = "auto", client_realtime: str = "auto",
-        config: Path | None = None, ready: Callable[[], bool] | None = None) -> dict:
+        config: Path | None = None, ready: Callable[[], bool] | None = None,
+        floor_seconds: float = 0.0) -> dict:
     """One server run of ``seconds`` with the live viewer ``viewer`` (a ``--viewer`` value),
     ``hogs`` CPU-bound processes beside it, the server's ``--realtime`` mode and this
     client's, and the server config ``config`` (default ``configs/server/default.yaml``).
     With ``ready``, the measured ``seconds`` start once it returns True (a process the
-    server starts, such as the ROS 2 adapter, is then running; at most 120 s)."""
+    server starts, such as the ROS 2 adapter, is then running; at most 120 s).
+
+    With ``floor_seconds``, the bare pacer (:func:`benchmarks.interleaved.clock_floor`,
+    scheduled as the server's tick thread, beside the same hogs) runs that long just
+    before and just after the server: the VM's own lateness in the same minutes, under
+    ``"clock_floor"`` (its late fraction and p99 over both runs, each run's too)."""
+    from benchmarks.interleaved import clock_floor
+
     with cpu_hogs(hogs):
-        return _run(seconds, cmd_hz, viewer, realtime, client_realtime, config, ready) | {
-            "hogs": hogs, "realtime": realtime, "client_realtime": client_realtime,
-            "loadavg_1min": os.getloadavg()[0]}
+        before = clock_floor(floor_seconds) if floor_seconds > 0 else None
+        r = _run(seconds, cmd_hz, viewer, realtime, client_realtime, config, ready)
+        after = clock_floor(floor_seconds) if floor_seconds > 0 else None
+    r |= {"hogs": hogs, "realtime": realtime, "client_realtime": client_realtime,
+          "loadavg_1min": os.getloadavg()[0]}
+    if before is not None:
+        r["clock_floor"] = {
+            "seconds": 2 * floor_seconds, "before": before, "after": after,
+            "late_fraction": (before["late_fraction"] + after["late_fraction"]) / 2,
+            "lateness_p99_us": max(before["lateness_p99_us"], after["lateness_p99_us"])}
+    return r
 
 
 def _run(seconds: float, cmd_hz: float, viewer: str, realtime: str,
@@ -189,9 +210,12 @@ def main(argv: list[str] | None = None) -> dict:
                         help="the server's --realtime (default auto)")
     parser.add_argument("--client-realtime", default="auto", choices=("auto", "off"),
                         help="real-time scheduling of this client (default auto)")
+    parser.add_argument("--floor-seconds", type=float, default=10.0,
+                        help="the bare pacer (the VM's clock floor) this long before and "
+                        "after the server, beside the same hogs (0: none)")
     args = parser.parse_args(argv)
     r = run(args.seconds, args.cmd_hz, args.viewer, args.hogs, args.realtime,
-            args.client_realtime)
+            args.client_realtime, floor_seconds=args.floor_seconds)
     print(f"server run {r['seconds']:.0f} s (viewer {args.viewer}, {args.hogs} CPU hogs, "
           f"server realtime {args.realtime}, client realtime {args.client_realtime}, "
           f"load average {r['loadavg_1min']:.2f}), {r['ticks']} ticks, state every tick; "
@@ -207,6 +231,14 @@ def main(argv: list[str] | None = None) -> dict:
           f"max {r['latency_max_us'] / 1e3:.2f} ms")
     print(f"server CPU {r['cpu_percent']:.0f} % of a core; commands rejected "
           f"{r['cmd_rejected']}, stale {r['cmd_stale']}")
+    floor = r.get("clock_floor")
+    if floor:
+        print(f"clock floor (the bare pacer as the tick thread, {floor['seconds'] / 2:g} s "
+              f"before and after, same hogs): ticks > 1 ms late "
+              f"{100 * floor['before']['late_fraction']:.2f} % / "
+              f"{100 * floor['after']['late_fraction']:.2f} %, lateness p99 "
+              f"{floor['before']['lateness_p99_us']:.0f} / "
+              f"{floor['after']['lateness_p99_us']:.0f} us")
     return r
 
 

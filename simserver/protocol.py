@@ -520,7 +520,8 @@ DIAGNOSTICS_FIELDS: Final[tuple[FieldSpec, ...]] = (
               "still being prepared)"),
     FieldSpec("publish_slow", "<u8", 1, "-", None, None,
               "state publications that took longer than a quarter period (a congested "
-              "link; the publication never waits for a subscriber)"),
+              "link; the publication never waits for a subscriber, and runs beside the "
+              "tick), or were dropped when 256 were waiting to go out"),
 )
 
 _STRUCT_CODES = {"u1": "B", "i1": "b", "u2": "H", "u4": "I", "u8": "Q", "f4": "f", "f8": "d"}

@@ -183,6 +183,8 @@ class Pacer:
         self.deadline_ns = t0_ns
         self.lateness_ns = 0
         self.catching_up = False
+        self.sleep_until_ns = 0  # the last wait's sleep: when it was to end (0: no sleep)
+        self.woke_ns = 0  # ... and when it returned (TickTrace: a late wake-up)
         self._last_start_ns = -1
         self._lat_n = 0
         self._per_n = 0
@@ -245,12 +247,16 @@ class Pacer:
             self.catching_up = False
             remaining = deadline - now
             if remaining > self.spin_ns:
+                self.sleep_until_ns = deadline - self.spin_ns
                 self.sleep((remaining - self.spin_ns) * 1e-9)
-                now = clock()
+                now = self.woke_ns = clock()
+            else:
+                self.sleep_until_ns = 0
             while now < deadline:
                 now = clock()
         else:
             self.catching_up = True
+            self.sleep_until_ns = 0
             self.overruns += 1
             behind = (now - deadline) // period
             if behind > self.max_catchup_ticks:
@@ -383,6 +389,110 @@ class CpuMeter:
         dw = self.clock() - self._wall0
         dc = self.cpu_clock() - self._cpu0
         return 100.0 * dc / dw if dw > 0 else 0.0
+
+
+class TickTrace:
+    """Per-tick timing of the loop for finding what makes a tick late (a diagnostic mode:
+    ``SIMSERVER_TICK_TRACE=FILE`` in the server's environment; off by default).
+
+    Per tick, one row of :data:`COLUMNS` (integer nanoseconds, raw cumulative counters; a
+    ring of ``capacity`` rows): the deadline, the tick's start and end (wall clock), the
+    pacer's sleep (when it was to end, when it returned), and at the start and end of the
+    tick's work the tick thread's CPU time (``time.thread_time_ns``), its run-queue wait
+    and its count of times scheduled in (``/proc/thread-self/schedstat``), and the time
+    spent in garbage collection so far (``gc.callbacks``). Between two rows one can then
+    tell the thread's own work (CPU time), waiting for a core while runnable (run-queue
+    wait: other threads or processes at its priority or above) and being blocked (the rest:
+    the sleep, the GIL, a lock) apart; a stall of the whole VM shows as none of these
+    (and in a peer process: ``benchmarks.bench_clock``'s pacer). About 5 us a tick.
+    :meth:`save` writes the rows (``numpy.save``) and a table of the process's threads
+    (name, policy, CPU time, run-queue wait) beside them (``FILE.threads.json``).
+    """
+
+    COLUMNS = ("deadline", "start", "end", "sleep_until", "woke", "cpu_start", "cpu_end",
+               "delay_start", "delay_end", "runs_start", "runs_end", "gc")
+
+    def __init__(self, path: str, capacity: int = 1 << 17) -> None:
+        import gc
+
+        self.path = path
+        self.capacity = capacity
+        self.rows = np.zeros((capacity, len(self.COLUMNS)), dtype=np.int64)
+        self.n = 0
+        self.gc_ns = 0
+        self._gc_t0 = 0
+        self._fd = os.open(f"/proc/self/task/{threading_native_id()}/schedstat", os.O_RDONLY)
+        gc.callbacks.append(self._on_gc)
+
+    def _on_gc(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self._gc_t0 = time.perf_counter_ns()
+        elif self._gc_t0:
+            self.gc_ns += time.perf_counter_ns() - self._gc_t0
+
+    def _schedstat(self) -> tuple[int, int]:
+        _, delay, runs = os.pread(self._fd, 128, 0).split()
+        return int(delay), int(runs)
+
+    def begin(self, pacer: Pacer, now: int) -> None:
+        """At the start of a tick's work (after the pacer's wait), from the tick thread."""
+        delay, runs = self._schedstat()
+        row = self.rows[self.n % self.capacity]
+        row[:9] = (pacer.deadline_ns, now, 0, pacer.sleep_until_ns,
+                   pacer.woke_ns if pacer.sleep_until_ns else 0, time.thread_time_ns(), 0,
+                   delay, 0)
+        row[9] = runs
+
+    def end(self) -> None:
+        """At the end of the tick's work."""
+        cpu = time.thread_time_ns()
+        delay, runs = self._schedstat()
+        row = self.rows[self.n % self.capacity]
+        row[2] = time.perf_counter_ns()
+        row[6] = cpu
+        row[8] = delay
+        row[10] = runs
+        row[11] = self.gc_ns
+        self.n += 1
+
+    def save(self) -> None:
+        """Write the rows (oldest first) and the thread table; close."""
+        import gc
+        import json
+
+        if self._on_gc in gc.callbacks:
+            gc.callbacks.remove(self._on_gc)
+        n, cap = self.n, self.capacity
+        rows = self.rows[:n] if n <= cap else np.concatenate(
+            (self.rows[n % cap:], self.rows[:n % cap]))
+        with open(self.path, "wb") as fh:
+            np.save(fh, rows)
+        with open(self.path + ".threads.json", "w", encoding="utf-8") as fh:
+            json.dump(thread_table(), fh, indent=1)
+        os.close(self._fd)
+
+
+def threading_native_id() -> int:
+    """The calling thread's kernel thread id."""
+    import threading
+
+    return threading.get_native_id()
+
+
+def thread_table(pid: int | str = "self") -> list[dict]:
+    """Per thread of ``pid``: id, name, policy, priority, CPU time and run-queue wait (s)."""
+    out = []
+    for tid, name in sorted(process_threads(pid).items()):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/schedstat", encoding="ascii") as fh:
+                cpu, delay, runs = (int(v) for v in fh.read().split())
+            policy, prio = thread_policy(tid)
+        except (OSError, ValueError):
+            continue
+        out.append({"tid": tid, "name": name, "policy": policy, "priority": prio,
+                    "cpu_s": cpu / NS_PER_S, "run_delay_s": delay / NS_PER_S,
+                    "runs": runs})
+    return out
 
 
 # ============================================================================ scheduling

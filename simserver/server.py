@@ -41,6 +41,7 @@ from simserver.realtime import (
     REALTIME_MODES,
     RealtimeScheduler,
     RealtimeSettings,
+    TickTrace,
     parse_cpus,
 )
 from simserver.ros2 import cli as ros2_cli
@@ -50,6 +51,10 @@ from simserver.simulation import Simulation
 from simserver.vehicle_slot import VehicleSlot
 
 log = logging.getLogger("simserver.server")
+
+TICK_TRACE_ENV = "SIMSERVER_TICK_TRACE"
+"""A file name in this environment variable makes the server record per-tick timing there
+(:class:`simserver.realtime.TickTrace`; ``benchmarks.bench_load`` reads it)."""
 
 REPO_CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 DEFAULT_SERVER_CONFIG = REPO_CONFIGS / "server" / "default.yaml"
@@ -422,7 +427,9 @@ class SimServer:
             for slot in self.slots:
                 slot.warm_up()
         self.preparer = ProcessPreparer()
-        self.loop = ServerLoop(cfg, preparer=self.preparer)
+        trace = os.environ.get(TICK_TRACE_ENV)
+        self.loop = ServerLoop(cfg, preparer=self.preparer,
+                               trace=TickTrace(trace) if trace else None)
         self.scheduler = RealtimeScheduler(cfg.realtime_settings(), log=log.log)
         self.viewer: subprocess.Popen | None = None
         self.viewer_command: str | None = None
@@ -486,8 +493,9 @@ class SimServer:
                     keys = slot.keys
                     commands = ep.declare_command_inbox(capacity=proto.COMMAND_RING_SLOTS,
                                                         keys=keys)
-                    publisher = ep.declare_vehicle_publisher(
-                        keys=keys, states_per_s=1.0 / (cfg.period_s * cfg.state_every))
+                    publisher = ep.declare_vehicle_publisher(  # puts off the tick thread
+                        keys=keys, states_per_s=1.0 / (cfg.period_s * cfg.state_every),
+                        sender_thread=True)
                     controls = ep.declare_control_inbox(keys=keys, validate=False)
                     loop.add(slot, SlotPorts(commands, controls, publisher))
                 first = self.slots[0]

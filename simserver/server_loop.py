@@ -12,7 +12,8 @@ One thread, one loop; every tick (:meth:`ServerLoop.tick`), for each vehicle slo
 5. check the state is finite, else stop the car in a safe state
    (:meth:`simserver.vehicle_slot.VehicleSlot.check_finite`): before publishing;
 6. publish the state (every ``state_every`` ticks) and, a few times a second, the
-   diagnostics;
+   diagnostics (the zenoh adapter's publisher only queues them: its ``state-tx`` thread
+   puts them, beside the tick);
 7. serve control requests through :data:`CONTROLS` (name -> handler), each validated
    first (:func:`simserver.protocol.validate_control`). A ``load`` is read by a worker
    process; a ``load``'s result and a ``reset`` with ``u_mps`` are then applied one piece
@@ -42,7 +43,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 from simserver import protocol as proto
 from simserver.adapters.config import ConfigError
 from simserver.load_worker import opened
-from simserver.realtime import DEFAULT_SPIN_NS, NS_PER_S, CpuMeter, Pacer, PacerStats
+from simserver.realtime import DEFAULT_SPIN_NS, NS_PER_S, CpuMeter, Pacer, PacerStats, TickTrace
 from simserver.vehicle_slot import StagedStart, VehicleSlot, unwrap_prepared
 
 if TYPE_CHECKING:
@@ -280,6 +281,8 @@ class ServerLoop:
         restarted (a file that never ends, a parser that does not return).
     controls_per_tick : int
         Control requests served per slot and tick at most (the rest wait in the inbox).
+    trace : TickTrace, optional
+        Per-tick timing rows (a diagnostic mode), saved when :meth:`run` ends.
 
     Call :meth:`add` for each slot, then :meth:`run` (blocks until :meth:`stop`), or
     :meth:`start` and :meth:`tick` one at a time. ``every_second`` holds callables run
@@ -290,8 +293,10 @@ class ServerLoop:
                  sleep: Callable[[float], object] = time.sleep,
                  spin_ns: int = DEFAULT_SPIN_NS, cpu: CpuMeter | None = None,
                  preparer: Preparer | None = None, job_timeout_s: float = JOB_TIMEOUT_S,
-                 controls_per_tick: int = CONTROLS_PER_TICK) -> None:
+                 controls_per_tick: int = CONTROLS_PER_TICK,
+                 trace: TickTrace | None = None) -> None:
         self.clock = clock
+        self.trace = trace
         period_ns = int(round(cfg.period_s * NS_PER_S))
         self.pacer = Pacer(period_ns=period_ns, spin_ns=min(spin_ns, period_ns // 2),
                            max_catchup_ticks=cfg.max_catchup_ticks, clock=clock, sleep=sleep)
@@ -337,8 +342,12 @@ class ServerLoop:
     def run(self) -> None:
         """Start the clock and tick until :meth:`stop`; ``running`` is set by the caller."""
         self.start()
-        while self.running:
-            self.tick()
+        try:
+            while self.running:
+                self.tick()
+        finally:
+            if self.trace is not None:
+                self.trace.save()
 
     def tick(self) -> None:
         """Wait for the next deadline and run one tick of every slot."""
@@ -348,6 +357,9 @@ class ServerLoop:
         skipped = pacer.skipped_ticks != self._skipped_seen
         self._skipped_seen = pacer.skipped_ticks
         now = self.clock()
+        trace = self.trace
+        if trace is not None:
+            trace.begin(pacer, now)
         count = self.loop_count
         publish_state = count % self.state_every == 0
         diag_tick = count % self.diag_every == 0
@@ -371,6 +383,8 @@ class ServerLoop:
             for job in self.every_second:
                 job()
         self.loop_count += 1
+        if trace is not None:
+            trace.end()
 
     def _serve_controls(self, index: int, slot: VehicleSlot, ports: SlotPorts,
                         now: int, catching_up: bool = False) -> None:
