@@ -30,10 +30,17 @@ import zenoh
 
 from simserver import protocol as proto
 from simserver.testing import Client, ServerProcess, loopback_endpoint
+from tests.conftest import slow_enabled
 
 pytestmark = pytest.mark.timeout(600)
 
 SESSIONS = 12
+"""DROP sessions per case: the mismatched case's always (before the fix it lost its stream
+in 2 of 10 sessions; 12 sessions catch a 20 % loss rate 93 % of the time), every case's in
+the long form (``-m slow`` or ``SIMSERVER_SLOW=1``)."""
+MATCHED_SESSIONS_SHORT = 6
+"""DROP sessions of the two matched-transport cases in the default suite (they never lost
+a stream: the same check on half the sessions, 74 % for a 20 % loss rate; 24 s less)."""
 SECONDS = 2.0
 HOGS = 2
 
@@ -96,7 +103,10 @@ def _session(server: ServerProcess, defaults: bool) -> dict:
     (True, True),
 ], ids=["project-config", "zenoh-defaults-client-mismatched", "zenoh-defaults-both"])
 def test_drop_publishers_under_cpu_load_keep_their_command_stream(defaults, server_defaults,
-                                                                  tmp_path):
+                                                                  tmp_path, request):
+    mismatched = defaults and not server_defaults
+    sessions = SESSIONS if mismatched or slow_enabled(
+        request.config.getoption("markexpr")) else MATCHED_SESSIONS_SHORT
     endpoint = loopback_endpoint()
     extra: list[str] = []
     if server_defaults:
@@ -108,15 +118,15 @@ def test_drop_publishers_under_cpu_load_keep_their_command_stream(defaults, serv
         with ServerProcess(listen=[endpoint] if not server_defaults else [],
                            extra_args=extra) as server:
             server.endpoint = endpoint
-            results = [_session(server, defaults) for _ in range(SESSIONS)]
+            results = [_session(server, defaults) for _ in range(sessions)]
     finally:
         for hog in hogs:
             hog.kill()
             hog.wait()
     lost = [r for r in results if r["worst_lag_s"] > 0.5]
-    print(f"\n[DROP sessions] {SESSIONS} x {SECONDS:.0f} s beside {HOGS} CPU hogs: "
+    print(f"\n[DROP sessions] {sessions} x {SECONDS:.0f} s beside {HOGS} CPU hogs: "
           f"worst lags {[round(r['worst_lag_s'], 3) for r in results]} s")
-    assert not lost, f"{len(lost)} of {SESSIONS} sessions lost their command stream"
+    assert not lost, f"{len(lost)} of {sessions} sessions lost their command stream"
 
 
 def _link(port: int, listen: bool, qos: bool) -> zenoh.Config:
