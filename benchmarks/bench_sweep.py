@@ -19,6 +19,12 @@ Run from the repository root::
   as a user runs it today) on the study's first cases, each written out as a resolved
   scenario file; runs per minute = 60 / mean wall time per process.
 
+- the machine's own ceiling, no Dask, in the same rounds: the study's runs by the workers'
+  own ``run_batch`` in 1 and then 2 plain processes forked warm from one parent and
+  started together (case i to process i mod 2), and a pure-compute numba loop (no memory
+  traffic) 1 vs 2 processes: what any engine could reach on this machine. CPU per run
+  alone, with both cores running runs, and beside the compute loop on the other core.
+
 Targets (issue 18): sweep >= 20 x the loop; 2 workers >= 1.7 x 1 worker on this 2-core
 machine. With ``--rounds R`` the 1- and 2-worker sweeps alternate R times and the medians
 are reported. The machine's load average is printed with the figures: other work on the
@@ -101,12 +107,19 @@ def spin_kernel() -> Any:
 
 
 def _plain_work(kind: str, share: Any, metrics: tuple) -> int:
-    """A plain process's share: the runs (-> how many are ok) or the compute units."""
+    """A plain process's share: the runs (-> how many are ok), the compute units, or
+    (``spin``) compute units until the event ``share`` is set."""
     if kind == "runs":
         from simserver.sweep.worker import run_batch
 
         return sum(r["status"] == "ok" for r in run_batch(share, metrics, None))
     spin = spin_kernel()
+    if kind == "spin":
+        done = 0
+        while not share.is_set():
+            spin(COMPUTE_ITERATIONS, 0.3)
+            done += 1
+        return done
     for _ in range(share):
         spin(COMPUTE_ITERATIONS, 0.3)
     return share
@@ -116,7 +129,7 @@ def _plain_child(kind: str, share: Any, warm: Any, metrics: tuple, barrier: Any,
                  conn: Any) -> None:
     """One plain process (no Dask): warm, wait for the others, then its share of the work;
     sends back its start, end, the CPU seconds of its work and how much was done."""
-    _plain_work(kind, warm, metrics)
+    _plain_work("compute" if kind == "spin" else kind, warm, metrics)
     barrier.wait()
     t0, c0 = time.perf_counter(), time.thread_time()
     done = _plain_work(kind, share, metrics)
@@ -129,41 +142,53 @@ def plain_rate(study: Path, kind: str, procs: int) -> dict:
     """The machine's own ceiling in this process (``--one-plain``): the work split between
     ``procs`` plain processes forked from here, started together. ``runs``: the study's
     runs by the sweep workers' own ``run_batch`` (case i to process i mod procs, so the
-    shares are alike); ``compute``: ``COMPUTE_UNITS`` units of the pure-compute loop."""
+    shares are alike); ``compute``: ``COMPUTE_UNITS`` units of the pure-compute loop;
+    ``beside``: half the study's runs in one process while another one runs the compute
+    loop until they are done (is a run slowed by any busy core, or by another run?)."""
     import multiprocessing as mp
 
     from simserver.sweep.spec import load_sweep
     from simserver.sweep.worker import warm_up
 
     sweep = load_sweep(study)
-    if kind == "runs":
-        warm_up(sweep.cases[0].resolved, sweep.cases[0].base)
-        work, unit = list(sweep.cases), "run"
-    else:
-        spin_kernel()
-        work, unit = COMPUTE_UNITS, "unit"
     ctx = mp.get_context("fork")
+    spin_kernel()
+    warm_runs = sweep.cases[-PLAIN_WARM_RUNS:]
+    if kind in ("runs", "beside"):
+        warm_up(sweep.cases[0].resolved, sweep.cases[0].base)
+    stop = ctx.Event()
+    if kind == "runs":
+        total = len(sweep.cases)
+        specs = [("runs", sweep.cases[i::procs], warm_runs) for i in range(procs)]
+    elif kind == "compute":
+        total = COMPUTE_UNITS
+        specs = [("compute", len(range(i, total, procs)), 2) for i in range(procs)]
+    else:
+        procs, work = 2, sweep.cases[::2]
+        total = len(work)
+        specs = [("runs", work, warm_runs), ("spin", stop, 2)]
     barrier = ctx.Barrier(procs)
     pipes, children = [], []
-    for i in range(procs):
-        share = work[i::procs] if kind == "runs" else len(range(i, work, procs))
-        warm = sweep.cases[-PLAIN_WARM_RUNS:] if kind == "runs" else 2
+    for child_kind, share, warm in specs:
         recv, send = ctx.Pipe(duplex=False)
         child = ctx.Process(target=_plain_child,
-                            args=(kind, share, warm, sweep.metrics, barrier, send))
+                            args=(child_kind, share, warm, sweep.metrics, barrier, send))
         child.start()
         send.close()
         pipes.append(recv)
         children.append(child)
-    results = [p.recv() for p in pipes]
+    results = [pipes[0].recv()]
+    stop.set()
+    results += [p.recv() for p in pipes[1:]]
     for child in children:
         child.join()
         if child.exitcode != 0:
             raise RuntimeError(f"a plain {kind} process exited with {child.exitcode}")
+    if kind == "beside":  # the spinning process is not the work
+        results = results[:1]
     done = sum(r[3] for r in results)
-    total = len(work) if kind == "runs" else work
     if done != total:
-        raise RuntimeError(f"plain {kind}: {done} of {total} {unit}s ok")
+        raise RuntimeError(f"plain {kind}: {done} of {total} ok")
     wall = max(r[1] for r in results) - min(r[0] for r in results)
     return {"kind": kind, "procs": procs, "count": total, "wall_time_s": wall,
             "per_min": 60.0 * total / wall,
@@ -235,10 +260,9 @@ def main(argv: list[str] | None = None) -> int:
         # each round: the same study's runs by plain processes, the compute peer, then
         # Dask, 1 then 2 processes each, so a round's figures share the machine's state
         for i in range(args.rounds):
-            for kind in ("runs", "compute"):
-                for procs in (1, 2):
-                    plain.setdefault((kind, procs), []).append(
-                        fresh_plain_rate(study, kind, procs))
+            for kind, procs in (("runs", 1), ("runs", 2), ("beside", 2), ("compute", 1),
+                                ("compute", 2)):
+                plain.setdefault((kind, procs), []).append(fresh_plain_rate(study, kind, procs))
             for workers in (1, 2):
                 rounds[workers].append(fresh_sweep_rate(study, workers, tmp / f"w{workers}_{i}"))
         one, two = median_of(rounds[1]), median_of(rounds[2])
@@ -253,6 +277,9 @@ def main(argv: list[str] | None = None) -> int:
                       "cpu_2_over_1": paired(plain[(kind, 1)], plain[(kind, 2)],
                                              "cpu_ms_per_item")}
                for kind in ("runs", "compute")}
+    ceiling["runs"]["beside"] = median_of(plain[("beside", 2)])
+    ceiling["runs"]["cpu_beside_over_1"] = paired(plain[("runs", 1)], plain[("beside", 2)],
+                                                  "cpu_ms_per_item")
     res = {"study": str(study.relative_to(REPO)) if study.is_relative_to(REPO) else str(study),
            "loop": loop, "sweep_1": one, "sweep_2": two, "ceiling": ceiling,
            "x_loop_1": one["runs_per_min"] / loop["runs_per_min"],
@@ -283,7 +310,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  the study's runs by the workers' run_batch: {runs['1']['per_min']:.0f} -> "
           f"{runs['2']['per_min']:.0f} runs/min, {runs['x_2_over_1']:.2f} x; CPU per run "
           f"{runs['1']['cpu_ms_per_item']:.1f} ms alone, {runs['2']['cpu_ms_per_item']:.1f} ms "
-          f"with both cores busy ({runs['cpu_2_over_1']:.2f} x)")
+          f"with both cores busy ({runs['cpu_2_over_1']:.2f} x), "
+          f"{runs['beside']['cpu_ms_per_item']:.1f} ms beside the compute loop "
+          f"({runs['cpu_beside_over_1']:.2f} x)")
     print(f"  pure compute (numba loop, no memory traffic): {comp['1']['per_min']:.0f} -> "
           f"{comp['2']['per_min']:.0f} units/min, {comp['x_2_over_1']:.2f} x; CPU per unit "
           f"{comp['1']['cpu_ms_per_item']:.1f} ms alone, {comp['2']['cpu_ms_per_item']:.1f} ms "
