@@ -83,3 +83,23 @@ def test_a_run_that_goes_non_finite_says_when_with_or_without_its_history(tmp_pa
     assert streamed["error"] == full["error"] == f"the run went non-finite (NaN or inf) at " \
                                                  f"t = {t_nan:g} s"
     assert streamed["metrics"] == full["metrics"]
+
+
+def test_threads_of_one_worker_do_not_share_their_rows():
+    """A ``dask worker`` with several threads runs several cases at once in one process:
+    each thread streams through its own rows (shared ones mixed the runs' columns)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    scenarios = [load_scenario(E2), load_scenario(E3)] * 3
+    names = ("time_s", "u_mps", "x_m", "fx_fl_n")
+    serial = [{k: v.copy() for k, v in run_for_metrics(s, names).columns.items()}
+              for s in scenarios[:2]]
+
+    def one(scenario):
+        return {k: v.copy() for k, v in run_for_metrics(scenario, names).columns.items()}
+
+    with ThreadPoolExecutor(3) as pool:
+        together = list(pool.map(one, scenarios))
+    for i, cols in enumerate(together):
+        for name in names:
+            assert np.array_equal(cols[name], serial[i % 2][name]), (i, name)

@@ -13,6 +13,7 @@ import asyncio
 import functools
 import os
 import socket
+import threading
 import time
 import traceback
 from collections.abc import Iterable, Iterator, Mapping
@@ -77,9 +78,13 @@ outputs, 512 x 130 x 8 bytes = 532 KB, stay in a core's 2 MB L2 cache. Recording
 CPU time) of a 24 ms run, and memory traffic that two workers on two cores share."""
 
 
+KEEP_BYTES = 16 << 20  # kept-column arrays larger than this are not kept for the next run
+
+
 class RowBuffers:
-    """A worker process's arrays, reused from run to run (a run's are valid until the next
-    one): the compiled loop's state and output rows, and the kept columns of the run."""
+    """A worker thread's arrays, reused from run to run (a run's are valid until the next
+    one in that thread): the compiled loop's state and output rows, and the kept columns
+    of the run."""
 
     def __init__(self) -> None:
         from simserver.core import layout as L
@@ -92,13 +97,22 @@ class RowBuffers:
         """A ``(rows, columns)`` array for ``role``, grown when a run needs more."""
         have = self._kept.get(role)
         if have is None or have.size < rows * columns:
-            have = self._kept[role] = np.empty(rows * columns)
+            have = np.empty(rows * columns)
+            if have.nbytes <= KEEP_BYTES:
+                self._kept[role] = have
         return have[:rows * columns].reshape(rows, columns)
 
 
-@functools.cache
+_THREAD = threading.local()
+
+
 def row_buffers() -> RowBuffers:
-    return RowBuffers()
+    """This thread's buffers: a ``dask worker`` may run several tasks at once, one a
+    thread."""
+    bufs = getattr(_THREAD, "row_buffers", None)
+    if bufs is None:
+        bufs = _THREAD.row_buffers = RowBuffers()
+    return bufs
 
 
 @dataclass
@@ -117,7 +131,7 @@ def run_for_metrics(scenario: Any, names: Iterable[str]) -> MetricRun:
     the same numbers bit for bit) but keep only the history columns ``names``: the states
     and outputs go through ``STREAM_ROWS`` reused rows, and each chunk's wanted columns are
     gathered into arrays reused from run to run. The columns are valid until the next run
-    in this process."""
+    in this thread."""
     from simserver.core import layout as L
     from simserver.scenario import start_run
 
