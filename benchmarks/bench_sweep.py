@@ -3,7 +3,7 @@ workers against a loop of ``simserver run-scenario`` processes (issue 18).
 
 Run from the repository root::
 
-    python -m benchmarks.bench_sweep [--loop-runs 4] [--rounds 1] [--study FILE] [--json FILE]
+    python -m benchmarks.bench_sweep [--loop-runs 4] [--rounds 3] [--study FILE] [--json FILE]
 
 - sweep, N workers: ``run_sweep`` of the study (default configs/sweeps/
   relaxation_study_dense.yaml, 29 x 25 = 725 runs; the issue asks for 200 or more) on a
@@ -18,7 +18,6 @@ Run from the repository root::
 - process loop: ``simserver run-scenario CASE --out DIR`` (history, summary and plots,
   as a user runs it today) on the study's first cases, each written out as a resolved
   scenario file; runs per minute = 60 / mean wall time per process.
-
 - the machine's own ceiling, no Dask, in the same rounds: the study's runs by the workers'
   own ``run_batch`` in 1 and then 2 plain processes forked warm from one parent and
   started together (case i to process i mod 2), and a pure-compute numba loop (no memory
@@ -26,9 +25,11 @@ Run from the repository root::
   alone, with both cores running runs, and beside the compute loop on the other core.
 
 Targets (issue 18): sweep >= 20 x the loop; 2 workers >= 1.7 x 1 worker on this 2-core
-machine. With ``--rounds R`` the 1- and 2-worker sweeps alternate R times and the medians
-are reported. The machine's load average is printed with the figures: other work on the
-same cores shows in them.
+machine. Each of the R rounds (``--rounds``, 3 by default; about 90 s each on a quiet
+machine) runs the plain processes, the compute loop and the two sweeps, 1 then 2 of each;
+the medians over the rounds are reported, and each ratio also paired by round. The
+machine's load average is printed with the figures: other work on the same cores shows in
+them.
 """
 
 from __future__ import annotations
