@@ -290,6 +290,19 @@ def resolve_scenario(path: str | Path) -> dict[str, Any]:
     return data
 
 
+def start_run(scenario: Scenario) -> tuple[Simulation, np.ndarray]:
+    """A run's simulation at its start and its inputs, one row per step (the keyframes
+    sampled, ``input_table``): what ``run_scenario`` steps through, and any other runner
+    of a scenario (the sweep's workers) with it."""
+    sim = Simulation(scenario.scene, scenario.dt_s)
+    n = scenario.n_steps
+    inputs = input_table(scenario.keyframes, np.arange(n) * scenario.dt_s)
+    if scenario.scene.initial.get("relaxed", 0.0) and n > 0:
+        sim.inputs[:] = inputs[0]  # a relaxed start settles with the first inputs
+        sim.reset(None)
+    return sim, inputs
+
+
 def run_scenario(
     scenario: Scenario,
     progress: Callable[[int, int], None] | None = None,
@@ -300,15 +313,10 @@ def run_scenario(
     Deterministic: the same scenario gives the same arrays bit for bit.
     ``progress(done_steps, total_steps)`` is called after each chunk.
     """
-    sim = Simulation(scenario.scene, scenario.dt_s)
+    sim, inputs = start_run(scenario)
     n = scenario.n_steps
     every = scenario.record_every
     chunk_steps = max(every, chunk_steps - chunk_steps % every)
-    times = np.arange(n) * scenario.dt_s
-    inputs = input_table(scenario.keyframes, times)
-    if scenario.scene.initial.get("relaxed", 0.0) and n > 0:
-        sim.inputs[:] = inputs[0]  # a relaxed start settles with the first inputs
-        sim.reset(None)
     n_rec = (n + every - 1) // every
     states = np.zeros((n_rec, L.N_STATE))
     outputs = np.zeros((n_rec, L.N_OUT))

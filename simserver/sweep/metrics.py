@@ -83,15 +83,21 @@ def resting_forces(cols: Mapping[str, np.ndarray]) -> dict[str, float]:
 class MetricKind:
     function: Callable[..., dict[str, float]]
     options: tuple[str, ...]
+    # the history columns the function reads: a sweep's worker keeps only these of a run
+    # (``worker.run_for_metrics``); a column missing here is a KeyError there
+    columns: tuple[str, ...]
     required: tuple[str, ...] = ()
 
 
+_FORCES = tuple(f"{q}_{w}_n" for q in ("fx", "fy") for w in ("fl", "fr", "rl", "rr"))
 METRIC_KINDS: dict[str, MetricKind] = {
-    "stopping_distance": MetricKind(stopping_distance, ("from_s",)),
-    "time_to_rest": MetricKind(time_to_rest, ("from_s",)),
-    "creep": MetricKind(creep, ("from_s", "to_s", "limit_m"), ("from_s", "to_s")),
-    "yaw": MetricKind(yaw, ()),
-    "resting_forces": MetricKind(resting_forces, ()),
+    "stopping_distance": MetricKind(stopping_distance, ("from_s",),
+                                    ("time_s", "u_mps", "x_m", "y_m")),
+    "time_to_rest": MetricKind(time_to_rest, ("from_s",), ("time_s", "u_mps")),
+    "creep": MetricKind(creep, ("from_s", "to_s", "limit_m"), ("time_s", "x_m", "y_m"),
+                        ("from_s", "to_s")),
+    "yaw": MetricKind(yaw, (), ("yaw_rate_radps", "yaw_rad")),
+    "resting_forces": MetricKind(resting_forces, (), (*_FORCES, "fx_body_sum_n")),
 }
 
 
@@ -103,6 +109,11 @@ class Metric:
     options: tuple[tuple[str, float], ...] = ()
     column: str = ""
     stat: str = ""
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """The history columns this metric reads."""
+        return (self.column,) if self.kind == "column" else METRIC_KINDS[self.kind].columns
 
     def evaluate(self, cols: Mapping[str, np.ndarray]) -> dict[str, float]:
         if self.kind == "column":
