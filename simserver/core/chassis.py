@@ -96,6 +96,8 @@ from simserver.core.model import (
     G_GRAVITY_N_MPS2,
     G_MU0,
     G_SIN_YAW0,
+    G_STATIC_FRONT_N,
+    G_STATIC_REAR_N,
     G_X0_M,
     G_Y0_M,
     G_YAW0_RAD,
@@ -315,6 +317,7 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
         x[REF_HEIGHT_M] = 0.0
         for i in range(N_WHEELS):
             ground[G_MU0 + i] = vp[VP_ROAD_FRICTION_SCALE]
+        static_loads(vp, ground)
         return
     axes_old = ws.axes[0]
     axes_new = ws.axes[1]
@@ -354,7 +357,18 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
             ground[G_AXES + 3 * r + k] = axes_new[r, k]
     ground[G_AXES_GRADE_PCT] = x[REF_GRADE_PCT]
     ground[G_AXES_CROSS_SLOPE_PCT] = x[REF_CROSS_SLOPE_PCT]
+    static_loads(vp, ground)
     contact_frames(model, ws, x, c, s)
+
+
+@nb.njit(cache=True, inline="always")
+def static_loads(vp: np.ndarray, ground: np.ndarray) -> None:
+    """Each axle's static wheel load on the step's reference plane (``G_STATIC_FRONT_N``,
+    ``G_STATIC_REAR_N``: ``static_share`` at ``G_GRAVITY_N_MPS2``), once per step instead
+    of in each ``corner_loads`` of the step (the same arithmetic: the same bits)."""
+    g_n = ground[G_GRAVITY_N_MPS2]
+    ground[G_STATIC_FRONT_N] = static_share(vp, 0, g_n)
+    ground[G_STATIC_REAR_N] = static_share(vp, N_FRONT_WHEELS, g_n)
 
 
 @nb.njit(cache=True, inline="always")
@@ -464,17 +478,18 @@ def corner_loads(model: Model, ws: Workspace, x: np.ndarray) -> None:
     adds to the static share into ``W_FZ_DYN``).
 
     Static share (from the CG position and the component of gravity normal to the
-    reference plane) plus the suspension's force (spring, damper, anti-roll bar) from the
-    body's heave, roll and pitch and, on a terrain, the surface's gap under the wheel; a
-    corner whose load would go negative lifts off (``Fz = 0``). On a terrain, ``W_FZ`` is
-    the load along the wheel's own contact normal (docs/model.md section 11).
+    reference plane, ``static_loads`` of the step) plus the suspension's force (spring,
+    damper, anti-roll bar) from the body's heave, roll and pitch and, on a terrain, the
+    surface's gap under the wheel; a corner whose load would go negative lifts off
+    (``Fz = 0``). On a terrain, ``W_FZ`` is the load along the wheel's own contact normal
+    (docs/model.md section 11).
     """
     vp = model.vp
     wheel = ws.wheel
     on_plane = model.terrain.kind == TERRAIN_PLANE
     if not on_plane:
         terrain_gaps(model, ws, x)
-    g_n = ws.ground[G_GRAVITY_N_MPS2]
+    ground = ws.ground
     heave = x[HEAVE_M]
     heave_rate = x[HEAVE_RATE_MPS]
     roll = x[ROLL_RAD]
@@ -503,7 +518,7 @@ def corner_loads(model: Model, ws: Workspace, x: np.ndarray) -> None:
             rate_l += wheel[left + LEFT, W_GAP_RATE_MPS]
             rate_r += wheel[left + RIGHT, W_GAP_RATE_MPS]
         arb = k_arb * (comp_l - comp_r)
-        static = static_share(vp, left, g_n)
+        static = ground[G_STATIC_FRONT_N] if axle == 0 else ground[G_STATIC_REAR_N]
         fz_l = max(0.0, static + (k_s * comp_l + c_s * rate_l + arb))
         fz_r = max(0.0, static + (k_s * comp_r + c_s * rate_r - arb))
         wheel[left + LEFT, W_FZ_DYN] = fz_l - static
@@ -742,6 +757,13 @@ def vehicle_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) ->
     body quantities of ``x`` in the workspace (``ws.wheel``, ``ws.body``).
     """
     corner_loads(model, ws, x)
+    forces_and_rates(model, ws, x, dx)
+
+
+@nb.njit(cache=True, inline="always")
+def forces_and_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
+    """:func:`vehicle_rates` after its ``corner_loads``: for a state whose loads are
+    already in ``ws.wheel`` (the step's start state, loaded by ``prepare_tires``)."""
     wheel_forces(model, ws, x, dx)
     body_rates(model, ws, x, dx)
 

@@ -44,6 +44,7 @@ import numpy as np
 from simserver.core.chassis import (
     corner_loads,
     follow_terrain,
+    forces_and_rates,
     hub_velocity,
     record_contacts,
     record_outputs,
@@ -89,9 +90,8 @@ from simserver.core.model import (
     RK_K2,
     RK_K3,
     RK_K4,
-    RK_Y2,
-    RK_Y3,
-    RK_Y4,
+    RK_SPIN0,
+    RK_Y,
     W_FX,
     W_FZ,
     W_HUB_U,
@@ -159,6 +159,9 @@ def freeze_inputs(model: Model, data: Data) -> None:
         if i % WHEELS_PER_AXLE != 0 and angle == wheel_in[WI_STEER_RAD, i - 1]:
             wheel_in[WI_COS_STEER, i] = wheel_in[WI_COS_STEER, i - 1]
             wheel_in[WI_SIN_STEER, i] = wheel_in[WI_SIN_STEER, i - 1]
+        elif angle == 0.0:  # straight ahead (a rear wheel without toe): exactly 1 and +-0
+            wheel_in[WI_COS_STEER, i] = 1.0
+            wheel_in[WI_SIN_STEER, i] = angle
         else:
             wheel_in[WI_COS_STEER, i] = np.cos(angle)
             wheel_in[WI_SIN_STEER, i] = np.sin(angle)
@@ -258,34 +261,35 @@ def freeze_decay_rates(model: Model, data: Data) -> None:
 def lawson_rk4(model: Model, data: Data) -> None:
     """Stage 5: exponential (Lawson) RK4 from ``k1`` (already evaluated at the start).
 
-    The start spins are kept in the ``RK_Y2`` row for the zero-crossing test of stage 6.
+    The stage states 2, 3 and 4 take turns in one row (``RK_Y``): each is read for the
+    last time, slot by slot, just before the next one overwrites that slot, and the
+    discrete slots (the same for all three) are copied in once. The start spins are kept
+    in the ``RK_SPIN0`` row for the zero-crossing test of stage 6.
     """
     x = data.x
     ws = data.ws
     h = model.dt_s
     rk = ws.rk
-    y2, y3, y4 = rk[RK_Y2], rk[RK_Y3], rk[RK_Y4]
+    y = rk[RK_Y]
     k1, k2, k3, k4 = rk[RK_K1], rk[RK_K2], rk[RK_K3], rk[RK_K4]
     decay, e_half = rk[RK_DECAY], rk[RK_E_HALF]
-    _copy_discrete(x, y2)
-    _copy_discrete(x, y3)
-    _copy_discrete(x, y4)
+    _copy_discrete(x, y)
     for j in range(N_INTEGRATED):
         k1[j] += decay[j] * x[j]
-        y2[j] = e_half[j] * (x[j] + 0.5 * h * k1[j])
-    vehicle_rates(model, ws, y2, k2)
+        y[j] = e_half[j] * (x[j] + 0.5 * h * k1[j])  # y2
+    vehicle_rates(model, ws, y, k2)
     for j in range(N_INTEGRATED):
-        k2[j] += decay[j] * y2[j]
-        y3[j] = e_half[j] * x[j] + 0.5 * h * k2[j]
-    vehicle_rates(model, ws, y3, k3)
+        k2[j] += decay[j] * y[j]
+        y[j] = e_half[j] * x[j] + 0.5 * h * k2[j]  # y3
+    vehicle_rates(model, ws, y, k3)
     for j in range(N_INTEGRATED):
-        k3[j] += decay[j] * y3[j]
-        y4[j] = e_half[j] * e_half[j] * x[j] + h * e_half[j] * k3[j]
-    vehicle_rates(model, ws, y4, k4)
+        k3[j] += decay[j] * y[j]
+        y[j] = e_half[j] * e_half[j] * x[j] + h * e_half[j] * k3[j]  # y4
+    vehicle_rates(model, ws, y, k4)
     for i in range(N_WHEELS):
-        y2[OMEGA0 + i] = x[OMEGA0 + i]  # keep the start spins for the zero-crossing test
+        rk[RK_SPIN0, OMEGA0 + i] = x[OMEGA0 + i]  # for the zero-crossing test
     for j in range(N_INTEGRATED):
-        k4[j] += decay[j] * y4[j]
+        k4[j] += decay[j] * y[j]
         e_full = e_half[j] * e_half[j]
         x[j] = e_full * x[j] + h / 6.0 * (
             e_full * k1[j] + 2.0 * e_half[j] * (k2[j] + k3[j]) + k4[j]
@@ -299,7 +303,7 @@ def catch_stopped_wheels(data: Data) -> None:
     x, out = data.x, data.out
     rk, wheel_in = data.ws.rk, data.ws.wheel_in
     for i in range(N_WHEELS):
-        omega_start = rk[RK_Y2, OMEGA0 + i]
+        omega_start = rk[RK_SPIN0, OMEGA0 + i]
         if wheel_in[WI_HELD, i] > 0.5:
             x[OMEGA0 + i] = 0.0
         elif wheel_in[WI_BRAKE_CAP_NM, i] > 0.0 and omega_start * x[OMEGA0 + i] < 0.0:
@@ -359,15 +363,17 @@ def step(model: Model, data: Data) -> None:
 
     Writes ``data.out``: forces and accelerations at the state at the *start* of the step.
     The stages, in order: 1 ``freeze_inputs`` and ``follow_terrain``, 2 ``prepare_tires``,
-    3 ``vehicle_rates`` at the start state, ``record_outputs`` and ``record_contacts``,
-    4 ``resolve_brakes``, 5 ``freeze_decay_rates`` and ``lawson_rk4``, 6 ``catch_stopped_wheels``,
-    7 ``update_discrete_states``, 8 ``steering_system`` (the steering-wheel torque from the
+    3 ``vehicle_rates`` at the start state (``forces_and_rates``: its loads are stage 2's),
+    ``record_outputs`` and ``record_contacts``, 4 ``resolve_brakes``, 5
+    ``freeze_decay_rates`` and ``lawson_rk4``, 6 ``catch_stopped_wheels``, 7
+    ``update_discrete_states``, 8 ``steering_system`` (the steering-wheel torque from the
     forces of stage 3: an output, fed back into nothing).
     """
     freeze_inputs(model, data)  # 1. inputs held over the step
     follow_terrain(model, data.ws, data.x)  # 1b. the reference plane, contact frames
     prepare_tires(model, data)  # 2. tire coefficients at the mid-step load
-    vehicle_rates(model, data.ws, data.x, data.ws.rk[RK_K1])  # 3. forces at the start
+    # 3. forces at the start (its loads are those prepare_tires just computed)
+    forces_and_rates(model, data.ws, data.x, data.ws.rk[RK_K1])
     record_outputs(data.ws, data.out)
     record_contacts(data.ws, data.x)
     resolve_brakes(model, data)  # 4. static-friction brakes

@@ -94,15 +94,18 @@ G_COS_YAW0 = 19
 G_SIN_YAW0 = 20
 G_AXES_GRADE_PCT = 21  # the grade and cross-slope G_AXES were computed for: the next step
 G_AXES_CROSS_SLOPE_PCT = 22  # starts on that plane and reuses them (NaN: none yet)
-N_GROUND = 23
+G_STATIC_FRONT_N = 23  # static normal load of a front and of a rear wheel on this plane
+G_STATIC_REAR_N = 24  # (N, chassis.static_share with G_GRAVITY_N_MPS2): once per step
+N_GROUND = 25
 
 # ---- rows of the Runge-Kutta scratch (ws.rk[RK_*]; the derivative rows use the first
 # N_INTEGRATED columns)
-RK_Y2, RK_Y3, RK_Y4 = 0, 1, 2  # stage states
-RK_K1, RK_K2, RK_K3, RK_K4 = 3, 4, 5, 6  # stage derivatives
-RK_DECAY = 7  # linear decay rates frozen at the step start
-RK_E_HALF = 8  # exp(-decay h / 2)
-N_RK = 9
+RK_Y = 0  # the stage state of stages 2, 3 and 4 in turn (each is used up before the next)
+RK_SPIN0 = 1  # the wheels' start spins (OMEGA0 columns), for the zero-crossing test
+RK_K1, RK_K2, RK_K3, RK_K4 = 2, 3, 4, 5  # stage derivatives
+RK_DECAY = 6  # linear decay rates frozen at the step start
+RK_E_HALF = 7  # exp(-decay h / 2)
+N_RK = 8
 
 
 class Model(NamedTuple):

@@ -359,6 +359,15 @@ def automatic_drive_torque(x: np.ndarray, vp: np.ndarray, inputs: np.ndarray,
 
 
 # ---------------------------------------------------------------- hill-start assist
+@nb.njit(cache=True, inline="always")
+def hill_opposes(vp: np.ndarray, direction: float, grade_pull: float) -> bool:
+    """The grade pulls against the selected direction (``direction`` +1 D, -1 R, 0 none)
+    by more than the assist's minimum grade. Only asked with the assist on."""
+    g = vp[VP_GRAVITY_MPS2]
+    slope = vp[VP_HILL_START_ASSIST_MIN_GRADE_PCT] / 100.0
+    return direction != 0.0 and grade_pull > g * slope / math.sqrt(1.0 + slope * slope)
+
+
 @nb.njit(cache=True)
 def hill_hold(x: np.ndarray, vp: np.ndarray, inputs: np.ndarray, gravity_x_mps2: float,
               drive_force_n: float, dt_s: float) -> float:
@@ -377,11 +386,8 @@ def hill_hold(x: np.ndarray, vp: np.ndarray, inputs: np.ndarray, gravity_x_mps2:
     x[HILL_HOLD_ACTIVE] = 0.0
     gear = int(inputs[IN_GEAR])
     direction = 1.0 if gear == GEAR_D else (-1.0 if gear == GEAR_R else 0.0)
-    g = vp[VP_GRAVITY_MPS2]
-    slope = vp[VP_HILL_START_ASSIST_MIN_GRADE_PCT] / 100.0
     grade_pull = -direction * gravity_x_mps2  # gravity against the selected direction
-    opposes = direction != 0.0 and grade_pull > g * slope / math.sqrt(1.0 + slope * slope)
-    if vp[VP_HILL_START_ASSIST] < 0.5 or not opposes:
+    if vp[VP_HILL_START_ASSIST] < 0.5 or not hill_opposes(vp, direction, grade_pull):
         x[HILL_HOLD_PEDAL] = 0.0
         x[HILL_HOLD_TIME_S] = 0.0
         return pedal
@@ -432,8 +438,9 @@ def wheel_torques(
         total = simple_drive_torque(x, vp, inputs, drive_nm)
     gear = int(inputs[IN_GEAR])
     drive_force_n = 0.0
-    for i in range(N_WHEELS):
-        drive_force_n += total * drive_nm[i] / radius_m[i]
+    if x[HILL_HOLD_PEDAL] > 0.0:  # hill_hold reads the drive force only with a kept pedal
+        for i in range(N_WHEELS):
+            drive_force_n += total * drive_nm[i] / radius_m[i]
     pedal = hill_hold(x, vp, inputs, out[O_GRAVITY_X_MPS2], drive_force_n, dt_s)
 
     brake_total = pedal * vp[VP_BRAKE_TORQUE_MAX_NM]
