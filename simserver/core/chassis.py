@@ -669,22 +669,25 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
     spin; writes ``dx``'s spin and slip slots and ``ws.wheel`` (``W_*``).
 
     Reads the loads of stage 1 (``ws.wheel[i, W_FZ]``) and the inputs held over the step
-    (``ws.wheel_in``). Three parts: the slips (:func:`wheel_slip`), the tires, the forces
-    and spins (:func:`wheel_finish`). With an MF 6.1 tire on every wheel the four tires
-    are one call (``core.tire.tire_evaluate_mf61_wheels``: their curves vectorised
-    together); any other set of tires is evaluated wheel by wheel.
+    (``ws.wheel_in``). Three parts: the slips of every wheel (:func:`wheel_slip`, kept in
+    ``ws.wheel``), the tires, the forces and spins (:func:`wheel_finish`). With an MF 6.1
+    tire on every wheel the four tires are one call (``core.tire.tire_evaluate_mf61_wheels``:
+    their curves vectorised together); any other set of tires is evaluated wheel by wheel.
+    Each part is written once: this function is inlined four times into the step, and a
+    second copy of the per-wheel parts for the MF 6.1 branch would double their share of
+    the cold compile.
     """
     tp, tires, wheel = model.tp, model.tires, ws.wheel
     tire_out, tire_coef = ws.tire_out, ws.tire_coef
+    for i in range(N_WHEELS):
+        u_w, v_w, kappa, tan_alpha, d_tan_alpha, d_kappa = wheel_slip(model, ws, x, i)
+        wheel[i, W_HUB_U] = u_w
+        wheel[i, W_HUB_V] = v_w
+        wheel[i, W_KAPPA] = kappa
+        wheel[i, W_TAN_ALPHA] = tan_alpha
+        dx[TAN_ALPHA0 + i] = d_tan_alpha
+        dx[KAPPA0 + i] = d_kappa
     if all_mf61(tp):
-        for i in range(N_WHEELS):
-            u_w, v_w, kappa, tan_alpha, d_tan_alpha, d_kappa = wheel_slip(model, ws, x, i)
-            wheel[i, W_HUB_U] = u_w
-            wheel[i, W_HUB_V] = v_w
-            wheel[i, W_KAPPA] = kappa
-            wheel[i, W_TAN_ALPHA] = tan_alpha
-            dx[TAN_ALPHA0 + i] = d_tan_alpha
-            dx[KAPPA0 + i] = d_kappa
         tire_evaluate_mf61_wheels(
             tp, tire_coef,
             (wheel[0, W_KAPPA], wheel[1, W_KAPPA], wheel[2, W_KAPPA], wheel[3, W_KAPPA]),
@@ -694,18 +697,14 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
             (wheel[0, W_HUB_U], wheel[1, W_HUB_U], wheel[2, W_HUB_U], wheel[3, W_HUB_U]),
             tire_out,
         )  # fmt: skip
-        for i in range(N_WHEELS):
-            wheel_finish(model, ws, x, dx, i, tire_out[i], wheel[i, W_HUB_U],
-                         wheel[i, W_HUB_V], wheel[i, W_KAPPA], wheel[i, W_TAN_ALPHA],
-                         dx[TAN_ALPHA0 + i], dx[KAPPA0 + i])
     else:
         for i in range(N_WHEELS):
-            u_w, v_w, kappa, tan_alpha, d_tan_alpha, d_kappa = wheel_slip(model, ws, x, i)
-            out_i = tire_out[i]
-            tire_evaluate(tires, tp[i], tire_coef[i], kappa, tan_alpha, wheel[i, W_FZ], u_w,
-                          out_i)
-            wheel_finish(model, ws, x, dx, i, out_i, u_w, v_w, kappa, tan_alpha,
-                         d_tan_alpha, d_kappa)
+            tire_evaluate(tires, tp[i], tire_coef[i], wheel[i, W_KAPPA], wheel[i, W_TAN_ALPHA],
+                          wheel[i, W_FZ], wheel[i, W_HUB_U], tire_out[i])
+    for i in range(N_WHEELS):
+        wheel_finish(model, ws, x, dx, i, tire_out[i], wheel[i, W_HUB_U], wheel[i, W_HUB_V],
+                     wheel[i, W_KAPPA], wheel[i, W_TAN_ALPHA], dx[TAN_ALPHA0 + i],
+                     dx[KAPPA0 + i])
 
 
 @nb.njit(cache=True, inline="always")
