@@ -574,113 +574,48 @@ def auxiliary_damping(
 
 
 @nb.njit(cache=True, inline="always")
-def wheel_slip(
-    model: Model, ws: Workspace, x: np.ndarray, i: int
-) -> tuple[float, float, float, float, float, float]:
-    """Wheel ``i``'s hub velocity ``(u_w, v_w)`` in its frame, the slip fed to its tire
-    ``(kappa, tan_alpha)`` and the slip states' rates ``(d_tan_alpha, d_kappa)``."""
-    vp, wheel, wheel_in = model.vp, ws.wheel, ws.wheel_in
-    tp_wheel = model.tp[i]
-    slip_model = int(vp[VP_SLIP_MODEL])
-    u_w, v_w = hub_velocity(x, vp, i, wheel_in[WI_COS_STEER, i], wheel_in[WI_SIN_STEER, i])
-    if model.terrain.kind != TERRAIN_PLANE:  # into the contact frame (docs/model.md section 11)
-        u_w, v_w = (u_w * wheel[i, W_TX0] + v_w * wheel[i, W_TX1],
-                    u_w * wheel[i, W_TY0] + v_w * wheel[i, W_TY1])
-    radius = tp_wheel[TP_RADIUS_M]
-    omega = x[OMEGA0 + i]
-    if slip_model == SLIP_KINEMATIC:
-        tan_alpha, kappa = kinematic_slip(
-            u_w, v_w, omega, radius, vp[VP_KINEMATIC_U_MIN_MPS]
-        )
-        d_tan_alpha = 0.0
-        d_kappa = 0.0
-    elif slip_model == SLIP_LAGGED_PASSIVE or slip_model == SLIP_LAGGED_PAPER:
-        tan_alpha = x[TAN_ALPHA0 + i]
-        kappa = x[KAPPA0 + i]
-        d_tan_alpha, d_kappa = lagged_slip_rates(
-            tan_alpha, kappa, u_w, v_w, omega, radius, tp_wheel[TP_RELAX_LAT_M],
-            tp_wheel[TP_RELAX_LONG_M],
-        )
-    else:
-        raise ValueError("unknown slip model id (core.slip.SLIP_MODELS)")
-    return u_w, v_w, kappa, tan_alpha, d_tan_alpha, d_kappa
-
-
-@nb.njit(cache=True, inline="always")
-def wheel_finish(
-    model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray, i: int, tire_out: np.ndarray,
-    u_w: float, v_w: float, kappa: float, tan_alpha: float, d_tan_alpha: float,
-    d_kappa: float,
-) -> None:
-    """Wheel ``i`` from its tire's outputs ``tire_out``: the auxiliary damping, the
-    contact force, the spin; writes ``dx``'s spin and slip slots and ``ws.wheel[i]``."""
-    vp, dt_s = model.vp, model.dt_s
-    tp_wheel = model.tp[i]
-    wheel, wheel_in = ws.wheel, ws.wheel_in
-    fz = wheel[i, W_FZ]
-    radius = tp_wheel[TP_RADIUS_M]
-    damp_x, damp_y = auxiliary_damping(
-        vp, i, tp_wheel, tire_out, fz, u_w, v_w, x[DAMPING_ACTIVE0 + i], d_tan_alpha,
-        d_kappa, dt_s,
-    )
-    fx = tire_out[OUT_FX] + damp_x
-    fy = tire_out[OUT_FY] + damp_y
-    if model.terrain.kind == TERRAIN_PLANE:
-        wheel[i, W_FX_PLANE] = fx
-        wheel[i, W_FY_PLANE] = fy
-    else:
-        if not fz > 0.0:  # off the ground: no shear either
-            fx = fy = damp_x = damp_y = 0.0
-            tire_out[OUT_MZ] = tire_out[OUT_MY] = 0.0
-        # the contact force in the reference plane, along and across the wheel heading
-        wheel[i, W_FX_PLANE] = (fx * wheel[i, W_TX0] + fy * wheel[i, W_TY0]
-                                + fz * wheel[i, W_N0])
-        wheel[i, W_FY_PLANE] = (fx * wheel[i, W_TX1] + fy * wheel[i, W_TY1]
-                                + fz * wheel[i, W_N1])
-
-    if wheel_in[WI_HELD, i] > 0.5:
-        d_omega = 0.0
-    else:
-        d_omega = (wheel_in[WI_DRIVE_NM, i] - radius * fx + wheel_in[WI_BRAKE_NM, i]) / (
-            wheel_inertia(vp, i))
-    dx[OMEGA0 + i] = d_omega
-    dx[TAN_ALPHA0 + i] = d_tan_alpha
-    dx[KAPPA0 + i] = d_kappa
-
-    wheel[i, W_FX] = fx
-    wheel[i, W_FY] = fy
-    wheel[i, W_MZ] = tire_out[OUT_MZ]
-    wheel[i, W_MY] = tire_out[OUT_MY]
-    wheel[i, W_KAPPA_SLIDE] = tire_out[OUT_KAPPA_SLIDE]
-    wheel[i, W_TAN_ALPHA_SLIDE] = tire_out[OUT_TAN_ALPHA_SLIDE]
-    wheel[i, W_FX_PEAK] = tire_out[OUT_FX_PEAK]
-    wheel[i, W_FY_PEAK] = tire_out[OUT_FY_PEAK]
-    wheel[i, W_HUB_U] = u_w
-    wheel[i, W_HUB_V] = v_w
-    wheel[i, W_DAMPING_FX] = damp_x
-    wheel[i, W_DAMPING_FY] = damp_y
-    wheel[i, W_KAPPA] = kappa
-    wheel[i, W_TAN_ALPHA] = tan_alpha
-
-
-@nb.njit(cache=True, inline="always")
 def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
     """Stage 2: per wheel, the slip, the tire forces with the auxiliary damping and the
     spin; writes ``dx``'s spin and slip slots and ``ws.wheel`` (``W_*``).
 
     Reads the loads of stage 1 (``ws.wheel[i, W_FZ]``) and the inputs held over the step
-    (``ws.wheel_in``). Three parts: the slips of every wheel (:func:`wheel_slip`, kept in
-    ``ws.wheel``), the tires, the forces and spins (:func:`wheel_finish`). With an MF 6.1
-    tire on every wheel the four tires are one call (``core.tire.tire_evaluate_mf61_wheels``:
-    their curves vectorised together); any other set of tires is evaluated wheel by wheel.
-    Each part is written once: this function is inlined four times into the step, and a
-    second copy of the per-wheel parts for the MF 6.1 branch would double their share of
-    the cold compile.
+    (``ws.wheel_in``). Three loops: the slips of every wheel (kept in ``ws.wheel`` and
+    ``dx``), the tires, the forces and spins. With an MF 6.1 tire on every wheel the four
+    tires are one call (``core.tire.tire_evaluate_mf61_wheels``: their curves vectorised
+    together); any other set of tires is evaluated wheel by wheel.
+
+    The per-wheel parts are written here once, not as inlined helpers and not once per
+    branch: this function is inlined four times into the step, and each extra inlined
+    copy or helper grew the cold compile (measured, ``run-scenario`` from an empty cache:
+    the MF-only copy of every part +47 % CPU, helpers +22 %, this form +4 %).
     """
-    tp, tires, wheel = model.tp, model.tires, ws.wheel
-    tire_out, tire_coef = ws.tire_out, ws.tire_coef
+    vp, tp, tires, dt_s = model.vp, model.tp, model.tires, model.dt_s
+    wheel_in, wheel, tire_out, tire_coef = ws.wheel_in, ws.wheel, ws.tire_out, ws.tire_coef
+    slip_model = int(vp[VP_SLIP_MODEL])
+    on_plane = model.terrain.kind == TERRAIN_PLANE
     for i in range(N_WHEELS):
-        u_w, v_w, kappa, tan_alpha, d_tan_alpha, d_kappa = wheel_slip(model, ws, x, i)
+        tp_wheel = tp[i]
+        u_w, v_w = hub_velocity(x, vp, i, wheel_in[WI_COS_STEER, i], wheel_in[WI_SIN_STEER, i])
+        if not on_plane:  # into the wheel's contact frame (docs/model.md section 11)
+            u_w, v_w = (u_w * wheel[i, W_TX0] + v_w * wheel[i, W_TX1],
+                        u_w * wheel[i, W_TY0] + v_w * wheel[i, W_TY1])
+        radius = tp_wheel[TP_RADIUS_M]
+        omega = x[OMEGA0 + i]
+        if slip_model == SLIP_KINEMATIC:
+            tan_alpha, kappa = kinematic_slip(
+                u_w, v_w, omega, radius, vp[VP_KINEMATIC_U_MIN_MPS]
+            )
+            d_tan_alpha = 0.0
+            d_kappa = 0.0
+        elif slip_model == SLIP_LAGGED_PASSIVE or slip_model == SLIP_LAGGED_PAPER:
+            tan_alpha = x[TAN_ALPHA0 + i]
+            kappa = x[KAPPA0 + i]
+            d_tan_alpha, d_kappa = lagged_slip_rates(
+                tan_alpha, kappa, u_w, v_w, omega, radius, tp_wheel[TP_RELAX_LAT_M],
+                tp_wheel[TP_RELAX_LONG_M],
+            )
+        else:
+            raise ValueError("unknown slip model id (core.slip.SLIP_MODELS)")
         wheel[i, W_HUB_U] = u_w
         wheel[i, W_HUB_V] = v_w
         wheel[i, W_KAPPA] = kappa
@@ -702,9 +637,46 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
             tire_evaluate(tires, tp[i], tire_coef[i], wheel[i, W_KAPPA], wheel[i, W_TAN_ALPHA],
                           wheel[i, W_FZ], wheel[i, W_HUB_U], tire_out[i])
     for i in range(N_WHEELS):
-        wheel_finish(model, ws, x, dx, i, tire_out[i], wheel[i, W_HUB_U], wheel[i, W_HUB_V],
-                     wheel[i, W_KAPPA], wheel[i, W_TAN_ALPHA], dx[TAN_ALPHA0 + i],
-                     dx[KAPPA0 + i])
+        tp_wheel = tp[i]
+        out_i = tire_out[i]
+        fz = wheel[i, W_FZ]
+        u_w = wheel[i, W_HUB_U]
+        v_w = wheel[i, W_HUB_V]
+        radius = tp_wheel[TP_RADIUS_M]
+        damp_x, damp_y = auxiliary_damping(
+            vp, i, tp_wheel, out_i, fz, u_w, v_w, x[DAMPING_ACTIVE0 + i], dx[TAN_ALPHA0 + i],
+            dx[KAPPA0 + i], dt_s,
+        )
+        fx = out_i[OUT_FX] + damp_x
+        fy = out_i[OUT_FY] + damp_y
+        if on_plane:
+            wheel[i, W_FX_PLANE] = fx
+            wheel[i, W_FY_PLANE] = fy
+        else:
+            if not fz > 0.0:  # off the ground: no shear either
+                fx = fy = damp_x = damp_y = 0.0
+                out_i[OUT_MZ] = out_i[OUT_MY] = 0.0
+            # the contact force in the reference plane, along and across the wheel heading
+            wheel[i, W_FX_PLANE] = (fx * wheel[i, W_TX0] + fy * wheel[i, W_TY0]
+                                    + fz * wheel[i, W_N0])
+            wheel[i, W_FY_PLANE] = (fx * wheel[i, W_TX1] + fy * wheel[i, W_TY1]
+                                    + fz * wheel[i, W_N1])
+        if wheel_in[WI_HELD, i] > 0.5:
+            d_omega = 0.0
+        else:
+            d_omega = (wheel_in[WI_DRIVE_NM, i] - radius * fx + wheel_in[WI_BRAKE_NM, i]) / (
+                wheel_inertia(vp, i))
+        dx[OMEGA0 + i] = d_omega
+        wheel[i, W_FX] = fx
+        wheel[i, W_FY] = fy
+        wheel[i, W_MZ] = out_i[OUT_MZ]
+        wheel[i, W_MY] = out_i[OUT_MY]
+        wheel[i, W_KAPPA_SLIDE] = out_i[OUT_KAPPA_SLIDE]
+        wheel[i, W_TAN_ALPHA_SLIDE] = out_i[OUT_TAN_ALPHA_SLIDE]
+        wheel[i, W_FX_PEAK] = out_i[OUT_FX_PEAK]
+        wheel[i, W_FY_PEAK] = out_i[OUT_FY_PEAK]
+        wheel[i, W_DAMPING_FX] = damp_x
+        wheel[i, W_DAMPING_FY] = damp_y
 
 
 @nb.njit(cache=True, inline="always")
