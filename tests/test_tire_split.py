@@ -77,6 +77,7 @@ from simserver.core.tire_layout import (
     OUT_TAN_ALPHA_SLIDE,
     TIRE_DISPATCH_JIT_OPTIONS,
     TIRE_JIT_OPTIONS,
+    TP_MIRRORED,
     TP_MODEL_BASE,
 )
 from tests.conftest import CONFIGS, mf61_sample_coefficients
@@ -450,3 +451,34 @@ def test_dispatchers_neither_allocate_nor_count_references() -> None:
         called = set(re.findall(r"call [^@]*@\"?([A-Za-z_][\w.]*)", body))
         assert not {c for c in called if "alloc" in c.lower()}, (fn.__name__, called)
         assert not {c for c in called if c.startswith("NRT")}, (fn.__name__, called)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    kappa=st.lists(st.floats(-1.5, 1.5), min_size=4, max_size=4),
+    tan_alpha=st.lists(st.floats(-1.5, 1.5), min_size=4, max_size=4),
+    gamma=st.lists(st.floats(-0.1, 0.1), min_size=4, max_size=4),
+    fz=st.lists(st.floats(-500.0, 9000.0), min_size=4, max_size=4),
+    vx=st.lists(st.floats(-40.0, 40.0), min_size=4, max_size=4),
+)
+def test_four_mf61_tires_at_once_equal_one_at_a_time(
+    kappa: list, tan_alpha: list, gamma: list, fz: list, vx: list
+) -> None:
+    """The step's batched call for four MF 6.1 tires (``tire_evaluate_mf61_wheels``)
+    gives what ``tire_evaluate`` gives each tire: the same equations, the curves computed
+    in another loop (so equal to rounding: the 1e-12 of ``assert_close``), with mirrored
+    tires, the variant file, camber and wheels off the ground among them."""
+    tp = np.stack([MF_SAMPLE, MF_VARIANT, MF_SAMPLE, MF_VARIANT])
+    tp[1, TP_MIRRORED] = tp[2, TP_MIRRORED] = 1.0
+    coef = np.full((4, N_TIRE_COEF), np.nan)
+    for w in range(4):
+        tire_prepare(BUILTIN_KERNELS, tp[w], gamma[w], max(fz[w], 0.0), 1.0, coef[w])
+    out = np.full((4, N_TIRE_OUT), np.nan)
+    tire.tire_evaluate_mf61_wheels(tp, coef, tuple(kappa), tuple(tan_alpha), tuple(fz),
+                                   tuple(vx), out)
+    assert tire.all_mf61(tp) and not tire.all_mf61(np.stack([MF_SAMPLE] * 3 + [SIMPLE]))
+    for w in range(4):
+        ref = np.full(N_TIRE_OUT, np.nan)
+        tire_evaluate(BUILTIN_KERNELS, tp[w], coef[w], kappa[w], tan_alpha[w], fz[w], vx[w],
+                      ref)
+        assert_close(out[w], ref, fz[w])

@@ -130,7 +130,7 @@ class Workspace(NamedTuple):
     wheel_in: np.ndarray  # float64[N_WI, N_WHEELS]
     wheel: np.ndarray  # float64[N_WHEELS, N_W]
     body: np.ndarray  # float64[N_BODY]
-    tire_out: np.ndarray  # float64[N_TIRE_OUT]
+    tire_out: np.ndarray  # float64[N_WHEELS, N_TIRE_OUT]: each wheel's tire outputs
     tire_coef: np.ndarray  # prepared tire coefficients, float64[N_WHEELS, N_TIRE_COEF]
     ground: np.ndarray  # float64[N_GROUND]: the reference plane of the step (G_*)
     axes: np.ndarray  # float64[2, 3, 3]: scratch of the reference plane's rebase
@@ -154,7 +154,7 @@ def make_workspace() -> Workspace:
     ground[G_AXES_GRADE_PCT] = ground[G_AXES_CROSS_SLOPE_PCT] = np.nan  # no axes memo yet
     return Workspace(rk=np.zeros((N_RK, L.N_STATE)), wheel_in=np.zeros((N_WI, n_w)),
                      wheel=np.zeros((n_w, N_W)), body=np.zeros(N_BODY),
-                     tire_out=np.zeros(N_TIRE_OUT), tire_coef=np.zeros((n_w, N_TIRE_COEF)),
+                     tire_out=np.zeros((n_w, N_TIRE_OUT)), tire_coef=np.zeros((n_w, N_TIRE_COEF)),
                      ground=ground, axes=np.zeros((2, 3, 3)),
                      contact=np.zeros((3, n_w)), cells=empty_cell_memo(n_w))
 

@@ -75,7 +75,13 @@ from simserver.core.tire_layout import (
     TireKernels,
     coef_scratch,
 )
-from simserver.core.tire_mf61 import N_MF61_PARAM, _mf61_evaluate, _mf61_prepare
+from simserver.core.tire_mf61 import (
+    N_MF61_PARAM,
+    N_WHEEL_TIRES,
+    _mf61_evaluate,
+    _mf61_evaluate_wheels,
+    _mf61_prepare,
+)
 from simserver.core.tire_simple import N_SIMPLE_PARAM, _simple_evaluate, _simple_prepare
 
 N_TIRE_PARAM = TP_MODEL_BASE + max(N_SIMPLE_PARAM, N_MF61_PARAM)
@@ -244,6 +250,44 @@ def tire_evaluate(
         _registered_evaluate(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
     out[OUT_FY] *= side
     out[OUT_MZ] *= side
+
+
+@nb.njit(**TIRE_DISPATCH_JIT_OPTIONS)
+def tire_evaluate_mf61_wheels(
+    tp: np.ndarray,
+    coef: np.ndarray,
+    kappa: tuple[float, ...],
+    tan_alpha: tuple[float, ...],
+    fz_n: tuple[float, ...],
+    vx_mps: tuple[float, ...],
+    out: np.ndarray,
+) -> None:
+    """:func:`tire_evaluate` of ``N_WHEEL_TIRES`` MF 6.1 tires in one call (the step's
+    call when every wheel has an MF 6.1 tire: the tires' Magic Formula curves are then
+    one vectorised loop, ``tire_mf61._mf61_evaluate_wheels``).
+
+    Parameters
+    ----------
+    tp : float64[N_WHEEL_TIRES, N_TIRE_PARAM]
+        Packed tire parameters, every ``tp[w, TP_MODEL] == TIRE_MODEL_MF61`` (the caller
+        checks: :func:`all_mf61`).
+    coef : float64[N_WHEEL_TIRES, N_TIRE_COEF]
+        Written by :func:`tire_prepare`; read only.
+    kappa, tan_alpha, fz_n, vx_mps : tuples of N_WHEEL_TIRES floats
+        Per tire, as the arguments of :func:`tire_evaluate`.
+    out : float64[N_WHEEL_TIRES, N_TIRE_OUT]
+        Row ``w`` written as :func:`tire_evaluate` writes ``out`` for tire ``w``.
+    """
+    _mf61_evaluate_wheels(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
+
+
+@nb.njit(inline="always", **TIRE_JIT_OPTIONS)
+def all_mf61(tp: np.ndarray) -> bool:
+    """Whether every row of ``tp`` (``N_WHEEL_TIRES`` packed tires) is an MF 6.1 tire."""
+    every = tp.shape[0] == N_WHEEL_TIRES
+    for w in range(tp.shape[0]):
+        every = every and int(tp[w, TP_MODEL]) == TIRE_MODEL_MF61
+    return every
 
 
 @nb.njit(**TIRE_JIT_OPTIONS)

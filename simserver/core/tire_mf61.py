@@ -91,6 +91,7 @@ from simserver.core.tire_layout import (
     PREPARE_SIGNATURE,
     SLIP_INPUT_MAX,
     TIRE_JIT_OPTIONS,
+    TP_MIRRORED,
     TP_MODEL_BASE,
     coef_scratch,
 )
@@ -1045,6 +1046,222 @@ def _mf61_evaluate(
     )
     out[OUT_FX_PEAK] = coef[C_DX_ABS] * scale
     out[OUT_FY_PEAK] = coef[C_DY_ABS] * scale
+
+
+# --- four tires at once: the step's call -------------------------------------------------
+N_WHEEL_TIRES = 4  # tires evaluated together by _mf61_evaluate_wheels (core.layout.N_WHEELS)
+N_WHEEL_CURVES = 9  # Magic Formula curves per tire there: _mf61_evaluate's eight + Fy0(gamma=0)
+N_WHEEL_LANES = N_WHEEL_TIRES * N_WHEEL_CURVES
+
+
+@intrinsic
+def _stack_wheel_lanes(typingctx: object) -> tuple:
+    """Pointer to ``N_WHEEL_LANES`` float64 on the caller's stack (as :func:`_stack_lanes`)."""
+    sig = types.CPointer(types.float64)()
+
+    def codegen(context: object, builder: object, signature: object, args: object) -> object:
+        return cgutils.alloca_once(builder, context.get_value_type(types.float64),
+                                   size=N_WHEEL_LANES)
+
+    return sig, codegen
+
+
+@intrinsic
+def _stack_wheel_tires(typingctx: object) -> tuple:
+    """Pointer to ``N_WHEEL_TIRES`` float64 on the caller's stack (as :func:`_stack_lanes`)."""
+    sig = types.CPointer(types.float64)()
+
+    def codegen(context: object, builder: object, signature: object, args: object) -> object:
+        return cgutils.alloca_once(builder, context.get_value_type(types.float64),
+                                   size=N_WHEEL_TIRES)
+
+    return sig, codegen
+
+
+@nb.njit(inline="always", **_JIT_OPTIONS)
+def _mf61_evaluate_wheels(
+    tp: np.ndarray,
+    coef: np.ndarray,
+    kappa_in: tuple[float, ...],
+    tan_alpha_in: tuple[float, ...],
+    fz_in: tuple[float, ...],
+    vx_in: tuple[float, ...],
+    out: np.ndarray,
+) -> None:
+    """:func:`_mf61_evaluate` of ``N_WHEEL_TIRES`` MF 6.1 tires in one pass, with the
+    dispatcher's mirroring and no-load rule (``core.tire.tire_evaluate``) for each.
+
+    Parameters
+    ----------
+    tp : float64[N_WHEEL_TIRES, N_TIRE_PARAM]
+        Packed tire vectors (every one an MF 6.1 tire, ``tp[w, TP_MODEL_BASE:]`` its
+        ``P_*`` slots, ``tp[w, TP_MIRRORED]`` its side).
+    coef : float64[N_WHEEL_TIRES, N_TIRE_COEF]
+        Written by :func:`mf61_prepare`; read only.
+    kappa_in, tan_alpha_in, fz_in, vx_in : tuples of N_WHEEL_TIRES floats
+        Per tire, as the arguments of :func:`_mf61_evaluate` (``tan_alpha`` unmirrored).
+    out : float64[N_WHEEL_TIRES, N_TIRE_OUT]
+        Written, row ``w`` as ``tire_evaluate`` writes ``out`` for tire ``w``.
+
+    Notes
+    -----
+    The same equations as :func:`_mf61_evaluate`, in three loops: the scalar work before
+    the curves for each tire, the ``N_WHEEL_TIRES x N_WHEEL_CURVES`` Magic Formula curves
+    in one branch-free loop that the compiler vectorises (lane ``j N_WHEEL_TIRES + w``:
+    curve ``j`` of tire ``w``; the ninth curve is ``Fy0`` at ``gamma = 0`` for (4.E74),
+    evaluated always and used where the camber is not zero), and the scalar work after
+    them. Equal to :func:`_mf61_evaluate` to rounding (checked in tests/test_tire_mf61.py).
+    """
+    nt = N_WHEEL_TIRES
+    yb = _stack_wheel_lanes()
+    eb = _stack_wheel_lanes()
+    cb = _stack_wheel_lanes()
+    kb = _stack_wheel_lanes()
+    sb = _stack_wheel_lanes()
+    kappa_b = _stack_wheel_tires()
+    tan_b = _stack_wheel_tires()
+    fz_b = _stack_wheel_tires()
+    vx_b = _stack_wheel_tires()
+    low_b = _stack_wheel_tires()
+    cos_b = _stack_wheel_tires()
+    dvyk_b = _stack_wheel_tires()
+    ar_b = _stack_wheel_tires()
+    for w in range(nt):
+        kappa_b[w] = kappa_in[w]
+        tan_b[w] = tan_alpha_in[w]
+        fz_b[w] = fz_in[w]
+        vx_b[w] = vx_in[w]
+
+    # --- before the curves: as _mf61_evaluate --------------------------------------------
+    for w in range(nt):
+        p = tp[w, TP_MODEL_BASE:]
+        c = coef[w]
+        side = 1.0 - 2.0 * tp[w, TP_MIRRORED]
+        kappa = min(max(kappa_b[w], -SLIP_INPUT_MAX), SLIP_INPUT_MAX)
+        tan_alpha = min(max(tan_b[w] * side, -SLIP_INPUT_MAX), SLIP_INPUT_MAX)
+        kappa_b[w] = kappa
+        tan_b[w] = tan_alpha
+        cos_b[w] = 1.0 / math.sqrt(1.0 + tan_alpha * tan_alpha)  # (4.E6)
+        rbx2k = p[P_RBX2] * kappa
+        bxa = c[C_BXA0] / math.sqrt(1.0 + rbx2k * rbx2k)  # (4.E54)
+        exa = c[C_EXA]
+        cxa = p[P_RCX1]  # (4.E55)
+        shxa = p[P_RHX1]  # (4.E57)
+        rby2a = p[P_RBY2] * (tan_alpha - p[P_RBY3])
+        byk = c[C_BYK0] / math.sqrt(1.0 + rby2a * rby2a)  # (4.E62)
+        eyk = c[C_EYK]
+        cyk = p[P_RCY1]  # (4.E63)
+        shyk = c[C_SHYK]  # (4.E61)
+        rvy4a = p[P_RVY4] * tan_alpha
+        dvyk_b[w] = c[C_DVYK0] / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)
+        low = _low_speed_factor(vx_b[w], p[P_VXLOW])
+        low_b[w] = low
+        kappa_x = kappa + c[C_SHX] * low  # (4.E10)
+        ex = c[C_EX_POS] if kappa_x >= 0.0 else c[C_EX_NEG]  # (4.E14)
+        shy = c[C_SHY] * low
+        alpha_y = tan_alpha + shy  # (4.E20)
+        ey = c[C_EY_POS] if alpha_y >= 0.0 else c[C_EY_NEG]  # (4.E24)
+        alpha_t = tan_alpha + c[C_SHT]  # (4.E34)
+        et = min(c[C_ET_LOAD] * (1.0 + c[C_ET_GAMMA] * _atan(c[C_BT_CT] * alpha_t)), 1.0)
+        alpha_r = tan_alpha + shy + c[C_SVY_KYA] * low  # (4.E37), (4.E38)
+        kk = c[C_KXK_KYA] * kappa  # (4.E77), (4.E78)
+        alpha_t_eq = math.sqrt(alpha_t * alpha_t + kk * kk)
+        ar_b[w] = math.sqrt(alpha_r * alpha_r + kk * kk)
+        alpha_y0 = tan_alpha + c[C_SHY_G0] * low  # (4.E74)'s Fy0 at gamma = 0
+        ey_g0 = c[C_EY_G0_POS] if alpha_y0 >= 0.0 else c[C_EY_G0_NEG]
+        # the lanes: (y, E, C, K) as in _mf61_evaluate's call of _mf_lanes, then the ninth
+        yb[w], eb[w], cb[w], kb[w] = bxa * shxa, exa, cxa, _PI_2
+        yb[nt + w], eb[nt + w], cb[nt + w], kb[nt + w] = bxa * (tan_alpha + shxa), exa, cxa, _PI_2
+        yb[2 * nt + w], eb[2 * nt + w], cb[2 * nt + w], kb[2 * nt + w] = byk * shyk, eyk, cyk, _PI_2
+        yb[3 * nt + w], eb[3 * nt + w], cb[3 * nt + w], kb[3 * nt + w] = (
+            byk * (kappa + shyk), eyk, cyk, _PI_2)
+        yb[4 * nt + w], eb[4 * nt + w], cb[4 * nt + w], kb[4 * nt + w] = (
+            c[C_BX] * kappa_x, ex, c[C_CX], 0.0)
+        yb[5 * nt + w], eb[5 * nt + w], cb[5 * nt + w], kb[5 * nt + w] = (
+            c[C_BY] * alpha_y, ey, c[C_CY], 0.0)
+        yb[6 * nt + w], eb[6 * nt + w], cb[6 * nt + w], kb[6 * nt + w] = (
+            c[C_BT] * alpha_t_eq, et, p[P_QCZ1], _PI_2)
+        yb[7 * nt + w], eb[7 * nt + w], cb[7 * nt + w], kb[7 * nt + w] = (
+            p[P_RVY6] * kappa, 0.0, p[P_RVY5], 0.0)
+        yb[8 * nt + w], eb[8 * nt + w], cb[8 * nt + w], kb[8 * nt + w] = (
+            c[C_BY_G0] * alpha_y0, ey_g0, c[C_CY], 0.0)
+
+    # --- the curves: one branch-free loop, vectorised (as _mf_lanes) ----------------------
+    for i in range(N_WHEEL_LANES):
+        yi = yb[i]
+        ei = eb[i]
+        theta = _atan((1.0 - ei) * yi + ei * _atan(yi))
+        sb[i] = _sin_branch_free(cb[i] * theta + kb[i])
+
+    # --- after the curves: as _mf61_evaluate -----------------------------------------------
+    for w in range(nt):
+        p = tp[w, TP_MODEL_BASE:]
+        c = coef[w]
+        o = out[w]
+        side = 1.0 - 2.0 * tp[w, TP_MIRRORED]
+        kappa = kappa_b[w]
+        tan_alpha = tan_b[w]
+        fz_n = fz_b[w]
+        low = low_b[w]
+        cos_a = cos_b[w]
+        scale = max(min(fz_n, FZ_INPUT_MAX_N), 0.0) / c[C_FZ_PREP]
+        gxa = max(sb[nt + w] / max(sb[w], _TINY), 0.0)  # (4.E51), (4.E52)
+        gyk = max(sb[3 * nt + w] / max(sb[2 * nt + w], _TINY), 0.0)  # (4.E59), (4.E60)
+        fx0 = c[C_DX] * sb[4 * nt + w] + c[C_SVX] * low  # (4.E9)
+        fy0 = c[C_DY] * sb[5 * nt + w] + c[C_SVY] * low  # (4.E19)
+        t = c[C_DT] * sb[6 * nt + w] * cos_a  # (4.E73)
+        svyk = dvyk_b[w] * sb[7 * nt + w] * p[P_LVYKA]  # (4.E66)
+        fy0_cam = c[C_DY_G0] * sb[8 * nt + w] + c[C_SVY_G0] * low
+        fy0_g0 = fy0_cam if c[C_CAMBER] != 0.0 else fy0  # gamma* = 0: the same curve
+        fx = gxa * fx0  # (4.E50)
+        fy = gyk * fy0 + svyk  # (4.E58)
+        fy_prime = gyk * fy0_g0  # (4.E74)
+        br_ar = c[C_BR] * ar_b[w]
+        dr = c[C_DR0] * cos_a  # (4.E47)
+        mzr = dr / math.sqrt(1.0 + br_ar * br_ar)  # (4.E75)
+        r0 = p[P_UNLOADED_RADIUS]
+        arm = r0 * (p[P_SSZ1] + p[P_SSZ2] * fy * c[C_INV_FZ0] + c[C_S_GAMMA]) * p[P_LS]
+        mz = -t * fy_prime + mzr + arm * fx  # (4.E71), (4.E72), (4.E76)
+        vr = min(abs(vx_b[w]), VX_MY_MAX_MPS) * c[C_INV_V0]
+        vr2 = vr * vr
+        my = (
+            c[C_MY_SCALE]
+            * (p[P_QSY1] + p[P_QSY2] * fx * c[C_INV_FNOMIN] + p[P_QSY3] * vr
+               + p[P_QSY4] * vr2 * vr2 + c[C_MY_GAMMA])
+            * c[C_MY_PRESSURE]
+        )  # (4.E70)  # fmt: skip
+        if fz_n > 0.0:
+            o[OUT_FX] = fx * scale
+            o[OUT_FY] = fy * scale * side
+            o[OUT_MZ] = mz * scale * side
+            o[OUT_MY] = max(my, 0.0) * scale
+            o[OUT_C_KAPPA] = c[C_KXK] * scale
+            o[OUT_C_ALPHA] = c[C_KYA_ABS] * scale
+            o[OUT_KAPPA_SLIDE] = c[C_KAPPA_SLIDE_POS] if kappa >= 0.0 else c[C_KAPPA_SLIDE_NEG]
+            o[OUT_TAN_ALPHA_SLIDE] = (
+                c[C_TAN_ALPHA_SLIDE_POS] if tan_alpha >= 0.0 else c[C_TAN_ALPHA_SLIDE_NEG]
+            )
+            o[OUT_FX_PEAK] = c[C_DX_ABS] * scale
+            o[OUT_FY_PEAK] = c[C_DY_ABS] * scale
+        else:  # as core.tire._no_load
+            o[OUT_FX] = o[OUT_FY] = o[OUT_MZ] = o[OUT_MY] = 0.0
+            o[OUT_FX_PEAK] = o[OUT_FY_PEAK] = 0.0
+            o[OUT_C_KAPPA] = o[OUT_C_ALPHA] = 1.0
+            o[OUT_KAPPA_SLIDE] = o[OUT_TAN_ALPHA_SLIDE] = 1.0
+
+
+@nb.njit(**_JIT_OPTIONS)
+def mf61_evaluate_wheels(
+    tp: np.ndarray,
+    coef: np.ndarray,
+    kappa: tuple[float, ...],
+    tan_alpha: tuple[float, ...],
+    fz_n: tuple[float, ...],
+    vx_mps: tuple[float, ...],
+    out: np.ndarray,
+) -> None:
+    """:func:`_mf61_evaluate_wheels` compiled on its own (for the tests)."""
+    _mf61_evaluate_wheels(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
 
 @nb.njit(**_JIT_OPTIONS)
