@@ -2,7 +2,8 @@
 by one from an empty numba cache, then the same from the warm cache.
 
     python -m benchmarks.bench_compile                 # 1 cold + 1 warm run, default scene
-    python -m benchmarks.bench_compile --cold 3 --warm 3 --scene configs/scenes/flat_mf_hatchback.yaml
+    python -m benchmarks.bench_compile --cold 3 --warm 3   # medians of 3
+    python -m benchmarks.bench_compile --scene configs/scenes/flat_mf_hatchback.yaml
 
 Each run is a fresh Python process (``NUMBA_CACHE_DIR`` a new empty temporary directory for
 a cold run, the last cold run's directory for a warm one; Python's own bytecode is already
