@@ -33,7 +33,8 @@ In order:
    alone (issue 14);
 6. start-up: ``simserver serve`` from launch to its ``ready`` line (physics compiled or
    loaded, zenoh session open, before the first tick), cold = ``NUMBA_CACHE_DIR`` an empty
-   temporary directory, warm = the same directory again; the median of the repeats;
+   temporary directory, warm = the same directory again; the median of the repeats; and
+   ``benchmarks.bench_compile`` once: the physics' cold compile alone, per entry point;
 7. memory of a headless run: peak RSS (``ru_maxrss`` from ``wait4``) of the README's
    ``simserver run-scenario`` example, which also reports its real-time factor.
 
@@ -611,6 +612,14 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
                         f"{s['cold_median_s']:.2f} s", cmd))
         rows.append(Row(f"start-up to ready, warm numba cache (median of {len(s['warm_s'])})",
                         f"{s['warm_median_s']:.2f} s", cmd))
+        from benchmarks import bench_compile
+
+        raw["compile"] = c = bench_compile.measure(1, 0, bench_compile.DEFAULT_SCENE)["cold"]
+        rows.append(Row("cold compile of the physics alone, wall (CPU): imports, "
+                        "Simulation.warm_up and tire_forces / of which the step",
+                        f"{c['total']['wall_s']:.1f} "
+                        f"({c['total']['cpu_s']:.1f}) s / {c['step']['wall_s']:.1f} "
+                        f"({c['step']['cpu_s']:.1f}) s", "python -m benchmarks.bench_compile"))
 
     if "memory" in sections:
         print("== headless run", flush=True)

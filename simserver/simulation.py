@@ -14,6 +14,7 @@ benchmarks and the tests all use it, so they run the very same arithmetic.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -262,14 +263,28 @@ class Simulation:
     def warm_up(self) -> None:
         """Compile (or load from cache) every kernel the server uses, before the clock starts;
         the state is left as it was."""
+        for _name, call in self.warm_up_calls():
+            call()
+
+    def warm_up_calls(self) -> list[tuple[str, Callable[[], object]]]:
+        """The compiled entry points :meth:`warm_up` calls, by name, in order (each compiles
+        or loads its kernel on its first call; ``benchmarks.bench_compile`` times them one by
+        one). They run on a copy of the state."""
         saved = Data(x=self.data.x.copy(), inputs=self.data.inputs.copy(),
                      out=self.data.out.copy(), ws=self.data.ws)
-        step(self.model, saved)
-        world_pose(self.data.x, self.axes, self.model.vp[VP_CG_HEIGHT_M], self.pose)
-        simulate(self.model, saved, np.zeros((1, L.N_INPUT)), np.zeros((1, L.N_STATE)),
-                 np.zeros((1, L.N_OUT)), 1)
-        start_powertrain(self.model, saved)
-        settle_at_velocity(self.model, saved, 1, np.zeros(BODY_SLOTS))
-        # a later load of a terrain places the car with it: loaded now, not in a tick (it
-        # took 10 ms from the cache on the first terrain load of a server started flat)
-        place_on_terrain(self.model, saved.ws, saved.x.copy())
+        model = self.model
+        return [
+            ("step", lambda: step(model, saved)),
+            ("world_pose", lambda: world_pose(self.data.x, self.axes,
+                                              model.vp[VP_CG_HEIGHT_M], self.pose)),
+            ("simulate", lambda: simulate(model, saved, np.zeros((1, L.N_INPUT)),
+                                          np.zeros((1, L.N_STATE)), np.zeros((1, L.N_OUT)),
+                                          1)),
+            ("start_powertrain", lambda: start_powertrain(model, saved)),
+            ("settle_at_velocity", lambda: settle_at_velocity(model, saved, 1,
+                                                              np.zeros(BODY_SLOTS))),
+            # a later load of a terrain places the car with it: loaded now, not in a tick
+            # (it took 10 ms from the cache on the first terrain load of a server started
+            # flat)
+            ("place_on_terrain", lambda: place_on_terrain(model, saved.ws, saved.x.copy())),
+        ]

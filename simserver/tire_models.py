@@ -8,7 +8,10 @@ An entry (``TireModel``) holds everything that is particular to a model:
   model-specific slots and the common ones (radius, relaxation lengths);
 - ``prepare`` and ``evaluate``: the compiled kernels, compiled with the explicit
   signatures ``core.tire_layout.PREPARE_SIGNATURE`` and ``EVALUATE_SIGNATURE``, taking
-  the whole packed tire vector (common slots, then the model's from ``TP_MODEL_BASE``);
+  the whole packed tire vector (common slots, then the model's from ``TP_MODEL_BASE``).
+  The built-in models' kernels are the exception: the step calls those models' bodies
+  directly (``core.tire``), never their kernels, so they are compiled on first use only
+  (compiled at import they cost 10-12 s of every start from an empty numba cache);
 - ``nominal_load_n``: the load at which its stiffnesses are reported
   (``stiffness_report``, the CLI's ``tire-curves``).
 
@@ -117,7 +120,8 @@ def register_tire_model(name: str, description: str, load: Callable[[Path, dict]
                         prepare: Any, evaluate: Any,
                         nominal_load_n: Callable[[np.ndarray], float],
                         params: ParamTable | None = None,
-                        path_keys: tuple[tuple[str, str], ...] = ()) -> TireModel:
+                        path_keys: tuple[tuple[str, str], ...] = (),
+                        _builtin: bool = False) -> TireModel:
     """Add a tire model; it gets the next id. Returns its entry.
 
     ``prepare`` and ``evaluate`` are ``numba.njit`` functions compiled with the explicit
@@ -129,8 +133,9 @@ def register_tire_model(name: str, description: str, load: Callable[[Path, dict]
     """
     if name in TIRE_MODEL_NAMES:
         raise ValueError(f"tire model {name!r} is already registered")
-    _check_kernel(name, prepare, PREPARE_SIGNATURE, "prepare")
-    _check_kernel(name, evaluate, EVALUATE_SIGNATURE, "evaluate")
+    if not _builtin:  # the built-in models' kernels compile on first use (module docstring)
+        _check_kernel(name, prepare, PREPARE_SIGNATURE, "prepare")
+        _check_kernel(name, evaluate, EVALUATE_SIGNATURE, "evaluate")
     entry = TireModel(id=len(_REGISTRY), name=name, description=description, load=load,
                       prepare=prepare, evaluate=evaluate, nominal_load_n=nominal_load_n,
                       params=params, path_keys=path_keys)
@@ -381,11 +386,11 @@ def _load_mf61(path: Path, data: dict[str, Any]) -> LoadedTire:
 _simple = register_tire_model(
     "simple", "brush (Fiala) combined-slip model with explicit stiffnesses (core/tire_simple.py)",
     _load_simple, simple_prepare_kernel, simple_evaluate_kernel, lambda p: p[SP_FZ_NOM],
-    params=SIMPLE_TIRE_PARAMS)
+    params=SIMPLE_TIRE_PARAMS, _builtin=True)
 _mf61 = register_tire_model(
     "mf61", "Magic Formula 6.1 from a .tir property file (core/tire_mf61.py)",
     _load_mf61, mf61_prepare_kernel, mf61_evaluate_kernel, lambda p: p[P_FNOMIN],
-    params=MF61_TIRE_PARAMS, path_keys=MF61_PATH_KEYS)
+    params=MF61_TIRE_PARAMS, path_keys=MF61_PATH_KEYS, _builtin=True)
 if (_simple.id, _mf61.id, len(_REGISTRY)) != (TIRE_MODEL_SIMPLE, TIRE_MODEL_MF61,
                                                N_BUILTIN_TIRE_MODELS):
     raise ImportError("the built-in tire models must keep the ids of core.tire_layout")

@@ -261,3 +261,26 @@ def test_registry_rejects_kernels_without_the_registered_signature():
     with pytest.raises(ValueError, match="already registered"):
         register_tire_model("simple", "", load_linear, linear_prepare, linear_evaluate,
                             lambda p: 1.0)
+
+
+def test_builtin_kernels_compile_on_first_use_and_match_the_step_dispatch():
+    """The step calls the built-in models' bodies directly (core.tire), never their registry
+    kernels: those are not compiled at import (they cost 10-12 s of every start from an
+    empty numba cache), and once called they give the forces of the dispatch the step
+    uses, to the bit (the same inlined body, the same compile options)."""
+    from simserver.core.tire import tire_forces
+    from simserver.core.tire_layout import N_TIRE_COEF, N_TIRE_OUT
+    from simserver.tire_models import tire_kernels
+
+    mf61 = tire_model("mf61")
+    assert not mf61.prepare.signatures and not mf61.evaluate.signatures
+    simple = tire_model("simple")
+    tp, _ = load_tire(CONFIGS / "tires" / "paper_sti.yaml")
+    tp = np.ascontiguousarray(tp)
+    coef, via_kernels, via_dispatch = np.zeros(N_TIRE_COEF), np.zeros(N_TIRE_OUT), np.zeros(
+        N_TIRE_OUT)
+    for kappa, tan_alpha in ((0.02, 0.0), (-0.3, 0.1), (0.0, -0.05)):
+        simple.prepare(tp, 0.0, 4000.0, 1.0, coef)
+        simple.evaluate(tp, coef, kappa, tan_alpha, 4000.0, 20.0, via_kernels)
+        tire_forces(tire_kernels(), tp, kappa, tan_alpha, 0.0, 4000.0, 1.0, 20.0, via_dispatch)
+        np.testing.assert_array_equal(via_kernels, via_dispatch)

@@ -274,18 +274,25 @@ def lawson_rk4(model: Model, data: Data) -> None:
     k1, k2, k3, k4 = rk[RK_K1], rk[RK_K2], rk[RK_K3], rk[RK_K4]
     decay, e_half = rk[RK_DECAY], rk[RK_E_HALF]
     _copy_discrete(x, y)
-    for j in range(N_INTEGRATED):
-        k1[j] += decay[j] * x[j]
-        y[j] = e_half[j] * (x[j] + 0.5 * h * k1[j])  # y2
-    vehicle_rates(model, ws, y, k2)
-    for j in range(N_INTEGRATED):
-        k2[j] += decay[j] * y[j]
-        y[j] = e_half[j] * x[j] + 0.5 * h * k2[j]  # y3
-    vehicle_rates(model, ws, y, k3)
-    for j in range(N_INTEGRATED):
-        k3[j] += decay[j] * y[j]
-        y[j] = e_half[j] * e_half[j] * x[j] + h * e_half[j] * k3[j]  # y4
-    vehicle_rates(model, ws, y, k4)
+    # k2, k3, k4 in a loop: one inlined copy of vehicle_rates instead of three (the cold
+    # compile of the step grew with every copy, numba's type inference most); the stage
+    # derivatives' rows RK_K1 .. RK_K4 are consecutive (core.model)
+    y_prev = x
+    for stage in range(3):
+        k_prev, k = rk[RK_K1 + stage], rk[RK_K2 + stage]
+        for j in range(N_INTEGRATED):
+            k_prev[j] += decay[j] * y_prev[j]
+        if stage == 0:  # y2
+            for j in range(N_INTEGRATED):
+                y[j] = e_half[j] * (x[j] + 0.5 * h * k_prev[j])
+        elif stage == 1:  # y3
+            for j in range(N_INTEGRATED):
+                y[j] = e_half[j] * x[j] + 0.5 * h * k_prev[j]
+        else:  # y4
+            for j in range(N_INTEGRATED):
+                y[j] = e_half[j] * e_half[j] * x[j] + h * e_half[j] * k_prev[j]
+        vehicle_rates(model, ws, y, k)
+        y_prev = y
     for i in range(N_WHEELS):
         rk[RK_SPIN0, OMEGA0 + i] = x[OMEGA0 + i]  # for the zero-crossing test
     for j in range(N_INTEGRATED):

@@ -102,7 +102,7 @@ N_GROUND = 25
 # N_INTEGRATED columns)
 RK_Y = 0  # the stage state of stages 2, 3 and 4 in turn (each is used up before the next)
 RK_SPIN0 = 1  # the wheels' start spins (OMEGA0 columns), for the zero-crossing test
-RK_K1, RK_K2, RK_K3, RK_K4 = 2, 3, 4, 5  # stage derivatives
+RK_K1, RK_K2, RK_K3, RK_K4 = 2, 3, 4, 5  # stage derivatives (consecutive: lawson_rk4 loops)
 RK_DECAY = 6  # linear decay rates frozen at the step start
 RK_E_HALF = 7  # exp(-decay h / 2)
 N_RK = 8

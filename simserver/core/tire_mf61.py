@@ -74,7 +74,6 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from simserver.core.tire_layout import (
-    EVALUATE_SIGNATURE,
     FZ_INPUT_MAX_N,
     MU_SCALE_MAX,
     N_MF61_COEF,
@@ -88,7 +87,6 @@ from simserver.core.tire_layout import (
     OUT_MY,
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
-    PREPARE_SIGNATURE,
     SLIP_INPUT_MAX,
     TIRE_JIT_OPTIONS,
     TP_MIRRORED,
@@ -1393,10 +1391,11 @@ def mf61_param_vector(coeffs: dict[str, float]) -> np.ndarray:
 
 
 # ---- the kernels registered for this model (simserver.tire_models): the packed tire vector
-# in full (core.tire_layout.PREPARE_SIGNATURE, EVALUATE_SIGNATURE), the body inlined
+# in full (core.tire_layout.PREPARE_SIGNATURE, EVALUATE_SIGNATURE), the body inlined.
+# Compiled on first use, not at import: the step inlines the body itself (core.tire)
 
 
-@nb.njit(PREPARE_SIGNATURE, **_JIT_OPTIONS)
+@nb.njit(**_JIT_OPTIONS)
 def mf61_prepare_kernel(
     tp: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
 ) -> None:
@@ -1404,7 +1403,7 @@ def mf61_prepare_kernel(
     _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
 
 
-@nb.njit(EVALUATE_SIGNATURE, **_JIT_OPTIONS)
+@nb.njit(**_JIT_OPTIONS)
 def mf61_evaluate_kernel(
     tp: np.ndarray,
     coef: np.ndarray,

@@ -33,7 +33,6 @@ import numba as nb
 import numpy as np
 
 from simserver.core.tire_layout import (
-    EVALUATE_SIGNATURE,
     FZ_INPUT_MAX_N,
     MU_SCALE_MAX,
     N_SIMPLE_COEF,
@@ -47,7 +46,6 @@ from simserver.core.tire_layout import (
     OUT_MY,
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
-    PREPARE_SIGNATURE,
     SLIP_INPUT_MAX,
     TIRE_JIT_OPTIONS,
     TP_MODEL_BASE,
@@ -273,10 +271,11 @@ def simple_evaluate(
 
 
 # ---- the kernels registered for this model (simserver.tire_models): the packed tire vector
-# in full (core.tire_layout.PREPARE_SIGNATURE, EVALUATE_SIGNATURE), the body inlined
+# in full (core.tire_layout.PREPARE_SIGNATURE, EVALUATE_SIGNATURE), the body inlined.
+# Compiled on first use, not at import: the step inlines the body itself (core.tire)
 
 
-@nb.njit(PREPARE_SIGNATURE, **TIRE_JIT_OPTIONS)
+@nb.njit(**TIRE_JIT_OPTIONS)
 def simple_prepare_kernel(
     tp: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
 ) -> None:
@@ -284,7 +283,7 @@ def simple_prepare_kernel(
     _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
 
 
-@nb.njit(EVALUATE_SIGNATURE, **TIRE_JIT_OPTIONS)
+@nb.njit(**TIRE_JIT_OPTIONS)
 def simple_evaluate_kernel(
     tp: np.ndarray,
     coef: np.ndarray,
