@@ -346,15 +346,16 @@ class DuplicateVehicleError(RuntimeError):
     """Another server already serves this vehicle id on the zenoh network."""
 
 
-COLD_COMPILE_S = (20, 45)
-"""A cold start's compile time on the development machine (2 vCPUs), for the log line."""
+COLD_COMPILE_S = (45, 90)
+"""A cold start's compile time on the development machine (2 vCPUs; 61 s quiet, more when busy:
+``python -m benchmarks.bench_compile``), for the log line."""
 
 
 class CompileProgress:
     """Say so when compiling takes long (a cold numba cache), with the seconds so far.
 
     Silent when the kernels come from the cache (under ``quiet_s``); otherwise one line
-    ``simserver: compiling ... (first start only, about 20-45 s)``, one line every
+    ``simserver: compiling ... (first start only, about 45-90 s)``, one line every
     ``every_s`` with the time so far, and one when done. A daemon thread prints them: the
     compiling thread is busy.
     """
