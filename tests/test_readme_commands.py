@@ -78,6 +78,7 @@ NOT_RUN_HERE = {
     "python -m benchmarks.bench_step": "the same",
     "python -m benchmarks.bench_server": "the same",
     "python -m benchmarks.bench_clock": "the same",
+    "python -m benchmarks.bench_sweep": "the same",
     "python benchmarks/bench_tire.py": "the same",
     "python docs/figures.py": "regenerates the README's figures (minutes)",
 }
