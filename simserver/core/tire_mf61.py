@@ -502,9 +502,9 @@ def _sin(x: float) -> float:
 N_LANES = 8
 
 
-@intrinsic
-def _stack_lanes(typingctx: object) -> tuple:
-    """Pointer to ``N_LANES`` float64 on the stack of the compiled caller (an alloca).
+def _stack_scratch(size: int) -> object:
+    """An intrinsic giving a pointer to ``size`` float64 on the stack of the compiled
+    caller (an alloca).
 
     Stack scratch, not a heap allocation: it lets the compiler vectorise the lane loop of
     :func:`_mf_lanes` (numba has no other allocation-free local array). Indexed as a raw
@@ -512,12 +512,21 @@ def _stack_lanes(typingctx: object) -> tuple:
     reference counting, which the dispatchers that inline these bodies are compiled
     without (``tire_layout.TIRE_DISPATCH_JIT_OPTIONS``).
     """
-    sig = types.CPointer(types.float64)()
 
-    def codegen(context: object, builder: object, signature: object, args: object) -> object:
-        return cgutils.alloca_once(builder, context.get_value_type(types.float64), size=N_LANES)
+    @intrinsic
+    def stack(typingctx: object) -> tuple:
+        sig = types.CPointer(types.float64)()
 
-    return sig, codegen
+        def codegen(context: object, builder: object, signature: object, args: object) -> object:
+            return cgutils.alloca_once(builder, context.get_value_type(types.float64),
+                                       size=size)
+
+        return sig, codegen
+
+    return stack
+
+
+_stack_lanes = _stack_scratch(N_LANES)
 
 
 @nb.njit(inline="always", **_JIT_OPTIONS)
@@ -1052,28 +1061,8 @@ N_WHEEL_CURVES = 9  # Magic Formula curves per tire there: _mf61_evaluate's eigh
 N_WHEEL_LANES = N_WHEEL_TIRES * N_WHEEL_CURVES
 
 
-@intrinsic
-def _stack_wheel_lanes(typingctx: object) -> tuple:
-    """Pointer to ``N_WHEEL_LANES`` float64 on the caller's stack (as :func:`_stack_lanes`)."""
-    sig = types.CPointer(types.float64)()
-
-    def codegen(context: object, builder: object, signature: object, args: object) -> object:
-        return cgutils.alloca_once(builder, context.get_value_type(types.float64),
-                                   size=N_WHEEL_LANES)
-
-    return sig, codegen
-
-
-@intrinsic
-def _stack_wheel_tires(typingctx: object) -> tuple:
-    """Pointer to ``N_WHEEL_TIRES`` float64 on the caller's stack (as :func:`_stack_lanes`)."""
-    sig = types.CPointer(types.float64)()
-
-    def codegen(context: object, builder: object, signature: object, args: object) -> object:
-        return cgutils.alloca_once(builder, context.get_value_type(types.float64),
-                                   size=N_WHEEL_TIRES)
-
-    return sig, codegen
+_stack_wheel_lanes = _stack_scratch(N_WHEEL_LANES)
+_stack_wheel_tires = _stack_scratch(N_WHEEL_TIRES)
 
 
 @nb.njit(inline="always", **_JIT_OPTIONS)
