@@ -1238,20 +1238,6 @@ def _mf61_evaluate_wheels(
 
 
 @nb.njit(**_JIT_OPTIONS)
-def mf61_evaluate_wheels(
-    tp: np.ndarray,
-    coef: np.ndarray,
-    kappa: tuple[float, ...],
-    tan_alpha: tuple[float, ...],
-    fz_n: tuple[float, ...],
-    vx_mps: tuple[float, ...],
-    out: np.ndarray,
-) -> None:
-    """:func:`_mf61_evaluate_wheels` compiled on its own (for the tests)."""
-    _mf61_evaluate_wheels(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
-
-
-@nb.njit(**_JIT_OPTIONS)
 def mf61_forces(
     p: np.ndarray,
     kappa: float,
