@@ -28,7 +28,7 @@ name it is defined in :mod:`simserver.keyframes`, which the player client shares
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -303,6 +303,30 @@ def start_run(scenario: Scenario) -> tuple[Simulation, np.ndarray]:
     return sim, inputs
 
 
+def step_chunks(
+    sim: Simulation,
+    inputs: np.ndarray,
+    every: int,
+    chunk_steps: int,
+    rows_at: Callable[[int, int], tuple[np.ndarray, np.ndarray]],
+) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
+    """Step ``sim`` through ``inputs`` (one row a step) in compiled calls of about
+    ``chunk_steps`` steps, recording every ``every``-th step: ``rows_at(r0, rows)`` gives
+    the states and outputs arrays that the chunk's recorded rows ``r0 .. r0 + rows`` of the
+    run go into. Yields ``(steps done, r0, states, outputs)`` after each chunk."""
+    # a whole number of records a chunk, so that a chunk's first step is a recorded one
+    chunk_steps = max(every, chunk_steps - chunk_steps % every)
+    n = len(inputs)
+    done = 0
+    while done < n:
+        m = min(chunk_steps, n - done)
+        r0 = done // every
+        states, outputs = rows_at(r0, (m + every - 1) // every)
+        sim.run(inputs[done:done + m], states, outputs, every)
+        done += m
+        yield done, r0, states, outputs
+
+
 def run_scenario(
     scenario: Scenario,
     progress: Callable[[int, int], None] | None = None,
@@ -316,18 +340,13 @@ def run_scenario(
     sim, inputs = start_run(scenario)
     n = scenario.n_steps
     every = scenario.record_every
-    chunk_steps = max(every, chunk_steps - chunk_steps % every)
     n_rec = (n + every - 1) // every
     states = np.zeros((n_rec, L.N_STATE))
     outputs = np.zeros((n_rec, L.N_OUT))
     t0 = time.perf_counter()
-    done = 0
-    while done < n:
-        m = min(chunk_steps, n - done)
-        r0 = done // every
-        r1 = r0 + (m + every - 1) // every
-        sim.run(inputs[done:done + m], states[r0:r1], outputs[r0:r1], every)
-        done += m
+    for done, _, _, _ in step_chunks(sim, inputs, every, chunk_steps,
+                                     lambda r0, rows: (states[r0:r0 + rows],
+                                                       outputs[r0:r0 + rows])):
         if progress is not None:
             progress(done, n)
     wall = time.perf_counter() - t0

@@ -130,10 +130,10 @@ def run_for_metrics(scenario: Any, names: Iterable[str]) -> MetricRun:
     """Run ``scenario`` as ``run_scenario`` does (``start_run``, the same compiled loop, so
     the same numbers bit for bit) but keep only the history columns ``names``: the states
     and outputs go through ``STREAM_ROWS`` reused rows, and each chunk's wanted columns are
-    gathered into arrays reused from run to run. The columns are valid until the next run
-    in this thread."""
+    gathered into arrays reused from run to run (``scenario.step_chunks``, the stepper of
+    ``run_scenario``). The columns are valid until the next run in this thread."""
     from simserver.core import layout as L
-    from simserver.scenario import start_run
+    from simserver.scenario import start_run, step_chunks
 
     sim, inputs = start_run(scenario)
     n, every = scenario.n_steps, scenario.record_every
@@ -147,16 +147,12 @@ def run_for_metrics(scenario: Any, names: Iterable[str]) -> MetricRun:
     idx_o = [places[name][1] for name in by_array["outputs"]]
     kept_s = bufs.kept("states", n_rec, len(idx_s))
     kept_o = bufs.kept("outputs", n_rec, len(idx_o))
-    chunk_steps = STREAM_ROWS * every
     first_bad: float | None = None
     t0 = time.perf_counter()
-    done = 0
-    while done < n:
-        m = min(chunk_steps, n - done)
-        r0 = done // every
-        rows = (m + every - 1) // every
-        states, outputs = bufs.states[:rows], bufs.outputs[:rows]
-        sim.run(inputs[done:done + m], states, outputs, every)
+    for _, r0, states, outputs in step_chunks(sim, inputs, every, STREAM_ROWS * every,
+                                              lambda _, rows: (bufs.states[:rows],
+                                                               bufs.outputs[:rows])):
+        rows = len(states)
         if idx_s:
             np.take(states, idx_s, axis=1, out=kept_s[r0:r0 + rows])
         if idx_o:
@@ -165,7 +161,6 @@ def run_for_metrics(scenario: Any, names: Iterable[str]) -> MetricRun:
                                       and np.isfinite(outputs).all()):
             bad = ~(np.isfinite(states).all(axis=1) & np.isfinite(outputs).all(axis=1))
             first_bad = float(states[np.argmax(bad), L.TIME_S])
-        done += m
     wall = time.perf_counter() - t0
     columns = {name: kept_s[:, i] for i, name in enumerate(by_array["states"])}
     columns.update({name: kept_o[:, i] for i, name in enumerate(by_array["outputs"])})
