@@ -112,6 +112,7 @@ def check_command(payload: bytes) -> None:
         assert not accepted, f"rejected a valid command ({exc}): {payload.hex()}"
         assert exc.field in ("payload", "version", "gear", "flags", "reserved", "steer",
                              "throttle", "brake"), exc
+        assert str(exc).startswith(f"{exc.field}: "), exc  # the field is named first
         return
     assert accepted, f"accepted an invalid command: {payload.hex()}"
     for name, value in values.items():
