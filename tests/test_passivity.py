@@ -48,7 +48,7 @@ def run_locked_hub(tp, passive: bool, lateral: bool, cycles: int = 3, n_per_cycl
     out = np.zeros(N_TIRE_OUT)
     radius, b, big_b = tp[TP_RADIUS_M], tp[TP_RELAX_LAT_M], tp[TP_RELAX_LONG_M]
     h = 2 * math.pi / OMEGA_DRIVE / n_per_cycle
-    state = np.zeros(2)  # tan a', k'
+    ta, ka = 0.0, 0.0  # tan a', k' (Python floats: the same arithmetic as on a numpy pair)
     t = 0.0
     power = np.zeros(cycles * n_per_cycle)
 
@@ -56,25 +56,25 @@ def run_locked_hub(tp, passive: bool, lateral: bool, cycles: int = 3, n_per_cycl
         speed = U_AMP * math.cos(OMEGA_DRIVE * time)
         return (0.0, speed) if lateral else (speed, 0.0)
 
-    def rate(y, time):
+    def rate(ta, ka, time):
         u, v = hub(time)
-        return np.array(lagged_slip_rates(y[0], y[1], u, v, 0.0, radius, b, big_b))
+        return lagged_slip_rates(ta, ka, u, v, 0.0, radius, b, big_b)
 
     for step_no in range(power.size):
         u, v = hub(t)
-        tire_forces(BUILTIN_KERNELS, tp, state[1], state[0], 0.0, FZ, 1.0, u, out)
+        tire_forces(BUILTIN_KERNELS, tp, ka, ta, 0.0, FZ, 1.0, u, out)
         power[step_no] = out[OUT_FX] * u + out[OUT_FY] * v  # work rate of the tire on the hub
-        k1 = rate(state, t)
-        k2 = rate(state + 0.5 * h * k1, t + 0.5 * h)
-        k3 = rate(state + 0.5 * h * k2, t + 0.5 * h)
-        k4 = rate(state + h * k3, t + h)
-        state = state + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        a1, k1 = rate(ta, ka, t)
+        a2, k2 = rate(ta + 0.5 * h * a1, ka + 0.5 * h * k1, t + 0.5 * h)
+        a3, k3 = rate(ta + 0.5 * h * a2, ka + 0.5 * h * k2, t + 0.5 * h)
+        a4, k4 = rate(ta + h * a3, ka + h * k3, t + h)
+        ta = ta + h / 6 * (a1 + 2 * a2 + 2 * a3 + a4)
+        ka = ka + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         t += h
         if passive:
             u, v = hub(t)
-            state[0], state[1] = project_to_sliding_limit(
-                state[0], state[1], out[OUT_TAN_ALPHA_SLIDE], out[OUT_KAPPA_SLIDE],
-                math.hypot(u, v), WIDEN)
+            ta, ka = project_to_sliding_limit(ta, ka, out[OUT_TAN_ALPHA_SLIDE],
+                                              out[OUT_KAPPA_SLIDE], math.hypot(u, v), WIDEN)
     return h, power, n_per_cycle
 
 
