@@ -386,6 +386,19 @@ def test_request_without_server_times_out():
             cli.request("pause", timeout_s=0.3)
 
 
+def test_a_queryable_that_does_not_answer_in_time_is_a_timeout():
+    """A server too busy to answer: zenoh's own error reply ("Timeout") is a TimeoutError,
+    not a malformed reply (it was "reply: is not UTF-8 JSON" under load)."""
+    with pair() as (srv, cli):
+        inbox = srv.declare_control_inbox()  # declared, never polled
+        querier = cli.session.declare_querier(cli.keys.ctl["pause"])
+        eventually(lambda: querier.matching_status.matching, what="the queryable known")
+        querier.undeclare()
+        with pytest.raises(TimeoutError, match="a queryable matched"):
+            cli.request("pause", timeout_s=0.3)
+        assert inbox.received == 1
+
+
 def test_reply_twice_is_an_error():
     with pair() as (srv, cli):
         inbox = srv.declare_control_inbox()

@@ -566,6 +566,11 @@ class AliveWatch:
             self._sub = None
 
 
+ZENOH_TIMEOUT_REPLY = b"Timeout"
+"""The error reply zenoh itself gives a query whose matching queryable did not answer
+within the query's timeout (zenoh 1.x), told apart from the server's JSON error replies."""
+
+
 class ZenohEndpoint:
     """A zenoh session bound to one vehicle's keys, for the server and its clients.
 
@@ -793,6 +798,12 @@ class ZenohEndpoint:
             attachment=self._client_id,
         )
         for reply in replies:
-            result = reply.ok if reply.ok is not None else reply.err
-            return decode_reply(result.payload.to_bytes())
+            if reply.ok is not None:
+                return decode_reply(reply.ok.payload.to_bytes())
+            body = reply.err.payload.to_bytes()
+            if body == ZENOH_TIMEOUT_REPLY:
+                # a queryable matched but did not answer in time: zenoh's own error reply
+                raise TimeoutError(f"no reply on {key} within {timeout_s} s (a queryable "
+                                   f"matched: the server is busy or stalled)")
+            return decode_reply(body)  # the server's errors (an unknown control) come so
         raise TimeoutError(f"no reply on {key} within {timeout_s} s (is the server up?)")
