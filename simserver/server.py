@@ -15,6 +15,7 @@ optional command log, which ``replay_command_log`` re-runs headless bit for bit.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -43,6 +44,7 @@ from simserver.realtime import (
     RealtimeSettings,
     TickTrace,
     parse_cpus,
+    process_threads,
 )
 from simserver.ros2 import cli as ros2_cli
 from simserver.scenario import INITIAL_RANGES, Scene, load_scene
@@ -633,8 +635,15 @@ class SimServer:
 
     @staticmethod
     def _stop_viewer(viewer: subprocess.Popen | None) -> None:
+        """Stop a child (the viewer, the ROS 2 adapter): at idle CPU priority it may get no
+        CPU on a busy machine to run its SIGTERM handler (the README's server took 30 s to
+        stop beside other work), so its threads go back to normal priority first."""
         if viewer is None:
             return
+        with contextlib.suppress(OSError):  # exited already
+            for tid in process_threads(viewer.pid):
+                with contextlib.suppress(OSError):  # gone meanwhile, or not ours to change
+                    os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
         viewer.terminate()
         try:
             viewer.wait(timeout=10)

@@ -925,3 +925,38 @@ def test_a_non_finite_state_is_never_published_and_stops_the_car(caplog, tmp_pat
     rig.control("reset")
     rig.control("resume")
     assert not int(rig.run(5)["flags"]) & proto.StateFlag.FAULT
+
+
+CHILD_AT_IDLE = r"""
+import os, signal, sys
+os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+def on_term(*_):
+    print(os.sched_getscheduler(0), flush=True)  # the policy its handler ran under
+    sys.exit(0)
+signal.signal(signal.SIGTERM, on_term)
+print("ready", flush=True)
+signal.pause()
+"""
+
+
+def test_a_child_at_idle_priority_is_stopped_at_normal_priority():
+    """The viewer and the ROS 2 adapter run at idle CPU priority: on a busy machine one
+    gets next to no CPU to run its SIGTERM handler (the README's server took 30 s to stop),
+    so the server puts its threads back to normal priority before it terminates it."""
+    import subprocess
+    import sys
+
+    from simserver.server import SimServer
+
+    child = subprocess.Popen([sys.executable, "-c", CHILD_AT_IDLE], stdout=subprocess.PIPE,
+                             text=True)
+    try:
+        assert child.stdout.readline().strip() == "ready"
+        assert os.sched_getscheduler(child.pid) == os.SCHED_IDLE
+        SimServer._stop_viewer(child)
+        assert child.returncode == 0  # stopped by its handler, not killed
+        assert int(child.stdout.readline()) == os.SCHED_OTHER
+    finally:
+        if child.poll() is None:
+            child.kill()
+        child.wait()
