@@ -675,7 +675,10 @@ def render(report: Report, sections: list[str]) -> str:
         "driver's clock has no fixed phase to the server's ticks.",
         "- Busy machine: the server run beside two CPU-bound Python processes at normal "
         "priority (`--hogs 2`); the server and the benchmark's client use their default "
-        "real-time scheduling (SCHED_FIFO where permitted, `simserver serve --realtime`).",
+        "real-time scheduling (SCHED_FIFO where permitted, `simserver serve --realtime`; "
+        "the server also holds `/dev/cpu_dma_latency` at 0 where permitted). The server puts "
+        "a state in the tick while puts are cheap and hands it to its `state-tx` thread "
+        "otherwise (the share is in the table).",
         "- Load: `benchmarks.bench_load`: a driver at 1 kHz, 20 state subscribers (each its "
         "own zenoh session) checking every tick arrives, and 10 sessions a second joining "
         "(state subscription, `get_config`) and leaving a second later; late ticks from the "
