@@ -491,6 +491,10 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
             Row("busy machine: command-to-state latency p50 / p99",
                 f"{_us(med('latency_p50_us'))} / {_us(med('latency_p99_us'))} (p99 runs: "
                 + ", ".join(_us(r["latency_p99_us"]) for r in runs) + ")", cmd, "p99 < 1.5 ms"),
+            Row("busy machine: states the tick put itself (not handed to its state-tx thread)",
+                f"{100 * med('states_inline_fraction'):.1f} % (runs: " + ", ".join(
+                    f"{100 * r['states_inline_fraction']:.1f}" for r in runs) + "; hand-offs "
+                + ", ".join(str(r["publish_handoffs"]) for r in runs) + ")", cmd),
         ]
         rows += [_floor_row(r, cmd, f"busy machine, run {i + 1}: ")
                  for i, r in enumerate(runs) if "clock_floor" in r]
@@ -510,6 +514,9 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
             Row("the same: states lost by the 20 subscribers",
                 f"{r['subscriber_missing_total']} ({r['joined']} clients joined, "
                 f"{r['config_ok']} get_config answered)", cmd, "0"),
+            Row("the same: states the tick put itself (the rest by its state-tx thread), "
+                "hand-offs to that thread", f"{r['publish_inline_puts']} of the server run's "
+                f"{r['server_final']['ticks']}, {r['publish_handoffs']} hand-offs", cmd),
         ]
         lc = r.get("late_causes")
         if lc:
@@ -668,7 +675,10 @@ def render(report: Report, sections: list[str]) -> str:
         "driver's clock has no fixed phase to the server's ticks.",
         "- Busy machine: the server run beside two CPU-bound Python processes at normal "
         "priority (`--hogs 2`); the server and the benchmark's client use their default "
-        "real-time scheduling (SCHED_FIFO where permitted, `simserver serve --realtime`).",
+        "real-time scheduling (SCHED_FIFO where permitted, `simserver serve --realtime`; "
+        "the server also holds `/dev/cpu_dma_latency` at 0 where permitted). The server puts "
+        "a state in the tick while puts are cheap and hands it to its `state-tx` thread "
+        "otherwise (the share is in the table).",
         "- Load: `benchmarks.bench_load`: a driver at 1 kHz, 20 state subscribers (each its "
         "own zenoh session) checking every tick arrives, and 10 sessions a second joining "
         "(state subscription, `get_config`) and leaving a second later; late ticks from the "

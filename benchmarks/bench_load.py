@@ -102,6 +102,9 @@ def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto",
             "subscriber_missing_total": subs_result["missing_total"] if subs_result else None,
             "subscriber_states_min": subs_result["states_min"] if subs_result else None,
             "server_final": final, "sender_dropped": sender_dropped, "late_causes": causes,
+            # over the whole server run: states the tick put itself, hand-offs to state-tx
+            "publish_inline_puts": final.get("publish_inline_puts", 0),
+            "publish_handoffs": final.get("publish_handoffs", 0),
             "threads": threads,
             "loadavg_1min": os.getloadavg()[0],
             "finished": time.strftime("%Y-%m-%d %H:%M:%S")}
@@ -526,6 +529,8 @@ def main(argv: list[str] | None = None) -> dict:
           f"{r['subscriber_missing_total']} (fewest received by one: "
           f"{r['subscriber_states_min']}); commands dropped {r['cmd_dropped']}; dropped "
           f"by the server's sender queue (at least) {r['sender_dropped']}")
+    print(f"states put in the tick (the rest by its state-tx thread), whole server run: "
+          f"{r['publish_inline_puts']}; hand-offs to the thread {r['publish_handoffs']}")
     print_causes(r)
     return r
 

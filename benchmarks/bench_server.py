@@ -101,7 +101,8 @@ def run(seconds: float, cmd_hz: float, viewer: str = "off", hogs: int = 0,
 def _run(seconds: float, cmd_hz: float, viewer: str, realtime: str,
          client_realtime: str, config: Path | None,
          ready: Callable[[], bool] | None = None) -> dict:
-    server = ServerProcess(scene=None, log_level="WARNING", viewer=viewer, config=config,
+    # INFO: the publisher's hand-offs to its state-tx thread and back are logged, and quoted
+    server = ServerProcess(scene=None, log_level="INFO", viewer=viewer, config=config,
                            extra_args=["--realtime", realtime])
     startup_s = server.ready_s
     try:
@@ -114,8 +115,11 @@ def _measure(server: ServerProcess, startup_s: float, seconds: float, cmd_hz: fl
              client_realtime: str, ready: Callable[[], bool] | None) -> dict:
     from simserver.realtime import RealtimeScheduler, RealtimeSettings
 
-    client_rt = RealtimeScheduler(RealtimeSettings(mode=client_realtime, priority=40))
+    # the server holds /dev/cpu_dma_latency itself (where permitted): the client leaves it
+    client_rt = RealtimeScheduler(RealtimeSettings(mode=client_realtime, priority=40,
+                                                   cpu_latency_us=None))
     latencies_us: list[float] = []
+    delivery_ns: list[int] = []  # a state's arrival minus tick x period (+ a constant)
     diags: list[np.ndarray] = []
     first_state = last_state = None
     with Client(server, state_capacity=0) as client:
@@ -139,6 +143,8 @@ def _measure(server: ServerProcess, startup_s: float, seconds: float, cmd_hz: fl
         diag = client.diag
         sent: dict[int, int] = {}
         seq = 0
+        period_ns = int(TICK_S * 1e9)
+        promote_at = time.monotonic() + 1.0
         period = 1.0 / cmd_hz
         rng = np.random.default_rng(7)
         t_slot = time.monotonic()
@@ -163,18 +169,24 @@ def _measure(server: ServerProcess, startup_s: float, seconds: float, cmd_hz: fl
                 if first_state is None:
                     first_state = (t_rx, int(st["tick"]))
                 last_state = (t_rx, int(st["tick"]))
+                delivery_ns.append(t_rx - int(st["tick"]) * period_ns)
                 s = int(st["last_cmd_seq"])
                 if s in sent:  # the first state reflecting command s
                     latencies_us.append((t_rx - sent.pop(s)) / 1e3)
             for payload in diag.drain_newest():
                 diags.append(proto.decode_diagnostics(payload))
             time.sleep(0.0005)
-            if len(sent) % 256 == 0:
+            if now >= promote_at:  # once a second (it lists the threads, holding the GIL
+                promote_at = now + 1.0  # that zenoh's thread needs to stamp an arrival)
                 client_rt.promote_new_threads()
         states.undeclare()  # a callback subscriber would otherwise hold the exit
     server.stop()
     final = server.final_stats()
     lat = np.array(latencies_us)
+    # the tick's own lateness, its work up to the publication, the put and the transport
+    # (relative to the fastest state of the run: the deadlines' origin is not on the wire)
+    delivery = np.array(delivery_ns, dtype=np.int64)
+    delivery = (delivery - delivery.min()) / 1e3
     windows = [d for d in diags if int(d["window_ticks"]) >= 4096] or diags[-1:]
     if not windows:
         raise RuntimeError("no diagnostics received: run for a few seconds at least")
@@ -195,7 +207,14 @@ def _measure(server: ServerProcess, startup_s: float, seconds: float, cmd_hz: fl
         "latency_p50_us": float(np.percentile(lat, 50)),
         "latency_p99_us": float(np.percentile(lat, 99)),
         "latency_max_us": float(lat.max()),
+        "state_delay_p50_us": float(np.percentile(delivery, 50)),
+        "state_delay_p99_us": float(np.percentile(delivery, 99)),
         "cmd_rejected": final["cmd_rejected"], "cmd_stale": final["cmd_stale"],
+        # states the tick put itself (not handed to the server's state-tx thread)
+        "states_inline_fraction": final.get("publish_inline_puts", 0) / max(final["ticks"], 1),
+        "publish_handoffs": final.get("publish_handoffs", 0),
+        "publish_mode_lines": [line.split("state-tx: ", 1)[1].strip()
+                               for line in server.output if "state-tx: states" in line],
     }
 
 
@@ -229,6 +248,12 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"command-to-state latency over {r['commands_acknowledged']} of {r['commands']} "
           f"commands: p50 {r['latency_p50_us']:.0f} us, p99 {r['latency_p99_us']:.0f} us, "
           f"max {r['latency_max_us'] / 1e3:.2f} ms")
+    print(f"a state's arrival after its tick's deadline, beyond the run's fastest: p50 "
+          f"{r['state_delay_p50_us']:.0f} us, p99 {r['state_delay_p99_us']:.0f} us")
+    print(f"states put in the tick: {100 * r['states_inline_fraction']:.1f} % (the rest by "
+          f"its state-tx thread; {r['publish_handoffs']} hand-offs to it)")
+    for line in r["publish_mode_lines"]:
+        print(f"  server: {line}")
     print(f"server CPU {r['cpu_percent']:.0f} % of a core; commands rejected "
           f"{r['cmd_rejected']}, stale {r['cmd_stale']}")
     floor = r.get("clock_floor")

@@ -23,6 +23,7 @@ adapter "off" 3.11 ms p99 against "on" 427 us, because the "off" rounds hit stal
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from collections.abc import Callable
@@ -37,10 +38,16 @@ CLOCK_FLOOR = "clock floor"
 
 def clock_floor(seconds: float) -> dict:
     """One ``benchmarks.bench_clock`` run of ``seconds`` in a process of its own, the pacer
-    scheduled as the server's tick thread (SCHED_FIFO if permitted), in the format of
-    ``benchmarks.bench_server.run``'s lateness figures."""
+    scheduled as the server's tick thread (SCHED_FIFO if permitted, ``/dev/cpu_dma_latency``
+    held at the server's :data:`simserver.realtime.DEFAULT_CPU_LATENCY_US` if permitted), in
+    the format of ``benchmarks.bench_server.run``'s lateness figures."""
+    from simserver.realtime import DEFAULT_CPU_LATENCY_US
+
+    latency = []
+    if os.access("/dev/cpu_dma_latency", os.W_OK):
+        latency = ["--cpu-latency-us", str(DEFAULT_CPU_LATENCY_US)]
     proc = subprocess.run([sys.executable, "-m", "benchmarks.bench_clock", "--seconds",
-                           f"{seconds:g}", "--realtime", "auto", "--json"], cwd=REPO,
+                           f"{seconds:g}", "--realtime", "auto", "--json", *latency], cwd=REPO,
                           capture_output=True, text=True, timeout=seconds + 120, check=True)
     r = json.loads(proc.stdout.strip().splitlines()[-1])
     return {"lateness_p50_us": r["lateness_p50_us"],

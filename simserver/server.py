@@ -496,9 +496,10 @@ class SimServer:
                     keys = slot.keys
                     commands = ep.declare_command_inbox(capacity=proto.COMMAND_RING_SLOTS,
                                                         keys=keys)
-                    publisher = ep.declare_vehicle_publisher(  # puts off the tick thread
+                    # puts in the tick while they are cheap, else off the tick thread
+                    publisher = ep.declare_vehicle_publisher(
                         keys=keys, states_per_s=1.0 / (cfg.period_s * cfg.state_every),
-                        sender_thread=True)
+                        sender_thread=True, inline_while_cheap=True)
                     controls = ep.declare_control_inbox(keys=keys, validate=False)
                     loop.add(slot, SlotPorts(commands, controls, publisher))
                 first = self.slots[0]
@@ -525,6 +526,7 @@ class SimServer:
             self._stop_viewer(self.viewer)
             self._stop_viewer(ros2)
             self.preparer.close()
+            self.scheduler.release()
             for slot in self.slots:
                 if slot.command_log is not None:
                     slot.command_log.close(slot.steps_total, slot.sim.x)

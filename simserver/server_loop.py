@@ -12,8 +12,8 @@ One thread, one loop; every tick (:meth:`ServerLoop.tick`), for each vehicle slo
 5. check the state is finite, else stop the car in a safe state
    (:meth:`simserver.vehicle_slot.VehicleSlot.check_finite`): before publishing;
 6. publish the state (every ``state_every`` ticks) and, a few times a second, the
-   diagnostics (the zenoh adapter's publisher only queues them: its ``state-tx`` thread
-   puts them, beside the tick);
+   diagnostics (the zenoh adapter's publisher puts a state in the tick while that is
+   cheap, else queues it for its ``state-tx`` thread; the diagnostics always go there);
 7. serve control requests through :data:`CONTROLS` (name -> handler), each validated
    first (:func:`simserver.protocol.validate_control`). A ``load`` is read by a worker
    process; a ``load``'s result and a ``reset`` with ``u_mps`` are then applied one piece
@@ -536,11 +536,18 @@ class ServerLoop:
                   "lateness_max_us": st.max_lateness_us, "overruns": st.overruns,
                   "skipped_ticks": st.skipped_ticks, "late_ticks": st.late_ticks}
 
-        def of(slot: VehicleSlot) -> dict[str, Any]:
-            return {"ticks": slot.tick, "steps_total": slot.steps_total}
+        def of(slot: VehicleSlot, ports: SlotPorts) -> dict[str, Any]:
+            out = {"ticks": slot.tick, "steps_total": slot.steps_total}
+            # a publisher that puts in the tick while that is cheap (the zenoh adapter's):
+            # how many states it put there, and how often it handed them to its thread
+            for name in ("inline_puts", "handoffs"):
+                value = getattr(ports.publisher, name, None)
+                if value is not None:
+                    out["publish_" + name] = value
+            return out
 
         if len(self.slots) == 1:
-            slot = self.slots[0][0]
-            return {**of(slot), **timing, **slot.counters}
-        return {**timing, "vehicles": {s.keys.vehicle: {**of(s), **s.counters}
-                                       for s, _ in self.slots}}
+            slot, ports = self.slots[0]
+            return {**of(slot, ports), **timing, **slot.counters}
+        return {**timing, "vehicles": {s.keys.vehicle: {**of(s, p), **s.counters}
+                                       for s, p in self.slots}}

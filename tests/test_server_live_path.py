@@ -301,3 +301,107 @@ def test_the_state_is_put_by_the_sender_thread_in_order_and_none_is_lost():
         assert got == list(range(first, first + 300))
         assert set(spy.threads) == {"state-tx"}
         assert pub.dropped == 0
+
+
+_FROZEN_READER = """
+import sys, time
+from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
+ep = ZenohEndpoint(make_zenoh_config(listen=[], connect=sys.argv[1]))
+inbox = ep.declare_state_inbox(capacity=16)
+print("subscribed", flush=True)
+time.sleep(600)
+"""
+
+
+def test_states_go_inline_while_cheap_and_a_reader_that_stops_never_stalls_the_caller():
+    """The server's publisher puts states in the tick while puts are cheap (the hand-off
+    to ``state-tx`` costs latency), but a put on zenoh's low-latency transport to a
+    subscriber whose socket is full blocks the caller until that link closes (16 s
+    measured). A subscriber that stops reading (SIGSTOP) fills its socket: the states go
+    to the thread (the socket's backlog seen), that thread blocks, and the caller keeps
+    publishing (the queue then drops its oldest: only a caller that was never blocked can
+    fill it). When the reader is gone the puts are cheap again and go inline again; a
+    healthy subscriber gets the states in order throughout."""
+    import signal
+    import subprocess
+    import sys
+
+    from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
+
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    payload = bytearray(4096)  # 4 MB/s at 1 kHz: the stopped reader's socket fills in s
+    with ZenohEndpoint(make_zenoh_config(listen=endpoint)) as srv, \
+            ZenohEndpoint(make_zenoh_config(listen=[], connect=endpoint)) as cli:
+        pub = srv.declare_vehicle_publisher(states_per_s=1000.0, sender_thread=True,
+                                            inline_while_cheap=True)
+        pub.inline_again_puts = pub._again_puts = 200  # back inline after 0.2 s, not 2 s
+        pub.state = spy = _PutThreads(pub.state)
+        inbox = cli.declare_state_inbox(capacity=1 << 14)
+        got: list[int] = []
+        n = 0
+
+        def publish(count: int = 1) -> None:
+            nonlocal n
+            for _ in range(count):
+                n += 1
+                payload[:8] = n.to_bytes(8, "little")
+                pub.publish_state(bytes(payload))
+                time.sleep(0.001)  # the server's pace
+            got.extend(int.from_bytes(p[:8], "little") for p in inbox.drain_newest())
+
+        # (the first puts to a new subscriber can be slow: the thread takes them a while)
+        wait_until(lambda: publish(10) or (got and pub.mode() == "inline"),
+                   what="the healthy subscription, puts inline")
+        publish(1)
+        assert spy.threads[-1] == "MainThread"
+        env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+        reader = subprocess.Popen([sys.executable, "-c", _FROZEN_READER, endpoint],
+                                  stdout=subprocess.PIPE, text=True, env=env)
+        try:
+            assert reader.stdout.readline().strip() == "subscribed"
+            reader.send_signal(signal.SIGSTOP)
+            wait_until(lambda: publish(10) or pub.dropped, timeout_s=60.0,
+                       what="the thread blocked on the stopped reader, the caller not")
+            assert pub.mode() == "thread" and pub.handoffs >= 1
+        finally:
+            reader.kill()  # the link closes: the blocked put returns
+            reader.wait()
+        wait_until(lambda: publish(10) or pub.mode() == "inline", timeout_s=60.0,
+                   what="puts inline again")
+        publish(1)
+        assert spy.threads[-1] == "MainThread"
+        pub.close()
+        got.extend(int.from_bytes(p[:8], "little") for p in inbox.drain_newest())
+    assert got == sorted(set(got)), "states out of order"
+
+
+def test_the_backlog_watch_sees_bytes_a_reader_left_unsent():
+    """The publisher's watch (``SIOCOUTQ`` over this process's sockets) sees a socket whose
+    reader stopped, and no more once the reader has caught up."""
+    from simserver.adapters.zenoh_io import SocketBacklog, VehiclePublisher
+
+    with socket.create_server(("127.0.0.1", 0)) as listener, \
+            socket.create_connection(listener.getsockname()) as writer:
+        reader, _ = listener.accept()
+        with reader:
+            writer.setblocking(False)
+            chunk = bytes(1 << 16)
+            try:
+                while True:  # until its buffers and the reader's are full
+                    writer.send(chunk)
+            except BlockingIOError:
+                pass
+            assert SocketBacklog().largest(time.monotonic()) > VehiclePublisher.BACKLOG_BYTES
+
+            def caught_up() -> int:
+                reader.setblocking(False)
+                try:
+                    while reader.recv(1 << 20):
+                        pass
+                except BlockingIOError:
+                    pass
+                return SocketBacklog().largest(time.monotonic())
+
+            wait_until(caught_up, lambda n: n <= VehiclePublisher.BACKLOG_BYTES,
+                       what="the reader caught up")

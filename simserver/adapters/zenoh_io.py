@@ -21,10 +21,13 @@ For the server this module is the adapter of the loop's ports
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
 import os
 import re
+import select
+import termios
 import threading
 import time
 from collections import deque
@@ -443,16 +446,61 @@ class VehiclePublisher:
     the low-latency transport zenoh writes a put to every subscriber's socket in the
     calling thread, about 8 us of CPU per subscriber (20 subscribers: 166 us p50, with
     waits on the links' locks up to 4 ms p99 on a busy machine, ``benchmarks.bench_load``'s
-    tick trace); the put releases the GIL while it writes. The queue holds
+    tick trace), and a subscriber that reads slower than the states come blocks it for as
+    long as its socket stays full (16 s measured: zenoh's low-latency transport has no
+    congestion control); the put releases the GIL while it writes. The queue holds
     :data:`SENDER_QUEUE` publications: beyond, the oldest is dropped and counted in
     ``slow_publishes`` too (the sender is that far behind: a link stalled for as long).
+
+    With ``inline_while_cheap`` as well, the caller puts the state itself while puts are
+    cheap and hands them to ``state-tx`` only when they are not: the hand-off costs a
+    wake-up of that thread and the GIL passed over, about 40 us of command-to-state
+    latency p99 (``benchmarks.bench_server --hogs 2``). The rule (:meth:`mode`):
+
+    - inline, two state puts within :data:`INLINE_SLOW_WITHIN` that took longer than
+      :data:`INLINE_PUT_NS` (wall time: many subscribers, a lock held by a link; one alone
+      may be the caller preempted) send the next ones to the thread;
+    - so does a backlog: ``state-tx`` checks every :data:`WATCH_S` the unsent bytes of
+      this process's sockets (``SIOCOUTQ``), and more than :data:`BACKLOG_BYTES` in one
+      at two checks in a row (a subscriber whose socket fills up: the put that finds it
+      full would block the caller) keeps the puts in the thread while it lasts;
+    - queued, the thread times its own puts (CPU time); when at most 5 % of
+      :data:`INLINE_AGAIN_PUTS` in a row took more than half :data:`INLINE_PUT_NS`, with no
+      backlog, the caller puts inline again once nothing is queued. Going back to the
+      thread within :data:`INLINE_STABLE_S` of that doubles the count judged next time
+      (up to :data:`INLINE_AGAIN_MAX_PUTS`): a load that comes and goes settles in the
+      thread instead of switching back and forth.
+
+    The diagnostics always go through the thread (5 Hz; their latency does not matter).
     """
 
     SENDER_QUEUE = 256
+    INLINE_PUT_NS = 250_000
+    """An inline put slower than this is slow (a quarter period; a put to one subscriber
+    on loopback takes 30-70 us on this VM, the receiver's side of the loopback included;
+    20 subscribers 166 us CPU p50 and lock waits up to 4 ms)."""
+    INLINE_SLOW_WITHIN = 100
+    """Inline, a second slow put within this many puts hands off (one alone may be the
+    caller preempted: on this VM a single put of 2.5-3.9 ms handed off 2 times in 30 s
+    beside two CPU hogs, and a stall of the VM is no reason to)."""
+    INLINE_AGAIN_PUTS = 2000
+    """Puts in the thread judged together before going inline again (2 s at 1 kHz): at
+    most 5 % of them above half :data:`INLINE_PUT_NS` by the thread's CPU time (its wall
+    time counts the GIL passed back and the thread's own preemption), and no socket
+    backlog meanwhile."""
+    INLINE_AGAIN_MAX_PUTS = 64_000
+    INLINE_STABLE_S = 10.0
+    BACKLOG_BYTES = 16_384
+    """Unsent bytes in one socket that count as a backlog (55 states of 296 bytes; a
+    subscriber that keeps up leaves none on loopback)."""
+    WATCH_S = 0.02
+    """How often ``state-tx`` checks the sockets' backlog (and rescans them once a second)."""
 
     def __init__(self, state: zenoh.Publisher, diagnostics: zenoh.Publisher,
                  slow_ns: int = 250_000, decimated: zenoh.Publisher | None = None,
-                 decimate_every: int = 1, sender_thread: bool = False) -> None:
+                 decimate_every: int = 1, sender_thread: bool = False,
+                 inline_while_cheap: bool = False,
+                 inline_again_puts: int = INLINE_AGAIN_PUTS) -> None:
         self.state = state
         self.diagnostics = diagnostics
         self.slow_ns = slow_ns
@@ -461,21 +509,69 @@ class VehiclePublisher:
         self.decimate_every = max(1, decimate_every)
         self._states = 0
         self.dropped = 0  # by the sender thread's full queue (also in slow_publishes)
+        self.handoffs = 0  # inline -> thread switches
+        self.inline_puts = 0  # states put by the caller while a thread exists
         self._queue: deque[tuple[bool, bytes]] | None = None
         self._thread: threading.Thread | None = None
+        self._inline = False  # the caller puts states itself (only with inline_while_cheap)
+        self._inline_ok = False  # set by the thread: cheap long enough, go inline
+        self._in_flight = False  # the thread holds a publication it has not put yet
+        self._backlog = 0  # the largest socket backlog last seen by the thread (bytes)
+        self._backlogged = False  # ... above BACKLOG_BYTES
+        self._adaptive = sender_thread and inline_while_cheap
+        self.inline_again_puts = inline_again_puts
+        self._again_puts = inline_again_puts
+        self._judged = self._costly = 0  # the thread's puts judged, and the costly ones
+        self._inline_since = 0.0
+        self._last_slow_ns = 0
+        self._slow_at = -self.INLINE_SLOW_WITHIN - 1  # inline_puts at the last slow one
         if sender_thread:
             self._queue = deque()
             self._wake = os.eventfd(0)
+            self._inline = self._adaptive  # nobody subscribes yet: puts are cheap
             self._thread = threading.Thread(target=self._send_loop, name="state-tx",
                                             daemon=True)
             self._thread.start()
 
+    def mode(self) -> str:
+        """``"inline"`` (the caller puts the states) or ``"thread"`` (``state-tx`` does)."""
+        return "inline" if self._queue is None or self._inline else "thread"
+
     def publish_state(self, payload: bytes) -> None:
         """Put one VehicleState (and every ``decimate_every``-th on the decimated key)."""
-        if self._queue is not None:
-            self._enqueue(True, payload)
-        else:
+        queue = self._queue
+        if queue is None:
             self._put_state(payload)
+            return
+        if not self._inline and self._inline_ok and not queue and not self._in_flight:
+            # nothing left in the thread (one producer: this caller): order is kept
+            self._inline, self._inline_ok = True, False
+            self._inline_since = time.monotonic()
+        if self._inline and not self._backlogged:
+            took = self._put_state(payload)
+            self.inline_puts += 1
+            if took > self.INLINE_PUT_NS:
+                # one slow put may be this thread preempted (the VM stalls 1-25 ms at
+                # random); a second one within INLINE_SLOW_WITHIN puts is the links
+                if self.inline_puts - self._slow_at <= self.INLINE_SLOW_WITHIN:
+                    self._to_thread(took)
+                self._slow_at = self.inline_puts
+            return
+        if self._inline:
+            self._to_thread(0)
+        self._enqueue(True, payload)
+
+    def _to_thread(self, took_ns: int) -> None:
+        """From inline to the thread (from the caller)."""
+        self._inline = False
+        self._judged = self._costly = 0
+        self._last_slow_ns = took_ns
+        self.handoffs += 1
+        if time.monotonic() - self._inline_since < self.INLINE_STABLE_S:
+            self._again_puts = min(2 * self._again_puts,
+                                   max(self.INLINE_AGAIN_MAX_PUTS, self.inline_again_puts))
+        else:
+            self._again_puts = self.inline_again_puts
 
     def publish_diagnostics(self, payload: bytes) -> None:
         """Put one Diagnostics."""
@@ -484,14 +580,17 @@ class VehiclePublisher:
         else:
             self.diagnostics.put(payload)
 
-    def _put_state(self, payload: bytes) -> None:
+    def _put_state(self, payload: bytes) -> int:
+        """Put one state; how long it took (ns)."""
         t0 = time.perf_counter_ns()
         self.state.put(payload)
         self._states += 1
         if self.decimated is not None and self._states % self.decimate_every == 0:
             self.decimated.put(payload)
-        if time.perf_counter_ns() - t0 > self.slow_ns:
+        took = time.perf_counter_ns() - t0
+        if took > self.slow_ns:
             self.slow_publishes += 1
+        return took
 
     def _enqueue(self, is_state: bool, payload: bytes) -> None:
         queue = self._queue
@@ -503,39 +602,126 @@ class VehiclePublisher:
         os.eventfd_write(self._wake, 1)
 
     def _send_loop(self) -> None:
-        """The ``state-tx`` thread: put what is queued, in order; wait (GIL released)."""
+        """The ``state-tx`` thread: put what is queued, in order; wait (GIL released);
+        watch the sockets' backlog; tell the caller when it may put inline again."""
         queue = self._queue
+        poller = select.poll()
+        poller.register(self._wake, select.POLLIN)
+        watch = SocketBacklog() if self._adaptive else None
         reported = last = 0
+        next_watch = 0.0
+        was = self.mode()
+        timeout_ms = int(self.WATCH_S * 1000) if watch is not None else -1
         while True:
-            os.eventfd_read(self._wake)
-            if self.dropped != reported and time.monotonic() - last > 1.0:
-                reported, last = self.dropped, time.monotonic()  # not in the tick; 1/s
+            if poller.poll(timeout_ms):
+                os.eventfd_read(self._wake)
+            now = time.monotonic()
+            if watch is not None and now >= next_watch:
+                next_watch = now + self.WATCH_S
+                seen = watch.largest(now)  # twice in a row: a client's first burst passes
+                self._backlogged = min(seen, self._backlog) > self.BACKLOG_BYTES
+                self._backlog = seen
+                if self._backlogged:
+                    self._judged = self._costly = 0
+                mode = self.mode()
+                if mode != was:  # not in the tick; at most a few times a minute
+                    was = mode
+                    self._log_mode(mode)
+            if self.dropped != reported and now - last > 1.0:
+                reported, last = self.dropped, now  # not in the tick; 1/s
                 log.warning("state-tx: %d publications dropped so far: the sender was %d "
                             "behind (a link or this thread stalled)", self.dropped,
                             self.SENDER_QUEUE)
             while queue:
+                self._in_flight = True  # before taking it: the caller sees one or the other
                 is_state, payload = queue.popleft()
                 if payload is None:
+                    self._in_flight = False
                     return
                 try:
                     if is_state:
+                        cpu0 = time.thread_time_ns()
                         self._put_state(payload)
+                        took = time.thread_time_ns() - cpu0
+                        self._judged += 1
+                        if took > self.INLINE_PUT_NS // 2:
+                            self._costly += 1
                     else:
                         self.diagnostics.put(payload)
                 except zenoh.ZError:
                     pass  # undeclared meanwhile (the session closing)
                 except Exception:  # never let the thread end: no state would go out again
                     log.exception("state-tx: a publication failed")
+                finally:
+                    self._in_flight = False
+            if self._adaptive and self._judged >= self._again_puts:
+                if not self._inline and self._costly <= self._judged // 20:
+                    self._inline_ok = True
+                self._judged = self._costly = 0
+
+    def _log_mode(self, mode: str) -> None:
+        if mode == "thread":
+            why = (f"a socket with {self._backlog} bytes unsent" if self._backlogged
+                   else f"a put took {self._last_slow_ns / 1e3:.0f} us")
+            log.info("state-tx: states handed to this thread (%s: slow links or many "
+                     "subscribers)", why)
+        else:
+            log.info("state-tx: states put in the tick again (puts cheap over the last %d)",
+                     self._again_puts)
 
     def close(self) -> None:
         """Stop the sender thread after what is queued (idempotent); the publishers are
         undeclared with their session."""
         thread, self._thread = self._thread, None
         if thread is not None:
+            self._inline = self._inline_ok = False
             self._queue.append((False, None))
             os.eventfd_write(self._wake, 1)
             thread.join(timeout=1.0)
             os.close(self._wake)
+
+
+class SocketBacklog:
+    """The largest count of unsent bytes (``SIOCOUTQ``) over this process's sockets.
+
+    The socket list (``/proc/self/fd``) is read again once a second; a descriptor closed
+    or reused meanwhile is skipped (``ioctl`` fails on anything but a socket or tty)."""
+
+    RESCAN_S = 1.0
+
+    def __init__(self) -> None:
+        self._fds: list[int] = []
+        self._scanned = -1e9
+
+    def _scan(self) -> None:
+        fds = []
+        try:
+            entries = os.listdir("/proc/self/fd")
+        except OSError:
+            entries = []
+        for entry in entries:
+            try:
+                if os.readlink(f"/proc/self/fd/{entry}").startswith("socket:"):
+                    fds.append(int(entry))
+            except (OSError, ValueError):
+                continue
+        self._fds = fds
+
+    def largest(self, now: float) -> int:
+        if now - self._scanned >= self.RESCAN_S:
+            self._scanned = now
+            self._scan()
+        out = 0
+        buf = bytearray(4)
+        for fd in self._fds:
+            try:
+                fcntl.ioctl(fd, termios.TIOCOUTQ, buf)  # SIOCOUTQ on a socket
+            except OSError:
+                continue
+            n = int.from_bytes(buf, "little", signed=True)
+            if n > out:
+                out = n
+        return out
 
 
 class AliveWatch:
@@ -693,12 +879,14 @@ class ZenohEndpoint:
 
     def declare_vehicle_publisher(self, keys: VehicleKeys | None = None,
                                   states_per_s: float = 1000.0,
-                                  sender_thread: bool = False) -> VehiclePublisher:
+                                  sender_thread: bool = False,
+                                  inline_while_cheap: bool = False) -> VehiclePublisher:
         """The server loop's publisher: ``state`` with congestion control DROP (a
         subscriber that stops reading loses states, the loop never waits for it: see
         :data:`STATE_DROP_WAIT_US`), the same every ``states_per_s / STATE_DECIMATED_HZ``-th
         state on ``state/100hz``, and ``diag`` as above; with ``sender_thread`` put from a
-        thread of its own (:class:`VehiclePublisher`), closed before the publishers."""
+        thread of its own (:class:`VehiclePublisher`), closed before the publishers, and
+        with ``inline_while_cheap`` too, states put by the caller while that is cheap."""
         keys = keys or self.keys
         # Not express: the low-latency transport ignores it (every message goes straight
         # to the socket), and on a link that falls back to zenoh's normal transport an
@@ -714,7 +902,7 @@ class ZenohEndpoint:
                                       zenoh.Priority.REAL_TIME, False,
                                       zenoh.CongestionControl.DROP),
             decimate_every=round(states_per_s / STATE_DECIMATED_HZ),
-            sender_thread=sender_thread))
+            sender_thread=sender_thread, inline_while_cheap=inline_while_cheap))
 
     def declare_control_inbox(self, per_client: int = 16, keys: VehicleKeys | None = None,
                               validate: bool = True) -> ControlInbox:
