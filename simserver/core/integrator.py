@@ -135,6 +135,7 @@ from simserver.core.slip import (
     SLIP_LAGGED_PAPER,
     SLIP_LAGGED_PASSIVE,
     project_to_sliding_limit,
+    sliding_ratio_squared,
 )
 from simserver.core.steering import column_rate_blend, kingpin_lift_arm_m, steering_system
 from simserver.core.tire import tire_prepare
@@ -361,11 +362,17 @@ def update_discrete_states(model: Model, data: Data) -> None:
         u_w, v_w = hub_velocity(x, model.derived, i, wheel_in[WI_COS_STEER, i],
                                 wheel_in[WI_SIN_STEER, i])
         if slip_model == SLIP_LAGGED_PASSIVE:
-            x[TAN_ALPHA0 + i], x[KAPPA0 + i] = project_to_sliding_limit(
-                x[TAN_ALPHA0 + i], x[KAPPA0 + i],
-                wheel[i, W_TAN_ALPHA_SLIDE], wheel[i, W_KAPPA_SLIDE],
-                np.sqrt(u_w * u_w + v_w * v_w), vp[VP_SLIDE_WIDEN_SPEED_MPS],
-            )
+            # a state within the sliding limit itself (rho <= 1) is within every widened
+            # one (rho_max >= 1): the projection would return it as it is, so its hub
+            # speed (a square root) and widened limit are not computed
+            if not sliding_ratio_squared(x[TAN_ALPHA0 + i], x[KAPPA0 + i],
+                                         wheel[i, W_TAN_ALPHA_SLIDE],
+                                         wheel[i, W_KAPPA_SLIDE]) <= 1.0:
+                x[TAN_ALPHA0 + i], x[KAPPA0 + i] = project_to_sliding_limit(
+                    x[TAN_ALPHA0 + i], x[KAPPA0 + i],
+                    wheel[i, W_TAN_ALPHA_SLIDE], wheel[i, W_KAPPA_SLIDE],
+                    np.sqrt(u_w * u_w + v_w * v_w), vp[VP_SLIDE_WIDEN_SPEED_MPS],
+                )
         elif slip_model == SLIP_KINEMATIC:
             # the slots carry the slip the tire saw, for output only
             x[TAN_ALPHA0 + i] = out[O_TAN_ALPHA0 + i]
