@@ -23,7 +23,7 @@ from simserver.core import layout as L
 from simserver.core import params as P
 from simserver.core.chassis import place_on_terrain
 from simserver.core.damping import DAMPING_MODELS
-from simserver.core.integrator import simulate, step
+from simserver.core.integrator import derive_constants, simulate, step
 from simserver.core.model import Data, Model, Workspace, make_data
 from simserver.core.params import VP_CG_HEIGHT_M, VP_DAMPING_MODEL, VP_SLIP_MODEL
 from simserver.core.pose import world_pose
@@ -126,7 +126,7 @@ class Simulation:
         tp = np.ascontiguousarray(scene.vehicle.tp, dtype=np.float64).copy()
         check_model(vp, tp)
         model = Model(vp=vp, tp=tp, dt_s=self.dt_s, tires=tire_kernels(),
-                      terrain=scene.terrain)
+                      terrain=scene.terrain, derived=derive_constants(vp, tp, self.dt_s))
         road = {key: scene.road[key] for key in ("grade_pct", "cross_slope_pct",
                                                   "friction_scale")}
         set_road(model.vp, **road)

@@ -87,6 +87,10 @@ from simserver.core.model import (
     B_GRAVITY_X_MPS2,
     B_GRAVITY_Y_MPS2,
     B_YAW_ACC_RADPS2,
+    D_DRAG_NS2PM2,
+    D_SPIN_DAMPING_CAP0,
+    D_WHEEL_X0,
+    D_WHEEL_Y0,
     G_AXES,
     G_AXES_CROSS_SLOPE_PCT,
     G_AXES_GRADE_PCT,
@@ -144,7 +148,6 @@ from simserver.core.model import (
     Workspace,
 )
 from simserver.core.params import (
-    VP_AIR_DENSITY_KGPM3,
     VP_ANTIROLL_FRONT_NPM,
     VP_ANTIROLL_REAR_NPM,
     VP_CAMBER_HEAVE_GAIN_FRONT_RADPM,
@@ -161,7 +164,6 @@ from simserver.core.params import (
     VP_DAMPING_FADE_SPEED_MPS,
     VP_DAMPING_MODEL,
     VP_DAMPING_RATIO,
-    VP_DRAG_AREA_M2,
     VP_GRAVITY_E1_MPS2,
     VP_GRAVITY_E2_MPS2,
     VP_GRAVITY_MPS2,
@@ -287,11 +289,12 @@ def static_share(vp: np.ndarray, i: int, gravity_n_mps2: float) -> float:
 
 @nb.njit(cache=True)
 def hub_velocity(
-    x: np.ndarray, vp: np.ndarray, i: int, cos_steer: float, sin_steer: float
+    x: np.ndarray, derived: np.ndarray, i: int, cos_steer: float, sin_steer: float
 ) -> tuple[float, float]:
     """Hub velocity of wheel ``i`` in its own heading frame (u along the wheel, v left),
-    given the cosine and sine of its road-wheel angle."""
-    px, py = wheel_position(vp, i)
+    given the cosine and sine of its road-wheel angle; ``derived``: the model's derived
+    constants (``core.model.D_*``: the wheel's position)."""
+    px, py = derived[D_WHEEL_X0 + i], derived[D_WHEEL_Y0 + i]
     r = x[YAW_RATE_RADPS]
     u_c = x[U_MPS] - r * py
     v_c = x[V_MPS] + r * px
@@ -450,7 +453,7 @@ def terrain_gaps(model: Model, ws: Workspace, x: np.ndarray) -> None:
     The wheel's displacement from its start point is the body's, with the turn of the
     heading linearised (the heading moves by a milliradian a step: the neglected term is
     a micrometre), so no trigonometry is repeated per stage."""
-    vp = model.vp
+    derived = model.derived
     wheel, ground = ws.wheel, ws.ground
     c = ground[G_COS_YAW0]
     s = ground[G_SIN_YAW0]
@@ -459,7 +462,7 @@ def terrain_gaps(model: Model, ws: Workspace, x: np.ndarray) -> None:
     d_psi = x[YAW_RAD] - ground[G_YAW0_RAD]
     r = x[YAW_RATE_RADPS]
     for i in range(N_WHEELS):
-        px, py = wheel_position(vp, i)
+        px, py = derived[D_WHEEL_X0 + i], derived[D_WHEEL_Y0 + i]
         # in-plane offsets of the wheel from the CG at the start: (px c - py s, px s + py c);
         # turning by d_psi moves the wheel by d_psi times the offset turned a quarter
         d_s1 = d_x - d_psi * (px * s + py * c)
@@ -498,7 +501,7 @@ def corner_loads(model: Model, ws: Workspace, x: np.ndarray) -> None:
     pitch_rate = x[PITCH_RATE_RADPS]
     for axle in range(N_AXLES):
         left = WHEELS_PER_AXLE * axle
-        px, py_left = wheel_position(vp, left)
+        px, py_left = model.derived[D_WHEEL_X0 + left], model.derived[D_WHEEL_Y0 + left]
         if axle == 0:
             k_s = vp[VP_SPRING_FRONT_NPM]
             c_s = vp[VP_DAMPER_FRONT_NSPM]
@@ -542,10 +545,11 @@ def auxiliary_damping(
     damping_active: float,
     d_tan_alpha: float,
     d_kappa: float,
-    dt_s: float,
+    spin_damping_cap: float,
 ) -> tuple[float, float]:
     """The low-speed damping shares ``(dFx, dFy)`` of one wheel (paper Appendix A,
-    ``core.damping``), added to the tire forces ``tire_out[OUT_FX]``, ``[OUT_FY]``."""
+    ``core.damping``), added to the tire forces ``tire_out[OUT_FX]``, ``[OUT_FY]``.
+    ``spin_damping_cap``: the wheel's ``D_SPIN_DAMPING_CAP`` (``core.model``)."""
     damping_model = int(vp[VP_DAMPING_MODEL])
     slip_model = int(vp[VP_SLIP_MODEL])
     if damping_model == DAMPING_PAPER:
@@ -564,15 +568,15 @@ def auxiliary_damping(
             return 0.0, 0.0
         relax_long = tp_wheel[TP_RELAX_LONG_M]
         relax_lat = tp_wheel[TP_RELAX_LAT_M]
-        radius = tp_wheel[TP_RADIUS_M]
         c_x, c_y = damping_coefficients(
             fz, tire_out[OUT_C_KAPPA], tire_out[OUT_C_ALPHA], relax_long, relax_lat,
             vp[VP_DAMPING_RATIO], vp[VP_GRAVITY_MPS2],
         )
         # The damper also loads the wheel's spin: c R^2 / I is its rate there.
         # Beyond 2/dt it is faster than the step can resolve (and than any
-        # physical carcass damping); cap it so the explicit stages stay stable.
-        c_x = min(c_x, 2.0 * wheel_inertia(vp, i) / (radius * radius * dt_s))
+        # physical carcass damping); cap it so the explicit stages stay stable
+        # (spin_damping_cap = 2 I / (R^2 dt), once per model: derive_constants).
+        c_x = min(c_x, spin_damping_cap)
         damp_x = fade * c_x * relax_long * d_kappa
         damp_y = -fade * c_y * relax_lat * d_tan_alpha
         # a damper in series with sliding cannot push beyond the friction limit
@@ -604,13 +608,14 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
     copy or helper grew the cold compile (measured, ``run-scenario`` from an empty cache:
     the MF-only copy of every part +47 % CPU, helpers +22 %, this form +4 %).
     """
-    vp, tp, tires, dt_s = model.vp, model.tp, model.tires, model.dt_s
+    vp, tp, tires, derived = model.vp, model.tp, model.tires, model.derived
     wheel_in, wheel, tire_out, tire_coef = ws.wheel_in, ws.wheel, ws.tire_out, ws.tire_coef
     slip_model = int(vp[VP_SLIP_MODEL])
     on_plane = model.terrain.kind == TERRAIN_PLANE
     for i in range(N_WHEELS):
         tp_wheel = tp[i]
-        u_w, v_w = hub_velocity(x, vp, i, wheel_in[WI_COS_STEER, i], wheel_in[WI_SIN_STEER, i])
+        u_w, v_w = hub_velocity(x, derived, i, wheel_in[WI_COS_STEER, i],
+                                wheel_in[WI_SIN_STEER, i])
         if not on_plane:  # into the wheel's contact frame (docs/model.md section 11)
             u_w, v_w = (u_w * wheel[i, W_TX0] + v_w * wheel[i, W_TX1],
                         u_w * wheel[i, W_TY0] + v_w * wheel[i, W_TY1])
@@ -660,7 +665,7 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
         radius = tp_wheel[TP_RADIUS_M]
         damp_x, damp_y = auxiliary_damping(
             vp, i, tp_wheel, out_i, fz, u_w, v_w, x[DAMPING_ACTIVE0 + i], dx[TAN_ALPHA0 + i],
-            dx[KAPPA0 + i], dt_s,
+            dx[KAPPA0 + i], derived[D_SPIN_DAMPING_CAP0 + i],
         )
         fx = out_i[OUT_FX] + damp_x
         fy = out_i[OUT_FY] + damp_y
@@ -703,7 +708,7 @@ def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> No
     point below the CG, where the tire shear forces have no arm: ``M_roll = h sum(Fy)``,
     ``M_pitch = -h sum(Fx)``; gravity adds its destabilising ``m_s g_n h phi``.
     """
-    vp = model.vp
+    vp, derived = model.vp, model.derived
     wheel_in, wheel, body = ws.wheel_in, ws.wheel, ws.body
     mass = vp[VP_MASS_KG]
     sprung = vp[VP_SPRUNG_MASS_KG]
@@ -727,7 +732,7 @@ def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> No
     roll_moment = 0.0
     pitch_moment = 0.0
     for i in range(N_WHEELS):
-        px, py = wheel_position(vp, i)
+        px, py = derived[D_WHEEL_X0 + i], derived[D_WHEEL_Y0 + i]
         dyn = wheel[i, W_FZ_DYN]
         heave_force += dyn
         roll_moment += py * dyn
@@ -741,7 +746,7 @@ def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> No
         fy_sum += fy_body
         mz_sum += px * fy_body - py * fx_body + wheel[i, W_MZ]
 
-    drag = 0.5 * vp[VP_AIR_DENSITY_KGPM3] * vp[VP_DRAG_AREA_M2] * u * abs(u)
+    drag = derived[D_DRAG_NS2PM2] * u * abs(u)
     force_x = fx_sum + mass * g_x - drag
     force_y = fy_sum + mass * g_y
     ax = force_x / mass

@@ -51,6 +51,7 @@ from simserver.core.chassis import (
     vehicle_rates,
     wheel_camber,
     wheel_inertia,
+    wheel_position,
 )
 from simserver.core.damping import (
     DAMPING_OFF,
@@ -83,7 +84,14 @@ from simserver.core.layout import (
     WHEELS_PER_AXLE,
 )
 from simserver.core.model import (
+    D_COLUMN_RATE_BLEND,
+    D_DRAG_NS2PM2,
+    D_KINGPIN_LIFT_ARM0,
+    D_SPIN_DAMPING_CAP0,
+    D_WHEEL_X0,
+    D_WHEEL_Y0,
     G_MU0,
+    N_DERIVED,
     RK_DECAY,
     RK_E_HALF,
     RK_K1,
@@ -110,8 +118,10 @@ from simserver.core.model import (
     Model,
 )
 from simserver.core.params import (
+    VP_AIR_DENSITY_KGPM3,
     VP_DAMPING_MODEL,
     VP_DAMPING_TRIGGER_V_MPS,
+    VP_DRAG_AREA_M2,
     VP_SLIDE_WIDEN_SPEED_MPS,
     VP_SLIP_MODEL,
     VP_STEERING_RATIO,
@@ -125,10 +135,28 @@ from simserver.core.slip import (
     SLIP_LAGGED_PAPER,
     SLIP_LAGGED_PASSIVE,
     project_to_sliding_limit,
+    sliding_ratio_squared,
 )
-from simserver.core.steering import steering_system
+from simserver.core.steering import column_rate_blend, kingpin_lift_arm_m, steering_system
 from simserver.core.tire import tire_prepare
 from simserver.core.tire_layout import TP_RADIUS_M, TP_RELAX_LAT_M, TP_RELAX_LONG_M
+
+
+@nb.njit(cache=True)
+def derive_constants(vp: np.ndarray, tp: np.ndarray, dt_s: float) -> np.ndarray:
+    """The model's derived constants (``core.model.D_*``), once when it is built: what the
+    stages computed from the parameters in every step or stage, by the same expressions
+    (the same bits)."""
+    derived = np.zeros(N_DERIVED)
+    for i in range(N_WHEELS):
+        derived[D_WHEEL_X0 + i], derived[D_WHEEL_Y0 + i] = wheel_position(vp, i)
+        radius = tp[i, TP_RADIUS_M]
+        derived[D_SPIN_DAMPING_CAP0 + i] = 2.0 * wheel_inertia(vp, i) / (radius * radius * dt_s)
+    for i in range(N_FRONT_WHEELS):
+        derived[D_KINGPIN_LIFT_ARM0 + i] = kingpin_lift_arm_m(vp, tp[i, TP_RADIUS_M])
+    derived[D_COLUMN_RATE_BLEND] = column_rate_blend(vp, dt_s)
+    derived[D_DRAG_NS2PM2] = 0.5 * vp[VP_AIR_DENSITY_KGPM3] * vp[VP_DRAG_AREA_M2]
+    return derived
 
 
 @nb.njit(cache=True)
@@ -331,13 +359,20 @@ def update_discrete_states(model: Model, data: Data) -> None:
     damping_model = int(vp[VP_DAMPING_MODEL])
     release = paper_release(inputs[IN_BRAKE], inputs[IN_PARKING_BRAKE], inputs[IN_THROTTLE])
     for i in range(N_WHEELS):
-        u_w, v_w = hub_velocity(x, vp, i, wheel_in[WI_COS_STEER, i], wheel_in[WI_SIN_STEER, i])
+        u_w, v_w = hub_velocity(x, model.derived, i, wheel_in[WI_COS_STEER, i],
+                                wheel_in[WI_SIN_STEER, i])
         if slip_model == SLIP_LAGGED_PASSIVE:
-            x[TAN_ALPHA0 + i], x[KAPPA0 + i] = project_to_sliding_limit(
-                x[TAN_ALPHA0 + i], x[KAPPA0 + i],
-                wheel[i, W_TAN_ALPHA_SLIDE], wheel[i, W_KAPPA_SLIDE],
-                np.sqrt(u_w * u_w + v_w * v_w), vp[VP_SLIDE_WIDEN_SPEED_MPS],
-            )
+            # a state within the sliding limit itself (rho <= 1) is within every widened
+            # one (rho_max >= 1): the projection would return it as it is, so its hub
+            # speed (a square root) and widened limit are not computed
+            if not sliding_ratio_squared(x[TAN_ALPHA0 + i], x[KAPPA0 + i],
+                                         wheel[i, W_TAN_ALPHA_SLIDE],
+                                         wheel[i, W_KAPPA_SLIDE]) <= 1.0:
+                x[TAN_ALPHA0 + i], x[KAPPA0 + i] = project_to_sliding_limit(
+                    x[TAN_ALPHA0 + i], x[KAPPA0 + i],
+                    wheel[i, W_TAN_ALPHA_SLIDE], wheel[i, W_KAPPA_SLIDE],
+                    np.sqrt(u_w * u_w + v_w * v_w), vp[VP_SLIDE_WIDEN_SPEED_MPS],
+                )
         elif slip_model == SLIP_KINEMATIC:
             # the slots carry the slip the tire saw, for output only
             x[TAN_ALPHA0 + i] = out[O_TAN_ALPHA0 + i]

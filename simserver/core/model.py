@@ -108,14 +108,30 @@ RK_E_HALF = 7  # exp(-decay h / 2)
 N_RK = 8
 
 
+# ---- constants derived from the parameters and the step, once when the model is built
+# (``core.integrator.derive_constants``, ``Model.derived[D_*]``) instead of in every step or
+# stage. Each is the very expression the stage evaluated before (the same bits). They read
+# no road slot, the only slots changed in place while a model runs (``core.road.set_road``);
+# loading another vehicle builds another model.
+D_WHEEL_X0 = 0  # each wheel's contact point ahead of the CG, body axes (m), 4 slots
+D_WHEEL_Y0 = 4  # ... and to the left of it (m), 4 slots (chassis.wheel_position)
+D_SPIN_DAMPING_CAP0 = 8  # the patch damper's cap 2 I / (R^2 dt) per wheel (N s/m), 4 slots
+D_KINGPIN_LIFT_ARM0 = 12  # the front wheels' kingpin lift arm d_c sin(sigma) (m), 2 slots
+D_COLUMN_RATE_BLEND = 14  # the column rate filter's blend over a step, 1 - exp(-dt / tau)
+D_DRAG_NS2PM2 = 15  # the body's drag coefficient 0.5 rho C_d A (N s^2/m^2)
+N_DERIVED = 16
+
+
 class Model(NamedTuple):
-    """The static model: vehicle and tire parameters, road, step, tire kernels."""
+    """The static model: vehicle and tire parameters, road, step, tire kernels, and the
+    constants derived from them (``D_*``)."""
 
     vp: np.ndarray  # float64[N_VEHICLE_PARAM] (core.params; the road slots included)
     tp: np.ndarray  # float64[N_WHEELS, N_TIRE_PARAM] (core.tire_layout)
     dt_s: float
     tires: TireKernels  # the registered tire models' kernels, by model id
     terrain: Terrain  # the ground (core.terrain)
+    derived: np.ndarray  # float64[N_DERIVED] (D_*): core.integrator.derive_constants
 
 
 class Workspace(NamedTuple):

@@ -99,6 +99,16 @@ def kinematic_slip(
 
 
 @nb.njit(cache=True)
+def sliding_ratio_squared(tan_alpha_lag: float, kappa_lag: float, tan_alpha_slide: float,
+                          kappa_slide: float) -> float:
+    """``rho^2`` of :func:`project_to_sliding_limit`: the squared combined slip state
+    against the tire's sliding limit (1: at the limit)."""
+    x = kappa_lag / kappa_slide
+    y = tan_alpha_lag / tan_alpha_slide
+    return x * x + y * y
+
+
+@nb.njit(cache=True)
 def project_to_sliding_limit(
     tan_alpha_lag: float,
     kappa_lag: float,
@@ -125,9 +135,7 @@ def project_to_sliding_limit(
 
     Returns the projected ``(tan a', k')``.
     """
-    x = kappa_lag / kappa_slide
-    y = tan_alpha_lag / tan_alpha_slide
-    rho2 = x * x + y * y
+    rho2 = sliding_ratio_squared(tan_alpha_lag, kappa_lag, tan_alpha_slide, kappa_slide)
     rho_max = max(1.0, hub_speed_mps / widen_speed_mps)
     if rho2 <= rho_max * rho_max:
         return tan_alpha_lag, kappa_lag

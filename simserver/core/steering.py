@@ -60,7 +60,14 @@ from simserver.core.layout import (
     STEERING_WHEEL_TORQUE_NM,
     WHEELS_PER_AXLE,
 )
-from simserver.core.model import G_MU0, WI_SIN_STEER, Data, Model
+from simserver.core.model import (
+    D_COLUMN_RATE_BLEND,
+    D_KINGPIN_LIFT_ARM0,
+    G_MU0,
+    WI_SIN_STEER,
+    Data,
+    Model,
+)
 from simserver.core.params import (
     VP_ASSIST_BOOST_HIGHWAY,
     VP_ASSIST_BOOST_PARKING,
@@ -78,7 +85,7 @@ from simserver.core.params import (
     VP_STEERING_RATIO,
     VP_STEERING_WHEEL_MAX_RAD,
 )
-from simserver.core.tire_layout import TP_RADIUS_M, TP_RELAX_LAT_M
+from simserver.core.tire_layout import TP_RELAX_LAT_M
 
 
 @nb.njit(cache=True)
@@ -89,6 +96,14 @@ def kingpin_lift_arm_m(vp: np.ndarray, radius: float) -> float:
     sigma = vp[VP_KINGPIN_INCLINATION_RAD]
     spindle_offset = vp[VP_SCRUB_RADIUS_M] + radius * np.tan(sigma)
     return spindle_offset * np.sin(sigma)
+
+
+@nb.njit(cache=True)
+def column_rate_blend(vp: np.ndarray, dt_s: float) -> float:
+    """The column rate filter's blend over one step of ``dt_s``: the low-pass filter's
+    exact weight ``1 - exp(-dt / tau)`` of the new rate (1: no filter)."""
+    tau = vp[VP_COLUMN_RATE_FILTER_S]
+    return 1.0 if tau <= 0.0 else -np.expm1(-dt_s / tau)
 
 
 @nb.njit(cache=True)
@@ -152,9 +167,9 @@ def steering_system(model: Model, data: Data) -> None:
     depends on and writes nothing it reads."""
     x, out = data.x, data.out
     vp, tp, h = model.vp, model.tp, model.dt_s
+    derived = model.derived
     mu = data.ws.ground
     sin_steer = data.ws.wheel_in[WI_SIN_STEER]
-    lift_arm = 0.0
     ratio = vp[VP_STEERING_RATIO]
     angle = data.inputs[IN_STEER] * vp[VP_STEERING_WHEEL_MAX_RAD]
     # a fresh state has no previous angle: the first step does not turn the wheel
@@ -175,17 +190,14 @@ def steering_system(model: Model, data: Data) -> None:
         x[PATCH_TWIST0 + i] = twist
         speed += hub_u / N_FRONT_WHEELS
         side = 1.0 if i % WHEELS_PER_AXLE == 0 else -1.0
-        # the arm and the sine are those of the step (the same tire radii, the road-wheel
-        # angle's sine of stage 1): no trigonometry repeated here
-        radius = tp[i, TP_RADIUS_M]
-        if i == 0 or radius != tp[i - 1, TP_RADIUS_M]:
-            lift_arm = kingpin_lift_arm_m(vp, radius)
+        # the arm is the model's (derive_constants), the sine that of the road-wheel angle
+        # of stage 1: no trigonometry repeated here
         load += kingpin_moment(vp, side, out[O_FX0 + i], out[O_FY0 + i], out[O_FZ0 + i],
-                               out[O_MZ0 + i], sin_steer[i], lift_arm, twist)
+                               out[O_MZ0 + i], sin_steer[i], derived[D_KINGPIN_LIFT_ARM0 + i],
+                               twist)
     load /= ratio
     t_d = driver_torque(load, assist_boost(vp, speed), vp[VP_ASSIST_TORQUE_MAX_NM])
-    tau = vp[VP_COLUMN_RATE_FILTER_S]
-    blend = 1.0 if tau <= 0.0 else -np.expm1(-h / tau)
+    blend = derived[D_COLUMN_RATE_BLEND]  # column_rate_blend, once per model
     rate = x[STEERING_WHEEL_RATE_RADPS] + blend * (d_angle / h - x[STEERING_WHEEL_RATE_RADPS])
     friction = dahl_friction(x[STEERING_FRICTION_NM], d_angle, vp[VP_COLUMN_FRICTION_NM],
                              vp[VP_COLUMN_FRICTION_STIFFNESS_NM_PER_RAD])
