@@ -629,7 +629,8 @@ def _peak_target(c: float) -> float:
 
     ``T = tan(pi / (2 C))`` for ``C > 1``. For ``C <= 1`` there is no interior peak; ``T``
     is then where the curve reaches ``SLIDE_FRACTION_NO_PEAK`` of its asymptote
-    ``D sin(C pi / 2)``.
+    ``D sin(C pi / 2)``. ``C`` does not depend on the load: evaluated once per tire when
+    it is packed (slots ``D_PEAK_TARGET_X``, ``D_PEAK_TARGET_Y``, :func:`_pack_derived`).
     """
     c = max(c, 1e-3)
     if c > 1.0:
