@@ -117,14 +117,32 @@ def peak_u_ref(c: float, e: float) -> float:
 
 def test_param_layout_single_source() -> None:
     names = mf.MF61_PARAM_NAMES
-    assert len(set(names)) == len(names) == mf.N_MF61_PARAM
+    assert len(set(names)) == len(names) == mf.N_MF61_FILE_PARAM
     slots = {k: v for k, v in vars(mf).items() if k.startswith("P_") and isinstance(v, int)}
     assert slots, "no P_* constants"
     for const, idx in slots.items():
         assert names[idx] == const[2:], const
+    # the derived slots follow the file's keys, one D_* constant each
+    derived = mf.MF61_DERIVED_NAMES
+    assert mf.N_MF61_PARAM == len(names) + len(derived)
+    d_slots = {k: v for k, v in vars(mf).items() if k.startswith("D_") and isinstance(v, int)}
+    assert sorted(d_slots.values()) == list(range(len(names), mf.N_MF61_PARAM))
+    for const, idx in d_slots.items():
+        assert derived[idx - len(names)] == const[2:], const
     vec = mf.mf61_param_vector(C)
     assert vec.dtype == np.float64 and vec.shape == (mf.N_MF61_PARAM,)
     assert vec[mf.P_PKY1] == -15.324
+
+
+def test_derived_slots_are_their_definitions() -> None:
+    """The packed load-free quantities equal their definitions from the file's keys."""
+    vec = mf.mf61_param_vector(C)
+    assert vec[mf.D_PEAK_TARGET_X] == mf._peak_target(C["PCX1"] * C["LCX"])
+    assert vec[mf.D_PEAK_TARGET_Y] == mf._peak_target(C["PCY1"] * C["LCY"])
+    cx = C["PCX1"] * C["LCX"]
+    assert vec[mf.D_PEAK_TARGET_X] == pytest.approx(math.tan(0.5 * math.pi / cx), rel=1e-14)
+    assert vec[mf.D_INV_FZ0] == 1.0 / (C["FNOMIN"] * C["LFZO"])
+    assert vec[mf.D_INV_FNOMIN] == 1.0 / C["FNOMIN"]
 
 
 def test_param_vector_rejects_bad_input() -> None:

@@ -124,7 +124,17 @@ MF61_PARAM_NAMES: tuple[str, ...] = (
     # low-speed reduction of the shifts (MF-Tyre's VXLOW, see _low_speed_factor)
     "VXLOW",
 )  # fmt: skip
-N_MF61_PARAM = len(MF61_PARAM_NAMES)
+# Derived slots, after the file's keys: load-, camber- and friction-free quantities that
+# mf61_prepare would otherwise compute again for every tire and step, computed once by
+# mf61_param_vector from the keys (change a key: pack again).
+MF61_DERIVED_NAMES: tuple[str, ...] = (
+    "PEAK_TARGET_X",  # _peak_target(PCX1 LCX): T of the Fx0 curve's peak search (4.E11)
+    "PEAK_TARGET_Y",  # _peak_target(PCY1 LCY): the same for Fy0 (4.E21)
+    "INV_FZ0",  # 1 / F'z0 = 1 / (FNOMIN LFZO) (4.E1)
+    "INV_FNOMIN",  # 1 / FNOMIN (4.E70)
+)
+N_MF61_FILE_PARAM = len(MF61_PARAM_NAMES)
+N_MF61_PARAM = N_MF61_FILE_PARAM + len(MF61_DERIVED_NAMES)  # packed length
 
 
 def _slot(name: str) -> int:
@@ -270,6 +280,10 @@ P_QSY6 = _slot("QSY6")
 P_QSY7 = _slot("QSY7")
 P_QSY8 = _slot("QSY8")
 P_VXLOW = _slot("VXLOW")
+D_PEAK_TARGET_X = N_MF61_FILE_PARAM + MF61_DERIVED_NAMES.index("PEAK_TARGET_X")
+D_PEAK_TARGET_Y = N_MF61_FILE_PARAM + MF61_DERIVED_NAMES.index("PEAK_TARGET_Y")
+D_INV_FZ0 = N_MF61_FILE_PARAM + MF61_DERIVED_NAMES.index("INV_FZ0")
+D_INV_FNOMIN = N_MF61_FILE_PARAM + MF61_DERIVED_NAMES.index("INV_FNOMIN")
 
 # --- load-dependent coefficients: the slots of coef (mf61_prepare -> mf61_evaluate) -------
 # Everything that depends only on Fz, gamma, mu_scale and pressure, at the clamped load
@@ -615,7 +629,8 @@ def _peak_target(c: float) -> float:
 
     ``T = tan(pi / (2 C))`` for ``C > 1``. For ``C <= 1`` there is no interior peak; ``T``
     is then where the curve reaches ``SLIDE_FRACTION_NO_PEAK`` of its asymptote
-    ``D sin(C pi / 2)``.
+    ``D sin(C pi / 2)``. ``C`` does not depend on the load: evaluated once per tire when
+    it is packed (slots ``D_PEAK_TARGET_X``, ``D_PEAK_TARGET_Y``, :func:`_pack_derived`).
     """
     c = max(c, 1e-3)
     if c > 1.0:
@@ -713,8 +728,8 @@ def _mf61_prepare(
     fz0 = fnomin * p[P_LFZO]  # F'z0 (4.E1)
     fz_lo = max(p[P_FZMIN], FZ_FLOOR_FRAC * fnomin)
     fz = min(max(fz_n, fz_lo), max(p[P_FZMAX], fz_lo))  # load the coefficients see
-    inv_fz0 = 1.0 / fz0
-    inv_fnomin = 1.0 / fnomin
+    inv_fz0 = p[D_INV_FZ0]
+    inv_fnomin = p[D_INV_FNOMIN]
     dfz = (fz - fz0) * inv_fz0  # (4.E2a)
     dfz2 = dfz * dfz
     fz_ratio = fz * inv_fnomin
@@ -794,8 +809,8 @@ def _mf61_prepare(
     )  # (4.E47) without cos'alpha; sgn(Vcx) cancels that of cos'alpha  # fmt: skip
 
     # --- sliding limits: start of the four peak searches (both sides of both curves) -----
-    tx = _peak_target(cx)
-    ty = _peak_target(cy)
+    tx = p[D_PEAK_TARGET_X]  # _peak_target(cx), load-free: packed once
+    ty = p[D_PEAK_TARGET_Y]
     ux_pos = _peak_start(tx, ex_pos)
     ux_neg = _peak_start(tx, ex_neg)
     uy_pos = _peak_start(ty, ey_pos)
@@ -1059,9 +1074,14 @@ def _mf61_evaluate(
 N_WHEEL_TIRES = 4  # tires evaluated together by _mf61_evaluate_wheels (core.layout.N_WHEELS)
 N_WHEEL_CURVES = 9  # Magic Formula curves per tire there: _mf61_evaluate's eight + Fy0(gamma=0)
 N_WHEEL_LANES = N_WHEEL_TIRES * N_WHEEL_CURVES
+# The curve loop runs over a whole number of N_LANES-wide vectors: the 36 lanes padded to
+# 40 with zero lanes (sin(0 atan 0) = 0, unused). Unpadded, the compiler made the last 4
+# lanes a scalar remainder loop with a branching atan, which cost more than a fifth
+# vector: 45 ns more per call (of 300), measured by CPU time in a compiled loop.
+N_WHEEL_LANES_PADDED = -(-N_WHEEL_LANES // N_LANES) * N_LANES
 
 
-_stack_wheel_lanes = _stack_scratch(N_WHEEL_LANES)
+_stack_wheel_lanes = _stack_scratch(N_WHEEL_LANES_PADDED)
 _stack_wheel_tires = _stack_scratch(N_WHEEL_TIRES)
 
 
@@ -1174,7 +1194,9 @@ def _mf61_evaluate_wheels(
             c[C_BY_G0] * alpha_y0, ey_g0, c[C_CY], 0.0)
 
     # --- the curves: one branch-free loop, vectorised (as _mf_lanes) ----------------------
-    for i in range(N_WHEEL_LANES):
+    for i in range(N_WHEEL_LANES, N_WHEEL_LANES_PADDED):
+        yb[i] = eb[i] = cb[i] = kb[i] = 0.0
+    for i in range(N_WHEEL_LANES_PADDED):
         yi = yb[i]
         ei = eb[i]
         theta = _atan((1.0 - ei) * yi + ei * _atan(yi))
@@ -1217,24 +1239,23 @@ def _mf61_evaluate_wheels(
                + p[P_QSY4] * vr2 * vr2 + c[C_MY_GAMMA])
             * c[C_MY_PRESSURE]
         )  # (4.E70)  # fmt: skip
-        if fz_n > 0.0:
-            o[OUT_FX] = fx * scale
-            o[OUT_FY] = fy * scale * side
-            o[OUT_MZ] = mz * scale * side
-            o[OUT_MY] = max(my, 0.0) * scale
-            o[OUT_C_KAPPA] = c[C_KXK] * scale
-            o[OUT_C_ALPHA] = c[C_KYA_ABS] * scale
-            o[OUT_KAPPA_SLIDE] = c[C_KAPPA_SLIDE_POS] if kappa >= 0.0 else c[C_KAPPA_SLIDE_NEG]
-            o[OUT_TAN_ALPHA_SLIDE] = (
-                c[C_TAN_ALPHA_SLIDE_POS] if tan_alpha >= 0.0 else c[C_TAN_ALPHA_SLIDE_NEG]
-            )
-            o[OUT_FX_PEAK] = c[C_DX_ABS] * scale
-            o[OUT_FY_PEAK] = c[C_DY_ABS] * scale
-        else:  # as core.tire._no_load
-            o[OUT_FX] = o[OUT_FY] = o[OUT_MZ] = o[OUT_MY] = 0.0
-            o[OUT_FX_PEAK] = o[OUT_FY_PEAK] = 0.0
-            o[OUT_C_KAPPA] = o[OUT_C_ALPHA] = 1.0
-            o[OUT_KAPPA_SLIDE] = o[OUT_TAN_ALPHA_SLIDE] = 1.0
+        # without load, as core.tire._no_load: forces zero, stiffnesses and limits 1.
+        # Selects, not a branch: the compiler then does the four tires side by side.
+        loaded = fz_n > 0.0
+        o[OUT_FX] = fx * scale if loaded else 0.0
+        o[OUT_FY] = fy * scale * side if loaded else 0.0
+        o[OUT_MZ] = mz * scale * side if loaded else 0.0
+        o[OUT_MY] = max(my, 0.0) * scale if loaded else 0.0
+        o[OUT_C_KAPPA] = c[C_KXK] * scale if loaded else 1.0
+        o[OUT_C_ALPHA] = c[C_KYA_ABS] * scale if loaded else 1.0
+        kappa_slide = c[C_KAPPA_SLIDE_POS] if kappa >= 0.0 else c[C_KAPPA_SLIDE_NEG]
+        o[OUT_KAPPA_SLIDE] = kappa_slide if loaded else 1.0
+        tan_alpha_slide = (
+            c[C_TAN_ALPHA_SLIDE_POS] if tan_alpha >= 0.0 else c[C_TAN_ALPHA_SLIDE_NEG]
+        )
+        o[OUT_TAN_ALPHA_SLIDE] = tan_alpha_slide if loaded else 1.0
+        o[OUT_FX_PEAK] = c[C_DX_ABS] * scale if loaded else 0.0
+        o[OUT_FY_PEAK] = c[C_DY_ABS] * scale if loaded else 0.0
 
 
 @nb.njit(**_JIT_OPTIONS)
@@ -1362,7 +1383,17 @@ def mf61_param_vector(coeffs: dict[str, float]) -> np.ndarray:
         if not math.isfinite(value):
             raise ValueError(f"MF 6.1 coefficient {name} is not finite: {value!r}")
         vec[i] = float(value)
+    _pack_derived(vec)
     return vec
+
+
+def _pack_derived(vec: np.ndarray) -> None:
+    """Fill the derived slots (:data:`MF61_DERIVED_NAMES`) of ``vec`` from its keys, as
+    :func:`_mf61_prepare` computed them per call before (the same expressions)."""
+    vec[D_PEAK_TARGET_X] = _peak_target(vec[P_PCX1] * vec[P_LCX])
+    vec[D_PEAK_TARGET_Y] = _peak_target(vec[P_PCY1] * vec[P_LCY])
+    vec[D_INV_FZ0] = 1.0 / (vec[P_FNOMIN] * vec[P_LFZO])
+    vec[D_INV_FNOMIN] = 1.0 / vec[P_FNOMIN]
 
 
 # ---- the kernels registered for this model (simserver.tire_models): the packed tire vector
