@@ -399,6 +399,21 @@ def test_a_queryable_that_does_not_answer_in_time_is_a_timeout():
         assert inbox.received == 1
 
 
+def test_closing_the_publisher_logs_no_hand_off(caplog):
+    """``close`` turns the caller's inline puts off to stop ``state-tx``: the thread must
+    not log that as states handed to it (a server's stop logged a hand-off "because a put
+    took 0 us")."""
+    with pair() as (srv, _cli):
+        pub = srv.declare_vehicle_publisher(states_per_s=1000.0, sender_thread=True,
+                                            inline_while_cheap=True)
+        pub.WATCH_S = 0.0  # the thread looks at the mode on every wake-up, the last one too
+        pub.publish_state(bytes(64))
+        assert pub.mode() == "inline"
+        with caplog.at_level("INFO", logger="simserver.server"):
+            pub.close()
+        assert not [r for r in caplog.records if "handed to this thread" in r.getMessage()]
+
+
 def test_reply_twice_is_an_error():
     with pair() as (srv, cli):
         inbox = srv.declare_control_inbox()

@@ -626,7 +626,8 @@ class VehiclePublisher:
                 mode = self.mode()
                 if mode != was:  # not in the tick; at most a few times a minute
                     was = mode
-                    self._log_mode(mode)
+                    if self._thread is not None:  # not close() turning the caller off
+                        self._log_mode(mode)
             if self.dropped != reported and now - last > 1.0:
                 reported, last = self.dropped, now  # not in the tick; 1/s
                 log.warning("state-tx: %d publications dropped so far: the sender was %d "
