@@ -605,6 +605,19 @@ def process_threads(pid: int | str = "self") -> dict[int, str]:
     return out
 
 
+def open_files(pid: int | str = "self") -> dict[int, str]:
+    """File descriptor -> what it points at (``/proc/PID/fd``: a path, ``socket:[inode]``,
+    ``pipe:[inode]``...) for every descriptor of process ``pid``."""
+    out = {}
+    fd_dir = f"/proc/{pid}/fd"
+    for entry in os.listdir(fd_dir):
+        try:
+            out[int(entry)] = os.readlink(f"{fd_dir}/{entry}")
+        except OSError:
+            continue  # closed meanwhile
+    return out
+
+
 class RealtimeScheduler:
     """Applies :class:`RealtimeSettings` to the calling (tick) thread and zenoh's threads.
 

@@ -13,6 +13,7 @@ import pytest
 from simserver.realtime import (
     RealtimeScheduler,
     RealtimeSettings,
+    open_files,
     parse_cpus,
     process_threads,
     thread_policy,
@@ -47,17 +48,6 @@ def policies(server: ServerProcess) -> dict[str, list[tuple[str, int]]]:
 CPU_LATENCY = "/dev/cpu_dma_latency"
 
 
-def open_files(pid: int) -> set[str]:
-    """What the file descriptors of process ``pid`` point at."""
-    out = set()
-    for fd in os.listdir(f"/proc/{pid}/fd"):
-        try:
-            out.add(os.readlink(f"/proc/{pid}/fd/{fd}"))
-        except OSError:
-            continue  # closed meanwhile
-    return out
-
-
 def zenoh_threads_promoted(server: ServerProcess) -> dict[str, list[tuple[str, int]]]:
     """Wait (a client connected) until zenoh's rx threads are promoted; the policies."""
     return wait_until(lambda: policies(server),
@@ -86,7 +76,7 @@ def test_the_tick_thread_and_zenohs_threads_run_sched_fifo():
         assert "warning" not in line
         if os.access(CPU_LATENCY, os.W_OK):  # held open by the server, said in the line
             assert "/dev/cpu_dma_latency held at 0 us" in line
-            assert CPU_LATENCY in open_files(server.pid)
+            assert CPU_LATENCY in open_files(server.pid).values()
 
 
 @pytest.mark.skipif(not _fifo_permitted(), reason="this test process may not use SCHED_FIFO")
@@ -102,7 +92,7 @@ def test_realtime_off_leaves_every_thread_alone():
         client.drive_until(lambda s: s["tick"] > 10, throttle=0.1)
         assert all(pol == ("SCHED_OTHER", 0) for v in policies(server).values() for pol in v)
         assert "real-time scheduling: off" in server.wait_for_line("real-time scheduling:")
-        assert CPU_LATENCY not in open_files(server.pid)
+        assert CPU_LATENCY not in open_files(server.pid).values()
 
 
 @pytest.mark.skipif(shutil.which("setpriv") is None or shutil.which("prlimit") is None

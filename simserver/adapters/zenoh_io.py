@@ -55,6 +55,7 @@ from simserver.protocol import (
     validate_control,
     vehicle_keys,
 )
+from simserver.realtime import open_files
 
 log = logging.getLogger("simserver.server")
 
@@ -695,18 +696,11 @@ class SocketBacklog:
         self._scanned = -1e9
 
     def _scan(self) -> None:
-        fds = []
         try:
-            entries = os.listdir("/proc/self/fd")
+            files = open_files()
         except OSError:
-            entries = []
-        for entry in entries:
-            try:
-                if os.readlink(f"/proc/self/fd/{entry}").startswith("socket:"):
-                    fds.append(int(entry))
-            except (OSError, ValueError):
-                continue
-        self._fds = fds
+            files = {}
+        self._fds = [fd for fd, target in files.items() if target.startswith("socket:")]
 
     def largest(self, now: float) -> int:
         if now - self._scanned >= self.RESCAN_S:

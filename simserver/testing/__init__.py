@@ -47,6 +47,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from simserver import protocol as proto
+from simserver.realtime import open_files
 
 REPO = Path(__file__).resolve().parents[2]
 """The source checkout (the servers and client programs are started from here; scene
@@ -138,15 +139,8 @@ class SocketInfo:
 
 def process_sockets(pid: int) -> list[SocketInfo]:
     """Every TCP and UDP socket held by process ``pid`` (matched by inode)."""
-    inodes = set()
-    fd_dir = f"/proc/{pid}/fd"
-    for fd in os.listdir(fd_dir):
-        try:
-            target = os.readlink(f"{fd_dir}/{fd}")
-        except OSError:
-            continue
-        if target.startswith("socket:["):
-            inodes.add(target[8:-1])
+    inodes = {target[8:-1] for target in open_files(pid).values()
+              if target.startswith("socket:[")}
     found = []
     for proto_name in ("tcp", "tcp6", "udp", "udp6"):
         try:
