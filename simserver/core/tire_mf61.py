@@ -77,6 +77,7 @@ from simserver.core.tire_layout import (
     FZ_INPUT_MAX_N,
     MU_SCALE_MAX,
     N_MF61_COEF,
+    N_TIRE_OUT,
     OUT_C_ALPHA,
     OUT_C_KAPPA,
     OUT_FX,
@@ -1083,6 +1084,7 @@ N_WHEEL_LANES_PADDED = -(-N_WHEEL_LANES // N_LANES) * N_LANES
 
 _stack_wheel_lanes = _stack_scratch(N_WHEEL_LANES_PADDED)
 _stack_wheel_tires = _stack_scratch(N_WHEEL_TIRES)
+_stack_wheel_outs = _stack_scratch(N_TIRE_OUT * N_WHEEL_TIRES)
 
 
 @nb.njit(inline="always", **_JIT_OPTIONS)
@@ -1133,11 +1135,17 @@ def _mf61_evaluate_wheels(
     cos_b = _stack_wheel_tires()
     dvyk_b = _stack_wheel_tires()
     ar_b = _stack_wheel_tires()
+    fz_prep_b = _stack_wheel_tires()
+    ob = _stack_wheel_outs()
     for w in range(nt):
         kappa_b[w] = kappa_in[w]
         tan_b[w] = tan_alpha_in[w]
         fz_b[w] = fz_in[w]
         vx_b[w] = vx_in[w]
+        # read here, not in the lane loops below: a read of a row's first slot there
+        # makes the compiler want a run-time check of coef's row stride, which it does
+        # not do for a loop of N_WHEEL_TIRES iterations, so it leaves the loop scalar
+        fz_prep_b[w] = coef[w, C_FZ_PREP]
 
     # --- before the curves: as _mf61_evaluate --------------------------------------------
     for w in range(nt):
@@ -1202,60 +1210,71 @@ def _mf61_evaluate_wheels(
         theta = _atan((1.0 - ei) * yi + ei * _atan(yi))
         sb[i] = _sin_branch_free(cb[i] * theta + kb[i])
 
-    # --- after the curves: as _mf61_evaluate -----------------------------------------------
+    # --- after the curves: as _mf61_evaluate, the tires side by side -------------------
+    # Branch-free, writing only the stack lanes ob (output k of tire w at k
+    # N_WHEEL_TIRES + w) and reading no first slot of a row (see fz_prep_b): the compiler
+    # then vectorises the loop across the tires (its four divisions and square root are
+    # one vector instruction each, not four); the rows of out are copied from ob after.
+    pb = TP_MODEL_BASE  # tp[w, pb + P_*]: the P_* slots of tire w
     for w in range(nt):
-        p = tp[w, TP_MODEL_BASE:]
         c = coef[w]
-        o = out[w]
         side = 1.0 - 2.0 * tp[w, TP_MIRRORED]
         kappa = kappa_b[w]
         tan_alpha = tan_b[w]
         fz_n = fz_b[w]
         low = low_b[w]
         cos_a = cos_b[w]
-        scale = max(min(fz_n, FZ_INPUT_MAX_N), 0.0) / c[C_FZ_PREP]
+        scale = max(min(fz_n, FZ_INPUT_MAX_N), 0.0) / fz_prep_b[w]
         gxa = max(sb[nt + w] / max(sb[w], _TINY), 0.0)  # (4.E51), (4.E52)
         gyk = max(sb[3 * nt + w] / max(sb[2 * nt + w], _TINY), 0.0)  # (4.E59), (4.E60)
         fx0 = c[C_DX] * sb[4 * nt + w] + c[C_SVX] * low  # (4.E9)
         fy0 = c[C_DY] * sb[5 * nt + w] + c[C_SVY] * low  # (4.E19)
         t = c[C_DT] * sb[6 * nt + w] * cos_a  # (4.E73)
-        svyk = dvyk_b[w] * sb[7 * nt + w] * p[P_LVYKA]  # (4.E66)
+        svyk = dvyk_b[w] * sb[7 * nt + w] * tp[w, pb + P_LVYKA]  # (4.E66)
         fy0_cam = c[C_DY_G0] * sb[8 * nt + w] + c[C_SVY_G0] * low
-        fy0_g0 = fy0_cam if c[C_CAMBER] != 0.0 else fy0  # gamma* = 0: the same curve
+        camber = 1.0 * (c[C_CAMBER] != 0.0)  # gamma* = 0: the same curve, fy0
+        fy0_g0 = fy0_cam * camber + fy0 * (1.0 - camber)
         fx = gxa * fx0  # (4.E50)
         fy = gyk * fy0 + svyk  # (4.E58)
         fy_prime = gyk * fy0_g0  # (4.E74)
         br_ar = c[C_BR] * ar_b[w]
         dr = c[C_DR0] * cos_a  # (4.E47)
         mzr = dr / math.sqrt(1.0 + br_ar * br_ar)  # (4.E75)
-        r0 = p[P_UNLOADED_RADIUS]
-        arm = r0 * (p[P_SSZ1] + p[P_SSZ2] * fy * c[C_INV_FZ0] + c[C_S_GAMMA]) * p[P_LS]
+        r0 = tp[w, pb + P_UNLOADED_RADIUS]
+        arm = (r0 * (tp[w, pb + P_SSZ1] + tp[w, pb + P_SSZ2] * fy * c[C_INV_FZ0] + c[C_S_GAMMA])
+               * tp[w, pb + P_LS])
         mz = -t * fy_prime + mzr + arm * fx  # (4.E71), (4.E72), (4.E76)
         vr = min(abs(vx_b[w]), VX_MY_MAX_MPS) * c[C_INV_V0]
         vr2 = vr * vr
         my = (
             c[C_MY_SCALE]
-            * (p[P_QSY1] + p[P_QSY2] * fx * c[C_INV_FNOMIN] + p[P_QSY3] * vr
-               + p[P_QSY4] * vr2 * vr2 + c[C_MY_GAMMA])
+            * (tp[w, pb + P_QSY1] + tp[w, pb + P_QSY2] * fx * c[C_INV_FNOMIN]
+               + tp[w, pb + P_QSY3] * vr + tp[w, pb + P_QSY4] * vr2 * vr2 + c[C_MY_GAMMA])
             * c[C_MY_PRESSURE]
         )  # (4.E70)  # fmt: skip
         # without load, as core.tire._no_load: forces zero, stiffnesses and limits 1.
-        # Selects, not a branch: the compiler then does the four tires side by side.
-        loaded = fz_n > 0.0
-        o[OUT_FX] = fx * scale if loaded else 0.0
-        o[OUT_FY] = fy * scale * side if loaded else 0.0
-        o[OUT_MZ] = mz * scale * side if loaded else 0.0
-        o[OUT_MY] = max(my, 0.0) * scale if loaded else 0.0
-        o[OUT_C_KAPPA] = c[C_KXK] * scale if loaded else 1.0
-        o[OUT_C_ALPHA] = c[C_KYA_ABS] * scale if loaded else 1.0
-        kappa_slide = c[C_KAPPA_SLIDE_POS] if kappa >= 0.0 else c[C_KAPPA_SLIDE_NEG]
-        o[OUT_KAPPA_SLIDE] = kappa_slide if loaded else 1.0
-        tan_alpha_slide = (
-            c[C_TAN_ALPHA_SLIDE_POS] if tan_alpha >= 0.0 else c[C_TAN_ALPHA_SLIDE_NEG]
-        )
-        o[OUT_TAN_ALPHA_SLIDE] = tan_alpha_slide if loaded else 1.0
-        o[OUT_FX_PEAK] = c[C_DX_ABS] * scale if loaded else 0.0
-        o[OUT_FY_PEAK] = c[C_DY_ABS] * scale if loaded else 0.0
+        # 0/1 factors, not conditional expressions: exact blends (one term is 0).
+        loaded = 1.0 * (fz_n > 0.0)
+        unloaded = 1.0 - loaded
+        kappa_pos = 1.0 * (kappa >= 0.0)
+        tan_alpha_pos = 1.0 * (tan_alpha >= 0.0)
+        kappa_slide = (c[C_KAPPA_SLIDE_POS] * kappa_pos
+                       + c[C_KAPPA_SLIDE_NEG] * (1.0 - kappa_pos))
+        tan_alpha_slide = (c[C_TAN_ALPHA_SLIDE_POS] * tan_alpha_pos
+                           + c[C_TAN_ALPHA_SLIDE_NEG] * (1.0 - tan_alpha_pos))
+        ob[OUT_FX * nt + w] = fx * scale * loaded
+        ob[OUT_FY * nt + w] = fy * scale * side * loaded
+        ob[OUT_MZ * nt + w] = mz * scale * side * loaded
+        ob[OUT_MY * nt + w] = max(my, 0.0) * scale * loaded
+        ob[OUT_C_KAPPA * nt + w] = c[C_KXK] * scale * loaded + unloaded
+        ob[OUT_C_ALPHA * nt + w] = c[C_KYA_ABS] * scale * loaded + unloaded
+        ob[OUT_KAPPA_SLIDE * nt + w] = kappa_slide * loaded + unloaded
+        ob[OUT_TAN_ALPHA_SLIDE * nt + w] = tan_alpha_slide * loaded + unloaded
+        ob[OUT_FX_PEAK * nt + w] = c[C_DX_ABS] * scale * loaded
+        ob[OUT_FY_PEAK * nt + w] = c[C_DY_ABS] * scale * loaded
+    for w in range(nt):
+        for k in range(N_TIRE_OUT):
+            out[w, k] = ob[k * nt + w]
 
 
 @nb.njit(**_JIT_OPTIONS)
