@@ -1080,6 +1080,11 @@ N_WHEEL_LANES = N_WHEEL_TIRES * N_WHEEL_CURVES
 # lanes a scalar remainder loop with a branching atan, which cost more than a fifth
 # vector: 45 ns more per call (of 300), measured by CPU time in a compiled loop.
 N_WHEEL_LANES_PADDED = -(-N_WHEEL_LANES // N_LANES) * N_LANES
+# The lanes of the curves whose E may be non-zero: all but the last, S_Vyk's (4.E66);
+# a whole number of vectors.
+N_WHEEL_E_LANES = (N_WHEEL_CURVES - 1) * N_WHEEL_TIRES
+if N_WHEEL_E_LANES % N_LANES:
+    raise ImportError("N_WHEEL_E_LANES must be a multiple of N_LANES")
 
 
 _stack_wheel_lanes = _stack_scratch(N_WHEEL_LANES_PADDED)
@@ -1114,12 +1119,13 @@ def _mf61_evaluate_wheels(
 
     Notes
     -----
-    The same equations as :func:`_mf61_evaluate`, in three loops: the scalar work before
-    the curves for each tire, the ``N_WHEEL_TIRES x N_WHEEL_CURVES`` Magic Formula curves
-    in one branch-free loop that the compiler vectorises (lane ``j N_WHEEL_TIRES + w``:
-    curve ``j`` of tire ``w``; the ninth curve is ``Fy0`` at ``gamma = 0`` for (4.E74),
-    evaluated always and used where the camber is not zero), and the scalar work after
-    them. Equal to :func:`_mf61_evaluate` to rounding (checked in tests/test_tire_mf61.py).
+    The same equations as :func:`_mf61_evaluate`, in branch-free loops that the compiler
+    vectorises: the work before the curves, across the tires; the ``N_WHEEL_TIRES x
+    N_WHEEL_CURVES`` Magic Formula curves (lane ``j N_WHEEL_TIRES + w``: curve ``j`` of
+    tire ``w``; curve 7 is ``Fy0`` at ``gamma = 0`` for (4.E74), evaluated always and
+    used where the camber is not zero; curve 8, with ``E = 0``, is ``S_Vyk``'s (4.E66));
+    the work after them, across the tires. Equal to :func:`_mf61_evaluate` to rounding
+    (checked in tests/test_tire_mf61.py).
     """
     nt = N_WHEEL_TIRES
     yb = _stack_wheel_lanes()
@@ -1127,6 +1133,7 @@ def _mf61_evaluate_wheels(
     cb = _stack_wheel_lanes()
     kb = _stack_wheel_lanes()
     sb = _stack_wheel_lanes()
+    xb = _stack_wheel_lanes()
     kappa_b = _stack_wheel_tires()
     tan_b = _stack_wheel_tires()
     fz_b = _stack_wheel_tires()
@@ -1197,18 +1204,24 @@ def _mf61_evaluate_wheels(
         yb[6 * nt + w], eb[6 * nt + w], cb[6 * nt + w], kb[6 * nt + w] = (
             c[C_BT] * alpha_t_eq, et, p[P_QCZ1], _PI_2)
         yb[7 * nt + w], eb[7 * nt + w], cb[7 * nt + w], kb[7 * nt + w] = (
-            p[P_RVY6] * kappa, 0.0, p[P_RVY5], 0.0)
-        yb[8 * nt + w], eb[8 * nt + w], cb[8 * nt + w], kb[8 * nt + w] = (
             c[C_BY_G0] * alpha_y0, ey_g0, c[C_CY], 0.0)
+        yb[8 * nt + w], eb[8 * nt + w], cb[8 * nt + w], kb[8 * nt + w] = (
+            p[P_RVY6] * kappa, 0.0, p[P_RVY5], 0.0)  # E = 0: last (see N_WHEEL_E_LANES)
 
     # --- the curves: one branch-free loop, vectorised (as _mf_lanes) ----------------------
     for i in range(N_WHEEL_LANES, N_WHEEL_LANES_PADDED):
         yb[i] = eb[i] = cb[i] = kb[i] = 0.0
-    for i in range(N_WHEEL_LANES_PADDED):
+    # in three loops, each with fewer constants live than the 32 vector registers hold
+    # (one loop kept about 30 of them on the stack and loaded them again every vector);
+    # the inner atan only where E may be non-zero (where E = 0 the argument is y)
+    for i in range(N_WHEEL_E_LANES):
         yi = yb[i]
         ei = eb[i]
-        theta = _atan((1.0 - ei) * yi + ei * _atan(yi))
-        sb[i] = _sin_branch_free(cb[i] * theta + kb[i])
+        yb[i] = (1.0 - ei) * yi + ei * _atan(yi)
+    for i in range(N_WHEEL_LANES_PADDED):
+        xb[i] = cb[i] * _atan(yb[i]) + kb[i]
+    for i in range(N_WHEEL_LANES_PADDED):
+        sb[i] = _sin_branch_free(xb[i])
 
     # --- after the curves: as _mf61_evaluate, the tires side by side -------------------
     # Branch-free, writing only the stack lanes ob (output k of tire w at k
@@ -1230,8 +1243,8 @@ def _mf61_evaluate_wheels(
         fx0 = c[C_DX] * sb[4 * nt + w] + c[C_SVX] * low  # (4.E9)
         fy0 = c[C_DY] * sb[5 * nt + w] + c[C_SVY] * low  # (4.E19)
         t = c[C_DT] * sb[6 * nt + w] * cos_a  # (4.E73)
-        svyk = dvyk_b[w] * sb[7 * nt + w] * tp[w, pb + P_LVYKA]  # (4.E66)
-        fy0_cam = c[C_DY_G0] * sb[8 * nt + w] + c[C_SVY_G0] * low
+        svyk = dvyk_b[w] * sb[8 * nt + w] * tp[w, pb + P_LVYKA]  # (4.E66)
+        fy0_cam = c[C_DY_G0] * sb[7 * nt + w] + c[C_SVY_G0] * low
         camber = 1.0 * (c[C_CAMBER] != 0.0)  # gamma* = 0: the same curve, fy0
         fy0_g0 = fy0_cam * camber + fy0 * (1.0 - camber)
         fx = gxa * fx0  # (4.E50)
