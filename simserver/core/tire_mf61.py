@@ -1209,7 +1209,7 @@ def _mf61_evaluate_wheels(
         yb[8 * nt + w], eb[8 * nt + w], cb[8 * nt + w], kb[8 * nt + w] = (
             p[P_RVY6] * kappa, 0.0, p[P_RVY5], 0.0)  # E = 0: last (see N_WHEEL_E_LANES)
 
-    # --- the curves: one branch-free loop, vectorised (as _mf_lanes) ----------------------
+    # --- the curves: branch-free loops, vectorised (as _mf_lanes) -------------------------
     for i in range(N_WHEEL_LANES, N_WHEEL_LANES_PADDED):
         yb[i] = eb[i] = cb[i] = kb[i] = 0.0
     # in three loops, each with fewer constants live than the 32 vector registers hold
