@@ -77,6 +77,7 @@ from simserver.core.tire_layout import (
     FZ_INPUT_MAX_N,
     MU_SCALE_MAX,
     N_MF61_COEF,
+    N_TIRE_OUT,
     OUT_C_ALPHA,
     OUT_C_KAPPA,
     OUT_FX,
@@ -1079,10 +1080,16 @@ N_WHEEL_LANES = N_WHEEL_TIRES * N_WHEEL_CURVES
 # lanes a scalar remainder loop with a branching atan, which cost more than a fifth
 # vector: 45 ns more per call (of 300), measured by CPU time in a compiled loop.
 N_WHEEL_LANES_PADDED = -(-N_WHEEL_LANES // N_LANES) * N_LANES
+# The lanes of the curves whose E may be non-zero: all but the last, S_Vyk's (4.E66);
+# a whole number of vectors.
+N_WHEEL_E_LANES = (N_WHEEL_CURVES - 1) * N_WHEEL_TIRES
+if N_WHEEL_E_LANES % N_LANES:
+    raise ImportError("N_WHEEL_E_LANES must be a multiple of N_LANES")
 
 
 _stack_wheel_lanes = _stack_scratch(N_WHEEL_LANES_PADDED)
 _stack_wheel_tires = _stack_scratch(N_WHEEL_TIRES)
+_stack_wheel_outs = _stack_scratch(N_TIRE_OUT * N_WHEEL_TIRES)
 
 
 @nb.njit(inline="always", **_JIT_OPTIONS)
@@ -1112,12 +1119,13 @@ def _mf61_evaluate_wheels(
 
     Notes
     -----
-    The same equations as :func:`_mf61_evaluate`, in three loops: the scalar work before
-    the curves for each tire, the ``N_WHEEL_TIRES x N_WHEEL_CURVES`` Magic Formula curves
-    in one branch-free loop that the compiler vectorises (lane ``j N_WHEEL_TIRES + w``:
-    curve ``j`` of tire ``w``; the ninth curve is ``Fy0`` at ``gamma = 0`` for (4.E74),
-    evaluated always and used where the camber is not zero), and the scalar work after
-    them. Equal to :func:`_mf61_evaluate` to rounding (checked in tests/test_tire_mf61.py).
+    The same equations as :func:`_mf61_evaluate`, in branch-free loops that the compiler
+    vectorises: the work before the curves, across the tires; the ``N_WHEEL_TIRES x
+    N_WHEEL_CURVES`` Magic Formula curves (lane ``j N_WHEEL_TIRES + w``: curve ``j`` of
+    tire ``w``; curve 7 is ``Fy0`` at ``gamma = 0`` for (4.E74), evaluated always and
+    used where the camber is not zero; curve 8, with ``E = 0``, is ``S_Vyk``'s (4.E66));
+    the work after them, across the tires. Equal to :func:`_mf61_evaluate` to rounding
+    (checked in tests/test_tire_mf61.py).
     """
     nt = N_WHEEL_TIRES
     yb = _stack_wheel_lanes()
@@ -1125,6 +1133,7 @@ def _mf61_evaluate_wheels(
     cb = _stack_wheel_lanes()
     kb = _stack_wheel_lanes()
     sb = _stack_wheel_lanes()
+    xb = _stack_wheel_lanes()
     kappa_b = _stack_wheel_tires()
     tan_b = _stack_wheel_tires()
     fz_b = _stack_wheel_tires()
@@ -1133,11 +1142,18 @@ def _mf61_evaluate_wheels(
     cos_b = _stack_wheel_tires()
     dvyk_b = _stack_wheel_tires()
     ar_b = _stack_wheel_tires()
+    fz_prep_b = _stack_wheel_tires()
+    scale_b = _stack_wheel_tires()
+    ob = _stack_wheel_outs()
     for w in range(nt):
         kappa_b[w] = kappa_in[w]
         tan_b[w] = tan_alpha_in[w]
         fz_b[w] = fz_in[w]
         vx_b[w] = vx_in[w]
+        # read here, not in the lane loops below: a read of a row's first slot there
+        # makes the compiler want a run-time check of coef's row stride, which it does
+        # not do for a loop of N_WHEEL_TIRES iterations, so it leaves the loop scalar
+        fz_prep_b[w] = coef[w, C_FZ_PREP]
 
     # --- before the curves: as _mf61_evaluate --------------------------------------------
     for w in range(nt):
@@ -1189,73 +1205,96 @@ def _mf61_evaluate_wheels(
         yb[6 * nt + w], eb[6 * nt + w], cb[6 * nt + w], kb[6 * nt + w] = (
             c[C_BT] * alpha_t_eq, et, p[P_QCZ1], _PI_2)
         yb[7 * nt + w], eb[7 * nt + w], cb[7 * nt + w], kb[7 * nt + w] = (
-            p[P_RVY6] * kappa, 0.0, p[P_RVY5], 0.0)
-        yb[8 * nt + w], eb[8 * nt + w], cb[8 * nt + w], kb[8 * nt + w] = (
             c[C_BY_G0] * alpha_y0, ey_g0, c[C_CY], 0.0)
+        yb[8 * nt + w], eb[8 * nt + w], cb[8 * nt + w], kb[8 * nt + w] = (
+            p[P_RVY6] * kappa, 0.0, p[P_RVY5], 0.0)  # E = 0: last (see N_WHEEL_E_LANES)
 
-    # --- the curves: one branch-free loop, vectorised (as _mf_lanes) ----------------------
+    # --- the curves: branch-free loops, vectorised (as _mf_lanes) -------------------------
     for i in range(N_WHEEL_LANES, N_WHEEL_LANES_PADDED):
         yb[i] = eb[i] = cb[i] = kb[i] = 0.0
-    for i in range(N_WHEEL_LANES_PADDED):
+    # in three loops, each with fewer constants live than the 32 vector registers hold
+    # (one loop kept about 30 of them on the stack and loaded them again every vector);
+    # the inner atan only where E may be non-zero (where E = 0 the argument is y)
+    for i in range(N_WHEEL_E_LANES):
         yi = yb[i]
         ei = eb[i]
-        theta = _atan((1.0 - ei) * yi + ei * _atan(yi))
-        sb[i] = _sin_branch_free(cb[i] * theta + kb[i])
+        yb[i] = (1.0 - ei) * yi + ei * _atan(yi)
+    for i in range(N_WHEEL_LANES_PADDED):
+        xb[i] = cb[i] * _atan(yb[i]) + kb[i]
+    for i in range(N_WHEEL_LANES_PADDED):
+        sb[i] = _sin_branch_free(xb[i])
 
-    # --- after the curves: as _mf61_evaluate -----------------------------------------------
+    # --- after the curves: as _mf61_evaluate, the tires side by side -------------------
+    # Branch-free, writing only the stack lanes ob (force or moment k of tire w at k
+    # N_WHEEL_TIRES + w) and reading no first slot of a row (see fz_prep_b): the compiler
+    # then vectorises the loop across the tires (its four divisions and square root are
+    # one vector instruction each, not four). Then, per tire, the rows of out: the forces
+    # from ob, the load-only outputs from coef (scalar reads: as vector lanes each of
+    # them costs a gather, which made the whole 4 % slower).
+    pb = TP_MODEL_BASE  # tp[w, pb + P_*]: the P_* slots of tire w
     for w in range(nt):
-        p = tp[w, TP_MODEL_BASE:]
         c = coef[w]
-        o = out[w]
         side = 1.0 - 2.0 * tp[w, TP_MIRRORED]
         kappa = kappa_b[w]
         tan_alpha = tan_b[w]
         fz_n = fz_b[w]
         low = low_b[w]
         cos_a = cos_b[w]
-        scale = max(min(fz_n, FZ_INPUT_MAX_N), 0.0) / c[C_FZ_PREP]
+        scale = max(min(fz_n, FZ_INPUT_MAX_N), 0.0) / fz_prep_b[w]
         gxa = max(sb[nt + w] / max(sb[w], _TINY), 0.0)  # (4.E51), (4.E52)
         gyk = max(sb[3 * nt + w] / max(sb[2 * nt + w], _TINY), 0.0)  # (4.E59), (4.E60)
         fx0 = c[C_DX] * sb[4 * nt + w] + c[C_SVX] * low  # (4.E9)
         fy0 = c[C_DY] * sb[5 * nt + w] + c[C_SVY] * low  # (4.E19)
         t = c[C_DT] * sb[6 * nt + w] * cos_a  # (4.E73)
-        svyk = dvyk_b[w] * sb[7 * nt + w] * p[P_LVYKA]  # (4.E66)
-        fy0_cam = c[C_DY_G0] * sb[8 * nt + w] + c[C_SVY_G0] * low
-        fy0_g0 = fy0_cam if c[C_CAMBER] != 0.0 else fy0  # gamma* = 0: the same curve
+        svyk = dvyk_b[w] * sb[8 * nt + w] * tp[w, pb + P_LVYKA]  # (4.E66)
+        fy0_cam = c[C_DY_G0] * sb[7 * nt + w] + c[C_SVY_G0] * low
+        camber = 1.0 * (c[C_CAMBER] != 0.0)  # gamma* = 0: the same curve, fy0
+        fy0_g0 = fy0_cam * camber + fy0 * (1.0 - camber)
         fx = gxa * fx0  # (4.E50)
         fy = gyk * fy0 + svyk  # (4.E58)
         fy_prime = gyk * fy0_g0  # (4.E74)
         br_ar = c[C_BR] * ar_b[w]
         dr = c[C_DR0] * cos_a  # (4.E47)
         mzr = dr / math.sqrt(1.0 + br_ar * br_ar)  # (4.E75)
-        r0 = p[P_UNLOADED_RADIUS]
-        arm = r0 * (p[P_SSZ1] + p[P_SSZ2] * fy * c[C_INV_FZ0] + c[C_S_GAMMA]) * p[P_LS]
+        r0 = tp[w, pb + P_UNLOADED_RADIUS]
+        arm = (r0 * (tp[w, pb + P_SSZ1] + tp[w, pb + P_SSZ2] * fy * c[C_INV_FZ0] + c[C_S_GAMMA])
+               * tp[w, pb + P_LS])
         mz = -t * fy_prime + mzr + arm * fx  # (4.E71), (4.E72), (4.E76)
         vr = min(abs(vx_b[w]), VX_MY_MAX_MPS) * c[C_INV_V0]
         vr2 = vr * vr
         my = (
             c[C_MY_SCALE]
-            * (p[P_QSY1] + p[P_QSY2] * fx * c[C_INV_FNOMIN] + p[P_QSY3] * vr
-               + p[P_QSY4] * vr2 * vr2 + c[C_MY_GAMMA])
+            * (tp[w, pb + P_QSY1] + tp[w, pb + P_QSY2] * fx * c[C_INV_FNOMIN]
+               + tp[w, pb + P_QSY3] * vr + tp[w, pb + P_QSY4] * vr2 * vr2 + c[C_MY_GAMMA])
             * c[C_MY_PRESSURE]
         )  # (4.E70)  # fmt: skip
         # without load, as core.tire._no_load: forces zero, stiffnesses and limits 1.
-        # Selects, not a branch: the compiler then does the four tires side by side.
-        loaded = fz_n > 0.0
-        o[OUT_FX] = fx * scale if loaded else 0.0
-        o[OUT_FY] = fy * scale * side if loaded else 0.0
-        o[OUT_MZ] = mz * scale * side if loaded else 0.0
-        o[OUT_MY] = max(my, 0.0) * scale if loaded else 0.0
+        # A 0/1 factor, not a conditional expression: the loop stays branch-free.
+        loaded = 1.0 * (fz_n > 0.0)
+        scale_b[w] = scale * loaded
+        ob[OUT_FX * nt + w] = fx * scale * loaded
+        ob[OUT_FY * nt + w] = fy * scale * side * loaded
+        ob[OUT_MZ * nt + w] = mz * scale * side * loaded
+        ob[OUT_MY * nt + w] = max(my, 0.0) * scale * loaded
+    for w in range(nt):
+        c = coef[w]
+        o = out[w]
+        scale = scale_b[w]
+        loaded = fz_b[w] > 0.0
+        o[OUT_FX] = ob[OUT_FX * nt + w]
+        o[OUT_FY] = ob[OUT_FY * nt + w]
+        o[OUT_MZ] = ob[OUT_MZ * nt + w]
+        o[OUT_MY] = ob[OUT_MY * nt + w]
         o[OUT_C_KAPPA] = c[C_KXK] * scale if loaded else 1.0
         o[OUT_C_ALPHA] = c[C_KYA_ABS] * scale if loaded else 1.0
-        kappa_slide = c[C_KAPPA_SLIDE_POS] if kappa >= 0.0 else c[C_KAPPA_SLIDE_NEG]
+        kappa_slide = c[C_KAPPA_SLIDE_POS] if kappa_b[w] >= 0.0 else c[C_KAPPA_SLIDE_NEG]
         o[OUT_KAPPA_SLIDE] = kappa_slide if loaded else 1.0
         tan_alpha_slide = (
-            c[C_TAN_ALPHA_SLIDE_POS] if tan_alpha >= 0.0 else c[C_TAN_ALPHA_SLIDE_NEG]
+            c[C_TAN_ALPHA_SLIDE_POS] if tan_b[w] >= 0.0 else c[C_TAN_ALPHA_SLIDE_NEG]
         )
         o[OUT_TAN_ALPHA_SLIDE] = tan_alpha_slide if loaded else 1.0
-        o[OUT_FX_PEAK] = c[C_DX_ABS] * scale if loaded else 0.0
-        o[OUT_FY_PEAK] = c[C_DY_ABS] * scale if loaded else 0.0
+        o[OUT_FX_PEAK] = c[C_DX_ABS] * scale
+        o[OUT_FY_PEAK] = c[C_DY_ABS] * scale
 
 
 @nb.njit(**_JIT_OPTIONS)
