@@ -553,16 +553,12 @@ def auxiliary_damping(
     d_tan_alpha: float,
     d_kappa: float,
     spin_damping_cap: float,
-    damping_model: int,
-    slip_model: int,
 ) -> tuple[float, float]:
     """The low-speed damping shares ``(dFx, dFy)`` of one wheel (paper Appendix A,
     ``core.damping``), added to the tire forces ``tire_out[OUT_FX]``, ``[OUT_FY]``.
-    ``spin_damping_cap``: the wheel's ``D_SPIN_DAMPING_CAP`` (``core.model``);
-    ``damping_model``, ``slip_model``: the model ids ``vp[VP_DAMPING_MODEL]``,
-    ``vp[VP_SLIP_MODEL]``, read once per evaluation by the caller (read here, they were
-    loaded and converted again for every wheel: the compiler cannot tell that the stores
-    in between leave ``vp`` alone)."""
+    ``spin_damping_cap``: the wheel's ``D_SPIN_DAMPING_CAP`` (``core.model``)."""
+    damping_model = int(vp[VP_DAMPING_MODEL])
+    slip_model = int(vp[VP_SLIP_MODEL])
     if damping_model == DAMPING_PAPER:
         if damping_active > 0.5:
             c_x, c_y = damping_coefficients(
@@ -656,7 +652,6 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
     vp, tp, tires, derived = model.vp, model.tp, model.tires, model.derived
     wheel_in, wheel, tire_out, tire_coef = ws.wheel_in, ws.wheel, ws.tire_out, ws.tire_coef
     slip_model = int(vp[VP_SLIP_MODEL])
-    damping_model = int(vp[VP_DAMPING_MODEL])
     on_plane = model.terrain.kind == TERRAIN_PLANE
     for i in range(N_WHEELS):
         tp_wheel = tp[i]
@@ -713,7 +708,7 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
         radius = tp_wheel[TP_RADIUS_M]
         damp_x, damp_y = auxiliary_damping(
             vp, i, tp_wheel, out_i, fz, u_w, v_w, x[DAMPING_ACTIVE0 + i], dx[TAN_ALPHA0 + i],
-            dx[KAPPA0 + i], derived[D_SPIN_DAMPING_CAP0 + i], damping_model, slip_model,
+            dx[KAPPA0 + i], derived[D_SPIN_DAMPING_CAP0 + i],
         )
         fx = out_i[OUT_FX] + damp_x
         fy = out_i[OUT_FY] + damp_y

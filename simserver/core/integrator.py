@@ -461,25 +461,17 @@ def simulate(
     ``k * record_every`` and the forces evaluated at it. ``data.inputs`` ends holding the
     last row of ``inputs_per_step``.
     """
-    if record_every < 1:
-        raise ValueError("record_every must be at least 1")
     x, out, inputs = data.x, data.out, data.inputs
     n = inputs_per_step.shape[0]
     row = 0
-    # steps until the next recorded one: a countdown, not k % record_every (two integer
-    # divisions a step, 20-40 cycles each)
-    countdown = 0
     for k in range(n):
         for j in range(inputs.size):
             inputs[j] = inputs_per_step[k, j]
-        record = countdown == 0
-        if record:
+        if k % record_every == 0:
             for j in range(N_STATE):
                 states[row, j] = x[j]
-            countdown = record_every
-        countdown -= 1
         step(model, data)
-        if record:
+        if k % record_every == 0:
             for j in range(N_OUT):
                 outputs[row, j] = out[j]
             row += 1
