@@ -141,6 +141,12 @@ from simserver.core.steering import column_rate_blend, kingpin_lift_arm_m, steer
 from simserver.core.tire import tire_prepare
 from simserver.core.tire_layout import TP_RADIUS_M, TP_RELAX_LAT_M, TP_RELAX_LONG_M
 
+# The integrated states that decay (Lawson's exponential factor): the lagged slip states,
+# the last block of the integrated slots; every slot below DECAYING0 has decay 0
+DECAYING0 = TAN_ALPHA0
+if not (KAPPA0 == TAN_ALPHA0 + N_WHEELS and KAPPA0 + N_WHEELS == N_INTEGRATED):
+    raise ImportError("core.integrator.DECAYING0: the slip states are not the last block")
+
 
 @nb.njit(cache=True)
 def derive_constants(vp: np.ndarray, tp: np.ndarray, dt_s: float) -> np.ndarray:
@@ -269,11 +275,12 @@ def _copy_discrete(src: np.ndarray, dst: np.ndarray) -> None:
 @nb.njit(cache=True, inline="always")
 def freeze_decay_rates(model: Model, data: Data) -> None:
     """The slip states' linear decay rates ``|u|/b``, ``|u|/B`` at the step start (zero for
-    the other states, and for the kinematic slip model, which has no slip states)."""
+    the kinematic slip model, which has no slip states). Only the slip slots
+    ``DECAYING0 .. N_INTEGRATED`` are written: no other state decays."""
     rk, wheel = data.ws.rk, data.ws.wheel
     tp = model.tp
     h = model.dt_s
-    for j in range(N_INTEGRATED):
+    for j in range(DECAYING0, N_INTEGRATED):  # the only slots lawson_rk4 reads
         rk[RK_DECAY, j] = 0.0
         rk[RK_E_HALF, j] = 1.0
     if int(model.vp[VP_SLIP_MODEL]) != SLIP_KINEMATIC:
@@ -304,26 +311,38 @@ def lawson_rk4(model: Model, data: Data) -> None:
     _copy_discrete(x, y)
     # k2, k3, k4 in a loop: one inlined copy of vehicle_rates instead of three (the cold
     # compile of the step grew with every copy, numba's type inference most); the stage
-    # derivatives' rows RK_K1 .. RK_K4 are consecutive (core.model)
+    # derivatives' rows RK_K1 .. RK_K4 are consecutive (core.model).
+    # Only the slip slots (DECAYING0 ..) decay; below them the decay is 0 and its factor
+    # exp(0) = 1, so their lines are Lawson's with the factors 1 and the terms 0 taken
+    # out: plain RK4, the same values (x * 1.0 is x; k + 0.0 * y is k but for the sign of
+    # a zero k).
     y_prev = x
     for stage in range(3):
         k_prev, k = rk[RK_K1 + stage], rk[RK_K2 + stage]
-        for j in range(N_INTEGRATED):
+        for j in range(DECAYING0, N_INTEGRATED):
             k_prev[j] += decay[j] * y_prev[j]
         if stage == 0:  # y2
-            for j in range(N_INTEGRATED):
+            for j in range(DECAYING0):
+                y[j] = x[j] + 0.5 * h * k_prev[j]
+            for j in range(DECAYING0, N_INTEGRATED):
                 y[j] = e_half[j] * (x[j] + 0.5 * h * k_prev[j])
         elif stage == 1:  # y3
-            for j in range(N_INTEGRATED):
+            for j in range(DECAYING0):
+                y[j] = x[j] + 0.5 * h * k_prev[j]
+            for j in range(DECAYING0, N_INTEGRATED):
                 y[j] = e_half[j] * x[j] + 0.5 * h * k_prev[j]
         else:  # y4
-            for j in range(N_INTEGRATED):
+            for j in range(DECAYING0):
+                y[j] = x[j] + h * k_prev[j]
+            for j in range(DECAYING0, N_INTEGRATED):
                 y[j] = e_half[j] * e_half[j] * x[j] + h * e_half[j] * k_prev[j]
         vehicle_rates(model, ws, y, k)
         y_prev = y
     for i in range(N_WHEELS):
         rk[RK_SPIN0, OMEGA0 + i] = x[OMEGA0 + i]  # for the zero-crossing test
-    for j in range(N_INTEGRATED):
+    for j in range(DECAYING0):
+        x[j] = x[j] + h / 6.0 * (k1[j] + 2.0 * (k2[j] + k3[j]) + k4[j])
+    for j in range(DECAYING0, N_INTEGRATED):
         k4[j] += decay[j] * y[j]
         e_full = e_half[j] * e_half[j]
         x[j] = e_full * x[j] + h / 6.0 * (
@@ -399,7 +418,12 @@ def update_discrete_states(model: Model, data: Data) -> None:
 # allocates nothing and holds only the caller's arrays and views of them, which the caller
 # keeps alive, so the counts protect nothing. (Non-inlined callees are compiled with their
 # own, default options.)
-@nb.njit(cache=True, _nrt=False)
+# Compiled with numpy's error model, as the tire kernels are (core.tire_layout): a float
+# division by zero gives inf or NaN instead of raising ZeroDivisionError, so no division
+# carries a test and branch of its divisor (about 20 a stage; -3 % of the brush step's
+# instructions). The values of every other division are the same. A non-finite state is
+# what the server's guard catches (vehicle_slot.check_finite: the car stopped at rest).
+@nb.njit(cache=True, _nrt=False, error_model="numpy")
 def step(model: Model, data: Data) -> None:
     """Advance ``data.x`` by ``model.dt_s`` in place with the inputs ``data.inputs``.
 
