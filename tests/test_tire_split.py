@@ -476,7 +476,9 @@ def test_four_mf61_tires_at_once_equal_one_at_a_time(
     out = np.full((4, N_TIRE_OUT), np.nan)
     tire.tire_evaluate_mf61_wheels(tp, coef, tuple(kappa), tuple(tan_alpha), tuple(fz),
                                    tuple(vx), out)
-    assert tire.all_mf61(tp) and not tire.all_mf61(np.stack([MF_SAMPLE] * 3 + [SIMPLE]))
+    mf61 = tire.TIRE_MODEL_MF61
+    assert tire.every_tire_is(tp, mf61)
+    assert not tire.every_tire_is(np.stack([MF_SAMPLE] * 3 + [SIMPLE]), mf61)
     for w in range(4):
         ref = np.full(N_TIRE_OUT, np.nan)
         tire_evaluate(BUILTIN_KERNELS, tp[w], coef[w], kappa[w], tan_alpha[w], fz[w], vx[w],

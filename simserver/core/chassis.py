@@ -200,7 +200,12 @@ from simserver.core.terrain import (
     surface_at,
     surface_under_wheel,
 )
-from simserver.core.tire import _no_load, all_mf61, tire_evaluate, tire_evaluate_mf61_wheels
+from simserver.core.tire import (
+    every_tire_is,
+    tire_evaluate,
+    tire_evaluate_mf61_wheels,
+    tire_evaluate_simple_wheels,
+)
 from simserver.core.tire_layout import (
     OUT_C_ALPHA,
     OUT_C_KAPPA,
@@ -212,17 +217,12 @@ from simserver.core.tire_layout import (
     OUT_MY,
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
-    TIRE_DISPATCH_JIT_OPTIONS,
-    TIRE_JIT_OPTIONS,
+    TIRE_MODEL_MF61,
     TIRE_MODEL_SIMPLE,
-    TP_MIRRORED,
-    TP_MODEL,
-    TP_MODEL_BASE,
     TP_RADIUS_M,
     TP_RELAX_LAT_M,
     TP_RELAX_LONG_M,
 )
-from simserver.core.tire_simple import _simple_evaluate
 
 LEFT, RIGHT = 0, 1  # side of a wheel on its axle
 
@@ -599,39 +599,6 @@ def auxiliary_damping(
     raise ValueError("unknown damping model id (core.damping.DAMPING_MODELS)")
 
 
-@nb.njit(inline="always", **TIRE_JIT_OPTIONS)
-def all_simple(tp: np.ndarray) -> bool:
-    """Whether every wheel (row of ``tp``) has the brush tire."""
-    every = tp.shape[0] == N_WHEELS
-    for w in range(tp.shape[0]):
-        every = every and int(tp[w, TP_MODEL]) == TIRE_MODEL_SIMPLE
-    return every
-
-
-@nb.njit(**TIRE_DISPATCH_JIT_OPTIONS)
-def simple_tires_evaluate(tp: np.ndarray, coef: np.ndarray, wheel: np.ndarray,
-                          tire_out: np.ndarray) -> None:
-    """``core.tire.tire_evaluate`` of the four wheels' brush tires in one call (the step's
-    call when every wheel has one, ``all_simple``): the dispatcher's body for the brush
-    model, compiled with the dispatcher's options, so the same bits; one call a stage
-    instead of four (a call passing the arrays costs about 70 instructions, 16 a step).
-    The slips, loads and hub speeds are read from ``wheel`` (``W_*``), row ``i`` of
-    ``tire_out`` written as ``tire_evaluate`` writes ``out`` for wheel ``i``."""
-    for i in range(N_WHEELS):
-        out = tire_out[i]
-        # a mirrored tire: the mirrored slip angle, side force and aligning moment (core.tire)
-        side = 1.0 - 2.0 * tp[i, TP_MIRRORED]
-        tan_alpha = wheel[i, W_TAN_ALPHA] * side
-        fz = wheel[i, W_FZ]
-        if not fz > 0.0:
-            _no_load(out)
-        else:
-            _simple_evaluate(tp[i, TP_MODEL_BASE:], coef[i], wheel[i, W_KAPPA], tan_alpha, fz,
-                             wheel[i, W_HUB_U], out)
-        out[OUT_FY] *= side
-        out[OUT_MZ] *= side
-
-
 @nb.njit(cache=True, inline="always")
 def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
     """Stage 2: per wheel, the slip, the tire forces with the auxiliary damping and the
@@ -641,7 +608,8 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
     (``ws.wheel_in``). Three loops: the slips of every wheel (kept in ``ws.wheel`` and
     ``dx``), the tires, the forces and spins. With an MF 6.1 tire on every wheel the four
     tires are one call (``core.tire.tire_evaluate_mf61_wheels``: their curves vectorised
-    together); with a brush tire on every wheel, also one call (``simple_tires_evaluate``);
+    together); with a brush tire on every wheel, also one call
+    (``core.tire.tire_evaluate_simple_wheels``);
     any other set of tires is evaluated wheel by wheel.
 
     The per-wheel parts are written here once, not as inlined helpers and not once per
@@ -683,18 +651,20 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
         wheel[i, W_TAN_ALPHA] = tan_alpha
         dx[TAN_ALPHA0 + i] = d_tan_alpha
         dx[KAPPA0 + i] = d_kappa
-    if all_mf61(tp):
-        tire_evaluate_mf61_wheels(
-            tp, tire_coef,
-            (wheel[0, W_KAPPA], wheel[1, W_KAPPA], wheel[2, W_KAPPA], wheel[3, W_KAPPA]),
-            (wheel[0, W_TAN_ALPHA], wheel[1, W_TAN_ALPHA], wheel[2, W_TAN_ALPHA],
-             wheel[3, W_TAN_ALPHA]),
-            (wheel[0, W_FZ], wheel[1, W_FZ], wheel[2, W_FZ], wheel[3, W_FZ]),
-            (wheel[0, W_HUB_U], wheel[1, W_HUB_U], wheel[2, W_HUB_U], wheel[3, W_HUB_U]),
-            tire_out,
-        )  # fmt: skip
-    elif all_simple(tp):
-        simple_tires_evaluate(tp, tire_coef, wheel, tire_out)
+    # one call for the four tires when they share a built-in model (the MF 6.1 curves then
+    # one vectorised loop), else wheel by wheel through the dispatcher
+    mf61 = every_tire_is(tp, TIRE_MODEL_MF61)
+    if mf61 or every_tire_is(tp, TIRE_MODEL_SIMPLE):
+        kappa4 = (wheel[0, W_KAPPA], wheel[1, W_KAPPA], wheel[2, W_KAPPA], wheel[3, W_KAPPA])
+        tan_alpha4 = (wheel[0, W_TAN_ALPHA], wheel[1, W_TAN_ALPHA], wheel[2, W_TAN_ALPHA],
+                      wheel[3, W_TAN_ALPHA])
+        fz4 = (wheel[0, W_FZ], wheel[1, W_FZ], wheel[2, W_FZ], wheel[3, W_FZ])
+        hub_u4 = (wheel[0, W_HUB_U], wheel[1, W_HUB_U], wheel[2, W_HUB_U], wheel[3, W_HUB_U])
+        if mf61:
+            tire_evaluate_mf61_wheels(tp, tire_coef, kappa4, tan_alpha4, fz4, hub_u4, tire_out)
+        else:
+            tire_evaluate_simple_wheels(tp, tire_coef, kappa4, tan_alpha4, fz4, hub_u4,
+                                        tire_out)
     else:
         for i in range(N_WHEELS):
             tire_evaluate(tires, tp[i], tire_coef[i], wheel[i, W_KAPPA], wheel[i, W_TAN_ALPHA],

@@ -270,7 +270,7 @@ def tire_evaluate_mf61_wheels(
     ----------
     tp : float64[N_WHEEL_TIRES, N_TIRE_PARAM]
         Packed tire parameters, every ``tp[w, TP_MODEL] == TIRE_MODEL_MF61`` (the caller
-        checks: :func:`all_mf61`).
+        checks: :func:`every_tire_is`).
     coef : float64[N_WHEEL_TIRES, N_TIRE_COEF]
         Written by :func:`tire_prepare`; read only.
     kappa, tan_alpha, fz_n, vx_mps : tuples of N_WHEEL_TIRES floats
@@ -281,12 +281,41 @@ def tire_evaluate_mf61_wheels(
     _mf61_evaluate_wheels(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
 
+@nb.njit(**TIRE_DISPATCH_JIT_OPTIONS)
+def tire_evaluate_simple_wheels(
+    tp: np.ndarray,
+    coef: np.ndarray,
+    kappa: tuple[float, ...],
+    tan_alpha: tuple[float, ...],
+    fz_n: tuple[float, ...],
+    vx_mps: tuple[float, ...],
+    out: np.ndarray,
+) -> None:
+    """:func:`tire_evaluate` of ``N_WHEEL_TIRES`` brush tires in one call (the step's call
+    when every wheel has a brush tire): :func:`tire_evaluate`'s brush branch, with its
+    mirroring, under its compile options, so the same bits; one call a Runge-Kutta stage
+    instead of four (each call passing its arrays cost about 45 instructions, 16 a step).
+    Arguments as :func:`tire_evaluate_mf61_wheels`'s, every ``tp[w, TP_MODEL] ==
+    TIRE_MODEL_SIMPLE`` (the caller checks: :func:`every_tire_is`).
+    """
+    for w in range(N_WHEEL_TIRES):
+        out_w = out[w]
+        side = 1.0 - 2.0 * tp[w, TP_MIRRORED]
+        if not fz_n[w] > 0.0:
+            _no_load(out_w)
+        else:
+            _simple_evaluate(tp[w, TP_MODEL_BASE:], coef[w], kappa[w], tan_alpha[w] * side,
+                             fz_n[w], vx_mps[w], out_w)
+        out_w[OUT_FY] *= side
+        out_w[OUT_MZ] *= side
+
+
 @nb.njit(inline="always", **TIRE_JIT_OPTIONS)
-def all_mf61(tp: np.ndarray) -> bool:
-    """Whether every row of ``tp`` (``N_WHEEL_TIRES`` packed tires) is an MF 6.1 tire."""
+def every_tire_is(tp: np.ndarray, model: int) -> bool:
+    """Whether ``tp`` holds ``N_WHEEL_TIRES`` packed tires, every one of model ``model``."""
     every = tp.shape[0] == N_WHEEL_TIRES
     for w in range(tp.shape[0]):
-        every = every and int(tp[w, TP_MODEL]) == TIRE_MODEL_MF61
+        every = every and int(tp[w, TP_MODEL]) == model
     return every
 
 
