@@ -414,7 +414,7 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
             rows.append(Row(f"step cost, {r['tire_model']} tires",
                             f"{r['ns_per_step_median'] / 1e3:.2f} us median "
                             f"(p10 {r['p10'] / 1e3:.2f}, p90 {r['p90'] / 1e3:.2f})", cmd,
-                            "< 5 us" if mf61 else ""))
+                            "<= 2.0 us" if mf61 else "<= 1.2 us"))  # issue 16
         for r in results:
             mf61 = r["tire_model"].startswith("mf61")
             rows.append(Row(f"headless real-time factor, {r['tire_model']}",
