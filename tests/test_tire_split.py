@@ -484,3 +484,35 @@ def test_four_mf61_tires_at_once_equal_one_at_a_time(
         tire_evaluate(BUILTIN_KERNELS, tp[w], coef[w], kappa[w], tan_alpha[w], fz[w], vx[w],
                       ref)
         assert_close(out[w], ref, fz[w])
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    kappa=st.lists(st.floats(-1.5, 1.5), min_size=4, max_size=4),
+    tan_alpha=st.lists(st.floats(-1.5, 1.5), min_size=4, max_size=4),
+    fz=st.lists(st.floats(-500.0, 9000.0), min_size=4, max_size=4),
+    vx=st.lists(st.floats(-40.0, 40.0), min_size=4, max_size=4),
+)
+def test_four_brush_tires_at_once_are_bit_for_bit_one_at_a_time(
+    kappa: list, tan_alpha: list, fz: list, vx: list
+) -> None:
+    """The step's batched call for four brush tires (``tire_evaluate_simple_wheels``) is
+    ``tire_evaluate``'s brush branch under its compile options: the same bits (the
+    first-release replay depends on it), mirrored tires and wheels off the ground among
+    them; a set of tires that is not all brush is not taken for one."""
+    tp = np.stack([SIMPLE] * 4)
+    tp[1, TP_MIRRORED] = tp[3, TP_MIRRORED] = 1.0
+    coef = np.full((4, N_TIRE_COEF), np.nan)
+    for w in range(4):
+        tire_prepare(BUILTIN_KERNELS, tp[w], 0.0, max(fz[w], 0.0), 1.0, coef[w])
+    out = np.full((4, N_TIRE_OUT), np.nan)
+    tire.tire_evaluate_simple_wheels(tp, coef, tuple(kappa), tuple(tan_alpha), tuple(fz),
+                                     tuple(vx), out)
+    assert tire.every_tire_is(tp, tire.TIRE_MODEL_SIMPLE)
+    assert not tire.every_tire_is(np.stack([SIMPLE] * 3 + [MF_SAMPLE]),
+                                  tire.TIRE_MODEL_SIMPLE)
+    for w in range(4):
+        ref = np.full(N_TIRE_OUT, np.nan)
+        tire_evaluate(BUILTIN_KERNELS, tp[w], coef[w], kappa[w], tan_alpha[w], fz[w], vx[w],
+                      ref)
+        assert out[w].tobytes() == ref.tobytes(), (w, out[w], ref)
