@@ -453,14 +453,32 @@ def test_dispatchers_neither_allocate_nor_count_references() -> None:
         assert not {c for c in called if c.startswith("NRT")}, (fn.__name__, called)
 
 
+def four_floats(low: float, high: float) -> st.SearchStrategy:
+    """One value per tire of the four-tire calls."""
+    return st.lists(st.floats(low, high), min_size=4, max_size=4)
+
+
+def four_at_once_and_one_at_a_time(
+    batched: nb.core.registry.CPUDispatcher, tp: np.ndarray, kappa: list, tan_alpha: list,
+    gamma: list, fz: list, vx: list,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Four tires (rows of ``tp``) prepared one at a time, then evaluated by the step's
+    ``batched`` call and by ``tire_evaluate`` tire by tire: both sets of output rows."""
+    coef = np.full((4, N_TIRE_COEF), np.nan)
+    for w in range(4):
+        tire_prepare(BUILTIN_KERNELS, tp[w], gamma[w], max(fz[w], 0.0), 1.0, coef[w])
+    out = np.full((4, N_TIRE_OUT), np.nan)
+    batched(tp, coef, tuple(kappa), tuple(tan_alpha), tuple(fz), tuple(vx), out)
+    ref = np.full((4, N_TIRE_OUT), np.nan)
+    for w in range(4):
+        tire_evaluate(BUILTIN_KERNELS, tp[w], coef[w], kappa[w], tan_alpha[w], fz[w], vx[w],
+                      ref[w])
+    return out, ref
+
+
 @settings(max_examples=60, deadline=None)
-@given(
-    kappa=st.lists(st.floats(-1.5, 1.5), min_size=4, max_size=4),
-    tan_alpha=st.lists(st.floats(-1.5, 1.5), min_size=4, max_size=4),
-    gamma=st.lists(st.floats(-0.1, 0.1), min_size=4, max_size=4),
-    fz=st.lists(st.floats(-500.0, 9000.0), min_size=4, max_size=4),
-    vx=st.lists(st.floats(-40.0, 40.0), min_size=4, max_size=4),
-)
+@given(kappa=four_floats(-1.5, 1.5), tan_alpha=four_floats(-1.5, 1.5),
+       gamma=four_floats(-0.1, 0.1), fz=four_floats(-500.0, 9000.0), vx=four_floats(-40.0, 40.0))
 def test_four_mf61_tires_at_once_equal_one_at_a_time(
     kappa: list, tan_alpha: list, gamma: list, fz: list, vx: list
 ) -> None:
@@ -470,29 +488,18 @@ def test_four_mf61_tires_at_once_equal_one_at_a_time(
     tires, the variant file, camber and wheels off the ground among them."""
     tp = np.stack([MF_SAMPLE, MF_VARIANT, MF_SAMPLE, MF_VARIANT])
     tp[1, TP_MIRRORED] = tp[2, TP_MIRRORED] = 1.0
-    coef = np.full((4, N_TIRE_COEF), np.nan)
-    for w in range(4):
-        tire_prepare(BUILTIN_KERNELS, tp[w], gamma[w], max(fz[w], 0.0), 1.0, coef[w])
-    out = np.full((4, N_TIRE_OUT), np.nan)
-    tire.tire_evaluate_mf61_wheels(tp, coef, tuple(kappa), tuple(tan_alpha), tuple(fz),
-                                   tuple(vx), out)
+    out, ref = four_at_once_and_one_at_a_time(tire.tire_evaluate_mf61_wheels, tp, kappa,
+                                              tan_alpha, gamma, fz, vx)
     mf61 = tire.TIRE_MODEL_MF61
     assert tire.every_tire_is(tp, mf61)
     assert not tire.every_tire_is(np.stack([MF_SAMPLE] * 3 + [SIMPLE]), mf61)
     for w in range(4):
-        ref = np.full(N_TIRE_OUT, np.nan)
-        tire_evaluate(BUILTIN_KERNELS, tp[w], coef[w], kappa[w], tan_alpha[w], fz[w], vx[w],
-                      ref)
-        assert_close(out[w], ref, fz[w])
+        assert_close(out[w], ref[w], fz[w])
 
 
 @settings(max_examples=60, deadline=None)
-@given(
-    kappa=st.lists(st.floats(-1.5, 1.5), min_size=4, max_size=4),
-    tan_alpha=st.lists(st.floats(-1.5, 1.5), min_size=4, max_size=4),
-    fz=st.lists(st.floats(-500.0, 9000.0), min_size=4, max_size=4),
-    vx=st.lists(st.floats(-40.0, 40.0), min_size=4, max_size=4),
-)
+@given(kappa=four_floats(-1.5, 1.5), tan_alpha=four_floats(-1.5, 1.5),
+       fz=four_floats(-500.0, 9000.0), vx=four_floats(-40.0, 40.0))
 def test_four_brush_tires_at_once_are_bit_for_bit_one_at_a_time(
     kappa: list, tan_alpha: list, fz: list, vx: list
 ) -> None:
@@ -502,17 +509,10 @@ def test_four_brush_tires_at_once_are_bit_for_bit_one_at_a_time(
     them; a set of tires that is not all brush is not taken for one."""
     tp = np.stack([SIMPLE] * 4)
     tp[1, TP_MIRRORED] = tp[3, TP_MIRRORED] = 1.0
-    coef = np.full((4, N_TIRE_COEF), np.nan)
-    for w in range(4):
-        tire_prepare(BUILTIN_KERNELS, tp[w], 0.0, max(fz[w], 0.0), 1.0, coef[w])
-    out = np.full((4, N_TIRE_OUT), np.nan)
-    tire.tire_evaluate_simple_wheels(tp, coef, tuple(kappa), tuple(tan_alpha), tuple(fz),
-                                     tuple(vx), out)
+    out, ref = four_at_once_and_one_at_a_time(tire.tire_evaluate_simple_wheels, tp, kappa,
+                                              tan_alpha, [0.0] * 4, fz, vx)
     assert tire.every_tire_is(tp, tire.TIRE_MODEL_SIMPLE)
     assert not tire.every_tire_is(np.stack([SIMPLE] * 3 + [MF_SAMPLE]),
                                   tire.TIRE_MODEL_SIMPLE)
     for w in range(4):
-        ref = np.full(N_TIRE_OUT, np.nan)
-        tire_evaluate(BUILTIN_KERNELS, tp[w], coef[w], kappa[w], tan_alpha[w], fz[w], vx[w],
-                      ref)
-        assert out[w].tobytes() == ref.tobytes(), (w, out[w], ref)
+        assert out[w].tobytes() == ref[w].tobytes(), (w, out[w], ref[w])
