@@ -38,6 +38,12 @@ B_LONG = "vehicle.tires.*.relaxation_length_long_m"
 METRICS = [{"stopping_distance": {"from_s": 0.7}}, {"time_to_rest": {"from_s": 0.7}}, "yaw",
            "resting_forces", {"column": "u_mps", "stat": "min"}]
 PY = sys.executable
+# The tests that act on a running sweep (SIGINT, kill a worker) when its table's first
+# checkpoint appears run each case for this long: 0.6 s of CPU a run here (the run and
+# its history columns), so a 16-run sweep is still seconds from its end then. At the
+# scenario's own 10 s a run takes 18 ms, and a 40-run sweep once ended before the test's
+# SIGINT reached it (CI, stop 25).
+LONG_RUN = {"duration_s": [200.0]}
 
 
 def write_sweep(tmp_path: Path, name: str, **body) -> Path:
@@ -129,9 +135,9 @@ def table_rows(path: Path) -> int:
 
 
 def test_scheduler_and_workers_on_loopback_a_killed_worker_loses_no_run(tmp_path):
-    n = 60
+    n = 16
     path = write_sweep(tmp_path, "cluster", scenarios=[str(E2)],
-                       grid={B_LONG: {"from": 0.02, "to": 0.3, "num": n}})
+                       grid={B_LONG: {"from": 0.02, "to": 0.3, "num": n}, **LONG_RUN})
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     scheduler = OutputProcess([PY, "-m", "distributed.cli.dask_scheduler", "--host",
@@ -171,9 +177,9 @@ def test_scheduler_and_workers_on_loopback_a_killed_worker_loses_no_run(tmp_path
 
 
 def test_resume_after_ctrl_c_runs_only_the_rest(tmp_path):
-    n = 40
+    n = 16
     path = write_sweep(tmp_path, "resume", scenarios=[str(E2)],
-                       grid={B_LONG: {"from": 0.02, "to": 0.3, "num": n}})
+                       grid={B_LONG: {"from": 0.02, "to": 0.3, "num": n}, **LONG_RUN})
     out = tmp_path / "out"
     args = [PY, "-m", "simserver", "sweep", str(path), "--out", str(out), "--workers", "1",
             "--batch", "1", "--quiet", "--no-plots"]
