@@ -376,6 +376,64 @@ def test_states_go_inline_while_cheap_and_a_reader_that_stops_never_stalls_the_c
     assert got == sorted(set(got)), "states out of order"
 
 
+class _CostlyPuts(_PutThreads):
+    """Puts that cost ``burn_ns`` of CPU more (a spin before the real put), every
+    ``every``-th one (0: none): the cost of many subscribers, in this thread."""
+
+    def __init__(self, real) -> None:
+        super().__init__(real)
+        self.burn_ns, self.every, self.count = 300_000, 1, 0
+
+    def put(self, payload: bytes) -> None:
+        self.count += 1
+        if self.every and self.count % self.every == 0:
+            t0 = time.thread_time_ns()
+            while time.thread_time_ns() - t0 < self.burn_ns:
+                pass
+        super().put(payload)
+
+
+def test_states_stay_in_the_thread_while_costly_puts_are_common_and_go_inline_when_rare():
+    """The way back inline judges the share of costly puts (CPU time above half
+    ``INLINE_PUT_NS``) in a window: every put costly hands off from the caller; half of
+    them costly keeps the states in the thread window after window; one in 20 costly
+    (plus this VM's own slow puts, 1-11 % measured) goes inline again."""
+    from simserver.adapters.zenoh_io import VehiclePublisher, ZenohEndpoint, make_zenoh_config
+
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    window = 200
+    assert VehiclePublisher.INLINE_AGAIN_COSTLY_SHARE * window < window // 2
+    with ZenohEndpoint(make_zenoh_config(listen=endpoint)) as srv, \
+            ZenohEndpoint(make_zenoh_config(listen=[], connect=endpoint)) as cli:
+        pub = srv.declare_vehicle_publisher(states_per_s=1000.0, sender_thread=True,
+                                            inline_while_cheap=True)
+        pub.inline_again_puts = pub._again_puts = window
+        pub.state = spy = _CostlyPuts(pub.state)
+        inbox = cli.declare_state_inbox(capacity=1 << 14)
+        modes: list[str] = []
+
+        def publish() -> None:
+            for _ in range(10):
+                pub.publish_state(b"\x00" * 296)
+                modes.append(pub.mode())
+                time.sleep(0.001)  # the server's pace
+            inbox.drain_newest()
+
+        wait_until(lambda: publish() or pub.mode() == "thread", timeout_s=30.0,
+                   what="the hand-off of puts that cost 300 us each")
+        spy.every = 2
+        in_thread = spy.threads.count("state-tx")
+        modes.clear()
+        wait_until(lambda: publish() or spy.threads.count("state-tx") - in_thread,
+                   lambda k: k >= 3 * window, timeout_s=60.0,
+                   what="three windows of puts in the thread, half of them costly")
+        assert set(modes) == {"thread"}, "half the puts costly, yet it went inline"
+        spy.every = 20
+        wait_until(lambda: publish() or pub.mode() == "inline", timeout_s=60.0,
+                   what="inline again with one put in 20 costly")
+
+
 def test_the_backlog_watch_sees_bytes_a_reader_left_unsent():
     """The publisher's watch (``SIOCOUTQ`` over this process's sockets) sees a socket whose
     reader stopped, and no more once the reader has caught up."""
