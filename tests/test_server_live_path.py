@@ -412,10 +412,11 @@ def test_states_stay_in_the_thread_while_costly_puts_are_common_and_go_inline_wh
         pub.state = spy = _CostlyPuts(pub.state)
         inbox = cli.declare_state_inbox(capacity=1 << 14)
         modes: list[str] = []
+        state = bytes(proto.STATE_SIZE)
 
         def publish() -> None:
             for _ in range(10):
-                pub.publish_state(b"\x00" * 296)
+                pub.publish_state(state)
                 modes.append(pub.mode())
                 time.sleep(0.001)  # the server's pace
             inbox.drain_newest()
