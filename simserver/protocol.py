@@ -898,6 +898,71 @@ def decode_state(payload: bytes | bytearray | memoryview) -> np.void:
     return _unpack("VehicleState", STATE_DTYPE, payload)
 
 
+_STATE_FLAG_BITS = sum(int(f) for f in StateFlag)
+
+
+def _payload_checks(fields: tuple[FieldSpec, ...], dtype: np.dtype
+                    ) -> list[tuple[np.ndarray, str, np.ndarray, np.ndarray, np.ndarray]]:
+    """Per element type of a field table: the byte offsets of its elements, the type,
+    each element's field index and its lower and upper bound (from the table)."""
+    groups: dict[str, list[tuple[int, int, float, float]]] = {}
+    for index, spec in enumerate(fields):
+        offset = dtype.fields[spec.name][1]
+        size = np.dtype(spec.dtype).itemsize
+        lo = -np.inf if spec.lo is None else spec.lo
+        hi = np.inf if spec.hi is None else spec.hi
+        for k in range(spec.count):
+            groups.setdefault(spec.dtype, []).append((offset + k * size, index, lo, hi))
+    checks = []
+    for kind, elements in groups.items():
+        if kind != "<u2" and np.dtype(kind).kind != "f" and \
+                all(np.isinf(e[2]) and np.isinf(e[3]) for e in elements):
+            continue  # any value of the type is valid (counters, stamps)
+        size = np.dtype(kind).itemsize
+        starts = np.array([e[0] for e in elements])
+        byte_index = (starts[:, None] + np.arange(size)).ravel()
+        checks.append((byte_index, kind, np.array([e[1] for e in elements]),
+                       np.array([e[2] for e in elements]), np.array([e[3] for e in elements])))
+    return checks
+
+
+_PAYLOAD_CHECKS = {"state": (STATE_FIELDS, _payload_checks(STATE_FIELDS, STATE_DTYPE)),
+                   "diagnostics": (DIAGNOSTICS_FIELDS,
+                                   _payload_checks(DIAGNOSTICS_FIELDS, DIAGNOSTICS_DTYPE))}
+
+
+def invalid_fields(payloads: np.ndarray, kind: str = "state") -> np.ndarray:
+    """Which received payloads no server sends, and why (a receiver's first check).
+
+    ``payloads`` is an ``(n, size)`` ``uint8`` array of VehicleState (``kind`` "state")
+    or Diagnostics ("diagnostics") payloads. For each: the index in the field table
+    (:data:`STATE_FIELDS`, :data:`DIAGNOSTICS_FIELDS`) of its first field that is
+    non-finite, outside the field's range (the table's ``lo``, ``hi``: the version among
+    them) or, for a state's ``flags``, sets a bit :class:`StateFlag` does not define; -1
+    when every field is valid. The server never publishes such a payload
+    (docs/reliability.md), so a receiver drops it: it came from someone else. A few
+    numpy operations per call, whatever ``n``.
+    """
+    fields, checks = _PAYLOAD_CHECKS[kind]
+    n = payloads.shape[0]
+    none = len(fields)
+    first = np.full(n, none, dtype=np.int64)
+    for byte_index, dtype, field_index, lo, hi in checks:
+        values = np.ascontiguousarray(payloads[:, byte_index]).view(dtype)
+        bad = (values < lo) | (values > hi)
+        if values.dtype.kind == "f":
+            bad |= ~np.isfinite(values)
+        if dtype == "<u2" and kind == "state":  # the flags: no undefined bit
+            bad |= (field_index == _FLAGS_INDEX) & \
+                ((values | _STATE_FLAG_BITS) != _STATE_FLAG_BITS)
+        np.minimum(first, np.where(bad, field_index, none).min(axis=1), out=first)
+    first[first == none] = -1
+    return first
+
+
+_FLAGS_INDEX = next(i for i, f in enumerate(STATE_FIELDS) if f.name == "flags")
+
+
 def new_state_record() -> np.ndarray:
     """A zeroed 0-d VehicleState record with ``version`` set, to fill in place per tick.
 
