@@ -84,7 +84,8 @@ def open_log_file(path: Path, what: str = "log") -> int:
     try:
         fd = os.open(path, flags, 0o644)
     except OSError as exc:
-        why = check_log_path(path) if exc.errno in (errno.ELOOP, errno.ENXIO, errno.EISDIR) else None
+        refused = (errno.ELOOP, errno.ENXIO, errno.EISDIR)  # a link, a FIFO, a folder
+        why = check_log_path(path) if exc.errno in refused else None
         raise ConfigError(f"{path}: cannot write the {what}: "
                           f"{why or exc.strerror or exc}") from None
     try:

@@ -921,8 +921,12 @@ def _payload_checks(fields: tuple[FieldSpec, ...], dtype: np.dtype
         size = np.dtype(kind).itemsize
         starts = np.array([e[0] for e in elements])
         byte_index = (starts[:, None] + np.arange(size)).ravel()
-        checks.append((byte_index, kind, np.array([e[1] for e in elements]),
-                       np.array([e[2] for e in elements]), np.array([e[3] for e in elements])))
+        lo = np.array([e[2] for e in elements])
+        hi = np.array([e[3] for e in elements])
+        if np.dtype(kind).kind == "f":  # finite bounds: a NaN or an infinity fails them
+            big = float(np.finfo(kind).max)
+            lo, hi = np.maximum(lo, -big), np.minimum(hi, big)
+        checks.append((byte_index, kind, np.array([e[1] for e in elements]), lo, hi))
     return checks
 
 
@@ -945,13 +949,23 @@ def invalid_fields(payloads: np.ndarray, kind: str = "state") -> np.ndarray:
     """
     fields, checks = _PAYLOAD_CHECKS[kind]
     n = payloads.shape[0]
+    if n <= 8:  # a few payloads (a client's poll): plain Python is faster than numpy
+        layout, bounds = _PAYLOAD_BOUNDS[kind]
+        return np.array([_first_invalid(layout.unpack(row.tobytes()), bounds, kind)
+                         for row in payloads], dtype=np.int64)
+    ok = np.ones(n, dtype=bool)  # the common case first: every payload valid
+    for byte_index, dtype, _, lo, hi in checks:
+        values = np.ascontiguousarray(payloads[:, byte_index]).view(dtype)
+        ok &= ((values >= lo) & (values <= hi)).all(axis=1)  # NaN and inf fail both
+        if dtype == "<u2" and kind == "state":  # the flags: no undefined bit
+            ok &= values[:, _FLAGS_COLUMN] | _STATE_FLAG_BITS == _STATE_FLAG_BITS
+    if ok.all():
+        return np.full(n, -1, dtype=np.int64)
     none = len(fields)
     first = np.full(n, none, dtype=np.int64)
     for byte_index, dtype, field_index, lo, hi in checks:
         values = np.ascontiguousarray(payloads[:, byte_index]).view(dtype)
-        bad = (values < lo) | (values > hi)
-        if values.dtype.kind == "f":
-            bad |= ~np.isfinite(values)
+        bad = ~((values >= lo) & (values <= hi))
         if dtype == "<u2" and kind == "state":  # the flags: no undefined bit
             bad |= (field_index == _FLAGS_INDEX) & \
                 ((values | _STATE_FLAG_BITS) != _STATE_FLAG_BITS)
@@ -961,6 +975,36 @@ def invalid_fields(payloads: np.ndarray, kind: str = "state") -> np.ndarray:
 
 
 _FLAGS_INDEX = next(i for i, f in enumerate(STATE_FIELDS) if f.name == "flags")
+
+
+def _element_bounds(fields: tuple[FieldSpec, ...]) -> list[tuple[int, float, float]]:
+    """(field index, lo, hi) of every element of a payload, in ``struct`` order (the
+    bounds of floats finite, so a NaN or an infinity fails them)."""
+    out = []
+    for index, spec in enumerate(fields):
+        lo = -math.inf if spec.lo is None else float(spec.lo)
+        hi = math.inf if spec.hi is None else float(spec.hi)
+        if np.dtype(spec.dtype).kind == "f":
+            big = float(np.finfo(spec.dtype).max)
+            lo, hi = max(lo, -big), min(hi, big)
+        out += [(index, lo, hi)] * spec.count
+    return out
+
+
+def _first_invalid(values: tuple, bounds: list[tuple[int, float, float]], kind: str) -> int:
+    for value, (index, lo, hi) in zip(values, bounds, strict=True):
+        if not lo <= value <= hi:
+            return index
+    if kind == "state" and values[_FLAGS_ELEMENT] | _STATE_FLAG_BITS != _STATE_FLAG_BITS:
+        return _FLAGS_INDEX
+    return -1
+
+
+_FLAGS_ELEMENT = sum(f.count for f in STATE_FIELDS[:_FLAGS_INDEX])
+_PAYLOAD_BOUNDS = {"state": (_STATE_STRUCT, _element_bounds(STATE_FIELDS)),
+                   "diagnostics": (_DIAGNOSTICS_STRUCT, _element_bounds(DIAGNOSTICS_FIELDS))}
+_FLAGS_COLUMN = next(list(c[2]).index(_FLAGS_INDEX) for c in _PAYLOAD_CHECKS["state"][1]
+                     if c[1] == "<u2")
 
 
 def new_state_record() -> np.ndarray:

@@ -73,6 +73,23 @@ def test_the_state_filter_drops_invalid_and_out_of_order_states_and_follows_a_re
     assert f.out_of_order > 3
 
 
+def test_invalid_fields_names_the_first_bad_field_alike_for_one_payload_and_a_batch():
+    """The check runs in plain Python for a few payloads and in numpy for a batch: both
+    name the same field, from the tables' ranges (``protocol.STATE_FIELDS``)."""
+    changes = [{}, {"x_m": np.nan}, {"fz_n": -1.0}, {"flags": 0x80}, {"gear": 7},
+               {"u_mps": np.inf}, {"steer": -1.5}, {"version": 1}, {"cmd_age_s": -2.0},
+               {"sim_time_s": -np.inf}, {"engine_speed_radps": np.nan},
+               {"last_cmd_seq": 2**32 - 1}]
+    payloads = [_state(5, **c) for c in changes] * 2
+    raw = np.frombuffer(b"".join(payloads), dtype=np.uint8).reshape(len(payloads), -1)
+    batch = proto.invalid_fields(raw, "state")  # numpy
+    one = [int(proto.invalid_fields(raw[k:k + 1], "state")[0]) for k in range(len(raw))]
+    assert batch.tolist() == one
+    names = [None if i < 0 else proto.STATE_FIELDS[i].name for i in one[:len(changes)]]
+    assert names == [None, "x_m", "fz_n", "flags", "gear", "u_mps", "steer", "version",
+                     "cmd_age_s", "sim_time_s", "engine_speed_radps", None]
+
+
 def test_a_malformed_get_config_is_refused_naming_the_member():
     from clients.common import check_server_config
 
@@ -98,81 +115,115 @@ HOSTILE_CONFIG = json.dumps({"ok": True, "protocol_version": proto.PROTOCOL_VERS
                                         "vehicle": 7}}).encode()
 
 
-def test_the_recorder_drops_fake_states_and_survives_a_hostile_get_config(tmp_path):
-    """Before (default config, no ACL): a second client's fake states put NaN/inf rows and
-    hundreds of segments into history.parquet without a warning, and a hostile
-    ``get_config`` reply after the start crashed the recorder (``AttributeError`` in
-    ``_road_of`` / ``_on_terrain``). Now: no NaN row, only the real reset begins a
-    segment, every drop counted, the recording completes."""
-    server = ServerProcess(vehicle_id="trust34", scene="flat_paper_sedan")
-    out = tmp_path / "rec"
-    rec = OutputProcess(client_command("recorder", "--out", str(out), "--quiet",
-                                       "--road-poll", "0.1", *server.client_args()),
-                        ready="recording", env=client_env())
+class RecorderUnderAttack:
+    """A real server, the real recorder as a subprocess and a hostile zenoh session in
+    this process (a :class:`Client`, whose session also publishes and answers)."""
+
+    def __init__(self, tmp_path) -> None:
+        self.server = ServerProcess(vehicle_id="trust34", scene="flat_paper_sedan")
+        self.out = tmp_path / "rec"
+        self.rec = OutputProcess(client_command("recorder", "--out", str(self.out),
+                                                "--quiet", "--road-poll", "0.1",
+                                                *self.server.client_args()),
+                                 ready="recording", env=client_env())
+        assert self.rec.wait_ready(60.0), self.rec.text()
+        self.probe = Client(self.server)
+        self.session = self.probe.ep.session
+        self.keys = self.probe.ep.keys
+        self.sent = 0
+        self._fake_pub = self.session.declare_publisher(self.keys.state)
+        self._rng = np.random.default_rng(34)
+
+    def fake_states(self, n: int) -> None:
+        """``n`` fake states at about 1 kHz, a quarter each: NaN/inf pose, -inf speed,
+        finite with a tick before the server's, finite far ahead of it."""
+        for _ in range(n):
+            state = self.probe.poll()
+            real = int(state["tick"]) if state is not None else 0
+            kind = self.sent % 4
+            if kind == 0:
+                payload = _state(real, x_m=np.nan, yaw_rad=np.inf)
+            elif kind == 1:
+                payload = _state(real + 1, u_mps=-np.inf)
+            elif kind == 2:
+                payload = _state(int(self._rng.integers(0, max(1, real - 100))))
+            else:
+                payload = _state(real + 10**9 + int(self._rng.integers(0, 10**6)))
+            self._fake_pub.put(payload)
+            self.sent += 1
+            time.sleep(0.001)
+
+    def finish(self) -> tuple[str, dict]:
+        """Stop the recorder with Ctrl-C (it must still run); its output and the
+        history's columns."""
+        assert self.rec.alive(), "the recorder died:\n" + self.rec.text()
+        assert self.rec.stop(signal.SIGINT, timeout_s=30.0) == 0, self.rec.text()
+        text = self.rec.text()
+        assert "Traceback" not in text, text
+        return text, pq.read_table(self.out / "history.parquet").to_pydict()
+
+    def close(self) -> None:
+        self.probe.close()
+        self.rec.kill()
+        self.server.stop()
+
+
+def _last_counts(text: str) -> dict[str, int]:
+    last = text.strip().splitlines()[-1]
+    return {w: int(last.split(f" {w}")[0].rsplit(" ", 1)[1])
+            for w in ("bad payloads", "out of order", "bad get_config")}
+
+
+def test_the_recorder_drops_fake_states_and_keeps_only_the_real_segments(tmp_path):
+    """Before (default config, no ACL): a second client's fake states put NaN/inf rows
+    and hundreds of segments into history.parquet without a warning. Now: no NaN row,
+    only the real reset begins a segment, every drop counted and warned."""
+    attack = RecorderUnderAttack(tmp_path)
     try:
-        assert rec.wait_ready(60.0), rec.text()
-        with Client(server) as probe:
-            keys = probe.ep.keys
-            session = probe.ep.session
-            fake_pub = session.declare_publisher(keys.state)
-
-            def answer(query: zenoh.Query) -> None:
-                query.reply(query.key_expr, HOSTILE_CONFIG)
-
-            hostile = session.declare_queryable(keys.control("get_config"), answer)
-            rng = np.random.default_rng(34)
-            sent = 0
-
-            def attack(n: int) -> None:
-                nonlocal sent
-                for _ in range(n):
-                    real = int(probe.poll()["tick"]) if probe.poll() is not None else 0
-                    kind = sent % 4
-                    if kind == 0:
-                        payload = _state(real, x_m=np.nan, yaw_rad=np.inf)
-                    elif kind == 1:
-                        payload = _state(real + 1, u_mps=-np.inf)
-                    elif kind == 2:  # finite, but a tick out of the server's order
-                        payload = _state(int(rng.integers(0, max(1, real - 100))))
-                    else:  # finite, far ahead of the server
-                        payload = _state(real + 10**9 + int(rng.integers(0, 10**6)))
-                    fake_pub.put(payload)
-                    sent += 1
-                    time.sleep(0.001)
-
-            attack(600)
-            assert probe.request("reset")["ok"]  # the one real new segment
-            attack(600)
-            wait_until(lambda: "malformed get_config" in rec.text(), timeout_s=20.0,
-                       what="the recorder to meet the hostile get_config reply",
-                       interval_s=0.05)
-            hostile.undeclare()
-            probe.wait_state(lambda s: int(s["tick"]) > 500, timeout_s=20.0)
-        assert rec.alive(), rec.text()
-        assert rec.stop(signal.SIGINT, timeout_s=30.0) == 0, rec.text()
+        attack.fake_states(600)
+        assert attack.probe.request("reset", timeout_s=10.0)["ok"]  # the one real segment
+        attack.fake_states(600)
+        attack.probe.wait_state(lambda s: int(s["tick"]) > 300, timeout_s=20.0)
+        text, cols = attack.finish()
     finally:
-        rec.kill()
-        server.stop()
-    text = rec.text()
-    assert "Traceback" not in text, text
-    table = pq.read_table(out / "history.parquet")
-    cols = table.to_pydict()
-    for name in table.column_names:
-        values = np.asarray(cols[name])
-        if values.dtype.kind == "f":
-            assert np.isfinite(values).all(), f"non-finite {name} rows"
+        attack.close()
+    nonfinite = {name: int((~np.isfinite(np.asarray(v))).sum()) for name, v in cols.items()
+                 if np.asarray(v).dtype.kind == "f"}
     segment = np.asarray(cols["segment"])
     tick = np.asarray(cols["tick"], dtype=np.int64)
+    rows_with_nan = int(np.column_stack([~np.isfinite(np.asarray(v)) for name, v in
+                                         cols.items() if name in nonfinite]).any(1).sum())
+    assert rows_with_nan == 0, {k: v for k, v in nonfinite.items() if v}
     assert segment.max() == 1, f"{segment.max() + 1} segments for one reset"
     for s in (0, 1):
         assert (np.diff(tick[segment == s]) >= 0).all()
     assert tick.max() < 10**8
-    last = text.strip().splitlines()[-1]
-    counts = {w: int(last.split(f" {w}")[0].rsplit(" ", 1)[1])
-              for w in ("bad payloads", "out of order", "bad get_config")}
-    assert counts["bad payloads"] >= 250, last
-    assert counts["out of order"] >= 250, last
-    assert counts["bad get_config"] >= 1, last
+    counts = _last_counts(text)
+    assert counts["bad payloads"] >= 250 and counts["out of order"] >= 250, text[-2000:]
     assert "warning: dropped" in text
-    print(f"\n[recorder] {sent} fake states sent: {table.num_rows} rows, 2 segments, "
-          f"finite; {last}")
+    print(f"\n[recorder] {attack.sent} fake states sent: {tick.size} rows, 0 with NaN, "
+          f"2 segments; counted {counts}")
+
+
+def test_the_recorder_survives_a_hostile_get_config_reply(tmp_path):
+    """Before: a hostile ``get_config`` reply after the start crashed the recorder
+    (``AttributeError`` in ``_road_of`` / ``_on_terrain``). Now it is ignored with a
+    counted warning and the last good road is kept."""
+    attack = RecorderUnderAttack(tmp_path)
+    try:
+        def answer(query: zenoh.Query) -> None:
+            query.reply(query.key_expr, HOSTILE_CONFIG)
+
+        hostile = attack.session.declare_queryable(attack.keys.control("get_config"), answer)
+        wait_until(lambda: "malformed get_config" in attack.rec.text()
+                   or not attack.rec.alive(), timeout_s=20.0, interval_s=0.05,
+                   what="the recorder to meet the hostile get_config reply")
+        hostile.undeclare()
+        text, cols = attack.finish()
+    finally:
+        attack.close()
+    counts = _last_counts(text)
+    assert counts["bad get_config"] >= 1, text[-2000:]
+    assert np.isfinite(np.asarray(cols["road_grade_pct"])).all()
+    print(f"\n[recorder] hostile get_config: {counts['bad get_config']} replies ignored, "
+          f"{len(cols['tick'])} rows")
