@@ -274,6 +274,9 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
                 _split_host_port(mode, target, "127.0.0.1", 0)  # the port is in 1-65535
         except RerunSinkError as exc:
             raise ConfigError(f"{where('viewer')}: {exc}") from exc
+        why = check_log_path(Path(target)) if mode == "save" and target else None
+        if why is not None:  # a recording is written like a log (simserver.logfile)
+            raise ConfigError(f"{where('viewer')}: {target} {why}")
     try:
         cfg.ros2 = ros2_cli.serve_settings(base.get("ros2"), ros2_flag, source=f"{path}: ros2")
     except ValueError as exc:

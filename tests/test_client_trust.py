@@ -193,8 +193,9 @@ def test_the_recorder_drops_fake_states_and_keeps_only_the_real_segments(tmp_pat
     tick = np.asarray(cols["tick"], dtype=np.int64)
     rows_with_nan = int(np.column_stack([~np.isfinite(np.asarray(v)) for name, v in
                                          cols.items() if name in nonfinite]).any(1).sum())
-    assert rows_with_nan == 0, {k: v for k, v in nonfinite.items() if v}
-    assert segment.max() == 1, f"{segment.max() + 1} segments for one reset"
+    assert rows_with_nan == 0 and segment.max() == 1, (
+        f"{rows_with_nan} rows with NaN/inf of {tick.size}, {segment.max() + 1} segments "
+        f"for one reset; per column {({k: v for k, v in nonfinite.items() if v})}")
     for s in (0, 1):
         assert (np.diff(tick[segment == s]) >= 0).all()
     assert tick.max() < 10**8

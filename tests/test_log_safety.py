@@ -245,3 +245,32 @@ def test_open_log_file_refuses_links_fifos_devices_and_hard_links(tmp_path):
     assert isinstance(fd, int)
     os.close(fd)
     assert plain.read_bytes() == b""
+
+
+def test_a_recording_target_is_refused_through_a_link_or_at_a_fifo(tmp_path):
+    """The live viewer's ``save:FILE`` sink truncated the file with a plain ``open``
+    (following a planted link, blocking on a FIFO); it now opens it like a log."""
+    from simserver.adapters.rerun_sink import RerunSinkError, open_recording
+
+    target = tmp_path / "precious.txt"
+    target.write_text("keep\n")
+    link = tmp_path / "run.rrd"
+    link.symlink_to(target)
+    fifo = tmp_path / "fifo.rrd"
+    os.mkfifo(fifo)
+    for path, words in ((link, "symbolic link"), (fifo, "FIFO")):
+        got: list[BaseException | None] = []
+
+        def run(p: Path = path, got: list[BaseException | None] = got) -> None:
+            try:
+                open_recording("save", p, announce=None)
+                got.append(None)
+            except BaseException as exc:  # noqa: BLE001 - handed to the test
+                got.append(exc)
+
+        t = threading.Thread(target=run, daemon=True)
+        t.start()
+        t.join(10.0)
+        assert got, f"open_recording blocked on {path}"
+        assert isinstance(got[0], RerunSinkError) and words in str(got[0]), got
+    assert target.read_text() == "keep\n"
