@@ -189,6 +189,48 @@ def test_a_fifo_at_the_log_path_is_refused_at_once(tmp_path):
     print(f"\n[fifo] refused in {took_s:.1f} s (process start and imports included)")
 
 
+def test_the_tick_hands_lines_over_and_another_thread_writes_them(tmp_path):
+    """Before: the tick thread wrote the command log itself (a ``flush`` every 100 ms and
+    at every control line), so a slow disk stalled the tick and a failing one raised in
+    it. Now ``log_inputs`` and ``write`` only queue a line: with no further call from
+    the tick, the lines reach the file within ``COMMAND_LOG_FLUSH_S``, written by the
+    log's own thread, and the tick thread never writes (checked by its thread id)."""
+    from simserver.server import COMMAND_LOG_FLUSH_S, CommandLog, read_command_log
+
+    scene = REPO / "configs" / "scenes" / "flat_paper_sedan.yaml"
+    path = tmp_path / "cmd.jsonl"
+    writers: set[int] = set()
+    real_write, real_pwrite = os.write, os.pwrite
+
+    def spy_write(fd: int, data: bytes) -> int:
+        writers.add(threading.get_ident())
+        return real_write(fd, data)
+
+    def spy_pwrite(fd: int, data: bytes, offset: int) -> int:
+        writers.add(threading.get_ident())
+        return real_pwrite(fd, data, offset)
+
+    log = CommandLog(path, {"scene": str(scene), "dt_s": 0.001, "step": 0})
+    os.write, os.pwrite = spy_write, spy_pwrite  # see who writes; the writes are real
+    try:
+        log.log_inputs(0, np.array([0.1, 0.2, 0.0, 0.0, 3.0]))
+        t0 = time.monotonic()
+        wait_until(lambda: path.read_bytes().count(b"\n") >= 2, timeout_s=5.0,
+                   what="the inputs line written without another call", interval_s=0.005)
+        took_s = time.monotonic() - t0
+        log.write({"step": 5, "set_road": {"grade_pct": 1.0, "cross_slope_pct": 0.0,
+                                           "friction_scale": 1.0}})
+        wait_until(lambda: b"set_road" in path.read_bytes(), timeout_s=5.0,
+                   what="the control line written at once", interval_s=0.005)
+        log.close(7, np.zeros(L.N_STATE))
+    finally:
+        os.write, os.pwrite = real_write, real_pwrite
+    assert threading.get_ident() not in writers and writers
+    assert took_s <= COMMAND_LOG_FLUSH_S + 0.5  # scheduling slack on a loaded machine
+    kinds = [next(k for k in e if k != "step") for e in read_command_log(path)[1:]]
+    assert kinds == ["inputs", "set_road", "end"]
+
+
 def _open_in_thread(path: Path) -> BaseException | int | None:
     """``open_log_file(path)`` in a thread: its result, an exception, or None if it is
     still blocked after 5 s."""
