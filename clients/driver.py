@@ -63,6 +63,7 @@ from clients.common import (
     client_main,
     connect,
     gear_name,
+    state_filter,
 )
 from clients.ffb import FfbError, FfbLoop, ForceFeedback, open_ff_wheel
 from clients.joystick import (
@@ -401,6 +402,9 @@ class Driver:
         ep = conn.ep
         self.pub = ep.declare_command_publisher()
         self.states = ep.declare_state_inbox(capacity=256)
+        # states another publisher sent (no ACL): dropped and counted on the status line
+        self.filter = state_filter(conn, PROG, out=None)
+        self._filtered_seen = (0, 0)
         self.diags = ep.declare_diag_inbox(capacity=16)
         self.presence = ServerPresence(ep)
         help_lines = list(KEY_HELP_LINES) if isinstance(source, KeyboardSource) else \
@@ -458,14 +462,14 @@ class Driver:
         applied it (a new ``last_cmd_seq``), seen within this poll interval.
         """
         payloads = self.states.drain_newest()
-        if not payloads:
-            return
-        try:
-            state = proto.decode_state(payloads[-1])
-        except proto.ProtocolError as exc:
-            self.message = f"bad state: {exc}"
-            return
         now_ns = time.monotonic_ns()
+        state = self.filter.newest(payloads, now_ns / 1e9)
+        counts = (self.filter.rejected, self.filter.out_of_order)
+        if counts != self._filtered_seen:
+            self._filtered_seen = counts
+            self.message = f"warning: {self.filter.summary()}"
+        if state is None:
+            return
         self.state = state
         self.state_wall = now_ns / 1e9
         seq = int(state["last_cmd_seq"])
@@ -475,12 +479,13 @@ class Driver:
             self._latencies.append((now_ns - sent_ns) / 1e6)
 
     def _read_diagnostics(self) -> None:
-        diags = self.diags.drain_newest()
+        diags = [d for d in self.diags.drain_newest() if len(d) == proto.DIAGNOSTICS_SIZE]
         if diags:
-            try:
-                self.diag = proto.decode_diagnostics(diags[-1])
-            except proto.ProtocolError as exc:
-                self.message = f"bad diagnostics: {exc}"
+            raw = np.frombuffer(diags[-1], dtype=np.uint8).reshape(1, -1)
+            if proto.invalid_fields(raw, "diagnostics")[0] >= 0:
+                self.message = "warning: dropped a Diagnostics message no server sends"
+                return
+            self.diag = proto.decode_diagnostics(diags[-1])
 
     @property
     def latency_ms(self) -> float | None:
@@ -667,7 +672,8 @@ def _run(args: argparse.Namespace) -> int:
             if ffb is not None and ffb.enabled and joystick.script is None:
                 try:  # the wheel's force feedback, on its own thread (clients.ffb)
                     loop = FfbLoop(conn.ep.declare_state_inbox(capacity=16),
-                                   ForceFeedback(open_ff_wheel(ffb.device), ffb)).start()
+                                   ForceFeedback(open_ff_wheel(ffb.device), ffb),
+                                   state_filter(conn, PROG, out=None)).start()
                     stack.callback(loop.stop)
                     print(f"{PROG}: force feedback on ({ffb.device})", flush=True)
                 except (FfbError, OSError) as exc:
