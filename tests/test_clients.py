@@ -749,3 +749,65 @@ def test_recorder_row_groups_rrd_and_a_clean_sigterm(flat_server, tmp_path):
     reader = RrdReader(out / "run.rrd")
     assert [r.application_id for r in reader.recordings()] == ["simserver"]
     assert "/world/car" in {str(c.entity_path) for c in reader.stream()}
+
+
+def _travel_m(states, ref) -> np.ndarray:
+    """Travel of each state along the heading of ``ref`` from ``ref`` (m)."""
+    c, s = math.cos(float(ref["yaw_rad"])), math.sin(float(ref["yaw_rad"]))
+    return np.array([(float(st["x_m"]) - float(ref["x_m"])) * c
+                     + (float(st["y_m"]) - float(ref["y_m"])) * s for st in states])
+
+
+@pytest.mark.parametrize("hold_s", [
+    pytest.param(8.0, id="8s"),
+    pytest.param(30.0, id="30s", marks=pytest.mark.slow),
+])
+def test_keyboard_auto_hold_on_a_10pct_hill(hold_s):
+    """The person's hill hold (issue 32): on ``hill_10pct_paper_sedan`` in a real terminal,
+    drive up, brake to a stop with the down arrow and let go of every key: the driver's
+    auto hold keeps the brake on (without it the car rolled back at -2.19 m/s within 3 s),
+    the car stays within 1 mm for ``hold_s`` of simulated time, and the throttle drives it
+    off with under 1 mm of rollback. The screen's hold line says the brake is held while
+    it is, and no longer once the car drives off."""
+    server = ServerProcess(vehicle_id="hill", scene="hill_10pct_paper_sedan")
+    watcher = Client(server, state_capacity=1 << 16, keep_history=True)
+    drv = PtyProcess(client_command("driver", "--rate", "200", *server.client_args()))
+    try:
+        drv.wait_for("connected to simserver/hill", 20)
+        drv.wait_for("start hold: the brake is held until you press the throttle", 10)
+        hold_until(drv, b"w", watcher, lambda s: float(s["u_mps"]) > 1.0, 15.0)
+        stopped = hold_until(drv, b"\x1b[B", watcher, lambda s: abs(float(s["u_mps"])) < 0.05,
+                             15.0)
+        assert abs(float(stopped["u_mps"])) < 0.05, "the brake did not stop the car"
+        # every key released now: the keyboard's brake ramps to zero, the hold stays
+        drv.wait_for("auto hold: the brake is held until you press the throttle", 10)
+        rest = watcher.wait_state(lambda s: abs(float(s["u_mps"])) < 1e-3, 10.0, "at rest")
+        t_rest = float(rest["sim_time_s"])
+        end = watcher.wait_state(lambda s: float(s["sim_time_s"]) >= t_rest + hold_s,
+                                 hold_s * 3 + 30.0, f"{hold_s} s held")
+        held = [s for s in watcher.history if t_rest <= float(s["sim_time_s"])
+                <= float(end["sim_time_s"])]
+        released_pedal = [s for s in held if float(s["sim_time_s"]) > t_rest + 1.0]
+        drive_off_at = len(watcher.history)
+        moving = hold_until(drv, b"w", watcher, lambda s: float(s["u_mps"]) > 0.5, 15.0)
+        assert float(moving["u_mps"]) > 0.5, "the throttle did not drive the car off"
+        watcher.poll()
+        after = watcher.history[drive_off_at - 1:]
+        drv.wait_for("auto hold on: a stop with the brake is held", 10)
+        screen = drv.text()
+        drv.send(b"q")
+        assert drv.wait(15) == 0, drv.text()
+    finally:
+        drv.close()
+        watcher.close()
+        server.stop()
+    creep = _travel_m(held, rest)
+    rollback = max(0.0, -float(np.min(_travel_m(after, after[0]))))
+    print(f"\nauto hold on 10 %: {len(held)} states over {hold_s:g} s, travel "
+          f"{1e3 * np.min(creep):+.4f} .. {1e3 * np.max(creep):+.4f} mm; rollback on the "
+          f"throttle {1e3 * rollback:.4f} mm")
+    assert np.all(np.abs(creep) < 1e-3)  # within 1 mm for the whole hold
+    # the person's pedal was back at zero: the hold, not the key, held the car
+    assert released_pedal and all(float(s["brake"]) >= 0.99 for s in released_pedal)
+    assert rollback < 1e-3
+    assert screen.rfind("hold    auto hold on") > screen.rfind("auto hold: the brake is held")
