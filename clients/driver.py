@@ -103,9 +103,11 @@ START_HOLD_RELEASE_PER_S = 3.0
 keyboard brake key's release rate)."""
 
 
-AUTO_HOLD_REST_MPS = 0.05
-"""The car counts as stopped below this |u| for the auto hold (a foot brake brings it from
-here to rest within a step or two)."""
+AUTO_HOLD_REST_MPS = 0.1
+"""The car counts as stopped below this |u| for the auto hold: a braked stop on a hill
+rocks on the tires at up to about 0.11 m/s as it settles (the wheels already held), and
+the state the client sees is a few milliseconds old, so the threshold must not be so
+low that the client misses the stop."""
 AUTO_HOLD_MIN_BRAKE = 0.05
 """Brake pedal that, pressed at a stop, arms the auto hold (a pedal past its dead zone)."""
 MESSAGE_S = 5.0
