@@ -505,6 +505,9 @@ def soak_command(args: argparse.Namespace) -> int:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n", encoding="utf-8")
     print(text)
+    if report.holds_unjudged:
+        print(f"note: holds_unjudged {report.holds_unjudged}: {report.UNJUDGED_MEANING}",
+              file=sys.stderr)
     for v in report.violations:
         print(f"violation: {v.invariant} at step {v.step} (t = {v.time_s:.3f} s): {v.detail}",
               file=sys.stderr)
