@@ -9,19 +9,28 @@ configuration changes that.
 What: the public TLS port is this front, a small process of its own (never in the tick
 process: its work costs the 1 kHz loop nothing, not even the GIL). It accepts TCP
 connections and connects one through to zenoh's real TLS listener, on a loopback-only
-port, only once the client has sent the start of a TLS ClientHello (record type 0x16,
-version 3.x, handshake type 1) within ``hello_timeout_s``. Connections that close, stay
-silent or send anything else never reach zenoh, so they cannot trigger its throttle. The
+port, only once the client has sent its whole first TLS record, a ClientHello (record
+type 0x16, version 3.x, handshake type 1, at most 2^14 bytes), within
+``hello_timeout_s``. Connections that close, stay silent, send anything else or only part
+of their ClientHello (issue 34's slowloris: 11 of 249 bytes, which used to be forwarded
+and then failed in zenoh) never reach zenoh, so they cannot trigger its throttle. The
 front does not terminate TLS: the bytes pass unchanged both ways, so server
 certificates, client certificates (mutual TLS) and zenoh's own authentication work as
 without it.
+
+zenoh's listener behind the front is reachable by the front alone (issue 34): ``serve``
+sets a random TCP MD5 key on zenoh's listening socket (:func:`protect_own_listener`), and
+the front signs its connections to zenoh with it (``backend_key``); the kernel drops every
+unsigned SYN. docs/security.md section 5.1 says why not a Unix socket.
 
 Bounds, so a flood cannot exhaust the front either:
 
 - ``max_pending_per_source``: connections of one source address that are *pending*
   (accepted, and either not yet past the hello check or forwarded but still in their TLS
   handshake); more are closed at accept.
-- ``max_pending``: the same over all sources.
+- ``max_pending``: the same over all sources. At it, the oldest hello-stage connection
+  of the source holding the most pending ones is closed for a newcomer whose source holds
+  at least two fewer (issue 34: 300 partial hellos from 50 addresses refused the driver).
 - ``handshake_timeout_s``: a forwarded connection whose TLS handshake is not done by then
   is closed. "Done" is read off the traffic without decrypting it: the server has
   answered the ClientHello and the client has then sent its second flight (its Finished,
@@ -34,7 +43,8 @@ Bounds, so a flood cannot exhaust the front either:
   until a handshake of it completes it may have only one pending connection at a time.
   So one source cannot keep zenoh's accept loop asleep with ClientHellos followed by
   garbage or a close: after its first failures (up to ``max_pending_per_source`` at
-  once), at most one per backoff period, 100 ms each.
+  once), at most one per backoff period, 100 ms each. A connection zenoh never answered
+  that waited ``UNANSWERED_GRACE_S`` is zenoh's delay, not a failure of its source.
 
 Every refusal is counted and the counters are logged at most once every
 ``log_every_s`` seconds, when they changed.
