@@ -44,9 +44,10 @@ class Backend:
     echoes what it receives; ``reply_first`` is sent on accept (a ServerHello, say);
     ``silent``: it reads and never answers (zenoh busy with other handshakes)."""
 
-    def __init__(self, reply_first: bytes = b"", silent: bool = False) -> None:
+    def __init__(self, reply_first: bytes = b"", silent: bool = False,
+                 port: int = 0) -> None:
         self.silent = silent
-        self.sock = bind_listener("127.0.0.1", 0)
+        self.sock = bind_listener("127.0.0.1", port)
         self.port = self.sock.getsockname()[1]
         self.reply_first = reply_first
         self.connections = 0
@@ -395,3 +396,37 @@ def test_a_client_left_unanswered_by_zenoh_is_not_barred():
         wait_until(lambda: tf.counters.handshakes_failed, lambda n: n == 2, timeout_s=5,
                    what="the quick close counted")
         assert tf.failures["127.0.0.2"] == 1 and tf.counters.handshakes_unanswered == 1
+
+
+def test_serves_fronts_lock_zenohs_listener_to_their_key():
+    """``FrontSupervisor.start`` (as ``serve`` calls it once zenoh listens) keys this
+    process's listener on the backend port: a plain connection to it times out, while a
+    real front process (the key handed over in a pipe) passes a client through."""
+    supervisor = FrontSupervisor(["tls/127.0.0.1:0"])
+    (plan,) = supervisor.plans
+    backend = Backend(port=plan.backend_port)  # stands in for zenoh's own listener
+    try:
+        supervisor.start()
+        assert supervisor.key is not None
+        with socket.socket() as plain:
+            plain.settimeout(0.5)
+            with pytest.raises(TimeoutError):
+                plain.connect(("127.0.0.1", plan.backend_port))
+        client = connect(plan.listener.getsockname()[1])
+        client.sendall(CLIENT_HELLO)
+        assert recv_exactly(client, len(CLIENT_HELLO)) == CLIENT_HELLO  # through the front
+        client.close()
+        assert backend.connections == 1
+    finally:
+        supervisor.stop()
+        backend.close()
+
+
+def test_without_a_listener_to_lock_the_fronts_run_keyless_and_say_so(caplog):
+    supervisor = FrontSupervisor(["tls/127.0.0.1:0"])  # nothing listens behind it
+    try:
+        supervisor.start()
+        assert supervisor.key is None and len(supervisor.pids()) == 1
+        assert "cannot be locked to the front" in caplog.text
+    finally:
+        supervisor.stop()
