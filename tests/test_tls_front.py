@@ -430,3 +430,36 @@ def test_without_a_listener_to_lock_the_fronts_run_keyless_and_say_so(caplog):
         assert "cannot be locked to the front" in caplog.text
     finally:
         supervisor.stop()
+
+
+def test_one_handshake_per_source_in_zenoh_the_next_whole_hello_waits():
+    """Each forwarded handshake that fails costs zenoh's accept loop 100 ms, so a source
+    has at most ``max_handshakes_per_source`` (1) in zenoh at once: its next whole
+    ClientHello waits in the front until that one is done (then it goes on), and is
+    dropped if it waits ``hello_timeout_s``. Another source is not held up."""
+    server_hello = b"\x16\x03\x03\x00\x10" + bytes(16)
+    limits = FrontLimits(hello_timeout_s=1.0)
+    with front(limits, reply_first=server_hello) as (tf, port, backend):
+        first = connect(port, "127.0.0.2")
+        first.sendall(CLIENT_HELLO)
+        assert recv_exactly(first, len(server_hello)) == server_hello  # in zenoh
+        second = connect(port, "127.0.0.2")
+        second.sendall(CLIENT_HELLO)
+        wait_until(lambda: len(tf.queued.get("127.0.0.2", ())), lambda n: n == 1,
+                   timeout_s=5, what="127.0.0.2's second hello waiting")
+        other = connect(port, "127.0.0.3")  # another source goes straight on
+        other.sendall(CLIENT_HELLO)
+        assert recv_exactly(other, len(server_hello)) == server_hello
+        assert backend.connections == 2
+        first.sendall(b"\x14\x03\x03\x00\x01\x01")  # its second flight: handshake done
+        assert recv_exactly(second, len(server_hello)) == server_hello  # went on
+        assert backend.connections == 3
+        # the second one's handshake is not done: a third waits, and is dropped in time
+        third = connect(port, "127.0.0.2")
+        third.sendall(CLIENT_HELLO)
+        t0 = time.monotonic()
+        assert closed_by_front(third)
+        assert 0.5 < time.monotonic() - t0 < 5.0
+        assert tf.counters.dropped_queued == 1 and backend.connections == 3
+        for sock in (first, second, third, other):
+            sock.close()

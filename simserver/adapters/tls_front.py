@@ -31,6 +31,9 @@ Bounds, so a flood cannot exhaust the front either:
 - ``max_pending``: the same over all sources. At it, the oldest hello-stage connection
   of the source holding the most pending ones is closed for a newcomer whose source holds
   at least two fewer (issue 34: 300 partial hellos from 50 addresses refused the driver).
+- ``max_handshakes_per_source``: forwarded connections of one source whose handshake is
+  not done yet; a further whole ClientHello of it waits in the front (``queued``) until
+  one is done, at most ``hello_timeout_s``.
 - ``handshake_timeout_s``: a forwarded connection whose TLS handshake is not done by then
   is closed. "Done" is read off the traffic without decrypting it: the server has
   answered the ClientHello and the client has then sent its second flight (its Finished,
@@ -71,7 +74,7 @@ import signal
 import socket
 import struct
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
 from dataclasses import asdict, dataclass, field
 
 log = logging.getLogger("simserver.tls_front")
@@ -109,6 +112,7 @@ class FrontLimits:
     handshake_timeout_s: float = 10.0
     max_pending_per_source: int = 8
     max_pending: int = 256
+    max_handshakes_per_source: int = 1
     failure_backoff_s: float = 1.0
     failure_backoff_max_s: float = 30.0
     log_every_s: float = 10.0
@@ -119,7 +123,7 @@ class FrontLimits:
             value = getattr(self, name)
             if not 0.0 < value <= 3600.0:
                 raise ValueError(f"tls front: {name} must be in (0, 3600] s, got {value}")
-        for name in ("max_pending_per_source", "max_pending"):
+        for name in ("max_pending_per_source", "max_pending", "max_handshakes_per_source"):
             value = getattr(self, name)
             if not 1 <= value <= 100_000:
                 raise ValueError(f"tls front: {name} must be in 1-100000, got {value}")
@@ -135,6 +139,8 @@ class FrontCounters:
     dropped_silent: int = 0  # sent nothing within hello_timeout_s
     dropped_partial_hello: int = 0  # began a ClientHello, not whole within hello_timeout_s
     dropped_not_tls: int = 0  # first bytes are not a TLS ClientHello
+    dropped_queued: int = 0  # a whole ClientHello that waited hello_timeout_s behind its
+    # source's max_handshakes_per_source handshakes in zenoh
     refused_source_cap: int = 0  # max_pending_per_source reached at accept
     refused_total_cap: int = 0  # max_pending reached at accept, no fair eviction possible
     evicted_for_fairness: int = 0  # a hello-stage connection of the source holding the
@@ -348,9 +354,9 @@ class _Poller:
 class _Conn:
     """One client connection: hello stage, then forwarding to zenoh."""
 
-    __slots__ = ("client", "backend", "source", "t_accept", "t_forward", "hello", "stage",
-                 "pending", "server_spoke", "to_client", "to_backend", "eof_client",
-                 "eof_backend", "shut_client", "shut_backend")
+    __slots__ = ("client", "backend", "source", "t_accept", "t_forward", "t_queued", "hello",
+                 "stage", "pending", "handshaking", "server_spoke", "to_client", "to_backend",
+                 "eof_client", "eof_backend", "shut_client", "shut_backend")
 
     def __init__(self, client: socket.socket, source: str, now: float) -> None:
         self.client = client
@@ -358,9 +364,11 @@ class _Conn:
         self.source = source
         self.t_accept = now
         self.t_forward = 0.0  # when the connection to zenoh began
+        self.t_queued = 0.0  # when it began to wait for its source's handshake in zenoh
         self.hello = bytearray()
-        self.stage = "hello"  # hello -> connecting -> forward -> closed
+        self.stage = "hello"  # hello -> [queued ->] connecting -> forward -> closed
         self.pending = True
+        self.handshaking = False  # connecting, or forwarded with its handshake not done
         self.server_spoke = False
         self.to_client = bytearray()  # bytes waiting to be sent to the client
         self.to_backend = bytearray()
@@ -399,6 +407,8 @@ class TlsFront:
         self.view = memoryview(self.buffer)
         self.pending_by_source: dict[str, set[_Conn]] = defaultdict(set)
         self.pending: set[_Conn] = set()
+        self.handshaking: dict[str, int] = {}  # source -> its handshakes in zenoh now
+        self.queued: dict[str, deque[_Conn]] = {}  # source -> whole hellos waiting
         self.failures: dict[str, int] = {}  # source -> failed handshakes in a row
         self.barred_until: dict[str, float] = {}  # source -> end of its backoff
         self.running = False
@@ -511,7 +521,7 @@ class TlsFront:
         for conns in sorted(self.pending_by_source.values(), key=len, reverse=True):
             if len(conns) < mine + 2:
                 break
-            hello = [k for k in conns if k.stage == "hello"]
+            hello = [k for k in conns if k.stage in ("hello", "queued")]
             if hello:  # (forwarded ones are in zenoh's handshake: closing one costs it)
                 victim = min(hello, key=lambda k: k.t_accept)
                 break
@@ -591,7 +601,48 @@ class TlsFront:
             self.counters.dropped_partial_hello += 1
             self._close(conn)
         else:
+            self._forward_or_queue(conn)
+
+    def _forward_or_queue(self, conn: _Conn) -> None:
+        """Forward a whole ClientHello, or let it wait while its source has
+        ``max_handshakes_per_source`` handshakes in zenoh already. Every forwarded
+        handshake that fails costs zenoh's accept loop 100 ms, so this bounds what one
+        source's ClientHellos followed by a stall cost zenoh at once (8 per source
+        before: 50 sources stalling 6 each kept the driver out 13.9 s after the attack)."""
+        source = conn.source
+        if self.handshaking.get(source, 0) >= self.limits.max_handshakes_per_source:
+            conn.stage = "queued"
+            conn.t_queued = time.monotonic()
+            self.poller.set(conn.client, 0, None)  # its next bytes wait in the kernel
+            self.queued.setdefault(source, deque()).append(conn)
+        else:
             self._connect_backend(conn)
+
+    def _handshake_over(self, conn: _Conn) -> None:
+        """``conn``'s handshake in zenoh is done or ended: its source's next waiting
+        ClientHello goes on (or is refused if the source is barred now)."""
+        if not conn.handshaking:
+            return
+        conn.handshaking = False
+        source = conn.source
+        left = self.handshaking[source] - 1
+        if left:
+            self.handshaking[source] = left
+        else:
+            del self.handshaking[source]
+        waiting = self.queued.get(source)
+        while waiting and self.handshaking.get(source, 0) < \
+                self.limits.max_handshakes_per_source:
+            nxt = waiting.popleft()
+            if nxt.stage != "queued":
+                continue  # closed meanwhile
+            if time.monotonic() < self.barred_until.get(source, 0.0):
+                self.counters.refused_backoff += 1
+                self._close(nxt)
+            else:
+                self._connect_backend(nxt)
+        if not waiting:
+            self.queued.pop(source, None)
 
     def _connect_backend(self, conn: _Conn) -> None:
         backend = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -603,6 +654,8 @@ class TlsFront:
         conn.to_backend += conn.hello
         conn.stage = "connecting"
         conn.t_forward = time.monotonic()
+        conn.handshaking = True
+        self.handshaking[conn.source] = self.handshaking.get(conn.source, 0) + 1
         self.poller.set(conn.client, 0, None)  # not read until zenoh's side is connected
         err = backend.connect_ex(self.backend)
         if err in (0, errno.EINPROGRESS):
@@ -655,6 +708,7 @@ class TlsFront:
             elif conn.server_spoke and conn.pending:
                 self._release(conn)  # the client's second flight: the handshake is done
                 self.failures.pop(conn.source, None)
+                self._handshake_over(conn)
             out = conn.to_backend if side == "client" else conn.to_client
             dst = conn.backend if side == "client" else conn.client
             if out:
@@ -716,6 +770,10 @@ class TlsFront:
                         else:
                             self.counters.dropped_silent += 1
                         self._close(conn)
+            elif conn.stage == "queued":
+                if now - conn.t_queued > lim.hello_timeout_s:
+                    self.counters.dropped_queued += 1
+                    self._close(conn)
             elif conn.stage == "connecting":
                 if now - conn.t_forward > lim.hello_timeout_s:
                     self.counters.backend_unreachable += 1
@@ -754,6 +812,7 @@ class TlsFront:
                 continue
             self.poller.forget(sock)
             sock.close()
+        self._handshake_over(conn)  # after the backoff above: a barred source's next waits
 
     # ------------------------------------------------------------------ log
     def _log_counters(self, now: float, force: bool = False) -> None:
