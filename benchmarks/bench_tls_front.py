@@ -27,6 +27,13 @@ tls-front`` process, and through a second front whose echo server requires a TCP
 front's added round-trip time (two passes through it, as a command and its state make) is
 the difference of the medians, the key's the difference between the two fronts, and
 each front's CPU time per round trip is read from ``/proc/PID/stat``.
+
+``--stall-sources N`` (0: skip; issue 34) measures an attack instead: ``--stall-per-source``
+whole, real ClientHellos (made with Python's ``ssl``) from each of N loopback addresses
+(127.0.0.10 on), each followed by a stall, held for ``--stall-hold-s``; then the seconds a
+client trying again and again needs to open a session and get a control answered during
+the attack and after it ends (every stalled handshake zenoh got fails then, and costs its
+accept loop 100 ms).
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ import argparse
 import json
 import os
 import socket
+import ssl
 import subprocess
 import sys
 import tempfile
@@ -220,6 +228,65 @@ def _recv(sock: socket.socket, n: int) -> bytes:
     return bytes(data)
 
 
+def _client_hello() -> bytes:
+    """A real TLS ClientHello: the first flight of Python's TLS client."""
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    ctx.check_hostname = False
+    ctx.verify_mode = ssl.CERT_NONE
+    incoming, outgoing = ssl.MemoryBIO(), ssl.MemoryBIO()
+    tls = ctx.wrap_bio(incoming, outgoing, server_hostname="localhost")
+    try:
+        tls.do_handshake()
+    except ssl.SSLWantReadError:
+        pass
+    return outgoing.read()
+
+
+def _get_in_s(endpoint: str, cfg: Path, give_up_s: float = 120.0) -> float:
+    """Seconds until a session opens and answers ``get_config``, trying again at once."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < give_up_s:
+        try:
+            with Client(endpoint, zenoh_config=cfg, state_capacity=0) as client:
+                if client.request("get_config", timeout_s=5.0)["ok"]:
+                    return time.monotonic() - t0
+        except Exception:  # noqa: BLE001 (refused, reset, timed out: try again)
+            continue
+    return float("inf")
+
+
+def stall(sources: int, per_source: int, hold_s: float, pki: Path) -> dict:
+    """Whole ClientHellos then a stall from ``sources`` addresses (docstring above)."""
+    endpoint = loopback_endpoint("tls")
+    port = int(endpoint.rsplit(":", 1)[1])
+    client_cfg = pki / "client_tls.json5"
+    hello = _client_hello()
+    held = []
+    with ServerProcess(listen=[endpoint], log_level="WARNING", scene=None,
+                       extra_args=["--zenoh-config", str(pki / "server_tls.json5")]):
+        baseline = _get_in_s(endpoint, client_cfg)
+        for i in range(sources * per_source):
+            try:
+                sock = socket.create_connection(
+                    ("127.0.0.1", port), timeout=1.0,
+                    source_address=(f"127.0.0.{10 + i % sources}", 0))
+                sock.sendall(hello)
+                held.append(sock)
+            except OSError:
+                continue
+        time.sleep(hold_s)  # the attack holds (a benchmark's pacing, not a test's wait)
+        during = _get_in_s(endpoint, client_cfg)
+        for sock in held:
+            sock.close()
+        after = _get_in_s(endpoint, client_cfg)
+    r = {"sources": sources, "per_source": per_source, "held": len(held),
+         "baseline_s": baseline, "during_s": during, "after_s": after}
+    print(f"stall: {len(held)} whole ClientHellos then a stall from {sources} addresses, "
+          f"held {hold_s:g} s; a session opened in {baseline:.2f} s before, "
+          f"{during:.2f} s during, {after:.2f} s after the attack's end", flush=True)
+    return r
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=20.0, help="per run (default 20)")
@@ -229,8 +296,18 @@ def main(argv: list[str] | None = None) -> dict:
                         help="blocks of 1000 ping-pongs per mode for the hop alone "
                              "(default 10; 0: skip)")
     parser.add_argument("--hop-bytes", type=int, default=320)
+    parser.add_argument("--stall-sources", type=int, default=0,
+                        help="addresses of the stall attack (default 0: skip it)")
+    parser.add_argument("--stall-per-source", type=int, default=6)
+    parser.add_argument("--stall-hold-s", type=float, default=3.0)
     parser.add_argument("--json", type=Path, default=None, help="write the results here")
     args = parser.parse_args(argv)
+    if args.stall_sources > 0:
+        with tempfile.TemporaryDirectory() as tmp:
+            pki = make_pki(Path(tmp))
+            materialize("server_tls.json5", pki)
+            materialize("client_tls.json5", pki)
+            return stall(args.stall_sources, args.stall_per_source, args.stall_hold_s, pki)
     hop_result = hop(args.hop_rounds, args.hop_bytes) if args.hop_rounds > 0 else None
     runs: dict[str, list[dict]] = {m: [] for m in MODES}
     with tempfile.TemporaryDirectory() as tmp:
