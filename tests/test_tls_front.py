@@ -413,6 +413,7 @@ def test_serves_fronts_lock_zenohs_listener_to_their_key():
             with pytest.raises(TimeoutError):
                 plain.connect(("127.0.0.1", plan.backend_port))
         client = connect(plan.listener.getsockname()[1])
+        client.settimeout(60.0)  # the front process starts meanwhile (seconds when loaded)
         client.sendall(CLIENT_HELLO)
         assert recv_exactly(client, len(CLIENT_HELLO)) == CLIENT_HELLO  # through the front
         client.close()
@@ -461,5 +462,16 @@ def test_one_handshake_per_source_in_zenoh_the_next_whole_hello_waits():
         assert closed_by_front(third)
         assert 0.5 < time.monotonic() - t0 < 5.0
         assert tf.counters.dropped_queued == 1 and backend.connections == 3
+        # one that gives up while it waits is not forwarded when its turn comes
+        fourth = connect(port, "127.0.0.2")
+        fourth.sendall(CLIENT_HELLO)
+        wait_until(lambda: len(tf.queued.get("127.0.0.2", ())), lambda n: n == 1,
+                   timeout_s=5, what="the fourth waiting")
+        fourth.close()
+        closed_before = tf.counters.dropped_closed
+        second.sendall(b"\x14\x03\x03\x00\x01\x01")  # the second's handshake done
+        wait_until(lambda: tf.counters.dropped_closed, lambda n: n == closed_before + 1,
+                   timeout_s=5, what="the fourth dropped at its turn")
+        assert backend.connections == 3 and tf.counters.handshakes_failed == 0
         for sock in (first, second, third, other):
             sock.close()

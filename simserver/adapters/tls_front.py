@@ -633,16 +633,18 @@ class TlsFront:
         waiting = self.queued.get(source)
         while waiting and self.handshaking.get(source, 0) < \
                 self.limits.max_handshakes_per_source:
-            nxt = waiting.popleft()
-            if nxt.stage != "queued":
-                continue  # closed meanwhile
+            nxt = waiting[0]  # (closing it takes it off the queue)
             if time.monotonic() < self.barred_until.get(source, 0.0):
                 self.counters.refused_backoff += 1
                 self._close(nxt)
+            elif not _still_open(nxt.client):  # gave up waiting: zenoh need not know
+                self.counters.dropped_closed += 1
+                self._close(nxt)
             else:
+                waiting.popleft()
+                if not waiting:
+                    del self.queued[source]
                 self._connect_backend(nxt)
-        if not waiting:
-            self.queued.pop(source, None)
 
     def _connect_backend(self, conn: _Conn) -> None:
         backend = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -785,6 +787,11 @@ class TlsFront:
     def _close(self, conn: _Conn) -> None:
         if conn.stage == "closed":
             return
+        waiting = self.queued.get(conn.source)
+        if conn.stage == "queued" and waiting and conn in waiting:
+            waiting.remove(conn)
+            if not waiting:
+                del self.queued[conn.source]
         if conn.stage == "forward":
             self.counters.open_forwarded -= 1
             if conn.pending:  # the handshake failed (in zenoh, or the client gave up)
@@ -838,6 +845,16 @@ def _abort(sock: socket.socket) -> None:
     except OSError:
         pass
     sock.close()
+
+
+def _still_open(sock: socket.socket) -> bool:
+    """Whether the client has not closed (or reset) its end; reads nothing."""
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) != b""
+    except (BlockingIOError, InterruptedError):
+        return True
+    except OSError:
+        return False
 
 
 def _shutdown_write(sock: socket.socket) -> None:
