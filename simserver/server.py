@@ -500,6 +500,8 @@ class SimServer:
                                          config_file=cfg.zenoh_config, mode=cfg.mode)
                 listen = fronts.public_listen
             with ZenohEndpoint(zcfg, prefix=cfg.prefix, vehicle=cfg.vehicle_id) as ep:
+                if fronts is not None:  # zenoh listens now: lock it to the fronts (issue
+                    fronts.start()      # 34), then start them
                 self._zid = str(ep.session.zid())
                 for slot in self.slots:
                     self._claim_vehicle(ep, slot)
