@@ -37,6 +37,7 @@ from clients import joystick as js
 from clients import keyboard as kb
 from clients import player, recorder
 from clients.common import EXIT_NO_SERVER
+from clients.driver import AUTO_HOLD_REST_MPS
 from clients.profile import ProfileError
 from simserver import protocol as proto
 from simserver.analysis.holds import CREEP_SETTLE_S
@@ -706,7 +707,10 @@ frames:
     assert max(float(s["throttle"]) for s in mine) == pytest.approx(1.0, abs=1e-3)
     wheel = js.load_joystick_profile(CONFIGS / "clients" / "wheel.yaml")
     expected_brake = js.pedal_value(wheel.brake, -0.6)
-    braking = [s for s in mine if float(s["brake"]) > 0.0]
+    # the pedal's own value while the car still rolls (once stopped with the brake on, the
+    # driver's auto hold applies the full brake: test_gamepad_auto_hold_on_a_10pct_hill)
+    stopped = peak + int(np.argmax(np.abs(u[peak:]) < AUTO_HOLD_REST_MPS))
+    braking = [s for s in mine[peak:stopped] if float(s["brake"]) > 0.0]
     assert float(braking[-1]["brake"]) == pytest.approx(expected_brake, abs=1e-3)
     assert float(mine[-1]["steer"]) == pytest.approx(0.5, abs=1e-3)  # wheel left -> +
     assert int(mine[-1]["gear"]) == proto.Gear.N  # left paddle: D -> N
