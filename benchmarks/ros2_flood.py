@@ -101,7 +101,10 @@ class Window:
     odometry: int  # Odometry messages the ROS node received
     late_ticks: int  # the server's ticks more than 1 ms late (its diagnostics)
     log_lines: int  # lines the server and the adapter printed
+    commands: int  # DriverCommands the server received (the adapter's)
+    ticks: int  # the server's ticks in the window
     sent: int = 0  # flood messages sent
+    lines: list[str] = field(default_factory=list)  # what was printed
 
     @property
     def odometry_per_s(self) -> float:
@@ -175,8 +178,10 @@ def measure_window(server: Any, client: Any, sub: Any, label: str, seconds: floa
         flooder.wait(60)
         line = flooder.wait_for_line("flood: sent", timeout_s=10)
         sent = int(line.split()[2])
+    lines = server.output[lines0:]
     return Window(label, elapsed, received, int(d1["late_ticks"]) - int(d0["late_ticks"]),
-                  len(server.output) - lines0, sent)
+                  len(lines), int(d1["cmd_received"]) - int(d0["cmd_received"]),
+                  int(d1["tick"]) - int(d0["tick"]), sent, lines)
 
 
 def flooder_process(router_ep: str, domain: int, kind: str, seconds: float) -> Any:
@@ -194,29 +199,47 @@ def flooder_process(router_ep: str, domain: int, kind: str, seconds: float) -> A
 
 def measure_floods(seconds: float = 4.0, domain: int = 43, settings: str = "",
                    kinds: tuple[str, ...] = ("ackermann", "malformed")) -> FloodRun:
-    """Baseline, each flood, baseline again: the windows of one server and adapter."""
+    """No flood, then each flood followed by no flood again: the windows of one server and
+    adapter, labelled ``baseline 0``, ``ackermann``, ``baseline 1``, ``malformed``,
+    ``baseline 2`` (each flood between two windows without one)."""
     from simserver.testing import Client
 
     run = FloodRun()
     with adapter_under_test(domain, settings) as (server, router_ep, sub), \
             Client(server) as client:
-        run.windows.append(measure_window(server, client, sub, "baseline", seconds))
-        for kind in kinds:
+        run.windows.append(measure_window(server, client, sub, "baseline 0", seconds))
+        for i, kind in enumerate(kinds, 1):
             flooder = flooder_process(router_ep, domain, kind, seconds)
             run.windows.append(measure_window(server, client, sub, kind, seconds, flooder))
-        run.windows.append(measure_window(server, client, sub, "baseline after", seconds))
+            run.windows.append(measure_window(server, client, sub, f"baseline {i}", seconds))
         run.output = server.text()
     return run
 
 
+def bracketing_baselines(run: FloodRun, label: str) -> tuple[Window, Window]:
+    """The windows without a flood just before and just after the flood ``label``."""
+    i = next(i for i, w in enumerate(run.windows) if w.label == label)
+    return run.windows[i - 1], run.windows[i + 1]
+
+
+def odometry_share(run: FloodRun, label: str) -> float:
+    """The odometry rate during flood ``label`` over the mean rate of the windows without
+    a flood just before and after it."""
+    before, after = bracketing_baselines(run, label)
+    return run.by_label(label).odometry_per_s / (0.5 * (before.odometry_per_s
+                                                         + after.odometry_per_s))
+
+
 def format_run(run: FloodRun) -> str:
-    base = run.by_label("baseline")
+    """One line a window."""
     rows = []
     for w in run.windows:
-        rows.append(f"{w.label:>15}: odometry {w.odometry_per_s:6.1f}/s "
-                    f"({100 * w.odometry_per_s / base.odometry_per_s:5.1f} % of baseline), "
-                    f"late ticks {w.late_ticks:4d}, output lines {w.log_lines:5d}"
-                    + (f", flood {w.sent / w.seconds:7.0f} msg/s" if w.sent else ""))
+        share = f" ({100 * odometry_share(run, w.label):5.1f} % of the windows around)" \
+            if w.sent else ""
+        rows.append(f"{w.label:>10}: odometry {w.odometry_per_s:6.1f}/s{share}, "
+                    f"late ticks {w.late_ticks:3d} of {w.ticks}, output lines "
+                    f"{w.log_lines:5d}" + (f", flood {w.sent / w.seconds:7.0f} msg/s"
+                                           if w.sent else ""))
     return "\n".join(rows)
 
 
