@@ -27,8 +27,9 @@ WINDOW_S = 3.0
 MIN_ODOMETRY_SHARE = 0.90
 """Issue 34's acceptance: the odometry under a flood at least 90 % of its rate without."""
 VM_STALL_SHARE = 0.007
-"""This VM stalls 0.3-0.7 % of a bare 1 kHz pacer's periods by itself (platform notes):
-the late ticks a flood window may have beyond the windows around it without one."""
+"""This VM makes about half a per cent of a bare 1 kHz pacer's ticks late by itself (the
+ROS 2 rows' clock floor in docs/performance.md: 0.53 % more than 1 ms late): the late
+ticks a flood window may have beyond the windows around it without one."""
 
 
 @pytest.fixture(scope="module")
