@@ -15,13 +15,28 @@ prints the figures.
 
 from __future__ import annotations
 
+import logging
 import math
+import re
+import sys
 from collections.abc import Iterator
 
 import pytest
+import zenoh
 
-from benchmarks.ros2_flood import FloodRun, bracketing_baselines, format_run, measure_floods
+from benchmarks.ros2_flood import (
+    ACKERMANN,
+    MALFORMED,
+    FloodRun,
+    ackermann_payload,
+    bracketing_baselines,
+    format_run,
+    measure_floods,
+    typestore,
+)
+from simserver.adapters.zenoh_io import make_zenoh_config
 from simserver.ros2.adapter import REJECT_LOG_INTERVAL_S
+from simserver.testing import wait_until
 
 WINDOW_S = 3.0
 MIN_ODOMETRY_SHARE = 0.90
@@ -73,3 +88,86 @@ def test_a_malformed_flood_is_logged_at_a_bounded_rate_with_counts(run: FloodRun
     assert counted, "no line gave the count of the bad messages in between"
     suppressed = max(int(line.rsplit("(", 1)[1].split()[0]) for line in counted)
     assert suppressed >= 100, counted
+
+
+# ---------------------------------------------------------------- the parts, in-process
+
+@pytest.fixture
+def session() -> Iterator[zenoh.Session]:
+    """A zenoh session of its own (listening nowhere, no scouting): local delivery only."""
+    with zenoh.open(make_zenoh_config(listen=[], mode="peer")) as s:
+        yield s
+
+
+def test_each_period_decodes_at_most_the_newest_samples_newest_first(session) -> None:
+    """A flood costs a period at most COMMAND_RING_DEPTH decodes, and the newest valid
+    command wins (with zenoh's local delivery, a put is in the ring when it returns)."""
+    from simserver.ros2 import wire
+    from simserver.ros2.adapter import COMMAND_RING_DEPTH, RosNode, _target_from_ackermann
+
+    store = typestore()
+    node = RosNode(session, 45, "/", "flood_test")
+    sub = node.subscription("/ackermann_cmd", ACKERMANN, wire.QoS(depth=10))
+    pub = session.declare_publisher(sub.key)
+    try:
+        # a flood of bad payloads, then a valid command: the valid one, one decode
+        for _ in range(1000):
+            pub.put(MALFORMED)
+        pub.put(ackermann_payload(store, 5.0))
+        target, refused = sub.newest(_target_from_ackermann)
+        assert target is not None and target.speed_mps == 5.0 and refused == 0
+        assert (sub.rejected, sub.superseded) == (0, COMMAND_RING_DEPTH - 1)
+        # a valid command, then the flood: it fell out of the ring; only the ring decoded
+        pub.put(ackermann_payload(store, 3.0))
+        for _ in range(1000):
+            pub.put(MALFORMED)
+        assert sub.newest(_target_from_ackermann) == (None, 0)
+        assert sub.rejected == COMMAND_RING_DEPTH
+        # valid ones at any rate: the newest; NaN is refused and the next older one taken
+        for speed in range(1000):
+            pub.put(ackermann_payload(store, float(speed)))
+        pub.put(ackermann_payload(store, math.nan))
+        target, refused = sub.newest(_target_from_ackermann)
+        assert target is not None and target.speed_mps == 999.0 and refused == 1
+        assert sub.newest(_target_from_ackermann) == (None, 0)  # nothing new: nothing
+    finally:
+        pub.undeclare()
+        node.close()
+
+
+def test_a_child_that_keeps_dying_is_restarted_with_a_doubling_delay(
+        caplog) -> None:
+    from simserver.ros2 import supervisor as S
+
+    caplog.set_level(logging.WARNING, logger="simserver.server")
+    sup = S.AdapterSupervisor([sys.executable, "-c", "import sys; sys.exit(3)"], "the child")
+    sup.start()
+    try:
+        wait_until(lambda: sup.restarts, lambda n: n >= 3, timeout_s=20,
+                   what="three restarts")
+        status = sup.status()
+        assert status["restarts"] >= 3 and status["last_exit_code"] == 3
+    finally:
+        sup.stop(lambda p: (p.terminate(), p.wait()))
+    delays = [float(m.group(1)) for r in caplog.records
+              if (m := re.search(r"ended with exit code 3 after .* restarting it in "
+                                 r"([0-9.]+) s", r.getMessage()))]
+    assert delays[:3] == [S.FIRST_DELAY_S, 2 * S.FIRST_DELAY_S, 4 * S.FIRST_DELAY_S]
+    assert sup.status()["state"] == "stopped"
+
+
+def test_a_healthy_run_resets_the_delay(monkeypatch, caplog) -> None:
+    from simserver.ros2 import supervisor as S
+
+    monkeypatch.setattr(S, "HEALTHY_RUN_S", 0.2)  # the child runs 0.4 s: healthy
+    caplog.set_level(logging.WARNING, logger="simserver.server")
+    sup = S.AdapterSupervisor([sys.executable, "-c", "import time; time.sleep(0.4)"],
+                              "the child")
+    sup.start()
+    try:
+        wait_until(lambda: sup.restarts, lambda n: n >= 2, timeout_s=20, what="two restarts")
+    finally:
+        sup.stop(lambda p: (p.terminate(), p.wait()))
+    delays = [float(m.group(1)) for r in caplog.records
+              if (m := re.search(r"restarting it in ([0-9.]+) s", r.getMessage()))]
+    assert delays[:2] == [S.FIRST_DELAY_S, S.FIRST_DELAY_S]
