@@ -26,7 +26,7 @@ values, the paired per-round ratio and the floor: one "off" round caught in a VM
 (5 % of ticks late with nothing running) no longer decides the comparison.
 
 The two server configs differ in that key alone. With it on, ``serve`` starts the adapter
-as it does for a user (its own process, idle CPU priority, 100 Hz); its ROS node joins a
+as it does for a user (its own process, normal CPU priority, 100 Hz); its ROS node joins a
 zenoh router standing in for ``rmw_zenohd``, and a ROS node of this process subscribes to
 every topic of the domain, so the adapter's four topics really travel (their message rate
 is quoted). The benchmark's own client drives the car; the adapter, with no ROS command,
@@ -71,9 +71,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--rounds", type=int, default=8)
     parser.add_argument("--floor-seconds", type=float, default=5.0,
                         help="the bare pacer's run after each round (0: none)")
-    parser.add_argument("--normal-priority", action="store_true",
-                        help="the adapter at normal CPU priority (default idle: on a busy "
-                        "machine its loop may then never run, and it publishes nothing)")
+    parser.add_argument("--idle-priority", action="store_true",
+                        help="the adapter at idle CPU priority (the default before issue 34; "
+                        "on a busy machine its loop may then never run, and it publishes "
+                        "nothing)")
     parser.add_argument("--floods", action="store_true",
                         help="instead: the adapter under floods of ROS commands (issue 34)")
     args = parser.parse_args(argv)
@@ -93,7 +94,7 @@ def main(argv: list[str] | None = None) -> dict:
     try:  # a failed round must not leave the callback subscriber holding the exit
         with tempfile.TemporaryDirectory(prefix="simserver_ros2_bench_") as tmp:
             off = server_config(Path(tmp), "off", "off")
-            normal = ", normal_priority: true" if args.normal_priority else ""
+            normal = ", normal_priority: false" if args.idle_priority else ""
             on = server_config(Path(tmp), "on", f"{{router: '{router_endpoint}', "
                                                     f"domain_id: {DOMAIN}{normal}}}")
 
@@ -127,7 +128,7 @@ def main(argv: list[str] | None = None) -> dict:
           "of the run (median over rounds; four topics at 100 Hz)")
     if not np.median(rates):
         print("warning: the adapter published nothing, so 'on' measured an idle adapter: "
-              "at idle priority on a busy machine its loop does not run (--normal-priority)")
+              "at idle priority on a busy machine its loop does not run (drop --idle-priority)")
     return summary
 
 
