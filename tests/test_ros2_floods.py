@@ -143,10 +143,12 @@ def test_a_child_that_keeps_dying_is_restarted_with_a_doubling_delay(
     sup = S.AdapterSupervisor([sys.executable, "-c", "import sys; sys.exit(3)"], "the child")
     sup.start()
     try:
+        waiting = wait_until(sup.status, lambda st: st["state"] == "restarting", timeout_s=10,
+                             what="the supervisor waiting to restart")
+        assert waiting["pid"] is None and waiting["last_exit_code"] == 3
+        assert 0.0 <= waiting["restart_in_s"] <= S.MAX_DELAY_S
         wait_until(lambda: sup.restarts, lambda n: n >= 3, timeout_s=20,
                    what="three restarts")
-        status = sup.status()
-        assert status["restarts"] >= 3 and status["last_exit_code"] == 3
     finally:
         sup.stop(lambda p: (p.terminate(), p.wait()))
     delays = [float(m.group(1)) for r in caplog.records
