@@ -134,14 +134,22 @@ def main(argv: list[str] | None = None) -> dict:
 
 def floods(seconds: float) -> dict:
     """The adapter under floods at its default and at idle priority; the windows' figures."""
-    from benchmarks.ros2_flood import format_run, measure_floods, odometry_share
+    from benchmarks.ros2_flood import (
+        format_run,
+        measure_floods,
+        median_odometry_share,
+        odometry_share,
+    )
 
     out = {}
     for name, settings in (("normal priority (default)", ""),
                            ("idle priority", ", normal_priority: false")):
-        run = measure_floods(seconds, settings=settings)
+        run = measure_floods(seconds, settings=settings, repeats=2)
+        medians = ", ".join(f"{kind} {100 * median_odometry_share(run, kind):.1f} %"
+                            for kind in ("ackermann", "malformed"))
         print(f"ROS 2 adapter under floods, {name}, {seconds:g} s windows:\n"
-              f"{format_run(run)}", flush=True)
+              f"{format_run(run)}\nodometry under a flood, median share of the windows "
+              f"around: {medians}", flush=True)
         out[name] = {w.label: {"odometry_per_s": w.odometry_per_s, "late_ticks": w.late_ticks,
                                "ticks": w.ticks, "output_lines": w.log_lines,
                                "flood_per_s": w.sent / w.seconds,

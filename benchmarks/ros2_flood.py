@@ -1,9 +1,10 @@
 """Floods on the ROS 2 adapter (issue 34): the flooder process and the measurement.
 
 The flooder is a process of its own (``python benchmarks/ros2_flood.py --connect ...``),
-a ROS node as rmw_zenoh makes one, publishing one command topic as fast as it can for
-``--seconds``: ``ackermann`` sends valid ``AckermannDriveStamped`` commands, ``malformed``
-sends ``cmd_vel`` payloads that do not decode as a ``Twist`` (a CDR header and 7 bytes).
+a ROS node as rmw_zenoh makes one, publishing one command topic for ``--seconds`` as fast
+as it can or at ``--rate``: ``ackermann`` sends valid ``AckermannDriveStamped`` commands,
+``malformed`` sends ``cmd_vel`` payloads that do not decode as a ``Twist`` (a CDR header
+and 7 bytes).
 Payloads, key expressions and attachments are built here with rosbags and the design
 document of rmw_zenoh, not with ``simserver.ros2``.
 
@@ -18,6 +19,7 @@ checks them.
 from __future__ import annotations
 
 import argparse
+import statistics
 import struct
 import sys
 import tempfile
@@ -71,8 +73,9 @@ def ackermann_payload(store: Any, speed_mps: float) -> bytes:
     return bytes(store.serialize_cdr(msg, ACKERMANN))
 
 
-def flood(connect: str, domain: int, kind: str, seconds: float) -> int:
-    """Publish ``kind`` as fast as this process can for ``seconds``; how many were sent."""
+def flood(connect: str, domain: int, kind: str, seconds: float, rate_hz: float = 0.0) -> int:
+    """Publish ``kind`` for ``seconds`` at ``rate_hz`` (in bursts every 5 ms), or as fast
+    as this process can (0); how many were sent."""
     store = typestore()
     topic, ros_type = KINDS[kind]
     payload = ackermann_payload(store, 1.0) if kind == "ackermann" else MALFORMED
@@ -82,12 +85,17 @@ def flood(connect: str, domain: int, kind: str, seconds: float) -> int:
         pub = session.declare_publisher(topic_key(store, domain, topic, ros_type))
         gid = bytes(range(16))
         print("flood: start", flush=True)
-        sent, end = 0, time.monotonic() + seconds
-        while time.monotonic() < end:
-            for _ in range(100):
+        burst_s = 0.005
+        sent, start = 0, time.monotonic()
+        end = start + seconds
+        while (now := time.monotonic()) < end:
+            due = int((now - start + burst_s) * rate_hz) if rate_hz > 0 else sent + 100
+            while sent < due:
                 sent += 1
                 pub.put(payload, attachment=struct.pack("<qqB16s", sent, time.time_ns(), 16,
                                                         gid))
+            if rate_hz > 0:
+                time.sleep(max(0.0, start + sent / rate_hz - burst_s - time.monotonic()))
         pub.undeclare()
     return sent
 
@@ -184,13 +192,14 @@ def measure_window(server: Any, client: Any, sub: Any, label: str, seconds: floa
                   int(d1["tick"]) - int(d0["tick"]), sent, lines)
 
 
-def flooder_process(router_ep: str, domain: int, kind: str, seconds: float) -> Any:
+def flooder_process(router_ep: str, domain: int, kind: str, seconds: float,
+                    rate_hz: float = 0.0) -> Any:
     """The flooder, started, once its session is open (its ready line)."""
     from simserver.testing import OutputProcess
 
     proc = OutputProcess([sys.executable, __file__, "--connect",
                           router_ep, "--domain", str(domain), "--kind", kind, "--seconds",
-                          str(seconds)], ready="flood: start")
+                          str(seconds), "--rate", str(rate_hz)], ready="flood: start")
     if not proc.wait_ready(60):
         proc.kill()
         raise RuntimeError("the flooder did not start:\n" + proc.text())
@@ -198,22 +207,34 @@ def flooder_process(router_ep: str, domain: int, kind: str, seconds: float) -> A
 
 
 def measure_floods(seconds: float = 4.0, domain: int = 43, settings: str = "",
-                   kinds: tuple[str, ...] = ("ackermann", "malformed")) -> FloodRun:
-    """No flood, then each flood followed by no flood again: the windows of one server and
-    adapter, labelled ``baseline 0``, ``ackermann``, ``baseline 1``, ``malformed``,
-    ``baseline 2`` (each flood between two windows without one)."""
+                   kinds: tuple[str, ...] = ("ackermann", "malformed"),
+                   rate_hz: float = 0.0, repeats: int = 1) -> FloodRun:
+    """A window without a flood, then for each flood ``repeats`` times the flood and a
+    window without: the windows of one server and adapter, labelled ``baseline 0``,
+    ``ackermann 1``, ``baseline 1``, ``ackermann 2``, ``baseline 2``, ... ``malformed 1``
+    ... (each flood between two windows without one); ``rate_hz`` as :func:`flood`'s."""
     from simserver.testing import Client
 
     run = FloodRun()
     with adapter_under_test(domain, settings) as (server, router_ep, sub), \
             Client(server) as client:
         run.windows.append(measure_window(server, client, sub, "baseline 0", seconds))
-        for i, kind in enumerate(kinds, 1):
-            flooder = flooder_process(router_ep, domain, kind, seconds)
-            run.windows.append(measure_window(server, client, sub, kind, seconds, flooder))
-            run.windows.append(measure_window(server, client, sub, f"baseline {i}", seconds))
+        n = 0
+        for kind in kinds:
+            for i in range(1, repeats + 1):
+                flooder = flooder_process(router_ep, domain, kind, seconds, rate_hz)
+                run.windows.append(measure_window(server, client, sub, f"{kind} {i}",
+                                                  seconds, flooder))
+                n += 1
+                run.windows.append(measure_window(server, client, sub, f"baseline {n}",
+                                                  seconds))
         run.output = server.text()
     return run
+
+
+def floods_of(run: FloodRun, kind: str) -> list[Window]:
+    """The windows of flood ``kind``."""
+    return [w for w in run.windows if w.label.rsplit(" ", 1)[0] == kind]
 
 
 def bracketing_baselines(run: FloodRun, label: str) -> tuple[Window, Window]:
@@ -228,6 +249,13 @@ def odometry_share(run: FloodRun, label: str) -> float:
     before, after = bracketing_baselines(run, label)
     return run.by_label(label).odometry_per_s / (0.5 * (before.odometry_per_s
                                                          + after.odometry_per_s))
+
+
+def median_odometry_share(run: FloodRun, kind: str) -> float:
+    """The median over the windows of flood ``kind`` of :func:`odometry_share`: a burst of
+    other work on the machine during one window does not decide it."""
+    return float(statistics.median(odometry_share(run, w.label)
+                                   for w in floods_of(run, kind)))
 
 
 def format_run(run: FloodRun) -> str:
@@ -249,8 +277,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--domain", type=int, required=True)
     parser.add_argument("--kind", choices=tuple(KINDS), required=True)
     parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--rate", type=float, default=0.0,
+                        help="messages a second (default 0: as fast as it can)")
     args = parser.parse_args(argv)
-    sent = flood(args.connect, args.domain, args.kind, args.seconds)
+    sent = flood(args.connect, args.domain, args.kind, args.seconds, args.rate)
     print(f"flood: sent {sent}", flush=True)
     return 0
 

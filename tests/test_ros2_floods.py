@@ -2,8 +2,8 @@
 
 ``simserver serve`` starts the adapter as it does for a user (its ROS node a client of a
 zenoh router standing in for ``rmw_zenohd``); this test's ROS node counts the odometry;
-a flooder process of its own publishes one command topic as fast as it can, with payloads
-built by rosbags (``benchmarks/ros2_flood.py``): valid ``AckermannDriveStamped`` commands,
+a flooder process of its own publishes one command topic at 25 kHz, with payloads built
+by rosbags (``benchmarks/ros2_flood.py``): valid ``AckermannDriveStamped`` commands,
 then ``cmd_vel`` payloads that do not decode as a ``Twist``. Each flood window lies
 between two windows without a flood of the same run, and is compared with them.
 
@@ -30,15 +30,22 @@ from benchmarks.ros2_flood import (
     FloodRun,
     ackermann_payload,
     bracketing_baselines,
+    floods_of,
     format_run,
     measure_floods,
+    median_odometry_share,
     typestore,
 )
 from simserver.adapters.zenoh_io import make_zenoh_config
 from simserver.ros2.adapter import REJECT_LOG_INTERVAL_S
 from simserver.testing import wait_until
 
-WINDOW_S = 3.0
+WINDOW_S = 1.5
+REPEATS = 3
+FLOOD_HZ = 25_000.0
+"""Above the issue's "about 20 kHz". As fast as a process can (up to 140 kHz here) is the
+benchmark's (``bench_ros2 --floods``): in a test on this shared 2-core machine the
+flooder's own core then decides the figure as much as the adapter does."""
 MIN_ODOMETRY_SHARE = 0.90
 """Issue 34's acceptance: the odometry under a flood at least 90 % of its rate without."""
 VM_STALL_SHARE = 0.007
@@ -49,45 +56,50 @@ ticks a flood window may have beyond the windows around it without one."""
 
 @pytest.fixture(scope="module")
 def run() -> Iterator[FloodRun]:
-    result = measure_floods(WINDOW_S, domain=44)
+    result = measure_floods(WINDOW_S, domain=44, rate_hz=FLOOD_HZ, repeats=REPEATS)
     print("\n" + format_run(result))
     yield result
 
 
 @pytest.mark.parametrize("kind", ["ackermann", "malformed"])
 def test_a_flood_holds_the_odometry_rate(run: FloodRun, kind: str) -> None:
-    flood = run.by_label(kind)
-    before, after = bracketing_baselines(run, kind)
-    assert flood.sent > 10_000 * WINDOW_S, "the flooder did not flood"
-    reference = 0.5 * (before.odometry_per_s + after.odometry_per_s)
-    assert flood.odometry_per_s >= MIN_ODOMETRY_SHARE * reference, format_run(run)
+    """The median over the flood's windows of its odometry rate over that of the windows
+    around it (this machine is shared: one window may fall in a burst of other work)."""
+    for flood in floods_of(run, kind):
+        # it flooded (a starved flooder may fall short of its rate; a ROS publisher sends
+        # at 10-100 Hz)
+        assert flood.sent >= 5_000 * WINDOW_S, "the flooder did not flood"
+    assert median_odometry_share(run, kind) >= MIN_ODOMETRY_SHARE, format_run(run)
 
 
 def test_a_valid_flood_still_drives(run: FloodRun) -> None:
     """The Ackermann flood reached the adapter: it drove the car (one command a period)."""
-    flood = run.by_label("ackermann")
-    assert flood.commands >= 0.5 * 100 * WINDOW_S, format_run(run)
+    for flood in floods_of(run, "ackermann"):
+        assert flood.commands >= 0.5 * 100 * WINDOW_S, format_run(run)
 
 
 @pytest.mark.parametrize("kind", ["ackermann", "malformed"])
 def test_a_flood_does_not_make_the_servers_ticks_late(run: FloodRun, kind: str) -> None:
-    flood = run.by_label(kind)
-    before, after = bracketing_baselines(run, kind)
-    allowed = max(before.late_ticks, after.late_ticks) + math.ceil(VM_STALL_SHARE * flood.ticks)
-    assert flood.late_ticks <= allowed, format_run(run)
+    for flood in floods_of(run, kind):
+        before, after = bracketing_baselines(run, flood.label)
+        allowed = max(before.late_ticks, after.late_ticks) + \
+            math.ceil(VM_STALL_SHARE * flood.ticks)
+        assert flood.late_ticks <= allowed, format_run(run)
 
 
 def test_a_malformed_flood_is_logged_at_a_bounded_rate_with_counts(run: FloodRun) -> None:
-    flood = run.by_label("malformed")
-    decode = [line for line in flood.lines if "cannot decode a geometry_msgs/msg/Twist" in line]
+    floods = floods_of(run, "malformed")
+    lines = [line for flood in floods for line in flood.lines]
+    decode = [line for line in lines if "cannot decode a geometry_msgs/msg/Twist" in line]
     assert decode, "the malformed flood never reached the adapter"
-    # one line a second at most, plus the server's own (a watchdog transition or two)
-    assert flood.log_lines <= math.ceil(flood.seconds / REJECT_LOG_INTERVAL_S) + 3, \
-        "".join(flood.lines[:20])
+    for flood in floods:  # one line a second at most, plus the server's own (a watchdog
+        # transition or two)
+        assert flood.log_lines <= math.ceil(flood.seconds / REJECT_LOG_INTERVAL_S) + 3, \
+            "".join(flood.lines[:20])
     counted = [line for line in decode if "more since the last report" in line]
     assert counted, "no line gave the count of the bad messages in between"
     suppressed = max(int(line.rsplit("(", 1)[1].split()[0]) for line in counted)
-    assert suppressed >= 100, counted
+    assert suppressed >= 100, counted  # 4 a period decoded, 400 a second
 
 
 # ---------------------------------------------------------------- the parts, in-process
