@@ -1209,7 +1209,9 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
             "Return the active configuration (file paths relative to the server's config "
             "directory holding them: never an absolute server path).",
             reply='"protocol_version": integer (PROTOCOL_VERSION), "config": object (server, '
-            'vehicle, scene, road, keys)',
+            'vehicle, scene, road, keys, ros2: the ROS 2 adapter the server runs, `null` if '
+            'none: "state" running, restarting or stopped, "restarts", "last_exit_code", '
+            '"pid", and while restarting "restart_in_s"; docs/ros2.md)',
         ),
     )
 }

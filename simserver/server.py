@@ -48,6 +48,7 @@ from simserver.realtime import (
     process_threads,
 )
 from simserver.ros2 import cli as ros2_cli
+from simserver.ros2.supervisor import AdapterSupervisor
 from simserver.scenario import INITIAL_RANGES, Scene, load_scene
 from simserver.server_loop import ServerLoop, SlotPorts
 from simserver.simulation import Simulation
@@ -541,7 +542,8 @@ class SimServer:
             if fronts is not None:
                 fronts.stop()
             self._stop_viewer(self.viewer)
-            self._stop_viewer(ros2)
+            if ros2 is not None:
+                ros2.stop(self._stop_viewer)
             self.preparer.close()
             self.scheduler.release()
             for slot in self.slots:
@@ -632,9 +634,10 @@ class SimServer:
         log.info("live viewer: %s", self.viewer_command)
         return subprocess.Popen(args)
 
-    def _start_ros2(self, listen: list[str]) -> subprocess.Popen | None:
-        """Start ``simserver ros2`` in its own process when configured, like the viewer; a
-        thread logs its death while the server runs."""
+    def _start_ros2(self, listen: list[str]) -> AdapterSupervisor | None:
+        """Start ``simserver ros2`` in its own process when configured, like the viewer;
+        restarted with backoff if it dies (:mod:`simserver.ros2.supervisor`), its state in
+        ``get_config``'s reply."""
         cfg = self.cfg
         if cfg.ros2 is None:
             return None
@@ -645,15 +648,10 @@ class SimServer:
         args = ros2_cli.adapter_command(loopback_of(listen[0]), cfg.prefix, cfg.vehicle_id,
                                         cfg.ros2)
         log.info("ROS 2 adapter: %s", " ".join(args[2:]))
-        adapter = subprocess.Popen(args)
-
-        def watch() -> None:
-            code = adapter.wait()
-            if self.loop.running:
-                log.error("the ROS 2 adapter (pid %d) ended with exit code %d; the server "
-                          "goes on without it", adapter.pid, code)
-
-        threading.Thread(target=watch, name="ros2-watch", daemon=True).start()
+        adapter = AdapterSupervisor(args)
+        adapter.start()
+        for slot in self.slots:
+            slot.ros2_status = adapter.status
         return adapter
 
     @staticmethod
