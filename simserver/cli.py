@@ -413,12 +413,18 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
 
 def serve_command(args: argparse.Namespace) -> int:
     """``simserver serve``: the real-time server, until SIGINT/SIGTERM."""
-    import logging
+    from simserver.logfile import configure_logging
 
+    process_log = configure_logging(args.log_level)  # no log call waits on the output
+    try:
+        return _serve(args)
+    finally:
+        process_log.close()
+
+
+def _serve(args: argparse.Namespace) -> int:
     from simserver.server import DEFAULT_SERVER_CONFIG, SimServer, load_server_config
 
-    logging.basicConfig(level=args.log_level.upper(),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     cfg = load_server_config(
         args.config or DEFAULT_SERVER_CONFIG, scene=args.scene, vehicle_id=args.vehicle_id,
         prefix=args.prefix, listen=args.listen, connect=args.connect,

@@ -24,9 +24,12 @@ import ctypes
 import ctypes.util
 import errno
 import logging
+import logging.handlers
 import os
+import queue
 import resource
 import stat
+import sys
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -322,3 +325,113 @@ class LogWriter:
             except OSError:
                 pass
             self._fd = -1
+
+
+# ---------------------------------------------------------------- the process's own log
+LOG_QUEUE_LINES = 10_000
+"""Log records waiting for the output thread at most; past this they are dropped and
+counted (a stalled terminal or pipe must not grow the server's memory)."""
+
+
+class _DroppingQueueHandler(logging.handlers.QueueHandler):
+    """A ``QueueHandler`` that never blocks: a full queue drops the record and counts it."""
+
+    def __init__(self, q: queue.Queue) -> None:
+        super().__init__(q)
+        self.dropped = 0
+
+    def enqueue(self, record: logging.LogRecord) -> None:
+        try:
+            self.queue.put_nowait(record)
+        except queue.Full:
+            self.dropped += 1
+
+
+class ProcessLog:
+    """The process's log lines written by a thread of their own (``configure_logging``).
+
+    ``logging.basicConfig`` writes each record in the thread that logs it. The tick thread
+    logs (a watchdog trip, a refused control), and a write to a terminal or a pipe that
+    nobody reads fast enough blocks once its buffer is full (64 KiB for a pipe): the tick
+    would wait on it. Here a log call only formats the record and puts it on a bounded
+    queue (``LOG_QUEUE_LINES``); the ``simserver-log`` thread writes it out.
+    """
+
+    def __init__(self, level: str | int, stream, fmt: str) -> None:
+        self._queue: queue.Queue = queue.Queue(LOG_QUEUE_LINES)
+        self.handler = _DroppingQueueHandler(self._queue)
+        self._out = logging.StreamHandler(stream)
+        self._out.setFormatter(logging.Formatter(fmt))
+        root = logging.getLogger()
+        for old in list(root.handlers):
+            root.removeHandler(old)
+        root.addHandler(self.handler)
+        root.setLevel(level.upper() if isinstance(level, str) else level)
+        self._thread: threading.Thread | None = threading.Thread(
+            target=self._write_loop, name="simserver-log", daemon=True)
+        self._thread.start()
+
+    def renew_thread(self, timeout_s: float = 1.0) -> None:
+        """Replace the writer thread by one started from the calling thread, so that it
+        gets that thread's scheduling: the server calls it from the tick thread once the
+        real-time policy is applied (``RealtimeScheduler.promote_new_threads`` then gives
+        it the priority below the tick's, as zenoh's threads). A writer at normal
+        priority, preempted by CPU hogs while it holds the GIL, would stall the tick."""
+        old = self._thread
+        if old is None:
+            return
+        try:
+            self._queue.put(None, timeout=timeout_s)  # the old writer ends after the queue
+            old.join(timeout_s)
+        except queue.Full:
+            pass  # the output is stuck: the new writer takes over what comes next
+        self._thread = threading.Thread(target=self._write_loop, name="simserver-log",
+                                        daemon=True)
+        self._thread.start()
+
+    def _write_loop(self) -> None:
+        while (record := self._queue.get()) is not None:
+            self._out.handle(record)
+
+    @property
+    def dropped(self) -> int:
+        """Records dropped because the output did not keep up."""
+        return self.handler.dropped
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Write what is queued and stop the thread (idempotent); a stream still blocked
+        after ``timeout_s`` is left to its daemon thread."""
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        logging.getLogger().removeHandler(self.handler)
+        try:
+            self._queue.put(None, timeout=timeout_s)
+        except queue.Full:
+            return
+        thread.join(timeout_s)
+        if self.dropped:
+            print(f"simserver: {self.dropped} log lines dropped (the output did not keep up)",
+                  file=sys.stderr)
+
+
+_process_log: ProcessLog | None = None
+
+
+def configure_logging(level: str | int = "INFO", stream=None,
+                      fmt: str = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+                      ) -> ProcessLog:
+    """Send every log record of this process through ``ProcessLog`` to ``stream``
+    (default ``sys.stderr``): a log call never waits on the output."""
+    global _process_log
+    if _process_log is not None:
+        _process_log.close()
+    _process_log = ProcessLog(level, sys.stderr if stream is None else stream, fmt)
+    return _process_log
+
+
+def renew_log_thread() -> None:
+    """``ProcessLog.renew_thread`` of the process's log, if ``configure_logging`` made one
+    (a server run in-process by tests keeps the caller's logging)."""
+    if _process_log is not None:
+        _process_log.renew_thread()

@@ -37,7 +37,7 @@ from simserver.adapters.config import ConfigError, check_keys, number, read_yaml
 from simserver.adapters.validate import integer, is_path_text, short_repr
 from simserver.core import layout as L
 from simserver.load_worker import ProcessPreparer
-from simserver.logfile import LogWriter, check_log_path, open_log_file
+from simserver.logfile import LogWriter, check_log_path, open_log_file, renew_log_thread
 from simserver.realtime import (
     DEFAULT_RT_PRIORITY,
     REALTIME_MODES,
@@ -525,6 +525,7 @@ class SimServer:
                          first.keys.base, first.sim.scene.vehicle.name,
                          1e3 * cfg.period_s, compile_s)
                 summary = self.scheduler.apply()
+                renew_log_thread()  # its writer thread under the tick's policy, one lower
                 if fronts is not None and self.scheduler.policy == "SCHED_FIFO":
                     fronts.set_priority(max(1, self.scheduler._rt_priority - 1))
                 log.log(logging.WARNING if self.scheduler.warnings else logging.INFO, "%s",
