@@ -75,3 +75,57 @@ def test_the_ground_between_two_parallel_roads_is_the_harmonic_ramp(tmp_path):
     assert np.abs(column[between] - ramp).max() < 0.1
     assert np.abs(column[y < -3.0 - cell] - 0.0).max() < 0.01
     assert np.abs(column[y > gap + 3.0 + cell] - rise).max() < 0.01
+
+
+# ---------------------------------------------------------------- what the reader drops
+def test_every_dropped_element_of_tunnels_xodr_is_reported_once_with_its_lines(caplog):
+    """Objects and tunnels were dropped without a word; now one line per element name,
+    with the lines it is on (found here independently, by the text), logged once when
+    the terrain loads."""
+    import logging
+
+    from simserver.adapters.terrain_files import terrain_from_spec
+
+    text = TUNNELS.read_text(encoding="utf-8").splitlines()
+    lines_of = {tag: [n for n, line in enumerate(text, 1) if f"<{tag} " in line]
+                for tag in ("object", "tunnel")}
+    assert len(lines_of["object"]) == 3 and len(lines_of["tunnel"]) == 4
+    dropped = load_opendrive(TUNNELS).dropped
+    assert len(dropped) == 2
+    for tag, at in lines_of.items():
+        (line,) = [d for d in dropped if f"<{tag}>" in d]
+        assert line.startswith("tunnels.xodr: ") and ", ".join(map(str, at)) in line
+    caplog.set_level(logging.WARNING, logger="simserver.terrain")
+    terrain_from_spec({"kind": "opendrive", "file": str(TUNNELS), "cell_m": 1.0,
+                       "margin_m": 5.0})
+    warned = [r.getMessage() for r in caplog.records if r.name == "simserver.terrain"]
+    assert warned == list(dropped)
+
+
+def test_lane_heights_signals_and_offsets_are_reported_and_metadata_is_not(tmp_path):
+    """A kerb of 12 cm (a lane ``<height>``), a signal and a lane offset: each reported with
+    its line; the header, links and road marks' patterns are not (they do not shape the
+    ground)."""
+    path = tmp_path / "kerb.xodr"
+    path.write_text("\n".join((
+        '<?xml version="1.0"?>',
+        '<OpenDRIVE><header revMajor="1" revMinor="6"><geoReference>x</geoReference></header>',
+        '<road id="1" length="50" junction="-1"><link><successor elementType="road" '
+        'elementId="2"/></link>',
+        '<planView><geometry s="0" x="0" y="0" hdg="0" length="50"><line/></geometry>'
+        '</planView>',
+        '<lanes><laneOffset s="0" a="0.5" b="0" c="0" d="0"/><laneSection s="0">',
+        '<center><lane id="0" type="none"><roadMark sOffset="0" type="broken">'
+        '<type name="b"><line length="3" space="9"/></type></roadMark></lane></center>',
+        '<right><lane id="-1" type="driving"><width sOffset="0" a="3.5" b="0" c="0" d="0"/>'
+        '</lane>',
+        '<lane id="-2" type="sidewalk"><width sOffset="0" a="2" b="0" c="0" d="0"/>',
+        '<height sOffset="0" inner="0.12" outer="0.12"/></lane></right>',
+        '</laneSection></lanes>',
+        '<signals><signal s="10" t="-4" id="9" type="206"/></signals></road></OpenDRIVE>',
+    )), encoding="utf-8")
+    dropped = load_opendrive(path).dropped
+    assert [d.split(" dropped")[0] for d in dropped] == [
+        "kerb.xodr: <laneOffset>", "kerb.xodr: <height>", "kerb.xodr: <signal>"]
+    assert "(line 5)" in dropped[0] and "(line 9)" in dropped[1] and "(line 11)" in dropped[2]
+    assert "lane heights (kerbs, sidewalks) are not applied" in dropped[1]

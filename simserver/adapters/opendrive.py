@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+import xml.parsers.expat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -256,6 +257,68 @@ class Road:
 class OpenDrive:
     path: Path
     roads: list[Road]
+    dropped: tuple[str, ...] = ()  # what the file has and the reader does not use
+    # (``dropped_elements``): one line per element name, reported once when loaded
+
+
+READ_ELEMENTS = frozenset((
+    "OpenDRIVE", "road", "planView", "geometry", *GEOMETRY_KINDS, "elevationProfile",
+    "elevation", "lateralProfile", "superelevation", "lanes", "laneSection", "left",
+    "center", "right", "lane", "width"))
+"""The elements ``load_opendrive`` reads."""
+UNUSED_WHOLE = frozenset(("header", "link", "roadMark", "userData"))
+"""Elements whose content does not shape the ground or the lanes, not reported: the
+header (name, date, geo-reference), road and lane links (the ground is one grid: no
+topology is needed), road marks (drawn by their ``type``; their line patterns are not)
+and user data."""
+CONTAINERS = frozenset(("objects", "signals"))
+"""Containers whose children are each reported (an ``<object>``, a ``<tunnel>``, a
+``<signal>``), not the container itself."""
+DROPPED_NOTES = {
+    "height": "lane heights (kerbs, sidewalks) are not applied: every lane lies on the "
+              "road's surface",
+}
+
+
+def dropped_elements(path: Path, data: bytes) -> tuple[str, ...]:
+    """The elements of an ``.xodr`` file (its bytes ``data``) that ``load_opendrive`` does
+    not use, one line per element name with the lines it is on (the first ten): objects,
+    signals, lane heights, borders, offsets, junctions, ... (``READ_ELEMENTS``,
+    ``UNUSED_WHOLE``, ``CONTAINERS``). A dropped element's own children are not listed
+    again. Read by a streaming parser: no tree is built."""
+    found: dict[str, list[int]] = {}
+    skip_depth = 0  # > 0: inside an element not read (its children are not listed)
+    parser = xml.parsers.expat.ParserCreate()
+
+    def start(tag: str, _attrs: dict) -> None:
+        nonlocal skip_depth
+        if skip_depth:
+            skip_depth += 1
+            return
+        if tag in READ_ELEMENTS or tag in CONTAINERS:
+            return
+        if tag not in UNUSED_WHOLE:
+            found.setdefault(tag, []).append(parser.CurrentLineNumber)
+        skip_depth = 1
+
+    def end(_tag: str) -> None:
+        nonlocal skip_depth
+        if skip_depth:
+            skip_depth -= 1
+
+    parser.StartElementHandler = start
+    parser.EndElementHandler = end
+    try:
+        parser.Parse(data, True)
+    except xml.parsers.expat.ExpatError:
+        return ()  # load_opendrive names the XML error itself
+    lines = []
+    for tag, at in found.items():
+        shown = ", ".join(str(n) for n in at[:10]) + (", ..." if len(at) > 10 else "")
+        note = DROPPED_NOTES.get(tag, "not used by the terrain")
+        lines.append(f"{path.name}: <{tag}> dropped, {len(at)} x (line{'s' if len(at) > 1 else ''} "
+                     f"{shown}): {note}")
+    return tuple(lines)
 
 
 def _num(path: Path, elem: ET.Element, what: str, key: str) -> float:
@@ -365,7 +428,7 @@ def load_opendrive(path: str | Path) -> OpenDrive:
                           superelevation, sections, rule))
     if not roads:
         raise OpenDriveError(f"{path}: no <road>")
-    return OpenDrive(path, roads)
+    return OpenDrive(path, roads, dropped_elements(path, path.read_bytes()))
 
 
 def _section_at(road: Road, s: float) -> LaneSection | None:

@@ -33,6 +33,7 @@ that failed to load.
 
 from __future__ import annotations
 
+import logging
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,6 +55,8 @@ from simserver.core.terrain import (
 from simserver.core.variants import UnknownVariantError
 
 PNG_FULL_SCALE = 65535.0
+
+log = logging.getLogger("simserver.terrain")
 
 
 @dataclass(frozen=True)
@@ -259,6 +262,8 @@ def _load_heightmap(spec: dict[str, Any]) -> Terrain:
 def _load_opendrive(spec: dict[str, Any]) -> Terrain:
     path = Path(spec["file"])
     od = load_opendrive(path)
+    for line in od.dropped:  # once per load: what of the file the ground leaves out
+        log.warning("%s", line)
     heights, x0, y0 = rasterise(od, spec["cell_m"], spec["margin_m"])
     try:
         terrain = heightmap_terrain(heights, spec["cell_m"], spec["cell_m"], x0, y0)
