@@ -129,6 +129,8 @@ def test_a_1e308_height_map_sent_with_load_is_refused_and_nothing_non_finite_is_
         client.newest()
         before = client.diagnostics()
         reply = client.request("load", {"scene": str(scene)}, timeout_s=30.0)
+        if "not prepared within" in reply.get("error", ""):  # a worker starved by a busy
+            reply = client.request("load", {"scene": str(scene)}, timeout_s=30.0)  # machine
         assert reply["ok"] is False, reply
         error = reply["error"]
         assert "huge.npy: terrain: heights: 1e+308 m" in error and "\n" not in error
