@@ -373,7 +373,9 @@ class ServerLoop:
             slot.advance()
             slot.check_finite()  # before publishing: no non-finite state leaves the server
             if publish_state:
-                ports.publisher.publish_state(slot.state_payload(now, catching_up))
+                payload = slot.state_payload(now, catching_up)
+                if payload is not None:  # None: no finite state to publish yet
+                    ports.publisher.publish_state(payload)
             if diag_tick:  # after the state: the window's percentiles never delay it
                 diag = diag or self._diagnostics_source()
                 self._port_counters(index, slot, ports)

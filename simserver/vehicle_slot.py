@@ -253,6 +253,9 @@ class VehicleSlot:
         self.record = proto.new_state_record()
         self.fault = False  # the state went non-finite in this episode (since start,
         # reset or load): flags bit 4, logged once
+        self.state_finite = True  # x and out were finite at the last check_finite
+        self._stopped = False  # stopped by check_finite and not stepped since
+        self._last_finite: bytes | None = None  # the newest finite state record published
         self._braking = np.zeros(4, dtype=bool)
         self._held = np.zeros(4, dtype=bool)
         self.skipped_before = False  # deadlines were skipped since the last state
@@ -281,16 +284,51 @@ class VehicleSlot:
         if self.command_log is not None:
             self.command_log.log_inputs(self.steps_total, self.sim.inputs)
         self.sim.step()
+        self._stopped = False
         self.tick += 1
         self.steps_total += 1
         if self.paused:
             self.steps_to_run -= 1
         return True
 
-    def state_payload(self, now_ns: int, catching_up: bool) -> bytes:
-        """The VehicleState of this tick (docs/protocol.md 2.2), counted as published."""
+    def state_payload(self, now_ns: int, catching_up: bool) -> bytes | None:
+        """The VehicleState of this tick (docs/protocol.md 2.2), counted as published.
+
+        Never a non-finite one: a state whose simulation (``check_finite``) or world pose
+        and ground slopes are not finite is replaced by the newest finite state published,
+        with this tick's flags (``FAULT`` among them), tick and command fields; None (no
+        state to publish) if there was none yet (docs/reliability.md)."""
+        payload = self.fill_state(now_ns, catching_up)
+        if not (self.state_finite and self._pose_finite()):
+            if self.state_finite:  # the pose went bad under a finite state: stop the car
+                self._stop("non-finite world pose")
+            payload = self._last_finite_state()
+            if payload is None:
+                return None
+        else:
+            self._last_finite = payload
         self.counters["state_published"] += 1
-        return self.fill_state(now_ns, catching_up)
+        return payload
+
+    def _pose_finite(self) -> bool:
+        """The record's fields that are not copies of the checked state (``check_finite``)
+        are finite: the world pose and the ground slopes."""
+        rec = self.record
+        return (bool(np.isfinite(self.sim.pose).all())
+                and math.isfinite(rec["ground_grade_pct"] + rec["ground_cross_slope_pct"]))
+
+    def _last_finite_state(self) -> bytes | None:
+        """The newest finite state published, with the flags, tick, time and command fields
+        of the record just filled (``FAULT`` set)."""
+        if self._last_finite is None:
+            return None
+        out = np.frombuffer(self._last_finite, dtype=proto.STATE_DTYPE).copy()
+        rec = self.record
+        for name in ("tick", "sim_time_s", "last_cmd_seq", "last_cmd_sender_time_ns",
+                     "cmd_age_s"):
+            out[name] = rec[name]
+        out["flags"] = int(rec["flags"]) | proto.StateFlag.FAULT
+        return out.tobytes()
 
     def fill_state(self, now_ns: int, catching_up: bool) -> bytes:
         """Write the state record from the simulation and return its bytes."""
@@ -375,16 +413,27 @@ class VehicleSlot:
         client. Safe state: at rest at the scene's start pose (``reset``, logged so a
         replay does the same), forces zeroed, paused until a client resets, loads or
         resumes; ``flags`` bit 4 until the next reset or load; counted in
-        ``nonfinite_stops``; logged once per episode (``docs/reliability.md``).
+        ``nonfinite_stops`` once per stop (not again while the stopped car stays as it
+        is); logged once per episode (``docs/reliability.md``). If even the start is not
+        finite, :meth:`state_payload` publishes the newest finite state instead.
         Returns True when the state was finite.
         """
         p = self.sim
-        if np.isfinite(p.x).all() and np.isfinite(p.out).all():
+        self.state_finite = bool(np.isfinite(p.x).all() and np.isfinite(p.out).all())
+        if self.state_finite:
             return True
+        if not self._stopped:  # stopped already and not stepped since: nothing new
+            self._stop("non-finite state")
+        return False
+
+    def _stop(self, what: str) -> None:
+        """The stop of :meth:`check_finite`: counted, logged once per episode, reset to the
+        scene's start at rest, paused."""
+        p = self.sim
         if not self.fault:
-            log.error("non-finite state at tick %d (vehicle %s): car stopped at rest at "
-                      "the scene's start and paused until reset, load or resume",
-                      self.tick, p.scene.vehicle.name)
+            log.error("%s at tick %d (vehicle %s): car stopped at rest at the scene's start "
+                      "and paused until reset, load or resume", what, self.tick,
+                      p.scene.vehicle.name)
         self.fault = True
         self.counters["nonfinite_stops"] = min(self.counters["nonfinite_stops"] + 1, 0xFFFF)
         pose = {k: p.scene.initial[k] for k in ("x_m", "y_m", "yaw_rad")}
@@ -392,8 +441,9 @@ class VehicleSlot:
         p.out[:] = 0.0
         self.paused = True
         self.steps_to_run = 0
+        self._stopped = True
+        self.state_finite = bool(np.isfinite(p.x).all())
         self._log({"step": self.steps_total, "reset": pose})
-        return False
 
     def warm_up(self) -> None:
         """Compile every kernel the tick uses (simulation and state record) before the clock."""
@@ -436,6 +486,7 @@ class VehicleSlot:
             p.commit(prepared)
             self.tick = 0
             self.fault = False
+            self._stopped = False
             self.arbiter.last_seq = None  # docs/protocol.md 2.1: a new client may start from 0
             # the start pose as the scene's initial takes it (on the plane, the state's own
             # x, y and yaw; on a terrain the state lives on the step's reference plane); a
@@ -533,6 +584,7 @@ class VehicleSlot:
             self.scene_path = scene_path
             self.tick = 0
             self.fault = False
+            self._stopped = False
             self._log({"step": self.steps_total, "load": {
                 "scene": str(scene_path), "vehicle": None if vehicle_path is None
                 else str(vehicle_path)}})

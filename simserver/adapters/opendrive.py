@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+import xml.parsers.expat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -256,6 +257,68 @@ class Road:
 class OpenDrive:
     path: Path
     roads: list[Road]
+    dropped: tuple[str, ...] = ()  # what the file has and the reader does not use
+    # (``dropped_elements``): one line per element name, reported once when loaded
+
+
+READ_ELEMENTS = frozenset((
+    "OpenDRIVE", "road", "planView", "geometry", *GEOMETRY_KINDS, "elevationProfile",
+    "elevation", "lateralProfile", "superelevation", "lanes", "laneSection", "left",
+    "center", "right", "lane", "width"))
+"""The elements ``load_opendrive`` reads."""
+UNUSED_WHOLE = frozenset(("header", "link", "roadMark", "userData"))
+"""Elements whose content does not shape the ground or the lanes, not reported: the
+header (name, date, geo-reference), road and lane links (the ground is one grid: no
+topology is needed), road marks (drawn by their ``type``; their line patterns are not)
+and user data."""
+CONTAINERS = frozenset(("objects", "signals"))
+"""Containers whose children are each reported (an ``<object>``, a ``<tunnel>``, a
+``<signal>``), not the container itself."""
+DROPPED_NOTES = {
+    "height": "lane heights (kerbs, sidewalks) are not applied: every lane lies on the "
+              "road's surface",
+}
+
+
+def dropped_elements(path: Path, data: bytes) -> tuple[str, ...]:
+    """The elements of an ``.xodr`` file (its bytes ``data``) that ``load_opendrive`` does
+    not use, one line per element name with the lines it is on (the first ten): objects,
+    signals, lane heights, borders, offsets, junctions, ... (``READ_ELEMENTS``,
+    ``UNUSED_WHOLE``, ``CONTAINERS``). A dropped element's own children are not listed
+    again. Read by a streaming parser: no tree is built."""
+    found: dict[str, list[int]] = {}
+    skip_depth = 0  # > 0: inside an element not read (its children are not listed)
+    parser = xml.parsers.expat.ParserCreate()
+
+    def start(tag: str, _attrs: dict) -> None:
+        nonlocal skip_depth
+        if skip_depth:
+            skip_depth += 1
+            return
+        if tag in READ_ELEMENTS or tag in CONTAINERS:
+            return
+        if tag not in UNUSED_WHOLE:
+            found.setdefault(tag, []).append(parser.CurrentLineNumber)
+        skip_depth = 1
+
+    def end(_tag: str) -> None:
+        nonlocal skip_depth
+        if skip_depth:
+            skip_depth -= 1
+
+    parser.StartElementHandler = start
+    parser.EndElementHandler = end
+    try:
+        parser.Parse(data, True)
+    except xml.parsers.expat.ExpatError:
+        return ()  # load_opendrive names the XML error itself
+    lines = []
+    for tag, at in found.items():
+        shown = ", ".join(str(n) for n in at[:10]) + (", ..." if len(at) > 10 else "")
+        note = DROPPED_NOTES.get(tag, "not used by the terrain")
+        lines.append(f"{path.name}: <{tag}> dropped, {len(at)} x (line{'s' if len(at) > 1 else ''} "
+                     f"{shown}): {note}")
+    return tuple(lines)
 
 
 def _num(path: Path, elem: ET.Element, what: str, key: str) -> float:
@@ -365,7 +428,7 @@ def load_opendrive(path: str | Path) -> OpenDrive:
                           superelevation, sections, rule))
     if not roads:
         raise OpenDriveError(f"{path}: no <road>")
-    return OpenDrive(path, roads)
+    return OpenDrive(path, roads, dropped_elements(path, path.read_bytes()))
 
 
 def _section_at(road: Road, s: float) -> LaneSection | None:
@@ -513,18 +576,19 @@ def _scatter_cross_sections(ref_x: np.ndarray, ref_y: np.ndarray, ref_hdg: np.nd
 def rasterise(od: OpenDrive, cell_m: float, margin_m: float = 20.0
               ) -> tuple[np.ndarray, float, float]:
     """The road surface as a height grid: ``(heights[j, i], x0, y0)`` with cells of
-    ``cell_m``.
+    ``cell_m``, reaching ``margin_m`` beyond the outer lanes' edges.
 
     The surface point at ``(s, t)`` is the reference line's point moved ``t cos(roll)``
     across it horizontally and ``t sin(roll)`` up from the elevation (roll: the
-    superelevation). Beyond the outer lanes' edges the edge extends flat across for
-    ``margin_m``; grid cells farther from every road take the height of the nearest
-    surface cell along their grid row (rows with none: along their column). Each cell
-    takes the surface sample nearest to its centre, moved to the centre along the
-    surface's local slope (samples every quarter of a cell, along and across the road).
-    The reference line and profiles are sampled with numpy, the cross-sections are
-    scattered into the grid by a compiled loop (``_scatter_cross_sections``): a
-    kilometre of road loads in well under a second."""
+    superelevation). Each cell the lanes cover takes the surface sample nearest to its
+    centre, moved to the centre along the surface's local slope (samples every quarter of
+    a cell, along and across the road). The standard describes no ground off the lanes:
+    every other cell takes the smoothest ground through the lanes' edges, a harmonic
+    interpolation (``_fill_harmonic``: continuous, no step where the standard has none;
+    flat, with no slope across it, at the grid's border). The reference line and profiles
+    are sampled with numpy, the cross-sections are scattered into the grid by a compiled
+    loop (``_scatter_cross_sections``): a kilometre of road loads in well under a
+    second."""
     step = 0.25 * cell_m
     sections = []
     lo_x = lo_y = math.inf
@@ -561,35 +625,95 @@ def rasterise(od: OpenDrive, cell_m: float, margin_m: float = 20.0
     grid = np.full((ny, nx), np.nan)
     best_d2 = np.full((ny, nx), np.inf)
     for arrays in sections:
-        _scatter_cross_sections(*arrays, margin_m, step, x0, y0, cell_m, grid, best_d2)
-    _fill_nearest(grid)
+        # the lanes only (no margin): the ground beyond them is filled below
+        _scatter_cross_sections(*arrays, 0.0, step, x0, y0, cell_m, grid, best_d2)
+    _fill_harmonic(grid)
     return grid, x0, y0
 
 
-def _fill_along(grid: np.ndarray) -> None:
-    """Fill each row's NaN cells with the row's nearest filled cell (in place)."""
+FILL_SWEEPS = 60
+"""Gauss-Seidel sweeps of ``_fill_harmonic`` on each level of its pyramid (the coarsest
+level relaxes until it has converged)."""
+FILL_COARSEST = 16
+"""``_fill_harmonic`` stops coarsening at a level this small on its shorter side."""
+
+
+@nb.njit(cache=True)
+def _relax(h: np.ndarray, fixed: np.ndarray, sweeps: int, omega: float) -> float:
+    """``sweeps`` Gauss-Seidel (over-relaxed by ``omega``) sweeps of Laplace's equation
+    over the cells not ``fixed``, each the mean of its 2 to 4 neighbours (a border cell
+    has fewer: no slope across the border); the largest change of the last sweep."""
+    ny, nx = h.shape
+    change = 0.0
+    for sweep in range(sweeps):
+        last = sweep == sweeps - 1
+        for j in range(ny):
+            up = max(j - 1, 0)
+            down = min(j + 1, ny - 1)
+            for i in range(nx):
+                if fixed[j, i]:
+                    continue
+                # a neighbour beyond the border is the cell itself mirrored: no slope
+                left = h[j, max(i - 1, 0)]
+                right = h[j, min(i + 1, nx - 1)]
+                delta = omega * (0.25 * (left + right + h[up, i] + h[down, i]) - h[j, i])
+                h[j, i] += delta
+                if last:
+                    change = max(change, abs(delta))
+    return change
+
+
+def _coarser(grid: np.ndarray) -> np.ndarray:
+    """The grid at twice the cell: each coarse cell the mean of the known (not NaN) cells
+    of its 2 x 2 block, NaN if it has none."""
     ny, nx = grid.shape
-    idx = np.arange(nx)
-    have = ~np.isnan(grid)
-    prev = np.where(have, idx[None, :], -1)
-    np.maximum.accumulate(prev, axis=1, out=prev)
-    nxt = np.where(have, idx[None, :], nx)
-    nxt = np.minimum.accumulate(nxt[:, ::-1], axis=1)[:, ::-1]
-    use_prev = (prev >= 0) & ((nxt >= nx) | (idx[None, :] - prev <= nxt - idx[None, :]))
-    use_next = ~use_prev & (nxt < nx)
-    rows = np.arange(ny)[:, None].repeat(nx, axis=1)
-    filled = grid.copy()
-    filled[use_prev] = grid[rows[use_prev], prev[use_prev]]
-    filled[use_next] = grid[rows[use_next], nxt[use_next]]
-    grid[:] = filled
+    padded = np.full((ny + ny % 2, nx + nx % 2), np.nan)
+    padded[:ny, :nx] = grid
+    blocks = padded.reshape(padded.shape[0] // 2, 2, padded.shape[1] // 2, 2)
+    known = ~np.isnan(blocks)
+    count = known.sum(axis=(1, 3))
+    total = np.where(known, blocks, 0.0).sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
-def _fill_nearest(grid: np.ndarray) -> None:
-    """Fill NaN cells: along each row from its nearest surface cell, then the rows that
-    had none along each column."""
-    if np.isnan(grid).all():
+def _finer(coarse: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A filled coarse grid interpolated bilinearly onto the fine grid of ``shape`` (a
+    fine cell ``j`` lies at coarse ``(j - 0.5) / 2``; clamped at the border)."""
+    def axis(n_fine: int, n_coarse: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        pos = np.clip((np.arange(n_fine) - 0.5) / 2.0, 0.0, n_coarse - 1)
+        lo = np.minimum(pos.astype(np.int64), max(n_coarse - 2, 0))
+        hi = np.minimum(lo + 1, n_coarse - 1)
+        return lo, hi, pos - lo
+
+    j0, j1, ty = axis(shape[0], coarse.shape[0])
+    i0, i1, tx = axis(shape[1], coarse.shape[1])
+    top = coarse[j0][:, i0] * (1.0 - tx) + coarse[j0][:, i1] * tx
+    bottom = coarse[j1][:, i0] * (1.0 - tx) + coarse[j1][:, i1] * tx
+    return top * (1.0 - ty)[:, None] + bottom * ty[:, None]
+
+
+def _fill_harmonic(grid: np.ndarray) -> None:
+    """Fill the NaN cells (in place) with the harmonic interpolation of the others: the
+    solution of Laplace's equation with the known cells fixed and no slope across the
+    grid's border, the smoothest ground through them (continuous: no cliff, and no point
+    of it higher or lower than the known cells around it). Solved coarse to fine: the
+    grid's 2 x 2 means, recursively, filled and relaxed to convergence on the coarsest
+    level, each finer level starting from the coarser one interpolated and relaxed
+    ``FILL_SWEEPS`` times (a full multigrid pass: a second for millions of cells)."""
+    unknown = np.isnan(grid)
+    if unknown.all():
         raise OpenDriveError("rasterise: no road surface to extend")
-    _fill_along(grid)
-    transposed = grid.T.copy()
-    _fill_along(transposed)
-    grid[:] = transposed.T
+    if not unknown.any():
+        return
+    if min(grid.shape) <= FILL_COARSEST:
+        start = np.where(unknown, np.nanmean(grid), grid)
+        for _ in range(200):  # converged: a change under a micrometre a sweep
+            if _relax(start, ~unknown, 50, 1.9) < 1e-6:
+                break
+    else:
+        coarse = _coarser(grid)
+        _fill_harmonic(coarse)
+        start = np.where(unknown, _finer(coarse, grid.shape), grid)
+        _relax(start, ~unknown, FILL_SWEEPS, 1.9)
+    grid[:] = start

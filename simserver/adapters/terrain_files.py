@@ -12,9 +12,13 @@ The keys of each kind (``core.terrain.TERRAIN_KINDS``) are defined once, in
   ``height_offset_m + height_scale_m``). Row ``j``, column ``i`` of the grid is the point
   ``(origin_m[0] + i cell_m, origin_m[1] + j cell_m)``.
 - ``kind: opendrive``: an ``.xodr`` road rasterised into a height grid of ``cell_m`` cells
-  when loaded (``simserver.adapters.opendrive.rasterise``: the lanes' edges extend flat
-  for ``margin_m``, farther cells take the nearest surface cell's height along their grid
-  row or column); seconds per kilometre of road.
+  when loaded (``simserver.adapters.opendrive.rasterise``: the grid reaches ``margin_m``
+  beyond the outer lanes' edges; the ground off the lanes is the harmonic interpolation of
+  their surface, continuous); seconds per kilometre of road.
+
+Every height grid is held to the bounds of ``core.terrain.heightmap_terrain`` (heights,
+slopes, friction, spacing, extent: docs/model.md section 11); a file beyond them is
+refused naming it.
 
 Files are named relative to the scene file and read like every other nested reference
 (``adapters.validate.referenced_file``): inside ``confined_to`` (the server's ``load``)
@@ -29,6 +33,7 @@ that failed to load.
 
 from __future__ import annotations
 
+import logging
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,6 +55,8 @@ from simserver.core.terrain import (
 from simserver.core.variants import UnknownVariantError
 
 PNG_FULL_SCALE = 65535.0
+
+log = logging.getLogger("simserver.terrain")
 
 
 @dataclass(frozen=True)
@@ -117,9 +124,9 @@ TERRAIN_SCHEMAS: dict[str, TerrainSchema] = {
         ParamTable("terrain_opendrive", "an OpenDRIVE road rasterised into a height grid", (
             Param("cell_m", "m", 0.05, 10.0, "cell of the height grid the road is "
                   "rasterised into when loaded", default=0.5),
-            Param("margin_m", "m", 0.0, 1e3, "the outer lanes' edges extend flat this far "
-                  "across; farther cells take the nearest surface cell's height",
-                  default=20.0),
+            Param("margin_m", "m", 0.0, 1e3, "the grid reaches this far beyond the outer "
+                  "lanes' edges; the ground off the lanes is the smoothest through their "
+                  "edges (harmonic, continuous)", default=20.0),
         ))),
 }
 """The keys of each terrain kind (one source: the loader's checks and the docs)."""
@@ -246,12 +253,20 @@ def _load_heightmap(spec: dict[str, Any]) -> Terrain:
     x0, y0 = spec["origin_m"]
     try:
         return heightmap_terrain(heights, spec["cell_m"], spec["cell_m"], x0, y0, friction)
-    except ValueError as exc:
-        raise ConfigError(f"{path}: terrain: {exc}") from None
+    except ValueError as exc:  # the bounds of core.terrain (docs/model.md section 11)
+        named = Path(spec["friction_file"]) if "friction_file" in spec and \
+            str(exc).startswith("friction") else path
+        raise ConfigError(f"{named}: terrain: {exc}") from None
 
 
 def _load_opendrive(spec: dict[str, Any]) -> Terrain:
-    od = load_opendrive(Path(spec["file"]))
+    path = Path(spec["file"])
+    od = load_opendrive(path)
+    for line in od.dropped:  # once per load: what of the file the ground leaves out
+        log.warning("%s", line)
     heights, x0, y0 = rasterise(od, spec["cell_m"], spec["margin_m"])
-    return heightmap_terrain(heights, spec["cell_m"], spec["cell_m"], x0,
-                             y0)._replace(kind=TERRAIN_OPENDRIVE)
+    try:
+        terrain = heightmap_terrain(heights, spec["cell_m"], spec["cell_m"], x0, y0)
+    except ValueError as exc:  # a road beyond the bounds of core.terrain
+        raise ConfigError(f"{path}: terrain (rasterised): {exc}") from None
+    return terrain._replace(kind=TERRAIN_OPENDRIVE)

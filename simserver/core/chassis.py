@@ -294,6 +294,16 @@ def static_share(vp: np.ndarray, i: int, gravity_n_mps2: float) -> float:
     return 0.5 * weight_n * a / (a + b)
 
 
+WALL_SLOPE = 1.0
+"""The steepest face (rise per run, relative to the reference plane) the contact takes as
+the ground under a wheel: a steeper one (a step, a wall, a cliff's edge on a height map)
+is ridden as a face of this slope (docs/model.md section 11). A tire meets a face steeper
+than 45 degrees with its tread's front, not its contact patch; the massless wheel has no
+such contact, and taking the face as it is sent the load to sqrt(1 + slope^2) times the
+suspension's force and the damper's rate to slope x speed (issue 34: 0.7 to 9 MN on a
+10 m step)."""
+
+
 @nb.njit(cache=True)
 def hub_velocity(
     x: np.ndarray, derived: np.ndarray, i: int, cos_steer: float, sin_steer: float
@@ -349,6 +359,13 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
         wx = s1 * axes_old[0, 0] + s2 * axes_old[1, 0]
         wy = s1 * axes_old[0, 1] + s2 * axes_old[1, 1]
         height, grad_x, grad_y, mu = surface_under_wheel(terrain, ws.cells[i], wx, wy)
+        # ground farther below the corner than its reach (the body's height) is a drop:
+        # the wheel hangs above it, and the fitted plane does not swing down onto the
+        # cliff's foot (section 11; the plane's small-angle re-expression holds)
+        corner_z = (s1 * axes_old[0, 2] + s2 * axes_old[1, 2] + x[REF_HEIGHT_M]
+                    + (x[HEAVE_M] + py * x[ROLL_RAD] - px * x[PITCH_RAD]) * axes_old[2, 2])
+        if height < corner_z - vp[VP_CG_HEIGHT_M]:
+            height = corner_z - vp[VP_CG_HEIGHT_M]
         contact[0, i] = wx
         contact[1, i] = wy
         contact[2, i] = height
@@ -421,6 +438,11 @@ def contact_frames(model: Model, ws: Workspace, x: np.ndarray, c: float, s: floa
         # d(gap)/ds along e1 and e2 (an in-plane step ds moves (e_x, e_y) ds horizontally)
         d_gap_1 = n_z * (rel_x * e1x + rel_y * e1y)
         d_gap_2 = n_z * (rel_x * e2x + rel_y * e2y)
+        steep = d_gap_1 * d_gap_1 + d_gap_2 * d_gap_2
+        if steep > WALL_SLOPE * WALL_SLOPE:  # a wall under the wheel (section 11): ridden
+            scale = WALL_SLOPE / np.sqrt(steep)  # as a face of WALL_SLOPE, so the gap
+            d_gap_1 *= scale  # rate (slope x speed) and the normal's tilt stay bounded
+            d_gap_2 *= scale
         wheel[i, W_CONTACT_S1_M] = s1
         wheel[i, W_CONTACT_S2_M] = s2
         wheel[i, W_GAP0_M] = (height - wz) * n_z
@@ -523,8 +545,11 @@ def corner_loads(model: Model, ws: Workspace, x: np.ndarray) -> None:
         rate_l = -(heave_rate + py_left * roll_rate - px * pitch_rate)
         rate_r = -(heave_rate - py_left * roll_rate - px * pitch_rate)
         if not on_plane:
-            comp_l += wheel[left + LEFT, W_GAP_M]
-            comp_r += wheel[left + RIGHT, W_GAP_M]
+            # the corner compresses at most to its bump stop, the body's height: ground
+            # higher than that is a wall the wheel meets, not a load (section 11)
+            travel = vp[VP_CG_HEIGHT_M]
+            comp_l = min(comp_l + wheel[left + LEFT, W_GAP_M], travel)
+            comp_r = min(comp_r + wheel[left + RIGHT, W_GAP_M], travel)
             rate_l += wheel[left + LEFT, W_GAP_RATE_MPS]
             rate_r += wheel[left + RIGHT, W_GAP_RATE_MPS]
         arb = k_arb * (comp_l - comp_r)

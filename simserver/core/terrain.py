@@ -104,28 +104,73 @@ def plane_terrain() -> Terrain:
     return Terrain(TERRAIN_PLANE, np.zeros((1, 1)), np.ones((1, 1)), grid)
 
 
+# Bounds of a height map (docs/model.md section 11), checked when it is made: with them
+# every product of the step stays far inside float64 (positions <= 1e7 m, heights
+# <= 1e5 m, slopes <= 1e3: the plane fit's sums of squares stay under 1e15, a gap rate
+# (slope x speed) under 1e6 m/s, the contact normal's tilt sqrt(1 + s^2) under 1.5e3),
+# so a finite file cannot overflow the step (issue 34: a map of 1e308 did).
+HEIGHT_ABS_MAX_M = 1e5  # |height|: 100 km, ten times the deepest trench or highest peak
+SLOPE_MAX = 1e3  # |rise| between neighbouring samples per metre of spacing: 89.94 deg,
+# a wall for any tire (a 10 m step on a 1 cm grid); the C1 spline keeps its gradient
+# within 1.25 x the steepest neighbouring difference
+FRICTION_SCALE_MAX = 3.0  # as the road's friction_scale (core.params)
+EXTENT_ABS_MAX_M = 1e7  # every grid point within this of the world origin on x and y
+SPACING_MIN_M = 1e-3
+SPACING_MAX_M = 1e4
+
+
+def _first_bad(bad: np.ndarray) -> tuple[int, int]:
+    j, i = np.argwhere(bad)[0]
+    return int(j), int(i)
+
+
 def heightmap_terrain(heights: np.ndarray, dx_m: float, dy_m: float, x0_m: float = 0.0,
                       y0_m: float = 0.0, friction: np.ndarray | None = None) -> Terrain:
     """A height-map terrain; ``heights[j, i]`` is at ``(x0 + i dx, y0 + j dy)``.
 
-    Raises ``ValueError`` for a grid smaller than 2x2, a non-finite height or friction, a
-    friction map of another shape or a spacing that is not positive."""
+    Raises ``ValueError`` (naming the row and column of the first bad sample) for a grid
+    smaller than 2x2, a height that is not finite or beyond ``HEIGHT_ABS_MAX_M``, a rise
+    between neighbouring samples steeper than ``SLOPE_MAX``, a friction scale not finite or
+    outside 0 .. ``FRICTION_SCALE_MAX`` or of another shape, a spacing outside
+    ``SPACING_MIN_M`` .. ``SPACING_MAX_M`` or a grid reaching beyond
+    ``EXTENT_ABS_MAX_M``: the bounds that keep every product of the step finite."""
     h = np.ascontiguousarray(heights, dtype=np.float64)
     if h.ndim != 2 or h.shape[0] < 2 or h.shape[1] < 2:
         raise ValueError(f"heights: expected a 2-D grid of at least 2x2, got shape {h.shape}")
     if not np.all(np.isfinite(h)):
-        bad = np.argwhere(~np.isfinite(h))[0]
-        raise ValueError(f"heights: non-finite value at row {bad[0]}, column {bad[1]}")
+        j, i = _first_bad(~np.isfinite(h))
+        raise ValueError(f"heights: non-finite value at row {j}, column {i}")
+    if np.abs(h).max() > HEIGHT_ABS_MAX_M:
+        j, i = _first_bad(np.abs(h) > HEIGHT_ABS_MAX_M)
+        raise ValueError(f"heights: {h[j, i]:.6g} m at row {j}, column {i} is beyond "
+                         f"+-{HEIGHT_ABS_MAX_M:g} m")
+    if not (SPACING_MIN_M <= dx_m <= SPACING_MAX_M and SPACING_MIN_M <= dy_m <= SPACING_MAX_M):
+        raise ValueError(f"grid spacing must be within {SPACING_MIN_M:g} .. {SPACING_MAX_M:g} m, "
+                         f"got dx={dx_m}, dy={dy_m}")
+    ny, nx = h.shape
+    for name, lo, hi in (("x", x0_m, x0_m + (nx - 1) * dx_m), ("y", y0_m, y0_m + (ny - 1) * dy_m)):
+        if not (abs(lo) <= EXTENT_ABS_MAX_M and abs(hi) <= EXTENT_ABS_MAX_M):
+            raise ValueError(f"the grid spans {name} = {lo:.6g} .. {hi:.6g} m, beyond "
+                             f"+-{EXTENT_ABS_MAX_M:g} m")
+    for axis, spacing in ((1, dx_m), (0, dy_m)):
+        rise = np.abs(np.diff(h, axis=axis))
+        if rise.max() > SLOPE_MAX * spacing:
+            j, i = _first_bad(rise > SLOPE_MAX * spacing)
+            along = "column" if axis == 1 else "row"
+            raise ValueError(f"heights: a rise of {rise[j, i]:.6g} m over {spacing:g} m at row "
+                             f"{j}, column {i} (to the next {along}) is steeper than "
+                             f"{SLOPE_MAX:g} m/m")
     if friction is None:
         mu = np.ones_like(h)
     else:
         mu = np.ascontiguousarray(friction, dtype=np.float64)
         if mu.shape != h.shape:
             raise ValueError(f"friction: shape {mu.shape} differs from the heights' {h.shape}")
-        if not np.all(np.isfinite(mu)) or np.any(mu < 0.0):
-            raise ValueError("friction: every value must be finite and >= 0")
-    if not (dx_m > 0.0 and dy_m > 0.0 and np.isfinite(dx_m) and np.isfinite(dy_m)):
-        raise ValueError(f"grid spacing must be positive, got dx={dx_m}, dy={dy_m}")
+        bad = ~(np.isfinite(mu) & (mu >= 0.0) & (mu <= FRICTION_SCALE_MAX))
+        if bad.any():
+            j, i = _first_bad(bad)
+            raise ValueError(f"friction: {mu[j, i]:.6g} at row {j}, column {i}: every value "
+                             f"must be finite and within 0 .. {FRICTION_SCALE_MAX:g}")
     grid = np.array([x0_m, y0_m, dx_m, dy_m, 0.0], dtype=np.float64)
     digest = hashlib.blake2b(digest_size=6)
     for part in (h, mu, grid[:GRID_KEY], np.array(h.shape, dtype=np.int64)):
