@@ -95,6 +95,11 @@ from clients.common import (
     connect,
 )
 from simserver import protocol as proto
+from simserver.protocol import reference_plane_slopes, world_to_road
+
+# the wire's frames (docs/protocol.md section 2.4) live in the protocol; kept here by name
+# for this module's readers (recorder.road_axes, recorder.world_to_road, ...)
+road_axes = proto.road_axes
 
 PROG = "simserver-recorder"
 HISTORY_FILE = "history.parquet"
@@ -212,90 +217,6 @@ def diagnostics_schema(metadata: dict[str, str]) -> pa.Schema:
         fields.append(pa.field(f.name, arrow, nullable=False,
                                metadata={"unit": f.unit, "description": f.description}))
     return pa.schema(fields, metadata=dict(sorted(metadata.items())))
-
-
-# ----------------------------------------------------------------------------- frames
-
-
-def road_axes(grade_pct: np.ndarray, cross_slope_pct: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unit vectors ``e1``, ``e2``, ``n`` of the road plane in world axes, per row.
-
-    Parameters
-    ----------
-    grade_pct, cross_slope_pct : ndarray
-        The plane rises ``grade_pct`` % along world x and ``cross_slope_pct`` % along y.
-
-    Returns
-    -------
-    e1, e2, n : ndarray
-        ``(rows, 3)`` each: ``e1`` above world x, ``n`` the upward normal, ``e2 = n x e1``.
-    """
-    sx = np.asarray(grade_pct, dtype=np.float64) / 100.0
-    sy = np.asarray(cross_slope_pct, dtype=np.float64) / 100.0
-    one = np.ones_like(sx)
-    e1 = np.stack([one, np.zeros_like(sx), sx], axis=-1)
-    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
-    n = np.stack([-sx, -sy, one], axis=-1)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    e2 = np.cross(n, e1)
-    e2 /= np.linalg.norm(e2, axis=-1, keepdims=True)
-    return e1, e2, n
-
-
-def world_to_road(pos: np.ndarray, yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray,
-                  grade_pct: np.ndarray, cross_slope_pct: np.ndarray) -> dict[str, np.ndarray]:
-    """Road-plane coordinates and body angles from the world pose (vectorised).
-
-    Parameters
-    ----------
-    pos : ndarray
-        ``(rows, 3)`` CG positions, world axes.
-    yaw, pitch, roll : ndarray
-        World body attitude, ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
-    grade_pct, cross_slope_pct : ndarray
-        The road plane of each row.
-
-    Returns
-    -------
-    dict of str to ndarray
-        ``x_m``, ``y_m`` (along ``e1``, ``e2``), ``cg_above_road_m`` (along ``n``),
-        ``yaw_rad`` (heading in the plane from ``e1`` toward ``e2``, continuous with the
-        world yaw), ``pitch_rad`` and ``roll_rad`` relative to the plane.
-    """
-    e1, e2, n = road_axes(grade_pct, cross_slope_pct)
-    cz, sz = np.cos(yaw), np.sin(yaw)
-    cy, sy = np.cos(pitch), np.sin(pitch)
-    cx, sx = np.cos(roll), np.sin(roll)
-    bx = np.stack([cz * cy, sz * cy, -sy], axis=-1)
-    by = np.stack([cz * sy * sx - sz * cx, sz * sy * sx + cz * cx, cy * sx], axis=-1)
-    bz = np.stack([cz * sy * cx + sz * sx, sz * sy * cx - cz * sx, cy * cx], axis=-1)
-
-    def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return np.einsum("ij,ij->i", a, b)
-
-    wrapped = np.arctan2(dot(bx, e2), dot(bx, e1))
-    diff = (wrapped - yaw + np.pi) % (2.0 * np.pi) - np.pi
-    return {
-        "x_m": dot(pos, e1),
-        "y_m": dot(pos, e2),
-        "cg_above_road_m": dot(pos, n),
-        "yaw_rad": yaw + diff,
-        "pitch_rad": np.arcsin(np.clip(-dot(bx, n), -1.0, 1.0)),
-        "roll_rad": np.arctan2(dot(by, n), dot(bz, n)),
-    }
-
-
-def reference_plane_slopes(yaw: np.ndarray, ground_grade_pct: np.ndarray,
-                           ground_cross_slope_pct: np.ndarray
-                           ) -> tuple[np.ndarray, np.ndarray]:
-    """A terrain's reference plane under the car, ``(grade_pct, cross_slope_pct)`` along
-    world x and y, from the state's slopes along and across the world heading ``yaw``
-    (the server's ``vehicle_slot.ground_slopes_pct`` turned back)."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    along = np.asarray(ground_grade_pct, dtype=np.float64)
-    across = np.asarray(ground_cross_slope_pct, dtype=np.float64)
-    return along * c - across * s, along * s + across * c
 
 
 def state_columns(rec: np.ndarray, grade_pct: np.ndarray, cross_slope_pct: np.ndarray,

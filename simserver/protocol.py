@@ -750,6 +750,108 @@ def check_state_reads(reader: str, names: Sequence[str]) -> tuple[str, ...]:
     return tuple(names)
 
 
+# ============================================================================ frames
+# The frames of section 2.4 of docs/protocol.md, for clients (the recorder): the road plane
+# of ``set_road`` and a terrain's reference plane, from what the wire carries. The server
+# computes the same in its compiled core (core.road, core.pose; tests check one against
+# the other).
+
+
+def ground_slopes_pct(grade_pct: float, cross_slope_pct: float,
+                      yaw_rad: float) -> tuple[float, float]:
+    """The state's ``ground_grade_pct``, ``ground_cross_slope_pct``: the slopes along and
+    across the heading ``yaw_rad`` of a plane rising ``grade_pct`` % along world x and
+    ``cross_slope_pct`` % along world y (+ = uphill ahead, + = the left side higher).
+
+    A plane ``Z = (g X + c Y) / 100`` rises ``g cos(yaw) + c sin(yaw)`` per cent along the
+    horizontal heading and ``-g sin(yaw) + c cos(yaw)`` to its left."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return grade_pct * c + cross_slope_pct * s, -grade_pct * s + cross_slope_pct * c
+
+
+
+
+def road_axes(grade_pct: np.ndarray, cross_slope_pct: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit vectors ``e1``, ``e2``, ``n`` of the road plane in world axes, per row.
+
+    Parameters
+    ----------
+    grade_pct, cross_slope_pct : ndarray
+        The plane rises ``grade_pct`` % along world x and ``cross_slope_pct`` % along y.
+
+    Returns
+    -------
+    e1, e2, n : ndarray
+        ``(rows, 3)`` each: ``e1`` above world x, ``n`` the upward normal, ``e2 = n x e1``.
+    """
+    sx = np.asarray(grade_pct, dtype=np.float64) / 100.0
+    sy = np.asarray(cross_slope_pct, dtype=np.float64) / 100.0
+    one = np.ones_like(sx)
+    e1 = np.stack([one, np.zeros_like(sx), sx], axis=-1)
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
+    n = np.stack([-sx, -sy, one], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    e2 = np.cross(n, e1)
+    e2 /= np.linalg.norm(e2, axis=-1, keepdims=True)
+    return e1, e2, n
+
+
+def world_to_road(pos: np.ndarray, yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray,
+                  grade_pct: np.ndarray, cross_slope_pct: np.ndarray) -> dict[str, np.ndarray]:
+    """Road-plane coordinates and body angles from the world pose (vectorised).
+
+    Parameters
+    ----------
+    pos : ndarray
+        ``(rows, 3)`` CG positions, world axes.
+    yaw, pitch, roll : ndarray
+        World body attitude, ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+    grade_pct, cross_slope_pct : ndarray
+        The road plane of each row.
+
+    Returns
+    -------
+    dict of str to ndarray
+        ``x_m``, ``y_m`` (along ``e1``, ``e2``), ``cg_above_road_m`` (along ``n``),
+        ``yaw_rad`` (heading in the plane from ``e1`` toward ``e2``, continuous with the
+        world yaw), ``pitch_rad`` and ``roll_rad`` relative to the plane.
+    """
+    e1, e2, n = road_axes(grade_pct, cross_slope_pct)
+    cz, sz = np.cos(yaw), np.sin(yaw)
+    cy, sy = np.cos(pitch), np.sin(pitch)
+    cx, sx = np.cos(roll), np.sin(roll)
+    bx = np.stack([cz * cy, sz * cy, -sy], axis=-1)
+    by = np.stack([cz * sy * sx - sz * cx, sz * sy * sx + cz * cx, cy * sx], axis=-1)
+    bz = np.stack([cz * sy * cx + sz * sx, sz * sy * cx - cz * sx, cy * cx], axis=-1)
+
+    def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->i", a, b)
+
+    wrapped = np.arctan2(dot(bx, e2), dot(bx, e1))
+    diff = (wrapped - yaw + np.pi) % (2.0 * np.pi) - np.pi
+    return {
+        "x_m": dot(pos, e1),
+        "y_m": dot(pos, e2),
+        "cg_above_road_m": dot(pos, n),
+        "yaw_rad": yaw + diff,
+        "pitch_rad": np.arcsin(np.clip(-dot(bx, n), -1.0, 1.0)),
+        "roll_rad": np.arctan2(dot(by, n), dot(bz, n)),
+    }
+
+
+def reference_plane_slopes(yaw: np.ndarray, ground_grade_pct: np.ndarray,
+                           ground_cross_slope_pct: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """A terrain's reference plane under the car, ``(grade_pct, cross_slope_pct)`` along
+    world x and y, from the state's slopes along and across the world heading ``yaw``
+    (:func:`ground_slopes_pct` turned back)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    along = np.asarray(ground_grade_pct, dtype=np.float64)
+    across = np.asarray(ground_cross_slope_pct, dtype=np.float64)
+    return along * c - across * s, along * s + across * c
+
+
 # ============================================================================ commands
 
 

@@ -88,16 +88,13 @@ class SimulationAPI(Protocol):
 def ground_slopes_pct(sim: SimulationAPI, yaw_rad: float) -> tuple[float, float]:
     """The slopes of the ground under the car along and across its heading ``yaw_rad``
     (%; + = uphill ahead, + = the left side higher): the plane fitted under its wheels
-    (the state's ``REF_*`` slots, docs/model.md section 11), or on the plane kind the road.
-
-    A plane ``Z = (g X + c Y) / 100`` rises ``g cos(yaw) + c sin(yaw)`` per cent along the
-    horizontal heading and ``-g sin(yaw) + c cos(yaw)`` to its left."""
+    (the state's ``REF_*`` slots, docs/model.md section 11), or on the plane kind the road,
+    turned to the heading as the protocol defines it (``protocol.ground_slopes_pct``)."""
     if sim.scene.terrain.kind == TERRAIN_PLANE:
         grade, cross = sim.road["grade_pct"], sim.road["cross_slope_pct"]
     else:
         grade, cross = sim.x[L.REF_GRADE_PCT], sim.x[L.REF_CROSS_SLOPE_PCT]
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return grade * c + cross * s, -grade * s + cross * c
+    return proto.ground_slopes_pct(grade, cross, yaw_rad)
 
 
 class RateLimitedLog:
