@@ -14,6 +14,12 @@ Overview
   :data:`STATE_FIELDS` and :data:`DIAGNOSTICS_FIELDS` are the field tables (type, unit,
   range, description); :data:`COMMAND_DTYPE`, :data:`STATE_DTYPE` and
   :data:`DIAGNOSTICS_DTYPE` are the numpy structured dtypes built from them.
+- :data:`STATE_FIELDS` is also the one table of the published state: each row names its
+  source in the server (``FieldSpec.source``) and its headless history column
+  (``FieldSpec.history``). The recorder's columns (:data:`STATE_COLUMNS`), the server's
+  fill and the viewer's inverse (``simserver.state_schema``) and the docs derive from it.
+- The frames of the wire (:func:`road_axes`, :func:`world_to_road`,
+  :func:`ground_slopes_pct`, :func:`reference_plane_slopes`) for clients.
 - Decoding a driver command (:func:`decode_command`) is the only gate between the network
   and the physics: it rejects or clamps as documented per field and raises
   :class:`ProtocolError` (and nothing else) on any malformed input.
