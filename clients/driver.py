@@ -63,6 +63,7 @@ from clients.common import (
     client_main,
     connect,
     gear_name,
+    state_filter,
 )
 from clients.ffb import FfbError, FfbLoop, ForceFeedback, open_ff_wheel
 from clients.joystick import (
@@ -103,17 +104,36 @@ START_HOLD_RELEASE_PER_S = 3.0
 keyboard brake key's release rate)."""
 
 
-class StartHold:
-    """The brake held from launch until the driver presses the throttle: a safe start.
+AUTO_HOLD_REST_MPS = 0.1
+"""The car counts as stopped below this |u| for the auto hold: a braked stop on a hill
+rocks on the tires at up to about 0.11 m/s as it settles (the wheels already held), and
+the state the client sees is a few milliseconds old, so the threshold must not be so
+low that the client misses the stop."""
+AUTO_HOLD_MIN_BRAKE = 0.05
+"""Brake pedal that, pressed at a stop, arms the auto hold (a pedal past its dead zone)."""
+MESSAGE_S = 5.0
+"""An event's note (gear, parking brake, a control's reply) is shown this long."""
 
-    The server's watchdog brakes the car until the first command arrives; a driver that
-    then sends the pedals at rest in D releases those brakes, and a car on a hill rolls
-    away before anyone has touched a key (on 10 %, back to -10 km/h within 3 s). So the
-    commands carry at least ``level`` of brake until the first throttle input (any
-    non-zero throttle: a held key, a pedal past its dead zone), like an automatic's hold;
-    then the hold fades out at ``release_per_s`` while the throttle comes in, so a hill
-    start does not roll back first. Steering, gear and parking-brake inputs do not release
-    it. Pure (no clock of its own): the driver feeds it each sample.
+
+class StartHold:
+    """The brake the driver client holds for the person: a safe start and an auto hold.
+
+    *Start hold.* The server's watchdog brakes the car until the first command arrives; a
+    driver that then sends the pedals at rest in D releases those brakes, and a car on a
+    hill rolls away before anyone has touched a key (on 10 %, back to -10 km/h within
+    3 s). So the commands carry at least ``level`` of brake until the first throttle input
+    (any non-zero throttle: a held key, a pedal past its dead zone).
+
+    *Auto hold* (on by default, ``auto``): as in real cars, a stop made with the foot
+    brake is held after the pedal is let go: once the car is stopped
+    (``|u| < AUTO_HOLD_REST_MPS``) with the brake pressed (``>= AUTO_HOLD_MIN_BRAKE``) and
+    no throttle, the hold engages again at ``level``. On 10 % a released keyboard brake
+    otherwise rolled the manual car back at -2.19 m/s within 3 s (issue 32).
+
+    Either hold lets go when the throttle is pressed and fades out at ``release_per_s``
+    while the throttle comes in, so a hill start does not roll back first. Steering, gear
+    and parking-brake inputs do not release it. Pure (no clock of its own): the driver
+    feeds it each sample.
 
     Parameters
     ----------
@@ -121,27 +141,55 @@ class StartHold:
         Brake held while engaged, in [0, 1].
     release_per_s : float
         Fade-out rate once released (brake per second).
+    auto : bool
+        Auto hold on.
     """
 
     def __init__(self, level: float = START_HOLD_BRAKE,
-                 release_per_s: float = START_HOLD_RELEASE_PER_S) -> None:
+                 release_per_s: float = START_HOLD_RELEASE_PER_S, auto: bool = True) -> None:
         self.level = level
         self.release_per_s = release_per_s
+        self.auto = auto
         self.engaged = True
+        self.reason = "start"  # why it is engaged: "start" (launch, reset, load) or "auto"
         self.brake = level
 
     def arm(self) -> None:
-        """Hold again (after a reset: the car is back at rest at the scene's start)."""
+        """Hold again (after a reset or a load: the car is back at rest at a start)."""
         self.engaged = True
+        self.reason = "start"
         self.brake = self.level
 
-    def apply(self, throttle: float, brake: float, dt_s: float) -> float:
-        """The brake to send: the driver's ``brake`` or the hold, whichever is more."""
+    def set_auto(self, on: bool) -> None:
+        """Turn the auto hold on or off; off also lets go of an auto hold now engaged (it
+        fades out as on a throttle press)."""
+        self.auto = on
+        if not on and self.engaged and self.reason == "auto":
+            self.engaged = False
+
+    def apply(self, throttle: float, brake: float, dt_s: float,
+              speed_mps: float = math.inf) -> float:
+        """The brake to send: the driver's ``brake`` or the hold, whichever is more.
+        ``speed_mps`` is the car's ``u`` (``inf`` while unknown: no auto hold)."""
         if self.engaged and throttle > 0.0:
             self.engaged = False
+        elif (not self.engaged and self.auto and throttle <= 0.0
+              and brake >= AUTO_HOLD_MIN_BRAKE and abs(speed_mps) < AUTO_HOLD_REST_MPS):
+            self.engaged = True
+            self.reason = "auto"
+            self.brake = self.level
         if not self.engaged:
             self.brake = max(0.0, self.brake - self.release_per_s * max(dt_s, 0.0))
         return max(brake, self.brake)
+
+    def status(self, driver_brake: float) -> str:
+        """What the screen says of the hold, from its state now (never a stale hint)."""
+        if self.engaged:
+            why = "auto hold" if self.reason == "auto" else "start hold"
+            return f"{why}: the brake is held until you press the throttle"
+        if self.brake > driver_brake:
+            return "hold letting go as the throttle comes in"
+        return f"auto hold {'on: a stop with the brake is held' if self.auto else 'OFF'}"
 
 
 # ---------------------------------------------------------------------------- sources
@@ -337,7 +385,11 @@ class StatusView:
                       f"        overruns {int(g['overruns'])}  skipped "
                       f"{int(g['skipped_ticks'])}  rejected {int(g['cmd_rejected'])}  stale "
                       f"{int(g['cmd_stale'])}  watchdog trips {int(g['watchdog_trips'])}"]
-        return [self.header, *car, drive, *server, *health, f"note    {d.message}",
+        hold = f"hold    {d.hold.status(d.source_brake)}"
+        if s is not None and int(s["flags"]) & proto.StateFlag.HILL_HOLD:
+            hold += ("  |  HILL-START ASSIST holds the brakes for a moment after the pedal "
+                     "is released, then lets go: press the throttle")
+        return [self.header, *car, drive, hold, *server, *health, f"note    {d.message}",
                 *self.help_lines]
 
     def draw(self, d: Driver, now_s: float) -> None:
@@ -396,17 +448,33 @@ class Driver:
         self._latencies: deque[float] = deque(maxlen=200)
         self._seen_seq = -1
         self.hold = StartHold()
-        self.message = "the brake is held until you press the throttle"
+        self._message = ""
+        self._message_t = -math.inf
+        self.source_brake = 0.0  # the pedal the person applies, before the hold
         self.sent = 0
         ep = conn.ep
         self.pub = ep.declare_command_publisher()
         self.states = ep.declare_state_inbox(capacity=256)
+        # states another publisher sent (no ACL): dropped and counted on the status line
+        self.filter = state_filter(conn, PROG, out=None)
+        self._filtered_seen = (0, 0)
         self.diags = ep.declare_diag_inbox(capacity=16)
         self.presence = ServerPresence(ep)
         help_lines = list(KEY_HELP_LINES) if isinstance(source, KeyboardSource) else \
-            ["keys    q quit, space pause/resume, x reset, 1-4 gear P R N D, h parking brake"]
+            ["keys    q quit, space pause/resume, x reset, 1-4 gear P R N D, h parking brake, "
+             "b auto hold"]
         self.view = StatusView(out, f"simserver driver  {conn.where}  {source.label}  "
                                     f"{rate_hz:g} Hz", help_lines)
+
+    @property
+    def message(self) -> str:
+        """The note of the last event, for ``MESSAGE_S`` after it (then nothing: the
+        screen never keeps a hint that is no longer true)."""
+        return self._message if time.monotonic() - self._message_t < MESSAGE_S else ""
+
+    @message.setter
+    def message(self, text: str) -> None:
+        self._message, self._message_t = text, time.monotonic()
 
     # ------------------------------------------------------------------ actions
     def _control(self, name: str) -> dict[str, Any] | None:
@@ -435,12 +503,14 @@ class Driver:
         elif action == "parking_brake":
             c["parking_brake"] = not c["parking_brake"]
             self.message = f"parking brake {'on' if c['parking_brake'] else 'off'}"
+        elif action == "auto_hold":
+            self.hold.set_auto(not self.hold.auto)
+            self.message = f"auto hold {'on' if self.hold.auto else 'off'}"
         elif action == "reset":
             if self._control("reset") is not None:
                 self.source.reset()
                 self.hold.arm()
-                self.message = "reset to the scene's start; the brake is held until you " \
-                    "press the throttle"
+                self.message = "reset to the scene's start"
         elif action == "pause":
             paused = self.state is not None and bool(int(self.state["flags"])
                                                      & proto.StateFlag.PAUSED)
@@ -458,14 +528,14 @@ class Driver:
         applied it (a new ``last_cmd_seq``), seen within this poll interval.
         """
         payloads = self.states.drain_newest()
-        if not payloads:
-            return
-        try:
-            state = proto.decode_state(payloads[-1])
-        except proto.ProtocolError as exc:
-            self.message = f"bad state: {exc}"
-            return
         now_ns = time.monotonic_ns()
+        state = self.filter.newest(payloads, now_ns / 1e9)
+        counts = (self.filter.rejected, self.filter.out_of_order)
+        if counts != self._filtered_seen:
+            self._filtered_seen = counts
+            self.message = f"warning: {self.filter.summary()}"
+        if state is None:
+            return
         self.state = state
         self.state_wall = now_ns / 1e9
         seq = int(state["last_cmd_seq"])
@@ -475,12 +545,13 @@ class Driver:
             self._latencies.append((now_ns - sent_ns) / 1e6)
 
     def _read_diagnostics(self) -> None:
-        diags = self.diags.drain_newest()
+        diags = [d for d in self.diags.drain_newest() if len(d) == proto.DIAGNOSTICS_SIZE]
         if diags:
-            try:
-                self.diag = proto.decode_diagnostics(diags[-1])
-            except proto.ProtocolError as exc:
-                self.message = f"bad diagnostics: {exc}"
+            raw = np.frombuffer(diags[-1], dtype=np.uint8).reshape(1, -1)
+            if proto.invalid_fields(raw, "diagnostics")[0] >= 0:
+                self.message = "warning: dropped a Diagnostics message no server sends"
+                return
+            self.diag = proto.decode_diagnostics(diags[-1])
 
     @property
     def latency_ms(self) -> float | None:
@@ -499,7 +570,9 @@ class Driver:
             t = pacer.wait(self.poll_states)
             speed = float(self.state["u_mps"]) if self.state is not None else 0.0
             steer, throttle, brake, actions = self.source.sample(t, t - last_t, speed)
-            brake = self.hold.apply(throttle, brake, t - last_t)
+            held_speed = speed if self.state is not None else math.inf
+            self.source_brake = brake
+            brake = self.hold.apply(throttle, brake, t - last_t, held_speed)
             last_t = t
             c["steer"], c["throttle"], c["brake"] = steer, throttle, brake
             if not all(self.act(a) for a in actions):
@@ -667,7 +740,8 @@ def _run(args: argparse.Namespace) -> int:
             if ffb is not None and ffb.enabled and joystick.script is None:
                 try:  # the wheel's force feedback, on its own thread (clients.ffb)
                     loop = FfbLoop(conn.ep.declare_state_inbox(capacity=16),
-                                   ForceFeedback(open_ff_wheel(ffb.device), ffb)).start()
+                                   ForceFeedback(open_ff_wheel(ffb.device), ffb),
+                                   state_filter(conn, PROG, out=None)).start()
                     stack.callback(loop.stop)
                     print(f"{PROG}: force feedback on ({ffb.device})", flush=True)
                 except (FfbError, OSError) as exc:

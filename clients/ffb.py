@@ -353,11 +353,14 @@ class FfbLoop:
     inbox
         A state subscriber (``ZenohEndpoint.declare_state_inbox``) with ``drain_newest``.
     ffb : ForceFeedback
+    states : clients.common.StateFilter, optional
+        Takes only valid states in the server's order (else every decodable one).
     """
 
-    def __init__(self, inbox: Any, ffb: ForceFeedback) -> None:
+    def __init__(self, inbox: Any, ffb: ForceFeedback, states: Any = None) -> None:
         self.inbox = inbox
         self.ffb = ffb
+        self.states = states  # a clients.common.StateFilter: only the server's states
         self.state: Any = None
         self.state_wall_s = -math.inf
         self.error: BaseException | None = None
@@ -371,6 +374,11 @@ class FfbLoop:
     def poll(self, now_s: float) -> None:
         """Take the newest state received so far (bad payloads are skipped)."""
         payloads = self.inbox.drain_newest()
+        if self.states is not None:  # valid and in the server's order (docs/security.md)
+            state = self.states.newest(payloads, now_s)
+            if state is not None:
+                self.state, self.state_wall_s = state, now_s
+            return
         for payload in reversed(payloads):
             try:
                 self.state = proto.decode_state(payload)

@@ -58,6 +58,7 @@ BUTTON_ACTIONS: Mapping[str, str] = {
     "gear_next": "gear_next",
     "gear_prev": "gear_prev",
     "parking_brake": "parking_brake",
+    "auto_hold": "auto_hold",
     "reset": "reset",
     "pause": "pause",
     "quit": "quit",

@@ -59,6 +59,7 @@ KEY_BINDINGS: Mapping[str, str] = {
     "3": "gear_N", "n": "gear_N", "N": "gear_N",
     "4": "gear_D", "D": "gear_D",
     "h": "parking_brake", "H": "parking_brake",
+    "b": "auto_hold", "B": "auto_hold",
     " ": "pause",
     "x": "reset", "X": "reset", KEY_BACKSPACE: "reset",
     "q": "quit", "Q": "quit",
@@ -67,7 +68,7 @@ KEY_BINDINGS: Mapping[str, str] = {
 
 KEY_HELP_LINES = (
     "keys    hold arrows or w/a/s/d: throttle, steer, brake",
-    "        gear 1 P  2 R  3 N  4 D (or p r n Shift+D)   h parking brake",
+    "        gear 1 P  2 R  3 N  4 D (or p r n Shift+D)   h parking brake   b auto hold",
     "        space pause/resume   x reset   q quit",
 )
 KEY_HELP = "; ".join(line[8:] for line in KEY_HELP_LINES)
@@ -220,6 +221,9 @@ def load_keyboard_profile(path: str | Path | None) -> KeyboardProfile:
 # ---------------------------------------------------------------------------- model
 
 
+PEDALS = frozenset((ACTION_THROTTLE, ACTION_BRAKE))
+
+
 @dataclass
 class _Held:
     first_s: float
@@ -262,13 +266,20 @@ class KeyboardModel:
         A terminal repeats only the last key pressed: when a new key goes down, the
         actions held at that moment are latched to it and stay held while it repeats
         (throttle held, then steering), and count as released when it is let go (the
-        terminal does not resume repeating the earlier key: press it again).
+        terminal does not resume repeating the earlier key: press it again). The two
+        pedals are the exception: a pedal key going down lets go of the other pedal, as
+        a foot moves from one pedal to the other (latched, the throttle stayed on under
+        the brake key, and a stop was made against full throttle).
         """
         h = self._held.get(action)
         if h is None or not self.held(action, now_s):
             for other, oh in self._held.items():
                 if other != action and self.held(other, now_s):
-                    oh.latched_to = action
+                    if action in PEDALS and other in PEDALS:
+                        oh.last_s = -math.inf  # released now: its ramp lets go
+                        oh.latched_to = None
+                    else:
+                        oh.latched_to = action
             self._held[action] = _Held(first_s=now_s, last_s=now_s)
         else:
             h.last_s = now_s

@@ -51,6 +51,7 @@ from clients.common import (
     client_main,
     connect,
     gear_name,
+    state_filter,
 )
 from simserver import protocol as proto
 from simserver.adapters.validate import ConfigError
@@ -133,16 +134,14 @@ class Progress:
 
     def __init__(self, conn: Connection) -> None:
         self.inbox = conn.ep.declare_state_inbox(capacity=64)
+        self.filter = state_filter(conn, PROG)  # only the server's states, others counted
         self.state: np.void | None = None
 
     def poll(self) -> np.void | None:
-        """The newest state received so far."""
-        payloads = self.inbox.drain_newest()
-        if payloads:
-            try:
-                self.state = proto.decode_state(payloads[-1])
-            except proto.ProtocolError:
-                pass
+        """The newest valid state received so far."""
+        state = self.filter.newest(self.inbox.drain_newest(), time.monotonic())
+        if state is not None:
+            self.state = state
         return self.state
 
 

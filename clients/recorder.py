@@ -91,8 +91,10 @@ from clients.common import (
     ServerPresence,
     StopFlag,
     add_connection_args,
+    check_server_config,
     client_main,
     connect,
+    state_filter,
 )
 from simserver import protocol as proto
 from simserver.protocol import reference_plane_slopes, world_to_road
@@ -328,8 +330,12 @@ class Recorder:
         self.presence = ServerPresence(conn.ep)
         self.buffer = StateBuffer(flush_rows)
         self.diag_rows: list[tuple[float, bytes]] = []
-        cfg = conn.config
+        cfg = conn.config  # checked by connect (check_server_config)
         self.state_every = int((cfg.get("server") or {}).get("state_every", 1)) or 1
+        # states another publisher sent (no ACL): dropped and counted, never a row
+        self.filter = state_filter(conn, PROG)
+        self.bad_configs = 0  # get_config replies no server sends, ignored
+        self.bad_diagnostics = 0  # Diagnostics no server sends, dropped
         self.road = self._road_of(cfg)
         self.on_terrain = self._on_terrain(cfg)
         self.segments: list[dict[str, Any]] = [self._segment_entry(0, cfg)]
@@ -337,7 +343,6 @@ class Recorder:
         self.diag_count = 0
         self.paused_repeats = 0
         self.missed = 0
-        self.rejected = 0
         self.segment = 0
         self.last_tick: int | None = None
         self.first_tick: int | None = None
@@ -376,11 +381,23 @@ class Recorder:
                 "road": (cfg or {}).get("road")}
 
     def _get_config(self) -> dict[str, Any] | None:
+        """The server's config now, or None (no reply, or one no server sends: another
+        queryable may answer on a network without access control; counted, warned)."""
         try:
             reply = self.conn.ep.request("get_config", timeout_s=1.0)
         except (TimeoutError, proto.ProtocolError):
             return None
-        return (reply.get("config") or {}) if reply.get("ok") else None
+        if not reply.get("ok"):
+            return None
+        try:
+            return check_server_config(reply.get("config"))
+        except proto.ProtocolError as exc:
+            self.bad_configs += 1
+            if self.bad_configs == 1 or self.bad_configs % 100 == 0:
+                print(f"{PROG}: warning: ignored a malformed get_config reply ({exc}); "
+                      f"{self.bad_configs} so far, the last good road is kept",
+                      file=sys.stderr, flush=True)
+            return None
 
     def refresh_road(self) -> None:
         """Ask the server for its road (``get_config``); keeps the old one on failure."""
@@ -398,19 +415,15 @@ class Recorder:
             self.on_terrain = self._on_terrain(cfg)  # or the terrain
         self.segments.append(self._segment_entry(self.segment, cfg))
 
-    def take(self, payload: bytes, recv_s: float) -> None:
-        """File one state payload (dedupe frozen ticks, segment resets, count gaps)."""
-        if len(payload) != proto.STATE_SIZE or payload[:2] != proto.PROTOCOL_VERSION.to_bytes(
-                2, "little"):
-            self.rejected += 1
-            return
-        tick = int.from_bytes(payload[_TICK_OFFSET:_TICK_OFFSET + 8], "little")
+    def take(self, payload: bytes, tick: int, kind: str, recv_s: float) -> None:
+        """File one state the filter took (:meth:`StateFilter.take`: ``kind`` is next,
+        repeat or restart): dedupe frozen ticks, begin segments, count gaps."""
         last = self.last_tick
         if last is not None:
-            if tick == last and not self.keep_paused:
+            if kind == "repeat" and not self.keep_paused:
                 self.paused_repeats += 1
                 return
-            if tick < last:
+            if kind == "restart":
                 self.new_segment()
             elif tick > last + self.state_every:
                 self.missed += (tick - last) // self.state_every - 1
@@ -436,10 +449,21 @@ class Recorder:
         """Take everything zenoh has delivered; returns the number of states."""
         now = time.monotonic() - self.t0
         payloads = self.states.drain_newest()
-        for p in payloads:
-            self.take(p, now)
-        for d in self.diags.drain_newest():
-            if len(d) == proto.DIAGNOSTICS_SIZE:
+        for p, tick, kind in self.filter.take(payloads, now):
+            self.take(p, tick, kind, now)
+        diags = [d for d in self.diags.drain_newest() if len(d) == proto.DIAGNOSTICS_SIZE]
+        if diags:
+            raw = np.frombuffer(b"".join(diags), dtype=np.uint8).reshape(len(diags), -1)
+            for d, fault in zip(diags, proto.invalid_fields(raw, "diagnostics").tolist(),
+                                strict=True):
+                if fault >= 0:  # no server sends it: never a row
+                    self.bad_diagnostics += 1
+                    if self.bad_diagnostics == 1:
+                        print(f"{PROG}: warning: dropped a Diagnostics message with an "
+                              f"invalid {proto.DIAGNOSTICS_FIELDS[fault].name}: another "
+                              "publisher on the diagnostics key?", file=sys.stderr,
+                              flush=True)
+                    continue
                 self.diag_rows.append((now, d))
                 self.diag_count += 1
         return len(payloads)
@@ -628,8 +652,9 @@ def _run(args: argparse.Namespace) -> int:
     span = "" if rec.last_tick is None else f", last tick {rec.last_tick}"
     print(f"{PROG}: {reason}: wrote {rec.rows} state rows{span} in {rec.segment + 1} "
           f"segment(s), {rec.diag_count} diagnostics; missed {rec.missed} states, "
-          f"{rec.paused_repeats} paused repeats skipped, {rec.rejected} bad payloads",
-          flush=True)
+          f"{rec.paused_repeats} paused repeats skipped, {rec.filter.rejected} bad payloads, "
+          f"{rec.filter.out_of_order} out of order, {rec.bad_diagnostics} bad "
+          f"diagnostics, {rec.bad_configs} bad get_config replies", flush=True)
     if rec.rows == 0:
         print(f"{PROG}: warning: no state was received", file=sys.stderr, flush=True)
     return EXIT_OK

@@ -454,6 +454,10 @@ def replay_command(args: argparse.Namespace) -> int:
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(args.out, states=rep.states, outputs=rep.outputs)
+    if rep.cut is not None:
+        print(f"replayed {rep.steps} steps (the log was cut there: {rep.cut}; it holds no "
+              "final state to compare)")
+        return 0
     if rep.logged_final_state is None:
         print(f"replayed {rep.steps} steps (the log has no end line: the server did not "
               "stop cleanly, nothing to compare)")
@@ -501,6 +505,9 @@ def soak_command(args: argparse.Namespace) -> int:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n", encoding="utf-8")
     print(text)
+    if report.holds_unjudged:
+        print(f"note: holds_unjudged {report.holds_unjudged}: {report.UNJUDGED_MEANING}",
+              file=sys.stderr)
     for v in report.violations:
         print(f"violation: {v.invariant} at step {v.step} (t = {v.time_s:.3f} s): {v.detail}",
               file=sys.stderr)

@@ -43,6 +43,7 @@ import os
 import pickle
 import queue
 import select
+import signal
 import tempfile
 import threading
 import time
@@ -260,6 +261,12 @@ def _exit_with(server_pid: int) -> None:
 
 
 def _worker_init(server_pid: int) -> None:
+    # Ctrl-C in a terminal signals the whole process group, the worker too: the server
+    # ends it when it stops, so it ignores SIGINT (it was spawned with SIGINT blocked,
+    # ``ProcessPreparer._spawn_without_sigint``, so none arrived during its imports; one
+    # pending now is discarded by the ignore before the unblock)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     threading.Thread(target=_exit_with, args=(server_pid,), name="simserver-exit-with-server",
                      daemon=True).start()
     try:
@@ -289,13 +296,27 @@ class ProcessPreparer:
     def warm(self, fn: Callable[..., Any], *args: Any) -> Future:
         """Start the worker and give it a first job (its imports and one scene read) now,
         before the clock starts, so that a later job finds it ready; not waited for."""
-        return self._executor().submit(fn, *args)
+        return self._spawn_without_sigint(self._executor().submit, fn, *args)
+
+    @staticmethod
+    def _spawn_without_sigint(submit: Callable[..., Future], *args: Any) -> Future:
+        """``submit(*args)`` with SIGINT blocked in this thread, so that a worker it
+        spawns starts with SIGINT blocked (a signal mask survives fork and exec) until
+        ``_worker_init`` ignores it: a Ctrl-C to the process group during the worker's
+        seconds of imports otherwise printed a ``KeyboardInterrupt`` traceback from them
+        (issue 32). A SIGINT meanwhile goes to another thread of the server, which does
+        not block it, so the server's own Ctrl-C is not lost."""
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            return submit(*args)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
         """Run ``fn(*args)`` in the worker; the future of its result (a
         :class:`SharedResult`: :func:`opened` gives the value)."""
         pool = self._executor()
-        future = pool.submit(run_shared, self.server_pid, fn, *args)
+        future = self._spawn_without_sigint(pool.submit, run_shared, self.server_pid, fn, *args)
         self._promote_reader(pool)
         return future
 

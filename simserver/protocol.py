@@ -1198,6 +1198,115 @@ def decode_state(payload: bytes | bytearray | memoryview) -> np.void:
     return _unpack("VehicleState", STATE_DTYPE, payload)
 
 
+_STATE_FLAG_BITS = sum(int(f) for f in StateFlag)
+
+
+def _payload_checks(fields: tuple[FieldSpec, ...], dtype: np.dtype
+                    ) -> list[tuple[np.ndarray, str, np.ndarray, np.ndarray, np.ndarray]]:
+    """Per element type of a field table: the byte offsets of its elements, the type,
+    each element's field index and its lower and upper bound (from the table)."""
+    groups: dict[str, list[tuple[int, int, float, float]]] = {}
+    for index, spec in enumerate(fields):
+        offset = dtype.fields[spec.name][1]
+        size = np.dtype(spec.dtype).itemsize
+        lo = -np.inf if spec.lo is None else spec.lo
+        hi = np.inf if spec.hi is None else spec.hi
+        for k in range(spec.count):
+            groups.setdefault(spec.dtype, []).append((offset + k * size, index, lo, hi))
+    checks = []
+    for kind, elements in groups.items():
+        if kind != "<u2" and np.dtype(kind).kind != "f" and \
+                all(np.isinf(e[2]) and np.isinf(e[3]) for e in elements):
+            continue  # any value of the type is valid (counters, stamps)
+        size = np.dtype(kind).itemsize
+        starts = np.array([e[0] for e in elements])
+        byte_index = (starts[:, None] + np.arange(size)).ravel()
+        lo = np.array([e[2] for e in elements])
+        hi = np.array([e[3] for e in elements])
+        if np.dtype(kind).kind == "f":  # finite bounds: a NaN or an infinity fails them
+            big = float(np.finfo(kind).max)
+            lo, hi = np.maximum(lo, -big), np.minimum(hi, big)
+        checks.append((byte_index, kind, np.array([e[1] for e in elements]), lo, hi))
+    return checks
+
+
+_PAYLOAD_CHECKS = {"state": (STATE_FIELDS, _payload_checks(STATE_FIELDS, STATE_DTYPE)),
+                   "diagnostics": (DIAGNOSTICS_FIELDS,
+                                   _payload_checks(DIAGNOSTICS_FIELDS, DIAGNOSTICS_DTYPE))}
+
+
+def invalid_fields(payloads: np.ndarray, kind: str = "state") -> np.ndarray:
+    """Which received payloads no server sends, and why (a receiver's first check).
+
+    ``payloads`` is an ``(n, size)`` ``uint8`` array of VehicleState (``kind`` "state")
+    or Diagnostics ("diagnostics") payloads. For each: the index in the field table
+    (:data:`STATE_FIELDS`, :data:`DIAGNOSTICS_FIELDS`) of its first field that is
+    non-finite, outside the field's range (the table's ``lo``, ``hi``: the version among
+    them) or, for a state's ``flags``, sets a bit :class:`StateFlag` does not define; -1
+    when every field is valid. The server never publishes such a payload
+    (docs/reliability.md), so a receiver drops it: it came from someone else. A few
+    numpy operations per call, whatever ``n``.
+    """
+    fields, checks = _PAYLOAD_CHECKS[kind]
+    n = payloads.shape[0]
+    if n <= 8:  # a few payloads (a client's poll): plain Python is faster than numpy
+        layout, bounds = _PAYLOAD_BOUNDS[kind]
+        return np.array([_first_invalid(layout.unpack(row.tobytes()), bounds, kind)
+                         for row in payloads], dtype=np.int64)
+    ok = np.ones(n, dtype=bool)  # the common case first: every payload valid
+    for byte_index, dtype, _, lo, hi in checks:
+        values = np.ascontiguousarray(payloads[:, byte_index]).view(dtype)
+        ok &= ((values >= lo) & (values <= hi)).all(axis=1)  # NaN and inf fail both
+        if dtype == "<u2" and kind == "state":  # the flags: no undefined bit
+            ok &= values[:, _FLAGS_COLUMN] | _STATE_FLAG_BITS == _STATE_FLAG_BITS
+    if ok.all():
+        return np.full(n, -1, dtype=np.int64)
+    none = len(fields)
+    first = np.full(n, none, dtype=np.int64)
+    for byte_index, dtype, field_index, lo, hi in checks:
+        values = np.ascontiguousarray(payloads[:, byte_index]).view(dtype)
+        bad = ~((values >= lo) & (values <= hi))
+        if dtype == "<u2" and kind == "state":  # the flags: no undefined bit
+            bad |= (field_index == _FLAGS_INDEX) & \
+                ((values | _STATE_FLAG_BITS) != _STATE_FLAG_BITS)
+        np.minimum(first, np.where(bad, field_index, none).min(axis=1), out=first)
+    first[first == none] = -1
+    return first
+
+
+_FLAGS_INDEX = next(i for i, f in enumerate(STATE_FIELDS) if f.name == "flags")
+
+
+def _element_bounds(fields: tuple[FieldSpec, ...]) -> list[tuple[int, float, float]]:
+    """(field index, lo, hi) of every element of a payload, in ``struct`` order (the
+    bounds of floats finite, so a NaN or an infinity fails them)."""
+    out = []
+    for index, spec in enumerate(fields):
+        lo = -math.inf if spec.lo is None else float(spec.lo)
+        hi = math.inf if spec.hi is None else float(spec.hi)
+        if np.dtype(spec.dtype).kind == "f":
+            big = float(np.finfo(spec.dtype).max)
+            lo, hi = max(lo, -big), min(hi, big)
+        out += [(index, lo, hi)] * spec.count
+    return out
+
+
+def _first_invalid(values: tuple, bounds: list[tuple[int, float, float]], kind: str) -> int:
+    for value, (index, lo, hi) in zip(values, bounds, strict=True):
+        if not lo <= value <= hi:
+            return index
+    if kind == "state" and values[_FLAGS_ELEMENT] | _STATE_FLAG_BITS != _STATE_FLAG_BITS:
+        return _FLAGS_INDEX
+    return -1
+
+
+_FLAGS_ELEMENT = sum(f.count for f in STATE_FIELDS[:_FLAGS_INDEX])
+_PAYLOAD_BOUNDS = {"state": (_STATE_STRUCT, _element_bounds(STATE_FIELDS)),
+                   "diagnostics": (_DIAGNOSTICS_STRUCT, _element_bounds(DIAGNOSTICS_FIELDS))}
+_FLAGS_COLUMN = next(list(c[2]).index(_FLAGS_INDEX) for c in _PAYLOAD_CHECKS["state"][1]
+                     if c[1] == "<u2")
+
+
 def new_state_record() -> np.ndarray:
     """A zeroed 0-d VehicleState record with ``version`` set, to fill in place per tick.
 
@@ -1400,7 +1509,9 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
             "Return the active configuration (file paths relative to the server's config "
             "directory holding them: never an absolute server path).",
             reply='"protocol_version": integer (PROTOCOL_VERSION), "config": object (server, '
-            'vehicle, scene, road, keys)',
+            'vehicle, scene, road, keys, ros2: the ROS 2 adapter the server runs, `null` if '
+            'none: "state" running, restarting or stopped, "restarts", "last_exit_code", '
+            '"pid", and while restarting "restart_in_s"; docs/ros2.md)',
         ),
     )
 }

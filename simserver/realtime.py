@@ -465,11 +465,23 @@ class TickTrace:
         n, cap = self.n, self.capacity
         rows = self.rows[:n] if n <= cap else np.concatenate(
             (self.rows[n % cap:], self.rows[:n % cap]))
-        with open(self.path, "wb") as fh:
-            np.save(fh, rows)
-        with open(self.path + ".threads.json", "w", encoding="utf-8") as fh:
-            json.dump(thread_table(), fh, indent=1)
-        os.close(self._fd)
+        import io
+        from pathlib import Path
+
+        from simserver.adapters.config import ConfigError
+        from simserver.logfile import write_log_bytes
+
+        buf = io.BytesIO()
+        np.save(buf, rows)
+        try:  # a log the server writes: no symbolic link, regular files only, and a
+            # failure (a full disk) is a warning, not a crash of the shutdown
+            write_log_bytes(Path(self.path), buf.getvalue(), "tick trace")
+            write_log_bytes(Path(self.path + ".threads.json"),
+                            json.dumps(thread_table(), indent=1).encode(), "tick trace")
+        except ConfigError as exc:
+            logging.getLogger("simserver").warning("%s", exc)
+        finally:
+            os.close(self._fd)
 
 
 def threading_native_id() -> int:

@@ -37,6 +37,7 @@ from simserver.adapters.config import ConfigError, check_keys, number, read_yaml
 from simserver.adapters.validate import integer, is_path_text, short_repr
 from simserver.core import layout as L
 from simserver.load_worker import ProcessPreparer
+from simserver.logfile import LogWriter, check_log_path, open_log_file
 from simserver.realtime import (
     DEFAULT_RT_PRIORITY,
     REALTIME_MODES,
@@ -47,6 +48,7 @@ from simserver.realtime import (
     process_threads,
 )
 from simserver.ros2 import cli as ros2_cli
+from simserver.ros2.supervisor import AdapterSupervisor
 from simserver.scenario import INITIAL_RANGES, Scene, load_scene
 from simserver.server_loop import ServerLoop, SlotPorts
 from simserver.simulation import Simulation
@@ -157,11 +159,22 @@ def _check_endpoint(where: str, endpoint: str) -> None:
 
 
 def _check_command_log(where: str, log_path: Path) -> None:
-    """The command log's file can be created: not a folder, in an existing folder."""
+    """The command log's file can be created: not a folder, in an existing folder, not a
+    symbolic link nor anything but a regular file (checked again when it is opened)."""
     if log_path.is_dir():
         raise ConfigError(f"{where}: {log_path} is a folder, not a file")
     if not log_path.parent.is_dir():
         raise ConfigError(f"{where}: the folder {log_path.parent} does not exist")
+    why = check_log_path(log_path)
+    if why is not None:
+        raise ConfigError(f"{where}: {log_path} {why}")
+
+
+def _log_path(path: str | Path) -> Path:
+    """An absolute log path whose last part is kept as it is: a symbolic link there is
+    refused, never followed (``simserver.logfile``)."""
+    path = Path(os.path.abspath(path))
+    return path.parent.resolve() / path.name
 
 
 def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
@@ -177,8 +190,10 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
     for key in ("scene", "zenoh_config", "command_log"):
         if (key == "scene" or data.get(key) is not None) and not is_path_text(data.get(key)):
             raise ConfigError(f"{path}: key '{key}': expected a file path")
-    base = {k: (path.parent / v).resolve() if k in ("scene", "zenoh_config", "command_log")
+    base = {k: (path.parent / v).resolve() if k in ("scene", "zenoh_config")
             and isinstance(v, str) else v for k, v in data.items()}
+    if isinstance(base.get("command_log"), str):
+        base["command_log"] = _log_path(path.parent / base["command_log"])
     if overrides.get("zenoh_config") is not None:
         # a zenoh file given on the command line decides its own endpoints and mode,
         # unless they are given on the command line too
@@ -189,7 +204,8 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
         if v is not None:
             if k not in SERVER_KEYS:
                 raise ConfigError(f"command line: unknown server setting '{k}'")
-            base[k] = Path(v).resolve() if k in ("scene", "zenoh_config", "command_log") else v
+            base[k] = Path(v).resolve() if k in ("scene", "zenoh_config") else \
+                _log_path(v) if k == "command_log" else v
             from_cli.add(k)
 
     def where(key: str) -> str:
@@ -259,6 +275,9 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
                 _split_host_port(mode, target, "127.0.0.1", 0)  # the port is in 1-65535
         except RerunSinkError as exc:
             raise ConfigError(f"{where('viewer')}: {exc}") from exc
+        why = check_log_path(Path(target)) if mode == "save" and target else None
+        if why is not None:  # a recording is written like a log (simserver.logfile)
+            raise ConfigError(f"{where('viewer')}: {target} {why}")
     try:
         cfg.ros2 = ros2_cli.serve_settings(base.get("ros2"), ros2_flag, source=f"{path}: ros2")
     except ValueError as exc:
@@ -280,63 +299,60 @@ class CommandLog:
     ``n``); ``{"step": n, "reset": pose|null}``, ``{"step": n, "set_road": {...}}``,
     ``{"step": n, "load": {"scene": ..., "vehicle": ...}}``; and at a clean shutdown
     ``{"end": n, "state": [hex floats]}``, the full final state, for checking a replay.
+    A log that could not be written to its end (a full disk, an I/O error) ends instead
+    with ``{"end": n, "cut": reason}``: every line before it is whole and the replay of its
+    ``n`` steps is the live run's.
 
-    Crash-safe with a bounded loss (``docs/reliability.md``): every control line is
-    written to the operating system at once, input lines at most
-    :data:`COMMAND_LOG_FLUSH_S` after they were logged (checked at every step), so a
-    ``kill -9`` of the server loses at most the last 100 ms of inputs; a line torn by the
-    kill is ignored by :func:`read_command_log`. No ``fsync`` in the loop (it can take tens
-    of milliseconds on a disk): what the server wrote survives the server's crash, not a
-    crash of the machine; the file is fsynced at a clean shutdown.
+    Written off the tick (``docs/reliability.md``, "Logs that fail safe"): the tick thread
+    only formats a line and hands it to a :class:`simserver.logfile.LogWriter`, whose own
+    thread writes control lines at once and input lines at least every
+    ``COMMAND_LOG_FLUSH_S / 2``, so a ``kill -9`` of the server loses at most the last
+    :data:`COMMAND_LOG_FLUSH_S` of inputs; a line torn by the kill is ignored by
+    :func:`read_command_log`. No ``fsync`` but at a clean shutdown: what the server wrote
+    survives the server's crash, not a crash of the machine. A write that fails closes the
+    log with one warning and the live loop goes on. The file is opened by
+    :func:`simserver.logfile.open_log_file` (no symbolic link, regular files only, never
+    blocking).
     """
 
-    def __init__(self, path: Path, header: dict[str, Any],
-                 clock_ns: Any = time.monotonic_ns) -> None:
-        try:
-            self._file = path.open("w", encoding="utf-8", buffering=1 << 16)
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot write the command log: "
-                              f"{exc.strerror or exc}") from None
-        self._clock_ns = clock_ns
-        self._flush_ns = int(COMMAND_LOG_FLUSH_S * 1e9)
-        self._dirty_since: int | None = None
+    def __init__(self, path: Path, header: dict[str, Any]) -> None:
+        fd = open_log_file(path, "command log")
+        self._writer = LogWriter(fd, path, self._cut_line, COMMAND_LOG_FLUSH_S / 2,
+                                 what="command log")
         self._logged_inputs = np.full(L.N_INPUT, np.nan)
-        self.write({"simserver_command_log": 1, **header})
+        self._writer.put(0, json.dumps({"simserver_command_log": 1, **header},
+                                       separators=(",", ":")) + "\n", urgent=True)
+
+    @staticmethod
+    def _cut_line(step: int, reason: str) -> str:
+        return json.dumps({"end": step, "cut": reason}, separators=(",", ":")) + "\n"
+
+    @property
+    def cut(self) -> str | None:
+        """Why the log was cut (closed before the end), or None."""
+        return self._writer.cut
 
     def write(self, entry: dict[str, Any]) -> None:
-        """Append one line and hand it to the operating system (a control, the header)."""
-        self._file.write(json.dumps(entry, separators=(",", ":")) + "\n")
-        self.flush()
-
-    def flush(self) -> None:
-        """Hand every buffered line to the operating system."""
-        self._file.flush()
-        self._dirty_since = None
+        """Append one control line (``{"step": n, ...}``), written at once."""
+        if not self._writer.stopped:
+            self._writer.put(entry["step"], json.dumps(entry, separators=(",", ":")) + "\n",
+                             urgent=True)
 
     def log_inputs(self, step: int, inputs: np.ndarray) -> None:
-        """The inputs applied at physics step ``step``, if they changed since the last line.
-
-        Called at every step: buffered lines older than :data:`COMMAND_LOG_FLUSH_S` are
-        written out here.
-        """
-        if not np.array_equal(inputs, self._logged_inputs):
+        """The inputs applied at physics step ``step``, if they changed since the last line
+        (called at every step)."""
+        if not self._writer.stopped and not np.array_equal(inputs, self._logged_inputs):
             self._logged_inputs[:] = inputs
-            self._file.write(json.dumps({"step": step, "inputs": [float(v) for v in inputs]},
-                                        separators=(",", ":")) + "\n")
-            if self._dirty_since is None:
-                self._dirty_since = self._clock_ns()
-        if self._dirty_since is not None and \
-                self._clock_ns() - self._dirty_since >= self._flush_ns:
-            self.flush()
+            self._writer.put(step, json.dumps({"step": step,
+                                               "inputs": [float(v) for v in inputs]},
+                                              separators=(",", ":")) + "\n")
 
     def close(self, steps: int, state: np.ndarray) -> None:
-        """Write the end line with the exact final state, fsync and close."""
-        self.write({"end": steps, "state": [float(v).hex() for v in state]})
-        try:
-            os.fsync(self._file.fileno())
-        except OSError:  # a pipe or a file system without fsync: the data was written
-            pass
-        self._file.close()
+        """Write the end line with the exact final state, fsync and close (a log already
+        cut stays as it is)."""
+        self._writer.close((steps, json.dumps({"end": steps, "state": [float(v).hex()
+                                                                       for v in state]},
+                                              separators=(",", ":")) + "\n"))
 
 
 def new_simulation(scene: Scene, dt_s: float) -> Simulation:
@@ -485,6 +501,8 @@ class SimServer:
                                          config_file=cfg.zenoh_config, mode=cfg.mode)
                 listen = fronts.public_listen
             with ZenohEndpoint(zcfg, prefix=cfg.prefix, vehicle=cfg.vehicle_id) as ep:
+                if fronts is not None:  # zenoh listens now: lock it to the fronts (issue
+                    fronts.start()      # 34), then start them
                 self._zid = str(ep.session.zid())
                 for slot in self.slots:
                     self._claim_vehicle(ep, slot)
@@ -524,13 +542,18 @@ class SimServer:
             if fronts is not None:
                 fronts.stop()
             self._stop_viewer(self.viewer)
-            self._stop_viewer(ros2)
+            if ros2 is not None:
+                ros2.stop(self._stop_viewer)
             self.preparer.close()
             self.scheduler.release()
             for slot in self.slots:
                 if slot.command_log is not None:
                     slot.command_log.close(slot.steps_total, slot.sim.x)
         final = loop.final_stats()
+        cuts = [s.command_log.cut for s in self.slots
+                if s.command_log is not None and s.command_log.cut is not None]
+        if cuts:  # the live run went on without its log (docs/reliability.md)
+            final["command_log_cut"] = cuts[0]
         print("simserver: stopped " + json.dumps(final), flush=True)
         return final
 
@@ -611,9 +634,10 @@ class SimServer:
         log.info("live viewer: %s", self.viewer_command)
         return subprocess.Popen(args)
 
-    def _start_ros2(self, listen: list[str]) -> subprocess.Popen | None:
-        """Start ``simserver ros2`` in its own process when configured, like the viewer; a
-        thread logs its death while the server runs."""
+    def _start_ros2(self, listen: list[str]) -> AdapterSupervisor | None:
+        """Start ``simserver ros2`` in its own process when configured, like the viewer;
+        restarted with backoff if it dies (:mod:`simserver.ros2.supervisor`), its state in
+        ``get_config``'s reply."""
         cfg = self.cfg
         if cfg.ros2 is None:
             return None
@@ -624,15 +648,10 @@ class SimServer:
         args = ros2_cli.adapter_command(loopback_of(listen[0]), cfg.prefix, cfg.vehicle_id,
                                         cfg.ros2)
         log.info("ROS 2 adapter: %s", " ".join(args[2:]))
-        adapter = subprocess.Popen(args)
-
-        def watch() -> None:
-            code = adapter.wait()
-            if self.loop.running:
-                log.error("the ROS 2 adapter (pid %d) ended with exit code %d; the server "
-                          "goes on without it", adapter.pid, code)
-
-        threading.Thread(target=watch, name="ros2-watch", daemon=True).start()
+        adapter = AdapterSupervisor(args)
+        adapter.start()
+        for slot in self.slots:
+            slot.ros2_status = adapter.status
         return adapter
 
     @staticmethod
@@ -693,6 +712,7 @@ class Replay:
     final_state: np.ndarray
     logged_final_state: np.ndarray | None
     steps: int
+    cut: str | None = None  # why the log was cut at ``steps`` (it holds no final state)
 
     @property
     def final_state_matches(self) -> bool | None:
@@ -737,12 +757,19 @@ def _check_log_entry(where: str, entry: Any, last_step: int) -> int:
     if not isinstance(entry, dict):
         raise ConfigError(f"{where}: expected a JSON object, got {type(entry).__name__}")
     if "end" in entry:
-        check_keys(where, entry, ("end", "state"), required=("end", "state"))
+        check_keys(where, entry, ("end", "state", "cut"), required=("end",))
         end = entry["end"]
         if isinstance(end, bool) or not isinstance(end, int) or \
                 not last_step <= end <= MAX_REPLAY_STEPS:
             raise ConfigError(f"{where}: key 'end': expected an integer step in "
                               f"[{last_step}, {MAX_REPLAY_STEPS}], got {short_repr(end)}")
+        if ("state" in entry) == ("cut" in entry):
+            raise ConfigError(f"{where}: an end line holds either 'state' (a clean "
+                              "shutdown) or 'cut' (a log that could not be written on)")
+        if "cut" in entry:  # the log was cut there (CommandLog): no final state
+            if not isinstance(entry["cut"], str) or len(entry["cut"]) > 500:
+                raise ConfigError(f"{where}: key 'cut': expected the reason, a short text")
+            return end
         state = entry["state"]
         # a log of an earlier release holds its shorter layout, a prefix of this one
         if not isinstance(state, list) or not L.N_STATE_V1 <= len(state) <= L.N_STATE:
@@ -884,6 +911,8 @@ def replay_command_log(path: str | Path, progress: Any = None) -> Replay:
         outputs[n] = physics.out
         if progress is not None and n % 10000 == 0:
             progress(n, total)
-    logged = None if end is None else np.array([float.fromhex(v) for v in end["state"]])
+    logged = None if end is None or "state" not in end else \
+        np.array([float.fromhex(v) for v in end["state"]])
     return Replay(states=states, outputs=outputs, final_state=physics.x.copy(),
-                  logged_final_state=logged, steps=total)
+                  logged_final_state=logged, steps=total,
+                  cut=None if end is None else end.get("cut"))

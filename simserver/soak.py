@@ -137,11 +137,19 @@ class SoakReport:
     wall_s: float
     manoeuvres: dict[str, int]
     holds_checked: int
-    holds_not_at_rest: int
+    holds_unjudged: int  # hold/park segments whose car never came to rest in time (below)
     max_hold_creep_m: float
     max_speed_mps: float
     min_fz_n: float
     violations: list[Violation] = field(default_factory=list)
+    unjudged_hold_times_s: list[float] = field(default_factory=list)
+
+    UNJUDGED_MEANING = (
+        "hold or park segments not judged for creep: the car never came to rest (|u|, |v| "
+        "below 1 mm/s), or came to rest too late to leave 1 s to judge after its 1.5 s to "
+        "settle, e.g. still sliding on a low-friction road when the segment ended; not a "
+        "violation (the speed and load invariants still held every tick)")
+    """What ``holds_unjudged`` counts (printed by ``simserver soak`` when it is not 0)."""
 
     @property
     def ok(self) -> bool:
@@ -156,7 +164,8 @@ class SoakReport:
             "wall_s": round(self.wall_s, 2),
             "real_time_factor": round(self.simulated_s / max(self.wall_s, 1e-9), 1),
             "manoeuvres": self.manoeuvres, "holds_checked": self.holds_checked,
-            "holds_not_at_rest": self.holds_not_at_rest,
+            "holds_unjudged": self.holds_unjudged,
+            "unjudged_hold_times_s": [round(t, 3) for t in self.unjudged_hold_times_s],
             "max_hold_creep_m": self.max_hold_creep_m, "max_speed_mps": self.max_speed_mps,
             "min_fz_n": self.min_fz_n, "ok": self.ok,
             "violations": [v.__dict__ for v in self.violations],
@@ -217,7 +226,7 @@ def run_soak(scene: Scene, duration_s: float, seed: int = 0, dt_s: float = 0.001
     previous = np.zeros(L.N_INPUT)
     step_no = 0
     holds = 0
-    holds_unsettled = 0
+    unjudged_at: list[float] = []
     max_creep = 0.0
     max_speed = 0.0
     min_fz = np.inf
@@ -241,7 +250,7 @@ def run_soak(scene: Scene, duration_s: float, seed: int = 0, dt_s: float = 0.001
         if seg.kind in (HOLD, PARK):
             rest = at_rest_index(states, dt_s)
             if rest is None:
-                holds_unsettled += 1
+                unjudged_at.append(step_no * dt_s)
             else:
                 pos = states[rest:, L.X_M:L.Y_M + 1]
                 creep = float(np.hypot(*(pos.max(axis=0) - pos.min(axis=0))))
@@ -257,6 +266,6 @@ def run_soak(scene: Scene, duration_s: float, seed: int = 0, dt_s: float = 0.001
             progress(min(step_no * dt_s, duration_s), duration_s)
     return SoakReport(seed=seed, simulated_s=step_no * dt_s, steps=step_no,
                       wall_s=time.perf_counter() - t0, manoeuvres=counts, holds_checked=holds,
-                      holds_not_at_rest=holds_unsettled,
+                      holds_unjudged=len(unjudged_at), unjudged_hold_times_s=unjudged_at,
                       max_hold_creep_m=max_creep, max_speed_mps=max_speed, min_fz_n=min_fz,
                       violations=sorted(found.values(), key=lambda v: v.step))

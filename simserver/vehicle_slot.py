@@ -98,10 +98,12 @@ def ground_slopes_pct(sim: SimulationAPI, yaw_rad: float) -> tuple[float, float]
 
 
 class RateLimitedLog:
-    """Log a recurring warning at most once per ``interval_s``, with the count in between."""
+    """Log a recurring warning at most once per ``interval_s``, with the count in between
+    (to ``logger``, default this module's)."""
 
-    def __init__(self, interval_s: float = 1.0) -> None:
+    def __init__(self, interval_s: float = 1.0, logger: logging.Logger | None = None) -> None:
         self.interval_s = interval_s
+        self.log = logger or log
         self._last = -math.inf
         self._suppressed = 0
 
@@ -110,7 +112,7 @@ class RateLimitedLog:
         now = time.monotonic() if now_s is None else now_s
         if now - self._last >= self.interval_s:
             extra = f" ({self._suppressed} more since the last report)" if self._suppressed else ""
-            log.warning("%s%s", message, extra)
+            self.log.warning("%s%s", message, extra)
             self._last = now
             self._suppressed = 0
         else:
@@ -247,6 +249,8 @@ class VehicleSlot:
         self.sim = sim
         self.scene_path = cfg.scene
         self.command_log = command_log
+        # the ROS 2 adapter's supervisor's status (get_config's "ros2"), set by the server
+        self.ros2_status: Callable[[], dict[str, Any]] | None = None
         self.counters = dict.fromkeys(COUNTER_NAMES, 0)
         self.arbiter = CommandArbiter(self.counters, sim.inputs)
         self.watchdog = Watchdog(cfg.watchdog_s, cfg.watchdog_brake)
@@ -531,6 +535,7 @@ class VehicleSlot:
             "road": dict(p.road),
             "keys": {"cmd": keys.cmd, "state": keys.state, "diag": keys.diag,
                      "alive": keys.alive},
+            "ros2": None if self.ros2_status is None else self.ros2_status(),
         }}
 
     def _shown(self, path: Path) -> str:

@@ -15,7 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 VEHICLE = REPO / "configs" / "vehicles" / "paper_sedan" / "vehicle.yaml"
 TIRES = REPO / "configs" / "tires"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-PLOTS = ("speed.png", "forces.png", "trajectory.png", "slip.png", "inputs.png")
+PLOTS = ("speed.png", "forces.png", "trajectory.png", "slip.png", "inputs.png", "holds.png")
 
 SCENARIO = """\
 name: cli_test_stop

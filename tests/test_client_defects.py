@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import math
 import subprocess
 import tomllib
 from collections.abc import Callable
@@ -213,6 +214,41 @@ def test_start_hold_lets_go_only_on_the_throttle_and_rearms():
     assert hold.apply(0.0, 0.4, dt) == 0.4  # released: the driver's own brake
     hold.arm()  # a reset
     assert hold.engaged and hold.apply(0.0, 0.0, dt) == 1.0
+
+
+def test_auto_hold_engages_at_a_braked_stop_and_can_be_turned_off():
+    """Auto hold (issue 32): the brake pressed with the car stopped engages the hold; the
+    pedal let go keeps it; the throttle releases it; a coasting stop (no brake), a stop
+    with the throttle on and an unknown speed do not engage it; ``set_auto(False)`` lets
+    go and keeps it off."""
+    from clients.driver import AUTO_HOLD_MIN_BRAKE, AUTO_HOLD_REST_MPS, StartHold
+
+    hold = StartHold()
+    dt = 0.005
+    hold.apply(0.5, 0.0, dt, 3.0)
+    for _ in range(100):  # the start hold faded out: driving
+        hold.apply(0.5, 0.0, dt, 3.0)
+    assert not hold.engaged and hold.apply(0.0, 0.0, dt, 3.0) == 0.0
+    assert hold.apply(0.0, 0.6, dt, 1.0) == 0.6  # braking at speed: the driver's brake
+    assert not hold.engaged
+    assert hold.apply(0.0, 0.0, dt, 0.0) == 0.0  # a stop without the brake: no hold
+    assert hold.apply(0.2, 0.6, dt, 0.0) == 0.6  # nor with the throttle on
+    assert hold.apply(0.0, 0.6, dt, math.inf) == 0.6  # nor with no state yet
+    assert not hold.engaged
+    assert hold.apply(0.0, AUTO_HOLD_MIN_BRAKE, dt, 0.9 * AUTO_HOLD_REST_MPS) == 1.0
+    assert hold.engaged and hold.reason == "auto"
+    assert "auto hold: the brake is held" in hold.status(0.0)
+    assert all(hold.apply(0.0, 0.0, dt, 0.0) == 1.0 for _ in range(2000))  # pedal let go
+    assert hold.apply(0.1, 0.0, dt, 0.0) < 1.0 and not hold.engaged  # throttle: fades
+    assert "letting go" in hold.status(0.0)
+    hold.apply(0.0, 0.5, dt, 0.0)
+    assert hold.engaged
+    hold.set_auto(False)
+    assert not hold.engaged
+    for _ in range(100):
+        hold.apply(0.0, 0.5, dt, 0.0)
+    assert not hold.engaged and hold.apply(0.0, 0.0, dt, 0.0) == 0.0
+    assert hold.status(0.0) == "auto hold OFF"
 
 
 # ============================================================================ recorder

@@ -38,8 +38,10 @@ from clients import joystick as js
 from clients import keyboard as kb
 from clients import player, recorder
 from clients.common import EXIT_NO_SERVER
+from clients.driver import AUTO_HOLD_REST_MPS
 from clients.profile import ProfileError
 from simserver import protocol as proto
+from simserver.analysis.holds import CREEP_SETTLE_S
 from simserver.testing import (
     CONFIGS,
     REPO,
@@ -724,7 +726,10 @@ frames:
     assert max(float(s["throttle"]) for s in mine) == pytest.approx(1.0, abs=1e-3)
     wheel = js.load_joystick_profile(CONFIGS / "clients" / "wheel.yaml")
     expected_brake = js.pedal_value(wheel.brake, -0.6)
-    braking = [s for s in mine if float(s["brake"]) > 0.0]
+    # the pedal's own value while the car still rolls (once stopped with the brake on, the
+    # driver's auto hold applies the full brake: test_gamepad_auto_hold_on_a_10pct_hill)
+    stopped = peak + int(np.argmax(np.abs(u[peak:]) < AUTO_HOLD_REST_MPS))
+    braking = [s for s in mine[peak:stopped] if float(s["brake"]) > 0.0]
     assert float(braking[-1]["brake"]) == pytest.approx(expected_brake, abs=1e-3)
     assert float(mine[-1]["steer"]) == pytest.approx(0.5, abs=1e-3)  # wheel left -> +
     assert int(mine[-1]["gear"]) == proto.Gear.N  # left paddle: D -> N
@@ -768,3 +773,136 @@ def test_recorder_row_groups_rrd_and_a_clean_sigterm(flat_server, tmp_path):
     reader = RrdReader(out / "run.rrd")
     assert [r.application_id for r in reader.recordings()] == ["simserver"]
     assert "/world/car" in {str(c.entity_path) for c in reader.stream()}
+
+
+SETTLE_S = CREEP_SETTLE_S
+"""A hold is judged from this long after the stop (``simserver.analysis.holds``)."""
+
+
+def _travel_m(states, ref) -> np.ndarray:
+    """Travel of each state along the heading of ``ref`` from ``ref`` (m)."""
+    c, s = math.cos(float(ref["yaw_rad"])), math.sin(float(ref["yaw_rad"]))
+    return np.array([(float(st["x_m"]) - float(ref["x_m"])) * c
+                     + (float(st["y_m"]) - float(ref["y_m"])) * s for st in states])
+
+
+@pytest.mark.parametrize("hold_s", [
+    pytest.param(8.0, id="8s"),
+    pytest.param(30.0, id="30s", marks=pytest.mark.slow),
+])
+def test_keyboard_auto_hold_on_a_10pct_hill(hold_s):
+    """The person's hill hold (issue 32): on ``hill_10pct_paper_sedan`` in a real terminal,
+    drive up, brake to a stop with the down arrow and let go of every key: the driver's
+    auto hold keeps the brake on (without it the car rolled back at -2.19 m/s within 3 s),
+    the car stays within 1 mm for ``hold_s`` of simulated time, and the throttle drives it
+    off with under 1 mm of rollback. The screen's hold line says the brake is held while
+    it is, and no longer once the car drives off."""
+    server = ServerProcess(vehicle_id="hill", scene="hill_10pct_paper_sedan")
+    watcher = Client(server, state_capacity=1 << 16, keep_history=True)
+    drv = PtyProcess(client_command("driver", "--rate", "200", *server.client_args()))
+    try:
+        drv.wait_for("connected to simserver/hill", 20)
+        drv.wait_for("start hold: the brake is held until you press the throttle", 10)
+        hold_until(drv, b"w", watcher, lambda s: float(s["u_mps"]) > 1.0, 15.0)
+        stopped = hold_until(drv, b"\x1b[B", watcher, lambda s: abs(float(s["u_mps"])) < 0.05,
+                             15.0)
+        assert abs(float(stopped["u_mps"])) < 0.05, "the brake did not stop the car"
+        # every key released now: the keyboard's brake ramps to zero, the hold stays
+        drv.wait_for("auto hold: the brake is held until you press the throttle", 10)
+        rest = watcher.wait_state(lambda s: abs(float(s["u_mps"])) < 1e-3, 10.0, "at rest")
+        # from a second after the stop: the car rocks on its tires as it stops on the hill
+        # (the stop's own transient; the summary's creep window likewise)
+        settled = watcher.wait_state(
+            lambda s: float(s["sim_time_s"]) >= float(rest["sim_time_s"]) + SETTLE_S, 10.0,
+            "settled")
+        t_rest = float(settled["sim_time_s"])
+        end = watcher.wait_state(lambda s: float(s["sim_time_s"]) >= t_rest + hold_s,
+                                 hold_s * 3 + 30.0, f"{hold_s} s held")
+        held = [s for s in watcher.history if t_rest <= float(s["sim_time_s"])
+                <= float(end["sim_time_s"])]
+        released_pedal = [s for s in held if float(s["sim_time_s"]) > t_rest + 1.0]
+        drive_off_at = len(watcher.history)
+        moving = hold_until(drv, b"w", watcher, lambda s: float(s["u_mps"]) > 0.5, 15.0)
+        assert float(moving["u_mps"]) > 0.5, "the throttle did not drive the car off"
+        watcher.poll()
+        after = watcher.history[drive_off_at - 1:]
+        drv.wait_for("auto hold on: a stop with the brake is held", 10)
+        screen = drv.text()
+        drv.send(b"q")
+        assert drv.wait(15) == 0, drv.text()
+    finally:
+        drv.close()
+        watcher.close()
+        server.stop()
+    creep = _travel_m(held, settled)
+    rollback = max(0.0, -float(np.min(_travel_m(after, after[0]))))
+    print(f"\nauto hold on 10 %: {len(held)} states over {hold_s:g} s, travel "
+          f"{1e3 * np.min(creep):+.4f} .. {1e3 * np.max(creep):+.4f} mm; rollback on the "
+          f"throttle {1e3 * rollback:.4f} mm")
+    assert np.all(np.abs(creep) < 1e-3)  # within 1 mm for the whole hold
+    # the person's pedal was back at zero: the hold, not the key, held the car
+    assert released_pedal and all(float(s["brake"]) >= 0.99 for s in released_pedal)
+    assert rollback < 1e-3
+    assert screen.rfind("hold    auto hold on") > screen.rfind("auto hold: the brake is held")
+@pytest.mark.skipif(not HAVE_PYGAME, reason="pygame (the 'joystick' extra) is not installed")
+@pytest.mark.parametrize("hold_s", [
+    pytest.param(8.0, id="8s"),
+    pytest.param(30.0, id="30s", marks=pytest.mark.slow),
+])
+def test_gamepad_auto_hold_on_a_10pct_hill(tmp_path, hold_s):
+    """The auto hold with the gamepad profile on SDL's virtual joystick (issue 32): half
+    throttle up the 10 % hill, half brake to a stop, both triggers let go for
+    ``hold_s``: the car stays within 1 mm with the pedal at rest (the hold's brake), then
+    the throttle drives it off with under 1 mm of rollback."""
+    release = 6.0
+    script = write(tmp_path, "script.yaml", f"""\
+kind: joystick_script
+end_s: {release + hold_s + 4.0}
+frames:
+  - {{t: 0.0, axes: {{0: 0.0, 1: 0.0, 2: -1.0, 3: 0.0, 4: 0.0, 5: -1.0}}}}
+  - {{t: 0.5, axes: {{5: 0.0}}}}
+  - {{t: 3.0, axes: {{5: -1.0, 2: 0.0}}}}
+  - {{t: {release}, axes: {{2: -1.0}}}}
+  - {{t: {release + hold_s}, axes: {{5: 0.0}}}}
+""")
+    server = ServerProcess(vehicle_id="pad", scene="hill_10pct_paper_sedan")
+    watcher = Client(server, state_capacity=1 << 16, keep_history=True)
+    try:
+        proc = subprocess.run(
+            client_command("driver", "--virtual-joystick", str(script), "--profile",
+                           str(CONFIGS / "clients" / "gamepad.yaml"), *server.client_args()),
+            cwd=REPO, env=client_env(), stdin=subprocess.DEVNULL, capture_output=True,
+            text=True, timeout=hold_s + 90)
+        watcher.poll()
+        states = [s for s in watcher.history if int(s["last_cmd_seq"]) > 0]
+    finally:
+        watcher.close()
+        server.stop()
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    u = np.array([float(s["u_mps"]) for s in states])
+    throttle = np.array([float(s["throttle"]) for s in states])
+    brake = np.array([float(s["brake"]) for s in states])
+    driven = int(np.argmax(u > 0.5))  # up the hill
+    assert u[driven] > 0.5
+    braked = driven + int(np.argmax(brake[driven:] > 0.3))  # the left trigger
+    # at rest with the hold's full brake applied (the half brake stopped the car; on the
+    # way the hold engaged below 0.05 m/s)
+    stop = braked + int(np.argmax((np.abs(u[braked:]) < 1e-3) & (brake[braked:] >= 0.99)))
+    off = stop + int(np.argmax(throttle[stop:] > 0.0))  # the throttle's return
+    assert throttle[off] > 0.0 and off > stop
+    t_stop = float(states[stop]["sim_time_s"])
+    span = float(states[off - 1]["sim_time_s"]) - t_stop
+    # from a second after the stop: the car rocks back on its tires as it stops on the
+    # hill (the stop's own transient, ~20 mm here, the summary's creep window likewise)
+    held = [s for s in states[stop:off] if float(s["sim_time_s"]) >= t_stop + SETTLE_S]
+    creep = _travel_m(held, held[0])
+    pedal_released = [s for s in held if float(s["sim_time_s"]) > t_stop + 2.0]
+    after = states[off - 1:]
+    rollback = max(0.0, -float(np.min(_travel_m(after, after[0]))))
+    print(f"\ngamepad auto hold on 10 %: held {span:.1f} s, travel {1e3 * np.min(creep):+.4f} "
+          f".. {1e3 * np.max(creep):+.4f} mm; rollback {1e3 * rollback:.4f} mm; then u up "
+          f"to {u[off:].max():.2f} m/s")
+    assert span > hold_s - 1.0  # the triggers were let go for hold_s
+    assert np.all(np.abs(creep) < 1e-3)
+    assert pedal_released and all(float(s["brake"]) >= 0.99 for s in pedal_released)
+    assert brake[stop:off].min() > 0.0 and rollback < 1e-3 and u[off:].max() > 0.5

@@ -113,3 +113,22 @@ def test_a_block_that_does_not_fit_falls_back_to_the_pipe(tmp_path, monkeypatch)
     result = share_result({"grid": grid}, os.getpid())
     assert result.path is None and list(tmp_path.iterdir()) == []  # nothing left behind
     assert np.array_equal(opened(result)["grid"], grid)
+
+
+def test_the_worker_outlives_a_ctrl_c_during_its_imports():
+    """Ctrl-C in a terminal reaches every process of the server's group, often while the
+    load worker still imports (the server is ready before it): the worker must not die
+    of it with a ``KeyboardInterrupt`` traceback (issue 32: it printed one before the
+    server's statistics); the server ends the worker when it stops."""
+    import signal
+
+    preparer = ProcessPreparer()
+    try:
+        warming = preparer.warm(os.getpid)
+        (worker,) = preparer._pool._processes  # spawned by warm(), now importing
+        os.kill(worker, signal.SIGINT)
+        assert warming.result(timeout=90) == worker
+        assert preparer.submit(os.getpid).result(timeout=90).payload is not None
+        assert worker in preparer._pool._processes and preparer.restarts == 0
+    finally:
+        preparer.close()

@@ -662,6 +662,213 @@ def test_floods_from_another_host_do_not_lock_authenticated_sessions_out(acl_ser
         assert counters["refused_source_cap"] > 0 and counters["forwarded"] == 5
 
 
+# ---------------------------------------------------------------------------- issue 34
+
+GET_IN_GIVE_UP_S = 90.0
+"""How long ``_get_in`` keeps trying (the issue measured lock-outs of 25-59 s)."""
+
+
+def _get_in(endpoint: str, cfg: Path) -> float:
+    """Seconds until an authenticated session opens and answers, trying again at once
+    after each refused or failed try (as a driver would); ``inf`` after
+    ``GET_IN_GIVE_UP_S``."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < GET_IN_GIVE_UP_S:
+        try:
+            _open_timed(endpoint, cfg)
+            return time.monotonic() - t0
+        except (ZenohOpenError, AssertionError, TimeoutError):
+            continue
+    return float("inf")
+
+
+def _backend_port(server: ServerProcess, public_port: int) -> int:
+    """zenoh's own TLS listener behind the front: the server's other listening socket."""
+    (port,) = [s.local_port for s in process_sockets(server.pid)
+               if s.listening and s.local_ip == "127.0.0.1" and s.local_port != public_port]
+    return port
+
+
+def test_zenohs_listener_behind_the_front_is_reachable_by_the_front_alone(acl_server):
+    """Issue 34, the backend burst: 500 plain connect-and-close in about 0.1 s on zenoh's
+    loopback port behind the front kept the authenticated driver out for 59.2 s. Now
+    zenoh's listener requires the front's TCP MD5 key: the kernel drops the burst's SYNs,
+    a plain connect times out, and the driver gets in within 2 s."""
+    _, _, configs = acl_server
+    endpoint = loopback_endpoint("tls")
+    with ServerProcess(listen=[endpoint], extra_args=["--zenoh-config",
+                                                      str(configs["server"])]) as server:
+        _open_baseline(endpoint, configs["driver"])
+        backend = _backend_port(server, int(endpoint.rsplit(":", 1)[1]))
+        t0 = time.monotonic()
+        for _ in range(BURST_CONNECTS):
+            with socket.socket() as sock:
+                sock.setblocking(False)
+                sock.connect_ex(("127.0.0.1", backend))
+        burst_s = time.monotonic() - t0
+        got_in = _get_in(endpoint, configs["driver"])
+        with socket.socket() as probe:
+            probe.settimeout(1.0)
+            try:
+                probe.connect(("127.0.0.1", backend))
+                reachable = True
+            except TimeoutError:
+                reachable = False
+        print(f"\n[backend burst] {BURST_CONNECTS} connect-and-close on zenoh's port "
+              f"{backend} in {burst_s:.2f} s; the driver got in {got_in:.2f} s after it; "
+              f"a plain connect to that port {'succeeds' if reachable else 'times out'}")
+        assert got_in < NEW_SESSION_WITHIN_S
+        assert not reachable
+        assert server.alive()
+    assert "cannot be locked to the front" not in server.text()
+
+
+SLOW_SOURCES = [f"127.0.0.{i}" for i in range(10, 60)]
+"""The issue's 50 other loopback source addresses."""
+SLOW_HELLOS = 300
+SLOW_HELLO_SENT = 11
+"""Bytes sent of a 249-byte ClientHello record (5-byte header, 244-byte body)."""
+SLOW_HELLO = bytes([0x16, 0x03, 0x01, 0x00, 0xF4, 0x01, 0x00, 0x00, 0xF0, 0x03, 0x03]) \
+    + bytes(238)
+
+
+class SlowHellos:
+    """The issue's slowloris: ``count`` connections spread over ``sources``, each sending
+    the first 11 bytes of a 249-byte ClientHello and then holding; a connection the front
+    closes or refuses is opened again (after 20 ms), so the attack lasts until stopped.
+    One thread, non-blocking sockets."""
+
+    def __init__(self, port: int, sources: list[str], count: int = SLOW_HELLOS) -> None:
+        self.port, self.sources, self.count = port, sources, count
+        self.opened = 0
+        self.holding = 0
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _open(self, source: str) -> socket.socket | None:
+        sock = socket.socket()
+        try:
+            sock.bind((source, 0))
+            sock.settimeout(1.0)
+            sock.connect(("127.0.0.1", self.port))
+            sock.sendall(SLOW_HELLO[:SLOW_HELLO_SENT])
+            sock.setblocking(False)
+        except OSError:
+            sock.close()
+            return None
+        self.opened += 1
+        return sock
+
+    def _run(self) -> None:
+        import selectors
+
+        sel = selectors.DefaultSelector()
+        slots: list[tuple[str, socket.socket | None, float]] = [
+            (self.sources[i % len(self.sources)], None, 0.0) for i in range(self.count)]
+        try:
+            while not self.stop.is_set():
+                now = time.monotonic()
+                for i, (source, sock, retry_at) in enumerate(slots):
+                    if sock is None and now >= retry_at:
+                        sock = self._open(source)
+                        if sock is not None:
+                            sel.register(sock, selectors.EVENT_READ, i)
+                        slots[i] = (source, sock, now + 0.02)
+                self.holding = sum(1 for _, sock, _ in slots if sock is not None)
+                for key, _ in sel.select(timeout=0.02):
+                    sock = key.fileobj
+                    try:
+                        data = sock.recv(64)
+                    except BlockingIOError:
+                        continue
+                    except OSError:
+                        data = b""
+                    if not data:  # closed or reset by the front: open another
+                        sel.unregister(sock)
+                        sock.close()
+                        source = slots[key.data][0]
+                        slots[key.data] = (source, None, time.monotonic() + 0.02)
+        finally:
+            for _, sock, _ in slots:
+                if sock is not None:
+                    sock.close()
+            sel.close()
+
+    def __enter__(self) -> SlowHellos:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join(30)
+
+
+def test_partial_client_hellos_from_other_sources_never_reach_zenoh_nor_lock_out(acl_server):
+    """Issue 34, the slowloris: 300 partial ClientHellos (11 of 249 bytes) held from 50
+    other loopback addresses refused the driver on every try during the attack and let
+    it in only 25.8 s after it ended (the front's total cap was full, and it forwarded
+    265-279 of them to zenoh after its hello timeout, each failing there with a 100 ms
+    sleep). Now the front forwards only whole ClientHellos, drops the rest at the hello
+    timeout, and at its total cap closes a hello of the source holding the most for a
+    source holding fewer: the driver gets in within 2 s during the attack and after it."""
+    _, _, configs = acl_server
+    endpoint = loopback_endpoint("tls")
+    port = int(endpoint.rsplit(":", 1)[1])
+    with ServerProcess(listen=[endpoint], extra_args=["--zenoh-config",
+                                                      str(configs["server"])]) as server:
+        _open_baseline(endpoint, configs["driver"])
+        with SlowHellos(port, SLOW_SOURCES) as attack:
+            wait_until(lambda: attack.holding, lambda n: n >= 250, timeout_s=30,
+                       what="the partial hellos held")
+            # past the hello timeout (2 s), so the front had its chance to forward them
+            t_held = time.monotonic()
+            wait_until(time.monotonic, lambda t: t > t_held + 3.0, timeout_s=10,
+                       what="3 s of attack")
+            during = _get_in(endpoint, configs["driver"])
+            held = attack.holding
+            assert attack.thread.is_alive()
+        after = _get_in(endpoint, configs["driver"])
+        print(f"\n[slowloris, 50 other sources] {attack.opened} partial hellos opened, "
+              f"{held} held when the driver tried; the driver got in {during:.2f} s into "
+              f"its tries during the attack, {after:.2f} s after its end")
+        assert during < NEW_SESSION_WITHIN_S and after < NEW_SESSION_WITHIN_S
+        assert server.alive()
+    counters = front_counters(server)
+    print(f"[slowloris, 50 other sources] front counters {counters}")
+    # the partial hellos never reached zenoh: only the driver's sessions did (baseline,
+    # during, after: 3, plus any try of the driver's that failed)
+    assert counters["dropped_partial_hello"] > 0 and counters["handshakes_failed"] == 0
+    assert counters["forwarded"] == 3
+
+
+def test_partial_client_hellos_from_the_drivers_own_source_do_not_bar_it(acl_server):
+    """Issue 34: the same slowloris from the driver's own address (127.0.0.1) let the
+    driver in only 32.1 s after it ended: each partial hello forwarded to zenoh failed
+    there and barred the address for a doubling backoff. Now they never reach zenoh, so
+    nothing bars the driver: it gets in within 2 s of the attack's end."""
+    _, _, configs = acl_server
+    endpoint = loopback_endpoint("tls")
+    port = int(endpoint.rsplit(":", 1)[1])
+    with ServerProcess(listen=[endpoint], extra_args=["--zenoh-config",
+                                                      str(configs["server"])]) as server:
+        _open_baseline(endpoint, configs["driver"])
+        with SlowHellos(port, ["127.0.0.1"]) as attack:
+            wait_until(lambda: attack.opened, lambda n: n >= 30, timeout_s=30,
+                       what="the partial hellos under way")
+            # 12 s: past the front's 10 s handshake timeout of a forwarded hello
+            t_under_way = time.monotonic()
+            wait_until(time.monotonic, lambda t: t > t_under_way + 12.0, timeout_s=30,
+                       what="12 s of attack")
+            assert attack.thread.is_alive()
+        after = _get_in(endpoint, configs["driver"])
+        print(f"\n[slowloris, the driver's source] {attack.opened} partial hellos opened; "
+              f"the driver got in {after:.2f} s after the attack's end")
+        assert after < NEW_SESSION_WITHIN_S
+        assert server.alive()
+    counters = front_counters(server)
+    assert counters["refused_backoff"] == 0 and counters["handshakes_failed"] == 0
+
+
 def test_the_front_is_restarted_if_it_dies_and_the_port_stays_open(acl_server):
     """``serve`` supervises its TLS front: killed, it is restarted (logged) on the same
     public socket, and a new authenticated session opens through the new one."""

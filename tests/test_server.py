@@ -7,6 +7,7 @@ Explicit endpoints on free loopback ports, multicast scouting off (the defaults 
 from __future__ import annotations
 
 import math
+import signal
 import subprocess
 import sys
 
@@ -297,3 +298,21 @@ def test_a_first_release_log_still_replays_bit_for_bit(monkeypatch):
     assert rep.steps == 9171
     assert np.array_equal(rep.final_state[:L.N_STATE_V1], rep.logged_final_state)
     assert rep.final_state_matches
+
+
+def test_ctrl_c_to_the_process_group_stops_cleanly_without_a_traceback():
+    """Ctrl-C in a terminal signals the server's whole process group (its load worker and
+    viewer too), often while the worker is still importing: it must print its statistics
+    and no traceback from any child (issue 32; the worker's ``KeyboardInterrupt`` traceback
+    came before the statistics). Signalled at ready, the race the terminal user hits; the
+    viewer on, as the README's server has it."""
+    server = ServerProcess(viewer="serve", new_session=True)
+    try:
+        server.signal_group(signal.SIGINT)
+        code = server.wait(30.0)
+    finally:
+        server.kill()
+    text = server.text()
+    assert code == 0, text
+    assert server.final_stats() is not None, text
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text, text

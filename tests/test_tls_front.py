@@ -32,16 +32,22 @@ from simserver.testing import wait_until
 pytestmark = pytest.mark.timeout(60)
 
 # The start of a real ClientHello record: handshake (0x16), TLS 1.0 record version (as
-# TLS 1.3 clients write it, RFC 8446 section 5.1), length, handshake type 1.
+# TLS 1.3 clients write it, RFC 8446 section 5.1), length (512), handshake type 1.
 CLIENT_HELLO_START = bytes([0x16, 0x03, 0x01, 0x02, 0x00, 0x01])
+# A whole first record of that shape, 32 bytes long: the front passes a client on only
+# once it holds its whole ClientHello record.
+CLIENT_HELLO = bytes([0x16, 0x03, 0x01, 0x00, 0x20, 0x01]) + bytes(range(31))
 
 
 class Backend:
     """A loopback TCP server standing in for zenoh: it records every connection and
-    echoes what it receives; ``reply_first`` is sent on accept (a ServerHello, say)."""
+    echoes what it receives; ``reply_first`` is sent on accept (a ServerHello, say);
+    ``silent``: it reads and never answers (zenoh busy with other handshakes)."""
 
-    def __init__(self, reply_first: bytes = b"") -> None:
-        self.sock = bind_listener("127.0.0.1", 0)
+    def __init__(self, reply_first: bytes = b"", silent: bool = False,
+                 port: int = 0) -> None:
+        self.silent = silent
+        self.sock = bind_listener("127.0.0.1", port)
         self.port = self.sock.getsockname()[1]
         self.reply_first = reply_first
         self.connections = 0
@@ -75,7 +81,8 @@ class Backend:
                 if not data:
                     break
                 got += data
-                conn.sendall(data)
+                if not self.silent:
+                    conn.sendall(data)
         self.received.append(bytes(got))
 
     def close(self) -> None:
@@ -84,10 +91,10 @@ class Backend:
 
 
 @contextmanager
-def front(limits: FrontLimits | None = None, reply_first: bytes = b"") -> Iterator[
-        tuple[TlsFront, int, Backend]]:
+def front(limits: FrontLimits | None = None, reply_first: bytes = b"",
+          silent: bool = False) -> Iterator[tuple[TlsFront, int, Backend]]:
     limits = limits or FrontLimits()
-    backend = Backend(reply_first)
+    backend = Backend(reply_first, silent)
     listener = bind_listener("127.0.0.1", 0)
     tf = TlsFront(listener, ("127.0.0.1", backend.port), limits)
     thread = threading.Thread(target=tf.run, daemon=True)
@@ -128,6 +135,7 @@ def recv_exactly(sock: socket.socket, n: int) -> bytes:
 
 def test_hello_prefix_check():
     assert hello_prefix_ok(CLIENT_HELLO_START) is True
+    assert hello_prefix_ok(CLIENT_HELLO) is True
     assert hello_prefix_ok(bytes([0x16, 0x03, 0x03, 0x00, 0x40, 0x01])) is True  # TLS 1.2
     assert hello_prefix_ok(b"") is None and hello_prefix_ok(b"\x16\x03") is None
     assert hello_prefix_ok(b"GET / HTTP/1.1\r\n") is False
@@ -196,30 +204,45 @@ def test_forwarding_is_byte_exact_both_ways_with_half_close():
 
 
 def test_pending_caps_per_source_and_in_total():
+    """Per source: a connection over the cap is reset. In total: at the cap, a source
+    holding fewer pending connections gets in at the expense of the oldest hello-stage
+    connection of the source holding the most (issue 34), and is reset only when no
+    source holds two more than it."""
     limits = FrontLimits(hello_timeout_s=5.0, max_pending_per_source=4, max_pending=6)
     with front(limits) as (tf, port, backend):
-        held = [connect(port, "127.0.0.2") for _ in range(4)]
-        wait_until(lambda: len(tf.pending), lambda n: n == 4, timeout_s=5,
-                   what="4 pending from 127.0.0.2")
+        held = []
+        for k in range(1, 5):  # one by one: the first is the oldest
+            held.append(connect(port, "127.0.0.2"))
+            wait_until(lambda: len(tf.pending), lambda n, k=k: n == k,
+                       timeout_s=5, what="127.0.0.2's connections pending")
         extra = connect(port, "127.0.0.2")  # a fifth from the same source: reset
         with pytest.raises(ConnectionResetError):
-            extra.sendall(CLIENT_HELLO_START)
+            extra.sendall(CLIENT_HELLO)
             extra.recv(10)
         extra.close()
         # another source still gets in, up to the total cap
         other = [connect(port, "127.0.0.3") for _ in range(2)]
         wait_until(lambda: len(tf.pending), lambda n: n == 6, timeout_s=5,
                    what="6 pending in total")
-        over = connect(port, "127.0.0.4")
+        # at the cap, 127.0.0.4 (none pending) takes the place of 127.0.0.2's oldest
+        newcomer = connect(port, "127.0.0.4")
+        assert closed_by_front(held[0])
+        assert tf.counters.evicted_for_fairness == 1
+        newcomer.sendall(CLIENT_HELLO)
+        assert recv_exactly(newcomer, len(CLIENT_HELLO)) == CLIENT_HELLO  # forwarded
+        # 3 + 2 + 1 pending: a third from 127.0.0.3 would make it as many as 127.0.0.2,
+        # so nobody is evicted for it and it is reset
+        over = connect(port, "127.0.0.3")
         with pytest.raises(ConnectionResetError):
-            over.sendall(CLIENT_HELLO_START)
+            over.sendall(CLIENT_HELLO)
             over.recv(10)
         over.close()
         assert tf.counters.refused_source_cap == 1 and tf.counters.refused_total_cap == 1
+        assert tf.counters.evicted_for_fairness == 1
         # one of 127.0.0.3's sends its hello: forwarded, the echo comes back
-        other[0].sendall(CLIENT_HELLO_START)
-        assert recv_exactly(other[0], len(CLIENT_HELLO_START)) == CLIENT_HELLO_START
-        for sock in held + other:
+        other[0].sendall(CLIENT_HELLO)
+        assert recv_exactly(other[0], len(CLIENT_HELLO)) == CLIENT_HELLO
+        for sock in held + other + [newcomer]:
             sock.close()
 
 
@@ -232,7 +255,7 @@ def test_a_handshake_that_fails_bars_its_source_for_a_doubling_backoff():
     with front(limits, reply_first=server_hello) as (tf, port, backend):
         def fail_once(source: str) -> None:
             sock = connect(port, source)
-            sock.sendall(CLIENT_HELLO_START)
+            sock.sendall(CLIENT_HELLO)
             assert recv_exactly(sock, len(server_hello)) == server_hello
             sock.close()  # no second flight: the handshake failed
 
@@ -242,7 +265,7 @@ def test_a_handshake_that_fails_bars_its_source_for_a_doubling_backoff():
         t_fail = time.monotonic()
         barred = connect(port, "127.0.0.2")
         with pytest.raises(ConnectionResetError):
-            barred.sendall(CLIENT_HELLO_START)
+            barred.sendall(CLIENT_HELLO)
             barred.recv(10)
         barred.close()
         assert tf.counters.refused_backoff == 1
@@ -273,8 +296,9 @@ def test_a_handshake_that_fails_bars_its_source_for_a_doubling_backoff():
         wait_until(time.monotonic, lambda t: t > barred_until, timeout_s=5,
                    what="127.0.0.3's backoff over")
         sock = connect(port, "127.0.0.3")
-        sock.sendall(CLIENT_HELLO_START)
-        assert recv_exactly(sock, len(server_hello) + 6)[:len(server_hello)] == server_hello
+        sock.sendall(CLIENT_HELLO)
+        echoed = recv_exactly(sock, len(server_hello) + len(CLIENT_HELLO))
+        assert echoed[:len(server_hello)] == server_hello
         sock.sendall(b"\x14\x03\x03\x00\x01\x01")  # the client's second flight
         wait_until(lambda: tf.failures.get("127.0.0.3"), lambda n: n is None, timeout_s=5,
                    what="127.0.0.3's failures cleared")
@@ -285,8 +309,8 @@ def test_a_stalled_handshake_is_closed_after_handshake_timeout_s():
     limits = FrontLimits(handshake_timeout_s=0.5)
     with front(limits) as (tf, port, backend):
         sock = connect(port, "127.0.0.2")
-        sock.sendall(CLIENT_HELLO_START)  # and then nothing (the backend says nothing)
-        assert recv_exactly(sock, 6) == CLIENT_HELLO_START  # echoed: forwarded
+        sock.sendall(CLIENT_HELLO)  # and then nothing (the backend says nothing)
+        assert recv_exactly(sock, len(CLIENT_HELLO)) == CLIENT_HELLO  # echoed: forwarded
         t0 = time.monotonic()
         assert sock.recv(10) == b""
         assert 0.3 < time.monotonic() - t0 < 5.0
@@ -308,3 +332,146 @@ def test_bad_limits_are_refused_naming_them():
         FrontLimits(max_pending_per_source=0)
     with pytest.raises(ValueError, match="hello_timeout_s"):
         FrontLimits(hello_timeout_s=float("nan"))
+
+
+def test_a_partial_client_hello_is_dropped_at_the_hello_timeout_never_forwarded():
+    """Issue 34: 11 bytes of a 249-byte ClientHello passed the old 6-byte check and were
+    forwarded; zenoh then held each in a handshake until it failed (a 100 ms sleep of its
+    accept loop each). The front now waits for the whole first record: a partial one is
+    dropped at the hello timeout, a whole one sent in pieces is forwarded."""
+    limits = FrontLimits(hello_timeout_s=0.5)
+    record = bytes([0x16, 0x03, 0x01, 0x00, 0xF4, 0x01]) + bytes(range(243))  # 249 bytes
+    with front(limits) as (tf, port, backend):
+        partial = connect(port, "127.0.0.2")
+        partial.sendall(record[:11])
+        t0 = time.monotonic()
+        assert closed_by_front(partial)
+        assert 0.4 < time.monotonic() - t0 < 5.0
+        partial.close()
+        assert tf.counters.dropped_partial_hello == 1
+        assert backend.connections == 0 and tf.counters.forwarded == 0
+        whole = connect(port, "127.0.0.2")
+        cuts = [0, 3, 11, 100, len(record)]
+        for a, b in zip(cuts, cuts[1:], strict=False):  # pieces, each read on its own
+            whole.sendall(record[a:b])
+            if b < len(record):
+                wait_until(lambda: [len(k.hello) for k in list(tf.pending)],
+                           lambda n, b=b: n == [b], timeout_s=5, what=f"{b} bytes read")
+        assert recv_exactly(whole, len(record)) == record  # forwarded whole, echoed
+        whole.close()
+        assert tf.counters.forwarded == 1 and backend.connections == 1
+        # a record announcing more than 2^14 bytes is not TLS
+        huge = connect(port, "127.0.0.3")
+        huge.sendall(bytes([0x16, 0x03, 0x01, 0x40, 0x01, 0x01]))
+        assert closed_by_front(huge)
+        huge.close()
+        assert tf.counters.dropped_not_tls == 1
+
+
+def test_a_client_left_unanswered_by_zenoh_is_not_barred():
+    """Issue 34: a driver whose ClientHello waited in zenoh's busy accept loop and who gave
+    up was counted as a failed handshake, and its retries were barred for a doubling
+    backoff. A forwarded connection that zenoh never answered and that waited at least
+    UNANSWERED_GRACE_S is not held against its source; one that ends sooner still is
+    (a ClientHello then a close: zenoh's 100 ms sleep)."""
+    with front(FrontLimits(failure_backoff_s=5.0), silent=True) as (tf, port, backend):
+        waited = connect(port, "127.0.0.2")
+        waited.sendall(CLIENT_HELLO)
+        wait_until(lambda: backend.connections, lambda n: n == 1, timeout_s=5,
+                   what="forwarded")
+        t_forwarded = time.monotonic()
+        wait_until(time.monotonic, lambda t: t > t_forwarded + 1.2, timeout_s=5,
+                   what="a wait longer than the grace")
+        waited.close()  # the driver gives up on an unanswered handshake
+        wait_until(lambda: tf.counters.handshakes_failed, lambda n: n == 1, timeout_s=5,
+                   what="the handshake ended")
+        assert tf.counters.handshakes_unanswered == 1
+        assert "127.0.0.2" not in tf.failures
+        retry = connect(port, "127.0.0.2")  # its retry is forwarded at once
+        retry.sendall(CLIENT_HELLO)
+        wait_until(lambda: backend.connections, lambda n: n == 2, timeout_s=5,
+                   what="the retry forwarded")
+        assert tf.counters.refused_backoff == 0
+        retry.close()  # gave up at once, zenoh silent: a failure of 127.0.0.2's
+        wait_until(lambda: tf.counters.handshakes_failed, lambda n: n == 2, timeout_s=5,
+                   what="the quick close counted")
+        assert tf.failures["127.0.0.2"] == 1 and tf.counters.handshakes_unanswered == 1
+
+
+def test_serves_fronts_lock_zenohs_listener_to_their_key():
+    """``FrontSupervisor.start`` (as ``serve`` calls it once zenoh listens) keys this
+    process's listener on the backend port: a plain connection to it times out, while a
+    real front process (the key handed over in a pipe) passes a client through."""
+    supervisor = FrontSupervisor(["tls/127.0.0.1:0"])
+    (plan,) = supervisor.plans
+    backend = Backend(port=plan.backend_port)  # stands in for zenoh's own listener
+    try:
+        supervisor.start()
+        assert supervisor.key is not None
+        with socket.socket() as plain:
+            plain.settimeout(0.5)
+            with pytest.raises(TimeoutError):
+                plain.connect(("127.0.0.1", plan.backend_port))
+        client = connect(plan.listener.getsockname()[1])
+        client.settimeout(60.0)  # the front process starts meanwhile (seconds when loaded)
+        client.sendall(CLIENT_HELLO)
+        assert recv_exactly(client, len(CLIENT_HELLO)) == CLIENT_HELLO  # through the front
+        client.close()
+        assert backend.connections == 1
+    finally:
+        supervisor.stop()
+        backend.close()
+
+
+def test_without_a_listener_to_lock_the_fronts_run_keyless_and_say_so(caplog):
+    supervisor = FrontSupervisor(["tls/127.0.0.1:0"])  # nothing listens behind it
+    try:
+        supervisor.start()
+        assert supervisor.key is None and len(supervisor.pids()) == 1
+        assert "cannot be locked to the front" in caplog.text
+    finally:
+        supervisor.stop()
+
+
+def test_one_handshake_per_source_in_zenoh_the_next_whole_hello_waits():
+    """Each forwarded handshake that fails costs zenoh's accept loop 100 ms, so a source
+    has at most ``max_handshakes_per_source`` (1) in zenoh at once: its next whole
+    ClientHello waits in the front until that one is done (then it goes on), and is
+    dropped if it waits ``hello_timeout_s``. Another source is not held up."""
+    server_hello = b"\x16\x03\x03\x00\x10" + bytes(16)
+    limits = FrontLimits(hello_timeout_s=1.0)
+    with front(limits, reply_first=server_hello) as (tf, port, backend):
+        first = connect(port, "127.0.0.2")
+        first.sendall(CLIENT_HELLO)
+        assert recv_exactly(first, len(server_hello)) == server_hello  # in zenoh
+        second = connect(port, "127.0.0.2")
+        second.sendall(CLIENT_HELLO)
+        wait_until(lambda: len(tf.queued.get("127.0.0.2", ())), lambda n: n == 1,
+                   timeout_s=5, what="127.0.0.2's second hello waiting")
+        other = connect(port, "127.0.0.3")  # another source goes straight on
+        other.sendall(CLIENT_HELLO)
+        assert recv_exactly(other, len(server_hello)) == server_hello
+        assert backend.connections == 2
+        first.sendall(b"\x14\x03\x03\x00\x01\x01")  # its second flight: handshake done
+        assert recv_exactly(second, len(server_hello)) == server_hello  # went on
+        assert backend.connections == 3
+        # the second one's handshake is not done: a third waits, and is dropped in time
+        third = connect(port, "127.0.0.2")
+        third.sendall(CLIENT_HELLO)
+        t0 = time.monotonic()
+        assert closed_by_front(third)
+        assert 0.5 < time.monotonic() - t0 < 5.0
+        assert tf.counters.dropped_queued == 1 and backend.connections == 3
+        # one that gives up while it waits is not forwarded when its turn comes
+        fourth = connect(port, "127.0.0.2")
+        fourth.sendall(CLIENT_HELLO)
+        wait_until(lambda: len(tf.queued.get("127.0.0.2", ())), lambda n: n == 1,
+                   timeout_s=5, what="the fourth waiting")
+        fourth.close()
+        closed_before = tf.counters.dropped_closed
+        second.sendall(b"\x14\x03\x03\x00\x01\x01")  # the second's handshake done
+        wait_until(lambda: tf.counters.dropped_closed, lambda n: n == closed_before + 1,
+                   timeout_s=5, what="the fourth dropped at its turn")
+        assert backend.connections == 3 and tf.counters.handshakes_failed == 0
+        for sock in (first, second, third, other):
+            sock.close()

@@ -409,7 +409,7 @@ def test_closing_the_publisher_logs_no_hand_off(caplog):
         pub.WATCH_S = 0.0  # the thread looks at the mode on every wake-up, the last one too
         pub.publish_state(bytes(64))
         assert pub.mode() == "inline"
-        with caplog.at_level("INFO", logger="simserver.server"):
+        with caplog.at_level("DEBUG", logger="simserver.server"):
             pub.close()
         assert not [r for r in caplog.records if "handed to this thread" in r.getMessage()]
 

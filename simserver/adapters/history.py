@@ -37,6 +37,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from simserver.analysis.holds import holds_summary
 from simserver.core import layout as L
 
 if TYPE_CHECKING:  # scenario imports the compiled core; keep this module light to import
@@ -431,8 +432,9 @@ def summarize(result: ScenarioResult) -> dict[str, Any]:
     -------
     dict
         Sections ``scenario``, ``vehicle``, ``road``, ``model_options``, ``initial``,
-        ``run``, ``final``, ``extremes``, ``rest``, ``finite`` and ``timing`` (the only
-        non-deterministic one). ``final`` is the last recorded row of the history, the
+        ``run``, ``final``, ``extremes``, ``rest``, ``holds`` (every stop held, its creep
+        and its restart: ``simserver.analysis.holds``), ``finite`` and ``timing`` (the
+        only non-deterministic one). ``final`` is the last recorded row of the history, the
         same numbers as the last row of ``history.parquet`` (forces are only known at
         recorded rows); its ``time_s`` says when that is.
     """
@@ -521,6 +523,7 @@ def summarize(result: ScenarioResult) -> dict[str, Any]:
         "settled_time_s": settled,
         "at_rest_at_end": bool(abs(last["u_mps"]) < REST_SPEED_MPS),
     }
+    summary["holds"] = holds_summary(cols)
     return _rounded(summary)
 
 

@@ -4,14 +4,18 @@ Every plot is drawn on its own ``matplotlib.figure.Figure`` rendered by the Agg 
 no ``pyplot``, no global state, no display needed, so plotting is safe in any process
 and thread. File names are fixed (``PLOT_FILES``) so that runs can be compared by path.
 
-Run plots (``plot_result`` writes all five):
+Run plots (``plot_result`` writes all six):
 
 - ``speed.png``: body velocities u and v against time (the paper's speed traces);
 - ``forces.png``: per-wheel Fx, Fy, Fz against time, with the body-frame sums;
 - ``trajectory.png``: the path in the road plane, equal axes, start and end marked,
   heading arrows every few metres;
 - ``slip.png``: the slip fed to the tire model per wheel, k' and tan a';
-- ``inputs.png``: the driver inputs.
+- ``inputs.png``: the driver inputs;
+- ``holds.png``: each hold up close (``simserver.analysis.holds``): travel in mm and
+  speed in mm/s over its creep window (a second after the stop to the release), on axes
+  scaled to the hold itself, where a micrometre of creep shows (the overview's 25 m/s
+  axis hides it).
 
 ``plot_comparison`` overlays chosen signals of several runs (the kinematic baseline beside
 the lagged model); ``plot_tire_curves`` draws a tire's characteristic curves (the paper's
@@ -35,6 +39,7 @@ from simserver.adapters.history import (
     model_options,
     result_columns,
 )
+from simserver.analysis.holds import Hold, find_holds
 from simserver.core import layout as L
 
 if TYPE_CHECKING:
@@ -279,12 +284,61 @@ def plot_inputs(result: ScenarioResult, path: str | Path) -> Path:
     return _finish_time_figure(fig, axes, result, "driver inputs", path)
 
 
+HOLDS_SHOWN = 4
+"""``holds.png`` draws at most this many holds (the first ones), a column each."""
+
+
+def hold_figure(cols: dict[str, np.ndarray], holds: Sequence[Hold]) -> Figure:
+    """The hold panels (``plot_holds``): a column per hold, over its creep window, travel
+    along the heading at the window's start (mm) above speed u (mm/s)."""
+    shown = list(holds)[:HOLDS_SHOWN]
+    n = max(1, len(shown))
+    fig = Figure(figsize=(3.6 * n + 1.0, 5.2), dpi=DPI, layout="constrained")
+    axes = fig.subplots(2, n, squeeze=False, sharex="col")
+    t = cols["time_s"]
+    if not shown:
+        axes[0, 0].text(0.5, 0.5, "no hold in this run", ha="center", va="center",
+                        transform=axes[0, 0].transAxes)
+    for k, hold in enumerate(shown):
+        # the creep window only: the stop's own settling (tens of micrometres) and the
+        # restart's metres would set the scale and flatten the creep
+        rows = (t >= hold.creep_window_s[0]) & (t <= hold.creep_window_s[1])
+        w0 = int(np.flatnonzero(rows)[0])
+        c, s_ = np.cos(cols["yaw_rad"][w0]), np.sin(cols["yaw_rad"][w0])
+        travel_mm = 1e3 * ((cols["x_m"][rows] - cols["x_m"][w0]) * c
+                           + (cols["y_m"][rows] - cols["y_m"][w0]) * s_)
+        top, bottom = axes[0, k], axes[1, k]
+        top.plot(t[rows], travel_mm, color="tab:blue", lw=1.1)
+        bottom.plot(t[rows], 1e3 * cols["u_mps"][rows], color="tab:red", lw=1.0)
+        for ax in (top, bottom):
+            ax.grid(True, alpha=0.3)
+            ax.ticklabel_format(axis="y", useOffset=False)
+            ax.axhline(0.0, color="k", lw=0.5, alpha=0.5)
+        top.set_title(f"hold {k + 1}: {hold.start_s:.2f}-{hold.end_s:.2f} s "
+                      f"({hold.released_by})\ncreep {1e3 * hold.creep_m:.2e} mm"
+                      + ("" if hold.rollback_m is None
+                         else f", rollback {1e3 * hold.rollback_m:.2e} mm"), fontsize=8)
+        bottom.set_xlabel(signal_label("time_s"))
+    axes[0, 0].set_ylabel("travel along heading (mm)")
+    axes[1, 0].set_ylabel("u (mm/s)")
+    return fig
+
+
+def plot_holds(result: ScenarioResult, path: str | Path) -> Path:
+    """Each hold up close (``PLOT_FILES``, ``hold_figure``)."""
+    cols = result_columns(result)
+    fig = hold_figure(cols, find_holds(cols))
+    fig.suptitle(f"{result.scenario.name}: each hold over its creep window", fontsize=10)
+    return _save(fig, Path(path))
+
+
 PLOT_FILES: dict[str, Callable[[ScenarioResult, str | Path], Path]] = {
     "speed.png": plot_speed,
     "forces.png": plot_forces,
     "trajectory.png": plot_trajectory,
     "slip.png": plot_slip,
     "inputs.png": plot_inputs,
+    "holds.png": plot_holds,
 }
 """File name of each run plot and the function that draws it: ``plot(result, path)`` draws
 the finished run ``result`` (a ``ScenarioResult``) into the PNG file ``path`` and returns

@@ -260,11 +260,17 @@ def open_recording(
         path = Path(target_text)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            with open(path, "wb"):
-                pass
         except OSError as exc:
             raise RerunSinkError(f"rerun save: {path}: cannot write: "
                                  f"{exc.strerror or exc}") from exc
+        from simserver.adapters.config import ConfigError
+        from simserver.logfile import open_log_file
+
+        try:  # like every file the server writes: no link followed, regular files only,
+            # never blocking on a FIFO (docs/security.md section 1)
+            os.close(open_log_file(path, "recording"))
+        except ConfigError as exc:
+            raise RerunSinkError(f"rerun save: {exc}") from None
     elif mode == "serve":
         host, port = _split_host_port(mode, target_text, DEFAULT_SERVE_HOST, DEFAULT_GRPC_PORT)
         _check_port_free(mode, host, port)

@@ -9,19 +9,31 @@ configuration changes that.
 What: the public TLS port is this front, a small process of its own (never in the tick
 process: its work costs the 1 kHz loop nothing, not even the GIL). It accepts TCP
 connections and connects one through to zenoh's real TLS listener, on a loopback-only
-port, only once the client has sent the start of a TLS ClientHello (record type 0x16,
-version 3.x, handshake type 1) within ``hello_timeout_s``. Connections that close, stay
-silent or send anything else never reach zenoh, so they cannot trigger its throttle. The
+port, only once the client has sent its whole first TLS record, a ClientHello (record
+type 0x16, version 3.x, handshake type 1, at most 2^14 bytes), within
+``hello_timeout_s``. Connections that close, stay silent, send anything else or only part
+of their ClientHello (issue 34's slowloris: 11 of 249 bytes, which used to be forwarded
+and then failed in zenoh) never reach zenoh, so they cannot trigger its throttle. The
 front does not terminate TLS: the bytes pass unchanged both ways, so server
 certificates, client certificates (mutual TLS) and zenoh's own authentication work as
 without it.
+
+zenoh's listener behind the front is reachable by the front alone (issue 34): ``serve``
+sets a random TCP MD5 key on zenoh's listening socket (:func:`protect_own_listener`), and
+the front signs its connections to zenoh with it (``backend_key``); the kernel drops every
+unsigned SYN. docs/security.md section 5.1 says why not a Unix socket.
 
 Bounds, so a flood cannot exhaust the front either:
 
 - ``max_pending_per_source``: connections of one source address that are *pending*
   (accepted, and either not yet past the hello check or forwarded but still in their TLS
   handshake); more are closed at accept.
-- ``max_pending``: the same over all sources.
+- ``max_pending``: the same over all sources. At it, the oldest hello-stage connection
+  of the source holding the most pending ones is closed for a newcomer whose source holds
+  at least two fewer (issue 34: 300 partial hellos from 50 addresses refused the driver).
+- ``max_handshakes_per_source``: forwarded connections of one source whose handshake is
+  not done yet; a further whole ClientHello of it waits in the front (``queued``) until
+  one is done, at most ``hello_timeout_s``.
 - ``handshake_timeout_s``: a forwarded connection whose TLS handshake is not done by then
   is closed. "Done" is read off the traffic without decrypting it: the server has
   answered the ClientHello and the client has then sent its second flight (its Finished,
@@ -34,7 +46,8 @@ Bounds, so a flood cannot exhaust the front either:
   until a handshake of it completes it may have only one pending connection at a time.
   So one source cannot keep zenoh's accept loop asleep with ClientHellos followed by
   garbage or a close: after its first failures (up to ``max_pending_per_source`` at
-  once), at most one per backoff period, 100 ms each.
+  once), at most one per backoff period, 100 ms each. A connection zenoh never answered
+  that waited ``UNANSWERED_GRACE_S`` is zenoh's delay, not a failure of its source.
 
 Every refusal is counted and the counters are logged at most once every
 ``log_every_s`` seconds, when they changed.
@@ -51,6 +64,7 @@ in front of any zenoh TLS listener (a router): ``simserver tls-front``.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import logging
@@ -58,8 +72,9 @@ import os
 import select
 import signal
 import socket
+import struct
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
 from dataclasses import asdict, dataclass, field
 
 log = logging.getLogger("simserver.tls_front")
@@ -70,6 +85,20 @@ TLS_HANDSHAKE_CLIENT_HELLO = 0x01
 """Handshake message type of a ClientHello (RFC 8446 section 4, RFC 5246 7.4)."""
 HELLO_PREFIX_BYTES = 6
 """Bytes checked: record type, version (2), length (2), handshake type."""
+TLS_RECORD_HEADER_BYTES = 5
+"""Record type, version (2), length (2) (RFC 8446 section 5.1)."""
+TLS_MAX_RECORD_BYTES = 1 << 14
+"""Largest plaintext record body (RFC 8446 section 5.1: MUST NOT exceed 2^14 bytes). The
+front waits for the whole first record (the ClientHello) before zenoh sees a byte."""
+TCP_MD5SIG_EXT = 32
+"""``setsockopt`` option of ``linux/tcp.h``: a TCP MD5 signature key (RFC 2385) for the
+peers of an address prefix."""
+TCP_MD5SIG_FLAG_PREFIX = 0x1
+BACKEND_KEY_BYTES = 32
+"""The secret of the front's connections to zenoh (TCP_MD5SIG_MAXKEYLEN is 80)."""
+UNANSWERED_GRACE_S = 1.0
+"""A forwarded connection that zenoh had not answered after this long and that then ended
+is zenoh's delay, not its source's failure: it does not bar the source (issue 34)."""
 FORWARD_BUFFER_BYTES = 256 * 1024
 """One receive buffer for every connection (the loop is single-threaded)."""
 LISTEN_BACKLOG = 4096
@@ -83,6 +112,7 @@ class FrontLimits:
     handshake_timeout_s: float = 10.0
     max_pending_per_source: int = 8
     max_pending: int = 256
+    max_handshakes_per_source: int = 1
     failure_backoff_s: float = 1.0
     failure_backoff_max_s: float = 30.0
     log_every_s: float = 10.0
@@ -93,7 +123,7 @@ class FrontLimits:
             value = getattr(self, name)
             if not 0.0 < value <= 3600.0:
                 raise ValueError(f"tls front: {name} must be in (0, 3600] s, got {value}")
-        for name in ("max_pending_per_source", "max_pending"):
+        for name in ("max_pending_per_source", "max_pending", "max_handshakes_per_source"):
             value = getattr(self, name)
             if not 1 <= value <= 100_000:
                 raise ValueError(f"tls front: {name} must be in 1-100000, got {value}")
@@ -106,12 +136,19 @@ class FrontCounters:
     accepted: int = 0
     forwarded: int = 0
     dropped_closed: int = 0  # closed (or reset) before sending anything
-    dropped_silent: int = 0  # no ClientHello start within hello_timeout_s
+    dropped_silent: int = 0  # sent nothing within hello_timeout_s
+    dropped_partial_hello: int = 0  # began a ClientHello, not whole within hello_timeout_s
     dropped_not_tls: int = 0  # first bytes are not a TLS ClientHello
+    dropped_queued: int = 0  # a whole ClientHello that waited hello_timeout_s behind its
+    # source's max_handshakes_per_source handshakes in zenoh
     refused_source_cap: int = 0  # max_pending_per_source reached at accept
-    refused_total_cap: int = 0  # max_pending reached at accept
+    refused_total_cap: int = 0  # max_pending reached at accept, no fair eviction possible
+    evicted_for_fairness: int = 0  # a hello-stage connection of the source holding the
+    # most pending ones, closed at max_pending so that a source holding fewer gets in
     refused_backoff: int = 0  # the source's last forwarded handshake failed: barred a while
     handshakes_failed: int = 0  # forwarded, ended before the TLS handshake was done
+    handshakes_unanswered: int = 0  # of those, zenoh never answered the ClientHello and
+    # the connection had waited UNANSWERED_GRACE_S: zenoh's delay, the source not barred
     handshake_timeouts: int = 0  # forwarded, TLS handshake not done in time: closed
     backend_unreachable: int = 0  # zenoh's listener refused the forwarded connection
     open_forwarded: int = 0  # forwarded connections open now
@@ -131,6 +168,12 @@ def hello_prefix_ok(data: bytes) -> bool | None:
         if not ok(data[index]):
             return False
     return True
+
+
+def hello_record_bytes(data: bytes | bytearray) -> int:
+    """The length of the TLS record ``data`` starts with, its 5-byte header included
+    (``data`` holds the header at least)."""
+    return TLS_RECORD_HEADER_BYTES + int.from_bytes(data[3:5], "big")
 
 
 def parse_host_port(text: str) -> tuple[str, int]:
@@ -154,6 +197,67 @@ def bind_listener(host: str, port: int) -> socket.socket:
         sock.close()
         raise
     return sock
+
+
+# ============================================================================ the backend's key
+
+
+def set_md5_key(sock: socket.socket, key: bytes, network: str = "0.0.0.0",
+                prefix_len: int = 0) -> None:
+    """Sign (and require signed) every TCP segment between ``sock`` and the IPv4 peers of
+    ``network/prefix_len`` with ``key`` (TCP MD5 signature, RFC 2385; Linux since 2.6.20,
+    prefixes since 4.13).
+
+    On a listening socket the kernel then drops every SYN from those peers that does not
+    carry a valid signature, before any ``accept``: a process without the key cannot even
+    open a connection (it sees a connect timeout). The connections it accepts inherit the
+    key. Raises ``OSError`` where the kernel lacks ``CONFIG_TCP_MD5SIG``.
+    """
+    # struct tcp_md5sig: sockaddr_storage (128), flags, prefixlen, keylen, ifindex, key[80]
+    addr = struct.pack("=H2s4s", socket.AF_INET, b"", socket.inet_aton(network))
+    option = (addr.ljust(128, b"\0")
+              + struct.pack("=BBHi", TCP_MD5SIG_FLAG_PREFIX, prefix_len, len(key), 0)
+              + key.ljust(80, b"\0"))
+    sock.setsockopt(socket.IPPROTO_TCP, TCP_MD5SIG_EXT, option)
+
+
+def own_listening_fds(host: str, port: int) -> list[int]:
+    """File descriptors of this process's TCP sockets listening on IPv4 ``host:port``
+    (zenoh's own listener: it binds it itself and hands it to nobody)."""
+    want = f"{socket.inet_aton(host)[::-1].hex().upper()}:{port:04X}"
+    inodes = set()
+    with open("/proc/self/net/tcp", encoding="ascii") as table:
+        next(table)
+        for line in table:
+            fields = line.split()
+            if fields[1] == want and fields[3] == "0A":  # 0A: TCP_LISTEN
+                inodes.add(f"socket:[{fields[9]}]")
+    fds = []
+    for name in os.listdir("/proc/self/fd"):
+        try:
+            if os.readlink(f"/proc/self/fd/{name}") in inodes:
+                fds.append(int(name))
+        except OSError:
+            continue  # closed meanwhile
+    return fds
+
+
+def protect_own_listener(host: str, port: int, key: bytes) -> int:
+    """Require ``key`` of every connection to this process's listener on ``host:port``
+    (zenoh's TLS listener behind a front); returns how many listening sockets got it.
+
+    Raises
+    ------
+    OSError
+        No such listener, or the kernel refuses TCP MD5 signatures.
+    """
+    fds = own_listening_fds(host, port)
+    if not fds:
+        raise OSError(errno.ENOENT, f"no listening socket of this process on {host}:{port}")
+    for fd in fds:
+        with socket.socket(fileno=os.dup(fd)) as dup:  # closing the dup leaves zenoh's
+            set_md5_key(dup, key)
+    return len(fds)
 
 
 # ============================================================================ endpoints
@@ -250,19 +354,21 @@ class _Poller:
 class _Conn:
     """One client connection: hello stage, then forwarding to zenoh."""
 
-    __slots__ = ("client", "backend", "source", "t_accept", "t_forward", "hello", "stage",
-                 "pending", "server_spoke", "to_client", "to_backend", "eof_client",
-                 "eof_backend", "shut_client", "shut_backend")
+    __slots__ = ("client", "backend", "source", "t_accept", "t_forward", "t_queued", "hello",
+                 "stage", "pending", "handshaking", "server_spoke", "to_client", "to_backend",
+                 "eof_client", "eof_backend", "shut_client", "shut_backend")
 
     def __init__(self, client: socket.socket, source: str, now: float) -> None:
         self.client = client
         self.backend: socket.socket | None = None
         self.source = source
         self.t_accept = now
-        self.t_forward = 0.0
-        self.hello = b""
-        self.stage = "hello"  # hello -> connecting -> forward -> closed
+        self.t_forward = 0.0  # when the connection to zenoh began
+        self.t_queued = 0.0  # when it began to wait for its source's handshake in zenoh
+        self.hello = bytearray()
+        self.stage = "hello"  # hello -> [queued ->] connecting -> forward -> closed
         self.pending = True
+        self.handshaking = False  # connecting, or forwarded with its handshake not done
         self.server_spoke = False
         self.to_client = bytearray()  # bytes waiting to be sent to the client
         self.to_backend = bytearray()
@@ -282,12 +388,17 @@ class TlsFront:
     limits : FrontLimits
     parent_pid : int, optional
         Exit when this process is no longer the parent (``simserver serve`` died).
+    backend_key : bytes, optional
+        The TCP MD5 key zenoh's listener requires (``FrontSupervisor`` sets it there): every
+        connection to zenoh is signed with it.
     """
 
     def __init__(self, listener: socket.socket, backend: tuple[str, int],
-                 limits: FrontLimits = FrontLimits(), parent_pid: int | None = None) -> None:
+                 limits: FrontLimits = FrontLimits(), parent_pid: int | None = None,
+                 backend_key: bytes | None = None) -> None:
         self.listener = listener
         self.backend = backend
+        self.backend_key = backend_key
         self.limits = limits
         self.parent_pid = parent_pid
         self.counters = FrontCounters()
@@ -296,6 +407,8 @@ class TlsFront:
         self.view = memoryview(self.buffer)
         self.pending_by_source: dict[str, set[_Conn]] = defaultdict(set)
         self.pending: set[_Conn] = set()
+        self.handshaking: dict[str, int] = {}  # source -> its handshakes in zenoh now
+        self.queued: dict[str, deque[_Conn]] = {}  # source -> whole hellos waiting
         self.failures: dict[str, int] = {}  # source -> failed handshakes in a row
         self.barred_until: dict[str, float] = {}  # source -> end of its backoff
         self.running = False
@@ -374,16 +487,17 @@ class TlsFront:
                     c.refused_backoff += 1
                     _abort(sock)
                     continue
-            if len(self.pending) >= lim.max_pending:
-                c.refused_total_cap += 1
-                _abort(sock)
-                continue
-            if len(self.pending_by_source[source]) >= lim.max_pending_per_source:
+            if len(self.pending_by_source.get(source, ())) >= lim.max_pending_per_source:
                 self._reap(source)  # connections that ended meanwhile free their slots
-                if len(self.pending_by_source[source]) >= lim.max_pending_per_source:
+                if len(self.pending_by_source.get(source, ())) >= \
+                        lim.max_pending_per_source:
                     c.refused_source_cap += 1
                     _abort(sock)
                     continue
+            if len(self.pending) >= lim.max_pending and not self._evict_for(source):
+                c.refused_total_cap += 1
+                _abort(sock)
+                continue
             sock.setblocking(False)
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             conn = _Conn(sock, source, time.monotonic())
@@ -392,6 +506,30 @@ class TlsFront:
             self.poller.set(sock, READ, (conn, "client"))
             self._event(conn, "client", READ)  # a burst's connect-and-
             # close ends here at once, and a ClientHello already queued goes on
+
+    def _evict_for(self, source: str) -> bool:
+        """At ``max_pending``: make room for a connection of ``source`` by closing the
+        oldest hello-stage connection of the source that holds the most pending ones, if
+        that source holds at least two more than ``source`` (issue 34: 300 partial
+        ClientHellos held from 50 other addresses filled the cap and refused the driver
+        on every try). A hello-stage connection has not reached zenoh, so closing it costs
+        zenoh nothing; the flood's sources share the cap among themselves, and a source
+        with few pending connections (the driver's) always gets a slot while some source
+        holds several. Returns whether a connection was closed."""
+        mine = len(self.pending_by_source.get(source, ()))
+        victim = None
+        for conns in sorted(self.pending_by_source.values(), key=len, reverse=True):
+            if len(conns) < mine + 2:
+                break
+            hello = [k for k in conns if k.stage in ("hello", "queued")]
+            if hello:  # (forwarded ones are in zenoh's handshake: closing one costs it)
+                victim = min(hello, key=lambda k: k.t_accept)
+                break
+        if victim is None:
+            return False
+        self.counters.evicted_for_fairness += 1
+        self._close(victim)
+        return True
 
     def _reap(self, source: str) -> None:
         """Read the hello-stage connections of ``source`` now: those closed meanwhile
@@ -425,36 +563,101 @@ class TlsFront:
             self._close(conn)
 
     def _read_hello(self, conn: _Conn) -> None:
+        """Read the client's first TLS record, the ClientHello, whole: zenoh sees nothing
+        of a client that has not sent it all within ``hello_timeout_s`` (issue 34: with
+        only its first 6 bytes checked, 300 partial ClientHellos of 11 of 249 bytes were
+        forwarded, each held one of zenoh's handshakes until it failed, and each failure
+        then put zenoh's accept loop to sleep for 100 ms)."""
         if conn.stage != "hello":
             return
+        hello = conn.hello
+        need = (hello_record_bytes(hello) if len(hello) >= TLS_RECORD_HEADER_BYTES
+                else TLS_RECORD_HEADER_BYTES)
         try:
-            data = conn.client.recv(HELLO_PREFIX_BYTES - len(conn.hello))
+            data = conn.client.recv(need - len(hello))
         except (BlockingIOError, InterruptedError):
             return
         except OSError:
             data = b""
         if not data:
-            if conn.hello:  # a partial ClientHello, then the end: not a TLS client
+            if hello:  # a partial ClientHello, then the end: not a TLS client
                 self.counters.dropped_not_tls += 1
             else:
                 self.counters.dropped_closed += 1
             self._close(conn)
             return
-        conn.hello += data
-        verdict = hello_prefix_ok(conn.hello)
-        if verdict is False or (verdict is None and len(conn.hello) >= HELLO_PREFIX_BYTES):
+        hello += data
+        verdict = hello_prefix_ok(hello)
+        if verdict is None and len(hello) < HELLO_PREFIX_BYTES:
+            return
+        if verdict is False or not 0 < hello_record_bytes(hello) - TLS_RECORD_HEADER_BYTES \
+                <= TLS_MAX_RECORD_BYTES:
             self.counters.dropped_not_tls += 1
             self._close(conn)
-        elif verdict:
+        elif len(hello) < hello_record_bytes(hello):
+            return  # more of the record to come (or the hello timeout)
+        elif time.monotonic() - conn.t_accept > self.limits.hello_timeout_s:
+            # whole, but late (the loop was busy): the deadline holds all the same
+            self.counters.dropped_partial_hello += 1
+            self._close(conn)
+        else:
+            self._forward_or_queue(conn)
+
+    def _forward_or_queue(self, conn: _Conn) -> None:
+        """Forward a whole ClientHello, or let it wait while its source has
+        ``max_handshakes_per_source`` handshakes in zenoh already. Every forwarded
+        handshake that fails costs zenoh's accept loop 100 ms, so this bounds what one
+        source's ClientHellos followed by a stall cost zenoh at once (8 per source
+        before: 50 sources stalling 6 each kept the driver out 13.9 s after the attack)."""
+        source = conn.source
+        if self.handshaking.get(source, 0) >= self.limits.max_handshakes_per_source:
+            conn.stage = "queued"
+            conn.t_queued = time.monotonic()
+            self.poller.set(conn.client, 0, None)  # its next bytes wait in the kernel
+            self.queued.setdefault(source, deque()).append(conn)
+        else:
             self._connect_backend(conn)
+
+    def _handshake_over(self, conn: _Conn) -> None:
+        """``conn``'s handshake in zenoh is done or ended: its source's next waiting
+        ClientHello goes on (or is refused if the source is barred now)."""
+        if not conn.handshaking:
+            return
+        conn.handshaking = False
+        source = conn.source
+        left = self.handshaking[source] - 1
+        if left:
+            self.handshaking[source] = left
+        else:
+            del self.handshaking[source]
+        waiting = self.queued.get(source)
+        while waiting and self.handshaking.get(source, 0) < \
+                self.limits.max_handshakes_per_source:
+            nxt = waiting[0]  # (closing it takes it off the queue)
+            if time.monotonic() < self.barred_until.get(source, 0.0):
+                self.counters.refused_backoff += 1
+                self._close(nxt)
+            elif not _still_open(nxt.client):  # gave up waiting: zenoh need not know
+                self.counters.dropped_closed += 1
+                self._close(nxt)
+            else:
+                waiting.popleft()
+                if not waiting:
+                    del self.queued[source]
+                self._connect_backend(nxt)
 
     def _connect_backend(self, conn: _Conn) -> None:
         backend = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         backend.setblocking(False)
         backend.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        if self.backend_key is not None:
+            set_md5_key(backend, self.backend_key, self.backend[0], 32)
         conn.backend = backend
         conn.to_backend += conn.hello
         conn.stage = "connecting"
+        conn.t_forward = time.monotonic()
+        conn.handshaking = True
+        self.handshaking[conn.source] = self.handshaking.get(conn.source, 0) + 1
         self.poller.set(conn.client, 0, None)  # not read until zenoh's side is connected
         err = backend.connect_ex(self.backend)
         if err in (0, errno.EINPROGRESS):
@@ -470,7 +673,6 @@ class TlsFront:
             self._close(conn)
             return
         conn.stage = "forward"
-        conn.t_forward = time.monotonic()
         self.counters.forwarded += 1
         self.counters.open_forwarded += 1
         self.poller.set(conn.client, READ, (conn, "client"))
@@ -508,6 +710,7 @@ class TlsFront:
             elif conn.server_spoke and conn.pending:
                 self._release(conn)  # the client's second flight: the handshake is done
                 self.failures.pop(conn.source, None)
+                self._handshake_over(conn)
             out = conn.to_backend if side == "client" else conn.to_client
             dst = conn.backend if side == "client" else conn.client
             if out:
@@ -560,12 +763,22 @@ class TlsFront:
         if len(self.failures) > 64 * lim.max_pending:
             self.failures.clear()  # bounded memory; a source's next failure starts at 1 s
         for conn in list(self.pending):
-            if conn.stage in ("hello", "connecting"):
+            if conn.stage == "hello":
                 if now - conn.t_accept > lim.hello_timeout_s:
-                    if conn.stage == "hello":
-                        self.counters.dropped_silent += 1
-                    else:
-                        self.counters.backend_unreachable += 1
+                    self._read_hello(conn)  # what arrived meanwhile: a close, say
+                    if conn.stage == "hello":  # not whole in time: never forwarded
+                        if conn.hello:
+                            self.counters.dropped_partial_hello += 1
+                        else:
+                            self.counters.dropped_silent += 1
+                        self._close(conn)
+            elif conn.stage == "queued":
+                if now - conn.t_queued > lim.hello_timeout_s:
+                    self.counters.dropped_queued += 1
+                    self._close(conn)
+            elif conn.stage == "connecting":
+                if now - conn.t_forward > lim.hello_timeout_s:
+                    self.counters.backend_unreachable += 1
                     self._close(conn)
             elif now - conn.t_forward > lim.handshake_timeout_s:
                 self.counters.handshake_timeouts += 1
@@ -574,11 +787,27 @@ class TlsFront:
     def _close(self, conn: _Conn) -> None:
         if conn.stage == "closed":
             return
+        waiting = self.queued.get(conn.source)
+        if conn.stage == "queued" and waiting and conn in waiting:
+            waiting.remove(conn)
+            if not waiting:
+                del self.queued[conn.source]
         if conn.stage == "forward":
             self.counters.open_forwarded -= 1
             if conn.pending:  # the handshake failed (in zenoh, or the client gave up)
                 self.counters.handshakes_failed += 1
-                n = self.failures.get(conn.source, 0) + 1
+                if not conn.server_spoke and \
+                        time.monotonic() - conn.t_forward >= UNANSWERED_GRACE_S:
+                    # zenoh never answered a client that waited for it: zenoh was busy
+                    # (its queue, its 100 ms sleeps), the client is not to blame; barring
+                    # it would let a driver's own retries lengthen its lock-out (issue 34)
+                    self.counters.handshakes_unanswered += 1
+                    n = 0
+                else:
+                    n = self.failures.get(conn.source, 0) + 1
+            else:
+                n = 0
+            if n:
                 self.failures[conn.source] = n
                 lim = self.limits
                 self.barred_until[conn.source] = time.monotonic() + min(
@@ -590,6 +819,7 @@ class TlsFront:
                 continue
             self.poller.forget(sock)
             sock.close()
+        self._handshake_over(conn)  # after the backoff above: a barred source's next waits
 
     # ------------------------------------------------------------------ log
     def _log_counters(self, now: float, force: bool = False) -> None:
@@ -617,6 +847,16 @@ def _abort(sock: socket.socket) -> None:
     sock.close()
 
 
+def _still_open(sock: socket.socket) -> bool:
+    """Whether the client has not closed (or reset) its end; reads nothing."""
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) != b""
+    except (BlockingIOError, InterruptedError):
+        return True
+    except OSError:
+        return False
+
+
 def _shutdown_write(sock: socket.socket) -> None:
     try:
         sock.shutdown(socket.SHUT_WR)
@@ -628,12 +868,14 @@ def _shutdown_write(sock: socket.socket) -> None:
 
 
 def front_command(plan: FrontPlan, fd: int, limits: FrontLimits, parent_pid: int,
-                  python: str) -> list[str]:
+                  python: str, key_fd: int | None = None) -> list[str]:
     """The command line of a front process serving ``plan`` on the inherited socket
-    ``fd`` (``simserver tls-front --listen-fd``)."""
+    ``fd`` (``simserver tls-front --listen-fd``), reading zenoh's key from the inherited
+    pipe ``key_fd`` (never from its command line, which every local user can read)."""
+    key = ["--backend-key-fd", str(key_fd)] if key_fd is not None else []
     return [python, "-m", "simserver", "tls-front", "--listen-fd", str(fd),
             "--backend", f"127.0.0.1:{plan.backend_port}", "--parent-pid", str(parent_pid),
-            *limit_args(limits)]
+            *key, *limit_args(limits)]
 
 
 def limit_args(limits: FrontLimits) -> list[str]:
@@ -645,9 +887,9 @@ def limit_args(limits: FrontLimits) -> list[str]:
 
 
 def serve(listener: socket.socket, backend: tuple[str, int], limits: FrontLimits,
-          parent_pid: int | None = None) -> FrontCounters:
+          parent_pid: int | None = None, backend_key: bytes | None = None) -> FrontCounters:
     """Run a front in this process until SIGTERM/SIGINT (``simserver tls-front``)."""
-    front = TlsFront(listener, backend, limits, parent_pid)
+    front = TlsFront(listener, backend, limits, parent_pid, backend_key)
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, front.stop)
     host, port = listener.getsockname()[:2]
@@ -666,6 +908,15 @@ class FrontSupervisor:
     endpoint) and hands it to its front; a watcher thread per front restarts a front that
     dies (at most once a second), so the public port never closes while the server runs:
     during a restart, connections wait in the kernel's accept queue.
+
+    zenoh's listeners behind the fronts are reachable by the fronts alone (issue 34: a
+    burst of 500 plain connect-and-close on zenoh's loopback port, visible to any local
+    process, kept the driver out for 59 s). ``start()``, called in the process that
+    opened the zenoh session once it listens, puts a random TCP MD5 key
+    (:func:`set_md5_key`) on zenoh's listening sockets; the kernel then drops every SYN
+    that is not signed with it, so no connection without the key ever reaches zenoh's
+    accept loop. Each front gets the key through an inherited pipe and signs its
+    connections to zenoh with it.
 
     Parameters
     ----------
@@ -689,6 +940,8 @@ class FrontSupervisor:
         self._priority: int | None = None
         self._lock = threading.Lock()
         self._python = sys.executable
+        self._threading = threading
+        self.key: bytes | None = os.urandom(BACKEND_KEY_BYTES)
         try:
             for plan in self.plans:
                 try:
@@ -699,10 +952,35 @@ class FrontSupervisor:
                         from None
             self.public_listen = [next((p.public_bound for p in self.plans
                                         if p.public == ep), ep) for ep in listen]
+        except BaseException:
+            self.stop()
+            raise
+
+    def start(self) -> None:
+        """Lock zenoh's listeners (this process's, listening by now) to the key, then
+        start the fronts. Until then clients wait in the public sockets' accept queues.
+
+        Where the kernel refuses TCP MD5 keys (no ``CONFIG_TCP_MD5SIG``), the fronts run
+        without one and an error says that zenoh's loopback port is open to local
+        processes."""
+        try:
+            for plan in self.plans:
+                protect_own_listener("127.0.0.1", plan.backend_port, self.key)
+        except OSError as exc:
+            log.error("tls front: zenoh's loopback listener cannot be locked to the front "
+                      "(%s): any local process can reach it and hold new sessions off "
+                      "(docs/security.md section 5.1)", exc.strerror or exc)
+            for plan in self.plans:  # the sockets already keyed: undone with an empty key
+                for fd in own_listening_fds("127.0.0.1", plan.backend_port):
+                    with socket.socket(fileno=os.dup(fd)) as dup, \
+                            contextlib.suppress(OSError):
+                        set_md5_key(dup, b"")
+            self.key = None
+        try:
             for i in range(len(self.plans)):
                 self._spawn(i)
-                threading.Thread(target=self._watch, args=(i,), name=f"tls-front-{i}",
-                                 daemon=True).start()
+                self._threading.Thread(target=self._watch, args=(i,),
+                                       name=f"tls-front-{i}", daemon=True).start()
         except BaseException:
             self.stop()
             raise
@@ -712,8 +990,18 @@ class FrontSupervisor:
 
         plan = self.plans[i]
         fd = plan.listener.fileno()
-        proc = subprocess.Popen(front_command(plan, fd, self.limits, os.getpid(),
-                                              self._python), pass_fds=(fd,))
+        key_fd = None
+        if self.key is not None:  # a pipe holds the key until the front reads it
+            key_fd, write_fd = os.pipe()
+            os.write(write_fd, self.key)
+            os.close(write_fd)
+        try:
+            proc = subprocess.Popen(
+                front_command(plan, fd, self.limits, os.getpid(), self._python, key_fd),
+                pass_fds=(fd,) if key_fd is None else (fd, key_fd))
+        finally:
+            if key_fd is not None:
+                os.close(key_fd)
         self.procs[i] = proc
         log.info("tls front (pid %d): %s -> zenoh on %s", proc.pid, plan.public_bound,
                  plan.backend)
@@ -795,6 +1083,9 @@ def add_arguments(parser: object) -> None:
                         help="zenoh's TLS listener (loopback)")
     parser.add_argument("--parent-pid", type=int, default=None, metavar="PID",
                         help="exit when this process is no longer the parent")
+    parser.add_argument("--backend-key-fd", type=int, default=None, metavar="FD",
+                        help="an inherited pipe holding the TCP MD5 key zenoh's listener "
+                             "requires (simserver serve)")
     defaults = FrontLimits()
     for name, value in asdict(defaults).items():
         parser.add_argument(f"--{name.replace('_', '-')}", type=type(value), default=value,
@@ -814,9 +1105,15 @@ def main(args: object) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     limits = FrontLimits(**{name: getattr(args, name) for name in asdict(FrontLimits())})
     backend = parse_host_port(args.backend)
+    key = None
+    if args.backend_key_fd is not None:
+        with os.fdopen(args.backend_key_fd, "rb") as pipe:
+            key = pipe.read(80)
+        if not key:
+            raise ValueError("--backend-key-fd: no key in the pipe")
     if args.listen_fd is not None:
         listener = socket.socket(fileno=args.listen_fd)
     else:
         listener = bind_listener(*parse_host_port(args.listen))
-    serve(listener, backend, limits, args.parent_pid)
+    serve(listener, backend, limits, args.parent_pid, key)
     return 0

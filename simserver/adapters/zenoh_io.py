@@ -670,14 +670,17 @@ class VehiclePublisher:
                 self._judged = self._costly = 0
 
     def _log_mode(self, mode: str) -> None:
+        # DEBUG, not INFO: an idle server with no client switched a few times a minute
+        # (132 INFO lines in 55 minutes, issue 32); the stop statistics count the
+        # hand-offs (publish_handoffs)
         if mode == "thread":
             why = (f"a socket with {self._backlog} bytes unsent" if self._backlogged
                    else f"a put took {self._last_slow_ns / 1e3:.0f} us")
-            log.info("state-tx: states handed to this thread (%s: slow links or many "
-                     "subscribers)", why)
+            log.debug("state-tx: states handed to this thread (%s: slow links or many "
+                      "subscribers)", why)
         else:
-            log.info("state-tx: states put in the tick again (puts cheap over the last %d)",
-                     self._again_puts)
+            log.debug("state-tx: states put in the tick again (puts cheap over the last %d)",
+                      self._again_puts)
 
     def close(self) -> None:
         """Stop the sender thread after what is queued (idempotent); the publishers are

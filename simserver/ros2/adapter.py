@@ -4,16 +4,20 @@ Like the viewer (``simserver.viewer``), it is a separate process that talks to t
 only through the protocol: it subscribes to the state (a bounded ring, newest wins; the
 server's ``state/100hz`` key at rates up to 100 Hz, else the 1 kHz ``state``),
 sends DriverCommands, and reads the vehicle with the ``get_config`` control. The 1 kHz
-loop never waits for it, and by default its Python thread runs at idle CPU priority
-(:func:`idle_python_thread`; zenoh's threads keep normal priority, so the state stream
-is always drained) so that on the server's machine its work uses only time the physics
-does not want.
+loop never waits for it. Its Python thread runs at normal CPU priority, below the
+server's real-time tick: at idle priority (``--idle-priority``,
+:func:`idle_python_thread`) a flood of ROS messages on its own receive threads, which
+keep normal priority, starved it (issue 34: 2.5 odometry messages a second of 100 under
+a flood of valid Ackermann commands, 26 under a malformed one).
 
 Every ``1 / rate_hz`` seconds (absolute deadlines; a late loop skips, never bursts) it:
 
-1. takes the newest state and the ROS commands received since the last period
-   (``ackermann_cmd``, then ``cmd_vel``; the last one is in force). A command with a
-   NaN or an infinity is ignored (counted as rejected), as if it had not been sent;
+1. takes the newest state and the newest valid ROS command of each topic received since
+   the last period (``ackermann_cmd``, then ``cmd_vel``; the last one is in force),
+   decoding at most :data:`COMMAND_RING_DEPTH` samples a topic, newest first, however
+   fast they come (:class:`RosSubscription`). A command with a NaN or an infinity is
+   ignored (counted as rejected), as if it had not been sent; recurring warnings are
+   logged at most once a second, with counts;
 2. if the newest ROS command is younger than ``command_timeout_s``, runs the speed
    controller (``simserver.ros2.control``) and sends one DriverCommand. Without a ROS
    command for that long it sends nothing at all, so the server's own watchdog engages
@@ -38,9 +42,10 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import zenoh
 
@@ -48,11 +53,24 @@ from simserver import protocol as proto
 from simserver.ros2 import wire
 from simserver.ros2.control import DriveTarget, SpeedController, VehicleLimits, twist_steer_angle
 from simserver.ros2.convert import StateConverter
+from simserver.vehicle_slot import RateLimitedLog
 
 log = logging.getLogger("simserver.ros2")
 
 CONFIG_POLL_S = 2.0
 """Re-read the server's configuration this often, to follow a ``load`` of another vehicle."""
+
+COMMAND_RING_DEPTH = 4
+"""Samples a command subscription keeps between two periods (the newest; zenoh's threads
+overwrite the oldest), so at most this many are decoded a period, newest first, whatever
+the rate they come at: only the newest valid command matters (issue 34: a flood of 20 000
+commands a second, one line logged and one decode per message, halved the odometry)."""
+
+REJECT_LOG_INTERVAL_S = 1.0
+"""A recurring warning (a command that does not decode, a non-finite one) is logged at most
+this often, with the count of those in between (issue 34: one line per bad message)."""
+
+T = TypeVar("T")
 
 
 @dataclass
@@ -74,7 +92,7 @@ class Ros2Options:
     base_frame: str = "base_link"
     stamp: str = "wall"
     duration_s: float | None = None
-    idle_priority: bool = True
+    idle_priority: bool = False  # SCHED_IDLE for its Python thread (--idle-priority)
 
     def check(self) -> Ros2Options:
         """Validate; :class:`simserver.ros2.wire.Ros2WireError` names the bad option."""
@@ -108,7 +126,10 @@ class Ros2Stats:
     messages_published: int = 0
     ros_commands: int = 0
     ros_commands_rejected: int = 0
+    ros_commands_superseded: int = 0
     commands_sent: int = 0
+    periods: int = 0
+    periods_missed: int = 0  # deadlines skipped because a period ran late
     cpu_priority: str = "normal"
 
 
@@ -142,7 +163,15 @@ class RosPublisher:
 
 
 class RosSubscription:
-    """A ROS 2 subscription: a ring of the newest samples, decoded with rosbags."""
+    """A ROS 2 subscription: a small ring of the newest samples, of which each period decodes
+    the newest (rosbags), and older ones only while the newer did not decode or was refused.
+
+    A publisher flooding the topic (valid or not) thus costs this process's period at most
+    :data:`COMMAND_RING_DEPTH` decodes, however fast it sends: the ring keeps the newest
+    samples (zenoh's threads overwrite the oldest), and older ones behind a valid one are
+    dropped unread (counted in ``superseded``). Decoding failures are counted in
+    ``rejected`` and logged at most once a second, with the count of those in between.
+    """
 
     def __init__(self, node: RosNode, fq_topic: str, ros_type: str, qos: wire.QoS) -> None:
         self.topic = fq_topic
@@ -150,22 +179,37 @@ class RosSubscription:
         self.key = wire.topic_keyexpr(node.domain_id, fq_topic, ros_type)
         self.token_key = node.endpoint_token(wire.ENTITY_SUBSCRIPTION, fq_topic, ros_type, qos)
         self._sub = node.session.declare_subscriber(
-            self.key, zenoh.handlers.RingChannel(max(1, qos.depth)))
+            self.key, zenoh.handlers.RingChannel(max(1, min(qos.depth, COMMAND_RING_DEPTH))))
         self._token = node.session.liveliness().declare_token(self.token_key)
-        self.rejected = 0
+        self.rejected = 0  # samples that did not decode
+        self.superseded = 0  # samples dropped unread: a newer one of the same period decoded
+        self.reject_log = RateLimitedLog(REJECT_LOG_INTERVAL_S, log)
 
-    def drain(self) -> list[Any]:
-        """Decoded messages received since the last call, oldest first (never blocks)."""
-        out = []
+    def newest(self, accept: Callable[[Any], T | None]) -> tuple[T | None, int]:
+        """The newest sample received since the last call that decodes and that ``accept``
+        turns into a value (not None), and how many ``accept`` refused; never blocks.
+
+        At most :data:`COMMAND_RING_DEPTH` samples are decoded, newest first.
+        """
+        samples = []
         sample = self._sub.try_recv()
-        while sample is not None:
+        while sample is not None:  # at most the ring's depth
+            samples.append(sample)
+            sample = self._sub.try_recv()
+        refused = 0
+        for tried, sample in enumerate(reversed(samples)):
             try:
-                out.append(wire.deserialize(sample.payload.to_bytes(), self.ros_type))
+                message = wire.deserialize(sample.payload.to_bytes(), self.ros_type)
             except Exception as exc:  # rosbags raises several kinds on a bad payload
                 self.rejected += 1
-                log.warning("%s: cannot decode a %s (%s)", self.key, self.ros_type, exc)
-            sample = self._sub.try_recv()
-        return out
+                self.reject_log.warn(f"{self.key}: cannot decode a {self.ros_type} ({exc})")
+                continue
+            value = accept(message)
+            if value is not None:
+                self.superseded += len(samples) - tried - 1
+                return value, refused
+            refused += 1
+        return None, refused
 
     def close(self) -> None:
         for obj in (self._token, self._sub):
@@ -233,10 +277,7 @@ def _vehicle_from_config(config: dict[str, Any]) -> tuple[VehicleLimits, float, 
 def _finite(target: DriveTarget) -> DriveTarget | None:
     values = (target.speed_mps, target.accel_limit_mps2, target.steer_rad,
               target.steer_rate_limit_radps)
-    if all(math.isfinite(v) for v in values):
-        return target
-    log.warning("a ROS command with a non-finite value was ignored: %s", target)
-    return None
+    return target if all(math.isfinite(v) for v in values) else None
 
 
 def _target_from_ackermann(msg: Any) -> DriveTarget | None:
@@ -252,7 +293,6 @@ def _target_from_twist(msg: Any, limits: VehicleLimits) -> DriveTarget | None:
     """A Twist's target (``linear.x``, ``angular.z``), or None when one is not finite."""
     speed, yaw_rate = float(msg.linear.x), float(msg.angular.z)
     if not (math.isfinite(speed) and math.isfinite(yaw_rate)):
-        log.warning("a Twist with a non-finite value was ignored")
         return None
     return DriveTarget(speed_mps=speed, steer_rad=twist_steer_angle(speed, yaw_rate, limits))
 
@@ -306,6 +346,7 @@ class Ros2Adapter:
         self.last_ros_command: float | None = None  # monotonic time of the newest
         self.last_control_time_s: float | None = None  # sim time of the last command sent
         self.rejected_targets = 0
+        self.nonfinite_log = RateLimitedLog(REJECT_LOG_INTERVAL_S, log)
         self.seq = 0
         self.last_config_poll = time.monotonic()
 
@@ -352,18 +393,24 @@ class Ros2Adapter:
             return
 
     def take_ros_commands(self, now: float) -> None:
-        """Targets from the commands that arrived (the last valid one is in force)."""
-        received = [_target_from_ackermann(m) for m in self.subs["ackermann_cmd"].drain()]
-        received += [_target_from_twist(m, self.limits) for m in self.subs["cmd_vel"].drain()]
-        for target in received:
-            if target is None:  # NaN or infinity: no command at all
-                self.rejected_targets += 1
-                continue
-            self.target = target
-            self.last_ros_command = now
-            self.stats.ros_commands += 1
+        """The newest valid command of each topic since the last period (of both, cmd_vel's
+        is in force); older ones are not decoded (:class:`RosSubscription`)."""
+        ackermann, refused = self.subs["ackermann_cmd"].newest(_target_from_ackermann)
+        twist, refused_twist = self.subs["cmd_vel"].newest(
+            lambda m: _target_from_twist(m, self.limits))
+        refused += refused_twist
+        if refused:  # NaN or infinity: no command at all
+            self.rejected_targets += refused
+            self.nonfinite_log.warn(f"{refused} ROS command(s) with a non-finite value "
+                                    "ignored")
+        for target in (ackermann, twist):
+            if target is not None:
+                self.target = target
+                self.last_ros_command = now
+                self.stats.ros_commands += 1
         self.stats.ros_commands_rejected = self.rejected_targets + sum(
             s.rejected for s in self.subs.values())
+        self.stats.ros_commands_superseded = sum(s.superseded for s in self.subs.values())
 
     def drive(self, now: float) -> None:
         """One DriverCommand while ROS commands are fresh; silence (the watchdog) otherwise."""
@@ -487,12 +534,15 @@ def run_ros2(options: Ros2Options) -> Ros2Stats:
                     if opts.duration_s is not None and now - t_start > opts.duration_s:
                         break
                     adapter.period(now)
+                    stats.periods += 1
                     next_t += period  # absolute deadlines
                     delay = next_t - time.monotonic()
                     if delay > 0.0:
                         time.sleep(delay)
                     else:  # late: skip the missed deadlines instead of bursting
-                        next_t += period * math.floor(-delay / period)
+                        missed = math.floor(-delay / period)
+                        stats.periods_missed += missed
+                        next_t += period * missed
             finally:
                 adapter.close()
     finally:

@@ -50,10 +50,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="header stamps: wall clock (default) or simulated time")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="stop after S wall seconds (default: until Ctrl-C)")
-    parser.add_argument("--normal-priority", action="store_true",
-                        help="keep normal CPU priority (default: idle priority, so the "
-                             "adapter only uses CPU time a server on the same machine does "
-                             "not want)")
+    priority = parser.add_mutually_exclusive_group()
+    priority.add_argument("--normal-priority", dest="idle_priority", action="store_false",
+                          default=False,
+                          help="normal CPU priority (the default): a flood of ROS messages on "
+                               "the adapter's own receive threads cannot starve its "
+                               "publishing, and the server's tick, at real-time priority, "
+                               "is above it anyway")
+    priority.add_argument("--idle-priority", dest="idle_priority", action="store_true",
+                          help="run the adapter's work at idle CPU priority (SCHED_IDLE): it "
+                               "uses only CPU time nothing else wants, and on a busy machine "
+                               "(or under a flood of ROS messages) it may not run at all")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -82,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         vehicle_id=args.vehicle_id, domain_id=domain_id, namespace=args.namespace,
         node_name=args.node_name, rate_hz=args.rate, command_timeout_s=args.command_timeout,
         topics=topics, odom_frame=args.odom_frame, base_frame=args.base_frame,
-        stamp=args.stamp, duration_s=args.duration, idle_priority=not args.normal_priority)
+        stamp=args.stamp, duration_s=args.duration, idle_priority=args.idle_priority)
     try:
         stats = run_ros2(options)
     except Ros2WireError as exc:
@@ -90,8 +97,10 @@ def run(args: argparse.Namespace) -> int:
     except TimeoutError as exc:
         raise CliError(f"no server answered: {exc}", exit_code=3) from exc
     print(f"ros2: {stats.states_received} states, {stats.messages_published} messages out, "
-          f"{stats.ros_commands} ROS commands in ({stats.ros_commands_rejected} rejected), "
-          f"{stats.commands_sent} commands sent; CPU priority {stats.cpu_priority}", flush=True)
+          f"{stats.ros_commands} ROS commands in ({stats.ros_commands_rejected} rejected, "
+          f"{stats.ros_commands_superseded} superseded unread), {stats.commands_sent} "
+          f"commands sent; {stats.periods} periods ({stats.periods_missed} deadlines missed); "
+          f"CPU priority {stats.cpu_priority}", flush=True)
     return 0
 
 
@@ -146,8 +155,7 @@ def adapter_command(endpoint: str, prefix: str, vehicle_id: str,
         elif key == "normal_priority":
             if not isinstance(value, bool):
                 raise ValueError(f"{source}.normal_priority: expected true or false")
-            if value:
-                args.append("--normal-priority")
+            args.append("--normal-priority" if value else "--idle-priority")
         elif key in SERVE_SETTINGS:
             flag, kind = SERVE_SETTINGS[key]
             if isinstance(value, bool) or not isinstance(value, (kind, int) if kind is float

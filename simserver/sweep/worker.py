@@ -30,7 +30,7 @@ from simserver.sweep.spec import Case
 
 OK, CONFIG_ERROR, NON_FINITE, FAILED = "ok", "config_error", "non_finite", "error"
 VIOLATION = "violation"  # a soak broke an invariant
-SOAK_METRICS = ("violations", "holds_checked", "holds_not_at_rest", "max_hold_creep_m",
+SOAK_METRICS = ("violations", "holds_checked", "holds_unjudged", "max_hold_creep_m",
                 "max_speed_mps", "min_fz_n", "simulated_s")
 
 

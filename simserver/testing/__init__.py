@@ -204,10 +204,13 @@ class OutputProcess:
         Environment, as given (default this one, with ``PYTHONUNBUFFERED=1``).
     cwd : Path
         Working directory (default the repository).
+    new_session : bool
+        Start it in a session and process group of its own, as a shell starts a job:
+        ``signal_group`` then signals it and every child, as Ctrl-C in a terminal does.
     """
 
     def __init__(self, argv: Sequence[str], ready: str = "", env: dict[str, str] | None = None,
-                 cwd: Path = REPO) -> None:
+                 cwd: Path = REPO, new_session: bool = False) -> None:
         self.argv = list(argv)
         self.output: list[str] = []
         self.returncode: int | None = None
@@ -219,7 +222,8 @@ class OutputProcess:
         self.proc = subprocess.Popen(self.argv, cwd=cwd, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, text=True,
                                      env=dict(os.environ, PYTHONUNBUFFERED="1")
-                                     if env is None else env)
+                                     if env is None else env,
+                                     start_new_session=new_session)
         self._reader = threading.Thread(target=self._pump, daemon=True)
         self._reader.start()
 
@@ -281,6 +285,10 @@ class OutputProcess:
     def children(self) -> list[int]:
         """Process ids whose parent is this process."""
         return child_pids(self.proc.pid)
+
+    def signal_group(self, sig: int) -> None:
+        """Send ``sig`` to its whole process group (started with ``new_session``)."""
+        os.killpg(self.proc.pid, sig)
 
     def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 30.0) -> int:
         """Send ``sig`` (default SIGTERM), wait, SIGKILL if it hangs; the exit code."""
@@ -385,7 +393,8 @@ class ServerProcess(OutputProcess):
                  viewer: str = "off", log_level: str = "INFO",
                  command_log: Path | None = None, config: Path | None = None,
                  argv: Sequence[str] | None = None, env: dict[str, str] | None = None,
-                 cwd: Path = REPO, ready_timeout_s: float = 120.0) -> None:
+                 cwd: Path = REPO, ready_timeout_s: float = 120.0,
+                 new_session: bool = False) -> None:
         self.vehicle_id = vehicle_id
         if listen is None:
             self.port: int | None = free_port()
@@ -398,7 +407,7 @@ class ServerProcess(OutputProcess):
             argv = serve_args(vehicle_id=vehicle_id, scene=scene, listen=listen,
                               viewer=viewer, log_level=log_level, command_log=command_log,
                               config=config, extra_args=extra_args)
-        super().__init__(argv, ready="ready on", env=env, cwd=cwd)
+        super().__init__(argv, ready="ready on", env=env, cwd=cwd, new_session=new_session)
         if not self.wait_ready(ready_timeout_s) or not self.alive():
             self.kill()
             raise RuntimeError("server did not become ready:\n" + self.text())
