@@ -3,7 +3,10 @@
 Writes ``OUT/history.parquet`` (one row per VehicleState received) with the headless
 runner's column names (``simserver run-scenario``'s ``history.parquet``,
 ``docs/history_columns.md``) wherever the state carries the quantity, plus state-only
-columns, and ``OUT/diagnostics.parquet`` (one row per Diagnostics message). Rows are
+columns: every field of the state, named by the state table (``protocol.STATE_FIELDS``,
+whose ``STATE_COLUMNS`` give each column's name, field, type and unit; docs/protocol.md
+section 2.2), so a field added to the state is recorded without a change here. And
+``OUT/diagnostics.parquet`` (one row per Diagnostics message). Rows are
 buffered in preallocated chunks and streamed as Parquet row groups (``--flush-rows``);
 Ctrl-C, SIGTERM, ``--duration`` or the server's liveliness token staying away for 3 s
 stop the recording after a last drain of what zenoh already delivered, and the files are
@@ -94,11 +97,16 @@ from clients.common import (
     state_filter,
 )
 from simserver import protocol as proto
+from simserver.protocol import reference_plane_slopes, world_to_road
+
+# the wire's frames (docs/protocol.md section 2.4) live in the protocol; kept here by name
+# for this module's readers (recorder.road_axes, recorder.world_to_road, ...)
+road_axes = proto.road_axes
 
 PROG = "simserver-recorder"
 HISTORY_FILE = "history.parquet"
 DIAGNOSTICS_FILE = "diagnostics.parquet"
-WHEELS = ("fl", "fr", "rl", "rr")
+WHEELS = proto.WHEEL_NAMES
 DEFAULT_FLUSH_ROWS = 10_000
 STATE_INBOX = 1 << 15
 """Ring of received states: 32 s at 1 kHz before zenoh drops the oldest."""
@@ -137,76 +145,44 @@ class Column:
 
 
 _F64 = pa.float64()
+_ARROW_TYPES = {"<f8": _F64, "<u8": pa.uint64(), "<u4": pa.uint32(), "<u2": pa.uint16(),
+                "u1": pa.uint8(), "i1": pa.int8()}
 
 
-def _wheel_columns(template: str, unit: str, description: str) -> list[Column]:
-    long = {"fl": "front-left", "fr": "front-right", "rl": "rear-left", "rr": "rear-right"}
-    return [Column(template.format(w=w), _F64, unit, f"{long[w]} {description}")
-            for w in WHEELS]
+def _from_state(c: proto.StateColumn) -> Column:
+    return Column(c.name, _ARROW_TYPES[c.dtype], c.unit, c.description)
 
 
-HISTORY_NAMED: tuple[Column, ...] = (
-    Column("time_s", _F64, "s", "simulated time of the state (sim_time_s)"),
+ROAD_FRAME: tuple[Column, ...] = (
     Column("x_m", _F64, "m", "CG position along the road plane's e1 (road frame, from the "
            "world pose)"),
     Column("y_m", _F64, "m", "CG position along the road plane's e2 (road frame)"),
     Column("yaw_rad", _F64, "rad", "heading in the road plane, from e1 toward e2 (road frame)"),
-    Column("u_mps", _F64, "m/s", "body longitudinal velocity u (forward +)"),
-    Column("v_mps", _F64, "m/s", "body lateral velocity v (left +)"),
-    Column("yaw_rate_radps", _F64, "rad/s", "yaw rate r"),
     Column("roll_rad", _F64, "rad", "body roll relative to the road plane (left side up +)"),
-    Column("roll_rate_radps", _F64, "rad/s", "body roll rate"),
     Column("pitch_rad", _F64, "rad", "body pitch relative to the road plane (nose down +)"),
-    Column("pitch_rate_radps", _F64, "rad/s", "body pitch rate"),
-    *_wheel_columns("omega_{w}_radps", "rad/s", "wheel spin rate (rolling forward +)"),
-    *_wheel_columns("tan_alpha_lag_{w}", "1", "lagged slip state tan a' (eq. 16)"),
-    *_wheel_columns("kappa_lag_{w}", "1", "lagged slip state k' (eq. 26)"),
-    *_wheel_columns("damping_active_{w}", "1", "low-speed damping active (0 or 1)"),
-    *_wheel_columns("wheel_held_{w}", "1", "wheel held at zero spin by its brake (0 or 1)"),
-    Column("steering_wheel_angle_rad", _F64, "rad", "steering-wheel angle (left +)"),
-    Column("steering_wheel_torque_nm", _F64, "N m", "torque the steering system applies to "
-           "the driver's hands (toward the left +; docs/model.md section 12)"),
-    Column("ax_mps2", _F64, "m/s^2", "CG acceleration along body x (step ending at the row)"),
-    Column("ay_mps2", _F64, "m/s^2", "CG acceleration along body y (step ending at the row)"),
-    *_wheel_columns("fx_{w}_n", "N", "tire Fx, wheel frame (step ending at the row)"),
-    *_wheel_columns("fy_{w}_n", "N", "tire Fy, wheel frame (step ending at the row)"),
-    *_wheel_columns("fz_{w}_n", "N", "tire normal load Fz (step ending at the row)"),
-    *_wheel_columns("mz_{w}_nm", "N m", "tire aligning moment Mz (step ending at the row)"),
-    *_wheel_columns("steer_{w}_rad", "rad", "road-wheel steer angle, left + (step ending at "
-                    "the row)"),
-    Column("input_steer", _F64, "1", "applied steer [-1, 1] (step ending at the row)"),
-    Column("input_throttle", _F64, "1", "applied throttle [0, 1] (step ending at the row)"),
-    Column("input_brake", _F64, "1", "applied brake [0, 1] (step ending at the row)"),
-    Column("input_parking_brake", _F64, "1", "applied parking brake (0 or 1)"),
-    Column("input_gear", _F64, "1", "applied gear code: 0 P, 1 R, 2 N, 3 D"),
 )
-"""Columns named as in the headless ``history.parquet``, in its column order."""
+"""History columns the recorder converts from the world pose (module docstring, Frames)."""
+
+_HISTORY_FROM_STATE = tuple(_from_state(c) for c in proto.STATE_COLUMNS if c.history)
+HISTORY_NAMED: tuple[Column, ...] = (
+    _HISTORY_FROM_STATE[:1] + ROAD_FRAME + _HISTORY_FROM_STATE[1:])
+"""Columns named as in the headless ``history.parquet``: ``time_s``, the road-frame pose,
+then every state field the history has (``protocol.STATE_COLUMNS``, in the state's
+order)."""
+assert HISTORY_NAMED[0].name == "time_s"
 
 STATE_ONLY: tuple[Column, ...] = (
-    Column("tick", pa.uint64(), "-", "physics ticks since start, reset or load"),
     Column("segment", pa.int32(), "-", "0, then +1 at each reset or load (tick restarts)"),
     Column("recv_time_s", _F64, "s", "recorder's monotonic clock at receipt, from its start"),
-    Column("flags", pa.uint16(), "-", "state flags: 1 watchdog, 2 paused, 4 brake hold, "
-           "8 catch-up tick, 16 fault (the state went non-finite: car stopped)"),
-    Column("last_cmd_seq", pa.uint32(), "-", "seq of the last command applied"),
-    Column("last_cmd_sender_time_ns", pa.uint64(), "ns", "its sender_time_ns"),
-    Column("cmd_age_s", _F64, "s", "wall time since the last valid command (-1 before any)"),
-    Column("w_mps", _F64, "m/s", "body vertical velocity"),
+    *(_from_state(c) for c in proto.STATE_COLUMNS if not c.history),
     Column("road_grade_pct", _F64, "%", "road grade used for the road-frame columns"),
     Column("road_cross_slope_pct", _F64, "%", "road cross slope used for the road-frame "
            "columns"),
     Column("cg_above_road_m", _F64, "m", "CG height above the road plane (along n; NaN on "
            "a terrain)"),
-    Column("world_x_m", _F64, "m", "CG position, world x (the state's x_m)"),
-    Column("world_y_m", _F64, "m", "CG position, world y (the state's y_m)"),
-    Column("world_z_m", _F64, "m", "CG position, world z, up (the state's z_m)"),
-    Column("world_yaw_rad", _F64, "rad", "body yaw, world axes (the state's yaw_rad)"),
-    Column("world_pitch_rad", _F64, "rad", "body pitch, world axes, nose down + (the "
-           "state's pitch_rad)"),
-    Column("world_roll_rad", _F64, "rad", "body roll, world axes, left up + (the state's "
-           "roll_rad)"),
 )
-"""Columns the headless history does not have."""
+"""Columns the headless history does not have: the recorder's own, every other state
+field (``protocol.STATE_COLUMNS``: the world pose as ``world_*``) and the road used."""
 
 COLUMNS: tuple[Column, ...] = HISTORY_NAMED + STATE_ONLY
 
@@ -245,100 +221,15 @@ def diagnostics_schema(metadata: dict[str, str]) -> pa.Schema:
     return pa.schema(fields, metadata=dict(sorted(metadata.items())))
 
 
-# ----------------------------------------------------------------------------- frames
-
-
-def road_axes(grade_pct: np.ndarray, cross_slope_pct: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unit vectors ``e1``, ``e2``, ``n`` of the road plane in world axes, per row.
-
-    Parameters
-    ----------
-    grade_pct, cross_slope_pct : ndarray
-        The plane rises ``grade_pct`` % along world x and ``cross_slope_pct`` % along y.
-
-    Returns
-    -------
-    e1, e2, n : ndarray
-        ``(rows, 3)`` each: ``e1`` above world x, ``n`` the upward normal, ``e2 = n x e1``.
-    """
-    sx = np.asarray(grade_pct, dtype=np.float64) / 100.0
-    sy = np.asarray(cross_slope_pct, dtype=np.float64) / 100.0
-    one = np.ones_like(sx)
-    e1 = np.stack([one, np.zeros_like(sx), sx], axis=-1)
-    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
-    n = np.stack([-sx, -sy, one], axis=-1)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    e2 = np.cross(n, e1)
-    e2 /= np.linalg.norm(e2, axis=-1, keepdims=True)
-    return e1, e2, n
-
-
-def world_to_road(pos: np.ndarray, yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray,
-                  grade_pct: np.ndarray, cross_slope_pct: np.ndarray) -> dict[str, np.ndarray]:
-    """Road-plane coordinates and body angles from the world pose (vectorised).
-
-    Parameters
-    ----------
-    pos : ndarray
-        ``(rows, 3)`` CG positions, world axes.
-    yaw, pitch, roll : ndarray
-        World body attitude, ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
-    grade_pct, cross_slope_pct : ndarray
-        The road plane of each row.
-
-    Returns
-    -------
-    dict of str to ndarray
-        ``x_m``, ``y_m`` (along ``e1``, ``e2``), ``cg_above_road_m`` (along ``n``),
-        ``yaw_rad`` (heading in the plane from ``e1`` toward ``e2``, continuous with the
-        world yaw), ``pitch_rad`` and ``roll_rad`` relative to the plane.
-    """
-    e1, e2, n = road_axes(grade_pct, cross_slope_pct)
-    cz, sz = np.cos(yaw), np.sin(yaw)
-    cy, sy = np.cos(pitch), np.sin(pitch)
-    cx, sx = np.cos(roll), np.sin(roll)
-    bx = np.stack([cz * cy, sz * cy, -sy], axis=-1)
-    by = np.stack([cz * sy * sx - sz * cx, sz * sy * sx + cz * cx, cy * sx], axis=-1)
-    bz = np.stack([cz * sy * cx + sz * sx, sz * sy * cx - cz * sx, cy * cx], axis=-1)
-
-    def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return np.einsum("ij,ij->i", a, b)
-
-    wrapped = np.arctan2(dot(bx, e2), dot(bx, e1))
-    diff = (wrapped - yaw + np.pi) % (2.0 * np.pi) - np.pi
-    return {
-        "x_m": dot(pos, e1),
-        "y_m": dot(pos, e2),
-        "cg_above_road_m": dot(pos, n),
-        "yaw_rad": yaw + diff,
-        "pitch_rad": np.arcsin(np.clip(-dot(bx, n), -1.0, 1.0)),
-        "roll_rad": np.arctan2(dot(by, n), dot(bz, n)),
-    }
-
-
-def reference_plane_slopes(yaw: np.ndarray, ground_grade_pct: np.ndarray,
-                           ground_cross_slope_pct: np.ndarray
-                           ) -> tuple[np.ndarray, np.ndarray]:
-    """A terrain's reference plane under the car, ``(grade_pct, cross_slope_pct)`` along
-    world x and y, from the state's slopes along and across the world heading ``yaw``
-    (the server's ``vehicle_slot.ground_slopes_pct`` turned back)."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    along = np.asarray(ground_grade_pct, dtype=np.float64)
-    across = np.asarray(ground_cross_slope_pct, dtype=np.float64)
-    return along * c - across * s, along * s + across * c
-
-
 def state_columns(rec: np.ndarray, grade_pct: np.ndarray, cross_slope_pct: np.ndarray,
                   on_terrain: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Every history-named and world column of decoded states (``STATE_DTYPE`` rows).
 
     ``grade_pct``, ``cross_slope_pct``: the road of each row; rows where ``on_terrain``
     is true use the state's reference plane instead (module docstring, Frames)."""
-    pos = np.stack([rec["x_m"], rec["y_m"], rec["z_m"]], axis=-1).astype(np.float64)
-    yaw = rec["yaw_rad"].astype(np.float64)
-    pitch = rec["pitch_rad"].astype(np.float64)
-    roll = rec["roll_rad"].astype(np.float64)
+    x, y, z, yaw, pitch, roll = (rec[name].astype(np.float64)
+                                 for name in proto.STATE_POSE_FIELDS)
+    pos = np.stack([x, y, z], axis=-1)
     grade_pct = np.array(grade_pct, dtype=np.float64)
     cross_slope_pct = np.array(cross_slope_pct, dtype=np.float64)
     terrain = np.zeros(yaw.shape, dtype=bool) if on_terrain is None else on_terrain
@@ -347,40 +238,14 @@ def state_columns(rec: np.ndarray, grade_pct: np.ndarray, cross_slope_pct: np.nd
     road = world_to_road(pos, yaw, pitch, roll, grade_pct, cross_slope_pct)
     for name in ("x_m", "y_m", "cg_above_road_m"):  # the plane's height is not on the wire
         road[name][terrain] = np.nan
-    f64 = np.float64
-    cols: dict[str, np.ndarray] = {
-        "time_s": rec["sim_time_s"].astype(f64),
-        "x_m": road["x_m"], "y_m": road["y_m"], "yaw_rad": road["yaw_rad"],
-        "u_mps": rec["u_mps"].astype(f64), "v_mps": rec["v_mps"].astype(f64),
-        "yaw_rate_radps": rec["yaw_rate_radps"].astype(f64),
-        "roll_rad": road["roll_rad"], "roll_rate_radps": rec["roll_rate_radps"].astype(f64),
-        "pitch_rad": road["pitch_rad"],
-        "pitch_rate_radps": rec["pitch_rate_radps"].astype(f64),
-        "ax_mps2": rec["ax_mps2"].astype(f64), "ay_mps2": rec["ay_mps2"].astype(f64),
-        "input_steer": rec["steer"].astype(f64), "input_throttle": rec["throttle"].astype(f64),
-        "input_brake": rec["brake"].astype(f64),
-        "input_parking_brake": rec["parking_brake"].astype(f64),
-        "input_gear": rec["gear"].astype(f64),
-        "steering_wheel_angle_rad": rec["steering_wheel_angle_rad"].astype(f64),
-        "steering_wheel_torque_nm": rec["steering_wheel_torque_nm"].astype(f64),
-        "tick": rec["tick"].astype(np.uint64), "flags": rec["flags"].astype(np.uint16),
-        "last_cmd_seq": rec["last_cmd_seq"].astype(np.uint32),
-        "last_cmd_sender_time_ns": rec["last_cmd_sender_time_ns"].astype(np.uint64),
-        "cmd_age_s": rec["cmd_age_s"].astype(f64), "w_mps": rec["w_mps"].astype(f64),
-        "road_grade_pct": np.asarray(grade_pct, dtype=f64),
-        "road_cross_slope_pct": np.asarray(cross_slope_pct, dtype=f64),
-        "cg_above_road_m": road["cg_above_road_m"],
-        "world_x_m": pos[:, 0], "world_y_m": pos[:, 1], "world_z_m": pos[:, 2],
-        "world_yaw_rad": yaw, "world_pitch_rad": pitch, "world_roll_rad": roll,
-    }
-    per_wheel = {"omega_{w}_radps": "omega_radps", "tan_alpha_lag_{w}": "tan_alpha_lag",
-                 "kappa_lag_{w}": "kappa_lag", "damping_active_{w}": "damping_active",
-                 "wheel_held_{w}": "brake_held", "fx_{w}_n": "fx_n", "fy_{w}_n": "fy_n",
-                 "fz_{w}_n": "fz_n", "mz_{w}_nm": "mz_nm", "steer_{w}_rad": "steer_rad"}
-    for template, field in per_wheel.items():
-        values = rec[field].astype(f64)
-        for i, w in enumerate(WHEELS):
-            cols[template.format(w=w)] = values[:, i]
+    cols: dict[str, np.ndarray] = {}
+    for c in proto.STATE_COLUMNS:  # every state field, as the state table names it
+        values = rec[c.field] if c.wheel is None else rec[c.field][:, c.wheel]
+        cols[c.name] = values.astype(c.dtype)
+    for name in ("x_m", "y_m", "yaw_rad", "roll_rad", "pitch_rad", "cg_above_road_m"):
+        cols[name] = road[name]
+    cols["road_grade_pct"] = np.asarray(grade_pct, dtype=np.float64)
+    cols["road_cross_slope_pct"] = np.asarray(cross_slope_pct, dtype=np.float64)
     return cols
 
 

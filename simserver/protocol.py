@@ -14,6 +14,12 @@ Overview
   :data:`STATE_FIELDS` and :data:`DIAGNOSTICS_FIELDS` are the field tables (type, unit,
   range, description); :data:`COMMAND_DTYPE`, :data:`STATE_DTYPE` and
   :data:`DIAGNOSTICS_DTYPE` are the numpy structured dtypes built from them.
+- :data:`STATE_FIELDS` is also the one table of the published state: each row names its
+  source in the server (``FieldSpec.source``) and its headless history column
+  (``FieldSpec.history``). The recorder's columns (:data:`STATE_COLUMNS`), the server's
+  fill and the viewer's inverse (``simserver.state_schema``) and the docs derive from it.
+- The frames of the wire (:func:`road_axes`, :func:`world_to_road`,
+  :func:`ground_slopes_pct`, :func:`reference_plane_slopes`) for clients.
 - Decoding a driver command (:func:`decode_command`) is the only gate between the network
   and the physics: it rejects or clamps as documented per field and raises
   :class:`ProtocolError` (and nothing else) on any malformed input.
@@ -342,6 +348,20 @@ class FieldSpec:
         Meaning and sign convention.
     rule : str
         What the receiver does with a value outside the range (commands only).
+    source : str
+        VehicleState only: where the server takes the value from (:data:`STATE_FIELDS`).
+        ``"state:NAME"``, ``"output:NAME"`` or ``"input:NAME"``: the core's state, output
+        or input slot named ``NAME`` in ``simserver.core.layout`` (its ``STATE_NAMES``,
+        ``OUTPUT_NAMES``, ``INPUT_NAMES``; ``{w}`` stands for the wheel of a per-wheel
+        field, ``fl fr rl rr``); ``"pose:NAME"``: the world pose the server computes each
+        tick (``core.pose.world_pose``, slot ``POSE_<NAME>``); ``"server"``: computed by
+        the server's vehicle slot (flags, counters, time, ...); empty for the constants
+        ``version`` and ``reserved``.
+    history : str or None
+        VehicleState only: the column of the headless ``history.parquet``
+        (docs/history_columns.md) that holds the same quantity, ``{w}`` for the wheel;
+        None when the history has no such column. The recorder writes the field under
+        this name (:func:`state_columns`).
     """
 
     name: str
@@ -352,6 +372,8 @@ class FieldSpec:
     hi: float | None
     description: str
     rule: str = "-"
+    source: str = ""
+    history: str | None = None
 
 
 _REJECT = "reject"
@@ -396,78 +418,112 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
               "until a reset or load; bit 5 the first state after skipped deadlines (a "
               "stall beyond the catch-up bound, see Diagnostics.skipped_ticks); bit 6 "
               "hill-start assist holds the brakes after the driver released the pedal "
-              "(docs/model.md section 13); bits 7-15 are 0"),
+              "(docs/model.md section 13); bits 7-15 are 0", source="server"),
     FieldSpec("last_cmd_seq", "<u4", 1, "-", None, None,
-              "seq of the last command applied (0 before the first)"),
+              "seq of the last command applied (0 before the first)", source="server"),
     FieldSpec("tick", "<u8", 1, "-", None, None,
-              "physics ticks stepped since start or reset"),
+              "physics ticks stepped since start or reset", source="server"),
     FieldSpec("last_cmd_sender_time_ns", "<u8", 1, "ns", None, None,
-              "sender_time_ns of the last command applied (0 before the first)"),
-    FieldSpec("sim_time_s", "<f8", 1, "s", 0.0, None, "simulated time = tick x period"),
-    FieldSpec("x_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}"),
-    FieldSpec("y_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}"),
-    FieldSpec("z_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}"),
+              "sender_time_ns of the last command applied (0 before the first)",
+              source="server"),
+    FieldSpec("sim_time_s", "<f8", 1, "s", 0.0, None, "simulated time = tick x period",
+              source="server", history="time_s"),
+    FieldSpec("x_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}", source="pose:x_m"),
+    FieldSpec("y_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}", source="pose:y_m"),
+    FieldSpec("z_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}", source="pose:z_m"),
     FieldSpec("yaw_rad", "<f8", 1, "rad", None, None,
-              f"heading from world x toward y, continuous (not wrapped); {_ATT}"),
+              f"heading from world x toward y, continuous (not wrapped); {_ATT}",
+              source="pose:yaw_rad"),
     FieldSpec("pitch_rad", "<f8", 1, "rad", None, None,
-              f"pitch, positive = nose down; {_ATT}"),
+              f"pitch, positive = nose down; {_ATT}", source="pose:pitch_rad"),
     FieldSpec("roll_rad", "<f8", 1, "rad", None, None,
-              f"roll, positive = left side up; {_ATT}"),
+              f"roll, positive = left side up; {_ATT}", source="pose:roll_rad"),
     FieldSpec("cmd_age_s", "<f4", 1, "s", -1.0, None,
-              "wall time since the last valid command arrived; -1 before the first"),
-    FieldSpec("u_mps", "<f4", 1, "m/s", None, None, "body longitudinal velocity (x forward)"),
-    FieldSpec("v_mps", "<f4", 1, "m/s", None, None, "body lateral velocity (y left)"),
-    FieldSpec("w_mps", "<f4", 1, "m/s", None, None, "body vertical velocity (z up)"),
-    FieldSpec("roll_rate_radps", "<f4", 1, "rad/s", None, None, "body roll rate (about x)"),
-    FieldSpec("pitch_rate_radps", "<f4", 1, "rad/s", None, None, "body pitch rate (about y)"),
-    FieldSpec("yaw_rate_radps", "<f4", 1, "rad/s", None, None, "body yaw rate (about z)"),
-    FieldSpec("ax_mps2", "<f4", 1, "m/s^2", None, None, "CG acceleration along body x"),
-    FieldSpec("ay_mps2", "<f4", 1, "m/s^2", None, None, "CG acceleration along body y"),
+              "wall time since the last valid command arrived; -1 before the first",
+              source="server"),
+    FieldSpec("u_mps", "<f4", 1, "m/s", None, None, "body longitudinal velocity (x forward)",
+              source="state:u_mps", history="u_mps"),
+    FieldSpec("v_mps", "<f4", 1, "m/s", None, None, "body lateral velocity (y left)",
+              source="state:v_mps", history="v_mps"),
+    # recorded under its own name: recordings have always called it w_mps
+    FieldSpec("w_mps", "<f4", 1, "m/s", None, None, "body vertical velocity (z up)",
+              source="state:heave_rate_mps"),
+    FieldSpec("roll_rate_radps", "<f4", 1, "rad/s", None, None, "body roll rate (about x)",
+              source="state:roll_rate_radps", history="roll_rate_radps"),
+    FieldSpec("pitch_rate_radps", "<f4", 1, "rad/s", None, None, "body pitch rate (about y)",
+              source="state:pitch_rate_radps", history="pitch_rate_radps"),
+    FieldSpec("yaw_rate_radps", "<f4", 1, "rad/s", None, None, "body yaw rate (about z)",
+              source="state:yaw_rate_radps", history="yaw_rate_radps"),
+    FieldSpec("ax_mps2", "<f4", 1, "m/s^2", None, None, "CG acceleration along body x",
+              source="output:ax_mps2", history="ax_mps2"),
+    FieldSpec("ay_mps2", "<f4", 1, "m/s^2", None, None, "CG acceleration along body y",
+              source="output:ay_mps2", history="ay_mps2"),
     FieldSpec("steer", "<f4", 1, "1", -1.0, 1.0,
-              "applied steer (after clamping and watchdog)"),
-    FieldSpec("throttle", "<f4", 1, "1", 0.0, 1.0, "applied throttle"),
-    FieldSpec("brake", "<f4", 1, "1", 0.0, 1.0, "applied service brake"),
+              "applied steer (after clamping and watchdog)", source="input:steer",
+              history="input_steer"),
+    FieldSpec("throttle", "<f4", 1, "1", 0.0, 1.0, "applied throttle", source="input:throttle",
+              history="input_throttle"),
+    FieldSpec("brake", "<f4", 1, "1", 0.0, 1.0, "applied service brake", source="input:brake",
+              history="input_brake"),
     FieldSpec("omega_radps", "<f4", 4, "rad/s", None, None,
-              f"wheel spin rate, positive = rolling forward; {_WHEELS}"),
+              f"wheel spin rate, positive = rolling forward; {_WHEELS}",
+              source="state:omega_{w}_radps", history="omega_{w}_radps"),
     FieldSpec("kappa_lag", "<f4", 4, "1", None, None,
-              f"lagged longitudinal slip k' (SAE 950311 eq. 26), + when driving; {_WHEELS}"),
+              f"lagged longitudinal slip k' (SAE 950311 eq. 26), + when driving; {_WHEELS}",
+              source="state:kappa_lag_{w}", history="kappa_lag_{w}"),
     FieldSpec("tan_alpha_lag", "<f4", 4, "1", None, None,
-              f"lagged lateral slip tan a' (eq. 16), + when the hub slides left; {_WHEELS}"),
+              f"lagged lateral slip tan a' (eq. 16), + when the hub slides left; {_WHEELS}",
+              source="state:tan_alpha_lag_{w}", history="tan_alpha_lag_{w}"),
     FieldSpec("fx_n", "<f4", 4, "N", None, None,
-              f"longitudinal tire force, wheel frame; {_WHEELS}"),
-    FieldSpec("fy_n", "<f4", 4, "N", None, None, f"lateral tire force, wheel frame; {_WHEELS}"),
-    FieldSpec("fz_n", "<f4", 4, "N", 0.0, None, f"normal load; {_WHEELS}"),
+              f"longitudinal tire force, wheel frame; {_WHEELS}",
+              source="output:fx_{w}_n", history="fx_{w}_n"),
+    FieldSpec("fy_n", "<f4", 4, "N", None, None, f"lateral tire force, wheel frame; {_WHEELS}",
+              source="output:fy_{w}_n", history="fy_{w}_n"),
+    FieldSpec("fz_n", "<f4", 4, "N", 0.0, None, f"normal load; {_WHEELS}",
+              source="output:fz_{w}_n", history="fz_{w}_n"),
     FieldSpec("steer_rad", "<f4", 4, "rad", None, None,
-              f"road-wheel steer angle, + = left; {_WHEELS}"),
+              f"road-wheel steer angle, + = left; {_WHEELS}",
+              source="output:steer_{w}_rad", history="steer_{w}_rad"),
     FieldSpec("mz_nm", "<f4", 4, "N m", None, None,
-              f"tire aligning moment, + turns the wheel left (z up); {_WHEELS}"),
+              f"tire aligning moment, + turns the wheel left (z up); {_WHEELS}",
+              source="output:mz_{w}_nm", history="mz_{w}_nm"),
     FieldSpec("steering_wheel_angle_rad", "<f4", 1, "rad", None, None,
-              "steering-wheel angle, + = left (steer x steering_wheel_max_rad)"),
+              "steering-wheel angle, + = left (steer x steering_wheel_max_rad)",
+              source="state:steering_wheel_angle_rad", history="steering_wheel_angle_rad"),
     FieldSpec("steering_wheel_torque_nm", "<f4", 1, "N m", None, None,
               "torque the steering system applies to the driver's hands, + = toward the "
-              "left; a force-feedback wheel produces it (docs/model.md section 12)"),
+              "left; a force-feedback wheel produces it (docs/model.md section 12)",
+              source="state:steering_wheel_torque_nm", history="steering_wheel_torque_nm"),
     FieldSpec("damping_active", "u1", 4, "-", 0, 1,
-              f"low-speed auxiliary damping active (0/1); {_WHEELS}"),
+              f"low-speed auxiliary damping active (0/1); {_WHEELS}",
+              source="state:damping_active_{w}", history="damping_active_{w}"),
     FieldSpec("brake_held", "u1", 4, "-", 0, 1,
-              f"brake holds the wheel at zero spin (0/1); {_WHEELS}"),
-    FieldSpec("parking_brake", "u1", 1, "-", 0, 1, "applied parking brake (0/1)"),
-    FieldSpec("gear", "u1", 1, "-", 0, 3, "applied gear, 0 = P, 1 = R, 2 = N, 3 = D"),
+              f"brake holds the wheel at zero spin (0/1); {_WHEELS}",
+              source="server", history="wheel_held_{w}"),
+    FieldSpec("parking_brake", "u1", 1, "-", 0, 1, "applied parking brake (0/1)",
+              source="input:parking_brake", history="input_parking_brake"),
+    FieldSpec("gear", "u1", 1, "-", 0, 3, "applied gear, 0 = P, 1 = R, 2 = N, 3 = D",
+              source="input:gear", history="input_gear"),
     FieldSpec("wheel_contact", "u1", 4, "-", 0, 1,
-              f"wheel touches the ground (carries load) (0/1); {_WHEELS}"),
+              f"wheel touches the ground (carries load) (0/1); {_WHEELS}",
+              source="state:in_contact_{w}", history="in_contact_{w}"),
     FieldSpec("gear_engaged", "i1", 1, "-", -1, 10,
               "gear engaged by the gearbox: 1 .. n forward, -1 reverse, 0 none (P, N); the "
-              "simple powertrain: 1 in D, -1 in R"),
+              "simple powertrain: 1 in D, -1 in R", source="state:gear_engaged",
+              history="gear_engaged"),
     FieldSpec("lockup_engaged", "u1", 1, "-", 0, 1,
-              "torque converter's lock-up clutch closed (0/1; 0 on the simple powertrain)"),
+              "torque converter's lock-up clutch closed (0/1; 0 on the simple powertrain)",
+              source="state:lockup_engaged", history="lockup_engaged"),
     FieldSpec("ground_grade_pct", "<f4", 1, "%", None, None,
               "slope of the ground under the car along its heading, + = uphill ahead: the "
               "plane fitted under the four wheels (docs/model.md section 11; on the plane "
-              "kind, the road)"),
+              "kind, the road)", source="server"),
     FieldSpec("ground_cross_slope_pct", "<f4", 1, "%", None, None,
-              "slope of that plane across the heading, + = the left side higher"),
+              "slope of that plane across the heading, + = the left side higher",
+              source="server"),
     FieldSpec("engine_speed_radps", "<f4", 1, "rad/s", 0.0, None,
               "engine speed (automatic powertrain; 0 on the simple powertrain, which has "
-              "no engine)"),
+              "no engine)", source="state:engine_speed_radps", history="engine_speed_radps"),
     FieldSpec("reserved", "u1", 4, "-", 0, 0, "zero (pads the payload to 296 bytes)"),
 )
 
@@ -556,6 +612,250 @@ DIAGNOSTICS_SIZE: Final[int] = DIAGNOSTICS_DTYPE.itemsize
 assert _COMMAND_STRUCT.size == COMMAND_SIZE == 32
 assert _STATE_STRUCT.size == STATE_SIZE == 296
 assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 160
+
+
+# ============================================================================ state schema
+# STATE_FIELDS is the one table of the published state: each row gives a field's layout,
+# where the server takes it from (``source``) and the headless history column that holds
+# the same quantity (``history``). Everything else is derived from it: the server's fill
+# (simserver.state_schema, used by the vehicle slot), the viewer's inverse (the same
+# module), the recorder's columns and mapping (:data:`STATE_COLUMNS`) and the state table
+# of docs/protocol.md. Adding a field is one row here plus the version bump.
+
+WHEEL_NAMES: Final[tuple[str, ...]] = ("fl", "fr", "rl", "rr")
+"""The order of a per-wheel field's values, and what ``{w}`` stands for in its names."""
+
+_WHEEL_LONG = {"fl": "front-left", "fr": "front-right", "rl": "rear-left", "rr": "rear-right"}
+
+STATE_SOURCE_KINDS: Final[tuple[str, ...]] = ("state", "output", "input", "pose", "server")
+"""The kinds of ``FieldSpec.source`` (its text before the ``:``)."""
+
+STEP_SOURCE_KINDS: Final[tuple[str, ...]] = ("output", "input")
+"""Sources that belong to the physics step that ended at the state's tick (section 2.4)."""
+
+
+def state_source(f: FieldSpec) -> tuple[str, str]:
+    """``(kind, name)`` of a state field's source: ``("state", "omega_{w}_radps")``,
+    ``("server", "")``; ``("", "")`` for the constants ``version`` and ``reserved``."""
+    kind, _, name = f.source.partition(":")
+    return kind, name
+
+
+@dataclass(frozen=True)
+class StateColumn:
+    """One column a recorder writes from the state (one per wheel of a per-wheel field).
+
+    Attributes
+    ----------
+    name : str
+        Column name: the field's ``history`` column (the wheel filled in), else
+        ``world_<field>`` for the world pose (the history's ``x_m`` is in the road plane),
+        else the field's own name.
+    field : str
+        The VehicleState field it is read from.
+    wheel : int or None
+        Index into that field's values (FL, FR, RL, RR), None for a scalar field.
+    dtype : str
+        numpy type of the column: float64 for history columns (as the history) and
+        floats, the field's own integer type for the other integers (ticks, flags, ...).
+    unit : str
+        The field's unit (``"1"`` for a dimensionless history column, as the history).
+    description : str
+    history : bool
+        True when the headless ``history.parquet`` has this column (same name, meaning).
+    """
+
+    name: str
+    field: str
+    wheel: int | None
+    dtype: str
+    unit: str
+    description: str
+    history: bool
+
+
+def _column_of(f: FieldSpec, wheel: int | None) -> StateColumn:
+    kind, _ = state_source(f)
+    w = WHEEL_NAMES[wheel] if wheel is not None else None
+    text = f.description.removesuffix(f"; {_WHEELS}")
+    if w is not None:
+        text = f"{_WHEEL_LONG[w]}: {text}"
+    if kind in STEP_SOURCE_KINDS:
+        text += " (of the step that ended at the state's tick)"
+    if f.history is not None:
+        return StateColumn(f.history.format(w=w), f.name, wheel, "<f8",
+                           "1" if f.unit == "-" else f.unit, text, True)
+    name = f"world_{f.name}" if kind == "pose" else f.name
+    if w is not None:
+        name = f"{name}_{w}"
+    dtype = "<f8" if f.dtype.lstrip("<")[0] == "f" else f.dtype
+    return StateColumn(name, f.name, wheel, dtype, f.unit, text, False)
+
+
+def state_columns() -> tuple[StateColumn, ...]:
+    """The columns of a recording of VehicleStates, derived from :data:`STATE_FIELDS` in
+    its order (``version`` and ``reserved`` left out): what ``simserver-recorder`` writes
+    besides the road-plane pose it converts and its own bookkeeping."""
+    cols: list[StateColumn] = []
+    for f in STATE_FIELDS:
+        if not f.source:
+            continue
+        if f.count == 1:
+            cols.append(_column_of(f, None))
+        else:
+            cols.extend(_column_of(f, i) for i in range(f.count))
+    return tuple(cols)
+
+
+def _check_state_table() -> None:
+    """The table's own rules, checked on import (a wrong row is found before any use)."""
+    seen: set[str] = set()
+    for f in STATE_FIELDS:
+        kind, name = state_source(f)
+        if f.name in ("version", "reserved"):
+            assert not f.source and f.history is None, f.name
+            continue
+        assert kind in STATE_SOURCE_KINDS, f"{f.name}: source {f.source!r}"
+        assert (kind == "server") == (not name), f"{f.name}: source {f.source!r}"
+        per_wheel = f.count == len(WHEEL_NAMES)
+        assert f.count == 1 or per_wheel, f.name
+        for text in (name, f.history or ""):
+            if text:
+                assert ("{w}" in text) == per_wheel, f"{f.name}: {text!r} and count {f.count}"
+        assert kind != "pose" or f.history is None, f"{f.name}: pose in the history frame"
+    for c in state_columns():
+        assert c.name not in seen, f"two state columns named {c.name!r}"
+        seen.add(c.name)
+
+
+_check_state_table()
+
+STATE_COLUMNS: Final[tuple[StateColumn, ...]] = state_columns()
+"""Every column of a recording of VehicleStates (:func:`state_columns`)."""
+
+STATE_POSE_FIELDS: Final[tuple[str, ...]] = tuple(
+    f.name for f in STATE_FIELDS if state_source(f)[0] == "pose")
+"""The world pose's fields, in the table's order: x, y, z of the CG, yaw, pitch, roll."""
+assert [n.split("_")[0] for n in STATE_POSE_FIELDS] == ["x", "y", "z", "yaw", "pitch", "roll"]
+
+
+def check_state_reads(reader: str, names: Sequence[str]) -> tuple[str, ...]:
+    """The state fields a client reads, checked against :data:`STATE_FIELDS` once (at its
+    import), so that a field renamed or removed from the table fails there, naming the
+    reader, and not at the first message.
+
+    Raises
+    ------
+    ProtocolError
+        Naming the first field the state does not have.
+    """
+    for name in names:
+        if name not in STATE_DTYPE.names:
+            raise ProtocolError(name, f"{reader} reads it, but the VehicleState has no such "
+                                      "field (protocol.STATE_FIELDS)")
+    return tuple(names)
+
+
+# ============================================================================ frames
+# The frames of section 2.4 of docs/protocol.md, for clients (the recorder): the road plane
+# of ``set_road`` and a terrain's reference plane, from what the wire carries. The server
+# computes the same in its compiled core (core.road, core.pose; tests check one against
+# the other).
+
+
+def ground_slopes_pct(grade_pct: float, cross_slope_pct: float,
+                      yaw_rad: float) -> tuple[float, float]:
+    """The state's ``ground_grade_pct``, ``ground_cross_slope_pct``: the slopes along and
+    across the heading ``yaw_rad`` of a plane rising ``grade_pct`` % along world x and
+    ``cross_slope_pct`` % along world y (+ = uphill ahead, + = the left side higher).
+
+    A plane ``Z = (g X + c Y) / 100`` rises ``g cos(yaw) + c sin(yaw)`` per cent along the
+    horizontal heading and ``-g sin(yaw) + c cos(yaw)`` to its left."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return grade_pct * c + cross_slope_pct * s, -grade_pct * s + cross_slope_pct * c
+
+
+
+
+def road_axes(grade_pct: np.ndarray, cross_slope_pct: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit vectors ``e1``, ``e2``, ``n`` of the road plane in world axes, per row.
+
+    Parameters
+    ----------
+    grade_pct, cross_slope_pct : ndarray
+        The plane rises ``grade_pct`` % along world x and ``cross_slope_pct`` % along y.
+
+    Returns
+    -------
+    e1, e2, n : ndarray
+        ``(rows, 3)`` each: ``e1`` above world x, ``n`` the upward normal, ``e2 = n x e1``.
+    """
+    sx = np.asarray(grade_pct, dtype=np.float64) / 100.0
+    sy = np.asarray(cross_slope_pct, dtype=np.float64) / 100.0
+    one = np.ones_like(sx)
+    e1 = np.stack([one, np.zeros_like(sx), sx], axis=-1)
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
+    n = np.stack([-sx, -sy, one], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    e2 = np.cross(n, e1)
+    e2 /= np.linalg.norm(e2, axis=-1, keepdims=True)
+    return e1, e2, n
+
+
+def world_to_road(pos: np.ndarray, yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray,
+                  grade_pct: np.ndarray, cross_slope_pct: np.ndarray) -> dict[str, np.ndarray]:
+    """Road-plane coordinates and body angles from the world pose (vectorised).
+
+    Parameters
+    ----------
+    pos : ndarray
+        ``(rows, 3)`` CG positions, world axes.
+    yaw, pitch, roll : ndarray
+        World body attitude, ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+    grade_pct, cross_slope_pct : ndarray
+        The road plane of each row.
+
+    Returns
+    -------
+    dict of str to ndarray
+        ``x_m``, ``y_m`` (along ``e1``, ``e2``), ``cg_above_road_m`` (along ``n``),
+        ``yaw_rad`` (heading in the plane from ``e1`` toward ``e2``, continuous with the
+        world yaw), ``pitch_rad`` and ``roll_rad`` relative to the plane.
+    """
+    e1, e2, n = road_axes(grade_pct, cross_slope_pct)
+    cz, sz = np.cos(yaw), np.sin(yaw)
+    cy, sy = np.cos(pitch), np.sin(pitch)
+    cx, sx = np.cos(roll), np.sin(roll)
+    bx = np.stack([cz * cy, sz * cy, -sy], axis=-1)
+    by = np.stack([cz * sy * sx - sz * cx, sz * sy * sx + cz * cx, cy * sx], axis=-1)
+    bz = np.stack([cz * sy * cx + sz * sx, sz * sy * cx - cz * sx, cy * cx], axis=-1)
+
+    def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->i", a, b)
+
+    wrapped = np.arctan2(dot(bx, e2), dot(bx, e1))
+    diff = (wrapped - yaw + np.pi) % (2.0 * np.pi) - np.pi
+    return {
+        "x_m": dot(pos, e1),
+        "y_m": dot(pos, e2),
+        "cg_above_road_m": dot(pos, n),
+        "yaw_rad": yaw + diff,
+        "pitch_rad": np.arcsin(np.clip(-dot(bx, n), -1.0, 1.0)),
+        "roll_rad": np.arctan2(dot(by, n), dot(bz, n)),
+    }
+
+
+def reference_plane_slopes(yaw: np.ndarray, ground_grade_pct: np.ndarray,
+                           ground_cross_slope_pct: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """A terrain's reference plane under the car, ``(grade_pct, cross_slope_pct)`` along
+    world x and y, from the state's slopes along and across the world heading ``yaw``
+    (:func:`ground_slopes_pct` turned back)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    along = np.asarray(ground_grade_pct, dtype=np.float64)
+    across = np.asarray(ground_cross_slope_pct, dtype=np.float64)
+    return along * c - across * s, along * s + across * c
 
 
 # ============================================================================ commands
@@ -1442,14 +1742,34 @@ _TYPE_NAMES = {"u1": "u8", "i1": "i8", "u2": "u16", "u4": "u32", "u8": "u64", "f
                "f8": "f64"}
 
 
-def fields_markdown(fields: Sequence[FieldSpec], *, with_rule: bool = False) -> str:
-    """Markdown table of a payload: offset, field, type, unit, range (and decode rule)."""
+def _source_text(f: FieldSpec) -> str:
+    kind, name = state_source(f)
+    return f"{kind} `{name}`" if name else (kind or "-")
+
+
+def _recorded_text(f: FieldSpec) -> str:
+    if not f.source:
+        return "-"
+    kind, _ = state_source(f)
+    if f.history is not None:
+        return f"`{f.history}` (history)"
+    name = f"world_{f.name}" if kind == "pose" else f.name
+    return f"`{name}_{{w}}`" if f.count > 1 else f"`{name}`"
+
+
+def fields_markdown(fields: Sequence[FieldSpec], *, with_rule: bool = False,
+                    with_source: bool = False) -> str:
+    """Markdown table of a payload: offset, field, type, unit, range (and decode rule; or
+    a state field's source and the column it is recorded as)."""
     dt = _make_dtype(fields)
     head = "| offset | field | type | unit | range | description |"
     sep = "|---:|---|---|---|---|---|"
     if with_rule:
         head += " on decode |"
         sep += "---|"
+    if with_source:
+        head += " source | recorded as |"
+        sep += "---|---|"
     rows = [head, sep]
     for f in fields:
         t = _TYPE_NAMES[f.dtype.lstrip("<")]
@@ -1459,6 +1779,8 @@ def fields_markdown(fields: Sequence[FieldSpec], *, with_rule: bool = False) -> 
                f"| {f.description} |")
         if with_rule:
             row += f" {f.rule} |"
+        if with_source:
+            row += f" {_source_text(f)} | {_recorded_text(f)} |"
         rows.append(row)
     rows.append(f"\nTotal: **{dt.itemsize} bytes**, little-endian, no padding between fields.")
     return "\n".join(rows)
@@ -1536,7 +1858,7 @@ def doc_sections() -> dict[str, str]:
         "constants": constants_markdown(),
         "keys": keys_markdown(),
         "command": fields_markdown(COMMAND_FIELDS, with_rule=True),
-        "state": fields_markdown(STATE_FIELDS),
+        "state": fields_markdown(STATE_FIELDS, with_source=True),
         "diagnostics": fields_markdown(DIAGNOSTICS_FIELDS),
         "controls": controls_markdown(),
     }

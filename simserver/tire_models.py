@@ -19,6 +19,35 @@ Everything else reads the registry: the config loader (``adapters.config.load_ti
 the simulation (``tire_kernels()``, handed to the compiled step), the CLI and the docs.
 A new tire model is one module (its kernels and loader) plus one ``register_tire_model``
 call; an unknown name or id is an error (``UnknownTireModelError``), never a fallback.
+
+Workspace. A model declares how many coefficient slots (``n_coef``) its ``prepare``
+writes and ``evaluate`` reads, and how many model-specific parameter slots (``n_params``,
+from ``TP_MODEL_BASE``) its loader packs. The compiled step has room for
+``core.tire_layout.N_TIRE_COEF`` coefficients (a scratch on its stack, no bounds check)
+and ``N_MODEL_PARAM_MAX`` parameters (a row of ``tp``): a declaration beyond either is
+refused at registration (``TireWorkspaceError``, naming the model and the numbers), and a
+loader that packs more parameters than its model declared is refused when the file loads.
+
+Where a registration must live. Every process that reads a vehicle or runs the step needs
+the same registry, with the same ids (``tp[TP_MODEL]`` crosses processes: the server's
+load worker packs the tire vectors its loop then steps). The load worker is *spawned*
+(``simserver.load_worker``: a fresh interpreter that imports ``simserver`` anew), and so
+are a sweep's workers when their nanny restarts them or with ``--numba-cache``, and a
+remote Dask worker shares nothing with the process that submitted the sweep. A
+``register_tire_model`` call made in a script's ``__main__``, a test or a notebook is
+therefore seen only by that process (and by workers forked from it): a plug-in model must
+be registered by a module that every process imports. That is what the entry point group
+:data:`ENTRY_POINT_GROUP` is for: an installed distribution declares, in its
+``pyproject.toml``::
+
+    [project.entry-points."simserver.tire_models"]
+    my_tire = "my_package.my_tire:register"
+
+and this module, on import (so in every process, after the built-in models), calls each
+such function with no argument (it calls ``register_tire_model``), in the order of the
+entry point names, so that every process gives the same model the same id. A plug-in that
+fails to load is an error naming it (``TirePluginError``), never skipped (the ids of the
+others would shift).
 """
 
 from __future__ import annotations
@@ -27,6 +56,7 @@ import math
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +67,9 @@ from simserver.core.param_table import Param, ParamTable
 from simserver.core.tire import N_BUILTIN_TIRE_MODELS, N_TIRE_PARAM, tire_forces
 from simserver.core.tire_layout import (
     EVALUATE_SIGNATURE,
+    N_MF61_COEF,
+    N_SIMPLE_COEF,
+    N_TIRE_COEF,
     N_TIRE_OUT,
     OUT_C_ALPHA,
     OUT_C_KAPPA,
@@ -52,12 +85,14 @@ from simserver.core.tire_layout import (
     TireKernels,
 )
 from simserver.core.tire_mf61 import (
+    N_MF61_PARAM,
     P_FNOMIN,
     mf61_evaluate_kernel,
     mf61_param_vector,
     mf61_prepare_kernel,
 )
 from simserver.core.tire_simple import (
+    N_SIMPLE_PARAM,
     SIMPLE_PARAM_NAMES,
     SP_FZ_NOM,
     simple_evaluate_kernel,
@@ -74,8 +109,20 @@ N_MODEL_PARAM_MAX = N_TIRE_PARAM - TP_MODEL_BASE
 """Model-specific slots a tire vector has room for."""
 
 
+ENTRY_POINT_GROUP = "simserver.tire_models"
+"""The package entry point group of plug-in tire models (module docstring)."""
+
+
 class UnknownTireModelError(ValueError):
     """A tire model name or id that the registry does not list."""
+
+
+class TireWorkspaceError(ValueError):
+    """A tire model that declares more coefficient or parameter slots than the step has."""
+
+
+class TirePluginError(ImportError):
+    """A plug-in tire model (an entry point of :data:`ENTRY_POINT_GROUP`) that failed."""
 
 
 @dataclass(frozen=True)
@@ -100,6 +147,8 @@ class TireModel:
     prepare: Any  # numba dispatcher compiled with PREPARE_SIGNATURE
     evaluate: Any  # numba dispatcher compiled with EVALUATE_SIGNATURE
     nominal_load_n: Callable[[np.ndarray], float]  # from the model-specific slots
+    n_coef: int  # coefficient slots prepare writes and evaluate reads (<= N_TIRE_COEF)
+    n_params: int  # model-specific slots from TP_MODEL_BASE (<= N_MODEL_PARAM_MAX)
     params: ParamTable | None = None  # the tire file's numeric keys (docs, validation)
     path_keys: tuple[tuple[str, str], ...] = ()  # (key, meaning) of its file-path keys
 
@@ -116,9 +165,25 @@ def _check_kernel(name: str, kernel: Any, signature: Any, what: str) -> None:
                         f"signature {signature} (nb.njit({what.upper()}_SIGNATURE, ...))")
 
 
+def _check_workspace(name: str, n_coef: Any, n_params: Any) -> None:
+    """Refuse a declaration the compiled step has no room for (module docstring)."""
+    for what, value, room, where in (
+            ("coefficient slots (n_coef)", n_coef, N_TIRE_COEF,
+             "core.tire_layout.N_TIRE_COEF, the step's stack scratch"),
+            ("parameter slots (n_params)", n_params, N_MODEL_PARAM_MAX,
+             "N_MODEL_PARAM_MAX, a tire vector's model-specific slots")):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+            raise TireWorkspaceError(f"tire model {name!r}: {what} must be an integer, got "
+                                     f"{value!r}")
+        if not 0 <= value <= room:
+            raise TireWorkspaceError(f"tire model {name!r}: declares {value} {what}, but the "
+                                     f"workspace holds 0 to {room} ({where})")
+
+
 def register_tire_model(name: str, description: str, load: Callable[[Path, dict], LoadedTire],
                         prepare: Any, evaluate: Any,
                         nominal_load_n: Callable[[np.ndarray], float],
+                        *, n_coef: int, n_params: int,
                         params: ParamTable | None = None,
                         path_keys: tuple[tuple[str, str], ...] = (),
                         _builtin: bool = False) -> TireModel:
@@ -127,18 +192,25 @@ def register_tire_model(name: str, description: str, load: Callable[[Path, dict]
     ``prepare`` and ``evaluate`` are ``numba.njit`` functions compiled with the explicit
     signatures ``PREPARE_SIGNATURE`` and ``EVALUATE_SIGNATURE`` (core.tire_layout); they
     receive the whole packed tire vector, their own slots from ``TP_MODEL_BASE`` on.
+    ``n_coef`` is the number of ``coef`` slots they use (at most ``N_TIRE_COEF``),
+    ``n_params`` the number of model-specific slots its loader packs (at most
+    ``N_MODEL_PARAM_MAX``); more is refused (``TireWorkspaceError``): the step's scratch
+    and the tire vector have no room for them, and nothing checks an index at run time.
     ``params`` (a ``ParamTable``) lists the tire file's numeric keys with units, ranges and
     meanings, ``path_keys`` its file-path keys: both go into docs/configuration.md, and
-    ``read_tire_params`` validates a file against them.
+    ``read_tire_params`` validates a file against them. Where the call must live so that
+    every process sees it: the module docstring.
     """
     if name in TIRE_MODEL_NAMES:
         raise ValueError(f"tire model {name!r} is already registered")
+    _check_workspace(name, n_coef, n_params)
     if not _builtin:  # the built-in models' kernels compile on first use (module docstring)
         _check_kernel(name, prepare, PREPARE_SIGNATURE, "prepare")
         _check_kernel(name, evaluate, EVALUATE_SIGNATURE, "evaluate")
     entry = TireModel(id=len(_REGISTRY), name=name, description=description, load=load,
                       prepare=prepare, evaluate=evaluate, nominal_load_n=nominal_load_n,
-                      params=params, path_keys=path_keys)
+                      n_coef=int(n_coef), n_params=int(n_params), params=params,
+                      path_keys=path_keys)
     _REGISTRY.append(entry)
     TIRE_MODEL_NAMES[name] = entry.id
     return entry
@@ -386,11 +458,39 @@ def _load_mf61(path: Path, data: dict[str, Any]) -> LoadedTire:
 _simple = register_tire_model(
     "simple", "brush (Fiala) combined-slip model with explicit stiffnesses (core/tire_simple.py)",
     _load_simple, simple_prepare_kernel, simple_evaluate_kernel, lambda p: p[SP_FZ_NOM],
-    params=SIMPLE_TIRE_PARAMS, _builtin=True)
+    n_coef=N_SIMPLE_COEF, n_params=N_SIMPLE_PARAM, params=SIMPLE_TIRE_PARAMS, _builtin=True)
 _mf61 = register_tire_model(
     "mf61", "Magic Formula 6.1 from a .tir property file (core/tire_mf61.py)",
     _load_mf61, mf61_prepare_kernel, mf61_evaluate_kernel, lambda p: p[P_FNOMIN],
-    params=MF61_TIRE_PARAMS, path_keys=MF61_PATH_KEYS, _builtin=True)
+    n_coef=N_MF61_COEF, n_params=N_MF61_PARAM, params=MF61_TIRE_PARAMS,
+    path_keys=MF61_PATH_KEYS, _builtin=True)
 if (_simple.id, _mf61.id, len(_REGISTRY)) != (TIRE_MODEL_SIMPLE, TIRE_MODEL_MF61,
                                                N_BUILTIN_TIRE_MODELS):
     raise ImportError("the built-in tire models must keep the ids of core.tire_layout")
+
+
+def load_plugin_tire_models(group: str = ENTRY_POINT_GROUP) -> tuple[str, ...]:
+    """Call every entry point of ``group``, in name order (each registers its model);
+    returns their names. Run once when this module is imported (module docstring).
+
+    Raises
+    ------
+    TirePluginError
+        Naming the entry point (and its distribution) whose loading or call failed.
+    """
+    found = sorted(entry_points(group=group), key=lambda ep: ep.name)
+    for ep in found:
+        dist = getattr(ep.dist, "name", None) or "an unknown distribution"
+        try:
+            register = ep.load()
+            if not callable(register):
+                raise TypeError(f"{ep.value} is not callable")
+            register()
+        except Exception as exc:  # noqa: BLE001 - any failure of a plug-in is reported as one
+            raise TirePluginError(f"tire model plug-in {ep.name!r} = {ep.value!r} (entry point "
+                                  f"group {group!r}, from {dist}) failed: {exc}") from exc
+    return tuple(ep.name for ep in found)
+
+
+PLUGINS: tuple[str, ...] = load_plugin_tire_models()
+"""The entry points of :data:`ENTRY_POINT_GROUP` this process loaded."""

@@ -34,6 +34,7 @@ from simserver.core import layout as L
 from simserver.core.terrain import TERRAIN_KINDS, TERRAIN_PLANE
 from simserver.load_worker import release_later
 from simserver.scenario import Scene, load_scene
+from simserver.state_schema import SERVER_FIELDS, fill_record
 
 if TYPE_CHECKING:
     from simserver.server import CommandLog, ServerConfig
@@ -46,6 +47,16 @@ COUNTER_NAMES: tuple[str, ...] = ("cmd_received", "cmd_rejected", "cmd_clamped",
                                   "nonfinite_stops", "cmd_dropped", "ctl_received", "ctl_busy",
                                   "publish_slow")
 """The slot's cumulative counters, in the order of the ``stopped`` line."""
+
+COMPUTED_STATE_FIELDS: tuple[str, ...] = (
+    "flags", "tick", "sim_time_s", "last_cmd_seq", "last_cmd_sender_time_ns", "cmd_age_s",
+    "brake_held", "ground_grade_pct", "ground_cross_slope_pct")
+"""The VehicleState fields ``fill_state`` computes itself (``source="server"`` in
+``protocol.STATE_FIELDS``); every other field is copied by ``state_schema.fill_record``."""
+if set(COMPUTED_STATE_FIELDS) != set(SERVER_FIELDS):
+    raise ImportError("protocol.STATE_FIELDS' server-computed fields "
+                      f"{sorted(SERVER_FIELDS)} are not those VehicleSlot.fill_state "
+                      f"computes {sorted(COMPUTED_STATE_FIELDS)}")
 
 
 class SimulationAPI(Protocol):
@@ -77,16 +88,13 @@ class SimulationAPI(Protocol):
 def ground_slopes_pct(sim: SimulationAPI, yaw_rad: float) -> tuple[float, float]:
     """The slopes of the ground under the car along and across its heading ``yaw_rad``
     (%; + = uphill ahead, + = the left side higher): the plane fitted under its wheels
-    (the state's ``REF_*`` slots, docs/model.md section 11), or on the plane kind the road.
-
-    A plane ``Z = (g X + c Y) / 100`` rises ``g cos(yaw) + c sin(yaw)`` per cent along the
-    horizontal heading and ``-g sin(yaw) + c cos(yaw)`` to its left."""
+    (the state's ``REF_*`` slots, docs/model.md section 11), or on the plane kind the road,
+    turned to the heading as the protocol defines it (``protocol.ground_slopes_pct``)."""
     if sim.scene.terrain.kind == TERRAIN_PLANE:
         grade, cross = sim.road["grade_pct"], sim.road["cross_slope_pct"]
     else:
         grade, cross = sim.x[L.REF_GRADE_PCT], sim.x[L.REF_CROSS_SLOPE_PCT]
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return grade * c + cross * s, -grade * s + cross * c
+    return proto.ground_slopes_pct(grade, cross, yaw_rad)
 
 
 class RateLimitedLog:
@@ -363,47 +371,18 @@ class VehicleSlot:
             flags |= proto.StateFlag.SKIPPED
             self.skipped_before = False
         arbiter = self.arbiter
+        # the fields copied from the simulation come from the state table (state_schema);
+        # these are this slot's own (state_schema.SERVER_FIELDS, checked on import)
+        fill_record(rec, x, out, inputs, p.pose)
         rec["flags"] = flags
         rec["tick"] = self.tick
         rec["sim_time_s"] = self.tick * p.dt_s
         rec["last_cmd_seq"] = arbiter.last_applied_seq
         rec["last_cmd_sender_time_ns"] = arbiter.last_sender_ns
         rec["cmd_age_s"] = arbiter.cmd_age_s(now_ns)
-        rec["x_m"], rec["y_m"] = p.pose[L.POSE_X_M], p.pose[L.POSE_Y_M]
-        rec["z_m"] = p.pose[L.POSE_Z_M]
-        rec["yaw_rad"], rec["pitch_rad"] = p.pose[L.POSE_YAW_RAD], p.pose[L.POSE_PITCH_RAD]
-        rec["roll_rad"] = p.pose[L.POSE_ROLL_RAD]
-        rec["u_mps"] = x[L.U_MPS]
-        rec["v_mps"] = x[L.V_MPS]
-        rec["w_mps"] = x[L.HEAVE_RATE_MPS]
-        rec["roll_rate_radps"] = x[L.ROLL_RATE_RADPS]
-        rec["pitch_rate_radps"] = x[L.PITCH_RATE_RADPS]
-        rec["yaw_rate_radps"] = x[L.YAW_RATE_RADPS]
-        rec["ax_mps2"] = out[L.O_AX_MPS2]
-        rec["ay_mps2"] = out[L.O_AY_MPS2]
-        rec["omega_radps"] = x[L.OMEGA]
-        rec["kappa_lag"] = x[L.KAPPA]
-        rec["tan_alpha_lag"] = x[L.TAN_ALPHA]
-        rec["fx_n"] = out[L.O_FX]
-        rec["fy_n"] = out[L.O_FY]
-        rec["fz_n"] = out[L.O_FZ]
-        rec["steer_rad"] = out[L.O_STEER]
-        rec["mz_nm"] = out[L.O_MZ]
-        rec["steering_wheel_angle_rad"] = x[L.STEERING_WHEEL_ANGLE_RAD]
-        rec["steering_wheel_torque_nm"] = x[L.STEERING_WHEEL_TORQUE_NM]
-        rec["damping_active"] = x[L.DAMPING_ACTIVE]
         rec["brake_held"] = held
-        rec["wheel_contact"] = x[L.IN_CONTACT]
         rec["ground_grade_pct"], rec["ground_cross_slope_pct"] = ground_slopes_pct(
             p, p.pose[L.POSE_YAW_RAD])
-        rec["steer"] = inputs[L.IN_STEER]
-        rec["throttle"] = inputs[L.IN_THROTTLE]
-        rec["brake"] = inputs[L.IN_BRAKE]
-        rec["parking_brake"] = inputs[L.IN_PARKING_BRAKE]
-        rec["gear"] = inputs[L.IN_GEAR]
-        rec["gear_engaged"] = x[L.GEAR_ENGAGED]
-        rec["lockup_engaged"] = x[L.LOCKUP_ENGAGED]
-        rec["engine_speed_radps"] = x[L.ENGINE_SPEED_RADPS]
         return rec.tobytes()
 
     def check_finite(self) -> bool:

@@ -55,6 +55,7 @@ from simserver import protocol as proto
 from simserver.core import layout as L
 from simserver.core.params import VP_CG_HEIGHT_M
 from simserver.core.road import road_axes
+from simserver.state_schema import record_to_pose, record_to_rows
 
 ROAD_POLL_S = 1.0
 
@@ -118,39 +119,19 @@ def rows_from_state(rec: np.ndarray, axes: np.ndarray, cg_height_m: float,
     from simserver.core.pose import road_pose
 
     pose = np.empty(L.N_POSE)
-    pose[L.POSE_X_M], pose[L.POSE_Y_M], pose[L.POSE_Z_M] = rec["x_m"], rec["y_m"], rec["z_m"]
-    pose[L.POSE_YAW_RAD] = rec["yaw_rad"]
-    pose[L.POSE_PITCH_RAD] = rec["pitch_rad"]
-    pose[L.POSE_ROLL_RAD] = rec["roll_rad"]
+    record_to_pose(rec, pose)
     if plane is not None:
         grade, cross, height = plane
         axes = road_axes(grade, cross)
         pose[L.POSE_Z_M] -= height  # the plane passes through (0, 0, height)
         x[L.REF_GRADE_PCT], x[L.REF_CROSS_SLOPE_PCT], x[L.REF_HEIGHT_M] = grade, cross, height
     road_pose(pose, axes, cg_height_m, x)
-    x[L.U_MPS] = rec["u_mps"]
-    x[L.V_MPS] = rec["v_mps"]
-    x[L.YAW_RATE_RADPS] = rec["yaw_rate_radps"]
-    x[L.OMEGA] = rec["omega_radps"]
-    x[L.KAPPA] = rec["kappa_lag"]
-    x[L.TAN_ALPHA] = rec["tan_alpha_lag"]
-    x[L.DAMPING_ACTIVE] = rec["damping_active"]
-    x[L.WHEEL_HELD] = rec["brake_held"]
-    x[L.TIME_S] = rec["sim_time_s"]
     out[:] = np.nan
-    out[L.O_AX_MPS2] = rec["ax_mps2"]
-    out[L.O_AY_MPS2] = rec["ay_mps2"]
-    out[L.O_FX] = rec["fx_n"]
-    out[L.O_FY] = rec["fy_n"]
-    out[L.O_FZ] = rec["fz_n"]
-    out[L.O_STEER] = rec["steer_rad"]
+    record_to_rows(rec, x, out, inputs)  # every field the state table maps to a core slot
+    # The slip fed to the tire model is not on the wire; the lagged slip states are what
+    # the lagged-slip model feeds it (docs/model.md section 3), so they stand in for it.
     out[L.O_KAPPA] = rec["kappa_lag"]
     out[L.O_TAN_ALPHA] = rec["tan_alpha_lag"]
-    inputs[L.IN_STEER] = rec["steer"]
-    inputs[L.IN_THROTTLE] = rec["throttle"]
-    inputs[L.IN_BRAKE] = rec["brake"]
-    inputs[L.IN_PARKING_BRAKE] = rec["parking_brake"]
-    inputs[L.IN_GEAR] = rec["gear"]
 
 
 def lower_priority() -> str:

@@ -10,6 +10,11 @@ longer kernel tuple and cached like any other specialisation.)
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numba as nb
 import numpy as np
 import pytest
@@ -47,7 +52,7 @@ from simserver.tire_models import (
     tire_models,
     unregister_tire_model,
 )
-from tests.conftest import CONFIGS
+from tests.conftest import CONFIGS, REPO
 
 # ---------------------------------------------------------------- the toy tire "module"
 LIN_C_KAPPA, LIN_C_ALPHA, LIN_FZ_NOM, LIN_MU = 0, 1, 2, 3  # its slots from TP_MODEL_BASE
@@ -97,7 +102,7 @@ def linear_model():
     tuple, a minute on CI's machine)."""
     entry = register_tire_model("toy_linear", "linear tire, saturating at mu Fz (a test)",
                                 load_linear, linear_prepare, linear_evaluate,
-                                lambda p: p[LIN_FZ_NOM])
+                                lambda p: p[LIN_FZ_NOM], n_coef=1, n_params=len(LINEAR_KEYS))
     yield entry
     unregister_tire_model("toy_linear")
     assert "toy_linear" not in {m.name for m in tire_models()}
@@ -257,10 +262,10 @@ def test_registry_rejects_kernels_without_the_registered_signature():
 
     with pytest.raises(TypeError, match="prepare must be compiled with exactly the signature"):
         register_tire_model("untyped", "", load_linear, untyped, linear_evaluate,
-                            lambda p: 1.0)
+                            lambda p: 1.0, n_coef=1, n_params=4)
     with pytest.raises(ValueError, match="already registered"):
         register_tire_model("simple", "", load_linear, linear_prepare, linear_evaluate,
-                            lambda p: 1.0)
+                            lambda p: 1.0, n_coef=1, n_params=4)
 
 
 def test_builtin_kernels_compile_on_first_use_and_match_the_step_dispatch():
@@ -284,3 +289,167 @@ def test_builtin_kernels_compile_on_first_use_and_match_the_step_dispatch():
         simple.evaluate(tp, coef, kappa, tan_alpha, 4000.0, 20.0, via_kernels)
         tire_forces(tire_kernels(), tp, kappa, tan_alpha, 0.0, 4000.0, 1.0, 20.0, via_dispatch)
         np.testing.assert_array_equal(via_kernels, via_dispatch)
+
+
+# ---------------------------------------------------------------- the workspace
+
+
+def test_a_model_needing_more_than_the_workspace_is_refused_by_name_and_numbers():
+    """The step's coefficient scratch (N_TIRE_COEF floats on its stack) and a tire
+    vector's model slots (N_MODEL_PARAM_MAX) are not bounds-checked at run time: a model
+    declaring one slot more than either is refused, naming itself and both numbers, and
+    the registry is left as it was."""
+    from simserver.core.tire_layout import N_TIRE_COEF
+    from simserver.tire_models import N_MODEL_PARAM_MAX, TireWorkspaceError
+
+    before = tire_models()
+    cases = ((N_TIRE_COEF + 1, 4, f"declares {N_TIRE_COEF + 1} coefficient slots",
+              f"0 to {N_TIRE_COEF}"),
+             (1, N_MODEL_PARAM_MAX + 1, f"declares {N_MODEL_PARAM_MAX + 1} parameter slots",
+              f"0 to {N_MODEL_PARAM_MAX}"),
+             (-1, 4, "declares -1 coefficient slots", "0 to"))
+    for n_coef, n_params, says, room in cases:
+        with pytest.raises(TireWorkspaceError) as err:
+            register_tire_model("too_big", "", load_linear, linear_prepare, linear_evaluate,
+                                lambda p: 1.0, n_coef=n_coef, n_params=n_params)
+        message = str(err.value)
+        assert "'too_big'" in message and says in message and room in message, message
+    with pytest.raises(TireWorkspaceError, match="'too_big': coefficient slots .* integer"):
+        register_tire_model("too_big", "", load_linear, linear_prepare, linear_evaluate,
+                            lambda p: 1.0, n_coef=2.5, n_params=4)
+    assert tire_models() == before
+
+
+def test_a_model_at_the_workspace_limit_is_accepted_and_its_loader_held_to_it(tmp_path):
+    """Exactly N_TIRE_COEF coefficients and N_MODEL_PARAM_MAX parameters fit; a file
+    loads when its loader packs the declared count, and a loader packing one more than
+    the model declared is a config error naming the file, the model and the numbers."""
+    from simserver.core.tire_layout import N_TIRE_COEF
+    from simserver.tire_models import N_MODEL_PARAM_MAX
+
+    packed = {"n": N_MODEL_PARAM_MAX}
+
+    def load_full(path, data):  # noqa: ANN001, ANN202
+        return LoadedTire(model_params=np.arange(packed["n"], dtype=np.float64),
+                          rolling_radius_m=0.3, relax_lat_m=0.5, relax_long_m=0.1)
+
+    entry = register_tire_model("at_limit", "fills the workspace (a test)", load_full,
+                                linear_prepare, linear_evaluate, lambda p: 1.0,
+                                n_coef=N_TIRE_COEF, n_params=N_MODEL_PARAM_MAX)
+    try:
+        assert (entry.n_coef, entry.n_params) == (N_TIRE_COEF, N_MODEL_PARAM_MAX)
+        assert tire_model("at_limit") is entry
+        (tmp_path / "full.yaml").write_text("model: at_limit\n")
+        tp, name = load_tire(tmp_path / "full.yaml")
+        assert name == "at_limit" and tp[TP_MODEL] == entry.id
+        np.testing.assert_array_equal(tp[TP_MODEL_BASE:], np.arange(N_MODEL_PARAM_MAX))
+        packed["n"] = N_MODEL_PARAM_MAX + 1
+        with pytest.raises(ConfigError) as err:
+            load_tire(tmp_path / "full.yaml")
+        assert str(err.value).startswith(f"{tmp_path / 'full.yaml'}: tire model 'at_limit' "
+                                         f"packs {N_MODEL_PARAM_MAX + 1} parameters, more "
+                                         f"than the {N_MODEL_PARAM_MAX} it declared")
+    finally:
+        unregister_tire_model("at_limit")
+
+
+def test_builtin_models_declare_their_own_counts():
+    from simserver.core.tire_layout import N_MF61_COEF, N_SIMPLE_COEF
+    from simserver.core.tire_mf61 import N_MF61_PARAM
+    from simserver.core.tire_simple import N_SIMPLE_PARAM
+
+    assert (tire_model("simple").n_coef, tire_model("simple").n_params) == (
+        N_SIMPLE_COEF, N_SIMPLE_PARAM)
+    assert (tire_model("mf61").n_coef, tire_model("mf61").n_params) == (
+        N_MF61_COEF, N_MF61_PARAM)
+
+
+# ---------------------------------------------------------------- plug-ins (entry points)
+
+PLUGIN_MODULE = '''\
+"""A plug-in tire model, installed the way a distribution installs one."""
+import numba as nb
+import numpy as np
+
+from simserver.core.tire_layout import (EVALUATE_SIGNATURE, OUT_FX, PREPARE_SIGNATURE,
+                                        TP_MODEL_BASE)
+from simserver.tire_models import LoadedTire, register_tire_model
+
+
+@nb.njit(PREPARE_SIGNATURE)
+def prepare(tp, gamma_rad, fz_n, mu_scale, coef):
+    coef[0] = fz_n
+
+
+@nb.njit(EVALUATE_SIGNATURE)
+def evaluate(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):
+    out[:] = 0.0
+    out[OUT_FX] = tp[TP_MODEL_BASE] * kappa * coef[0]
+
+
+def load(path, data):
+    return LoadedTire(model_params=np.array([float(data["gain"])]), rolling_radius_m=0.3,
+                      relax_lat_m=0.5, relax_long_m=0.1)
+
+
+def register():
+    register_tire_model("plugged", "a plug-in (a test)", load, prepare, evaluate,
+                        lambda p: 4000.0, n_coef=1, n_params=1)
+'''
+
+PLUGIN_CHECK = '''\
+import sys
+from pathlib import Path
+
+from simserver.adapters.config import load_tire
+from simserver.load_worker import ProcessPreparer, opened
+from simserver.tire_models import PLUGINS, tire_model
+
+if __name__ == "__main__":
+    here = tire_model("plugged").id
+    worker = ProcessPreparer()
+    try:  # the server's load worker: a spawned process, which imports simserver anew
+        tp, name = opened(worker.submit(load_tire, Path(sys.argv[1])).result(timeout=120))
+    finally:
+        worker.close()
+    print(PLUGINS, here, name, int(tp[0]), tp[5])
+'''
+
+
+def _install_plugin(site: Path, value: str) -> None:
+    """An installed distribution as pip leaves it: its module and a ``.dist-info`` with
+    ``METADATA`` and ``entry_points.txt`` on the path (importlib.metadata reads those)."""
+    (site / "toy_tire_plugin.py").write_text(PLUGIN_MODULE)
+    info = site / "toy_tire_plugin-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: toy-tire-plugin\n"
+                                   "Version: 0.1\n")
+    (info / "entry_points.txt").write_text(f"[simserver.tire_models]\nplugged = {value}\n")
+
+
+def _python(site: Path, *args: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(REPO)]))
+    return subprocess.run([sys.executable, *args], env=env, capture_output=True, text=True,
+                          timeout=300, cwd=site)
+
+
+def test_an_entry_point_registers_a_model_in_every_process_the_load_worker_too(tmp_path):
+    """An installed plug-in (entry point group ``simserver.tire_models``) is registered on
+    import of the registry, so the server's spawned load worker, which shares nothing with
+    the process that started it, knows the model and gives it the same id."""
+    _install_plugin(tmp_path, "toy_tire_plugin:register")
+    (tmp_path / "plugged.yaml").write_text("model: plugged\ngain: 2.5\n")
+    (tmp_path / "check.py").write_text(PLUGIN_CHECK)
+    proc = _python(tmp_path, "check.py", str(tmp_path / "plugged.yaml"))
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["('plugged',)", "2", "plugged", "2", "2.5"]
+
+
+def test_a_broken_plugin_is_an_error_naming_it(tmp_path):
+    _install_plugin(tmp_path, "toy_tire_plugin:no_such_function")
+    proc = _python(tmp_path, "-c", "import simserver.tire_models")
+    assert proc.returncode != 0
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("simserver.tire_models.TirePluginError: tire model plug-in "
+                           "'plugged' = 'toy_tire_plugin:no_such_function' (entry point group "
+                           "'simserver.tire_models', from toy-tire-plugin) failed"), last

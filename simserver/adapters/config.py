@@ -235,9 +235,10 @@ def load_tire_sided(path: Path, data: dict[str, Any] | None = None
         data = read_yaml(path)
     model = tire_model(choice(path, "model", data.get("model"), TIRE_MODEL_NAMES))
     loaded = model.load(path, data)
-    if loaded.model_params.size > N_MODEL_PARAM_MAX:
+    if loaded.model_params.size > model.n_params:  # n_params <= N_MODEL_PARAM_MAX: registry
         raise ConfigError(f"{path}: tire model {model.name!r} packs {loaded.model_params.size} "
-                          f"parameters, more than the {N_MODEL_PARAM_MAX} a tire vector holds")
+                          f"parameters, more than the {model.n_params} it declared (a tire "
+                          f"vector holds {N_MODEL_PARAM_MAX})")
     tp = np.zeros(N_TIRE_PARAM, dtype=np.float64)
     tp[TP_MODEL] = model.id
     tp[TP_RADIUS_M] = loaded.rolling_radius_m

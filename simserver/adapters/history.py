@@ -232,10 +232,27 @@ def column_doc(columns: tuple[str, ...] = HISTORY_COLUMNS) -> Iterator[tuple[str
 
 
 def column_doc_markdown() -> str:
-    """The column documentation as a Markdown table (for the README)."""
-    lines = ["| column | unit | description |", "|---|---|---|"]
-    lines += [f"| `{n}` | {u} | {d} |" for n, u, d in column_doc()]
+    """The column documentation as a Markdown table (for the README), with the
+    VehicleState field that carries each column live (``protocol.STATE_FIELDS``' history
+    columns; ``simserver-recorder`` writes it under the column's name)."""
+    from simserver.protocol import STATE_COLUMNS
+
+    live = {c.name: f"`{c.field}`" if c.wheel is None else f"`{c.field}[{c.wheel}]`"
+            for c in STATE_COLUMNS if c.history}
+    lines = ["| column | unit | description | in the live state |", "|---|---|---|---|"]
+    lines += [f"| `{n}` | {u} | {d} | {live.get(n, '-')} |" for n, u, d in column_doc()]
     return "\n".join(lines) + "\n"
+
+
+def update_column_doc(text: str) -> str:
+    """``docs/history_columns.md``'s text with its table replaced by
+    :func:`column_doc_markdown` (the table runs from its header line to the first line
+    that is not a table row)."""
+    lines = text.splitlines(keepends=True)
+    start = next(i for i, line in enumerate(lines) if line.startswith("| column | unit |"))
+    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")),
+               len(lines))
+    return "".join(lines[:start]) + column_doc_markdown() + "".join(lines[end:])
 
 
 def result_columns(result: ScenarioResult) -> dict[str, np.ndarray]:
@@ -535,3 +552,10 @@ def write_summary(summary: dict[str, Any], path: str | Path) -> Path:
         path = path / SUMMARY_FILE
     path.write_text(summary_json(summary), encoding="utf-8")
     return path
+
+
+if __name__ == "__main__":  # python -m simserver.adapters.history docs/history_columns.md
+    import sys
+
+    doc = Path(sys.argv[1])
+    doc.write_text(update_column_doc(doc.read_text(encoding="utf-8")), encoding="utf-8")

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from simserver import protocol as proto
 from simserver.ros2.wire import typestore
 
 WHEEL_JOINTS = ("front_left_wheel_joint", "front_right_wheel_joint",
@@ -38,6 +39,14 @@ WHEEL_JOINTS = ("front_left_wheel_joint", "front_right_wheel_joint",
 
 STEER_JOINTS = ("front_left_steer_joint", "front_right_steer_joint")
 """Road-wheel steer angles of the front wheels (rad, + left)."""
+
+POSE = proto.STATE_POSE_FIELDS  # x, y, z, yaw, pitch, roll: the state table's world pose
+BODY_VELOCITY = ("u_mps", "v_mps", "w_mps")
+BODY_RATES = ("roll_rate_radps", "pitch_rate_radps", "yaw_rate_radps")
+READS = proto.check_state_reads("simserver.ros2.convert", (
+    "sim_time_s", *POSE, *BODY_VELOCITY, *BODY_RATES, "ax_mps2", "ay_mps2", "omega_radps",
+    "steer_rad"))
+"""Every state field the messages are made of (checked against the state table)."""
 
 
 def quaternion_zyx(yaw: float, pitch: float, roll: float) -> tuple[float, float, float, float]:
@@ -129,12 +138,12 @@ class StateConverter:
         sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
         stamp = self._Time(sec=sec, nanosec=nanosec)
         header = self._Header(stamp=stamp, frame_id=self.odom_frame)
-        yaw, pitch, roll = float(rec["yaw_rad"]), float(rec["pitch_rad"]), float(rec["roll_rad"])
+        x, y, z, yaw, pitch, roll = (float(rec[name]) for name in POSE)
         qx, qy, qz, qw = quaternion_zyx(yaw, pitch, roll)
         orientation = self._Quaternion(x=qx, y=qy, z=qz, w=qw)
-        x, y, z = float(rec["x_m"]), float(rec["y_m"]), float(rec["z_m"])
-        rates = self._Vector3(x=float(rec["roll_rate_radps"]), y=float(rec["pitch_rate_radps"]),
-                              z=float(rec["yaw_rate_radps"]))
+        p, q, r = (float(rec[name]) for name in BODY_RATES)
+        rates = self._Vector3(x=p, y=q, z=r)
+        u, v, w = (float(rec[name]) for name in BODY_VELOCITY)
         zeros36 = np.zeros(36)
         odom = self._Odometry(
             header=header, child_frame_id=self.base_frame,
@@ -142,10 +151,7 @@ class StateConverter:
                                                orientation=orientation),
                                covariance=zeros36),
             twist=self._TwistCov(
-                twist=self._Twist(linear=self._Vector3(x=float(rec["u_mps"]),
-                                                       y=float(rec["v_mps"]),
-                                                       z=float(rec["w_mps"])),
-                                  angular=rates),
+                twist=self._Twist(linear=self._Vector3(x=u, y=v, z=w), angular=rates),
                 covariance=zeros36))
         fx, fy, fz = specific_force(float(rec["ax_mps2"]), float(rec["ay_mps2"]), pitch, roll,
                                     self.gravity_mps2)
