@@ -20,21 +20,28 @@ Superelevation is the roll angle of the cross-section about the reference line (
 the right side, ``t < 0``, goes down; ASAM OpenDRIVE 1.6, 8.4.1), so a surface point at
 lateral offset ``t`` stands ``t sin(roll)`` above the reference line's elevation.
 
-Errors name the file and the element (``OpenDriveError``, a ``ConfigError``); a file that
-fails is not kept in part.
+Errors name the file, the line and the element (``OpenDriveError``, a ``ConfigError``:
+``FILE:LINE: road 7 <geometry> #0 <poly3>: attribute 'c'=...``); a file that fails is not
+kept in part. Every number is checked against ``XODR_BOUNDS`` as it is read (the cubics by
+their values over their pieces), so nothing later overflows; the file is parsed as it is
+read (expat: it gives each element's line, and no tree of a large file is kept).
 """
 
 from __future__ import annotations
 
 import math
-import xml.etree.ElementTree as ET
+import os
+import stat
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, NoReturn
+from xml.parsers import expat
 
 import numba as nb
 import numpy as np
 
-from simserver.adapters.validate import ConfigError
+from simserver.adapters.validate import ConfigError, report_progress, short_repr
 
 GEOMETRY_KINDS = ("line", "arc", "spiral", "poly3", "paramPoly3")
 _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(8)
@@ -258,114 +265,440 @@ class OpenDrive:
     roads: list[Road]
 
 
-def _num(path: Path, elem: ET.Element, what: str, key: str) -> float:
-    raw = elem.get(key)
-    if raw is None:
-        raise OpenDriveError(f"{path}: {what}: attribute '{key}' missing")
-    try:
-        value = float(raw)
-    except ValueError:
-        raise OpenDriveError(f"{path}: {what}: attribute '{key}'={raw!r} is not a number") from None
-    if not math.isfinite(value):
-        raise OpenDriveError(f"{path}: {what}: attribute '{key}'={raw!r} is not finite")
-    return value
+MAX_XODR_BYTES = 256 << 20
+"""Largest ``.xodr`` file read (256 MiB: a road of a million geometries is about 90 MB)."""
+_READ_CHUNK_BYTES = 1 << 20  # the file is parsed as it is read, a MiB at a time
+MAX_LENGTH_M = 1e6
+MAX_COORD_M = 1e7
 
 
-def _cubics(path: Path, parent: ET.Element | None, tag: str, what: str, s_key: str = "s"
-            ) -> list[Cubic]:
-    if parent is None:
-        return []
-    pieces = []
-    for k, e in enumerate(parent.findall(tag)):
-        where = f"{what} <{tag}> #{k}"
-        pieces.append(Cubic(*(_num(path, e, where, key) for key in (s_key, "a", "b", "c", "d"))))
-    return pieces
+@dataclass(frozen=True)
+class XodrBound:
+    """The range an ``.xodr`` number must lie in: ``lo`` .. ``hi`` in ``unit``."""
+
+    applies_to: str
+    unit: str
+    lo: float
+    hi: float
+    why: str
+
+
+XODR_BOUNDS: dict[str, XodrBound] = {
+    "s": XodrBound("`s` of a `<geometry>`, `<elevation>`, `<superelevation>`, "
+                   "`<laneSection>`; `sOffset` of a `<width>`, `<roadMark>`; "
+                   "a `<road>`'s `length`", "m", 0.0, MAX_LENGTH_M,
+                   "in order along the road (each at or after the one before)"),
+    "length": XodrBound("`length` of a `<geometry>`", "m", 0.0, MAX_LENGTH_M,
+                        "more than 0"),
+    "xy": XodrBound("`x`, `y` of a `<geometry>`", "m", -MAX_COORD_M, MAX_COORD_M,
+                    "the grid's corner bounds too"),
+    "hdg": XodrBound("`hdg` of a `<geometry>`", "rad", -1e3, 1e3,
+                     "any turn, unwrapped or not"),
+    "curvature": XodrBound("`curvature` of an `<arc>`, `curvStart`, `curvEnd` of a "
+                           "`<spiral>`", "1/m", -1e3, 1e3, "a radius of 1 mm or more"),
+    "curve": XodrBound("`<poly3>` `v(u)`, `<paramPoly3>` `u(p)` and `v(p)`, over the "
+                       "piece", "m", -MAX_COORD_M, MAX_COORD_M,
+                       "the cubic's largest value over its range, not each coefficient"),
+    "elevation": XodrBound("`<elevation>` height over its piece", "m", -1e4, 1e4,
+                           "the cubic's largest value up to the next piece or the road's end"),
+    "superelevation": XodrBound("`<superelevation>` roll over its piece", "rad",
+                                -math.pi / 2, math.pi / 2, "as for the elevation"),
+    "width": XodrBound("`<width>` of a lane over its piece", "m", -1e3, 1e3,
+                       "as for the elevation (a negative width counts as 0)"),
+    "mark_width": XodrBound("`width` of a `<roadMark>`", "m", 0.0, 10.0, "drawn only"),
+}
+"""Every number an ``.xodr`` file gives is finite, normal and within these bounds, or the
+file is refused with an error naming the element, its line and the attribute (one source:
+the reader and docs/configuration.md). The cubics are checked by their values over their
+pieces, so a file cannot make a height, an angle or a coordinate overflow later."""
+
+
+class _Piece:
+    """A cubic as read, with where it came from (checked once the road's pieces and spans
+    are known)."""
+
+    __slots__ = ("coef", "line", "what")
+
+    def __init__(self, coef: tuple[float, float, float, float, float], line: int,
+                 what: str) -> None:
+        self.coef = coef
+        self.line = line
+        self.what = what
+
+
+def cubic_peak(a: float, b: float, c: float, d: float, span: float) -> float:
+    """The largest ``|a + b x + c x^2 + d x^3|`` for ``x`` in ``[0, span]`` (at an end or
+    where the derivative vanishes); ``inf`` when it overflows."""
+    xs = [0.0, span] if span > 0.0 else [0.0]
+    if d != 0.0:
+        disc = c * c - 3.0 * d * b
+        if disc >= 0.0:
+            root = math.sqrt(disc)
+            xs += [(-c + root) / (3.0 * d), (-c - root) / (3.0 * d)]
+    elif c != 0.0:
+        xs.append(-b / (2.0 * c))
+    peak = 0.0
+    for x in xs:
+        if 0.0 <= x <= max(span, 0.0):
+            value = abs(a + x * (b + x * (c + x * d)))
+            if not value <= math.inf or value == math.inf:  # NaN from inf - inf: overflow
+                return math.inf
+            peak = max(peak, value)
+    return peak
+
+
+class _XodrReader:
+    """Builds an :class:`OpenDrive` from the parser's events as the file is read (expat:
+    no tree is kept, every element's line is known)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.parser = expat.ParserCreate()
+        self.parser.StartElementHandler = self._start
+        self.parser.EndElementHandler = self._end
+        self.parser.EntityDeclHandler = self._entity
+        self.stack: list[str] = []
+        self.roads: list[Road] = []
+        self.road: dict[str, Any] | None = None
+        self.geometry: tuple[list[float], int, str, list[tuple[str, dict[str, str], int]]] \
+            | None = None
+        self.section: dict[str, Any] | None = None
+        self.lane: dict[str, Any] | None = None
+        self.side = ""
+
+    # ------------------------------------------------------------------ helpers
+    def fail(self, what: str, message: str, line: int | None = None) -> NoReturn:
+        line = self.parser.CurrentLineNumber if line is None else line
+        raise OpenDriveError(f"{self.path}:{line}: {what}: {message}")
+
+    def num(self, attrs: dict[str, str], what: str, key: str, bound: str,
+            line: int | None = None) -> float:
+        """Attribute ``key``: a finite, normal number within ``XODR_BOUNDS[bound]``."""
+        value = self.num_any(attrs, what, key, line)
+        if bound in ("length", "curvature") and 0.0 < abs(value) < sys.float_info.min:
+            self.fail(what, f"attribute '{key}'={short_repr(attrs[key])} is subnormal (use 0 "
+                            "or a normal number: it is divided by)", line)
+        b = XODR_BOUNDS[bound]
+        if not b.lo <= value <= b.hi:
+            self.fail(what, f"attribute '{key}'={short_repr(attrs[key])} is outside "
+                            f"[{b.lo:g}, {b.hi:g}] {b.unit}", line)
+        return value
+
+    def cubic(self, attrs: dict[str, str], what: str, s_key: str) -> _Piece:
+        s = self.num(attrs, what, s_key, "s")
+        a, b, c, d = (self.num_any(attrs, what, key) for key in "abcd")
+        return _Piece((s, a, b, c, d), self.parser.CurrentLineNumber, what)
+
+    def num_any(self, attrs: dict[str, str], what: str, key: str,
+                line: int | None = None) -> float:
+        """Attribute ``key``: a finite, normal number (a cubic's coefficient: bounded by
+        the cubic's values over its piece, ``check_peak``)."""
+        raw = attrs.get(key)
+        if raw is None:
+            self.fail(what, f"attribute '{key}' missing", line)
+        try:
+            value = float(raw)
+        except ValueError:
+            self.fail(what, f"attribute '{key}'={short_repr(raw)} is not a number", line)
+        if not math.isfinite(value):
+            self.fail(what, f"attribute '{key}'={short_repr(raw)} is not finite", line)
+        return value
+
+    def check_peak(self, what: str, line: int, keys: str, coef: tuple[float, ...],
+                   span: float, bound: str) -> None:
+        """The cubic ``coef`` (a, b, c, d) stays within ``XODR_BOUNDS[bound]`` over
+        ``[0, span]``; else an error naming the largest term's attribute."""
+        b = XODR_BOUNDS[bound]
+        limit = min(-b.lo, b.hi)
+        peak = cubic_peak(*coef, span)
+        if peak <= limit:
+            return
+        terms = [abs(k) * max(span, 1.0) ** n for n, k in enumerate(coef)]
+        worst = keys.split(",")[max(range(4), key=lambda n: terms[n])]
+        self.fail(what, f"attribute '{worst}'={coef[keys.split(',').index(worst)]:g}: the "
+                        f"cubic reaches {peak:g} {b.unit} within {span:g} of its start, "
+                        f"outside [{b.lo:g}, {b.hi:g}] {b.unit}", line)
+
+    def check_order(self, pieces: list[_Piece]) -> None:
+        for prev, piece in zip(pieces, pieces[1:], strict=False):
+            if piece.coef[0] < prev.coef[0]:
+                self.fail(piece.what, f"s={piece.coef[0]:g} comes before the previous "
+                                      f"piece's s={prev.coef[0]:g} (pieces in order along "
+                                      "the road)", piece.line)
+
+    def check_profile(self, pieces: list[_Piece], end: float, bound: str,
+                      keys: str = "a,b,c,d") -> list[Cubic]:
+        """Pieces in order, each within ``bound`` up to the next one (or ``end``)."""
+        self.check_order(pieces)
+        for k, piece in enumerate(pieces):
+            stop = pieces[k + 1].coef[0] if k + 1 < len(pieces) else end
+            self.check_peak(piece.what, piece.line, keys, piece.coef[1:],
+                            stop - piece.coef[0], bound)
+        return [Cubic(*p.coef) for p in pieces]
+
+    # ------------------------------------------------------------------ events
+    def _entity(self, *_: Any) -> None:
+        self.fail("<!DOCTYPE>", "declares an entity (an OpenDRIVE file has none)")
+
+    def _start(self, name: str, attrs: dict[str, str]) -> None:
+        stack = self.stack
+        depth = len(stack)
+        parent = stack[-1] if stack else ""
+        stack.append(name)
+        if depth == 0:
+            if name != "OpenDRIVE":
+                raise OpenDriveError(f"{self.path}: root element <{name}>, expected "
+                                     "<OpenDRIVE>")
+        elif depth == 1:
+            if name == "road":
+                self._start_road(attrs)
+        elif self.road is None:
+            return
+        elif depth == 2:
+            if name in ("planView", "elevationProfile", "lateralProfile", "lanes"):
+                self.road["seen"].add(name)
+        elif depth == 3:
+            road = self.road
+            if parent == "planView" and name == "geometry":
+                self.geometry = (self._geometry_base(attrs), self.parser.CurrentLineNumber,
+                                 None, [])
+            elif parent == "elevationProfile" and name == "elevation":
+                road["elevation"].append(self.cubic(
+                    attrs, f"{road['what']} <elevation> #{len(road['elevation'])}", "s"))
+            elif parent == "lateralProfile" and name == "superelevation":
+                road["superelevation"].append(self.cubic(
+                    attrs, f"{road['what']} <superelevation> #{len(road['superelevation'])}",
+                    "s"))
+            elif parent == "lanes" and name == "laneSection":
+                what = f"{road['what']} <laneSection> #{len(road['sections'])}"
+                self.section = {"what": what, "s": self.num(attrs, what, "s", "s"),
+                                "line": self.parser.CurrentLineNumber, "lanes": []}
+        elif depth == 4:
+            if parent == "geometry" and self.geometry is not None:
+                self.geometry[3].append((name, attrs, self.parser.CurrentLineNumber))
+            elif parent == "laneSection" and name in _SIDES:
+                self.side = name
+        elif depth == 5:
+            if name == "lane" and self.section is not None and self.side:
+                what = f"{self.section['what']} <{self.side}> lane {attrs.get('id')}"
+                try:
+                    lane_id = int(attrs.get("id", ""))
+                except ValueError:
+                    self.fail(what, "id is not an integer")
+                if not -1000 <= lane_id <= 1000:
+                    self.fail(what, "id outside -1000 .. 1000")
+                if (self.side == "left") != (lane_id > 0) and self.side != "center":
+                    self.fail(what, "id on the wrong side")
+                self.lane = {"what": what, "id": lane_id, "type": attrs.get("type", "none"),
+                             "widths": [], "marks": [], "line": self.parser.CurrentLineNumber}
+        elif depth == 6 and self.lane is not None and parent == "lane":
+            lane = self.lane
+            if name == "width":
+                lane["widths"].append(self.cubic(
+                    attrs, f"{lane['what']} <width> #{len(lane['widths'])}", "sOffset"))
+            elif name == "roadMark":
+                what = f"{lane['what']} <roadMark> #{len(lane['marks'])}"
+                lane["marks"].append(RoadMark(
+                    self.num(attrs, what, "sOffset", "s"), attrs.get("type", "none"),
+                    attrs.get("color", "standard"),
+                    self.num(attrs, what, "width", "mark_width") if "width" in attrs
+                    else 0.12))
+
+    def _start_road(self, attrs: dict[str, str]) -> None:
+        rid = attrs.get("id", "?")
+        what = f"road {rid}"
+        rule = attrs.get("rule", "RHT")
+        if rule not in ("RHT", "LHT"):
+            self.fail(what, f"rule {short_repr(rule)} (expected RHT or LHT)")
+        self.road = {"id": rid, "what": what, "line": self.parser.CurrentLineNumber,
+                     "length": self.num(attrs, what, "length", "s"), "rule": rule,
+                     "geometries": [], "elevation": [], "superelevation": [],
+                     "sections": [], "seen": set()}
+
+    def _end(self, name: str) -> None:
+        stack = self.stack
+        stack.pop()
+        depth = len(stack)
+        if self.road is None:
+            return
+        if depth == 1 and name == "road":
+            self._end_road()
+        elif depth == 3 and name == "geometry" and self.geometry is not None:
+            self._end_geometry()
+        elif depth == 3 and name == "laneSection" and self.section is not None:
+            sec = self.section
+            if not any(lane.id != 0 for _, lane, _ in sec["lanes"]):
+                self.fail(sec["what"], "no lanes", sec["line"])
+            self.road["sections"].append(sec)
+            self.section = None
+        elif depth == 4 and name in _SIDES:
+            self.side = ""
+        elif depth == 5 and name == "lane" and self.lane is not None:
+            lane = self.lane
+            if self.side != "center" and not lane["widths"]:
+                self.fail(lane["what"], "no <width>", lane["line"])
+            self.check_order(lane["widths"])
+            self.section["lanes"].append((_SIDES.index(self.side), Lane(
+                lane["id"], lane["type"], [], lane["marks"]), lane["widths"]))
+            self.lane = None
+
+    def _geometry_base(self, attrs: dict[str, str]) -> list[float]:
+        """``s, x, y, hdg, length`` of a ``<geometry>`` (the common case checked in one go:
+        a road may have a million of them; any doubt and each is checked with its error)."""
+        try:
+            base = [float(attrs["s"]), float(attrs["x"]), float(attrs["y"]),
+                    float(attrs["hdg"]), float(attrs["length"])]
+            s, x, y, hdg, length = base
+            if (0.0 <= s <= MAX_LENGTH_M and -MAX_COORD_M <= x <= MAX_COORD_M
+                    and -MAX_COORD_M <= y <= MAX_COORD_M and -1e3 <= hdg <= 1e3
+                    and sys.float_info.min <= length <= MAX_LENGTH_M):
+                return base
+        except (KeyError, ValueError):
+            pass
+        what = self._geometry_what()
+        base = [self.num(attrs, what, "s", "s"), self.num(attrs, what, "x", "xy"),
+                self.num(attrs, what, "y", "xy"), self.num(attrs, what, "hdg", "hdg"),
+                self.num(attrs, what, "length", "length")]
+        if not base[4] > 0.0:
+            self.fail(what, "length must be > 0")
+        return base
+
+    def _geometry_what(self) -> str:
+        return f"{self.road['what']} <geometry> #{len(self.road['geometries'])}"
+
+    def _end_geometry(self) -> None:
+        base, line, _, children = self.geometry
+        self.geometry = None
+        if len(children) == 1 and children[0][0] == "line" and (
+                not self.road["geometries"] or base[0] >= self.road["geometries"][-1].s):
+            self._add_geometry(Geometry(*base, kind="line", params=_NO_PARAMS))
+            return
+        what = self._geometry_what()
+        if len(children) != 1 or children[0][0] not in GEOMETRY_KINDS:
+            kinds = [c[0] for c in children]
+            self.fail(what, f"unknown geometry {kinds} (supported: "
+                            f"{', '.join(GEOMETRY_KINDS)})", line)
+        kind, attrs, shape_line = children[0]
+        swhat = f"{what} <{kind}>"
+        length = base[4]
+        params: dict[str, float | str]
+        if kind == "line":
+            params = _NO_PARAMS
+        elif kind == "arc":
+            params = {"curvature": self.num(attrs, swhat, "curvature", "curvature",
+                                             shape_line)}
+        elif kind == "spiral":
+            params = {k: self.num(attrs, swhat, k, "curvature", shape_line)
+                      for k in ("curvStart", "curvEnd")}
+        elif kind == "poly3":
+            params = {k: self.num_any(attrs, swhat, k, shape_line) for k in "abcd"}
+            self.check_peak(swhat, shape_line, "a,b,c,d",
+                            tuple(float(params[k]) for k in "abcd"), length, "curve")
+        else:
+            p_range = attrs.get("pRange", "normalized")
+            if p_range not in ("arcLength", "normalized"):
+                self.fail(swhat, f"pRange {short_repr(p_range)}", shape_line)
+            params = {f"{c}{a}": self.num_any(attrs, swhat, f"{c}{a}", shape_line)
+                      for a in "UV" for c in "abcd"}
+            span = length if p_range == "arcLength" else 1.0
+            for axis in "UV":
+                keys = ",".join(f"{c}{axis}" for c in "abcd")
+                self.check_peak(swhat, shape_line, keys,
+                                tuple(float(params[f"{c}{axis}"]) for c in "abcd"), span,
+                                "curve")
+            params["pRange"] = p_range
+        geometries = self.road["geometries"]
+        if geometries and base[0] < geometries[-1].s:
+            self.fail(what, f"s={base[0]:g} comes before the previous geometry's "
+                            f"s={geometries[-1].s:g} (geometries in order along the road)",
+                      line)
+        self._add_geometry(Geometry(*base, kind=kind, params=params))
+
+    def _add_geometry(self, geometry: Geometry) -> None:
+        geometries = self.road["geometries"]
+        geometries.append(geometry)
+        if len(geometries) % 65536 == 0:
+            report_progress(f"{self.path.name}: {len(geometries)} geometries")
+
+    def _end_road(self) -> None:
+        road = self.road
+        self.road = None
+        what = road["what"]
+        if "planView" not in road["seen"]:
+            self.fail(what, "no <planView>", road["line"])
+        if not road["geometries"]:
+            self.fail(what, "<planView> has no <geometry>", road["line"])
+        length = road["length"]
+        elevation = self.check_profile(road["elevation"], length, "elevation")
+        superelevation = self.check_profile(road["superelevation"], length, "superelevation")
+        sections = road["sections"]
+        for prev, sec in zip(sections, sections[1:], strict=False):
+            if sec["s"] < prev["s"]:
+                self.fail(sec["what"], f"s={sec['s']:g} comes before the previous section's "
+                                       f"s={prev['s']:g}", sec["line"])
+        built = []
+        for k, sec in enumerate(sections):
+            sec_end = (sections[k + 1]["s"] if k + 1 < len(sections) else length) - sec["s"]
+            lanes = [Lane(lane.id, lane.type, self.check_profile(widths, sec_end, "width"),
+                          lane.marks)
+                     for _, lane, widths in sorted(sec["lanes"], key=lambda e: e[0])]
+            built.append(LaneSection(sec["s"], lanes))
+        self.roads.append(Road(road["id"], length, road["geometries"], elevation,
+                               superelevation, built, road["rule"]))
+
+    # ------------------------------------------------------------------ reading
+    def read(self) -> OpenDrive:
+        path = self.path
+        try:
+            fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0)
+                         | getattr(os, "O_CLOEXEC", 0))
+        except OSError as exc:
+            raise OpenDriveError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        try:
+            info = os.fstat(fd)
+            if not stat.S_ISREG(info.st_mode):
+                raise OpenDriveError(f"{path}: cannot read: not a regular file")
+            if info.st_size > MAX_XODR_BYTES:
+                raise OpenDriveError(f"{path}: {info.st_size} bytes, more than the "
+                                     f"{MAX_XODR_BYTES} an .xodr file may have")
+            done = 0
+            with os.fdopen(os.dup(fd), "rb") as f:
+                while chunk := f.read(_READ_CHUNK_BYTES):
+                    done += len(chunk)
+                    if done > MAX_XODR_BYTES:  # grown since fstat
+                        raise OpenDriveError(f"{path}: more than the {MAX_XODR_BYTES} "
+                                             "bytes an .xodr file may have")
+                    self.parser.Parse(chunk, False)
+                    report_progress(f"{path.name}: {done >> 20} of "
+                                    f"{max(info.st_size, 1) >> 20} MiB read")
+            self.parser.Parse(b"", True)
+        except expat.ExpatError as exc:
+            raise OpenDriveError(f"{path}:{exc.lineno}: unreadable XML "
+                                 f"({expat.ErrorString(exc.code)}, column "
+                                 f"{exc.offset + 1})") from None
+        except OSError as exc:
+            raise OpenDriveError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        except RecursionError:
+            raise OpenDriveError(f"{path}: elements nested too deeply") from None
+        finally:
+            os.close(fd)
+        if not self.roads:
+            raise OpenDriveError(f"{path}: no <road>")
+        return OpenDrive(path, self.roads)
+
+
+_NO_PARAMS: dict[str, float | str] = {}  # shared by every line (a million lines: no dicts)
+_SIDES = ("left", "center", "right")  # a section's lanes in this order, as before
 
 
 def load_opendrive(path: str | Path) -> OpenDrive:
-    """Read an ``.xodr`` file (module docstring); ``OpenDriveError`` names file and
-    element."""
+    """Read an ``.xodr`` file (module docstring); ``OpenDriveError`` names the file, the
+    line and the element (and the attribute), numbers checked against ``XODR_BOUNDS``.
+    The file is parsed as it is read (expat, no tree kept): at most ``MAX_XODR_BYTES``."""
     path = Path(path)
     if not path.is_file():
         raise OpenDriveError(f"{path}: no such file")
-    try:
-        root = ET.parse(path).getroot()
-    except (ET.ParseError, OSError) as exc:
-        raise OpenDriveError(f"{path}: unreadable XML ({exc})") from None
-    if root.tag != "OpenDRIVE":
-        raise OpenDriveError(f"{path}: root element <{root.tag}>, expected <OpenDRIVE>")
-    roads = []
-    for road_el in root.findall("road"):
-        rid = road_el.get("id", "?")
-        what = f"road {rid}"
-        plan = road_el.find("planView")
-        if plan is None:
-            raise OpenDriveError(f"{path}: {what}: no <planView>")
-        geometries = []
-        for k, g in enumerate(plan.findall("geometry")):
-            gwhat = f"{what} <geometry> #{k}"
-            base = [_num(path, g, gwhat, key) for key in ("s", "x", "y", "hdg", "length")]
-            if len(g) != 1 or g[0].tag not in GEOMETRY_KINDS:
-                kinds = [c.tag for c in g]
-                raise OpenDriveError(f"{path}: {gwhat}: unknown geometry {kinds} (supported: "
-                                     f"{', '.join(GEOMETRY_KINDS)})")
-            shape = g[0]
-            params: dict[str, float | str] = {}
-            keys = {"line": (), "arc": ("curvature",), "spiral": ("curvStart", "curvEnd"),
-                    "poly3": ("a", "b", "c", "d"),
-                    "paramPoly3": tuple(f"{c}{a}" for a in "UV" for c in "abcd")}[shape.tag]
-            for key in keys:
-                params[key] = _num(path, shape, f"{gwhat} <{shape.tag}>", key)
-            if shape.tag == "paramPoly3":
-                p_range = shape.get("pRange", "normalized")
-                if p_range not in ("arcLength", "normalized"):
-                    raise OpenDriveError(f"{path}: {gwhat} <paramPoly3>: pRange {p_range!r}")
-                params["pRange"] = p_range
-            if not base[4] > 0.0:
-                raise OpenDriveError(f"{path}: {gwhat}: length must be > 0")
-            geometries.append(Geometry(*base, kind=shape.tag, params=params))
-        if not geometries:
-            raise OpenDriveError(f"{path}: {what}: <planView> has no <geometry>")
-        elevation = _cubics(path, road_el.find("elevationProfile"), "elevation", what)
-        superelevation = _cubics(path, road_el.find("lateralProfile"), "superelevation", what)
-        sections = []
-        lanes_el = road_el.find("lanes")
-        for k, sec in enumerate([] if lanes_el is None else lanes_el.findall("laneSection")):
-            swhat = f"{what} <laneSection> #{k}"
-            s0 = _num(path, sec, swhat, "s")
-            lanes = []
-            for side in ("left", "center", "right"):
-                side_el = sec.find(side)
-                for lane in [] if side_el is None else side_el.findall("lane"):
-                    lwhat = f"{swhat} <{side}> lane {lane.get('id')}"
-                    try:
-                        lane_id = int(lane.get("id", ""))
-                    except ValueError:
-                        raise OpenDriveError(f"{path}: {lwhat}: id is not an integer") from None
-                    if (side == "left") != (lane_id > 0) and side != "center":
-                        raise OpenDriveError(f"{path}: {lwhat}: id on the wrong side")
-                    widths = _cubics(path, lane, "width", lwhat, s_key="sOffset")
-                    if side != "center" and not widths:
-                        raise OpenDriveError(f"{path}: {lwhat}: no <width>")
-                    marks = []
-                    for j, m in enumerate(lane.findall("roadMark")):
-                        mwhat = f"{lwhat} <roadMark> #{j}"
-                        marks.append(RoadMark(
-                            _num(path, m, mwhat, "sOffset"), m.get("type", "none"),
-                            m.get("color", "standard"),
-                            _num(path, m, mwhat, "width") if "width" in m.attrib else 0.12))
-                    lanes.append(Lane(lane_id, lane.get("type", "none"), widths, marks))
-            if not any(lane.id != 0 for lane in lanes):
-                raise OpenDriveError(f"{path}: {swhat}: no lanes")
-            sections.append(LaneSection(s0, lanes))
-        rule = road_el.get("rule", "RHT")
-        if rule not in ("RHT", "LHT"):
-            raise OpenDriveError(f"{path}: {what}: rule {rule!r} (expected RHT or LHT)")
-        roads.append(Road(rid, _num(path, road_el, what, "length"), geometries, elevation,
-                          superelevation, sections, rule))
-    if not roads:
-        raise OpenDriveError(f"{path}: no <road>")
-    return OpenDrive(path, roads)
+    return _XodrReader(path).read()
 
 
 def _section_at(road: Road, s: float) -> LaneSection | None:
@@ -510,6 +843,45 @@ def _scatter_cross_sections(ref_x: np.ndarray, ref_y: np.ndarray, ref_hdg: np.nd
                 heights[cj, ci] = pz + gx * dx + gy * dy
 
 
+MAX_RASTER_SAMPLES = 8_000_000
+"""Most reference-line samples ``rasterise`` takes over all roads (every quarter of a cell:
+1 000 km of road at the default 0.5 m cells; each costs about 100 bytes while loading)."""
+MAX_RASTER_CELLS = 40_000_000
+"""Most cells of a rasterised grid (320 MB of heights: a 6 x 6 km area at 1 m cells)."""
+
+
+def reference_points(road: Road, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World ``(x, y, heading)`` of the reference line at every ``s`` of an increasing
+    array: the lines and arcs of all geometries at once, each other piece on its own
+    samples (a road of a million geometries takes as long as one of a few)."""
+    geos = road.geometries
+    n = len(geos)
+    starts = np.fromiter((g.s for g in geos), np.float64, n)
+    which = np.clip(np.searchsorted(starts, s + 1e-9, side="right") - 1, 0, n - 1)
+    x0 = np.fromiter((g.x for g in geos), np.float64, n)[which]
+    y0 = np.fromiter((g.y for g in geos), np.float64, n)[which]
+    h0 = np.fromiter((g.hdg for g in geos), np.float64, n)[which]
+    ds = np.clip(s - starts[which], 0.0, np.fromiter((g.length for g in geos), np.float64,
+                                                     n)[which])
+    curvature = np.fromiter((float(g.params["curvature"]) if g.kind == "arc" else 0.0
+                             for g in geos), np.float64, n)[which]
+    simple = np.fromiter((g.kind in ("line", "arc") for g in geos), bool, n)[which]
+    x, y, h = np.empty_like(s), np.empty_like(s), np.empty_like(s)
+    line = simple & (curvature == 0.0)
+    x[line] = x0[line] + ds[line] * np.cos(h0[line])
+    y[line] = y0[line] + ds[line] * np.sin(h0[line])
+    h[line] = h0[line]
+    arc = simple & (curvature != 0.0)
+    k, hh, dd = curvature[arc], h0[arc], ds[arc]
+    x[arc] = x0[arc] + (np.sin(hh + k * dd) - np.sin(hh)) / k
+    y[arc] = y0[arc] - (np.cos(hh + k * dd) - np.cos(hh)) / k
+    h[arc] = hh + k * dd
+    for index in np.unique(which[~simple]):  # the samples of one geometry are contiguous
+        lo, hi = np.searchsorted(which, [index, index + 1])
+        x[lo:hi], y[lo:hi], h[lo:hi] = geos[index].points(ds[lo:hi])
+    return x, y, h
+
+
 def rasterise(od: OpenDrive, cell_m: float, margin_m: float = 20.0
               ) -> tuple[np.ndarray, float, float]:
     """The road surface as a height grid: ``(heights[j, i], x0, y0)`` with cells of
@@ -526,21 +898,19 @@ def rasterise(od: OpenDrive, cell_m: float, margin_m: float = 20.0
     scattered into the grid by a compiled loop (``_scatter_cross_sections``): a
     kilometre of road loads in well under a second."""
     step = 0.25 * cell_m
+    samples = sum(road.length for road in od.roads) / step
+    if samples > MAX_RASTER_SAMPLES:
+        raise OpenDriveError(f"{od.path}: {sum(r.length for r in od.roads):g} m of road "
+                             f"at cell_m = {cell_m:g} m is {samples:.3g} samples, more than "
+                             f"{MAX_RASTER_SAMPLES} (a coarser cell_m, or fewer roads)")
     sections = []
     lo_x = lo_y = math.inf
     hi_x = hi_y = -math.inf
     for road in od.roads:
         s_all = np.arange(0.0, road.length + 0.5 * step, step)
         s_all[-1] = min(s_all[-1], road.length)
-        ref_x, ref_y, ref_h = np.empty_like(s_all), np.empty_like(s_all), np.empty_like(s_all)
-        starts = np.array([g.s for g in road.geometries])
-        which = np.clip(np.searchsorted(starts, s_all + 1e-9, side="right") - 1, 0,
-                        len(starts) - 1)
-        for k, geo in enumerate(road.geometries):
-            sel = which == k
-            if sel.any():
-                ds = np.clip(s_all[sel] - geo.s, 0.0, geo.length)
-                ref_x[sel], ref_y[sel], ref_h[sel] = geo.points(ds)
+        ref_x, ref_y, ref_h = reference_points(road, s_all)
+        report_progress(f"{od.path.name}: road {road.id} sampled ({s_all.size} samples)")
         elev = profile_values(road.elevation, s_all)
         slope = (profile_values(road.elevation, s_all + 1e-3)
                  - profile_values(road.elevation, s_all - 1e-3)) / 2e-3
@@ -558,10 +928,15 @@ def rasterise(od: OpenDrive, cell_m: float, margin_m: float = 20.0
     y0 = math.floor(lo_y / cell_m) * cell_m
     nx = int(math.ceil((hi_x - x0) / cell_m)) + 1
     ny = int(math.ceil((hi_y - y0) / cell_m)) + 1
+    if nx * ny > MAX_RASTER_CELLS:
+        raise OpenDriveError(f"{od.path}: the roads span {hi_x - lo_x:.0f} x {hi_y - lo_y:.0f}"
+                             f" m: {nx} x {ny} cells of {cell_m:g} m, more than "
+                             f"{MAX_RASTER_CELLS} (a coarser cell_m)")
     grid = np.full((ny, nx), np.nan)
     best_d2 = np.full((ny, nx), np.inf)
     for arrays in sections:
         _scatter_cross_sections(*arrays, margin_m, step, x0, y0, cell_m, grid, best_d2)
+        report_progress(f"{od.path.name}: a road rasterised into {nx} x {ny} cells")
     _fill_nearest(grid)
     return grid, x0, y0
 
