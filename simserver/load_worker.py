@@ -259,9 +259,42 @@ def _exit_with(server_pid: int) -> None:
     os._exit(0)
 
 
-def _worker_init(server_pid: int) -> None:
+PROGRESS_TEXT_BYTES = 200
+"""The last progress message a worker reports is kept to this many bytes."""
+
+
+class Progress:
+    """A job's signs of life, shared between the server and its worker: a counter the
+    worker bumps at each :func:`simserver.adapters.validate.report_progress` (a MiB of an
+    ``.xodr`` read, a road rasterised) and the last message. The loop abandons a job whose
+    counter has not moved for its stall time (a FIFO, a parser that does not return), not
+    one that is slow but going on (``simserver.server_loop``); reading it is two memory
+    loads, fit for the tick."""
+
+    def __init__(self) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self.count = ctx.RawValue("q", 0)
+        self.text = ctx.RawArray("c", PROGRESS_TEXT_BYTES)
+
+    def report(self, message: str) -> None:
+        """In the worker: the message stored, then the counter bumped."""
+        self.text.value = message.encode("utf-8", "replace")[:PROGRESS_TEXT_BYTES - 1]
+        self.count.value += 1
+
+    def seen(self) -> int:
+        return self.count.value
+
+    def message(self) -> str:
+        return self.text.value.decode("utf-8", "replace")
+
+
+def _worker_init(server_pid: int, progress: Progress | None = None) -> None:
     threading.Thread(target=_exit_with, args=(server_pid,), name="simserver-exit-with-server",
                      daemon=True).start()
+    if progress is not None:
+        from simserver.adapters.validate import set_progress_sink
+
+        set_progress_sink(progress.report)
     try:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         os.nice(WORKER_NICE)
@@ -277,13 +310,14 @@ class ProcessPreparer:
         self.restarts = 0
         self._promoted: set[int] = set()
         self.server_pid = os.getpid()
+        self.progress = Progress()
         remove_stale_blocks(self.server_pid)
 
     def _executor(self) -> ProcessPoolExecutor:
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
                 max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_worker_init, initargs=(self.server_pid,))
+                initializer=_worker_init, initargs=(self.server_pid, self.progress))
         return self._pool
 
     def warm(self, fn: Callable[..., Any], *args: Any) -> Future:
