@@ -29,10 +29,12 @@ read (expat: it gives each element's line, and no tree of a large file is kept).
 
 from __future__ import annotations
 
+import array
 import math
 import os
 import stat
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NoReturn
@@ -240,11 +242,94 @@ class LaneSection:
     lanes: list[Lane]
 
 
+_PARAM_KEYS: dict[str, tuple[str, ...]] = {
+    "line": (), "arc": ("curvature",), "spiral": ("curvStart", "curvEnd"),
+    "poly3": ("a", "b", "c", "d"),
+    "paramPoly3": tuple(f"{c}{a}" for a in "UV" for c in "abcd")}
+"""The number attributes of each geometry kind, in the order ``GeometryArray`` keeps them."""
+_P_RANGES = ("normalized", "arcLength")
+
+
+class GeometryArray(Sequence[Geometry]):
+    """A road's geometries kept as arrays, each :class:`Geometry` made when asked for.
+
+    A road of a million geometries is 46 MB of arrays, not a million Python objects: the
+    load worker's result is pickled as those arrays (written to its shared block,
+    ``simserver.load_worker``) and unpickled in the server's tick in microseconds, where
+    a list of objects took seconds."""
+
+    def __init__(self, base: np.ndarray, kind: np.ndarray, p_range: np.ndarray,
+                 param_index: np.ndarray, params: np.ndarray) -> None:
+        self.base = base  # float64[n, 5]: s, x, y, hdg, length
+        self.kind = kind  # int8[n]: index in GEOMETRY_KINDS
+        self.p_range = p_range  # int8[n]: index in _P_RANGES (paramPoly3)
+        self.param_index = param_index  # int32[n]: row of ``params``, -1 for a line
+        self.params = params  # float64[m, 8]: the kind's numbers (_PARAM_KEYS order)
+
+    @property
+    def starts(self) -> np.ndarray:
+        return self.base[:, 0]
+
+    def __len__(self) -> int:
+        return int(self.kind.size)
+
+    def __getitem__(self, index):  # noqa: ANN001, ANN204 - int or slice, as a list
+        if isinstance(index, slice):
+            return [self[k] for k in range(*index.indices(len(self)))]
+        k = int(index)
+        if k < 0:
+            k += len(self)
+        if not 0 <= k < len(self):
+            raise IndexError(index)
+        kind = GEOMETRY_KINDS[int(self.kind[k])]
+        params: dict[str, float | str] = _NO_PARAMS
+        if self.param_index[k] >= 0:
+            row = self.params[self.param_index[k]]
+            params = {key: float(row[j]) for j, key in enumerate(_PARAM_KEYS[kind])}
+            if kind == "paramPoly3":
+                params["pRange"] = _P_RANGES[int(self.p_range[k])]
+        return Geometry(*(float(v) for v in self.base[k]), kind=kind, params=params)
+
+
+class _GeometryRows:
+    """A road's geometries as the parser meets them (compact arrays, no objects)."""
+
+    def __init__(self) -> None:
+        self.base = array.array("d")
+        self.kind = array.array("b")
+        self.p_range = array.array("b")
+        self.param_index = array.array("i")
+        self.params = array.array("d")
+        self.last_s = -math.inf
+
+    def __len__(self) -> int:
+        return len(self.kind)
+
+    def add(self, base: list[float], kind: int, params: tuple[float, ...] = (),
+            p_range: int = 0) -> None:
+        self.base.extend(base)
+        self.kind.append(kind)
+        self.p_range.append(p_range)
+        if params:
+            self.param_index.append(len(self.params) // 8)
+            self.params.extend(params + (0.0,) * (8 - len(params)))
+        else:
+            self.param_index.append(-1)
+        self.last_s = base[0]
+
+    def done(self) -> GeometryArray:
+        return GeometryArray(np.frombuffer(self.base, np.float64).reshape(-1, 5).copy(),
+                             np.frombuffer(self.kind, np.int8).copy(),
+                             np.frombuffer(self.p_range, np.int8).copy(),
+                             np.frombuffer(self.param_index, np.int32).copy(),
+                             np.frombuffer(self.params, np.float64).reshape(-1, 8).copy())
+
+
 @dataclass(frozen=True)
 class Road:
     id: str
     length: float
-    geometries: list[Geometry]
+    geometries: Sequence[Geometry]  # a GeometryArray when read from a file
     elevation: list[Cubic]
     superelevation: list[Cubic]
     lane_sections: list[LaneSection]
@@ -252,10 +337,9 @@ class Road:
 
     def reference(self, s: float) -> tuple[float, float, float]:
         """World ``(x, y, heading)`` of the reference line at ``s``."""
-        geo = self.geometries[0]
-        for g in self.geometries:
-            if g.s <= s + 1e-9:
-                geo = g
+        geos = self.geometries
+        starts = geos.starts if isinstance(geos, GeometryArray) else np.array([g.s for g in geos])
+        geo = geos[max(0, int(np.searchsorted(starts, s + 1e-9, side="right")) - 1)]
         return geo.point(min(max(s - geo.s, 0.0), geo.length))
 
 
@@ -291,7 +375,7 @@ XODR_BOUNDS: dict[str, XodrBound] = {
     "length": XodrBound("`length` of a `<geometry>`", "m", 0.0, MAX_LENGTH_M,
                         "more than 0"),
     "xy": XodrBound("`x`, `y` of a `<geometry>`", "m", -MAX_COORD_M, MAX_COORD_M,
-                    "the grid's corner bounds too"),
+                    "as a height map's `origin_m`"),
     "hdg": XodrBound("`hdg` of a `<geometry>`", "rad", -1e3, 1e3,
                      "any turn, unwrapped or not"),
     "curvature": XodrBound("`curvature` of an `<arc>`, `curvStart`, `curvEnd` of a "
@@ -512,7 +596,7 @@ class _XodrReader:
             self.fail(what, f"rule {short_repr(rule)} (expected RHT or LHT)")
         self.road = {"id": rid, "what": what, "line": self.parser.CurrentLineNumber,
                      "length": self.num(attrs, what, "length", "s"), "rule": rule,
-                     "geometries": [], "elevation": [], "superelevation": [],
+                     "geometries": _GeometryRows(), "elevation": [], "superelevation": [],
                      "sections": [], "seen": set()}
 
     def _end(self, name: str) -> None:
@@ -569,9 +653,10 @@ class _XodrReader:
     def _end_geometry(self) -> None:
         base, line, _, children = self.geometry
         self.geometry = None
-        if len(children) == 1 and children[0][0] == "line" and (
-                not self.road["geometries"] or base[0] >= self.road["geometries"][-1].s):
-            self._add_geometry(Geometry(*base, kind="line", params=_NO_PARAMS))
+        rows = self.road["geometries"]
+        if len(children) == 1 and children[0][0] == "line" and base[0] >= rows.last_s:
+            rows.add(base, 0)
+            self._added(rows)
             return
         what = self._geometry_what()
         if len(children) != 1 or children[0][0] not in GEOMETRY_KINDS:
@@ -607,18 +692,17 @@ class _XodrReader:
                                 tuple(float(params[f"{c}{axis}"]) for c in "abcd"), span,
                                 "curve")
             params["pRange"] = p_range
-        geometries = self.road["geometries"]
-        if geometries and base[0] < geometries[-1].s:
+        if base[0] < rows.last_s:
             self.fail(what, f"s={base[0]:g} comes before the previous geometry's "
-                            f"s={geometries[-1].s:g} (geometries in order along the road)",
-                      line)
-        self._add_geometry(Geometry(*base, kind=kind, params=params))
+                            f"s={rows.last_s:g} (geometries in order along the road)", line)
+        rows.add(base, GEOMETRY_KINDS.index(kind),
+                 tuple(float(params[k]) for k in _PARAM_KEYS[kind]),
+                 _P_RANGES.index(str(params.get("pRange", "normalized"))))
+        self._added(rows)
 
-    def _add_geometry(self, geometry: Geometry) -> None:
-        geometries = self.road["geometries"]
-        geometries.append(geometry)
-        if len(geometries) % 65536 == 0:
-            report_progress(f"{self.path.name}: {len(geometries)} geometries")
+    def _added(self, rows: _GeometryRows) -> None:
+        if len(rows) % 65536 == 0:
+            report_progress(f"{self.path.name}: {len(rows)} geometries")
 
     def _end_road(self) -> None:
         road = self.road
@@ -643,7 +727,7 @@ class _XodrReader:
                           lane.marks)
                      for _, lane, widths in sorted(sec["lanes"], key=lambda e: e[0])]
             built.append(LaneSection(sec["s"], lanes))
-        self.roads.append(Road(road["id"], length, road["geometries"], elevation,
+        self.roads.append(Road(road["id"], length, road["geometries"].done(), elevation,
                                superelevation, built, road["rule"]))
 
     # ------------------------------------------------------------------ reading
@@ -698,7 +782,16 @@ def load_opendrive(path: str | Path) -> OpenDrive:
     path = Path(path)
     if not path.is_file():
         raise OpenDriveError(f"{path}: no such file")
-    return _XodrReader(path).read()
+    info = path.stat()
+    key = (str(path.resolve()), info.st_dev, info.st_ino, info.st_size, info.st_mtime_ns)
+    if _last_read[0] == key:  # a scene reads its file twice: the terrain, the lane start
+        return _last_read[1]
+    od = _XodrReader(path).read()
+    _last_read[:] = [key, od]
+    return od
+
+
+_last_read: list = [None, None]  # the last file read, by path and version, and its roads
 
 
 def _section_at(road: Road, s: float) -> LaneSection | None:
@@ -855,17 +948,23 @@ def reference_points(road: Road, s: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     array: the lines and arcs of all geometries at once, each other piece on its own
     samples (a road of a million geometries takes as long as one of a few)."""
     geos = road.geometries
+    if not isinstance(geos, GeometryArray):
+        rows = _GeometryRows()
+        for g in geos:
+            rows.add([g.s, g.x, g.y, g.hdg, g.length], GEOMETRY_KINDS.index(g.kind),
+                     tuple(float(g.params[k]) for k in _PARAM_KEYS[g.kind]),
+                     _P_RANGES.index(str(g.params.get("pRange", "normalized"))))
+        geos = rows.done()
     n = len(geos)
-    starts = np.fromiter((g.s for g in geos), np.float64, n)
+    starts = geos.starts
     which = np.clip(np.searchsorted(starts, s + 1e-9, side="right") - 1, 0, n - 1)
-    x0 = np.fromiter((g.x for g in geos), np.float64, n)[which]
-    y0 = np.fromiter((g.y for g in geos), np.float64, n)[which]
-    h0 = np.fromiter((g.hdg for g in geos), np.float64, n)[which]
-    ds = np.clip(s - starts[which], 0.0, np.fromiter((g.length for g in geos), np.float64,
-                                                     n)[which])
-    curvature = np.fromiter((float(g.params["curvature"]) if g.kind == "arc" else 0.0
-                             for g in geos), np.float64, n)[which]
-    simple = np.fromiter((g.kind in ("line", "arc") for g in geos), bool, n)[which]
+    x0, y0, h0 = (geos.base[which, j] for j in (1, 2, 3))
+    ds = np.clip(s - starts[which], 0.0, geos.base[which, 4])
+    kind = geos.kind[which]
+    arc_kind = GEOMETRY_KINDS.index("arc")
+    curvature = np.where(kind == arc_kind, geos.params[np.maximum(geos.param_index[which], 0),
+                                                       0] if len(geos.params) else 0.0, 0.0)
+    simple = kind <= arc_kind  # line (0) or arc (1)
     x, y, h = np.empty_like(s), np.empty_like(s), np.empty_like(s)
     line = simple & (curvature == 0.0)
     x[line] = x0[line] + ds[line] * np.cos(h0[line])
