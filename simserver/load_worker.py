@@ -166,7 +166,22 @@ def share_result(value: Any, server_pid: int) -> SharedResult:
 
 def run_shared(server_pid: int, fn: Callable[..., Any], *args: Any) -> SharedResult:
     """Run ``fn(*args)`` in the worker and share its result's big arrays."""
+    from simserver.adapters.validate import report_progress
+
+    report_progress(f"{getattr(fn, '__name__', 'a job')} started")  # queued no longer
     return share_result(fn(*args), server_pid)
+
+
+def _warm(fn: Callable[..., Any], *args: Any) -> Any:
+    """The warm-up job, its start and end reported: a job queued behind it is seen to wait
+    on a worker that progresses, not on a stuck one."""
+    from simserver.adapters.validate import report_progress
+
+    report_progress("warming up")
+    try:
+        return fn(*args)
+    finally:
+        report_progress("warmed up")
 
 
 def opened(result: Any) -> Any:
@@ -295,6 +310,10 @@ def _worker_init(server_pid: int, progress: Progress | None = None) -> None:
         from simserver.adapters.validate import set_progress_sink
 
         set_progress_sink(progress.report)
+        progress.report("worker started")
+        import simserver.scenario  # noqa: F401 - the heavy imports, then said done
+
+        progress.report("worker ready")
     try:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         os.nice(WORKER_NICE)
@@ -323,7 +342,7 @@ class ProcessPreparer:
     def warm(self, fn: Callable[..., Any], *args: Any) -> Future:
         """Start the worker and give it a first job (its imports and one scene read) now,
         before the clock starts, so that a later job finds it ready; not waited for."""
-        return self._executor().submit(fn, *args)
+        return self._executor().submit(_warm, fn, *args)
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
         """Run ``fn(*args)`` in the worker; the future of its result (a
