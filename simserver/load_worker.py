@@ -312,7 +312,10 @@ def _worker_init(server_pid: int, progress: Progress | None = None) -> None:
         set_progress_sink(progress.report)
         progress.report("worker started")
         import simserver.scenario  # noqa: F401 - the heavy imports, then said done
+        from simserver.adapters.opendrive import compile_kernels
 
+        progress.report("worker imports done")
+        compile_kernels()  # from numba's cache; compiled once after an install
         progress.report("worker ready")
     try:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))

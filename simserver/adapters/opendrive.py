@@ -939,6 +939,9 @@ def _scatter_cross_sections(ref_x: np.ndarray, ref_y: np.ndarray, ref_hdg: np.nd
 MAX_RASTER_SAMPLES = 8_000_000
 """Most reference-line samples ``rasterise`` takes over all roads (every quarter of a cell:
 1 000 km of road at the default 0.5 m cells; each costs about 100 bytes while loading)."""
+SCATTER_CHUNK = 20_000
+"""Cross-sections scattered per call of the compiled loop (a progress report after each:
+tens of milliseconds apart)."""
 MAX_RASTER_CELLS = 40_000_000
 """Most cells of a rasterised grid (320 MB of heights: a 6 x 6 km area at 1 m cells)."""
 
@@ -979,6 +982,14 @@ def reference_points(road: Road, s: np.ndarray) -> tuple[np.ndarray, np.ndarray,
         lo, hi = np.searchsorted(which, [index, index + 1])
         x[lo:hi], y[lo:hi], h[lo:hi] = geos[index].points(ds[lo:hi])
     return x, y, h
+
+
+def compile_kernels() -> None:
+    """Load (or compile) the rasteriser's compiled loop once, on a single cross-section:
+    the load worker does it as it starts, so no load waits on the compiler."""
+    one = np.zeros(1)
+    _scatter_cross_sections(one, one, one, one, one, one, one, one, 0.0, 1.0, 0.0, 0.0,
+                            1.0, np.full((1, 1), np.nan), np.full((1, 1), np.inf))
 
 
 def rasterise(od: OpenDrive, cell_m: float, margin_m: float = 20.0
@@ -1033,9 +1044,11 @@ def rasterise(od: OpenDrive, cell_m: float, margin_m: float = 20.0
                              f"{MAX_RASTER_CELLS} (a coarser cell_m)")
     grid = np.full((ny, nx), np.nan)
     best_d2 = np.full((ny, nx), np.inf)
-    for arrays in sections:
-        _scatter_cross_sections(*arrays, margin_m, step, x0, y0, cell_m, grid, best_d2)
-        report_progress(f"{od.path.name}: a road rasterised into {nx} x {ny} cells")
+    for arrays in sections:  # in pieces, in order (the same grid), progress between
+        for lo in range(0, arrays[0].size, SCATTER_CHUNK):
+            _scatter_cross_sections(*(a[lo:lo + SCATTER_CHUNK] for a in arrays), margin_m,
+                                    step, x0, y0, cell_m, grid, best_d2)
+            report_progress(f"{od.path.name}: rasterising into {nx} x {ny} cells")
     _fill_nearest(grid)
     return grid, x0, y0
 
