@@ -274,6 +274,7 @@ def _exit_with(server_pid: int) -> None:
     os._exit(0)
 
 
+_CLOCK_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 PROGRESS_TEXT_BYTES = 200
 """The last progress message a worker reports is kept to this many bytes."""
 
@@ -373,6 +374,22 @@ class ProcessPreparer:
                                   os.sched_param(priority))
         except (OSError, AttributeError):
             pass  # not permitted, or the thread ended: it keeps its policy
+
+    def worker_cpu_s(self) -> float | None:
+        """CPU seconds the worker process has used (``/proc``), None where unknown: a worker
+        that uses CPU is working (slowly, on a busy machine, at nice +5), one blocked on a
+        FIFO uses none. Read at most once a second by the loop (tens of microseconds)."""
+        pool = self._pool
+        procs = list(getattr(pool, "_processes", {}) or {}) if pool is not None else []
+        total = 0.0
+        for pid in procs:
+            try:
+                with open(f"/proc/{pid}/stat", "rb") as f:
+                    fields = f.read().rsplit(b")", 1)[1].split()
+            except (OSError, IndexError):
+                return None
+            total += (int(fields[11]) + int(fields[12])) / _CLOCK_TICKS  # utime, stime
+        return total if procs else None
 
     def restart(self) -> None:
         """Kill the worker (stuck or broken) and start a new one on the next submit."""

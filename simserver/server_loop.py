@@ -53,9 +53,12 @@ log = logging.getLogger("simserver.server")
 
 JOB_TIMEOUT_S = 10.0
 """A control's off-tick job (``load``) that has shown no progress for this long is
-abandoned (a FIFO, a parser that does not return; server config ``load_stall_s``).
-Progress: the worker's reports (``simserver.load_worker.Progress``), a MiB of a large
-``.xodr`` read, a road rasterised."""
+abandoned (a FIFO; server config ``load_stall_s``). Progress: the worker's reports
+(``simserver.load_worker.Progress``: a MiB of a large ``.xodr`` read, a piece of a road
+rasterised) or CPU time it used (``ProcessPreparer.worker_cpu_s``: a worker at nice +5 on
+a busy machine may take many seconds for one second of work; a blocked one uses none)."""
+WORKING_CPU_S = 0.05
+"""CPU seconds a worker must use between two looks (a second apart) to count as working."""
 LOAD_TIMEOUT_S = 300.0
 """A job not done after this long is abandoned even while it progresses (server config
 ``load_timeout_s``): a road of a million geometries takes about 10 s of CPU."""
@@ -265,6 +268,8 @@ class PendingJob:
     progress_seen: int = -1  # the worker's progress counter when last looked at
     progress_ns: int = 0  # when it last moved (the stall timeout counts from here)
     logged_ns: int = 0  # when its progress was last logged
+    cpu_checked_ns: int = 0  # when the worker's CPU time was last read
+    cpu_s: float | None = None  # the worker's CPU time then
 
 
 # ---------------------------------------------------------------------- the loop
@@ -324,6 +329,7 @@ class ServerLoop:
         self.job_timeout_ns = int(job_timeout_s * NS_PER_S)
         self.load_timeout_ns = int(max(load_timeout_s, job_timeout_s) * NS_PER_S)
         self._progress = getattr(self.preparer, "progress", None)
+        self._worker_cpu = getattr(self.preparer, "worker_cpu_s", None)
         self.controls_per_tick = controls_per_tick
         self.slots: list[tuple[VehicleSlot, SlotPorts]] = []
         self.pending: dict[int, PendingJob] = {}  # by slot index
@@ -529,6 +535,14 @@ class ServerLoop:
                     pending.logged_ns = now
                     log.info("control %s: preparing for %.0f s: %s", name,
                              (now - pending.submitted_ns) / NS_PER_S, progress.message())
+        cpu = self._worker_cpu
+        if cpu is not None and now - pending.cpu_checked_ns >= NS_PER_S:
+            pending.cpu_checked_ns = now
+            used = cpu()
+            if used is not None and pending.cpu_s is not None \
+                    and used - pending.cpu_s >= WORKING_CPU_S:
+                pending.progress_ns = now  # slow, but working
+            pending.cpu_s = used
         quiet_ns = now - max(pending.submitted_ns, pending.progress_ns)
         took_ns = now - pending.submitted_ns
         if quiet_ns <= self.job_timeout_ns and took_ns <= self.load_timeout_ns:
