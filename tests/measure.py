@@ -3,16 +3,14 @@ is a property a test asserts, not a timing)."""
 
 from __future__ import annotations
 
-import os
-import resource
+import json
 import subprocess
+import sys
 import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-from simserver.testing import wait_until
 
 
 @dataclass
@@ -31,29 +29,39 @@ builds a huge grid then fails with a MemoryError instead of taking a shared mach
 memory. The tests assert the peak resident memory, far below it."""
 
 
+_LAUNCHER = """
+import json, resource, subprocess, sys
+argv, timeout_s, report, guard = json.loads(sys.argv[1])
+def limit():
+    resource.setrlimit(resource.RLIMIT_AS, (guard, guard))
+try:
+    code = subprocess.run(argv, preexec_fn=limit, timeout=timeout_s).returncode
+except subprocess.TimeoutExpired:
+    code = None
+peak_kb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+with open(report, "w") as f:
+    json.dump([code, peak_kb], f)
+"""
+
+
 def run_measured(argv: Sequence[str], timeout_s: float = 120.0, cwd: Path | None = None,
                  env: dict[str, str] | None = None, stdin: Any = subprocess.DEVNULL
                  ) -> Measured:
     """Run ``argv`` to its end (killed after ``timeout_s``) and measure its peak resident
-    memory: the ``ru_maxrss`` of this child alone (``os.wait4``), not of every child the
-    test process ever waited for (``RUSAGE_CHILDREN``)."""
-    def guard() -> None:
-        resource.setrlimit(resource.RLIMIT_AS, (ADDRESS_SPACE_GUARD, ADDRESS_SPACE_GUARD))
-
-    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
-        proc = subprocess.Popen(list(argv), cwd=cwd, env=env, stdin=stdin, stdout=out,
-                                stderr=err, preexec_fn=guard)
-        try:
-            _, status, usage = wait_until(lambda: os.wait4(proc.pid, os.WNOHANG),
-                                          lambda r: r[0] == proc.pid, timeout_s=timeout_s,
-                                          what=f"{list(argv)[:4]} to end", interval_s=0.02)
-            code: int | None = os.waitstatus_to_exitcode(status)
-        except TimeoutError:
-            proc.kill()
-            _, _, usage = os.wait4(proc.pid, 0)
-            code = None
-        proc.returncode = -9 if code is None else code  # reaped here, not by Popen
+    memory. Through a small launcher process: Linux counts the memory of the process a
+    child was forked from into the child's ``ru_maxrss`` (a child of a 700 MB pytest read
+    700 MB), so the command is forked from the launcher, which reports its children's
+    peak (``RUSAGE_CHILDREN``: the command alone)."""
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, \
+            tempfile.TemporaryDirectory() as tmp:
+        report = Path(tmp) / "report.json"
+        job = json.dumps([list(argv), timeout_s, str(report), ADDRESS_SPACE_GUARD])
+        launcher = subprocess.run([sys.executable, "-c", _LAUNCHER, job], cwd=cwd, env=env,
+                                  stdin=stdin, stdout=out, stderr=err,
+                                  timeout=timeout_s + 60.0, check=False)
+        assert launcher.returncode == 0 and report.is_file(), "the launcher failed"
+        code, peak_kb = json.loads(report.read_text())
         out.seek(0)
         err.seek(0)
         return Measured(code, out.read().decode(errors="replace"),
-                        err.read().decode(errors="replace"), usage.ru_maxrss / 1024.0)
+                        err.read().decode(errors="replace"), peak_kb / 1024.0)
