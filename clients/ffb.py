@@ -35,7 +35,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, Protocol
 
-from clients.profile import ProfileError, boolean, check_mapping, number
+from clients.profile import ProfileError, boolean, check_mapping, number, short_repr
 from simserver import protocol as proto
 
 EVDEV_VERSION = "1.9.2"
@@ -133,7 +133,8 @@ def parse_ffb_profile(path: Path, raw: Any) -> FfbProfile:
     key = "force_feedback."
     device = raw.get("device", d.device)
     if not isinstance(device, str) or not device:
-        raise ProfileError(path, key + "device", f"expected 'auto' or a path, got {device!r}")
+        raise ProfileError(path, key + "device",
+                           f"expected 'auto' or a path, got {short_repr(device)}")
     device_torque = number(path, key + "device_torque_nm",
                            raw.get("device_torque_nm", d.device_torque_nm), 0.1, 100.0)
     max_torque = number(path, key + "max_torque_nm", raw.get("max_torque_nm", d.max_torque_nm),

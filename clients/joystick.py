@@ -45,6 +45,7 @@ from clients.profile import (
     integer,
     number,
     read_profile,
+    short_repr,
 )
 
 PYGAME_VERSION = "2.6.1"
@@ -241,13 +242,13 @@ def load_joystick_profile(path: str | Path) -> JoystickProfile:
                   required=("steer", "throttle", "brake"))
     name = data.get("name", path.stem)
     if not isinstance(name, str):
-        raise ProfileError(path, "name", f"expected a string, got {name!r}")
+        raise ProfileError(path, "name", f"expected a string, got {short_repr(name)}")
     device = data.get("device") or {}
     check_mapping(path, "device", device, ("name_contains", "index"))
     name_contains = device.get("name_contains", "") or ""
     if not isinstance(name_contains, str):
         raise ProfileError(path, "device.name_contains",
-                           f"expected a string, got {name_contains!r}")
+                           f"expected a string, got {short_repr(name_contains)}")
     index = integer(path, "device.index", device.get("index", 0), 0, 63)
     steer = _steer(path, data["steer"])
     throttle = _pedal(path, "throttle", data["throttle"])
@@ -646,7 +647,8 @@ class JoystickScript:
 def _index_mapping(path: Path, where: str, value: Any, limit: int) -> dict[int, Any]:
     """A mapping whose keys are device indices in ``[0, limit)``."""
     if not isinstance(value, dict):
-        raise ProfileError(path, where, f"expected a mapping of index: value, got {value!r}")
+        raise ProfileError(path, where,
+                           f"expected a mapping of index: value, got {short_repr(value)}")
     for key in value:
         if isinstance(key, bool) or not isinstance(key, int) or not 0 <= key < limit:
             raise ProfileError(path, f"{where}.{key}",

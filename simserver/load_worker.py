@@ -167,7 +167,22 @@ def share_result(value: Any, server_pid: int) -> SharedResult:
 
 def run_shared(server_pid: int, fn: Callable[..., Any], *args: Any) -> SharedResult:
     """Run ``fn(*args)`` in the worker and share its result's big arrays."""
+    from simserver.adapters.validate import report_progress
+
+    report_progress(f"{getattr(fn, '__name__', 'a job')} started")  # queued no longer
     return share_result(fn(*args), server_pid)
+
+
+def _warm(fn: Callable[..., Any], *args: Any) -> Any:
+    """The warm-up job, its start and end reported: a job queued behind it is seen to wait
+    on a worker that progresses, not on a stuck one."""
+    from simserver.adapters.validate import report_progress
+
+    report_progress("warming up")
+    try:
+        return fn(*args)
+    finally:
+        report_progress("warmed up")
 
 
 def opened(result: Any) -> Any:
@@ -260,7 +275,37 @@ def _exit_with(server_pid: int) -> None:
     os._exit(0)
 
 
-def _worker_init(server_pid: int) -> None:
+_CLOCK_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+PROGRESS_TEXT_BYTES = 200
+"""The last progress message a worker reports is kept to this many bytes."""
+
+
+class Progress:
+    """A job's signs of life, shared between the server and its worker: a counter the
+    worker bumps at each :func:`simserver.adapters.validate.report_progress` (a MiB of an
+    ``.xodr`` read, a road rasterised) and the last message. The loop abandons a job whose
+    counter has not moved for its stall time (a FIFO, a parser that does not return), not
+    one that is slow but going on (``simserver.server_loop``); reading it is two memory
+    loads, fit for the tick."""
+
+    def __init__(self) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self.count = ctx.RawValue("q", 0)
+        self.text = ctx.RawArray("c", PROGRESS_TEXT_BYTES)
+
+    def report(self, message: str) -> None:
+        """In the worker: the message stored, then the counter bumped."""
+        self.text.value = message.encode("utf-8", "replace")[:PROGRESS_TEXT_BYTES - 1]
+        self.count.value += 1
+
+    def seen(self) -> int:
+        return self.count.value
+
+    def message(self) -> str:
+        return self.text.value.decode("utf-8", "replace")
+
+
+def _worker_init(server_pid: int, progress: Progress | None = None) -> None:
     # Ctrl-C in a terminal signals the whole process group, the worker too: the server
     # ends it when it stops, so it ignores SIGINT (it was spawned with SIGINT blocked,
     # ``ProcessPreparer._spawn_without_sigint``, so none arrived during its imports; one
@@ -269,6 +314,17 @@ def _worker_init(server_pid: int) -> None:
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     threading.Thread(target=_exit_with, args=(server_pid,), name="simserver-exit-with-server",
                      daemon=True).start()
+    if progress is not None:
+        from simserver.adapters.validate import set_progress_sink
+
+        set_progress_sink(progress.report)
+        progress.report("worker started")
+        import simserver.scenario  # noqa: F401 - the heavy imports, then said done
+        from simserver.adapters.opendrive import compile_kernels
+
+        progress.report("worker imports done")
+        compile_kernels()  # from numba's cache; compiled once after an install
+        progress.report("worker ready")
     try:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         os.nice(WORKER_NICE)
@@ -284,19 +340,20 @@ class ProcessPreparer:
         self.restarts = 0
         self._promoted: set[int] = set()
         self.server_pid = os.getpid()
+        self.progress = Progress()
         remove_stale_blocks(self.server_pid)
 
     def _executor(self) -> ProcessPoolExecutor:
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
                 max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_worker_init, initargs=(self.server_pid,))
+                initializer=_worker_init, initargs=(self.server_pid, self.progress))
         return self._pool
 
     def warm(self, fn: Callable[..., Any], *args: Any) -> Future:
         """Start the worker and give it a first job (its imports and one scene read) now,
         before the clock starts, so that a later job finds it ready; not waited for."""
-        return self._spawn_without_sigint(self._executor().submit, fn, *args)
+        return self._spawn_without_sigint(self._executor().submit, _warm, fn, *args)
 
     @staticmethod
     def _spawn_without_sigint(submit: Callable[..., Future], *args: Any) -> Future:
@@ -338,6 +395,22 @@ class ProcessPreparer:
                                   os.sched_param(priority))
         except (OSError, AttributeError):
             pass  # not permitted, or the thread ended: it keeps its policy
+
+    def worker_cpu_s(self) -> float | None:
+        """CPU seconds the worker process has used (``/proc``), None where unknown: a worker
+        that uses CPU is working (slowly, on a busy machine, at nice +5), one blocked on a
+        FIFO uses none. Read at most once a second by the loop (tens of microseconds)."""
+        pool = self._pool
+        procs = list(getattr(pool, "_processes", {}) or {}) if pool is not None else []
+        total = 0.0
+        for pid in procs:
+            try:
+                with open(f"/proc/{pid}/stat", "rb") as f:
+                    fields = f.read().rsplit(b")", 1)[1].split()
+            except (OSError, IndexError):
+                return None
+            total += (int(fields[11]) + int(fields[12])) / _CLOCK_TICKS  # utime, stime
+        return total if procs else None
 
     def restart(self) -> None:
         """Kill the worker (stuck or broken) and start a new one on the next submit."""

@@ -78,6 +78,8 @@ SERVER_KEYS: dict[str, tuple[float, float] | None] = {
     "watchdog_s": (0.005, 60.0),
     "watchdog_brake": (0.0, 1.0),
     "max_catchup_ticks": (0, 100000),
+    "load_stall_s": (1.0, 600.0),
+    "load_timeout_s": (1.0, 3600.0),
     "command_log": None,
     "config_dirs": None,
     "viewer": None,
@@ -113,6 +115,8 @@ class ServerConfig:
     watchdog_s: float = 0.2
     watchdog_brake: float = 0.6
     max_catchup_ticks: int = 100
+    load_stall_s: float = 10.0  # server_loop.JOB_TIMEOUT_S
+    load_timeout_s: float = 300.0  # server_loop.LOAD_TIMEOUT_S
     command_log: Path | None = None
     config_dirs: list[Path] = field(default_factory=list)
     viewer: str = "off"

@@ -52,7 +52,18 @@ if TYPE_CHECKING:
 log = logging.getLogger("simserver.server")
 
 JOB_TIMEOUT_S = 10.0
-"""A control's off-tick job (``load``) not done after this long is abandoned."""
+"""A control's off-tick job (``load``) that has shown no progress for this long is
+abandoned (a FIFO; server config ``load_stall_s``). Progress: the worker's reports
+(``simserver.load_worker.Progress``: a MiB of a large ``.xodr`` read, a piece of a road
+rasterised) or CPU time it used (``ProcessPreparer.worker_cpu_s``: a worker at nice +5 on
+a busy machine may take many seconds for one second of work; a blocked one uses none)."""
+WORKING_CPU_S = 0.05
+"""CPU seconds a worker must use between two looks (a second apart) to count as working."""
+LOAD_TIMEOUT_S = 300.0
+"""A job not done after this long is abandoned even while it progresses (server config
+``load_timeout_s``): a road of a million geometries takes about 10 s of CPU."""
+PROGRESS_LOG_S = 2.0
+"""A job still going after this long logs its last progress message, at most this often."""
 SETTLE_STEPS_PER_TICK = 50
 """Settling steps of a start at speed (``reset`` with ``u_mps``, a relaxed scene's
 ``load``) run after a tick's work, per tick: about 0.2 ms of the 1 ms period (4 us a
@@ -254,6 +265,11 @@ class PendingJob:
     submitted_ns: int
     staged: StagedStart | None = None
     make: Callable[[], StagedStart] | None = None  # a job's result, mapped: staged next tick
+    progress_seen: int = -1  # the worker's progress counter when last looked at
+    progress_ns: int = 0  # when it last moved (the stall timeout counts from here)
+    logged_ns: int = 0  # when its progress was last logged
+    cpu_checked_ns: int = 0  # when the worker's CPU time was last read
+    cpu_s: float | None = None  # the worker's CPU time then
 
 
 # ---------------------------------------------------------------------- the loop
@@ -292,7 +308,8 @@ class ServerLoop:
     def __init__(self, cfg: ServerConfig, *, clock: Callable[[], int] = time.perf_counter_ns,
                  sleep: Callable[[float], object] = time.sleep,
                  spin_ns: int = DEFAULT_SPIN_NS, cpu: CpuMeter | None = None,
-                 preparer: Preparer | None = None, job_timeout_s: float = JOB_TIMEOUT_S,
+                 preparer: Preparer | None = None, job_timeout_s: float | None = None,
+                 load_timeout_s: float | None = None,
                  controls_per_tick: int = CONTROLS_PER_TICK,
                  trace: TickTrace | None = None) -> None:
         self.clock = clock
@@ -305,7 +322,14 @@ class ServerLoop:
         self.diag_every = max(1, int(round(1.0 / (cfg.diag_hz * cfg.period_s))))
         self.second_every = max(1, int(round(1.0 / cfg.period_s)))
         self.preparer: Preparer = preparer if preparer is not None else InlinePreparer()
+        if job_timeout_s is None:
+            job_timeout_s = getattr(cfg, "load_stall_s", JOB_TIMEOUT_S)
+        if load_timeout_s is None:
+            load_timeout_s = getattr(cfg, "load_timeout_s", LOAD_TIMEOUT_S)
         self.job_timeout_ns = int(job_timeout_s * NS_PER_S)
+        self.load_timeout_ns = int(max(load_timeout_s, job_timeout_s) * NS_PER_S)
+        self._progress = getattr(self.preparer, "progress", None)
+        self._worker_cpu = getattr(self.preparer, "worker_cpu_s", None)
         self.controls_per_tick = controls_per_tick
         self.slots: list[tuple[VehicleSlot, SlotPorts]] = []
         self.pending: dict[int, PendingJob] = {}  # by slot index
@@ -494,14 +518,47 @@ class ServerLoop:
                 self.pending[index] = PendingJob(
                     pending.request, pending.control, None, now,
                     make=lambda: pending.control.apply(slot, value))
-        elif now - pending.submitted_ns > self.job_timeout_ns:
-            del self.pending[index]
-            log.error("control %s: not prepared after %.0f s: worker restarted", name,
-                      self.job_timeout_ns / NS_PER_S)
-            pending.request.reply(proto.reply_error(
-                f"{name}: not prepared within {self.job_timeout_ns / NS_PER_S:.0f} s (a "
-                "file that never ends, a FIFO?); nothing changed", field=name))
-            self.preparer.restart()
+        else:
+            self._watch_job(index, pending, now)
+
+    def _watch_job(self, index: int, pending: PendingJob, now: int) -> None:
+        """A job still running: note its progress (logged every ``PROGRESS_LOG_S``);
+        abandon it when it has shown none for ``job_timeout_ns`` or has run for
+        ``load_timeout_ns``."""
+        name = pending.request.name
+        progress = self._progress
+        if progress is not None:
+            seen = progress.seen()
+            if seen != pending.progress_seen:
+                if pending.progress_seen >= 0:  # the first look only takes the count
+                    pending.progress_ns = now
+                pending.progress_seen = seen
+                if now - max(pending.submitted_ns, pending.logged_ns) >= PROGRESS_LOG_S * NS_PER_S:
+                    pending.logged_ns = now
+                    log.info("control %s: preparing for %.0f s: %s", name,
+                             (now - pending.submitted_ns) / NS_PER_S, progress.message())
+        cpu = self._worker_cpu
+        if cpu is not None and now - pending.cpu_checked_ns >= NS_PER_S:
+            pending.cpu_checked_ns = now
+            used = cpu()
+            if used is not None and pending.cpu_s is not None \
+                    and used - pending.cpu_s >= WORKING_CPU_S:
+                pending.progress_ns = now  # slow, but working
+            pending.cpu_s = used
+        quiet_ns = now - max(pending.submitted_ns, pending.progress_ns)
+        took_ns = now - pending.submitted_ns
+        if quiet_ns <= self.job_timeout_ns and took_ns <= self.load_timeout_ns:
+            return
+        del self.pending[index]
+        if quiet_ns > self.job_timeout_ns:
+            why = (f"not prepared within {self.job_timeout_ns / NS_PER_S:.0f} s of its last "
+                   "progress (a file that never ends, a FIFO?; server config load_stall_s)")
+        else:
+            why = (f"not prepared within {self.load_timeout_ns / NS_PER_S:.0f} s (server "
+                   "config load_timeout_s)")
+        log.error("control %s: %s: worker restarted", name, why)
+        pending.request.reply(proto.reply_error(f"{name}: {why}; nothing changed", field=name))
+        self.preparer.restart()
 
     def uptime_s(self) -> float:
         """Wall time since :meth:`start`."""

@@ -671,6 +671,14 @@ def prepare_load(scene: str | None, vehicle: str | None, current_scene: Path,
             field = "scene" if vehicle is None or (
                 scene is not None and message.startswith(f"{scene_path}:")) else "vehicle"
             return "error", field, f"{field}: {redacted(message, config_dirs, cwd)}"
+        except Exception as exc:  # noqa: BLE001 - a loader's bug: still name the files
+            log.error("load of %s failed", scene_path, exc_info=exc)
+            files = display_path(scene_path, config_dirs) + (
+                "" if vehicle_path is None else f" with {display_path(vehicle_path, config_dirs)}")
+            field = "scene" if scene is not None or vehicle is None else "vehicle"
+            return "error", field, (f"{field}: {files}: not loaded: {type(exc).__name__} "
+                                    "while reading it or a file it names (a loader's bug: "
+                                    "the server's log has the details); nothing changed")
     return "ok", (loaded, scene_path, vehicle_path)
 
 

@@ -465,6 +465,27 @@ def _terrain_section() -> list[str]:
             lines.append(f"- `{k.key}` ({unit}, {presence}): {k.meaning}.")
         lines.append("")
         lines += _param_rows(schema.numbers, with_default=True)
+        if variant.name == "opendrive":
+            lines += _xodr_bounds()
+    return lines
+
+
+def _xodr_bounds() -> list[str]:
+    """What an ``.xodr`` file may hold, from ``adapters.opendrive.XODR_BOUNDS``."""
+    from simserver.adapters import opendrive as od
+
+    lines = ["", "The file is read as it streams (at most "
+             f"{od.MAX_XODR_BYTES >> 20} MiB). Every number it gives must be finite and "
+             "within these bounds, or the load is refused with an error naming the file, the "
+             "line, the element and the attribute (`road.xodr:7: road r1 <geometry> #0 "
+             "<poly3>: attribute 'c'=...`); a cubic is checked by its largest value over its "
+             "piece, up to the next piece or the road's (section's) end. Rasterised, the "
+             f"roads may take at most {od.MAX_RASTER_SAMPLES} reference samples (a quarter "
+             f"of a cell apart) and {od.MAX_RASTER_CELLS} grid cells.", "",
+             "| bound | applies to | unit | accepted | note |", "|---|---|---|---|---|"]
+    for name, bound in od.XODR_BOUNDS.items():
+        lines.append(f"| {name} | {bound.applies_to} | {bound.unit} | {bound.lo:g} .. "
+                     f"{bound.hi:g} | {bound.why} |")
     return lines
 
 

@@ -31,7 +31,13 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from simserver.adapters.opendrive import OpenDrive, Road, load_opendrive, profile_values
+from simserver.adapters.opendrive import (
+    OpenDrive,
+    Road,
+    load_opendrive,
+    profile_values,
+    reference_points,
+)
 from simserver.core.terrain import (
     GRID_DX_M,
     GRID_DY_M,
@@ -125,14 +131,7 @@ def ground_mesh(terrain: Terrain, max_vertices: int = MAX_GROUND_VERTICES
 # -------------------------------------------------------------------------- lanes
 def _reference(road: Road, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """World ``x, y, heading`` of the reference line at every ``s``."""
-    x, y, hdg = np.empty_like(s), np.empty_like(s), np.empty_like(s)
-    starts = np.array([g.s for g in road.geometries])
-    which = np.clip(np.searchsorted(starts, s + 1e-9, side="right") - 1, 0, len(starts) - 1)
-    for k, geo in enumerate(road.geometries):
-        sel = which == k
-        if sel.any():
-            x[sel], y[sel], hdg[sel] = geo.points(np.clip(s[sel] - geo.s, 0.0, geo.length))
-    return x, y, hdg
+    return reference_points(road, s)  # the rasteriser's own (adapters.opendrive)
 
 
 def _section_samples(s0: float, s1: float, step_m: float) -> np.ndarray:

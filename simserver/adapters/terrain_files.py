@@ -176,24 +176,56 @@ def terrain_spec(source: Path, raw: Any) -> dict[str, Any] | None:
     return spec
 
 
+MAX_GRID_CELLS = 40_000_000
+"""Most cells of a height-map file's grid (320 MB as float64: 6 x 6 km at 1 m), checked
+from the file's header before its data is read (a compressed ``.npz`` may expand far
+beyond its size on disk)."""
+GRID_KINDS = "biuf"
+"""Array types a grid may have: booleans, integers, floats (numpy ``dtype.kind``)."""
+
+
+def _check_header(path: Path, what: str, stream: Any) -> None:
+    """The ``.npy`` header at ``stream``: a real number type and at most ``MAX_GRID_CELLS``
+    (read before the data, so a bomb is refused before it is expanded)."""
+    version = np.lib.format.read_magic(stream)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(stream)
+    else:
+        shape, _, dtype = np.lib.format.read_array_header_2_0(stream)
+    if dtype.kind not in GRID_KINDS:
+        raise ConfigError(f"{path}: {what}: an array of {dtype} values, expected real "
+                          "numbers")
+    cells = 1
+    for n in shape:
+        cells *= int(n)
+    if cells > MAX_GRID_CELLS:
+        raise ConfigError(f"{path}: {what}: shape {tuple(shape)} has {cells} cells, more "
+                          f"than {MAX_GRID_CELLS}")
+
+
 def _read_array(path: Path, what: str, name: str | None) -> np.ndarray:
     """A 2-D array from ``.npy`` or ``.npz`` (array ``name``); ConfigError naming the file."""
     if not path.is_file():
         raise ConfigError(f"{path}: {what}: no such file")
     try:
         if path.suffix == ".npy":
+            with open(path, "rb") as f:
+                _check_header(path, what, f)
             arr = np.load(path, allow_pickle=False)
         elif path.suffix == ".npz":
             with np.load(path, allow_pickle=False) as npz:
                 if name not in npz.files:
                     raise ConfigError(f"{path}: {what}: no array {name!r} (has {npz.files})")
+                with npz.zip.open(f"{name}.npy") as member:
+                    _check_header(path, f"{what} ({name})", member)
                 arr = npz[name]
         else:
             raise ConfigError(f"{path}: {what}: expected .npy, .npz or .png")
     except ConfigError:
         raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise ConfigError(f"{path}: {what}: unreadable ({exc})") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, MemoryError) as exc:
+        raise ConfigError(f"{path}: {what}: unreadable ({type(exc).__name__}: "
+                          f"{str(exc)[:200]})") from None
     return np.asarray(arr, dtype=np.float64)
 
 
@@ -208,12 +240,17 @@ def _read_png16(path: Path, what: str) -> np.ndarray:
             if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
                 raise ConfigError(
                     f"{path}: {what}: expected a 16-bit grayscale PNG, got mode {img.mode}")
+            if img.size[0] * img.size[1] > MAX_GRID_CELLS:  # before decoding a pixel
+                raise ConfigError(f"{path}: {what}: {img.size[0]} x {img.size[1]} pixels, "
+                                  f"more than {MAX_GRID_CELLS}")
             img.load()
             arr = np.array(img, dtype=np.float64)
     except ConfigError:
         raise
-    except (OSError, ValueError, UnidentifiedImageError) as exc:
-        raise ConfigError(f"{path}: {what}: unreadable ({exc})") from None
+    except (OSError, ValueError, UnidentifiedImageError, MemoryError,
+            Image.DecompressionBombError) as exc:
+        raise ConfigError(f"{path}: {what}: unreadable ({type(exc).__name__}: "
+                          f"{str(exc)[:200]})") from None
     return arr
 
 

@@ -33,7 +33,7 @@ import yaml
 __all__ = ["MAX_CONFIG_BYTES", "MAX_YAML_DEPTH", "MAX_YAML_NODES", "ConfigError",
            "check_keys", "choice", "confined_to", "display_path", "integer", "is_path_text",
            "number", "parse_yaml", "read_config_bytes", "read_yaml", "referenced_file",
-           "short_repr"]
+           "report_progress", "set_progress_sink", "short_repr"]
 
 MAX_CONFIG_BYTES = 4 << 20
 """Largest configuration file read (4 MiB; the shipped ones are below 20 KiB)."""
@@ -41,10 +41,31 @@ MAX_YAML_DEPTH = 64
 """Deepest nesting of YAML collections accepted (the shipped configs nest 3 deep)."""
 MAX_YAML_NODES = 200_000
 """Most YAML nodes a document may expand to, every alias counted as a copy."""
+MAX_YAML_INT_CHARS = 1000
+"""Longest integer scalar (Python refuses to convert more than 4 300 digits; no setting
+needs more than 20)."""
 
 
 class ConfigError(ValueError):
     """A configuration file is missing, unreadable or invalid; the message names file and key."""
+
+
+_progress_sink: Any = None
+
+
+def set_progress_sink(sink: Any) -> None:
+    """Where :func:`report_progress` goes: a callable taking the message (the server's load
+    worker: ``simserver.load_worker``), or None (nowhere: the default)."""
+    global _progress_sink
+    _progress_sink = sink
+
+
+def report_progress(message: str) -> None:
+    """A long read saying how far it got (``FILE: 3 of 80 MiB read``); the server's load
+    worker counts these as signs of life and logs the last one (``simserver.load_worker``).
+    Cheap when nobody listens."""
+    if _progress_sink is not None:
+        _progress_sink(message)
 
 
 _CONFINED: contextvars.ContextVar[tuple[Path, ...] | None] = contextvars.ContextVar(
@@ -115,8 +136,9 @@ def referenced_file(referrer: Path | str, key: str, value: Any) -> Path:
     return target
 
 
-def read_config_bytes(path: Path | str) -> bytes:
-    """The bytes of a configuration file: regular, at most :data:`MAX_CONFIG_BYTES`.
+def read_config_bytes(path: Path | str, limit: int = MAX_CONFIG_BYTES) -> bytes:
+    """The bytes of a configuration file: regular, at most ``limit`` (default
+    :data:`MAX_CONFIG_BYTES`).
 
     Opened non-blocking and checked with ``fstat`` after opening, so a FIFO or device
     swapped in is refused without blocking; inside :func:`confined_to`, the resolved file
@@ -135,16 +157,16 @@ def read_config_bytes(path: Path | str) -> bytes:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode):
             raise ConfigError(f"{path}: cannot read: not a regular file")
-        if info.st_size > MAX_CONFIG_BYTES:
-            raise ConfigError(f"{path}: cannot read: larger than {MAX_CONFIG_BYTES} bytes")
+        if info.st_size > limit:
+            raise ConfigError(f"{path}: cannot read: larger than {limit} bytes")
         with os.fdopen(os.dup(fd), "rb") as f:
-            data = f.read(MAX_CONFIG_BYTES + 1)  # the size may have grown since fstat
+            data = f.read(limit + 1)  # the size may have grown since fstat
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
     finally:
         os.close(fd)
-    if len(data) > MAX_CONFIG_BYTES:
-        raise ConfigError(f"{path}: cannot read: larger than {MAX_CONFIG_BYTES} bytes")
+    if len(data) > limit:
+        raise ConfigError(f"{path}: cannot read: larger than {limit} bytes")
     return data
 
 
@@ -165,6 +187,24 @@ class _BoundedLoader(yaml.SafeLoader):
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
+
+    def construct_yaml_int(self, node: yaml.ScalarNode) -> int:
+        if len(node.value) > MAX_YAML_INT_CHARS:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"an integer of {len(node.value)} characters (at most "
+                f"{MAX_YAML_INT_CHARS})", node.start_mark)
+        return super().construct_yaml_int(node)
+
+    def construct_object(self, node: yaml.Node, deep: bool = False) -> Any:
+        try:
+            return super().construct_object(node, deep)
+        except (ValueError, OverflowError) as exc:  # a scalar its type refuses: 2001-13-45
+            raise yaml.constructor.ConstructorError(
+                None, None, f"a {node.tag.rsplit(':', 1)[-1]} its type cannot take "
+                f"({type(exc).__name__})", node.start_mark) from None
+
+
+_BoundedLoader.add_constructor("tag:yaml.org,2002:int", _BoundedLoader.construct_yaml_int)
 
 
 def _expanded_nodes(root: yaml.Node) -> int:
@@ -214,6 +254,11 @@ def parse_yaml(path: Path | str, text: str) -> Any:
             from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    except ConfigError:
+        raise
+    except (ValueError, OverflowError) as exc:  # a scalar its type refuses: 2001-13-45
+        raise ConfigError(f"{path}: not valid YAML: a value its type cannot take "
+                          f"({type(exc).__name__})") from None
     except RecursionError:  # aliases chained or recursive (a: &a [*a]) past the stack
         raise ConfigError(f"{path}: not valid YAML: aliases nested too deeply or "
                           "recursively") from None

@@ -31,6 +31,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="NUMBA_CACHE_DIR of the LocalCluster's workers (shared: a "
                              "machine compiles once; the workers of --scheduler take theirs "
                              "from their own environment)")
+    parser.add_argument("--config-dir", action="append", type=Path, default=None,
+                        metavar="DIR", dest="config_dirs",
+                        help="a folder the sweep's files (base scenarios, what they name, "
+                             "file overrides) may lie in; repeatable (default: the "
+                             "project's configs/ and the sweep file's folder)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -45,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--workers: expected a positive number, got {args.workers}")
     if args.batch is not None and args.batch < 1:
         raise ConfigError(f"--batch: expected a positive number, got {args.batch}")
-    sweep = load_sweep(args.sweep)
+    sweep = load_sweep(args.sweep, args.config_dirs)
     out: Path = args.out
     outcome = run_sweep(sweep, out, scheduler=args.scheduler, workers=args.workers,
                         resume=args.resume, batch_runs=args.batch,

@@ -18,12 +18,57 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import os
+import stat
 from pathlib import Path
 from typing import Any
 
 from simserver.adapters.config import ConfigError, resolve_vehicle
 
 RUN_ID_CHARS = 16  # hex digits of the SHA-256 kept as the run's identity
+MAX_HASHED_BYTES = 512 << 20
+"""Largest file a run id hashes (512 MiB: above the largest file a run reads, an .xodr
+of 256 MiB); hashed a MiB at a time, once per file and version."""
+_HASH_CHUNK_BYTES = 1 << 20
+_digests: dict[tuple[str, int, int, int], str] = {}  # (path, dev, inode, mtime) -> SHA-256
+
+
+def file_digest(path: str | Path) -> str:
+    """The SHA-256 of a regular file of at most ``MAX_HASHED_BYTES``, read in chunks
+    (opened without blocking, checked with ``fstat``: a FIFO or device is refused, not
+    read), remembered per file and modification time. ``ConfigError`` names the file."""
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0)
+                     | getattr(os, "O_CLOEXEC", 0))
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise ConfigError(f"{path}: cannot read: not a regular file")
+        if info.st_size > MAX_HASHED_BYTES:
+            raise ConfigError(f"{path}: {info.st_size} bytes, more than the "
+                              f"{MAX_HASHED_BYTES} a run's file may have")
+        key = (str(path.resolve()), info.st_dev, info.st_ino, info.st_mtime_ns)
+        known = _digests.get(key)
+        if known is not None:
+            return known
+        digest = hashlib.sha256()
+        done = 0
+        with os.fdopen(os.dup(fd), "rb") as f:
+            while chunk := f.read(_HASH_CHUNK_BYTES):
+                done += len(chunk)
+                if done > MAX_HASHED_BYTES:  # grew since fstat
+                    raise ConfigError(f"{path}: more than the {MAX_HASHED_BYTES} bytes a "
+                                      "run's file may have")
+                digest.update(chunk)
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
+    _digests[key] = digest.hexdigest()
+    return _digests[key]
 
 
 def set_path(resolved: dict[str, Any], dotted: str, value: Any, origin: str,
@@ -92,7 +137,7 @@ def _canonical(obj: Any) -> Any:
             out[str(key)] = _canonical(value)
             if (str(key) == "file" or str(key).endswith("_file")) and isinstance(value, str) \
                     and Path(value).is_file():
-                out[f"{key}#sha256"] = hashlib.sha256(Path(value).read_bytes()).hexdigest()
+                out[f"{key}#sha256"] = file_digest(value)
         return out
     if isinstance(obj, (list, tuple)):
         return [_canonical(v) for v in obj]

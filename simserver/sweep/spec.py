@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import glob
 import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,16 +40,30 @@ from typing import Any
 import numpy as np
 
 from simserver.adapters.history import HISTORY_COLUMNS
-from simserver.adapters.validate import ConfigError, check_keys, number, read_yaml
+from simserver.adapters.validate import (
+    ConfigError,
+    check_keys,
+    confined_to,
+    is_path_text,
+    number,
+    read_yaml,
+    short_repr,
+)
 from simserver.scenario import resolve_scenario
 from simserver.sweep.metrics import Metric, parse_metrics
-from simserver.sweep.resolved import run_id, with_overrides
+from simserver.sweep.resolved import file_digest, run_id, with_overrides
 
 KEYS = ("name", "description", "kind", "scenarios", "grid", "cases", "random", "metrics",
         "histories", "soak")
 KINDS = ("scenario", "soak")
 SOAK_KEYS = ("duration_s", "seeds")
 MAX_RUNS = 1_000_000
+"""Most runs a sweep may have (base scenarios x parameter sets x seeds), counted first."""
+MAX_RANDOM_VALUES = 10_000_000
+"""Most random values a ``random:`` section draws (samples x ranges)."""
+DEFAULT_CONFIG_DIRS = (Path(__file__).resolve().parents[2] / "configs",)
+"""Where a sweep's files may lie, beside the sweep file's own folder (the project's
+``configs/``, like the server's default ``config_dirs``); ``--config-dir`` sets others."""
 
 
 @dataclass
@@ -74,24 +89,43 @@ class Sweep:
     cases: list[Case]
 
 
-def _values(origin: str, key: str, spec: Any) -> list[Any]:
+def _axis_size(origin: str, key: str, spec: Any) -> int:
+    """How many values a grid axis has (checked before any is made)."""
     if isinstance(spec, list) and spec:
-        return list(spec)
+        return len(spec)
     if isinstance(spec, dict):
         check_keys(f"{origin} (grid.{key})", spec, ("from", "to", "num"),
                    required=("from", "to", "num"))
-        lo = number(origin, f"grid.{key}.from", spec["from"], -1e12, 1e12)
-        hi = number(origin, f"grid.{key}.to", spec["to"], -1e12, 1e12)
         num = spec["num"]
-        if isinstance(num, bool) or not isinstance(num, int) or num < 1:
-            raise ConfigError(f"{origin}: key 'grid.{key}.num': expected a positive integer")
-        return [float(v) for v in np.linspace(lo, hi, num)]
+        if isinstance(num, bool) or not isinstance(num, int) or not 1 <= num <= MAX_RUNS:
+            raise ConfigError(f"{origin}: key 'grid.{key}.num': expected an integer in "
+                              f"[1, {MAX_RUNS}], got {short_repr(num)}")
+        return num
     raise ConfigError(f"{origin}: key 'grid.{key}': expected a non-empty list or "
                       f"{{from, to, num}}")
 
 
-def parameter_sets(origin: str, data: dict[str, Any]) -> list[dict[str, Any]]:
-    """The parameter sets of the file's ``grid``, ``cases`` or ``random`` (one of them)."""
+def _values(origin: str, key: str, spec: Any) -> list[Any]:
+    if isinstance(spec, list):
+        return list(spec)
+    lo = number(origin, f"grid.{key}.from", spec["from"], -1e12, 1e12)
+    hi = number(origin, f"grid.{key}.to", spec["to"], -1e12, 1e12)
+    return [float(v) for v in np.linspace(lo, hi, spec["num"])]
+
+
+def _check_runs(origin: str, key: str, sets: int, per_set: int, what: str) -> None:
+    """``sets`` parameter sets, each run ``per_set`` times (``what``), within ``MAX_RUNS``
+    (checked before the sets are made: a grid's product is counted, not built)."""
+    if sets * per_set > MAX_RUNS:
+        raise ConfigError(f"{origin}: key '{key}': {sets} parameter sets x {per_set} "
+                          f"({what}) = {sets * per_set} runs, more than {MAX_RUNS}")
+
+
+def parameter_sets(origin: str, data: dict[str, Any], per_set: int = 1,
+                   what: str = "base scenarios") -> list[dict[str, Any]]:
+    """The parameter sets of the file's ``grid``, ``cases`` or ``random`` (one of them),
+    each to be run ``per_set`` times (``what``: once per base scenario, per seed): more
+    than ``MAX_RUNS`` runs in all are refused before a set is made."""
     given = [k for k in ("grid", "cases", "random") if k in data]
     if len(given) > 1:
         raise ConfigError(f"{origin}: give one of 'grid', 'cases', 'random', not "
@@ -102,6 +136,10 @@ def parameter_sets(origin: str, data: dict[str, Any]) -> list[dict[str, Any]]:
         grid = data["grid"]
         if not isinstance(grid, dict) or not grid:
             raise ConfigError(f"{origin}: key 'grid': expected a mapping of parameters")
+        count = 1
+        for k, v in grid.items():
+            count *= _axis_size(origin, str(k), v)
+            _check_runs(origin, "grid", count, per_set, what)  # stops before it grows more
         axes = [_values(origin, str(k), v) for k, v in grid.items()]
         return [dict(zip(map(str, grid), combo, strict=True))
                 for combo in itertools.product(*axes)]
@@ -110,6 +148,7 @@ def parameter_sets(origin: str, data: dict[str, Any]) -> list[dict[str, Any]]:
         if not isinstance(cases, list) or not cases or not all(isinstance(c, dict)
                                                                 for c in cases):
             raise ConfigError(f"{origin}: key 'cases': expected a list of mappings")
+        _check_runs(origin, "cases", len(cases), per_set, what)
         return [{str(k): v for k, v in c.items()} for c in cases]
     rnd = data["random"]
     if not isinstance(rnd, dict):
@@ -120,9 +159,14 @@ def parameter_sets(origin: str, data: dict[str, Any]) -> list[dict[str, Any]]:
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError(f"{origin}: key 'random.seed': expected a non-negative integer")
     if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= MAX_RUNS:
-        raise ConfigError(f"{origin}: key 'random.samples': expected a positive integer")
+        raise ConfigError(f"{origin}: key 'random.samples': expected an integer in "
+                          f"[1, {MAX_RUNS}], got {short_repr(samples)}")
+    _check_runs(origin, "random.samples", samples, per_set, what)
     if not isinstance(ranges, dict) or not ranges:
         raise ConfigError(f"{origin}: key 'random.ranges': expected a mapping path: [lo, hi]")
+    if samples * len(ranges) > MAX_RANDOM_VALUES:
+        raise ConfigError(f"{origin}: key 'random': {samples} samples x {len(ranges)} ranges "
+                          f"= {samples * len(ranges)} values, more than {MAX_RANDOM_VALUES}")
     bounds = []
     for key, r in ranges.items():
         if not (isinstance(r, list) and len(r) == 2):
@@ -136,10 +180,60 @@ def parameter_sets(origin: str, data: dict[str, Any]) -> list[dict[str, Any]]:
             for i in range(samples)]
 
 
-def load_sweep(path: str | Path) -> Sweep:
-    """Read and validate a sweep file and expand it into resolved cases."""
+def _confined(origin: str, key: str, file: Path, roots: tuple[Path, ...]) -> Path:
+    """``file`` resolved, if it lies in one of ``roots``; else an error that names the key
+    and the folders, never anything read from the file."""
+    resolved = file.resolve()
+    if not any(resolved.is_relative_to(r) for r in roots):
+        raise ConfigError(f"{origin}: key '{key}': {short_repr(str(file), 200)} is outside "
+                          f"the config directories ({', '.join(map(str, roots))}; "
+                          "--config-dir adds one)")
+    return resolved
+
+
+def _file_overrides(origin: str, sets: list[dict[str, Any]], base_dir: Path,
+                    roots: tuple[Path, ...]) -> None:
+    """Each override of a ``file`` or ``*_file`` key: a regular file in ``roots``, at most
+    ``resolved.MAX_HASHED_BYTES`` (its contents are part of the run id), given relative
+    to the sweep file; replaced by its absolute path (what the runs read). Checked once
+    per distinct value."""
+    checked: dict[tuple[str, str], str] = {}
+    for params in sets:
+        for key, value in params.items():
+            last = key.rsplit(".", 1)[-1]
+            if last != "file" and not last.endswith("_file"):
+                continue
+            if not is_path_text(value):
+                raise ConfigError(f"{origin}: parameter '{key}': expected a file path, got "
+                                  f"{short_repr(value)}")
+            seen = checked.get((key, value))
+            if seen is None:
+                target = _confined(origin, key, base_dir / value, roots)
+                try:
+                    file_digest(target)
+                except ConfigError as exc:
+                    raise ConfigError(f"{origin}: parameter '{key}': {exc}") from None
+                seen = checked[(key, value)] = str(target)
+            params[key] = seen
+
+
+def load_sweep(path: str | Path, config_dirs: Sequence[Path | str] | None = None) -> Sweep:
+    """Read and validate a sweep file and expand it into resolved cases.
+
+    Every file it names (base scenarios, what they name, vehicle and ``*_file``
+    overrides) must lie in ``config_dirs`` (default ``DEFAULT_CONFIG_DIRS`` and the sweep
+    file's own folder): a sweep file cannot read or quote files elsewhere. The number of
+    runs is counted, and refused above ``MAX_RUNS``, before any is made.
+    """
     path = Path(path)
+    roots = tuple(Path(d).resolve() for d in (
+        config_dirs if config_dirs is not None else (*DEFAULT_CONFIG_DIRS, path.parent)))
     data = read_yaml(path)
+    with confined_to(roots):
+        return _load_sweep(path, data, roots)
+
+
+def _load_sweep(path: Path, data: dict[str, Any], roots: tuple[Path, ...]) -> Sweep:
     kind = data.get("kind", "scenario")
     if kind not in KINDS:
         raise ConfigError(f"{path}: key 'kind': expected one of {', '.join(KINDS)}")
@@ -147,6 +241,7 @@ def load_sweep(path: str | Path) -> Sweep:
                required=("scenarios", "soak") if kind == "soak" else ("scenarios", "metrics"))
     origin = str(path)
     soak: dict[str, Any] | None = None
+    seeds = 1
     if kind == "soak":
         if "metrics" in data:
             raise ConfigError(f"{origin}: key 'metrics': a soak sweep's metrics are the "
@@ -156,28 +251,32 @@ def load_sweep(path: str | Path) -> Sweep:
         check_keys(f"{origin} (soak)", data["soak"], SOAK_KEYS, required=SOAK_KEYS)
         seeds = data["soak"]["seeds"]
         if isinstance(seeds, bool) or not isinstance(seeds, int) or not 1 <= seeds <= MAX_RUNS:
-            raise ConfigError(f"{origin}: key 'soak.seeds': expected a positive integer")
+            raise ConfigError(f"{origin}: key 'soak.seeds': expected an integer in "
+                              f"[1, {MAX_RUNS}], got {short_repr(seeds)}")
         soak = {"duration_s": number(origin, "soak.duration_s", data["soak"]["duration_s"],
                                      0.01, 1e7), "seed": 0}
     elif "soak" in data:
         raise ConfigError(f"{origin}: key 'soak': only with 'kind: soak'")
     scen = data["scenarios"]
     scen = [scen] if isinstance(scen, str) else scen
-    if not isinstance(scen, list) or not scen or not all(isinstance(s, str) for s in scen):
+    if not isinstance(scen, list) or not scen or not all(is_path_text(s) for s in scen):
         raise ConfigError(f"{origin}: key 'scenarios': expected a list of files or globs")
     bases: list[Path] = []
     for pattern in scen:
         full = str(path.parent / pattern)
-        found = sorted(glob.glob(full)) if glob.has_magic(pattern) else [full]
+        found = sorted(itertools.islice(glob.iglob(full), MAX_RUNS + 1)) \
+            if glob.has_magic(pattern) else [full]
         if not found:
-            raise ConfigError(f"{origin}: key 'scenarios': {pattern!r} matches no file")
-        bases += [Path(f) for f in found]
-    sets = parameter_sets(origin, data)
+            raise ConfigError(f"{origin}: key 'scenarios': {short_repr(pattern)} matches no "
+                              "file")
+        bases += [_confined(origin, "scenarios", Path(f), roots) for f in found]
+        if len(bases) > MAX_RUNS:
+            raise ConfigError(f"{origin}: key 'scenarios': more than {MAX_RUNS} files")
+    sets = parameter_sets(origin, data, len(bases) * seeds,
+                          "base scenarios x seeds" if soak is not None else "base scenarios")
     if soak is not None:
-        sets = [{**params, "soak.seed": seed} for params in sets
-                for seed in range(data["soak"]["seeds"])]
-    if len(bases) * len(sets) > MAX_RUNS:
-        raise ConfigError(f"{origin}: {len(bases) * len(sets)} runs, more than {MAX_RUNS}")
+        sets = [{**params, "soak.seed": seed} for params in sets for seed in range(seeds)]
+    _file_overrides(origin, sets, path.parent, roots)
     parameters = tuple(dict.fromkeys(k for s in sets for k in s))
     metrics = () if soak is not None else parse_metrics(origin, data["metrics"],
                                                          HISTORY_COLUMNS)
@@ -186,7 +285,10 @@ def load_sweep(path: str | Path) -> Sweep:
         raise ConfigError(f"{origin}: key 'histories': expected true or false")
     cases: list[Case] = []
     for base in bases:
-        resolved_base = resolve_scenario(base)
+        try:
+            resolved_base = resolve_scenario(base)
+        except ConfigError as exc:
+            raise ConfigError(f"{origin}: key 'scenarios': {exc}") from None
         if soak is not None:
             resolved_base["soak"] = dict(soak)
         for params in sets:
@@ -198,7 +300,11 @@ def load_sweep(path: str | Path) -> Sweep:
                 key = {"base": str(base), "params": params}
                 cases.append(Case(index, str(base), params, None, run_id(key), str(exc)))
                 continue
-            cases.append(Case(index, str(base), params, resolved, run_id(resolved)))
+            try:
+                rid = run_id(resolved)
+            except ConfigError as exc:  # a file of the run too large or gone meanwhile
+                raise ConfigError(f"{where}: {exc}") from None
+            cases.append(Case(index, str(base), params, resolved, rid))
     name = data.get("name", path.stem)
     return Sweep(name=str(name), description=str(data.get("description", "")), path=path,
                  parameters=parameters, metrics=metrics, histories=histories, cases=cases)
