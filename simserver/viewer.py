@@ -200,8 +200,9 @@ def wait_for_config(ep: Any, where: str, wait_s: float, say: Any = None,
                "viewer with --normal-priority)")
     else:
         why = (f"its liveliness token {alive_key} was never seen, so no server for this "
-               "vehicle is reachable there: it is not started, or --connect, --prefix or "
-               "--vehicle-id do not match it (a server that is up but busy shows the token)")
+               "vehicle is reachable there: it is not started, stopped, or --connect, "
+               "--prefix or --vehicle-id do not match it (a server that is up but busy "
+               "shows the token)")
     raise ServerWaitError(
         f"no reply to get_config from {where} after waiting {waited_s:.1f} s "
         f"({attempts} attempt(s), --wait {wait_s:g}): {why}")

@@ -103,3 +103,30 @@ def test_wait_must_be_a_time(tmp_path):
     assert viewer.wait(timeout_s=120.0) == 2
     assert "--wait -1: expected a number of seconds >= 0" in viewer.text()
     assert not (tmp_path / "x.rrd").exists()
+
+
+def test_a_token_without_an_answer_is_reported_as_a_busy_server():
+    """The liveliness token is there (a real zenoh session declares it) but nobody answers
+    ``get_config``: what a server too busy to answer looks like to the viewer. The error
+    says the server is up but busy, and every wait line said the token was there."""
+    from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
+    from simserver.viewer import ServerWaitError, wait_for_config
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    lines: list[str] = []
+    with ZenohEndpoint(make_zenoh_config(listen=[endpoint]), prefix="simserver",
+                       vehicle="busy") as holder:
+        holder.declare_alive_token()
+        with ZenohEndpoint(make_zenoh_config(listen=[], connect=[endpoint]),
+                           prefix="simserver", vehicle="busy") as ep:
+            wait_until(lambda: bool(ep.alive_tokens(timeout_s=0.5)), timeout_s=30.0,
+                       what="the token to reach the viewer's session")
+            with pytest.raises(ServerWaitError) as err:
+                wait_for_config(ep, f"simserver/busy on {endpoint}", 2.0, say=lines.append)
+    message = str(err.value)
+    assert f"no reply to get_config from simserver/busy on {endpoint} after waiting" \
+        in message
+    assert "liveliness token simserver/busy/alive was seen" in message
+    assert "up but too busy" in message
+    assert lines and all("the liveliness token simserver/busy/alive is there" in line
+                         and "retrying in" in line for line in lines), lines
