@@ -130,3 +130,18 @@ def test_a_token_without_an_answer_is_reported_as_a_busy_server():
     assert "up but too busy" in message
     assert lines and all("the liveliness token simserver/busy/alive is there" in line
                          and "retrying in" in line for line in lines), lines
+
+
+def test_the_help_states_the_default_wait():
+    """The help's default is ``viewer.DEFAULT_WAIT_S`` (the CLI does not import the viewer
+    to build its parser, so the figure is written there too)."""
+    import argparse
+
+    from simserver.cli import build_parser
+    from simserver.viewer import DEFAULT_WAIT_S
+
+    parser = build_parser()
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    (wait,) = [a for a in sub.choices["view"]._actions if "--wait" in a.option_strings]
+    assert wait.default is None  # None: the viewer's DEFAULT_WAIT_S
+    assert f"(default {DEFAULT_WAIT_S:g}:" in wait.help
