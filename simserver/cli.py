@@ -528,7 +528,12 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                         help="the server's zenoh endpoint (default tcp/127.0.0.1:7447)")
     parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
-                        help="a zenoh JSON5 client config instead of --connect")
+                        help="a zenoh JSON5 client config (TLS, credentials, routers); its "
+                             "own endpoints are used unless --connect is given")
+    parser.add_argument("--wait", type=float, default=None, metavar="S",
+                        help="seconds to wait for the server's first get_config reply, "
+                             "retrying with backoff (default 60: at idle priority on a busy "
+                             "machine the viewer may get no CPU for seconds)")
     parser.add_argument("--vehicle-id", default="car0")
     parser.add_argument("--prefix", default="simserver")
     parser.add_argument("--fps", type=float, default=50.0,
@@ -549,18 +554,27 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
 def view_command(args: argparse.Namespace) -> int:
     """``simserver view``: the live Rerun scene of a running server (its own process)."""
     from simserver.adapters.rerun_sink import RerunSinkError
-    from simserver.viewer import run_viewer
+    from simserver.adapters.zenoh_io import ZenohConfigError
+    from simserver.viewer import DEFAULT_WAIT_S, ServerWaitError, run_viewer
 
-    connect = args.connect or ([] if args.zenoh_config else ["tcp/127.0.0.1:7447"])
+    # a --zenoh-config keeps its own endpoints (a TLS client's server name) unless
+    # --connect is given
+    connect = args.connect or (None if args.zenoh_config else ["tcp/127.0.0.1:7447"])
+    wait_s = DEFAULT_WAIT_S if args.wait is None else args.wait
+    if not wait_s >= 0:
+        raise CliError(f"--wait {args.wait:g}: expected a number of seconds >= 0",
+                       exit_code=2)
     try:
         stats = run_viewer(args.sink, connect, args.prefix, args.vehicle_id, args.fps,
                            duration_s=args.duration, config_file=args.zenoh_config,
                            web_port=args.web_port, check_listener=not args.no_listener_check,
-                           idle_priority=not args.normal_priority)
+                           idle_priority=not args.normal_priority, wait_s=wait_s)
     except RerunSinkError as exc:
         raise CliError(str(exc), exit_code=2) from exc
-    except TimeoutError as exc:
-        raise CliError(f"no server answered: {exc}", exit_code=3) from exc
+    except ZenohConfigError as exc:
+        raise CliError(f"zenoh configuration: {exc}", exit_code=2) from exc
+    except ServerWaitError as exc:
+        raise CliError(str(exc), exit_code=3) from exc
     print(f"viewer: {stats.states_received} states, {stats.frames_logged} frames, "
           f"{stats.states_dropped} dropped; CPU priority {stats.cpu_priority}", flush=True)
     return 0

@@ -59,6 +59,19 @@ from simserver.state_schema import record_to_pose, record_to_rows
 
 ROAD_POLL_S = 1.0
 
+DEFAULT_WAIT_S = 60.0
+"""How long ``simserver view`` waits for its server's first ``get_config`` reply
+(``--wait``). On a busy machine the viewer runs at idle priority (``lower_priority``) and
+may get no CPU for seconds while the server answers in milliseconds (issue 35): a single
+short query made the viewer exit; it now retries for this long."""
+
+RETRY_FIRST_S = 0.5
+RETRY_MAX_S = 4.0
+"""Backoff between ``get_config`` attempts: doubles from the first to the most."""
+QUERY_TIMEOUT_MAX_S = 5.0
+"""A single ``get_config`` attempt waits at most this long (the attempts' timeouts grow
+with the backoff: a starved viewer gets a longer window each time)."""
+
 
 CONFIG_FOLDERS = (Path(__file__).resolve().parents[1] / "configs",)
 """Where the viewer looks for the vehicle file ``get_config`` names: the server shows its
@@ -93,6 +106,107 @@ def scene_terrain(scene_file: Path) -> tuple[Any, dict[str, Any] | None]:
         _TERRAINS.clear()
         _TERRAINS[key] = (terrain_from_spec(spec), spec)
     return _TERRAINS[key]
+
+
+class ServerWaitError(Exception):
+    """No server answered ``get_config`` within the viewer's ``--wait``; the message
+    says what was waited for, how long, and how to tell a busy server from a missing one."""
+
+
+def endpoints_text(connect: list[str] | None, config_file: Path | None) -> str:
+    """Where the viewer connects, for messages."""
+    if connect:
+        return ", ".join(connect)
+    if config_file is not None:
+        return f"the endpoints of {config_file}"
+    return "(no endpoint)"
+
+
+def wait_for_config(ep: Any, where: str, wait_s: float, say: Any = None,
+                    since: float | None = None) -> dict[str, Any]:
+    """The server's ``get_config`` config, asked until it answers or ``wait_s`` passes.
+
+    Each attempt first looks for the vehicle's liveliness token (``{prefix}/{vehicle}/
+    alive``, declared by a running server), then asks ``get_config`` with a timeout that
+    grows with the backoff (``RETRY_FIRST_S`` doubling to ``RETRY_MAX_S``, a query at most
+    ``QUERY_TIMEOUT_MAX_S``), whatever the token said: on a starved machine the token's
+    own query may time out too. Every failed attempt is reported through ``say`` (one
+    line: what it waited for and when it retries).
+
+    Parameters
+    ----------
+    ep : ZenohEndpoint
+        The viewer's open endpoint.
+    where : str
+        ``"{prefix}/{vehicle} on {endpoints}"``, for the messages.
+    wait_s : float
+        Total time to wait (s); at least one attempt is made.
+    say : callable, optional
+        Takes each progress line (default: print to stderr).
+    since : float, optional
+        When the wait began (``time.monotonic()``; default now): the session's opening
+        counts against ``wait_s`` too.
+
+    Raises
+    ------
+    ServerWaitError
+        Nothing answered within ``wait_s``; the message names the liveliness key and
+        whether its token was seen (the server is up but busy) or not (not started, or
+        not reachable at these endpoints).
+    RuntimeError
+        The server answered ``get_config`` with an error.
+    """
+    if say is None:
+        def say(text: str) -> None:
+            print(f"simserver view: {text}", file=sys.stderr, flush=True)
+    alive_key = ep.keys.alive
+    start = time.monotonic() if since is None else since
+    deadline = start + max(0.0, wait_s)
+    backoff_s = RETRY_FIRST_S
+    attempts = 0
+    token_seen = False
+    while True:
+        attempts += 1
+        remaining = deadline - time.monotonic()
+        query_s = max(0.5, min(QUERY_TIMEOUT_MAX_S, 2.0 * backoff_s, remaining))
+        try:
+            token = bool(ep.alive_tokens(timeout_s=min(1.0, query_s)))
+        except Exception:  # noqa: BLE001 - a liveliness query that fails is no token
+            token = False
+        token_seen = token_seen or token
+        try:
+            reply = ep.request("get_config", timeout_s=query_s)
+        except TimeoutError:
+            reply = None
+        except proto.ProtocolError as exc:
+            raise RuntimeError(f"bad get_config reply from {where}: {exc}") from None
+        if reply is not None:
+            if not reply.get("ok"):
+                raise RuntimeError(f"get_config failed on {where}: {reply}")
+            return reply["config"]
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            break
+        pause_s = min(backoff_s, remaining)
+        token_text = (f"the liveliness token {alive_key} is there: the server is up, busy?"
+                      if token else f"no liveliness token on {alive_key} yet")
+        say(f"waiting for {where}: no reply to get_config yet ({token_text}), "
+            f"retrying in {pause_s:.2g} s")
+        time.sleep(pause_s)
+        backoff_s = min(RETRY_MAX_S, 2.0 * backoff_s)
+    waited_s = time.monotonic() - start
+    if token_seen:
+        why = (f"its liveliness token {alive_key} was seen, so the server is up but too "
+               "busy to answer (a loaded machine: give it a longer --wait, or start the "
+               "viewer with --normal-priority)")
+    else:
+        why = (f"its liveliness token {alive_key} was never seen, so no server for this "
+               "vehicle is reachable there: it is not started, stopped, or --connect, "
+               "--prefix or --vehicle-id do not match it (a server that is up but busy "
+               "shows the token)")
+    raise ServerWaitError(
+        f"no reply to get_config from {where} after waiting {waited_s:.1f} s "
+        f"({attempts} attempt(s), --wait {wait_s:g}): {why}")
 
 
 @dataclass
@@ -206,11 +320,11 @@ def log_diagnostics_payload(rec_stream: Any, payload: bytes, period_s: float,
     return True
 
 
-def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
+def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
                vehicle_id: str = "car0", fps: float = 50.0, queue: int = 2048,
                duration_s: float | None = None, config_file: Path | None = None,
                web_port: int | None = None, check_listener: bool = True,
-               idle_priority: bool = True) -> ViewerStats:
+               idle_priority: bool = True, wait_s: float = DEFAULT_WAIT_S) -> ViewerStats:
     """Subscribe to a server and log its scene to ``sink`` until SIGINT/SIGTERM.
 
     Parameters
@@ -218,8 +332,8 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
     sink : str
         ``MODE[:TARGET]`` as ``rerun_sink.parse_sink`` takes it (``serve``, ``save:F.rrd``,
         ``connect:URL``, ``spawn``).
-    connect : list of str
-        Zenoh endpoints of the server.
+    connect : list of str or None
+        Zenoh endpoints of the server; None keeps those of ``config_file``.
     prefix, vehicle_id : str
         Which vehicle.
     fps : float
@@ -238,6 +352,9 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
     idle_priority : bool
         Run at idle CPU priority (``lower_priority``), the default: on the server's
         machine the view must only use CPU time the physics does not want.
+    wait_s : float
+        How long to wait for the server's first ``get_config`` reply, and for a client-mode
+        session to open (``wait_for_config``), before ``ServerWaitError``.
     """
     stats = ViewerStats()
     if idle_priority:  # before the sessions: the threads they start inherit it
@@ -254,20 +371,27 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
         running[0] = False
 
     previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
-    cfg = make_zenoh_config(listen=[], connect=connect, config_file=config_file)
     x = np.zeros(L.N_STATE)
     out = np.zeros(L.N_OUT)
     inputs = np.zeros(L.N_INPUT)
+    where = f"{prefix}/{vehicle_id} on {endpoints_text(connect, config_file)}"
+    wait_start = time.monotonic()
+    wait_deadline = wait_start + max(0.0, wait_s)
     try:
-        with ZenohEndpoint(cfg, prefix=prefix, vehicle=vehicle_id) as ep:
+        # a config file's own listen and connect endpoints are kept unless --connect
+        # is given (its client-mode TLS or credentials settings need its endpoints)
+        ep = _open_endpoint(
+            lambda: ZenohEndpoint(make_zenoh_config(
+                listen=[] if config_file is None else None, connect=connect,
+                config_file=config_file), prefix=prefix, vehicle=vehicle_id),
+            where, wait_deadline)
+        with ep:
             states = ep.declare_state_inbox(capacity=queue)
             diags = ep.declare_diag_inbox()
-            config = ep.request("get_config", timeout_s=5.0)
-            if not config.get("ok"):
-                raise RuntimeError(f"get_config failed: {config}")
-            scene = _SegmentScene(recordings.current, config["config"], 0, vehicle_id)
-            state_every = int(config["config"]["server"]["state_every"])
-            period_s = float(config["config"]["server"]["period_s"])
+            config = wait_for_config(ep, where, wait_s, since=wait_start)
+            scene = _SegmentScene(recordings.current, config, 0, vehicle_id)
+            state_every = int(config["server"]["state_every"])
+            period_s = float(config["server"]["period_s"])
             last_tick: int | None = None
             frame_gate = RateGate(fps)  # decimate before the Python-heavy path
             t_start = last_poll = time.monotonic()
@@ -277,7 +401,10 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
                     break
                 if now - last_poll > ROAD_POLL_S:  # follow set_road
                     last_poll = now
-                    reply = ep.request("get_config", timeout_s=1.0)
+                    try:
+                        reply = ep.request("get_config", timeout_s=1.0)
+                    except TimeoutError:  # busy: follow the road at the next poll
+                        reply = {}
                     if reply.get("ok"):
                         scene.follow_road(reply["config"])
                 payloads = states.drain_newest()
@@ -291,10 +418,8 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
                     if last_tick is not None and tick < last_tick:
                         # a reset or a load: the next segment, in a recording of its own
                         scene.logger.flush()
-                        reply = ep.request("get_config", timeout_s=5.0)
-                        if not reply.get("ok"):
-                            raise RuntimeError(f"get_config failed: {reply}")
-                        scene = _SegmentScene(recordings.next(), reply["config"],
+                        seg_config = wait_for_config(ep, where, wait_s)
+                        scene = _SegmentScene(recordings.next(), seg_config,
                                               recordings.segment, vehicle_id)
                         frame_gate.reset()
                     elif last_tick is not None and tick > last_tick + state_every:
@@ -321,6 +446,36 @@ def run_viewer(sink: str, connect: list[str], prefix: str = "simserver",
             signal.signal(s, h)
         recordings.close()
     return stats
+
+
+def _open_endpoint(open_once: Any, where: str, deadline: float) -> Any:
+    """``open_once()`` retried until ``deadline`` (monotonic s) while it fails to open.
+
+    A zenoh peer opens at once and connects in the background; a client-mode session
+    (``mode: "client"`` in a ``--zenoh-config``, the TLS examples) fails to open while
+    its server is not there yet, so it is retried with the same backoff as
+    ``get_config``. A bad config (``ZenohConfigError``) is not retried.
+    """
+    from simserver.adapters.zenoh_io import ZenohOpenError
+
+    start = time.monotonic()
+    backoff_s = RETRY_FIRST_S
+    while True:
+        try:
+            return open_once()
+        except ZenohOpenError as exc:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise ServerWaitError(
+                    f"no zenoh session to {where} after waiting "
+                    f"{time.monotonic() - start:.1f} s: {exc} (the server is not started, "
+                    "not reachable at these endpoints, or refuses this client's TLS or "
+                    "credentials settings)") from None
+            pause_s = min(backoff_s, remaining)
+            print(f"simserver view: waiting for {where}: the session does not open yet "
+                  f"({exc}), retrying in {pause_s:.2g} s", file=sys.stderr, flush=True)
+            time.sleep(pause_s)
+            backoff_s = min(RETRY_MAX_S, 2.0 * backoff_s)
 
 
 class _Recordings:

@@ -28,6 +28,7 @@ import secrets
 import shutil
 import signal
 import socket
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -48,6 +49,7 @@ from simserver.server import DEFAULT_SERVER_CONFIG, load_server_config
 from simserver.testing import (
     CONFIGS,
     Client,
+    OutputProcess,
     RoleProcess,
     ServerProcess,
     free_port,
@@ -242,6 +244,43 @@ def test_tls_front_off_lets_zenoh_listen_on_the_public_port_itself(pki):
         with Client(tls_ep, zenoh_config=client_cfg) as client:
             assert client.wait_controls()["ok"]
     assert server.returncode == 0
+
+
+def test_view_with_the_tls_client_config_uses_its_endpoints_and_draws(pki, tmp_path):
+    """``simserver view --zenoh-config client_tls.json5`` (issue 35): the view emptied the
+    file's connect endpoints, and the client-mode session then failed to open with a
+    traceback. The file's own endpoint (its placeholder server name replaced by the
+    test server's, ``localhost`` in the certificate) is used; no ``--connect``."""
+    from simserver.adapters.rerun_scene import CAR
+
+    port = free_port()
+    server_cfg = materialize("server_tls.json5", pki)
+    client_cfg = materialize("client_tls.json5", pki, out_name="view_tls.json5",
+                             replace={"tls/simserver.lab.example:7447":
+                                      f"tls/localhost:{port}"})
+    rrd = tmp_path / "tls.rrd"
+    env = dict(os.environ, PYTHONUNBUFFERED="1",
+               XDG_CONFIG_HOME=str(tmp_path / "xdg_config"),
+               XDG_DATA_HOME=str(tmp_path / "xdg_data"))
+    with ServerProcess(listen=[f"tls/127.0.0.1:{port}"],
+                       extra_args=["--zenoh-config", str(server_cfg)]):
+        viewer = OutputProcess(
+            [sys.executable, "-m", "simserver", "view", "--sink", f"save:{rrd}",
+             "--zenoh-config", str(client_cfg), "--normal-priority", "--wait", "120"],
+            env=env)
+        try:
+            wait_until(lambda: rrd.exists() and rrd.stat().st_size > 100_000
+                       or not viewer.alive(), timeout_s=120.0,
+                       what="the TLS viewer to draw", interval_s=0.05)
+            assert viewer.alive(), viewer.text()
+            assert viewer.stop(timeout_s=60.0) == 0, viewer.text()
+        finally:
+            viewer.kill()
+    assert "Traceback" not in viewer.text(), viewer.text()
+    from rerun.chunk import RrdReader
+
+    assert any(c.entity_path.startswith("/" + CAR) and not c.is_static
+               for c in RrdReader(rrd).stream()), viewer.text()
 
 
 # ============================================================================ user/password + ACL
