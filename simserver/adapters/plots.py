@@ -18,8 +18,9 @@ Run plots (``plot_result`` writes all six):
   axis hides it).
 
 ``plot_comparison`` overlays chosen signals of several runs (the kinematic baseline beside
-the lagged model); ``plot_tire_curves`` draws a tire's characteristic curves (the paper's
-Figs. 5 and 6, combined slip, aligning moment).
+the lagged model); ``plot_pair`` overlays two histories on one time axis beside their
+difference (``simserver compare``); ``plot_tire_curves`` draws a tire's characteristic
+curves (the paper's Figs. 5 and 6, combined slip, aligning moment).
 """
 
 from __future__ import annotations
