@@ -41,6 +41,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shift-b", type=float, default=None, metavar="S",
                         help="add S seconds to B's time_s (default: align the first row "
                              "where the inputs change)")
+    for side in ("a", "b"):
+        parser.add_argument(f"--segment-{side}", type=int, default=None, metavar="K",
+                            help=f"use only the rows of segment K of {side.upper()} (a live "
+                                 "recording: a reset or load starts a segment)")
     parser.add_argument("--no-plot", action="store_true", help="skip compare.png")
 
 
@@ -57,9 +61,11 @@ def _history_path(label: str, path: Path) -> Path:
     return path
 
 
-def read_input(label: str, path: Path) -> tuple[dict[str, np.ndarray], dict | None, Path]:
-    """The numeric history columns of a run folder or history file, its summary (a
-    folder's ``summary.json``, if any) and the history's path.
+def read_input(label: str, path: Path, segment: int | None = None
+               ) -> tuple[dict[str, np.ndarray], dict | None, Path]:
+    """The numeric history columns of a run folder or history file (only the rows of
+    ``segment`` when given), its summary (a folder's ``summary.json``, if any; none for a
+    segment) and the history's path.
 
     Raises
     ------
@@ -86,6 +92,16 @@ def read_input(label: str, path: Path) -> tuple[dict[str, np.ndarray], dict | No
         if pa.types.is_integer(field.type) or pa.types.is_floating(field.type):
             cols[name] = np.asarray(table.column(name).to_numpy(zero_copy_only=False),
                                     dtype=np.float64)
+    if segment is not None:
+        if "segment" not in cols:
+            raise ConfigError(f"{hist}: --segment-{label.lower()} {segment}: no column "
+                              "'segment' (not a live recording)")
+        rows = cols["segment"] == segment
+        if not rows.any():
+            found = ", ".join(f"{k:g}" for k in np.unique(cols["segment"]))
+            raise ConfigError(f"{hist}: --segment-{label.lower()} {segment}: no such "
+                              f"segment (found {found})")
+        cols = {name: values[rows] for name, values in cols.items()}
     t = cols["time_s"]
     if t.size == 0:
         raise ConfigError(f"{hist}: no rows")
@@ -96,9 +112,9 @@ def read_input(label: str, path: Path) -> tuple[dict[str, np.ndarray], dict | No
     if back.size:
         raise ConfigError(f"{hist}: column 'time_s' does not increase at row {back[0] + 1} "
                           f"({t[back[0]]:g} s, then {t[back[0] + 1]:g} s; a recording of "
-                          "several segments: split it by its 'segment' column)")
+                          f"several segments: pick one with --segment-{label.lower()})")
     summary = None
-    if path.is_dir() and (path / SUMMARY_FILE).is_file():
+    if segment is None and path.is_dir() and (path / SUMMARY_FILE).is_file():
         try:
             summary = json.loads((path / SUMMARY_FILE).read_text(encoding="utf-8"))
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -154,8 +170,8 @@ def run(args: argparse.Namespace) -> int:
     from simserver.adapters.validate import ConfigError
     from simserver.analysis import compare as cmp
 
-    cols_a, summary_a, hist_a = read_input("A", args.a)
-    cols_b, summary_b, hist_b = read_input("B", args.b)
+    cols_a, summary_a, hist_a = read_input("A", args.a, args.segment_a)
+    cols_b, summary_b, hist_b = read_input("B", args.b, args.segment_b)
     if args.shift_b is not None:
         if not math.isfinite(args.shift_b):
             raise ConfigError(f"--shift-b: expected a finite number of seconds, "

@@ -165,3 +165,40 @@ def test_bad_inputs_give_one_line_naming_the_file(runs, tmp_path):
             assert len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
             assert str(bad) in lines[0] and why in lines[0], lines[0]
             assert not out.exists()  # nothing written
+
+
+def test_one_segment_of_a_recording_like_file(runs, tmp_path):
+    """Two segments (time restarting at the second, as after a live load) with the
+    recorder's ``tick`` and ``segment`` columns: the whole file is refused naming the row,
+    ``--segment-b 1`` compares that segment alone."""
+    _, r = runs
+    table = pq.read_table(r["e2"] / "history.parquet")
+    n = table.num_rows
+    first = table.slice(0, 500)
+    i = first.column_names.index("time_s")
+    first = first.set_column(i, first.schema.field(i),
+                             pa.array(first.column("time_s").to_numpy() + 31.0))
+    both = pa.concat_tables([first, table])
+    both = both.append_column("segment", pa.array(np.r_[np.zeros(500), np.ones(n)]
+                                                  .astype(np.int64)))
+    both = both.append_column("tick", pa.array(np.r_[np.arange(500), np.arange(n)]
+                                               .astype(np.int64)))
+    rec = tmp_path / "recording.parquet"
+    pq.write_table(both, rec)
+    whole = simserver("compare", r["e2"], rec, "--out", tmp_path / "whole")
+    assert whole.returncode == 2
+    assert f"{rec}: column 'time_s' does not increase at row 500" in whole.stderr
+    assert "--segment-b" in whole.stderr
+    report = compare(r["e2"], rec, tmp_path / "seg", "--segment-b", "1", "--shift-b", "0")
+    assert report["b"]["rows"] == n
+    assert_all_zero(report)
+    assert report["summary"] is None  # a segment has no summary.json of its own
+    # a recording's inputs are the step's that ended at the row: its first change is
+    # taken one row earlier (this file has headless rows, so the auto shift is one row)
+    auto = compare(r["e2"], rec, tmp_path / "auto", "--segment-b", "1")
+    assert auto["alignment"]["shift_b_s"] == pytest.approx(0.001, abs=1e-12)
+    missing = simserver("compare", r["e2"], rec, "--out", tmp_path / "x", "--segment-b", "7")
+    assert missing.returncode == 2 and "no such segment (found 0, 1)" in missing.stderr
+    plain = simserver("compare", r["e2"], r["e2"], "--out", tmp_path / "y", "--segment-a",
+                      "0")
+    assert plain.returncode == 2 and "no column 'segment'" in plain.stderr

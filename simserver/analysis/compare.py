@@ -8,7 +8,9 @@ or of ``clients/recorder.py``: the same column names, docs/history_columns.md).
 explicit shift, ``auto_shift_b`` aligns the *first row where the inputs change* (any
 ``input_*`` column differs from its first row's value): a headless run starts at 0, a
 live recording wherever the server's clock was, but both begin when the driver first
-acts. If either history never changes its inputs, the first rows are aligned instead.
+acts. A live recording's inputs are those of the step that ended at its row
+(docs/clients.md section 5), so there the step starts one row earlier. If either history
+never changes its inputs, the first rows are aligned instead.
 
 **Resampling.** The differences are taken at A's rows inside the common time span: B is
 interpolated linearly onto them, except that a B row within ``SAME_ROW_TOL_S`` of an A
@@ -64,16 +66,25 @@ def with_derived(cols: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     return out
 
 
+RECORDING_COLUMN = "tick"
+"""A history with this column is a live recording (``clients/recorder.py``): its inputs
+belong to the step that *ended* at the row, one row later than a headless history's
+(docs/clients.md section 5)."""
+
+
 def first_input_change_s(cols: Mapping[str, np.ndarray]) -> float | None:
-    """Time of the first row whose inputs differ from the first row's, or ``None``."""
+    """Start time of the first step whose inputs differ from the first row's, or ``None``:
+    the row's time in a headless history, the row before's in a live recording
+    (``RECORDING_COLUMN``)."""
     t = np.asarray(cols["time_s"], dtype=np.float64)
+    lag_rows = 1 if RECORDING_COLUMN in cols else 0
     changed = np.zeros(t.size, dtype=bool)
     for name, values in cols.items():
         if name.startswith(INPUT_PREFIX) and len(values):
             v = np.asarray(values, dtype=np.float64)
             changed |= ~((v == v[0]) | (np.isnan(v) & np.isnan(v[0])))
     rows = np.flatnonzero(changed)
-    return float(t[rows[0]]) if rows.size else None
+    return float(t[max(0, rows[0] - lag_rows)]) if rows.size else None
 
 
 def auto_shift_b(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]
