@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from simserver import compare as compare_cli
 from simserver.ros2 import cli as ros2_cli
 from simserver.sweep import cli as sweep_cli
 
@@ -605,6 +606,8 @@ SUBCOMMANDS: dict[str, Subcommand] = {
                     "same file gives the same history bytes) and write DIR/history.parquet, "
                     "DIR/summary.json and DIR/{speed,forces,trajectory,slip,inputs}.png.",
     ),
+    "compare": Subcommand(help=compare_cli.HELP, add_arguments=compare_cli.add_arguments,
+                          run=compare_cli.run, description=compare_cli.DESCRIPTION),
     "tire-curves": Subcommand(
         help="plot a tire's force curves (Fy-alpha, Fx-kappa, combined slip, Mz) to a PNG",
         add_arguments=_add_tire_curves_arguments,

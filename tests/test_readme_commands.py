@@ -43,6 +43,8 @@ RUN_ELSEWHERE = {
     '.venv/bin/python -m pytest -q': "CI: .ci/run runs it verbatim (test_readme.py)",
     ".venv/bin/simserver run-scenario configs/scenarios/e2_stop_downslope_paper_damping.yaml"
     " --out out/e2": "test_readme.py::test_scenario_command_runs",
+    ".venv/bin/simserver compare out/e2 out/e1 --out out/e2_vs_e1":
+        "test_compare.py::test_readme_command_as_written (beside runs of E2 and E1)",
     "python -m pytest tests/test_scenarios.py -s": "the default suite runs that file",
 }
 

@@ -18,14 +18,15 @@ Run plots (``plot_result`` writes all six):
   axis hides it).
 
 ``plot_comparison`` overlays chosen signals of several runs (the kinematic baseline beside
-the lagged model); ``plot_tire_curves`` draws a tire's characteristic curves (the paper's
-Figs. 5 and 6, combined slip, aligning moment).
+the lagged model); ``plot_pair`` overlays two histories on one time axis beside their
+difference (``simserver compare``); ``plot_tire_curves`` draws a tire's characteristic
+curves (the paper's Figs. 5 and 6, combined slip, aligning moment).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -68,6 +69,9 @@ _LABELS = {
     "ay_mps2": "a_y (m/s²)",
     "fx_body_sum_n": "ΣFx, body x (N)",
     "fy_body_sum_n": "ΣFy, body y (N)",
+    "fx_sum_n": "ΣFx, wheel frames (N)",
+    "fy_sum_n": "ΣFy, wheel frames (N)",
+    "fz_sum_n": "ΣFz (N)",
 }
 
 
@@ -364,6 +368,23 @@ def plot_result(result: ScenarioResult, out_dir: str | Path) -> list[Path]:
     return [plot(result, out_dir / name) for name, plot in PLOT_FILES.items()]
 
 
+def _overlay(axes: Sequence[Axes], runs: Mapping[str, Mapping[str, np.ndarray]],
+             signals: Sequence[str], time_shifts_s: Sequence[float] | None = None) -> None:
+    """Draw each signal of every run (label -> history columns) on its own axes, runs in
+    ``RUN_COLORS`` order, each run's time moved by its entry of ``time_shifts_s``."""
+    for k, (label, cols) in enumerate(runs.items()):
+        color = RUN_COLORS[k % len(RUN_COLORS)]
+        style = "-" if k < len(RUN_COLORS) else "--"
+        t = np.asarray(cols["time_s"], dtype=np.float64)
+        if time_shifts_s is not None:
+            t = t + time_shifts_s[k]
+        for ax, name in zip(axes, signals, strict=True):
+            ax.plot(t, cols[name], style, color=color, lw=1.2, label=label)
+    for ax, name in zip(axes, signals, strict=True):
+        ax.set_ylabel(signal_label(name))
+        ax.axhline(0.0, color="k", lw=0.5, alpha=0.5)
+
+
 def plot_comparison(
     results: dict[str, ScenarioResult],
     path: str | Path,
@@ -403,20 +424,58 @@ def plot_comparison(
         raise ValueError(f"plot_comparison: unknown signal(s) {unknown}; "
                          "expected names of simserver.adapters.history.HISTORY_COLUMNS")
     fig, axes = _figure(len(signals))
-    for k, (label, result) in enumerate(results.items()):
-        cols = result_columns(result)
-        color = RUN_COLORS[k % len(RUN_COLORS)]
-        style = "-" if k < len(RUN_COLORS) else "--"
-        for ax, name in zip(axes[:, 0], signals, strict=True):
-            ax.plot(cols["time_s"], cols[name], style, color=color, lw=1.2, label=label)
-    for ax, name in zip(axes[:, 0], signals, strict=True):
-        ax.set_ylabel(signal_label(name))
-        ax.axhline(0.0, color="k", lw=0.5, alpha=0.5)
+    _overlay(axes[:, 0], {label: result_columns(r) for label, r in results.items()}, signals)
     _legend_right(axes[0, 0])
     axes[-1, 0].set_xlabel(signal_label("time_s"))
     if title is None:
         names = sorted({r.scenario.name for r in results.values()})
         title = "comparison: " + ", ".join(names)
+    fig.suptitle(title, fontsize=10)
+    return _save(fig, Path(path))
+
+
+def plot_pair(
+    runs: Mapping[str, Mapping[str, np.ndarray]],
+    shift_b_s: float,
+    differences: Mapping[str, tuple[np.ndarray, np.ndarray]],
+    path: str | Path,
+    title: str,
+) -> Path:
+    """Two histories overlaid on A's time axis (left) and their difference A - B (right),
+    one row per signal of ``differences`` (``simserver compare``).
+
+    Parameters
+    ----------
+    runs : mapping of str to history columns
+        Exactly two, A then B (legend label -> columns with ``time_s`` and the signals;
+        derived signals already added).
+    shift_b_s : float
+        Added to B's ``time_s`` (the alignment of ``simserver.analysis.compare``).
+    differences : mapping of str to (times, A - B)
+        Signal name -> A's times in the common span and the difference there.
+    path : str or Path
+        PNG file to write.
+    title : str
+        Figure title.
+    """
+    if len(runs) != 2 or not differences:
+        raise ValueError("plot_pair: expected two runs and at least one signal")
+    signals = list(differences)
+    fig = Figure(figsize=(12.0, 0.9 + 2.0 * len(signals)), dpi=DPI, layout="constrained")
+    axes = fig.subplots(len(signals), 2, sharex=True, squeeze=False)
+    for ax in axes.flat:
+        ax.grid(True, alpha=0.3)
+    _overlay(axes[:, 0], runs, signals, time_shifts_s=(0.0, shift_b_s))
+    axes[0, 0].legend(fontsize=8, loc="best")
+    for ax, name in zip(axes[:, 1], signals, strict=True):
+        t, d = differences[name]
+        ax.plot(t, d, "-", color="k", lw=1.0)
+        ax.axhline(0.0, color="k", lw=0.5, alpha=0.5)
+        ax.set_ylabel(f"A - B: {signal_label(name)}", fontsize=8)
+    axes[0, 0].set_title("overlay (B on A's time axis)", fontsize=9)
+    axes[0, 1].set_title("difference A - B at A's rows", fontsize=9)
+    for ax in axes[-1]:
+        ax.set_xlabel(signal_label("time_s"))
     fig.suptitle(title, fontsize=10)
     return _save(fig, Path(path))
 
