@@ -494,12 +494,17 @@ def soak_command(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from simserver.scenario import load_scene
-    from simserver.server import REPO_CONFIGS
     from simserver.soak import run_soak
 
     if not (math.isfinite(args.duration) and 0.0 < args.duration <= 1e7):
         raise CliError("--duration: expected a positive number of seconds", exit_code=2)
-    scene = load_scene(args.scene or REPO_CONFIGS / "scenes" / "flat_paper_sedan.yaml")
+    if args.scene is None:
+        # the server module only for its configs folder: a soak with --scene needs none
+        # of the real-time machinery (issue 33)
+        from simserver.server import REPO_CONFIGS
+
+        args.scene = REPO_CONFIGS / "scenes" / "flat_paper_sedan.yaml"
+    scene = load_scene(args.scene)
     run_soak(scene, 0.01, seed=args.seed)  # compile before the clock starts
     show = not args.quiet and sys.stderr.isatty()
     with tqdm(total=args.duration, desc="soak", unit="sim s", file=sys.stderr,

@@ -34,13 +34,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
 
 from simserver.analysis.holds import holds_summary
 from simserver.core import layout as L
 
 if TYPE_CHECKING:  # scenario imports the compiled core; keep this module light to import
+    import pyarrow as pa
+
     from simserver.scenario import ScenarioResult
 
 HISTORY_FILE = "history.parquet"
@@ -290,6 +290,9 @@ def history_schema(extra_metadata: dict[str, str] | None = None) -> pa.Schema:
     -------
     pyarrow.Schema
     """
+    import pyarrow as pa  # here, not at the top: the sweep's workers, the plots and
+    # tire-curves read the column tables of this module and write no Parquet (issue 33)
+
     fields = [
         pa.field(name, pa.float64(), nullable=False,
                  metadata={"unit": unit, "description": desc})
@@ -332,6 +335,9 @@ def write_history(result: ScenarioResult, path: str | Path) -> Path:
     dictionary encoding, one row group per million rows. No timestamp or path goes into
     the file, so the same result gives the same bytes.
     """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     path = Path(path)
     if path.is_dir():
         path = path / HISTORY_FILE
@@ -363,6 +369,8 @@ def read_history(path: str | Path) -> dict[str, np.ndarray]:
     dict of str to ndarray
         Column name to array, in file order.
     """
+    import pyarrow.parquet as pq
+
     path = Path(path)
     if path.is_dir():
         path = path / HISTORY_FILE
