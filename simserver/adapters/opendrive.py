@@ -31,8 +31,6 @@ from __future__ import annotations
 
 import array
 import math
-import os
-import stat
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -43,7 +41,12 @@ from xml.parsers import expat
 import numba as nb
 import numpy as np
 
-from simserver.adapters.validate import ConfigError, report_progress, short_repr
+from simserver.adapters.validate import (
+    ConfigError,
+    read_regular_chunks,
+    report_progress,
+    short_repr,
+)
 
 GEOMETRY_KINDS = ("line", "arc", "spiral", "poly3", "paramPoly3")
 _GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(8)
@@ -794,27 +797,14 @@ class _XodrReader:
     def read(self) -> OpenDrive:
         path = self.path
         try:
-            fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0)
-                         | getattr(os, "O_CLOEXEC", 0))
-        except OSError as exc:
-            raise OpenDriveError(f"{path}: cannot read: {exc.strerror or exc}") from None
-        try:
-            info = os.fstat(fd)
-            if not stat.S_ISREG(info.st_mode):
-                raise OpenDriveError(f"{path}: cannot read: not a regular file")
-            if info.st_size > MAX_XODR_BYTES:
-                raise OpenDriveError(f"{path}: {info.st_size} bytes, more than the "
-                                     f"{MAX_XODR_BYTES} an .xodr file may have")
+            size = max(path.stat().st_size, 1)
             done = 0
-            with os.fdopen(os.dup(fd), "rb") as f:
-                while chunk := f.read(_READ_CHUNK_BYTES):
-                    done += len(chunk)
-                    if done > MAX_XODR_BYTES:  # grown since fstat
-                        raise OpenDriveError(f"{path}: more than the {MAX_XODR_BYTES} "
-                                             "bytes an .xodr file may have")
-                    self.parser.Parse(chunk, False)
-                    report_progress(f"{path.name}: {done >> 20} of "
-                                    f"{max(info.st_size, 1) >> 20} MiB read")
+            for chunk in read_regular_chunks(path, MAX_XODR_BYTES, _READ_CHUNK_BYTES,
+                                             OpenDriveError,
+                                             "the most an .xodr file may have"):
+                done += len(chunk)
+                self.parser.Parse(chunk, False)
+                report_progress(f"{path.name}: {done >> 20} of {size >> 20} MiB read")
             self.parser.Parse(b"", True)
         except expat.ExpatError as exc:
             raise OpenDriveError(f"{path}:{exc.lineno}: unreadable XML "
@@ -824,8 +814,6 @@ class _XodrReader:
             raise OpenDriveError(f"{path}: cannot read: {exc.strerror or exc}") from None
         except RecursionError:
             raise OpenDriveError(f"{path}: elements nested too deeply") from None
-        finally:
-            os.close(fd)
         if not self.roads:
             raise OpenDriveError(f"{path}: no <road>")
         return OpenDrive(path, self.roads, self.dropped.lines(path))

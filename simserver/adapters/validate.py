@@ -136,38 +136,51 @@ def referenced_file(referrer: Path | str, key: str, value: Any) -> Path:
     return target
 
 
-def read_config_bytes(path: Path | str, limit: int = MAX_CONFIG_BYTES) -> bytes:
-    """The bytes of a configuration file: regular, at most ``limit`` (default
-    :data:`MAX_CONFIG_BYTES`).
+def read_regular_chunks(path: Path, limit: int, chunk_bytes: int,
+                        error: type[ConfigError] = ConfigError,
+                        what: str = "the most such a file may have") -> Iterator[bytes]:
+    """The bytes of the regular file ``path`` in chunks, at most ``limit`` in all.
 
     Opened non-blocking and checked with ``fstat`` after opening, so a FIFO or device
-    swapped in is refused without blocking; inside :func:`confined_to`, the resolved file
-    must lie in the confined folders.
+    swapped in is refused without blocking (or hanging the reader); a file larger than
+    ``limit`` at ``fstat``, or grown past it while read, is refused. Errors are ``error``
+    naming ``path`` ("cannot read: larger than 256 bytes ({what})")."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    except (OSError, ValueError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise error(f"{path}: cannot read: {reason}") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise error(f"{path}: cannot read: not a regular file")
+        if info.st_size > limit:
+            raise error(f"{path}: cannot read: larger than {limit} bytes ({what}): "
+                        f"{info.st_size} bytes")
+        done = 0
+        with os.fdopen(os.dup(fd), "rb") as f:
+            while chunk := f.read(chunk_bytes):
+                done += len(chunk)
+                if done > limit:  # grown since fstat
+                    raise error(f"{path}: cannot read: larger than {limit} bytes ({what})")
+                yield chunk
+    except OSError as exc:
+        raise error(f"{path}: cannot read: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
+
+
+def read_config_bytes(path: Path | str, limit: int = MAX_CONFIG_BYTES) -> bytes:
+    """The bytes of a configuration file: regular, at most ``limit`` (default
+    :data:`MAX_CONFIG_BYTES`), read by :func:`read_regular_chunks`; inside
+    :func:`confined_to`, the resolved file must lie in the confined folders.
     """
     path = Path(path)
     if not is_path_text(str(path)):
         raise ConfigError(f"{short_repr(str(path))}: cannot read: not a valid file name")
     _check_confined(path.resolve(), f"{path}: a file")
-    try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
-    except (OSError, ValueError) as exc:
-        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
-        raise ConfigError(f"{path}: cannot read: {reason}") from None
-    try:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            raise ConfigError(f"{path}: cannot read: not a regular file")
-        if info.st_size > limit:
-            raise ConfigError(f"{path}: cannot read: larger than {limit} bytes")
-        with os.fdopen(os.dup(fd), "rb") as f:
-            data = f.read(limit + 1)  # the size may have grown since fstat
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    finally:
-        os.close(fd)
-    if len(data) > limit:
-        raise ConfigError(f"{path}: cannot read: larger than {limit} bytes")
-    return data
+    return b"".join(read_regular_chunks(path, limit, limit + 1,
+                                        what="the most a configuration file may have"))
 
 
 class _BoundedLoader(yaml.SafeLoader):

@@ -18,12 +18,11 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import os
-import stat
 from pathlib import Path
 from typing import Any
 
 from simserver.adapters.config import ConfigError, resolve_vehicle
+from simserver.adapters.validate import read_regular_chunks
 
 RUN_ID_CHARS = 16  # hex digits of the SHA-256 kept as the run's identity
 MAX_HASHED_BYTES = 512 << 20
@@ -39,34 +38,17 @@ def file_digest(path: str | Path) -> str:
     read), remembered per file and modification time. ``ConfigError`` names the file."""
     path = Path(path)
     try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0)
-                     | getattr(os, "O_CLOEXEC", 0))
+        info = path.stat()  # the memo's key; the read itself is checked again
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    try:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            raise ConfigError(f"{path}: cannot read: not a regular file")
-        if info.st_size > MAX_HASHED_BYTES:
-            raise ConfigError(f"{path}: {info.st_size} bytes, more than the "
-                              f"{MAX_HASHED_BYTES} a run's file may have")
-        key = (str(path.resolve()), info.st_dev, info.st_ino, info.st_mtime_ns)
-        known = _digests.get(key)
-        if known is not None:
-            return known
-        digest = hashlib.sha256()
-        done = 0
-        with os.fdopen(os.dup(fd), "rb") as f:
-            while chunk := f.read(_HASH_CHUNK_BYTES):
-                done += len(chunk)
-                if done > MAX_HASHED_BYTES:  # grew since fstat
-                    raise ConfigError(f"{path}: more than the {MAX_HASHED_BYTES} bytes a "
-                                      "run's file may have")
-                digest.update(chunk)
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    finally:
-        os.close(fd)
+    key = (str(path.resolve()), info.st_dev, info.st_ino, info.st_mtime_ns)
+    known = _digests.get(key)
+    if known is not None:
+        return known
+    digest = hashlib.sha256()
+    for chunk in read_regular_chunks(path, MAX_HASHED_BYTES, _HASH_CHUNK_BYTES,
+                                     what="the most a run's file may have"):
+        digest.update(chunk)
     _digests[key] = digest.hexdigest()
     return _digests[key]
 
