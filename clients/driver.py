@@ -39,6 +39,7 @@ import math
 import os
 import shutil
 import sys
+import threading
 import time
 from collections import deque
 from collections.abc import Sequence
@@ -60,9 +61,11 @@ from clients.common import (
     add_connection_args,
     add_rate_arg,
     check_rate,
+    check_server_config,
     client_main,
     connect,
     gear_name,
+    short_repr,
     state_filter,
 )
 from clients.ffb import FfbError, FfbLoop, ForceFeedback, open_ff_wheel
@@ -463,8 +466,37 @@ class Driver:
         help_lines = list(KEY_HELP_LINES) if isinstance(source, KeyboardSource) else \
             ["keys    q quit, space pause/resume, x reset, 1-4 gear P R N D, h parking brake, "
              "b auto hold"]
-        self.view = StatusView(out, f"simserver driver  {conn.where}  {source.label}  "
-                                    f"{rate_hz:g} Hz", help_lines)
+        self.view = StatusView(out, self._header(conn.config), help_lines)
+
+    def _header(self, config: dict[str, Any]) -> str:
+        """The status block's first line: where, which vehicle and scene, input, rate."""
+        vehicle = config.get("vehicle", {}).get("name", "?")
+        scene = config.get("scene", {}).get("path", "?")
+        return (f"simserver driver  {self.conn.where}  vehicle {vehicle}  scene {scene}  "
+                f"{self.source.label}  {self.rate_hz:g} Hz")
+
+    def _new_run(self) -> None:
+        """The server started a new run (a reset or a load, by this driver or another
+        client; a restarted server): the car is at a start again, so the hold is armed
+        as at launch, the keys' pedals return to rest, and the header is brought up to
+        date from ``get_config``, asked off this loop (its reply may take a while)."""
+        self.hold.arm()
+        self.source.reset()
+        self.message = "a new run on the server (reset or load): the hold is armed again"
+        threading.Thread(target=self._refresh_config, name="driver-get-config",
+                         daemon=True).start()
+
+    def _refresh_config(self) -> None:
+        try:
+            reply = self.conn.ep.request("get_config", timeout_s=5.0)
+            if not reply.get("ok"):
+                raise proto.ProtocolError("get_config", short_repr(reply.get("error")))
+            config = check_server_config(reply.get("config"))
+        except (TimeoutError, proto.ProtocolError) as exc:
+            self.message = f"get_config after the new run: {exc}"
+            return
+        self.conn.config = config
+        self.view.header = self._header(config)
 
     @property
     def message(self) -> str:
@@ -529,13 +561,16 @@ class Driver:
         """
         payloads = self.states.drain_newest()
         now_ns = time.monotonic_ns()
-        state = self.filter.newest(payloads, now_ns / 1e9)
+        taken = self.filter.take(payloads, now_ns / 1e9)
         counts = (self.filter.rejected, self.filter.out_of_order)
         if counts != self._filtered_seen:
             self._filtered_seen = counts
             self.message = f"warning: {self.filter.summary()}"
-        if state is None:
+        if not taken:
             return
+        if self.state is not None and any(kind == "restart" for _, _, kind in taken):
+            self._new_run()
+        state = proto.decode_state(taken[-1][0])
         self.state = state
         self.state_wall = now_ns / 1e9
         seq = int(state["last_cmd_seq"])

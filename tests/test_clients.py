@@ -906,3 +906,40 @@ frames:
     assert np.all(np.abs(creep) < 1e-3)
     assert pedal_released and all(float(s["brake"]) >= 0.99 for s in pedal_released)
     assert brake[stop:off].min() > 0.0 and rollback < 1e-3 and u[off:].max() > 0.5
+
+
+def test_keyboard_driver_rearms_its_hold_and_names_the_new_car_after_a_load_by_another_client():
+    """A ``load`` by another client (issue 32): the driver arms its hold again (the new
+    car, placed at rest on the 10 % hill, does not roll away) and its header names the
+    new vehicle and scene (it kept the old ones before)."""
+    server = ServerProcess(vehicle_id="reload")
+    watcher = Client(server, state_capacity=1 << 16, keep_history=True)
+    drv = PtyProcess(client_command("driver", "--rate", "200", *server.client_args()))
+    try:
+        drv.wait_for("vehicle paper_sedan  scene scenes/flat_paper_sedan.yaml", 20)
+        hold_until(drv, b"w", watcher, lambda s: float(s["u_mps"]) > 1.0, 15.0)  # released
+        drv.wait_for("auto hold on: a stop with the brake is held", 10)
+        shown = len(drv.text())
+        reply = watcher.ep.request(
+            "load", {"scene": str(CONFIGS / "scenes" / "hill_10pct_paper_sedan.yaml"),
+                     "vehicle": str(CONFIGS / "vehicles" / "mf_hatchback" / "vehicle.yaml")},
+            timeout_s=60.0)
+        assert reply["ok"], reply
+        wait_until(lambda: "vehicle mf_hatchback  scene scenes/hill_10pct_paper_sedan.yaml"
+                   in drv.text()[shown:], timeout_s=20, what="the header names the new car")
+        wait_until(lambda: "start hold: the brake is held" in drv.text()[shown:],
+                   timeout_s=10, what="the hold armed again")
+        on_hill = watcher.wait_state(lambda s: float(s["ground_grade_pct"]) > 9.0, 10.0,
+                                     "the car on the hill")
+        later = watcher.wait_state(
+            lambda s: float(s["sim_time_s"]) > float(on_hill["sim_time_s"]) + 3.0, 20.0,
+            "3 s on the hill")
+        drv.send(b"q")
+        assert drv.wait(15) == 0, drv.text()
+    finally:
+        drv.close()
+        watcher.close()
+        server.stop()
+    # held by the driver's re-armed hold: without it the car rolled back at once
+    assert float(later["brake"]) >= 0.99
+    assert abs(float(later["u_mps"])) < 0.01
