@@ -6,8 +6,9 @@ checked against their registries, the initial state is built and the workspace m
 The live server, the command-log replay, the headless scenarios, the soak, the
 benchmarks and the tests all use it, so they run the very same arithmetic.
 
-- ``sim.model`` (``core.model.Model``): vehicle and tire parameters, road, step, the
-  registered tire kernels. Static while stepping; ``set_road`` and ``load`` change it.
+- ``sim.model`` (``core.model.Model``): vehicle and tire parameters, the terrain (with
+  its road), step, the registered tire kernels. Static while stepping; ``set_road`` (the
+  terrain's road) and ``load`` change it.
 - ``sim.data`` (``core.model.Data``): state, inputs, outputs, workspace.
 """
 
@@ -31,7 +32,7 @@ from simserver.core.powertrain import RADPS_PER_RPM
 from simserver.core.road import road_axes, road_frame, set_road
 from simserver.core.slip import SLIP_MODELS
 from simserver.core.start import BODY_SLOTS, settle_at_velocity, settle_steps, start_powertrain
-from simserver.core.terrain import TERRAIN_PLANE
+from simserver.core.terrain import TERRAIN_PLANE, with_own_road
 from simserver.core.tire_layout import TP_RADIUS_M
 from simserver.tire_models import check_tire_vectors, tire_kernels
 
@@ -125,23 +126,26 @@ class Simulation:
         vp = scene.vehicle.vp.copy()
         tp = np.ascontiguousarray(scene.vehicle.tp, dtype=np.float64).copy()
         check_model(vp, tp)
+        # the terrain with a road of its own: set_road writes it, never the scene's
         model = Model(vp=vp, tp=tp, dt_s=self.dt_s, tires=tire_kernels(),
-                      terrain=scene.terrain, derived=derive_constants(vp, tp, self.dt_s))
+                      terrain=with_own_road(scene.terrain),
+                      derived=derive_constants(vp, tp, self.dt_s))
         road = {key: scene.road[key] for key in ("grade_pct", "cross_slope_pct",
                                                   "friction_scale")}
-        set_road(model.vp, **road)
+        set_road(model.terrain.road, **road, gravity_mps2=vp[P.VP_GRAVITY_MPS2])
         return self._prepare(scene, model, road, None, None)
 
     def set_road(self, grade_pct: float, cross_slope_pct: float, friction_scale: float) -> None:
-        """Change the road plane (takes effect at the next step)."""
-        set_road(self.model.vp, grade_pct, cross_slope_pct, friction_scale)
+        """Change the road plane (the terrain's road; takes effect at the next step)."""
+        set_road(self.model.terrain.road, grade_pct, cross_slope_pct, friction_scale,
+                 self.model.vp[P.VP_GRAVITY_MPS2])
         self.road = {"grade_pct": grade_pct, "cross_slope_pct": cross_slope_pct,
                      "friction_scale": friction_scale}
         self.axes = road_axes(grade_pct, cross_slope_pct)
 
     @property
     def vp(self) -> np.ndarray:
-        """Vehicle parameters (``core.params``), road included."""
+        """Vehicle parameters (``core.params``)."""
         return self.model.vp
 
     @property

@@ -3,9 +3,10 @@
 A terrain is a ``Terrain`` tuple of arrays, the same types for every kind, so the compiled
 step takes any of them without recompiling:
 
-- ``TERRAIN_PLANE``: today's road, the inclined plane of ``core.road`` (grade, cross-slope
-  and friction in the vehicle parameters). The arrays are placeholders; the step does
-  exactly what it did before terrains existed.
+- ``TERRAIN_PLANE``: the inclined plane of ``core.road``, with its own parameters in the
+  terrain's ``road`` (grade, cross-slope, friction scale, and gravity resolved into the
+  plane: ``core.road.set_road``). The grid arrays are placeholders; the step does exactly
+  what it did before terrains existed.
 - ``TERRAIN_OPENDRIVE``: an OpenDRIVE road, rasterised when loaded into the grid of a
   height map (``simserver.adapters.opendrive.rasterise``); the step treats it as one.
 - ``TERRAIN_HEIGHTMAP``: a regular grid of heights ``heights[j, i]`` at
@@ -13,6 +14,10 @@ step takes any of them without recompiling:
   height and its gradient, hence the surface normal, are continuous), with a friction
   scale per grid point (bilinear). Off the grid the query is clamped to the grid's edge:
   the edge heights extend flat, never NaN.
+
+Every kind carries ``road`` (``core.params.ROAD_*``): the road's friction scale multiplies
+a height map's too. A terrain is the world's: one is shared by every car of a world
+(``core.world``); the ``road`` array is the only part written while a world runs.
 
 The chassis keeps its planar formulation on a *reference plane* fitted under the four
 contact points once per step (``fit_reference_plane``, ``rebase_reference_plane``): on
@@ -44,7 +49,8 @@ from simserver.core.layout import (
     Y_M,
     YAW_RAD,
 )
-from simserver.core.road import road_frame
+from simserver.core.params import MODEL_OPTIONS, N_ROAD, ROAD
+from simserver.core.road import road_frame, set_road
 from simserver.core.variants import Variant, VariantRegistry
 
 TERRAIN_PLANE = 0
@@ -94,14 +100,31 @@ class Terrain(NamedTuple):
     heights: np.ndarray  # float64[ny, nx], m (a 1x1 placeholder on the plane)
     friction: np.ndarray  # float64[ny, nx], friction scale per grid point
     grid: np.ndarray  # float64[N_GRID]: origin and spacing (GRID_*)
+    road: np.ndarray  # float64[N_ROAD] (core.params.ROAD_*): core.road.set_road writes it
+
+
+def default_road() -> np.ndarray:
+    """A road at the ``road:`` section's defaults (flat, friction scale 1) with gravity
+    at the ``model:`` section's default: float64[N_ROAD]."""
+    road = np.zeros(N_ROAD)
+    d = ROAD.defaults
+    set_road(road, d["grade_pct"], d["cross_slope_pct"], d["friction_scale"],
+             MODEL_OPTIONS.defaults["gravity_mps2"])
+    return road
 
 
 def plane_terrain() -> Terrain:
-    """The plane kind: the road of ``core.road`` (the arrays are placeholders)."""
+    """The plane kind: the road of ``core.road`` (the grid arrays are placeholders)."""
     grid = np.zeros(N_GRID)
     grid[GRID_DX_M] = grid[GRID_DY_M] = 1.0
     grid[GRID_KEY] = -1.0  # never a hash (those are >= 0): the plane has no cells
-    return Terrain(TERRAIN_PLANE, np.zeros((1, 1)), np.ones((1, 1)), grid)
+    return Terrain(TERRAIN_PLANE, np.zeros((1, 1)), np.ones((1, 1)), grid, default_road())
+
+
+def with_own_road(terrain: Terrain) -> Terrain:
+    """``terrain`` with a copy of its road (the grids shared: they are never written), so
+    that ``set_road`` on the copy leaves the original as it was."""
+    return terrain._replace(road=terrain.road.copy())
 
 
 def heightmap_terrain(heights: np.ndarray, dx_m: float, dy_m: float, x0_m: float = 0.0,
@@ -131,7 +154,7 @@ def heightmap_terrain(heights: np.ndarray, dx_m: float, dy_m: float, x0_m: float
     for part in (h, mu, grid[:GRID_KEY], np.array(h.shape, dtype=np.int64)):
         digest.update(part.tobytes())
     grid[GRID_KEY] = float(int.from_bytes(digest.digest(), "little"))  # < 2^48: exact
-    return Terrain(TERRAIN_HEIGHTMAP, h, mu, grid)
+    return Terrain(TERRAIN_HEIGHTMAP, h, mu, grid, default_road())
 
 
 @nb.njit(cache=True, inline="always")
