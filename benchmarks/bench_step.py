@@ -15,13 +15,13 @@ median (simulated time / wall time). Target (issue 3): under 5 us per step with 
 
 ``--world-sizes``: worlds of that many independent cars (``simserver.simulation.World``,
 one compiled step for all, issue 29), each car the brush car with its own throttle; the
-cost per car-step (wall time / cars / steps) of each size against the world of one, in
+cost per car-step (CPU time / cars / steps) of each size against the world of one, in
 one run, recording every 1000th step.
 
 ``--ab TREE``: this tree's step cost against another tree's (e.g. a worktree of main), in
 interleaved rounds (A B A B ...: each round one fresh process per tree, so the machine's
-weather spreads over both); per vehicle the median over rounds of each tree's median and
-the median of the per-round ratios.
+weather spreads over both), timed by the process's CPU time; per vehicle the median over
+rounds of each tree's median and the median of the per-round ratios.
 """
 
 from __future__ import annotations
@@ -85,9 +85,11 @@ def bench_vehicle(path: Path, seconds: float, repeats: int,
     return costs
 
 
-def bench_world(path: Path, n_cars: int, seconds: float, repeats: int) -> np.ndarray:
-    """ns per car-step of a world of ``n_cars`` brush cars for each repeat (wall time),
-    each car with its own throttle (0.4 .. 0.8) on the driving cycle."""
+def bench_world(path: Path, n_cars: int, seconds: float, repeats: int,
+                clock: Callable[[], int] = time.process_time_ns) -> np.ndarray:
+    """ns per car-step of a world of ``n_cars`` brush cars for each repeat (the process's
+    CPU time by default), each car with its own throttle (0.4 .. 0.8) on the driving
+    cycle."""
     from simserver.simulation import World
 
     initial = dict.fromkeys(INITIAL_RANGES, 0.0) | {"u_mps": 5.0}
@@ -109,9 +111,9 @@ def bench_world(path: Path, n_cars: int, seconds: float, repeats: int) -> np.nda
     for k in range(repeats):
         for sim in sims:
             sim.reset(None)
-        t0 = time.perf_counter_ns()
+        t0 = clock()
         world.run(inputs, states, outputs, every)
-        costs[k] = (time.perf_counter_ns() - t0) / (n * n_cars)
+        costs[k] = (clock() - t0) / (n * n_cars)
         assert np.isfinite(world.data.x).all()
     return costs
 
@@ -138,10 +140,12 @@ def ab(other: Path, rounds: int, seconds: float, repeats: int) -> dict[str, dict
         for label, tree in (("this", here), ("other", other)):
             env = {**os.environ, "PYTHONPATH": str(tree)}
             # bench_vehicle of that tree's own bench_step (older trees have no --json)
-            code = ("import json, numpy as np\n"
+            # the process's CPU time: on a shared machine it leaves out the time others
+            # held the core (the wall time of a loaded VM varied 4 x between rounds)
+            code = ("import json, time, numpy as np\n"
                     "from benchmarks.bench_step import VEHICLES, bench_vehicle\n"
                     "print(json.dumps([{'tire_model': n, 'ns_per_step_median': float(np.median("
-                    f"bench_vehicle(p, {seconds!r}, {repeats!r})))}}\n"
+                    f"bench_vehicle(p, {seconds!r}, {repeats!r}, time.process_time_ns)))}}\n"
                     "    for n, p in VEHICLES.items()]))")
             out = subprocess.run([sys.executable, "-c", code], cwd=tree, env=env,
                                  capture_output=True, text=True, check=True)

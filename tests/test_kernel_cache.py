@@ -45,3 +45,15 @@ def test_the_numba_cache_dir_is_dropped_too(tmp_path, monkeypatch):
     kernel.write_bytes(b"old")
     (pkg / "steering.py").write_text("def f(vp): return vp[1]\n")
     assert drop_stale_kernel_caches(pkg) and not kernel.exists()
+
+
+def test_a_cache_made_after_the_stamp_is_kept(tmp_path, monkeypatch):
+    """A ``NUMBA_CACHE_DIR`` that does not exist yet (a cold start, a Docker build) is
+    stamped at the first import, so the kernels compiled into it survive the next start."""
+    pkg = _package(tmp_path)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "fresh"))
+    drop_stale_kernel_caches(pkg)
+    elsewhere = kernel_cache_dirs(pkg)[1]
+    kernel = elsewhere / "steering.f-1.py311.nbi"
+    kernel.write_bytes(b"compiled after the stamp")
+    assert not drop_stale_kernel_caches(pkg) and kernel.exists()

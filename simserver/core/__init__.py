@@ -51,8 +51,8 @@ def drop_stale_kernel_caches(package_dir: Path) -> bool:
                 continue
         except OSError:
             pass
-        if not cache.is_dir():
-            continue
+        # a cache directory not made yet is stamped now, before numba fills it: what it
+        # holds is then known to come from these sources (a warm cache of a Docker build)
         for f in [*cache.glob("*.nbi"), *cache.glob("*.nbc")]:
             try:
                 f.unlink()
@@ -60,8 +60,9 @@ def drop_stale_kernel_caches(package_dir: Path) -> bool:
             except OSError:  # another process dropped it first, or a read-only cache
                 pass
         try:
+            cache.mkdir(parents=True, exist_ok=True)
             stamp.write_text(key)
-        except OSError:
+        except OSError:  # a read-only tree: numba cannot cache there either
             pass
     return dropped
 
