@@ -74,14 +74,22 @@ def car_data(data: WorldData, c: int) -> Data:
                           ws.cells[c]))
 
 
+@nb.njit(cache=True, inline="always")
+def step_cars(world: WorldModel, data: WorldData) -> None:
+    """``core.integrator.step`` on each car, in the order of axis 0 (no car reads another's
+    rows, so the order changes nothing). Inlined into ``step`` and ``simulate``, so that
+    ``simulate`` calls the car step as directly as the single car's loop did (a call that
+    passes the world's tuples costs about 100 ns, a tenth of the brush car's step)."""
+    for c in range(data.x.shape[0]):
+        car_step(car_model(world, c), car_data(data, c))
+
+
 # As core.integrator.step: no reference counting (the views are of the caller's arrays,
 # which the caller keeps alive) and numpy's error model.
 @nb.njit(cache=True, _nrt=False, error_model="numpy")
 def step(world: WorldModel, data: WorldData) -> None:
-    """Advance every car of the world by ``world.dt_s`` (``core.integrator.step`` on each,
-    in the order of axis 0; no car reads another's rows, so the order changes nothing)."""
-    for c in range(data.x.shape[0]):
-        car_step(car_model(world, c), car_data(data, c))
+    """Advance every car of the world by ``world.dt_s`` (``step_cars``)."""
+    step_cars(world, data)
 
 
 @nb.njit(cache=True, _nrt=False, error_model="numpy")
@@ -105,7 +113,7 @@ def simulate(world: WorldModel, data: WorldData, inputs_per_step: np.ndarray,
             for c in range(n_cars):
                 for j in range(L.N_STATE):
                     states[row, c, j] = x[c, j]
-        step(world, data)
+        step_cars(world, data)
         if k % record_every == 0:
             for c in range(n_cars):
                 for j in range(L.N_OUT):
