@@ -199,6 +199,7 @@ from simserver.core.terrain import (
     rebase_reference_plane,
     surface_at,
     surface_under_wheel,
+    terrain_road,
 )
 from simserver.core.tire import (
     every_tire_is,
@@ -319,7 +320,7 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
     fitted through the four contact points and the states are re-expressed on it
     (``core.terrain``)."""
     vp, terrain = model.vp, model.terrain
-    road = terrain.road
+    road = terrain_road(terrain)
     ground, wheel = ws.ground, ws.wheel
     if terrain.kind == TERRAIN_PLANE:
         ground[G_GRAVITY_E1_MPS2] = road[ROAD_GRAVITY_E1_MPS2]

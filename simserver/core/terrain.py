@@ -70,7 +70,12 @@ TERRAIN_KINDS = VariantRegistry("terrain kind", (
 # slots of Terrain.grid
 GRID_X0_M, GRID_Y0_M, GRID_DX_M, GRID_DY_M = 0, 1, 2, 3
 GRID_KEY = 4  # a 48-bit hash of the grid's contents: the key of the per-wheel cell memo
-N_GRID = 5
+# N_ROAD slots from GRID_ROAD: the terrain's road (core.params.ROAD_*, ``Terrain.road``).
+# They sit in ``grid`` rather than in an array of their own so that the Terrain tuple keeps
+# four fields: the step passes the model (terrain included) to each stage it does not
+# inline, by value, array by array, and a fifth array cost the brush step 6 % (issue 29).
+GRID_ROAD = 5
+N_GRID = GRID_ROAD + N_ROAD
 
 # slots of the per-wheel cell memo (``Workspace.cells[i, CELL_*]``, ``surface_under_wheel``):
 # the cell of the grid the wheel was last in and the power-basis coefficients of the
@@ -99,8 +104,19 @@ class Terrain(NamedTuple):
     kind: int  # TERRAIN_* id
     heights: np.ndarray  # float64[ny, nx], m (a 1x1 placeholder on the plane)
     friction: np.ndarray  # float64[ny, nx], friction scale per grid point
-    grid: np.ndarray  # float64[N_GRID]: origin and spacing (GRID_*)
-    road: np.ndarray  # float64[N_ROAD] (core.params.ROAD_*): core.road.set_road writes it
+    grid: np.ndarray  # float64[N_GRID]: origin and spacing, the road (GRID_*)
+
+    @property
+    def road(self) -> np.ndarray:
+        """The road (``core.params.ROAD_*``): a view of ``grid`` from ``GRID_ROAD``, which
+        ``core.road.set_road`` writes (compiled code: ``terrain_road``)."""
+        return self.grid[GRID_ROAD:]
+
+
+@nb.njit(cache=True, inline="always")
+def terrain_road(terrain: Terrain) -> np.ndarray:
+    """``Terrain.road`` in compiled code (a numba tuple has no properties)."""
+    return terrain.grid[GRID_ROAD:]
 
 
 def default_road() -> np.ndarray:
@@ -118,13 +134,15 @@ def plane_terrain() -> Terrain:
     grid = np.zeros(N_GRID)
     grid[GRID_DX_M] = grid[GRID_DY_M] = 1.0
     grid[GRID_KEY] = -1.0  # never a hash (those are >= 0): the plane has no cells
-    return Terrain(TERRAIN_PLANE, np.zeros((1, 1)), np.ones((1, 1)), grid, default_road())
+    grid[GRID_ROAD:] = default_road()
+    return Terrain(TERRAIN_PLANE, np.zeros((1, 1)), np.ones((1, 1)), grid)
 
 
 def with_own_road(terrain: Terrain) -> Terrain:
-    """``terrain`` with a copy of its road (the grids shared: they are never written), so
-    that ``set_road`` on the copy leaves the original as it was."""
-    return terrain._replace(road=terrain.road.copy())
+    """``terrain`` with a copy of its road (``grid``, which holds it; the heights and
+    friction shared: they are never written), so that ``set_road`` on the copy leaves the
+    original as it was."""
+    return terrain._replace(grid=terrain.grid.copy())
 
 
 def heightmap_terrain(heights: np.ndarray, dx_m: float, dy_m: float, x0_m: float = 0.0,
@@ -149,12 +167,14 @@ def heightmap_terrain(heights: np.ndarray, dx_m: float, dy_m: float, x0_m: float
             raise ValueError("friction: every value must be finite and >= 0")
     if not (dx_m > 0.0 and dy_m > 0.0 and np.isfinite(dx_m) and np.isfinite(dy_m)):
         raise ValueError(f"grid spacing must be positive, got dx={dx_m}, dy={dy_m}")
-    grid = np.array([x0_m, y0_m, dx_m, dy_m, 0.0], dtype=np.float64)
+    grid = np.zeros(N_GRID)
+    grid[[GRID_X0_M, GRID_Y0_M, GRID_DX_M, GRID_DY_M]] = x0_m, y0_m, dx_m, dy_m
     digest = hashlib.blake2b(digest_size=6)
     for part in (h, mu, grid[:GRID_KEY], np.array(h.shape, dtype=np.int64)):
         digest.update(part.tobytes())
     grid[GRID_KEY] = float(int.from_bytes(digest.digest(), "little"))  # < 2^48: exact
-    return Terrain(TERRAIN_HEIGHTMAP, h, mu, grid, default_road())
+    grid[GRID_ROAD:] = default_road()
+    return Terrain(TERRAIN_HEIGHTMAP, h, mu, grid)
 
 
 @nb.njit(cache=True, inline="always")
