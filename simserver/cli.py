@@ -120,6 +120,7 @@ def run_scenario_command(args: argparse.Namespace) -> int:
     """
     from tqdm import tqdm
 
+    from simserver.adapters.config import read_yaml
     from simserver.adapters.history import (
         HISTORY_FILE,
         SUMMARY_FILE,
@@ -127,14 +128,14 @@ def run_scenario_command(args: argparse.Namespace) -> int:
         write_history,
         write_summary,
     )
-    from simserver.scenario import load_scenario, run_scenario
+    from simserver.scenario import is_world_scenario, load_scenario, run_scenario
 
-    scenario = _with_dt(load_scenario(args.scenario), args.dt)
     out: Path = args.out
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise CliError(f"{out}: cannot create the output directory: {exc.strerror}") from exc
+    data = read_yaml(args.scenario)
+    if is_world_scenario(data):
+        return _run_world_scenario_command(args, data, out)
+    scenario = _with_dt(load_scenario(args.scenario, data), args.dt)
+    _make_out_dir(out)
 
     # Warm-up: load the compiled kernels from numba's cache (or compile them) before the
     # clock starts, so that the reported real-time factor is the simulation's own.
@@ -180,6 +181,57 @@ def run_scenario_command(args: argparse.Namespace) -> int:
           f"({', '.join(written)})")
     if not summary["finite"]["all"]:
         print(f"error: {scenario.path}: the run went non-finite (NaN or inf); "
+              f"see {out / HISTORY_FILE}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _make_out_dir(out: Path) -> None:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(f"{out}: cannot create the output directory: {exc.strerror}") from exc
+
+
+def _run_world_scenario_command(args: argparse.Namespace, data: dict, out: Path) -> int:
+    """``run-scenario`` of a scenario with ``cars:``: one history with a ``car_id`` column
+    (``history.write_world_history``), a summary per car, plots of every car (``cars.png``:
+    every car's speed and position overlaid; each car's own plots in ``<out>/<id>/``)."""
+    from simserver.adapters.history import (
+        HISTORY_FILE,
+        SUMMARY_FILE,
+        summarize,
+        write_summary,
+        write_world_history,
+    )
+    from simserver.scenario import load_world_scenario, run_world_scenario
+
+    world = load_world_scenario(args.scenario, data)
+    world.cars = {cid: _with_dt(sc, args.dt) for cid, sc in world.cars.items()}
+    _make_out_dir(out)
+    result = run_world_scenario(world)
+    summary = {"scenario": world.name, "cars": {cid: summarize(r)
+                                                for cid, r in result.cars.items()}}
+    try:
+        write_world_history(result.cars, out / HISTORY_FILE)
+        write_summary(summary, out / SUMMARY_FILE)
+        written = [HISTORY_FILE, SUMMARY_FILE]
+        if not args.no_plots:
+            from simserver.adapters.plots import plot_comparison, plot_result
+
+            written.append(plot_comparison(result.cars, out / "cars.png",
+                                           signals=("u_mps", "x_m", "y_m"),
+                                           title=f"{world.name}: every car").name)
+            for cid, r in result.cars.items():
+                (out / cid).mkdir(exist_ok=True)
+                written += [f"{cid}/{p.name}" for p in plot_result(r, out / cid)]
+    except OSError as exc:
+        raise CliError(f"{out}: cannot write the results: {exc.strerror or exc}") from exc
+    print(f"{world.name}: {len(result.cars)} cars, {world.n_steps} steps in "
+          f"{result.wall_time_s:.3g} s; wrote {out}/ ({', '.join(written)})")
+    bad = [cid for cid, s in summary["cars"].items() if not s["finite"]["all"]]
+    if bad:
+        print(f"error: {world.path}: car(s) {bad} went non-finite (NaN or inf); "
               f"see {out / HISTORY_FILE}", file=sys.stderr)
         return 1
     return 0

@@ -20,6 +20,19 @@ Scenario YAML (paths relative to the scenario file)::
       - {t: 1.0, brake: 0.0}
       - {t: 1.3, brake: 0.6}
 
+Several cars on one terrain (``cars:``; docs/model.md section 14): the world's keys
+(``name``, ``description``, ``road``, ``terrain``, ``duration_s``, ``dt_s``,
+``record_every``) at the top, and per car an ``id``, its ``vehicle``, start (``initial``
+or ``start``), ``model`` options and ``inputs``, as a single car's::
+
+    cars:
+      - {id: lead, vehicle: ../vehicles/paper_sedan/vehicle.yaml, initial: {x_m: 20.0},
+         inputs: [{t: 0.0, brake: 0.8, gear: D}]}
+      - {id: follower, vehicle: ..., inputs: [...]}
+
+Each car is run as the car alone would be (``load_world_scenario``, ``run_world_scenario``):
+its numbers do not depend on the other cars nor on their order in the file.
+
 The channels are ``steer``, ``throttle``, ``brake``, ``parking_brake`` (0/1 or true/false)
 and ``gear`` (P, R, N, D); how each is sampled between, before and after the keyframes that
 name it is defined in :mod:`simserver.keyframes`, which the player client shares.
@@ -290,11 +303,11 @@ def resolve_scenario(path: str | Path) -> dict[str, Any]:
     return data
 
 
-def start_run(scenario: Scenario) -> tuple[Simulation, np.ndarray]:
+def start_run(scenario: Scenario, car_id: str = "car0") -> tuple[Simulation, np.ndarray]:
     """A run's simulation at its start and its inputs, one row per step (the keyframes
     sampled, ``input_table``): what ``run_scenario`` steps through, and any other runner
-    of a scenario (the sweep's workers) with it."""
-    sim = Simulation(scenario.scene, scenario.dt_s)
+    of a scenario (the sweep's workers) with it. ``car_id``: the car's id in its world."""
+    sim = Simulation(scenario.scene, scenario.dt_s, car_id=car_id)
     n = scenario.n_steps
     inputs = input_table(scenario.keyframes, np.arange(n) * scenario.dt_s)
     if scenario.scene.initial.get("relaxed", 0.0) and n > 0:
@@ -354,3 +367,114 @@ def run_scenario(
         scenario=scenario, time_s=states[:, L.TIME_S].copy(), states=states, outputs=outputs,
         inputs=inputs[::every].copy(), final_state=sim.x.copy(), wall_time_s=wall,
     )
+
+
+# ------------------------------------------------------------------- several cars, one world
+WORLD_KEYS = ("name", "description", "road", "terrain", "duration_s", "dt_s", "record_every",
+              "cars")
+"""The keys of a scenario with ``cars:``: the world's (shared by every car) and the list."""
+CAR_KEYS = ("id", "vehicle", "initial", "start", "model", "inputs")
+"""The keys of one car of ``cars:``: what a single car's scenario gives for its car."""
+
+
+@dataclass
+class WorldScenario:
+    """A validated scenario of several cars on one terrain: per car (in file order) the
+    scenario that car alone would be (the world's keys with its own)."""
+
+    name: str
+    path: Path
+    description: str
+    cars: dict[str, Scenario]
+
+    @property
+    def first(self) -> Scenario:
+        return next(iter(self.cars.values()))
+
+    @property
+    def n_steps(self) -> int:
+        return self.first.n_steps
+
+
+@dataclass
+class WorldResult:
+    """The time histories of a world's run, one ``ScenarioResult`` per car (file order)."""
+
+    scenario: WorldScenario
+    cars: dict[str, ScenarioResult]
+    wall_time_s: float
+
+
+def is_world_scenario(data: dict[str, Any]) -> bool:
+    """Whether a scenario file's mapping lists several cars (``cars:``)."""
+    return isinstance(data, dict) and "cars" in data
+
+
+def load_world_scenario(path: str | Path, data: dict[str, Any] | None = None) -> WorldScenario:
+    """Load and validate a scenario with ``cars:`` (errors name the file, the car and the
+    key). Each car's scenario is validated as a single car's (``load_scenario``)."""
+    path = Path(path)
+    data = read_yaml(path) if data is None else data
+    check_keys(path, data, WORLD_KEYS, required=("name", "duration_s", "cars"))
+    raw = data["cars"]
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError(f"{path}: key 'cars': expected a non-empty list of cars")
+    cars: dict[str, Scenario] = {}
+    shared = {key: data[key] for key in WORLD_KEYS if key in data and key != "cars"}
+    for k, car in enumerate(raw):
+        if not isinstance(car, dict):
+            raise ConfigError(f"{path}: key 'cars[{k}]': expected a mapping")
+        check_keys(f"{path} (cars[{k}])", car, CAR_KEYS, required=("id", "vehicle", "inputs"))
+        car_id = car["id"]
+        if not isinstance(car_id, str) or not car_id:
+            raise ConfigError(f"{path}: key 'cars[{k}].id': expected a non-empty string")
+        if car_id in cars:
+            raise ConfigError(f"{path}: key 'cars[{k}].id': {car_id!r} is given twice")
+        one = shared | {key: car[key] for key in CAR_KEYS if key in car and key != "id"}
+        try:
+            cars[car_id] = load_scenario(path, one)
+        except ConfigError as exc:
+            raise ConfigError(f"car {car_id!r} (cars[{k}]): {exc}") from None
+    return WorldScenario(name=str(data["name"]), path=path,
+                         description=str(data.get("description", "")), cars=cars)
+
+
+def run_world_scenario(world_scenario: WorldScenario,
+                       progress: Callable[[int, int], None] | None = None,
+                       chunk_steps: int = 2000) -> WorldResult:
+    """Run the cars of a world together, headless: each car starts as alone
+    (``start_run``: a relaxed start settles the car by itself), then all are moved into
+    the first car's world (its terrain and road, the world's keys) and advanced by the
+    world's step (``simserver.simulation.World.run``)."""
+    ids = list(world_scenario.cars)
+    starts = {cid: start_run(sc, car_id=cid) for cid, sc in world_scenario.cars.items()}
+    world = starts[ids[0]][0].world
+    for cid in ids[1:]:
+        starts[cid][0].move_to(world)
+    first = world_scenario.first
+    n, every = first.n_steps, first.record_every
+    inputs = np.stack([starts[cid][1] for cid in ids], axis=1)
+    n_rec = (n + every - 1) // every
+    states = np.zeros((n_rec, len(ids), L.N_STATE))
+    outputs = np.zeros((n_rec, len(ids), L.N_OUT))
+    chunk = max(every, chunk_steps - chunk_steps % every)
+    t0 = time.perf_counter()
+    done = 0
+    while done < n:
+        m = min(chunk, n - done)
+        r0 = done // every
+        rows = (m + every - 1) // every
+        world.run(inputs[done:done + m], states[r0:r0 + rows], outputs[r0:r0 + rows], every)
+        done += m
+        if progress is not None:
+            progress(done, n)
+    wall = time.perf_counter() - t0
+    cars = {}
+    for c, cid in enumerate(ids):
+        st = np.ascontiguousarray(states[:, c])
+        cars[cid] = ScenarioResult(
+            scenario=world_scenario.cars[cid], time_s=st[:, L.TIME_S].copy(), states=st,
+            outputs=np.ascontiguousarray(outputs[:, c]),
+            inputs=np.ascontiguousarray(inputs[::every, c]),
+            final_state=world.data.x[world.index(cid)].copy(), wall_time_s=wall)
+    return WorldResult(scenario=world_scenario, cars=cars, wall_time_s=wall)

@@ -6,9 +6,15 @@ checked against their registries, the initial state is built and the workspace m
 The live server, the command-log replay, the headless scenarios, the soak, the
 benchmarks and the tests all use it, so they run the very same arithmetic.
 
-- ``sim.model`` (``core.model.Model``): vehicle and tire parameters, road, step, the
-  registered tire kernels. Static while stepping; ``set_road`` and ``load`` change it.
-- ``sim.data`` (``core.model.Data``): state, inputs, outputs, workspace.
+- ``sim.world`` (``World``): the world the car is in (``core.world``): the terrain, and
+  every car's model and data stacked along a car axis; ``sim.step()`` and ``sim.run()``
+  advance it by its one compiled step. A ``Simulation`` makes a world of one car.
+- ``sim.model`` (``core.model.Model``): this car's vehicle and tire parameters, the
+  world's terrain (with its road), step, the registered tire kernels: views of the
+  world's rows. Static while stepping; ``set_road`` (the terrain's road) and ``load``
+  change it.
+- ``sim.data`` (``core.model.Data``): this car's state, inputs, outputs, workspace
+  (views of the world's rows).
 """
 
 from __future__ import annotations
@@ -23,16 +29,21 @@ from simserver.core import layout as L
 from simserver.core import params as P
 from simserver.core.chassis import place_on_terrain
 from simserver.core.damping import DAMPING_MODELS
-from simserver.core.integrator import derive_constants, simulate, step
-from simserver.core.model import Data, Model, Workspace, make_data
+from simserver.core.integrator import derive_constants
+from simserver.core.integrator import simulate as car_simulate
+from simserver.core.model import N_DERIVED, Data, Model, Workspace, make_data
 from simserver.core.params import VP_CG_HEIGHT_M, VP_DAMPING_MODEL, VP_SLIP_MODEL
 from simserver.core.pose import world_pose
 from simserver.core.powertrain import RADPS_PER_RPM
 from simserver.core.road import road_axes, road_frame, set_road
 from simserver.core.slip import SLIP_MODELS
 from simserver.core.start import BODY_SLOTS, settle_at_velocity, settle_steps, start_powertrain
-from simserver.core.terrain import TERRAIN_PLANE
+from simserver.core.terrain import TERRAIN_PLANE, Terrain, with_own_road
+from simserver.core.tire import N_TIRE_PARAM
 from simserver.core.tire_layout import TP_RADIUS_M
+from simserver.core.world import WorldData, WorldModel, car_views, stack_data
+from simserver.core.world import simulate as world_simulate
+from simserver.core.world import step as world_step
 from simserver.tire_models import check_tire_vectors, tire_kernels
 
 if TYPE_CHECKING:
@@ -86,6 +97,7 @@ class PreparedStart:
     data: Data
     steps_left: int
     settled: bool  # the wheels are relaxed (a start at speed): the out vector is its forces
+    load: bool = False  # a load (its model replaces the car's and its terrain the world's)
     _body: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(BODY_SLOTS))
 
     def advance(self, max_steps: int) -> bool:
@@ -102,15 +114,160 @@ class PreparedStart:
         return self
 
 
-class Simulation:
-    """A vehicle on its road: the model, the data and the step (module docstring)."""
+class World:
+    """Cars on one terrain (``core.world``): the stacked model and data, the cars' ids in
+    the order of the car axis, and the step that advances them all.
 
-    def __init__(self, scene: Scene, dt_s: float) -> None:
+    Adding or removing a car (between steps: :meth:`add_car`, :meth:`remove_car`)
+    reallocates the stacks (``np.concatenate``, ``np.delete``: about 20 kB per car) and the
+    per-car views are rebuilt (:attr:`generation` counts the replacements); nothing is
+    recompiled: the stacks keep their dtype, rank and layout whatever the number of cars,
+    so the compiled step's argument types are those of a world of any size
+    (docs/model.md section 14). Every car of a world has the world's ``dt_s`` and gravity
+    (the terrain's road resolves gravity once for all)."""
+
+    def __init__(self, terrain: Terrain, dt_s: float) -> None:
+        self._read_road(terrain)
+        self.ids: list[str] = []
+        self.model = WorldModel(vp=np.zeros((0, P.N_VEHICLE_PARAM)),
+                                tp=np.zeros((0, L.N_WHEELS, N_TIRE_PARAM)), dt_s=float(dt_s),
+                                tires=tire_kernels(), terrain=terrain,
+                                derived=np.zeros((0, N_DERIVED)))
+        self.data: WorldData = stack_data([])
+        self.generation = 0
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def index(self, car_id: str) -> int:
+        """The car's row on the car axis (``KeyError`` naming it if there is none)."""
+        try:
+            return self.ids.index(car_id)
+        except ValueError:
+            raise KeyError(f"no car {car_id!r} in the world (cars: {self.ids})") from None
+
+    @property
+    def gravity_mps2(self) -> float | None:
+        """The world's gravity: its cars' (None with no car)."""
+        return float(self.model.vp[0, P.VP_GRAVITY_MPS2]) if self.ids else None
+
+    def add_car(self, car_id: str, model: Model, data: Data) -> int:
+        """Append a car (copies of ``model``'s vehicle and tire parameters and derived
+        constants, and of ``data``); its terrain is the world's, ``model.terrain`` is not
+        read. Returns its row. Raises ``ValueError`` for an id already taken or a car whose
+        ``dt_s`` or gravity differs from the world's."""
+        if car_id in self.ids:
+            raise ValueError(f"car {car_id!r}: the world has a car of that id already")
+        if model.dt_s != self.model.dt_s:
+            raise ValueError(f"car {car_id!r}: dt_s {model.dt_s} differs from the world's "
+                             f"{self.model.dt_s}")
+        g = self.gravity_mps2
+        if g is not None and model.vp[P.VP_GRAVITY_MPS2] != g:
+            raise ValueError(f"car {car_id!r}: gravity_mps2 {model.vp[P.VP_GRAVITY_MPS2]} "
+                             f"differs from the world's {g}")
+        m = self.model
+        self.model = m._replace(vp=np.concatenate([m.vp, model.vp[None]]),
+                                tp=np.concatenate([m.tp, model.tp[None]]),
+                                derived=np.concatenate([m.derived, model.derived[None]]))
+        d = self.data
+        self.data = WorldData(
+            *(np.concatenate([a, b[None]]) for a, b in zip(d[:3], data[:3], strict=True)),
+            ws=Workspace(*(np.concatenate([a, b[None]])
+                           for a, b in zip(d.ws, data.ws, strict=True))))
+        self.ids.append(car_id)
+        self.generation += 1
+        return len(self.ids) - 1
+
+    def remove_car(self, car_id: str) -> None:
+        """Take a car out; the others keep their order (and their bits)."""
+        c = self.index(car_id)
+        m = self.model
+        self.model = m._replace(vp=np.delete(m.vp, c, axis=0), tp=np.delete(m.tp, c, axis=0),
+                                derived=np.delete(m.derived, c, axis=0))
+        d = self.data
+        self.data = WorldData(*(np.delete(a, c, axis=0) for a in d[:3]),
+                              ws=Workspace(*(np.delete(a, c, axis=0) for a in d.ws)))
+        del self.ids[c]
+        self.generation += 1
+
+    def set_terrain(self, terrain: Terrain) -> None:
+        """Swap the world's terrain (with its road) for every car, from the next step."""
+        self.model = self.model._replace(terrain=terrain)
+        self._read_road(terrain)
+        self.generation += 1
+
+    def set_road(self, grade_pct: float, cross_slope_pct: float, friction_scale: float) -> None:
+        """Change the road under every car (the terrain's road; from the next step)."""
+        g = self.gravity_mps2
+        set_road(self.model.terrain.road, grade_pct, cross_slope_pct, friction_scale,
+                 P.MODEL_OPTIONS.defaults["gravity_mps2"] if g is None else g)
+        self._read_road(self.model.terrain)
+
+    def _read_road(self, terrain: Terrain) -> None:
+        """``road`` (the ``road:`` keys as set) and ``axes`` (the plane's, for the pose)
+        from the terrain's road."""
+        r = terrain.road
+        self.road = {"grade_pct": float(r[P.ROAD_GRADE_PCT]),
+                     "cross_slope_pct": float(r[P.ROAD_CROSS_SLOPE_PCT]),
+                     "friction_scale": float(r[P.ROAD_FRICTION_SCALE])}
+        self.axes = road_axes(self.road["grade_pct"], self.road["cross_slope_pct"])
+
+    def car(self, car_id: str) -> tuple[Model, Data]:
+        """The car's ``Model`` and ``Data``: views of its rows (``core.world.car_views``)."""
+        return car_views(self.model, self.data, self.index(car_id))
+
+    def step(self) -> None:
+        """One fixed step of every car (``core.world.step``)."""
+        world_step(self.model, self.data)
+
+    def run(self, inputs_per_step: np.ndarray, states: np.ndarray, outputs: np.ndarray,
+            record_every: int = 1) -> None:
+        """``core.world.simulate``: inputs float64[n_steps, n_cars, N_INPUT], states and
+        outputs float64[rows, n_cars, N_STATE / N_OUT]."""
+        world_simulate(self.model, self.data, np.ascontiguousarray(inputs_per_step), states,
+                       outputs, record_every)
+
+
+class Simulation:
+    """A vehicle on its road: one car of a world, and the world's step (module docstring).
+
+    ``Simulation(scene, dt_s)`` makes a world of one car (id ``car_id``); ``model`` and
+    ``data`` are that car's views of the world's rows (``World.car``), so every single-car
+    call (``core.start``, ``place_on_terrain``, the server's reads of ``x``, ``inputs``,
+    ``out``) works on the world's arrays, and :meth:`step` and :meth:`run` are the world's
+    (every car of the world)."""
+
+    def __init__(self, scene: Scene, dt_s: float, car_id: str = "car0") -> None:
         self.dt_s = float(dt_s)
-        self.data: Data = make_data()
+        self.car_id = car_id
+        self.world: World | None = None
+        self._views: tuple[Model, Data] | None = None
+        self._views_generation = -1
+        self._first_data: Data = make_data()  # the data before the world exists
         self.pose = np.zeros(L.N_POSE)
         self._reference_axes = np.zeros((3, 3))  # update_pose's scratch: no allocation
         self.load(scene)
+
+    def _car(self) -> tuple[Model, Data]:
+        world = self.world
+        if world is None:
+            raise RuntimeError("the simulation has no world before its first load")
+        if self._views_generation != world.generation:
+            self._views = world.car(self.car_id)
+            self._views_generation = world.generation
+        return self._views
+
+    @property
+    def model(self) -> Model:
+        """This car's static model (``core.model.Model``; views of the world's rows)."""
+        return self._car()[0]
+
+    @property
+    def data(self) -> Data:
+        """This car's mutable data (``core.model.Data``; views of the world's rows)."""
+        if self.world is None:
+            return self._first_data
+        return self._car()[1]
 
     # ---- the model
     def load(self, scene: Scene) -> None:
@@ -125,23 +282,48 @@ class Simulation:
         vp = scene.vehicle.vp.copy()
         tp = np.ascontiguousarray(scene.vehicle.tp, dtype=np.float64).copy()
         check_model(vp, tp)
+        # the terrain with a road of its own: set_road writes it, never the scene's
         model = Model(vp=vp, tp=tp, dt_s=self.dt_s, tires=tire_kernels(),
-                      terrain=scene.terrain, derived=derive_constants(vp, tp, self.dt_s))
+                      terrain=with_own_road(scene.terrain),
+                      derived=derive_constants(vp, tp, self.dt_s))
         road = {key: scene.road[key] for key in ("grade_pct", "cross_slope_pct",
                                                   "friction_scale")}
-        set_road(model.vp, **road)
-        return self._prepare(scene, model, road, None, None)
+        set_road(model.terrain.road, **road, gravity_mps2=vp[P.VP_GRAVITY_MPS2])
+        return self._prepare(scene, model, road, None, None, load=True)
 
     def set_road(self, grade_pct: float, cross_slope_pct: float, friction_scale: float) -> None:
-        """Change the road plane (takes effect at the next step)."""
-        set_road(self.model.vp, grade_pct, cross_slope_pct, friction_scale)
-        self.road = {"grade_pct": grade_pct, "cross_slope_pct": cross_slope_pct,
-                     "friction_scale": friction_scale}
-        self.axes = road_axes(grade_pct, cross_slope_pct)
+        """Change the road plane (the world's terrain's road, under every car of the world;
+        takes effect at the next step)."""
+        self.world.set_road(grade_pct, cross_slope_pct, friction_scale)
+
+    @property
+    def road(self) -> dict[str, float]:
+        """The world's road as set (``grade_pct``, ``cross_slope_pct``, ``friction_scale``)."""
+        return self.world.road
+
+    @property
+    def axes(self) -> np.ndarray:
+        """The world's road plane axes (``core.road.road_axes``)."""
+        return self.world.axes
+
+    def move_to(self, world: World) -> None:
+        """Move this car into another world, between steps: its parameters and data are
+        copied in as a car of ``world`` (the id ``car_id``; ``ValueError`` if it is taken
+        or the car's ``dt_s`` or gravity differ) and taken out of the world it was in; from
+        then on ``model``, ``data``, :meth:`step` are ``world``'s, and the car stands on
+        ``world``'s terrain and road (its scene's road no longer applies). Nothing is
+        recompiled (``World``)."""
+        model, data = self._car()
+        world.add_car(self.car_id, model, data)
+        old = self.world
+        if old is not world:
+            old.remove_car(self.car_id)
+        self.world = world
+        self._views_generation = -1
 
     @property
     def vp(self) -> np.ndarray:
-        """Vehicle parameters (``core.params``), road included."""
+        """Vehicle parameters (``core.params``)."""
         return self.model.vp
 
     @property
@@ -184,7 +366,8 @@ class Simulation:
         return self._prepare(self.scene, self.model, self.road, pose, u_mps)
 
     def _prepare(self, scene: Scene, model: Model, road: dict[str, float],
-                 pose: dict[str, float] | None, u_mps: float | None) -> PreparedStart:
+                 pose: dict[str, float] | None, u_mps: float | None,
+                 load: bool = False) -> PreparedStart:
         relaxed = bool(scene.initial.get("relaxed", 0.0))
         start_scene = scene
         if pose is not None or u_mps is not None:
@@ -212,41 +395,63 @@ class Simulation:
                 inputs[L.IN_GEAR] = L.GEAR_N
             start_powertrain(model, data)
         return PreparedStart(scene=scene, model=model, road=road, data=data,
-                             steps_left=steps, settled=relaxed)
+                             steps_left=steps, settled=relaxed, load=load)
 
     def commit(self, prepared: PreparedStart) -> tuple[Scene, Model] | None:
         """Swap a finished :class:`PreparedStart` in: its state (and, for a load, its scene,
         model and road); the inputs are kept. Returns the scene and model a load replaced
         (None otherwise): dropping them frees a terrain's grids, which the live server does
-        outside the tick (``simserver.load_worker.release_later``)."""
+        outside the tick (``simserver.load_worker.release_later``).
+
+        A load writes the car's rows of the world's parameters in place (their shapes are
+        fixed) and swaps the world's terrain; the first load makes the world of one car."""
         assert prepared.steps_left == 0, "commit a prepared start once it is settled"
         replaced = None
-        if prepared.model is not getattr(self, "model", None):  # a load (or the first)
-            if hasattr(self, "model"):
-                replaced = (self.scene, self.model)
+        if prepared.load:
+            new = prepared.model
+            if self.world is None:
+                self.world = World(new.terrain, self.dt_s)
+                self.world.add_car(self.car_id, new, self._first_data)
+            else:
+                model = self.model
+                replaced = (self.scene, model._replace(vp=model.vp.copy(), tp=model.tp.copy(),
+                                                       derived=model.derived.copy()))
+                model.vp[:] = new.vp
+                model.tp[:] = new.tp
+                model.derived[:] = new.derived
+                self.world.set_terrain(new.terrain)
             self.scene = prepared.scene
-            self.model = prepared.model
-            self.road = prepared.road
-            self.axes = road_axes(prepared.road["grade_pct"], prepared.road["cross_slope_pct"])
-        self.data.x[:] = prepared.data.x
-        for live, ready in zip(self.data.ws, prepared.data.ws, strict=True):  # see _prepare
+        data = self.data
+        data.x[:] = prepared.data.x
+        for live, ready in zip(data.ws, prepared.data.ws, strict=True):  # see _prepare
             live[...] = ready
         if prepared.settled:  # the forces of the last settling step, as before
-            self.data.out[:] = prepared.data.out
+            data.out[:] = prepared.data.out
         return replaced
 
     # ---- stepping
     def step(self) -> None:
-        """One fixed step with the current inputs."""
-        step(self.model, self.data)
+        """One fixed step of the world (this car's, and any other car's) with the current
+        inputs (``core.world.step``)."""
+        world_step(self.world.model, self.world.data)
 
     def run(self, inputs_per_step: np.ndarray, states: np.ndarray, outputs: np.ndarray,
             record_every: int = 1) -> None:
-        """``len(inputs_per_step)`` steps in one compiled loop (``core.integrator.simulate``):
-        row ``k`` of ``states``/``outputs`` is the start state of step ``k * record_every``
-        and the forces at it."""
-        simulate(self.model, self.data, np.ascontiguousarray(inputs_per_step), states, outputs,
-                 record_every)
+        """``len(inputs_per_step)`` steps in one compiled loop: row ``k`` of
+        ``states``/``outputs`` is the start state of step ``k * record_every`` and the
+        forces at it. A world of this one car only (several cars: ``World.run``).
+
+        The loop is the single car's (``core.integrator.simulate`` on this car's views of
+        the world's rows): ``core.world.simulate``'s is the same car step on the same rows,
+        so the same bits, but its loop over the car axis cost the brush car 7 % a step
+        (issue 29)."""
+        world = self.world
+        if len(world) != 1:
+            raise ValueError(f"Simulation.run steps a world of one car; this one has "
+                             f"{len(world)} (use World.run)")
+        model, data = self._car()
+        car_simulate(model, data, np.ascontiguousarray(inputs_per_step), states, outputs,
+                     record_every)
 
     def update_pose(self) -> np.ndarray:
         """The world pose of the current state into ``self.pose`` (``core.layout.POSE_*``)."""
@@ -270,16 +475,19 @@ class Simulation:
         """The compiled entry points :meth:`warm_up` calls, by name, in order (each compiles
         or loads its kernel on its first call; ``benchmarks.bench_compile`` times them one by
         one). They run on a copy of the state."""
-        saved = Data(x=self.data.x.copy(), inputs=self.data.inputs.copy(),
-                     out=self.data.out.copy(), ws=self.data.ws)
-        model = self.model
+        world = self.world.model
+        wd = self.world.data
+        saved_world = WorldData(x=wd.x.copy(), inputs=wd.inputs.copy(), out=wd.out.copy(),
+                                ws=wd.ws)
+        model, saved = car_views(world, saved_world, self.world.index(self.car_id))
+        n = len(self.world)
         return [
-            ("step", lambda: step(model, saved)),
+            ("step", lambda: world_step(world, saved_world)),
             ("world_pose", lambda: world_pose(self.data.x, self.axes,
                                               model.vp[VP_CG_HEIGHT_M], self.pose)),
-            ("simulate", lambda: simulate(model, saved, np.zeros((1, L.N_INPUT)),
-                                          np.zeros((1, L.N_STATE)), np.zeros((1, L.N_OUT)),
-                                          1)),
+            ("simulate", lambda: world_simulate(world, saved_world, np.zeros((1, n, L.N_INPUT)),
+                                                np.zeros((1, n, L.N_STATE)),
+                                                np.zeros((1, n, L.N_OUT)), 1)),
             ("start_powertrain", lambda: start_powertrain(model, saved)),
             ("settle_at_velocity", lambda: settle_at_velocity(model, saved, 1,
                                                               np.zeros(BODY_SLOTS))),

@@ -237,7 +237,8 @@ def run_soak(scene: Scene, duration_s: float, seed: int = 0, dt_s: float = 0.001
         counts[MANOEUVRE_NAMES[seg.kind]] += 1
         if seg.road is not None:
             sim.set_road(*seg.road)
-        static_max = max(static_wheel_load(sim.vp, i) for i in range(L.N_WHEELS))
+        static_max = max(static_wheel_load(sim.vp, sim.model.terrain.road, i)
+                         for i in range(L.N_WHEELS))
         inputs = segment_inputs(seg, previous, dt_s)
         previous = inputs[-1].copy()
         n = inputs.shape[0]

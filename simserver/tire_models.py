@@ -63,7 +63,6 @@ from typing import Any
 import numpy as np
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
-from simserver.adapters.kernel_cache import drop_stale_kernels
 from simserver.core.param_table import Param, ParamTable
 from simserver.core.tire import N_BUILTIN_TIRE_MODELS, N_TIRE_PARAM, tire_forces
 from simserver.core.tire_layout import (
@@ -100,8 +99,6 @@ from simserver.core.tire_simple import (
     simple_param_vector,
     simple_prepare_kernel,
 )
-
-drop_stale_kernels()  # before any kernel is called: numba keys a cache on its own file only
 
 # Tuples of first-class function pointers are what makes the kernels a cacheable argument
 # of the compiled step; numba flags the feature as experimental on every such call.

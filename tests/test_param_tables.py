@@ -10,6 +10,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -54,8 +55,8 @@ def test_every_key_has_unit_range_and_meaning():
         assert table.title
         for p in table:
             assert p.unit and p.meaning, p.name
-            if p.derived:  # computed by the loader: the road's gravity, the gear count
-                assert table in (P.ROAD, P.AUTOMATIC) and p.default is None, p.name
+            if p.derived:  # computed by the loader: the gear count
+                assert table is P.AUTOMATIC and p.default is None, p.name
             elif p.choices is not None:
                 assert all(isinstance(v, int) for v in p.choices.values()), p.name
             else:
@@ -124,10 +125,15 @@ def test_each_file_key_lands_in_its_slot():
             value = data.get(p.yaml_key, p.default)  # the powertrain's kind has a default
             want = p.choices[value] if p.choices is not None else value
             assert cfg.vp[p.slot] == want, p.name
-    for p in (*P.ROAD, *P.MODEL_OPTIONS):  # the road starts flat, the options at defaults
+    for p in P.MODEL_OPTIONS:  # the options at their defaults
+        want = p.choices[p.default] if p.choices is not None else p.default
+        assert cfg.vp[p.slot] == want, p.name
+    from simserver.core.terrain import default_road, plane_terrain
+    road = plane_terrain().road  # a terrain's road (not the vehicle's) starts flat
+    assert np.array_equal(road, default_road())
+    for p in P.ROAD:
         if not p.derived:
-            want = p.choices[p.default] if p.choices is not None else p.default
-            assert cfg.vp[p.slot] == want, p.name
+            assert road[p.slot] == p.default, p.name
 
 
 @pytest.mark.parametrize("table, param", FILE_PARAMS)

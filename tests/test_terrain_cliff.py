@@ -59,7 +59,8 @@ def load_bound(sim: Simulation, fall_m: float, speed_mps: float) -> float:
     for i, (k_s, k_arb, c_s) in enumerate(
             ((vp[VP_SPRING_FRONT_NPM], vp[VP_ANTIROLL_FRONT_NPM], vp[VP_DAMPER_FRONT_NSPM]),) * 2
             + ((vp[VP_SPRING_REAR_NPM], vp[VP_ANTIROLL_REAR_NPM], vp[VP_DAMPER_REAR_NSPM]),) * 2):
-        corner = static_wheel_load(vp, i) + (k_s + 2.0 * k_arb) * travel + c_s * 2.0 * v_max
+        corner = (static_wheel_load(vp, sim.model.terrain.road, i) + (k_s + 2.0 * k_arb) * travel
+                  + c_s * 2.0 * v_max)
         worst = max(worst, corner)
     return math.sqrt(1.0 + WALL_SLOPE ** 2) * worst
 

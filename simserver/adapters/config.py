@@ -40,7 +40,6 @@ from simserver.core.param_table import (
     slot_constants_source,
     with_slot_constants,
 )
-from simserver.core.road import set_road
 from simserver.core.tire import N_TIRE_PARAM
 from simserver.core.tire_layout import (
     TP_MIRRORED,
@@ -255,8 +254,8 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
 
     ``resolved``: the vehicle as ``resolve_vehicle`` returns it (its files' contents
     inline); then ``path`` only labels the errors.
-    The road starts at the ``road:`` defaults, flat with friction scale 1
-    (``core.road.set_road`` changes it).
+    The road is not the vehicle's: it is the terrain's (``core.terrain.Terrain.road``),
+    which the simulation writes from the scene's ``road:`` section (``core.road.set_road``).
     """
     path = Path(path)
     top = read_yaml(path) if resolved is None else resolved
@@ -314,8 +313,6 @@ def load_vehicle(path: str | Path, model_options: dict[str, Any] | None = None,
         names.append(model_name)
 
     apply_model_options(vp, model_option_values(model_options, options_source))
-    road = P.ROAD.defaults  # flat, friction scale 1
-    set_road(vp, road["grade_pct"], road["cross_slope_pct"], road["friction_scale"])
     name = top["name"]
     if not isinstance(name, str) or not name:
         raise ConfigError(f"{path}: key 'name': expected a non-empty string")
@@ -490,8 +487,11 @@ def _xodr_bounds() -> list[str]:
 
 
 def slot_constants() -> str:
-    """The generated ``VP_*`` block of ``core/params.py``, from the parameter tables."""
-    return slot_constants_source(P.VEHICLE_PARAM_TABLES, "VP_")
+    """The generated ``VP_*`` and ``ROAD_*`` blocks of ``core/params.py``, from the
+    parameter tables (``ROAD_*``: the slots of a terrain's road, ``Terrain.road``)."""
+    return (slot_constants_source(P.VEHICLE_PARAM_TABLES, "VP_")
+            + "# the terrain's road (core.terrain.Terrain.road)\n"
+            + slot_constants_source((P.ROAD,), "ROAD_"))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -356,6 +356,47 @@ def write_history(result: ScenarioResult, path: str | Path) -> Path:
     return path
 
 
+CAR_ID_COLUMN = "car_id"
+"""The first column of a history of several cars (``write_world_history``): the car's id."""
+
+
+def write_world_history(results: dict[str, ScenarioResult], path: str | Path) -> Path:
+    """Write the histories of a world's cars as one Parquet file in long form: the columns
+    of a single car's history (``write_history``) preceded by ``car_id``, the cars' rows
+    one car after the other in the given order.
+
+    One table with a car-id column, not a table per car: Parquet readers expect one schema
+    per file (pandas, polars, DuckDB read it as one frame, and select a car with a filter,
+    ``df[df.car_id == "lead"]``, or group by it); the row-group statistics of a sorted
+    ``car_id`` let a reader skip the other cars; and any number of cars has the same
+    columns. The same results give the same bytes (no timestamp, no path)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / HISTORY_FILE
+    ids = list(results)
+    first = results[ids[0]]
+    meta = _file_metadata(first)
+    meta["simserver.cars"] = json.dumps({cid: r.scenario.scene.vehicle.name
+                                         for cid, r in results.items()})
+    base = history_schema(meta)
+    schema = base.insert(0, pa.field(CAR_ID_COLUMN, pa.string(), nullable=False,
+                                     metadata={"unit": "-",
+                                               "description": "the car's id (cars: id)"}))
+    per_car = [result_columns(results[cid]) for cid in ids]
+    car_ids = pa.array(np.repeat(np.array(ids, dtype=object),
+                                 [len(c["time_s"]) for c in per_car]), type=pa.string())
+    arrays = [car_ids] + [pa.array(np.concatenate([c[f.name] for c in per_car]))
+                          for f in base]
+    table = pa.Table.from_arrays(arrays, schema=schema)
+    pq.write_table(table, path, compression="zstd", use_dictionary=[CAR_ID_COLUMN],
+                   column_encoding={f.name: "BYTE_STREAM_SPLIT" for f in base},
+                   write_statistics=True, row_group_size=1 << 20)
+    return path
+
+
 def read_history(path: str | Path) -> dict[str, np.ndarray]:
     """Read a history file back as float64 arrays.
 
@@ -367,7 +408,8 @@ def read_history(path: str | Path) -> dict[str, np.ndarray]:
     Returns
     -------
     dict of str to ndarray
-        Column name to array, in file order.
+        Column name to array, in file order (float64; ``car_id``, in the history of
+        several cars, as str).
     """
     import pyarrow.parquet as pq
 
@@ -375,8 +417,9 @@ def read_history(path: str | Path) -> dict[str, np.ndarray]:
     if path.is_dir():
         path = path / HISTORY_FILE
     table = pq.read_table(path)
-    return {
-        name: np.asarray(table.column(name).to_numpy(), dtype=np.float64)
+    return {  # the car_id of a world's history as strings
+        name: (np.asarray(table.column(name).to_pylist(), dtype=str) if name == CAR_ID_COLUMN
+               else np.asarray(table.column(name).to_numpy(), dtype=np.float64))
         for name in table.column_names
     }
 

@@ -148,6 +148,12 @@ from simserver.core.model import (
     Workspace,
 )
 from simserver.core.params import (
+    ROAD_CROSS_SLOPE_PCT,
+    ROAD_FRICTION_SCALE,
+    ROAD_GRADE_PCT,
+    ROAD_GRAVITY_E1_MPS2,
+    ROAD_GRAVITY_E2_MPS2,
+    ROAD_GRAVITY_N_MPS2,
     VP_ANTIROLL_FRONT_NPM,
     VP_ANTIROLL_REAR_NPM,
     VP_CAMBER_HEAVE_GAIN_FRONT_RADPM,
@@ -164,16 +170,10 @@ from simserver.core.params import (
     VP_DAMPING_FADE_SPEED_MPS,
     VP_DAMPING_MODEL,
     VP_DAMPING_RATIO,
-    VP_GRAVITY_E1_MPS2,
-    VP_GRAVITY_E2_MPS2,
     VP_GRAVITY_MPS2,
-    VP_GRAVITY_N_MPS2,
     VP_KINEMATIC_U_MIN_MPS,
     VP_MASS_KG,
     VP_PITCH_INERTIA_KGM2,
-    VP_ROAD_CROSS_SLOPE_PCT,
-    VP_ROAD_FRICTION_SCALE,
-    VP_ROAD_GRADE_PCT,
     VP_ROLL_INERTIA_KGM2,
     VP_SLIP_MODEL,
     VP_SPRING_FRONT_NPM,
@@ -199,6 +199,7 @@ from simserver.core.terrain import (
     rebase_reference_plane,
     surface_at,
     surface_under_wheel,
+    terrain_road,
 )
 from simserver.core.tire import (
     every_tire_is,
@@ -277,9 +278,10 @@ def wheel_inertia(vp: np.ndarray, i: int) -> float:
 
 
 @nb.njit(cache=True)
-def static_wheel_load(vp: np.ndarray, i: int) -> float:
-    """Static normal load of wheel ``i`` on the road plane (N)."""
-    return static_share(vp, i, vp[VP_GRAVITY_N_MPS2])
+def static_wheel_load(vp: np.ndarray, road: np.ndarray, i: int) -> float:
+    """Static normal load of wheel ``i`` on the road plane ``road`` (a terrain's road,
+    ``core.params.ROAD_*``) (N)."""
+    return static_share(vp, i, road[ROAD_GRAVITY_N_MPS2])
 
 
 @nb.njit(cache=True, inline="always")
@@ -323,20 +325,22 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
     """Stage 1b: the reference plane of the step (docs/model.md section 11) into
     ``ws.ground``: its axes, gravity resolved into them, the friction under each wheel.
 
-    On the plane kind it is the road (``core.road.set_road``'s slots, copied: the step
-    does what it did before terrains). On a height map a plane is fitted through the four
-    contact points and the states are re-expressed on it (``core.terrain``)."""
+    On the plane kind it is the road (the terrain's ``road``, ``core.road.set_road``'s
+    slots, copied: the step does what it did before terrains). On a height map a plane is
+    fitted through the four contact points and the states are re-expressed on it
+    (``core.terrain``)."""
     vp, terrain = model.vp, model.terrain
+    road = terrain_road(terrain)
     ground, wheel = ws.ground, ws.wheel
     if terrain.kind == TERRAIN_PLANE:
-        ground[G_GRAVITY_E1_MPS2] = vp[VP_GRAVITY_E1_MPS2]
-        ground[G_GRAVITY_E2_MPS2] = vp[VP_GRAVITY_E2_MPS2]
-        ground[G_GRAVITY_N_MPS2] = vp[VP_GRAVITY_N_MPS2]
-        x[REF_GRADE_PCT] = vp[VP_ROAD_GRADE_PCT]
-        x[REF_CROSS_SLOPE_PCT] = vp[VP_ROAD_CROSS_SLOPE_PCT]
+        ground[G_GRAVITY_E1_MPS2] = road[ROAD_GRAVITY_E1_MPS2]
+        ground[G_GRAVITY_E2_MPS2] = road[ROAD_GRAVITY_E2_MPS2]
+        ground[G_GRAVITY_N_MPS2] = road[ROAD_GRAVITY_N_MPS2]
+        x[REF_GRADE_PCT] = road[ROAD_GRADE_PCT]
+        x[REF_CROSS_SLOPE_PCT] = road[ROAD_CROSS_SLOPE_PCT]
         x[REF_HEIGHT_M] = 0.0
         for i in range(N_WHEELS):
-            ground[G_MU0 + i] = vp[VP_ROAD_FRICTION_SCALE]
+            ground[G_MU0 + i] = road[ROAD_FRICTION_SCALE]
         static_loads(vp, ground)
         return
     axes_old = ws.axes[0]
@@ -369,7 +373,7 @@ def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
         contact[0, i] = wx
         contact[1, i] = wy
         contact[2, i] = height
-        ground[G_MU0 + i] = vp[VP_ROAD_FRICTION_SCALE] * mu
+        ground[G_MU0 + i] = road[ROAD_FRICTION_SCALE] * mu
         wheel[i, W_GAP_D1] = grad_x  # the gradient, until contact_frames below
         wheel[i, W_GAP_D2] = grad_y
     slope_x, slope_y, height0 = fit_plane(contact[0], contact[1], contact[2])

@@ -1,8 +1,9 @@
 """What the compiled step takes: a static model apart from the mutable data.
 
-- ``Model``: what is simulated. The vehicle parameters (road included, ``core.params``),
-  the tire parameters per wheel, the step and the registered tire kernels. Changed only
-  between steps, by ``core.road.set_road`` or by loading another vehicle.
+- ``Model``: what is simulated. The vehicle parameters (``core.params``), the tire
+  parameters per wheel, the terrain with its road (``core.terrain``), the step and the
+  registered tire kernels. Changed only between steps, by ``core.road.set_road`` (the
+  terrain's road) or by loading another vehicle.
 - ``Data``: what the step reads and writes: the state (everything that lives from one
   step to the next, ``core.layout``), the driver inputs, the outputs of the last step,
   and the workspace (scratch: nothing in it survives a step).
@@ -111,8 +112,8 @@ N_RK = 8
 # ---- constants derived from the parameters and the step, once when the model is built
 # (``core.integrator.derive_constants``, ``Model.derived[D_*]``) instead of in every step or
 # stage. Each is the very expression the stage evaluated before (the same bits). They read
-# no road slot, the only slots changed in place while a model runs (``core.road.set_road``);
-# loading another vehicle builds another model.
+# nothing of the road (the terrain's, the only array changed in place while a model runs:
+# ``core.road.set_road``); loading another vehicle builds another model.
 D_WHEEL_X0 = 0  # each wheel's contact point ahead of the CG, body axes (m), 4 slots
 D_WHEEL_Y0 = 4  # ... and to the left of it (m), 4 slots (chassis.wheel_position)
 D_SPIN_DAMPING_CAP0 = 8  # the patch damper's cap 2 I / (R^2 dt) per wheel (N s/m), 4 slots
@@ -123,14 +124,14 @@ N_DERIVED = 16
 
 
 class Model(NamedTuple):
-    """The static model: vehicle and tire parameters, road, step, tire kernels, and the
-    constants derived from them (``D_*``)."""
+    """The static model of one car: vehicle and tire parameters, the terrain (with the
+    road), step, tire kernels, and the constants derived from them (``D_*``)."""
 
-    vp: np.ndarray  # float64[N_VEHICLE_PARAM] (core.params; the road slots included)
+    vp: np.ndarray  # float64[N_VEHICLE_PARAM] (core.params)
     tp: np.ndarray  # float64[N_WHEELS, N_TIRE_PARAM] (core.tire_layout)
     dt_s: float
     tires: TireKernels  # the registered tire models' kernels, by model id
-    terrain: Terrain  # the ground (core.terrain)
+    terrain: Terrain  # the ground and its road (core.terrain; the world's, shared)
     derived: np.ndarray  # float64[N_DERIVED] (D_*): core.integrator.derive_constants
 
 

@@ -70,28 +70,28 @@ SUSPENSION = ParamTable("suspension", "springs, dampers, anti-roll bars (rates a
           const="VP_ANTIROLL_REAR_NPM"),
     # wheel attitude (issue 16): slots appended after the historical ones
     Param("camber_static_front_rad", "rad", -0.2, 0.2,
-          "static camber of each front wheel (negative: the top leans inboard)", slot=44),
+          "static camber of each front wheel (negative: the top leans inboard)", slot=38),
     Param("camber_static_rear_rad", "rad", -0.2, 0.2,
-          "static camber of each rear wheel (negative: the top leans inboard)", slot=45),
+          "static camber of each rear wheel (negative: the top leans inboard)", slot=39),
     Param("toe_front_rad", "rad", -0.05, 0.05,
           "static toe of each front wheel (positive: toe-in, its front points inboard)",
-          slot=46),
+          slot=40),
     Param("toe_rear_rad", "rad", -0.05, 0.05,
           "static toe of each rear wheel (positive: toe-in, its front points inboard)",
-          slot=47),
+          slot=41),
     Param("camber_roll_gain_front", "rad/rad", -2.0, 2.0,
           "front wheels' inclination to the road per rad of body roll, in the roll's sense "
-          "(1: they lean with the body, 0: they stay upright)", slot=48),
+          "(1: they lean with the body, 0: they stay upright)", slot=42),
     Param("camber_roll_gain_rear", "rad/rad", -2.0, 2.0,
           "rear wheels' inclination to the road per rad of body roll, in the roll's sense "
-          "(1: they lean with the body, 0: they stay upright)", slot=49),
+          "(1: they lean with the body, 0: they stay upright)", slot=43),
     Param("camber_heave_gain_front_rad_per_m", "rad/m", -20.0, 20.0,
           "camber change of a front wheel per metre of its suspension's compression "
-          "(negative: the top leans inboard in bump)", slot=50,
+          "(negative: the top leans inboard in bump)", slot=44,
           const="VP_CAMBER_HEAVE_GAIN_FRONT_RADPM"),
     Param("camber_heave_gain_rear_rad_per_m", "rad/m", -20.0, 20.0,
           "camber change of a rear wheel per metre of its suspension's compression "
-          "(negative: the top leans inboard in bump)", slot=51,
+          "(negative: the top leans inboard in bump)", slot=45,
           const="VP_CAMBER_HEAVE_GAIN_REAR_RADPM"),
 ))
 STEERING = ParamTable("steering", "steering ratio and range, kingpin geometry, assist, column", (
@@ -103,39 +103,39 @@ STEERING = ParamTable("steering", "steering ratio and range, kingpin geometry, a
     # appended after the historical ones; the torque is an output, the motion is unchanged
     Param("caster_trail_m", "m", -0.1, 0.2,
           "mechanical trail: the contact patch's centre behind the kingpin axis' ground "
-          "point", slot=52),
+          "point", slot=46),
     Param("scrub_radius_m", "m", -0.1, 0.1,
           "kingpin offset at the ground: the patch centre outboard of the axis' ground "
-          "point (negative: inboard)", slot=53),
+          "point (negative: inboard)", slot=47),
     Param("kingpin_inclination_rad", "rad", 0.0, 0.4,
           "kingpin axis leaning inboard at the top, seen from the front (0: no weight "
-          "lift)", slot=54),
+          "lift)", slot=48),
     Param("patch_torsion_stiffness_nm_per_rad", "N m/rad", 1.0, 1e6,
           "torsional stiffness of a front tire's contact patch (rim turned against a patch "
-          "that sticks)", slot=55, const="VP_PATCH_TORSION_STIFFNESS_NM_PER_RAD"),
+          "that sticks)", slot=49, const="VP_PATCH_TORSION_STIFFNESS_NM_PER_RAD"),
     Param("patch_bore_arm_m", "m", 0.0, 0.5,
           "bore (turning at rest) torque limit per newton of load and unit friction scale: "
-          "(2/3) mu r of a disc patch of radius r", slot=56),
+          "(2/3) mu r of a disc patch of radius r", slot=50),
     Param("assist_boost_parking", "-", 0.0, 100.0,
-          "power assist torque per unit driver torque at rest (0: no assist)", slot=57),
+          "power assist torque per unit driver torque at rest (0: no assist)", slot=51),
     Param("assist_boost_highway", "-", 0.0, 100.0,
-          "power assist torque per unit driver torque at high speed", slot=58),
+          "power assist torque per unit driver torque at high speed", slot=52),
     Param("assist_fade_speed_mps", "m/s", 0.1, 100.0,
           "speed at which the boost is halfway from its parking to its highway value",
-          slot=59),
+          slot=53),
     Param("assist_torque_max_nm", "N m", 0.0, 1000.0,
-          "most torque the assist adds, at the steering column", slot=60),
+          "most torque the assist adds, at the steering column", slot=54),
     Param("column_friction_nm", "N m", 0.0, 50.0,
-          "Coulomb friction of column and rack, at the steering wheel", slot=61),
+          "Coulomb friction of column and rack, at the steering wheel", slot=55),
     Param("column_friction_stiffness_nm_per_rad", "N m/rad", 0.1, 1e5,
-          "Dahl stiffness of that friction: its slope when the motion reverses", slot=62,
+          "Dahl stiffness of that friction: its slope when the motion reverses", slot=56,
           const="VP_COLUMN_FRICTION_STIFFNESS_NM_PER_RAD"),
     Param("column_damping_nm_s_per_rad", "N m s/rad", 0.0, 50.0,
-          "viscous damping of column and rack, at the steering wheel", slot=63,
+          "viscous damping of column and rack, at the steering wheel", slot=57,
           const="VP_COLUMN_DAMPING_NMS_PER_RAD"),
     Param("column_rate_filter_s", "s", 0.0, 1.0,
           "time constant of the low-pass filter on the steering-wheel rate the damping "
-          "acts on (commands arrive in steps)", slot=64),
+          "acts on (commands arrive in steps)", slot=58),
 ))
 BRAKES = ParamTable("brakes", "service and parking brakes", (
     Param("brake_torque_max_nm", "N m", 0.0, 1e6,
@@ -149,12 +149,12 @@ BRAKES = ParamTable("brakes", "service and parking brakes", (
     Param("hill_start_assist", "-", None, None,
           "hill-start assist: releasing the brake at rest on a grade keeps the brakes on "
           "until the drive overcomes the grade or for hill_start_assist_hold_s",
-          choices=HILL_START_ASSIST_NAMES, slot=66),
+          choices=HILL_START_ASSIST_NAMES, slot=60),
     Param("hill_start_assist_hold_s", "s", 0.0, 10.0,
-          "longest hold after the pedal is released (production cars: about 2 s)", slot=67),
+          "longest hold after the pedal is released (production cars: about 2 s)", slot=61),
     Param("hill_start_assist_min_grade_pct", "%", 0.0, 50.0,
           "the assist acts on grades steeper than this, against the selected direction",
-          slot=68),
+          slot=62),
 ))
 POWERTRAIN = ParamTable("powertrain", "drive torque and power, driven axles, wheel inertias", (
     Param("drive_torque_max_nm", "N m", 0.0, 1e6,
@@ -175,7 +175,7 @@ POWERTRAIN = ParamTable("powertrain", "drive torque and power, driven axles, whe
     Param("kind", "-", None, None,
           "simple (a torque map at the wheels: the drive_* and reverse_* keys) or "
           "automatic (engine, torque converter, automatic gearbox: the file's "
-          "`automatic:` section)", default="simple", choices=POWERTRAIN_KIND_NAMES, slot=65,
+          "`automatic:` section)", default="simple", choices=POWERTRAIN_KIND_NAMES, slot=59,
           const="VP_POWERTRAIN_KIND"),
 ))
 VEHICLE_SUBSYSTEMS = (CHASSIS, SUSPENSION, STEERING, BRAKES, POWERTRAIN)
@@ -185,113 +185,116 @@ _RPM_MAX = 20000.0
 AUTOMATIC = ParamTable("automatic", "engine, torque converter and automatic gearbox "
                        "(docs/model.md section 12)", (
     Param("engine_idle_speed_rpm", "rpm", 300.0, 3000.0,
-          "idle speed the idle controller holds", slot=69),
+          "idle speed the idle controller holds", slot=63),
     Param("engine_speed_max_rpm", "rpm", 1000.0, _RPM_MAX,
-          "fuel cut: no throttle torque above this speed", slot=70),
+          "fuel cut: no throttle torque above this speed", slot=64),
     Param("engine_inertia_kgm2", "kg m^2", 0.01, 10.0,
-          "engine, flywheel and converter pump about the crankshaft", slot=71),
+          "engine, flywheel and converter pump about the crankshaft", slot=65),
     Param("engine_curve_speed_rpm", "rpm", 0.0, _RPM_MAX,
-          "engine speeds of the full-load curve's points, increasing", slot=72,
+          "engine speeds of the full-load curve's points, increasing", slot=66,
           size=ENGINE_CURVE_POINTS),
     Param("engine_full_load_torque_nm", "N m", 0.0, 1e5,
           "full-load (wide-open throttle) torque at those speeds, net of the drag torque "
-          "(linear between points, constant beyond)", slot=84, size=ENGINE_CURVE_POINTS),
+          "(linear between points, constant beyond)", slot=78, size=ENGINE_CURVE_POINTS),
     Param("engine_drag_torque_nm", "N m", 0.0, 1e4,
-          "friction and pumping torque at idle speed, throttle closed", slot=96),
+          "friction and pumping torque at idle speed, throttle closed", slot=90),
     Param("engine_drag_torque_per_krpm_nm", "N m", 0.0, 1e4,
-          "drag torque added per 1000 rpm above idle", slot=97),
+          "drag torque added per 1000 rpm above idle", slot=91),
     Param("idle_control_gain_nm_per_rpm", "N m/rpm", 0.0, 100.0,
-          "idle controller, proportional: torque per rpm below idle speed", slot=98),
+          "idle controller, proportional: torque per rpm below idle speed", slot=92),
     Param("idle_control_integral_time_s", "s", 0.01, 10.0,
-          "idle controller, integral time", slot=99),
+          "idle controller, integral time", slot=93),
     Param("idle_control_torque_max_nm", "N m", 0.0, 1e4,
           "idle controller's authority (more than the drag plus the converter's load at "
-          "idle and stall: the engine never stalls)", slot=100),
+          "idle and stall: the engine never stalls)", slot=94),
     Param("converter_speed_ratio", "-", 0.0, 1.0,
           "turbine / pump speed at the converter curves' points, increasing from 0; "
           "above the last point K rises to infinity at 1 and the torque ratio is 1",
-          slot=101, size=CONVERTER_CURVE_POINTS),
+          slot=95, size=CONVERTER_CURVE_POINTS),
     Param("converter_k_factor_rpm_per_sqrt_nm", "rpm/sqrt(N m)", 1.0, 1e4,
-          "capacity factor K = pump speed / sqrt(pump torque) at those points", slot=113,
+          "capacity factor K = pump speed / sqrt(pump torque) at those points", slot=107,
           size=CONVERTER_CURVE_POINTS),
     Param("converter_torque_ratio", "-", 0.5, 10.0,
           "turbine / pump torque at those points (about 2 at stall, 1 at coupling)",
-          slot=125, size=CONVERTER_CURVE_POINTS),
+          slot=119, size=CONVERTER_CURVE_POINTS),
     Param("lockup_engage_speed_rpm", "rpm", 0.0, _RPM_MAX,
           "the lock-up clutch closes above this turbine speed (in gear lockup_gear_min or "
-          "higher, not in kick-down)", slot=137),
+          "higher, not in kick-down)", slot=131),
     Param("lockup_release_speed_rpm", "rpm", 0.0, _RPM_MAX,
-          "and opens below this one (below lockup_engage_speed_rpm: hysteresis)", slot=138),
+          "and opens below this one (below lockup_engage_speed_rpm: hysteresis)", slot=132),
     Param("lockup_gear_min", "-", 1.0, GEARS_MAX, "lowest gear with the lock-up closed",
-          slot=139),
-    Param("gear_ratios", "-", 0.2, 10.0, "forward gear ratios, first gear first", slot=140,
+          slot=133),
+    Param("gear_ratios", "-", 0.2, 10.0, "forward gear ratios, first gear first", slot=134,
           size=GEARS_MAX),
     Param("gear_count", "-", None, None, "number of forward gears (the list's length)",
-          slot=150),
-    Param("reverse_gear_ratio", "-", 0.2, 10.0, "reverse gear ratio (a magnitude)", slot=151),
-    Param("final_drive_ratio", "-", 0.5, 20.0, "final drive (differential) ratio", slot=152),
+          slot=144),
+    Param("reverse_gear_ratio", "-", 0.2, 10.0, "reverse gear ratio (a magnitude)", slot=145),
+    Param("final_drive_ratio", "-", 0.5, 20.0, "final drive (differential) ratio", slot=146),
     Param("upshift_speed_light_mps", "m/s", 0.0, 150.0,
           "vehicle speed of each upshift (1-2, 2-3, ...) at closed throttle: one fewer than "
-          "the gears", slot=153, size=GEARS_MAX - 1),
+          "the gears", slot=147, size=GEARS_MAX - 1),
     Param("upshift_speed_full_mps", "m/s", 0.0, 150.0,
-          "the same at full throttle (linear in the throttle between them)", slot=162,
+          "the same at full throttle (linear in the throttle between them)", slot=156,
           size=GEARS_MAX - 1),
     Param("downshift_hysteresis_mps", "m/s", 0.0, 50.0,
-          "a downshift waits until the speed is this far below the upshift speed", slot=171),
+          "a downshift waits until the speed is this far below the upshift speed", slot=165),
     Param("kickdown_throttle", "-", 0.5, 1.0,
           "throttle beyond this is kick-down: the full-throttle schedule at once (no "
-          "shift delay, several gears if need be) and the lock-up open", slot=172),
+          "shift delay, several gears if need be) and the lock-up open", slot=166),
     Param("shift_delay_s", "s", 0.0, 10.0, "shortest time between two gear changes",
-          slot=173),
+          slot=167),
 ))
 
-# --- the scenario's or scene's ``road:`` section (set_road keeps the gravity slots in step)
+# --- the scenario's or scene's ``road:`` section. Not vehicle parameters: the road is the
+# world's, shared by every car on it, and lives in its terrain (``core.terrain.Terrain.road``,
+# slots ROAD_*); ``core.road.set_road`` writes it and keeps the gravity slots in step.
 ROAD = ParamTable("road", "the road plane under the car", (
     Param("road_grade_pct", "%", -100.0, 100.0,
-          "the road rises grade_pct m per 100 m along world x", default=0.0, slot=30,
-          key="grade_pct"),
+          "the road rises grade_pct m per 100 m along world x", default=0.0, slot=0,
+          key="grade_pct", const="ROAD_GRADE_PCT"),
     Param("road_cross_slope_pct", "%", -100.0, 100.0,
-          "the road rises cross_slope_pct m per 100 m along world y", default=0.0, slot=31,
-          key="cross_slope_pct"),
+          "the road rises cross_slope_pct m per 100 m along world y", default=0.0, slot=1,
+          key="cross_slope_pct", const="ROAD_CROSS_SLOPE_PCT"),
     Param("road_friction_scale", "-", 0.0, 3.0, "scales every tire's friction", default=1.0,
-          slot=32, key="friction_scale"),
+          slot=2, key="friction_scale", const="ROAD_FRICTION_SCALE"),
     Param("gravity_e1_mps2", "m/s^2", None, None,
-          "gravity resolved along the road plane's e1", slot=34),
+          "gravity resolved along the road plane's e1", slot=3),
     Param("gravity_e2_mps2", "m/s^2", None, None,
-          "gravity resolved along the road plane's e2", slot=35),
+          "gravity resolved along the road plane's e2", slot=4),
     Param("gravity_n_mps2", "m/s^2", None, None,
-          "gravity component pressing the car onto the road (> 0)", slot=36),
+          "gravity component pressing the car onto the road (> 0)", slot=5),
 ))
 
 # --- the ``model:`` section of a scenario or scene (every key optional)
 MODEL_OPTIONS = ParamTable("model", "slip and damping variants, gravity", (
     Param("slip_model", "-", None, None, "slip states (core/slip.py)",
-          default="lagged_passive", choices=SLIP_MODEL_NAMES, slot=37),
+          default="lagged_passive", choices=SLIP_MODEL_NAMES, slot=31),
     Param("damping_model", "-", None, None, "low-speed damping (core/damping.py)",
-          default="patch", choices=DAMPING_MODEL_NAMES, slot=38),
+          default="patch", choices=DAMPING_MODEL_NAMES, slot=32),
     Param("damping_ratio", "-", 0.0, 5.0,
           "zeta of the paper's Appendix A (docs/model.md section 4)",
-          default=PAPER_DAMPING_RATIO, slot=39),
+          default=PAPER_DAMPING_RATIO, slot=33),
     Param("damping_trigger_v_mps", "m/s", 0.0, 10.0,
           "eps of the paper's Appendix A: its trigger needs |v| below it",
-          default=PAPER_TRIGGER_LATERAL_SPEED_MPS, slot=40),
+          default=PAPER_TRIGGER_LATERAL_SPEED_MPS, slot=34),
     Param("damping_fade_speed_mps", "m/s", 0.01, 50.0,
           "the patch damping (docs/model.md section 4b item 2) fades out by this hub speed",
-          default=2.0, slot=41),
+          default=2.0, slot=35),
     Param("kinematic_u_min_mps", "m/s", 0.01, 50.0,
           "u_min of the paper's eq. (1) patch (docs/model.md section 1; kinematic only)",
-          default=0.5, slot=42),
+          default=0.5, slot=36),
     Param("slide_widen_speed_mps", "m/s", 0.01, 100.0,
           "passive slip states (docs/model.md section 4b item 1): the sliding limit widens "
-          "above this hub speed", default=0.5, slot=43),
+          "above this hub speed", default=0.5, slot=37),
     Param("gravity_mps2", "m/s^2", 0.1, 30.0, "gravitational acceleration", default=9.81,
-          slot=33),
+          slot=30),
 ))
 
-VEHICLE_PARAM_TABLES = (*VEHICLE_SUBSYSTEMS, AUTOMATIC, ROAD, MODEL_OPTIONS)
+VEHICLE_PARAM_TABLES = (*VEHICLE_SUBSYSTEMS, AUTOMATIC, MODEL_OPTIONS)
 VEHICLE_PARAMS = slot_layout(VEHICLE_PARAM_TABLES)  # every parameter, in slot order
 VEHICLE_PARAM_NAMES = tuple(p.name for p in VEHICLE_PARAMS)
 N_VEHICLE_PARAM = slot_count(VEHICLE_PARAMS)  # a list parameter takes several slots
+N_ROAD = slot_count(slot_layout((ROAD,)))  # slots of a terrain's road (Terrain.road)
 
 # The slot constants, generated from the tables above (a test fails when they drift):
 # python -m simserver.adapters.config --write --slots simserver/core/params.py
@@ -326,68 +329,69 @@ VP_DRIVEN_AXLE = 26  # -, powertrain
 VP_DRIVE_FRONT_FRACTION = 27  # -, powertrain
 VP_DRAG_AREA_M2 = 28  # m^2, chassis
 VP_AIR_DENSITY_KGPM3 = 29  # kg/m^3, chassis
-VP_ROAD_GRADE_PCT = 30  # %, road
-VP_ROAD_CROSS_SLOPE_PCT = 31  # %, road
-VP_ROAD_FRICTION_SCALE = 32  # -, road
-VP_GRAVITY_MPS2 = 33  # m/s^2, model
-VP_GRAVITY_E1_MPS2 = 34  # m/s^2, road
-VP_GRAVITY_E2_MPS2 = 35  # m/s^2, road
-VP_GRAVITY_N_MPS2 = 36  # m/s^2, road
-VP_SLIP_MODEL = 37  # -, model
-VP_DAMPING_MODEL = 38  # -, model
-VP_DAMPING_RATIO = 39  # -, model
-VP_DAMPING_TRIGGER_V_MPS = 40  # m/s, model
-VP_DAMPING_FADE_SPEED_MPS = 41  # m/s, model
-VP_KINEMATIC_U_MIN_MPS = 42  # m/s, model
-VP_SLIDE_WIDEN_SPEED_MPS = 43  # m/s, model
-VP_CAMBER_STATIC_FRONT_RAD = 44  # rad, suspension
-VP_CAMBER_STATIC_REAR_RAD = 45  # rad, suspension
-VP_TOE_FRONT_RAD = 46  # rad, suspension
-VP_TOE_REAR_RAD = 47  # rad, suspension
-VP_CAMBER_ROLL_GAIN_FRONT = 48  # rad/rad, suspension
-VP_CAMBER_ROLL_GAIN_REAR = 49  # rad/rad, suspension
-VP_CAMBER_HEAVE_GAIN_FRONT_RADPM = 50  # rad/m, suspension
-VP_CAMBER_HEAVE_GAIN_REAR_RADPM = 51  # rad/m, suspension
-VP_CASTER_TRAIL_M = 52  # m, steering
-VP_SCRUB_RADIUS_M = 53  # m, steering
-VP_KINGPIN_INCLINATION_RAD = 54  # rad, steering
-VP_PATCH_TORSION_STIFFNESS_NM_PER_RAD = 55  # N m/rad, steering
-VP_PATCH_BORE_ARM_M = 56  # m, steering
-VP_ASSIST_BOOST_PARKING = 57  # -, steering
-VP_ASSIST_BOOST_HIGHWAY = 58  # -, steering
-VP_ASSIST_FADE_SPEED_MPS = 59  # m/s, steering
-VP_ASSIST_TORQUE_MAX_NM = 60  # N m, steering
-VP_COLUMN_FRICTION_NM = 61  # N m, steering
-VP_COLUMN_FRICTION_STIFFNESS_NM_PER_RAD = 62  # N m/rad, steering
-VP_COLUMN_DAMPING_NMS_PER_RAD = 63  # N m s/rad, steering
-VP_COLUMN_RATE_FILTER_S = 64  # s, steering
-VP_POWERTRAIN_KIND = 65  # -, powertrain
-VP_HILL_START_ASSIST = 66  # -, brakes
-VP_HILL_START_ASSIST_HOLD_S = 67  # s, brakes
-VP_HILL_START_ASSIST_MIN_GRADE_PCT = 68  # %, brakes
-VP_ENGINE_IDLE_SPEED_RPM = 69  # rpm, automatic
-VP_ENGINE_SPEED_MAX_RPM = 70  # rpm, automatic
-VP_ENGINE_INERTIA_KGM2 = 71  # kg m^2, automatic
-VP_ENGINE_CURVE_SPEED_RPM = 72  # rpm, automatic, 12 slots
-VP_ENGINE_FULL_LOAD_TORQUE_NM = 84  # N m, automatic, 12 slots
-VP_ENGINE_DRAG_TORQUE_NM = 96  # N m, automatic
-VP_ENGINE_DRAG_TORQUE_PER_KRPM_NM = 97  # N m, automatic
-VP_IDLE_CONTROL_GAIN_NM_PER_RPM = 98  # N m/rpm, automatic
-VP_IDLE_CONTROL_INTEGRAL_TIME_S = 99  # s, automatic
-VP_IDLE_CONTROL_TORQUE_MAX_NM = 100  # N m, automatic
-VP_CONVERTER_SPEED_RATIO = 101  # -, automatic, 12 slots
-VP_CONVERTER_K_FACTOR_RPM_PER_SQRT_NM = 113  # rpm/sqrt(N m), automatic, 12 slots
-VP_CONVERTER_TORQUE_RATIO = 125  # -, automatic, 12 slots
-VP_LOCKUP_ENGAGE_SPEED_RPM = 137  # rpm, automatic
-VP_LOCKUP_RELEASE_SPEED_RPM = 138  # rpm, automatic
-VP_LOCKUP_GEAR_MIN = 139  # -, automatic
-VP_GEAR_RATIOS = 140  # -, automatic, 10 slots
-VP_GEAR_COUNT = 150  # -, automatic
-VP_REVERSE_GEAR_RATIO = 151  # -, automatic
-VP_FINAL_DRIVE_RATIO = 152  # -, automatic
-VP_UPSHIFT_SPEED_LIGHT_MPS = 153  # m/s, automatic, 9 slots
-VP_UPSHIFT_SPEED_FULL_MPS = 162  # m/s, automatic, 9 slots
-VP_DOWNSHIFT_HYSTERESIS_MPS = 171  # m/s, automatic
-VP_KICKDOWN_THROTTLE = 172  # -, automatic
-VP_SHIFT_DELAY_S = 173  # s, automatic
+VP_GRAVITY_MPS2 = 30  # m/s^2, model
+VP_SLIP_MODEL = 31  # -, model
+VP_DAMPING_MODEL = 32  # -, model
+VP_DAMPING_RATIO = 33  # -, model
+VP_DAMPING_TRIGGER_V_MPS = 34  # m/s, model
+VP_DAMPING_FADE_SPEED_MPS = 35  # m/s, model
+VP_KINEMATIC_U_MIN_MPS = 36  # m/s, model
+VP_SLIDE_WIDEN_SPEED_MPS = 37  # m/s, model
+VP_CAMBER_STATIC_FRONT_RAD = 38  # rad, suspension
+VP_CAMBER_STATIC_REAR_RAD = 39  # rad, suspension
+VP_TOE_FRONT_RAD = 40  # rad, suspension
+VP_TOE_REAR_RAD = 41  # rad, suspension
+VP_CAMBER_ROLL_GAIN_FRONT = 42  # rad/rad, suspension
+VP_CAMBER_ROLL_GAIN_REAR = 43  # rad/rad, suspension
+VP_CAMBER_HEAVE_GAIN_FRONT_RADPM = 44  # rad/m, suspension
+VP_CAMBER_HEAVE_GAIN_REAR_RADPM = 45  # rad/m, suspension
+VP_CASTER_TRAIL_M = 46  # m, steering
+VP_SCRUB_RADIUS_M = 47  # m, steering
+VP_KINGPIN_INCLINATION_RAD = 48  # rad, steering
+VP_PATCH_TORSION_STIFFNESS_NM_PER_RAD = 49  # N m/rad, steering
+VP_PATCH_BORE_ARM_M = 50  # m, steering
+VP_ASSIST_BOOST_PARKING = 51  # -, steering
+VP_ASSIST_BOOST_HIGHWAY = 52  # -, steering
+VP_ASSIST_FADE_SPEED_MPS = 53  # m/s, steering
+VP_ASSIST_TORQUE_MAX_NM = 54  # N m, steering
+VP_COLUMN_FRICTION_NM = 55  # N m, steering
+VP_COLUMN_FRICTION_STIFFNESS_NM_PER_RAD = 56  # N m/rad, steering
+VP_COLUMN_DAMPING_NMS_PER_RAD = 57  # N m s/rad, steering
+VP_COLUMN_RATE_FILTER_S = 58  # s, steering
+VP_POWERTRAIN_KIND = 59  # -, powertrain
+VP_HILL_START_ASSIST = 60  # -, brakes
+VP_HILL_START_ASSIST_HOLD_S = 61  # s, brakes
+VP_HILL_START_ASSIST_MIN_GRADE_PCT = 62  # %, brakes
+VP_ENGINE_IDLE_SPEED_RPM = 63  # rpm, automatic
+VP_ENGINE_SPEED_MAX_RPM = 64  # rpm, automatic
+VP_ENGINE_INERTIA_KGM2 = 65  # kg m^2, automatic
+VP_ENGINE_CURVE_SPEED_RPM = 66  # rpm, automatic, 12 slots
+VP_ENGINE_FULL_LOAD_TORQUE_NM = 78  # N m, automatic, 12 slots
+VP_ENGINE_DRAG_TORQUE_NM = 90  # N m, automatic
+VP_ENGINE_DRAG_TORQUE_PER_KRPM_NM = 91  # N m, automatic
+VP_IDLE_CONTROL_GAIN_NM_PER_RPM = 92  # N m/rpm, automatic
+VP_IDLE_CONTROL_INTEGRAL_TIME_S = 93  # s, automatic
+VP_IDLE_CONTROL_TORQUE_MAX_NM = 94  # N m, automatic
+VP_CONVERTER_SPEED_RATIO = 95  # -, automatic, 12 slots
+VP_CONVERTER_K_FACTOR_RPM_PER_SQRT_NM = 107  # rpm/sqrt(N m), automatic, 12 slots
+VP_CONVERTER_TORQUE_RATIO = 119  # -, automatic, 12 slots
+VP_LOCKUP_ENGAGE_SPEED_RPM = 131  # rpm, automatic
+VP_LOCKUP_RELEASE_SPEED_RPM = 132  # rpm, automatic
+VP_LOCKUP_GEAR_MIN = 133  # -, automatic
+VP_GEAR_RATIOS = 134  # -, automatic, 10 slots
+VP_GEAR_COUNT = 144  # -, automatic
+VP_REVERSE_GEAR_RATIO = 145  # -, automatic
+VP_FINAL_DRIVE_RATIO = 146  # -, automatic
+VP_UPSHIFT_SPEED_LIGHT_MPS = 147  # m/s, automatic, 9 slots
+VP_UPSHIFT_SPEED_FULL_MPS = 156  # m/s, automatic, 9 slots
+VP_DOWNSHIFT_HYSTERESIS_MPS = 165  # m/s, automatic
+VP_KICKDOWN_THROTTLE = 166  # -, automatic
+VP_SHIFT_DELAY_S = 167  # s, automatic
+# the terrain's road (core.terrain.Terrain.road)
+ROAD_GRADE_PCT = 0  # %, road
+ROAD_CROSS_SLOPE_PCT = 1  # %, road
+ROAD_FRICTION_SCALE = 2  # -, road
+ROAD_GRAVITY_E1_MPS2 = 3  # m/s^2, road
+ROAD_GRAVITY_E2_MPS2 = 4  # m/s^2, road
+ROAD_GRAVITY_N_MPS2 = 5  # m/s^2, road
 # --- end of generated slot constants

@@ -9,6 +9,9 @@ The road is the plane ``Z = (grade/100) X + (cross/100) Y`` (a grade of p % rise
 with ``s_x = grade/100``, ``s_y = cross/100``. This module is the one place that maths is
 written: the integrator's gravity components (``set_road``) and the world pose
 (``road_axes``, ``core.pose``) both come from ``road_frame``.
+
+The road belongs to the world, not to a car: its parameters are the terrain's
+(``core.terrain.Terrain.road``, slots ``core.params.ROAD_*``), shared by every car on it.
 """
 
 from __future__ import annotations
@@ -17,13 +20,12 @@ import numba as nb
 import numpy as np
 
 from simserver.core.params import (
-    VP_GRAVITY_E1_MPS2,
-    VP_GRAVITY_E2_MPS2,
-    VP_GRAVITY_MPS2,
-    VP_GRAVITY_N_MPS2,
-    VP_ROAD_CROSS_SLOPE_PCT,
-    VP_ROAD_FRICTION_SCALE,
-    VP_ROAD_GRADE_PCT,
+    ROAD_CROSS_SLOPE_PCT,
+    ROAD_FRICTION_SCALE,
+    ROAD_GRADE_PCT,
+    ROAD_GRAVITY_E1_MPS2,
+    ROAD_GRAVITY_E2_MPS2,
+    ROAD_GRAVITY_N_MPS2,
 )
 
 E1, E2, NORMAL = 0, 1, 2  # rows of the axes array
@@ -57,20 +59,20 @@ def road_axes(grade_pct: float, cross_slope_pct: float) -> np.ndarray:
 
 
 @nb.njit(cache=True)
-def set_road(
-    vp: np.ndarray, grade_pct: float, cross_slope_pct: float, friction_scale: float
-) -> None:
-    """Set the road slots of ``vp`` and resolve gravity into the plane's axes.
+def set_road(road: np.ndarray, grade_pct: float, cross_slope_pct: float,
+             friction_scale: float, gravity_mps2: float) -> None:
+    """Write a terrain's road (``road``: float64[N_ROAD], ``core.params.ROAD_*``) and
+    resolve gravity ``gravity_mps2`` into the plane's axes.
 
     Gravity ``(0, 0, -g)`` resolves to ``g_e1 e1 + g_e2 e2 - g_n n``: the components are
     ``-g`` times the world Z components of ``e1`` and ``e2``, and ``g`` times that of ``n``.
     """
     axes = np.empty((3, 3))
     road_frame(grade_pct, cross_slope_pct, axes)
-    g = vp[VP_GRAVITY_MPS2]
-    vp[VP_ROAD_GRADE_PCT] = grade_pct
-    vp[VP_ROAD_CROSS_SLOPE_PCT] = cross_slope_pct
-    vp[VP_ROAD_FRICTION_SCALE] = friction_scale
-    vp[VP_GRAVITY_E1_MPS2] = -g * axes[E1, 2]
-    vp[VP_GRAVITY_E2_MPS2] = -g * axes[E2, 2]
-    vp[VP_GRAVITY_N_MPS2] = g * axes[NORMAL, 2]
+    g = gravity_mps2
+    road[ROAD_GRADE_PCT] = grade_pct
+    road[ROAD_CROSS_SLOPE_PCT] = cross_slope_pct
+    road[ROAD_FRICTION_SCALE] = friction_scale
+    road[ROAD_GRAVITY_E1_MPS2] = -g * axes[E1, 2]
+    road[ROAD_GRAVITY_E2_MPS2] = -g * axes[E2, 2]
+    road[ROAD_GRAVITY_N_MPS2] = g * axes[NORMAL, 2]

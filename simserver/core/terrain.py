@@ -3,9 +3,10 @@
 A terrain is a ``Terrain`` tuple of arrays, the same types for every kind, so the compiled
 step takes any of them without recompiling:
 
-- ``TERRAIN_PLANE``: today's road, the inclined plane of ``core.road`` (grade, cross-slope
-  and friction in the vehicle parameters). The arrays are placeholders; the step does
-  exactly what it did before terrains existed.
+- ``TERRAIN_PLANE``: the inclined plane of ``core.road``, with its own parameters in the
+  terrain's ``road`` (grade, cross-slope, friction scale, and gravity resolved into the
+  plane: ``core.road.set_road``). The grid arrays are placeholders; the step does exactly
+  what it did before terrains existed.
 - ``TERRAIN_OPENDRIVE``: an OpenDRIVE road, rasterised when loaded into the grid of a
   height map (``simserver.adapters.opendrive.rasterise``); the step treats it as one.
 - ``TERRAIN_HEIGHTMAP``: a regular grid of heights ``heights[j, i]`` at
@@ -13,6 +14,10 @@ step takes any of them without recompiling:
   height and its gradient, hence the surface normal, are continuous), with a friction
   scale per grid point (bilinear). Off the grid the query is clamped to the grid's edge:
   the edge heights extend flat, never NaN.
+
+Every kind carries ``road`` (``core.params.ROAD_*``): the road's friction scale multiplies
+a height map's too. A terrain is the world's: one is shared by every car of a world
+(``core.world``); the ``road`` array is the only part written while a world runs.
 
 The chassis keeps its planar formulation on a *reference plane* fitted under the four
 contact points once per step (``fit_reference_plane``, ``rebase_reference_plane``): on
@@ -44,7 +49,8 @@ from simserver.core.layout import (
     Y_M,
     YAW_RAD,
 )
-from simserver.core.road import road_frame
+from simserver.core.params import MODEL_OPTIONS, N_ROAD, ROAD
+from simserver.core.road import road_frame, set_road
 from simserver.core.variants import Variant, VariantRegistry
 
 TERRAIN_PLANE = 0
@@ -64,7 +70,12 @@ TERRAIN_KINDS = VariantRegistry("terrain kind", (
 # slots of Terrain.grid
 GRID_X0_M, GRID_Y0_M, GRID_DX_M, GRID_DY_M = 0, 1, 2, 3
 GRID_KEY = 4  # a 48-bit hash of the grid's contents: the key of the per-wheel cell memo
-N_GRID = 5
+# N_ROAD slots from GRID_ROAD: the terrain's road (core.params.ROAD_*, ``Terrain.road``).
+# They sit in ``grid`` rather than in an array of their own so that the Terrain tuple keeps
+# four fields: the step passes the model (terrain included) to each stage it does not
+# inline, by value, array by array, and a fifth array cost the brush step 6 % (issue 29).
+GRID_ROAD = 5
+N_GRID = GRID_ROAD + N_ROAD
 
 # slots of the per-wheel cell memo (``Workspace.cells[i, CELL_*]``, ``surface_under_wheel``):
 # the cell of the grid the wheel was last in and the power-basis coefficients of the
@@ -93,14 +104,37 @@ class Terrain(NamedTuple):
     kind: int  # TERRAIN_* id
     heights: np.ndarray  # float64[ny, nx], m (a 1x1 placeholder on the plane)
     friction: np.ndarray  # float64[ny, nx], friction scale per grid point
-    grid: np.ndarray  # float64[N_GRID]: origin and spacing (GRID_*)
+    grid: np.ndarray  # float64[N_GRID]: origin and spacing, the road (GRID_*)
+
+    @property
+    def road(self) -> np.ndarray:
+        """The road (``core.params.ROAD_*``): a view of ``grid`` from ``GRID_ROAD``, which
+        ``core.road.set_road`` writes (compiled code: ``terrain_road``)."""
+        return self.grid[GRID_ROAD:]
+
+
+@nb.njit(cache=True, inline="always")
+def terrain_road(terrain: Terrain) -> np.ndarray:
+    """``Terrain.road`` in compiled code (a numba tuple has no properties)."""
+    return terrain.grid[GRID_ROAD:]
+
+
+def default_road() -> np.ndarray:
+    """A road at the ``road:`` section's defaults (flat, friction scale 1) with gravity
+    at the ``model:`` section's default: float64[N_ROAD]."""
+    road = np.zeros(N_ROAD)
+    d = ROAD.defaults
+    set_road(road, d["grade_pct"], d["cross_slope_pct"], d["friction_scale"],
+             MODEL_OPTIONS.defaults["gravity_mps2"])
+    return road
 
 
 def plane_terrain() -> Terrain:
-    """The plane kind: the road of ``core.road`` (the arrays are placeholders)."""
+    """The plane kind: the road of ``core.road`` (the grid arrays are placeholders)."""
     grid = np.zeros(N_GRID)
     grid[GRID_DX_M] = grid[GRID_DY_M] = 1.0
     grid[GRID_KEY] = -1.0  # never a hash (those are >= 0): the plane has no cells
+    grid[GRID_ROAD:] = default_road()
     return Terrain(TERRAIN_PLANE, np.zeros((1, 1)), np.ones((1, 1)), grid)
 
 
@@ -122,6 +156,13 @@ SPACING_MAX_M = 1e4
 def _first_bad(bad: np.ndarray) -> tuple[int, int]:
     j, i = np.argwhere(bad)[0]
     return int(j), int(i)
+
+
+def with_own_road(terrain: Terrain) -> Terrain:
+    """``terrain`` with a copy of its road (``grid``, which holds it; the heights and
+    friction shared: they are never written), so that ``set_road`` on the copy leaves the
+    original as it was."""
+    return terrain._replace(grid=terrain.grid.copy())
 
 
 def heightmap_terrain(heights: np.ndarray, dx_m: float, dy_m: float, x0_m: float = 0.0,
@@ -171,11 +212,13 @@ def heightmap_terrain(heights: np.ndarray, dx_m: float, dy_m: float, x0_m: float
             j, i = _first_bad(bad)
             raise ValueError(f"friction: {mu[j, i]:.6g} at row {j}, column {i}: every value "
                              f"must be finite and within 0 .. {FRICTION_SCALE_MAX:g}")
-    grid = np.array([x0_m, y0_m, dx_m, dy_m, 0.0], dtype=np.float64)
+    grid = np.zeros(N_GRID)
+    grid[[GRID_X0_M, GRID_Y0_M, GRID_DX_M, GRID_DY_M]] = x0_m, y0_m, dx_m, dy_m
     digest = hashlib.blake2b(digest_size=6)
     for part in (h, mu, grid[:GRID_KEY], np.array(h.shape, dtype=np.int64)):
         digest.update(part.tobytes())
     grid[GRID_KEY] = float(int.from_bytes(digest.digest(), "little"))  # < 2^48: exact
+    grid[GRID_ROAD:] = default_road()
     return Terrain(TERRAIN_HEIGHTMAP, h, mu, grid)
 
 

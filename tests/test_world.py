@@ -1,0 +1,163 @@
+"""The world (core.world, simulation.World): several cars on one terrain, one compiled step.
+
+A car's result must not depend on the other cars of its world (they do not touch yet), nor
+on their order, nor on cars added or removed between steps; adding or removing a car must
+recompile nothing (the stacks keep their types).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from simserver.core import layout as L
+from simserver.core import world as W
+from simserver.core.params import VP_GRAVITY_MPS2
+from simserver.scenario import load_scene
+from simserver.simulation import Simulation, World
+from simserver.testing import REPO
+
+SCENES = REPO / "configs" / "scenes"
+DT_S = 0.001
+
+
+def _inputs(n: int, throttle: float, steer: float, brake_from: int) -> np.ndarray:
+    table = np.zeros((n, L.N_INPUT))
+    table[:, L.IN_GEAR] = L.GEAR_D
+    table[:brake_from, L.IN_THROTTLE] = throttle
+    table[:, L.IN_STEER] = steer * np.sin(np.linspace(0.0, 4.0 * np.pi, n))
+    table[brake_from:, L.IN_BRAKE] = 0.6
+    return table
+
+
+# three different cars (brush tires, MF 6.1 tires, the automatic) with their own drives
+CARS = {
+    "sedan": (SCENES / "hill_10pct_paper_sedan.yaml", 0.5, 0.2),
+    "hatch": (SCENES / "flat_mf_hatchback.yaml", 0.7, -0.15),
+    "auto": (SCENES / "hill_10pct_paper_sedan_automatic.yaml", 0.6, 0.1),
+}
+N = 1500
+
+
+def _alone(name: str) -> tuple[np.ndarray, np.ndarray]:
+    """The car's run in a world of its own (Simulation.run): states and outputs."""
+    path, throttle, steer = CARS[name]
+    sim = Simulation(load_scene(path), DT_S)
+    states, outputs = np.zeros((N, L.N_STATE)), np.zeros((N, L.N_OUT))
+    sim.run(_inputs(N, throttle, steer, N // 2), states, outputs)
+    return states, outputs
+
+
+def _together(order: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The cars of ``order`` in one world on the first car's terrain and road (the scenes
+    differ only in grade: each car is moved onto the world, its own road set first)."""
+    sims = {name: Simulation(load_scene(CARS[name][0]), DT_S, car_id=name) for name in order}
+    world = World(sims[order[0]].model.terrain, DT_S)
+    for name in order:
+        sims[name].move_to(world)
+    states = np.zeros((N, len(order), L.N_STATE))
+    outputs = np.zeros((N, len(order), L.N_OUT))
+    inputs = np.stack([_inputs(N, CARS[n][1], CARS[n][2], N // 2) for n in order], axis=1)
+    world.run(inputs, states, outputs)
+    return {name: (states[:, c], outputs[:, c]) for c, name in enumerate(order)}
+
+
+def test_each_car_of_a_world_is_that_car_alone_bit_for_bit_in_any_order():
+    """On a flat road (all three scenes' cars moved onto the flat hatchback's world), each
+    car's states and outputs equal its run alone on that road, whatever the order."""
+    flat = {}
+    for name in CARS:
+        path, throttle, steer = CARS[name]
+        sim = Simulation(load_scene(SCENES / "flat_mf_hatchback.yaml"), DT_S)
+        sim.load(load_scene(path))
+        sim.set_road(0.0, 0.0, 1.0)
+        sim.reset(None)
+        states, outputs = np.zeros((N, L.N_STATE)), np.zeros((N, L.N_OUT))
+        sim.run(_inputs(N, throttle, steer, N // 2), states, outputs)
+        flat[name] = (states, outputs)
+    for order in (["hatch", "sedan", "auto"], ["auto", "hatch", "sedan"]):
+        sims = {name: Simulation(load_scene(CARS[name][0]), DT_S, car_id=name)
+                for name in order}
+        world = World(Simulation(load_scene(SCENES / "flat_mf_hatchback.yaml"),
+                                 DT_S).model.terrain, DT_S)
+        for name in order:
+            sims[name].move_to(world)
+        sims[order[0]].set_road(0.0, 0.0, 1.0)  # the world's road, under every car
+        states = np.zeros((N, 3, L.N_STATE))
+        outputs = np.zeros((N, 3, L.N_OUT))
+        inputs = np.stack([_inputs(N, CARS[n][1], CARS[n][2], N // 2) for n in order], axis=1)
+        world.run(inputs, states, outputs)
+        for c, name in enumerate(order):
+            assert np.array_equal(states[:, c], flat[name][0]), (order, name)
+            assert np.array_equal(outputs[:, c], flat[name][1]), (order, name)
+            assert np.array_equal(sims[name].x, world.data.x[c])  # the car's view
+
+
+def test_a_world_of_one_is_the_single_car():
+    """``World.run`` of a world of one and ``Simulation.run`` give the same bits (the
+    first car's world and road are its own scene's)."""
+    states, outputs = _alone("hatch")
+    together = _together(["hatch"])["hatch"]
+    assert np.array_equal(together[0], states) and np.array_equal(together[1], outputs)
+
+
+def test_adding_and_removing_cars_between_steps_changes_no_car_and_compiles_nothing():
+    """A runs 500 steps with B, then C joins, then B leaves: A's run equals A alone and
+    C's equals C alone from its start; the compiled step and loop gain no signature."""
+    a_states, _ = _alone("hatch")
+    c_alone, _ = _alone("sedan")
+    sims = {n: Simulation(load_scene(CARS[n][0]), DT_S, car_id=n) for n in CARS}
+    world = World(sims["hatch"].model.terrain, DT_S)
+    sims["hatch"].move_to(world)
+    sims["auto"].move_to(world)
+    world.step()  # compiled (or loaded) now, before the counts
+    signatures = (len(W.step.signatures), len(W.simulate.signatures))
+    drives = {n: _inputs(N, CARS[n][1], CARS[n][2], N // 2) for n in CARS}
+    # restart A and B from their initial states (the step above moved them)
+    for n in ("hatch", "auto"):
+        sims[n].reset(None)
+    got_a = np.zeros((N, L.N_STATE))
+    got_c = np.zeros((N - 500, L.N_STATE))
+    for k in range(N):
+        if k == 500:
+            sims["sedan"].move_to(world)  # joins between steps
+        if k == 900:
+            world.remove_car("auto")
+        for n, sim in sims.items():
+            if n in world.ids:
+                sim.inputs[:] = drives[n][k if n != "sedan" else k - 500]
+        got_a[k] = sims["hatch"].x
+        if k >= 500:
+            got_c[k - 500] = sims["sedan"].x
+        world.step()
+    assert world.ids == ["hatch", "sedan"]
+    assert (len(W.step.signatures), len(W.simulate.signatures)) == signatures
+    # A's own scene has a road of its own: the sedan joined a world with A's road (flat),
+    # so it is compared with a run of it alone on the flat road below
+    assert np.array_equal(got_a, a_states)
+    sedan_flat = Simulation(load_scene(SCENES / "flat_mf_hatchback.yaml"), DT_S)
+    sedan_flat.load(load_scene(CARS["sedan"][0]))
+    sedan_flat.set_road(0.0, 0.0, 1.0)
+    sedan_flat.reset(None)
+    want_c = np.zeros((N - 500, L.N_STATE))
+    sedan_flat.run(drives["sedan"][:N - 500], want_c, np.zeros((N - 500, L.N_OUT)))
+    assert np.array_equal(got_c, want_c)
+    assert not np.array_equal(c_alone[:N - 500], want_c)  # the road did matter
+
+
+def test_world_refuses_a_taken_id_another_dt_or_another_gravity():
+    sim = Simulation(load_scene(SCENES / "flat_paper_sedan.yaml"), DT_S, car_id="a")
+    world = sim.world
+    other = Simulation(load_scene(SCENES / "flat_paper_sedan.yaml"), DT_S, car_id="a")
+    with pytest.raises(ValueError, match="car 'a': the world has a car of that id"):
+        other.move_to(world)
+    slow = Simulation(load_scene(SCENES / "flat_paper_sedan.yaml"), 0.002, car_id="b")
+    with pytest.raises(ValueError, match="car 'b': dt_s 0.002 differs"):
+        slow.move_to(world)
+    moon = Simulation(load_scene(SCENES / "flat_paper_sedan.yaml"), DT_S, car_id="m")
+    moon.model.vp[VP_GRAVITY_MPS2] = 1.62  # a view: the car's row of its world
+    with pytest.raises(ValueError, match="car 'm': gravity_mps2 1.62 differs"):
+        moon.move_to(world)
+    assert world.ids == ["a"]
+    with pytest.raises(KeyError, match="no car 'zz'"):
+        world.remove_car("zz")

@@ -1,0 +1,108 @@
+"""Headless scenarios with several cars on one terrain (``cars:``, issue 29).
+
+The shipped two-car hill scenario: one car braked at rest on a 15 % grade, one driving up
+behind it and stopping 2 m short. Each car's history equals that car run alone, bit for
+bit, and the order of the cars in the file changes nothing.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from simserver.adapters.config import ConfigError, read_yaml
+from simserver.adapters.history import CAR_ID_COLUMN, read_history, write_world_history
+from simserver.core import layout as L
+from simserver.core.params import VP_CG_TO_FRONT_AXLE_M, VP_CG_TO_REAR_AXLE_M
+from simserver.scenario import load_world_scenario, run_scenario, run_world_scenario
+from simserver.testing import REPO
+
+HILL = REPO / "configs" / "scenarios" / "two_car_hill_stop_short.yaml"
+OVERHANG_M = 0.85  # the viewer's body boxes (adapters.rerun_scene.CarGeometry.body_boxes)
+
+
+@pytest.fixture(scope="module")
+def hill():
+    return run_world_scenario(load_world_scenario(HILL))
+
+
+def _same(a, b) -> None:
+    for name in ("states", "outputs", "inputs", "final_state", "time_s"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+def test_each_car_of_the_hill_is_that_car_alone_bit_for_bit(hill):
+    world = load_world_scenario(HILL)
+    assert list(hill.cars) == ["lead", "follower"]
+    for cid, scenario in world.cars.items():
+        _same(hill.cars[cid], run_scenario(scenario))
+
+
+def test_the_follower_stops_2_m_short_of_the_braked_lead(hill):
+    """Bumper to bumper along the grade (the cars drive along world x on a plane with no
+    cross-slope: the road-plane x is the distance along the road)."""
+    lead, follower = hill.cars["lead"], hill.cars["follower"]
+    vp = load_world_scenario(HILL).first.scene.vehicle.vp
+    a, b = vp[VP_CG_TO_FRONT_AXLE_M], vp[VP_CG_TO_REAR_AXLE_M]
+    x_lead = lead.states[:, L.X_M]
+    x_follow = follower.states[:, L.X_M]
+    gap = (x_lead - b - OVERHANG_M) - (x_follow + a + OVERHANG_M)
+    assert abs(gap[-1] - 2.0) < 0.05, gap[-1]
+    assert gap.min() > 1.9  # it never came closer
+    assert np.abs(x_lead - x_lead[0]).max() < 0.01  # the lead stays put (tire springs)
+    assert abs(follower.states[-1, L.U_MPS]) < 1e-3 and abs(lead.states[-1, L.U_MPS]) < 1e-3
+    assert x_follow.max() - x_follow[0] > 5.0  # the follower did drive up
+
+
+def test_the_order_of_the_cars_in_the_file_changes_nothing(hill):
+    data = dict(read_yaml(HILL))
+    data["cars"] = list(reversed(data["cars"]))
+    swapped = run_world_scenario(load_world_scenario(HILL, data))
+    assert list(swapped.cars) == ["follower", "lead"]
+    for cid in hill.cars:
+        _same(swapped.cars[cid], hill.cars[cid])
+
+
+def test_one_history_with_a_car_id_column(hill, tmp_path):
+    path = write_world_history(hill.cars, tmp_path / "history.parquet")
+    cols = read_history(path)
+    assert next(iter(cols)) == CAR_ID_COLUMN
+    ids = cols[CAR_ID_COLUMN]
+    for cid, result in hill.cars.items():
+        rows = ids == cid
+        assert rows.sum() == len(result.time_s)
+        assert np.array_equal(cols["x_m"][rows], result.states[:, L.X_M])
+        assert np.array_equal(cols["time_s"][rows], result.time_s)
+
+
+def test_a_car_with_a_bad_key_is_named(tmp_path):
+    data = dict(read_yaml(HILL))
+    data["cars"] = [dict(c) for c in data["cars"]]
+    data["cars"][1]["initial"] = {"x_m": 0.0, "speed": 3.0}
+    with pytest.raises(ConfigError, match=r"^car 'follower' \(cars\[1\]\): .*'speed'"):
+        load_world_scenario(HILL, data)
+    data["cars"][1] = dict(data["cars"][0])
+    with pytest.raises(ConfigError, match=r"key 'cars\[1\]\.id': 'lead' is given twice"):
+        load_world_scenario(HILL, data)
+    with pytest.raises(ConfigError, match=r"key 'cars': expected a non-empty list"):
+        load_world_scenario(HILL, {**data, "cars": []})
+
+
+def test_run_scenario_writes_one_history_and_plots_every_car(tmp_path):
+    """``simserver run-scenario`` as a real subprocess on the two-car scenario."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "simserver.cli", "run-scenario", str(HILL),
+                           "--out", str(out)], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    cols = read_history(out / "history.parquet")
+    assert sorted(set(cols[CAR_ID_COLUMN])) == ["follower", "lead"]
+    assert (out / "cars.png").stat().st_size > 10_000
+    for cid in ("lead", "follower"):
+        assert (out / cid / "speed.png").is_file()
+    assert "2 cars" in proc.stdout
