@@ -53,6 +53,7 @@ from simserver.testing import (
     free_port,
     wait_until,
 )
+from tests.conftest import slow_enabled
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -790,13 +791,15 @@ def _travel_m(states, ref) -> np.ndarray:
     pytest.param(8.0, id="8s"),
     pytest.param(30.0, id="30s", marks=pytest.mark.slow),
 ])
-def test_keyboard_auto_hold_on_a_10pct_hill(hold_s):
+def test_keyboard_auto_hold_on_a_10pct_hill(hold_s, request):
     """The person's hill hold (issue 32): on ``hill_10pct_paper_sedan`` in a real terminal,
     drive up, brake to a stop with the down arrow and let go of every key: the driver's
     auto hold keeps the brake on (without it the car rolled back at -2.19 m/s within 3 s),
     the car stays within 1 mm for ``hold_s`` of simulated time, and the throttle drives it
     off with under 1 mm of rollback. The screen's hold line says the brake is held while
     it is, and no longer once the car drives off."""
+    if hold_s > 10.0 and not slow_enabled(request.config.getoption("markexpr")):
+        pytest.skip("long form: run with -m slow or SIMSERVER_SLOW=1")
     server = ServerProcess(vehicle_id="hill", scene="hill_10pct_paper_sedan")
     watcher = Client(server, state_capacity=1 << 16, keep_history=True)
     drv = PtyProcess(client_command("driver", "--rate", "200", *server.client_args()))
@@ -849,11 +852,13 @@ def test_keyboard_auto_hold_on_a_10pct_hill(hold_s):
     pytest.param(8.0, id="8s"),
     pytest.param(30.0, id="30s", marks=pytest.mark.slow),
 ])
-def test_gamepad_auto_hold_on_a_10pct_hill(tmp_path, hold_s):
+def test_gamepad_auto_hold_on_a_10pct_hill(tmp_path, hold_s, request):
     """The auto hold with the gamepad profile on SDL's virtual joystick (issue 32): half
     throttle up the 10 % hill, half brake to a stop, both triggers let go for
     ``hold_s``: the car stays within 1 mm with the pedal at rest (the hold's brake), then
     the throttle drives it off with under 1 mm of rollback."""
+    if hold_s > 10.0 and not slow_enabled(request.config.getoption("markexpr")):
+        pytest.skip("long form: run with -m slow or SIMSERVER_SLOW=1")
     release = 6.0
     script = write(tmp_path, "script.yaml", f"""\
 kind: joystick_script
