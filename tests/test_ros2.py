@@ -34,8 +34,8 @@ import numpy as np
 import pytest
 import xxhash
 import zenoh
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from benchmarks.ros2_flood import typestore
 from simserver import protocol as proto
 from simserver.adapters.zenoh_io import make_zenoh_config
 from simserver.testing import (
@@ -75,20 +75,7 @@ SUBSCRIBED = {
 }
 
 
-def make_typestore():
-    """rosbags' Jazzy store plus ackermann_msgs, independently of simserver.ros2."""
-    store = get_typestore(Stores.ROS2_JAZZY)
-    types = {}
-    types.update(get_types_from_msg(
-        "float32 steering_angle\nfloat32 steering_angle_velocity\nfloat32 speed\n"
-        "float32 acceleration\nfloat32 jerk\n", "ackermann_msgs/msg/AckermannDrive"))
-    types.update(get_types_from_msg("std_msgs/Header header\nAckermannDrive drive\n",
-                                    "ackermann_msgs/msg/AckermannDriveStamped"))
-    store.register(types)
-    return store
-
-
-TS = make_typestore()
+TS = typestore()  # rosbags' CDR, independent of simserver.ros2 (benchmarks.ros2_flood)
 
 
 def dds_name(ros_type: str) -> str:
