@@ -422,8 +422,17 @@ def _drive_car(world: WorldModel, data: WorldData, drv: Drivers, c: int) -> None
     if leader >= 0 and v_lead < LEADER_STOPPED_MPS:
         d_stop = min(d_stop, gap - dp[DP_IDM_S0_M])
     if d_stop < INF:
-        v_stop = np.sqrt(2.0 * dp[DP_STOP_DECEL_MPS2] * max(d_stop, 0.0))
-        a_des = min(a_des, STOP_GAIN_PER_S * (v_stop - v))
+        b_stop = dp[DP_STOP_DECEL_MPS2]
+        if d_stop > 0.0:
+            # track the speed that stops at the target at b_stop; once behind that
+            # profile (faster), at least the constant deceleration that stops there
+            a_stop = STOP_GAIN_PER_S * (np.sqrt(2.0 * b_stop * d_stop) - v)
+            a_kin = -v * abs(v) / (2.0 * d_stop)
+            if a_kin < -b_stop:
+                a_stop = min(a_stop, a_kin)
+        else:  # at or past it: stop now
+            a_stop = -dp[DP_DECEL_MAX_MPS2] if v > HOLD_SPEED_MPS else -STOP_GAIN_PER_S * v
+        a_des = min(a_des, a_stop)
     a_des = min(max(a_des, -dp[DP_DECEL_MAX_MPS2]), dp[DP_IDM_A_MPS2])
     # ---- lateral: pure pursuit from the rear axle
     pose = drv.pose[c]
