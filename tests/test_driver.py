@@ -10,12 +10,17 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import json
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from simserver.adapters.config import ConfigError, read_yaml
+from simserver.adapters.history import CAR_ID_COLUMN, read_history
 from simserver.adapters.opendrive import lane_start, load_opendrive
 from simserver.core import driver as D
 from simserver.core import layout as L
@@ -308,3 +313,27 @@ def test_bad_driver_keys_name_the_car():
         load_world_scenario(HILL, data)
     message = str(exc.value)
     assert "car 'traffic'" in message and "'tau_s'" in message and str(HILL) in message
+
+
+def test_run_scenario_runs_the_hill_queue_closed_loop(tmp_path):
+    """``simserver run-scenario`` as a real subprocess: the history holds the inputs the
+    driver applied (the traffic car's brake held at the queue, its throttle after), and
+    the summary the driver's section for the driven car only."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "simserver.cli", "run-scenario", str(HILL),
+                           "--out", str(out), "--no-plots"], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    cols = read_history(out / "history.parquet")
+    traffic = cols[CAR_ID_COLUMN] == "traffic"
+    t = cols["time_s"][traffic]
+    brake = cols["input_brake"][traffic]
+    throttle = cols["input_throttle"][traffic]
+    queued = (t > 22.0) & (t < 25.0)
+    assert (brake[queued] == 0.5).all() and (throttle[queued] == 0.0).all()
+    assert throttle[t > 40.0].min() > 0.1
+    summary = json.loads((out / "summary.json").read_text())
+    drv = summary["cars"]["traffic"]["driver"]
+    assert 1.0 <= drv["gap_min_m"] <= 1.02 and drv["held_s"] > 3.0
+    assert "driver" not in summary["cars"]["driven"]
