@@ -31,7 +31,7 @@ loader that packs more parameters than its model declared is refused when the fi
 Where a registration must live. Every process that reads a vehicle or runs the step needs
 the same registry, with the same ids (``tp[TP_MODEL]`` crosses processes: the server's
 load worker packs the tire vectors its loop then steps). The load worker is *spawned*
-(``simserver.load_worker``: a fresh interpreter that imports ``simserver`` anew), and so
+(``simserver.server.load_worker``: a fresh interpreter that imports ``simserver`` anew), and so
 are a sweep's workers when their nanny restarts them or with ``--numba-cache``, and a
 remote Dask worker shares nothing with the process that submitted the sweep. A
 ``register_tire_model`` call made in a script's ``__main__``, a test or a notebook is

@@ -35,7 +35,7 @@ its numbers do not depend on the other cars nor on their order in the file.
 
 The channels are ``steer``, ``throttle``, ``brake``, ``parking_brake`` (0/1 or true/false)
 and ``gear`` (P, R, N, D); how each is sampled between, before and after the keyframes that
-name it is defined in :mod:`simserver.keyframes`, which the player client shares.
+name it is defined in :mod:`simserver.sim.keyframes`, which the player client shares.
 """
 
 from __future__ import annotations
@@ -69,8 +69,8 @@ from simserver.adapters.terrain_files import terrain_from_spec, terrain_spec
 from simserver.adapters.validate import integer, referenced_file, short_repr
 from simserver.core import layout as L
 from simserver.core.terrain import TERRAIN_OPENDRIVE, Terrain, plane_terrain
-from simserver.keyframes import input_table, read_keyframe_file
-from simserver.simulation import Simulation
+from simserver.sim.keyframes import input_table, read_keyframe_file
+from simserver.sim.simulation import Simulation
 
 ROAD_RANGES = {"grade_pct": (-100.0, 100.0), "cross_slope_pct": (-100.0, 100.0),
                "friction_scale": (0.0, 3.0)}
@@ -445,7 +445,7 @@ def run_world_scenario(world_scenario: WorldScenario,
     """Run the cars of a world together, headless: each car starts as alone
     (``start_run``: a relaxed start settles the car by itself), then all are moved into
     the first car's world (its terrain and road, the world's keys) and advanced by the
-    world's step (``simserver.simulation.World.run``)."""
+    world's step (``simserver.sim.simulation.World.run``)."""
     ids = list(world_scenario.cars)
     starts = {cid: start_run(sc, car_id=cid) for cid, sc in world_scenario.cars.items()}
     world = starts[ids[0]][0].world

@@ -4,9 +4,9 @@ This module holds the server's configuration (``load_server_config``), the comma
 (``CommandLog``), the one place the server builds its ``Simulation`` (``new_simulation``), the
 zenoh wiring (``SimServer``) and the replay (``replay_command_log``). The logic is apart:
 
-- :mod:`simserver.server_loop`: the fixed-rate loop (pacer, inbox drain, publish,
+- :mod:`simserver.server.loop`: the fixed-rate loop (pacer, inbox drain, publish,
   controls dispatched through a table), with the clock, inboxes and publisher injected;
-- :mod:`simserver.vehicle_slot`: one car (command arbitration, watchdog, pause and step,
+- :mod:`simserver.server.slot`: one car (command arbitration, watchdog, pause and step,
   the state record, the controls' handlers).
 
 Every applied input change and every control that changes the physics is written to an
@@ -32,13 +32,15 @@ from typing import Any
 
 import numpy as np
 
-from simserver import protocol as proto
 from simserver.adapters.config import ConfigError, check_keys, number, read_yaml
 from simserver.adapters.validate import integer, is_path_text, short_repr
 from simserver.core import layout as L
-from simserver.load_worker import ProcessPreparer
-from simserver.logfile import LogWriter, check_log_path, open_log_file, renew_log_thread
-from simserver.realtime import (
+from simserver.ros2 import cli as ros2_cli
+from simserver.ros2.supervisor import AdapterSupervisor
+from simserver.server.load_worker import ProcessPreparer
+from simserver.server.logfile import LogWriter, check_log_path, open_log_file, renew_log_thread
+from simserver.server.loop import ServerLoop, SlotPorts
+from simserver.server.realtime import (
     DEFAULT_RT_PRIORITY,
     REALTIME_MODES,
     RealtimeScheduler,
@@ -47,20 +49,18 @@ from simserver.realtime import (
     parse_cpus,
     process_threads,
 )
-from simserver.ros2 import cli as ros2_cli
-from simserver.ros2.supervisor import AdapterSupervisor
-from simserver.scenario import INITIAL_RANGES, Scene, load_scene
-from simserver.server_loop import ServerLoop, SlotPorts
-from simserver.simulation import Simulation
-from simserver.vehicle_slot import VehicleSlot
+from simserver.server.slot import VehicleSlot
+from simserver.sim.scenario import INITIAL_RANGES, Scene, load_scene
+from simserver.sim.simulation import Simulation
+from simserver.wire import protocol as proto
 
 log = logging.getLogger("simserver.server")
 
 TICK_TRACE_ENV = "SIMSERVER_TICK_TRACE"
 """A file name in this environment variable makes the server record per-tick timing there
-(:class:`simserver.realtime.TickTrace`; ``benchmarks.bench_load`` reads it)."""
+(:class:`simserver.server.realtime.TickTrace`; ``benchmarks.bench_load`` reads it)."""
 
-REPO_CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+REPO_CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 DEFAULT_SERVER_CONFIG = REPO_CONFIGS / "server" / "default.yaml"
 
 SERVER_KEYS: dict[str, tuple[float, float] | None] = {
@@ -128,7 +128,7 @@ class ServerConfig:
     tls_front: str = "auto"  # auto: an accept-filtering front per tls/ listen endpoint
 
     def realtime_settings(self) -> RealtimeSettings:
-        """The real-time scheduling asked for (``simserver.realtime``)."""
+        """The real-time scheduling asked for (``simserver.server.realtime``)."""
         return RealtimeSettings(mode=self.realtime, priority=self.rt_priority,
                                 cpus=self.rt_cpus, lock_memory=self.rt_lock_memory)
 
@@ -176,7 +176,7 @@ def _check_command_log(where: str, log_path: Path) -> None:
 
 def _log_path(path: str | Path) -> Path:
     """An absolute log path whose last part is kept as it is: a symbolic link there is
-    refused, never followed (``simserver.logfile``)."""
+    refused, never followed (``simserver.server.logfile``)."""
     path = Path(os.path.abspath(path))
     return path.parent.resolve() / path.name
 
@@ -280,7 +280,7 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
         except RerunSinkError as exc:
             raise ConfigError(f"{where('viewer')}: {exc}") from exc
         why = check_log_path(Path(target)) if mode == "save" and target else None
-        if why is not None:  # a recording is written like a log (simserver.logfile)
+        if why is not None:  # a recording is written like a log (simserver.server.logfile)
             raise ConfigError(f"{where('viewer')}: {target} {why}")
     try:
         cfg.ros2 = ros2_cli.serve_settings(base.get("ros2"), ros2_flag, source=f"{path}: ros2")
@@ -308,14 +308,14 @@ class CommandLog:
     ``n`` steps is the live run's.
 
     Written off the tick (``docs/reliability.md``, "Logs that fail safe"): the tick thread
-    only formats a line and hands it to a :class:`simserver.logfile.LogWriter`, whose own
+    only formats a line and hands it to a :class:`simserver.server.logfile.LogWriter`, whose own
     thread writes control lines at once and input lines at least every
     ``COMMAND_LOG_FLUSH_S / 2``, so a ``kill -9`` of the server loses at most the last
     :data:`COMMAND_LOG_FLUSH_S` of inputs; a line torn by the kill is ignored by
     :func:`read_command_log`. No ``fsync`` but at a clean shutdown: what the server wrote
     survives the server's crash, not a crash of the machine. A write that fails closes the
     log with one warning and the live loop goes on. The file is opened by
-    :func:`simserver.logfile.open_log_file` (no symbolic link, regular files only, never
+    :func:`simserver.server.logfile.open_log_file` (no symbolic link, regular files only, never
     blocking).
     """
 
@@ -436,9 +436,9 @@ class SimServer:
     """The live server over zenoh: one vehicle slot, the loop, the viewer, the signals.
 
     ``run()`` blocks until SIGINT/SIGTERM or ``stop()``. The logic lives in
-    :class:`simserver.vehicle_slot.VehicleSlot` and :class:`simserver.server_loop.ServerLoop`;
+    :class:`simserver.server.slot.VehicleSlot` and :class:`simserver.server.loop.ServerLoop`;
     this class only wires them to zenoh (:mod:`simserver.adapters.zenoh_io`), applies the
-    real-time scheduling (:class:`simserver.realtime.RealtimeScheduler`) and watches the
+    real-time scheduling (:class:`simserver.server.realtime.RealtimeScheduler`) and watches the
     viewer and the vehicle's liveliness once a second.
     """
 
