@@ -49,7 +49,7 @@ def _child(scene_path: str) -> None:
 
     from simserver.core import tire_layout as TL
     from simserver.core.tire import tire_forces
-    from simserver.sim.scenario import load_scene
+    from simserver.sim.scene import load_scene
     from simserver.sim.simulation import Simulation
     from simserver.tires.registry import tire_kernels
 

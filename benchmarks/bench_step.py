@@ -40,7 +40,7 @@ import numpy as np
 
 from simserver.adapters.config import load_vehicle
 from simserver.core import layout as L
-from simserver.sim.scenario import INITIAL_RANGES, Scene
+from simserver.sim.scene import INITIAL_RANGES, Scene
 from simserver.sim.simulation import Simulation
 
 REPO = Path(__file__).resolve().parents[1]

@@ -25,7 +25,7 @@ import numpy as np
 from benchmarks.bench_step import DT_S, driving_cycle
 from simserver.core import layout as L
 from simserver.core.terrain import heightmap_terrain
-from simserver.sim.scenario import load_scene
+from simserver.sim.scene import load_scene
 from simserver.sim.simulation import Simulation
 
 REPO = Path(__file__).resolve().parents[1]

@@ -100,7 +100,7 @@ def hashing_runs() -> Iterator[hashlib._Hash]:
 
 
 def soak_digest(seconds: float) -> str:
-    from simserver.sim.scenario import load_scene
+    from simserver.sim.scene import load_scene
     from simserver.sim.soak import run_soak
 
     scene = load_scene(REPO / "configs/scenes/flat_paper_sedan.yaml")
@@ -111,7 +111,7 @@ def soak_digest(seconds: float) -> str:
 
 
 def replay_digest() -> str:
-    from simserver.server.app import replay_command_log
+    from simserver.server.command_log import replay_command_log
 
     cwd = os.getcwd()
     os.chdir(REPO)  # the log's scene paths are relative to the repository

@@ -126,7 +126,8 @@ def warm_scene(configs: Path, scene: Path) -> None:
     from simserver.adapters.viewer import rows_from_state
     from simserver.core import layout as L
     from simserver.core.params import VP_CG_HEIGHT_M
-    from simserver.server.app import SimServer, load_server_config
+    from simserver.server.app import SimServer
+    from simserver.server.config import load_server_config
     from simserver.wire import protocol as proto
 
     # 1. headless: the soak command as a user runs it (its JSON summary is not wanted here).

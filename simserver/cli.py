@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from simserver.analysis import cli as compare_cli
+from simserver.errors import CliError
 from simserver.ros2 import cli as ros2_cli
 from simserver.sweep import cli as sweep_cli
 
@@ -61,14 +62,6 @@ class Subcommand:
     add_arguments: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace], int]
     description: str = ""
-
-
-class CliError(Exception):
-    """An error to report as ``error: <message>`` with the given exit code."""
-
-    def __init__(self, message: str, exit_code: int = 1) -> None:
-        super().__init__(message)
-        self.exit_code = exit_code
 
 
 # ------------------------------------------------------------------------ run-scenario
@@ -476,7 +469,8 @@ def serve_command(args: argparse.Namespace) -> int:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from simserver.server.app import DEFAULT_SERVER_CONFIG, SimServer, load_server_config
+    from simserver.server.app import SimServer
+    from simserver.server.config import DEFAULT_SERVER_CONFIG, load_server_config
 
     cfg = load_server_config(
         args.config or DEFAULT_SERVER_CONFIG, scene=args.scene, vehicle_id=args.vehicle_id,
@@ -507,7 +501,7 @@ def replay_command(args: argparse.Namespace) -> int:
     """``simserver replay``: re-run a command log headless and check the final state."""
     import numpy as np
 
-    from simserver.server.app import replay_command_log
+    from simserver.server.command_log import replay_command_log
 
     rep = replay_command_log(args.log)
     if args.out is not None:
@@ -545,7 +539,7 @@ def soak_command(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from simserver.sim.scenario import load_scene
+    from simserver.sim.scene import load_scene
     from simserver.sim.soak import run_soak
 
     if not (math.isfinite(args.duration) and 0.0 < args.duration <= 1e7):
@@ -553,7 +547,7 @@ def soak_command(args: argparse.Namespace) -> int:
     if args.scene is None:
         # the server module only for its configs folder: a soak with --scene needs none
         # of the real-time machinery (issue 33)
-        from simserver.server.app import REPO_CONFIGS
+        from simserver.server.config import REPO_CONFIGS
 
         args.scene = REPO_CONFIGS / "scenes" / "flat_paper_sedan.yaml"
     scene = load_scene(args.scene)

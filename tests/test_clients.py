@@ -381,7 +381,8 @@ def test_axis_mapping_with_a_scripted_device():
 
 def test_player_samples_keyframes_like_the_headless_input_table():
     from simserver.core import layout as L
-    from simserver.sim.scenario import input_table, load_scenario
+    from simserver.sim.keyframes import input_table
+    from simserver.sim.scenario import load_scenario
 
     assert tuple(g.name for g in proto.Gear) == L.GEAR_NAMES
     for name in ("e2_stop_downslope_paper_damping", "e3_stop_from_turn",

@@ -25,7 +25,8 @@ from hypothesis import strategies as st
 from simserver.adapters.config import ConfigError, load_tire, load_vehicle
 from simserver.adapters.tir_file import TirError, load_tir, mf61_coefficients
 from simserver.adapters.validate import read_yaml
-from simserver.server.app import load_server_config, read_command_log
+from simserver.server.command_log import read_command_log
+from simserver.server.config import load_server_config
 from simserver.sim.keyframes import load_keyframe_file
 from simserver.sim.scenario import load_scenario
 from simserver.testing import CONFIGS

@@ -28,8 +28,8 @@ from simserver.core.terrain import (
     SLOPE_MAX,
     heightmap_terrain,
 )
-from simserver.server.app import REPO_CONFIGS
-from simserver.sim.scenario import load_scene
+from simserver.server.config import REPO_CONFIGS
+from simserver.sim.scene import load_scene
 from simserver.testing import CONFIGS, Client, ServerProcess, state_is_finite
 from simserver.wire import protocol as proto
 from tests.test_server_logic import Rig

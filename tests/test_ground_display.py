@@ -18,14 +18,10 @@ from clients.driver import ground_text
 from simserver.core.chassis import wheel_position
 from simserver.core.params import VP_CG_HEIGHT_M
 from simserver.core.terrain import surface_at
-from simserver.server.app import (
-    DEFAULT_SERVER_CONFIG,
-    REPO_CONFIGS,
-    load_server_config,
-    new_simulation,
-)
+from simserver.server.app import new_simulation
+from simserver.server.config import DEFAULT_SERVER_CONFIG, REPO_CONFIGS, load_server_config
 from simserver.server.slot import VehicleSlot
-from simserver.sim.scenario import load_scene
+from simserver.sim.scene import load_scene
 from simserver.wire import protocol as proto
 
 HILLS = REPO_CONFIGS / "scenes" / "hills_paper_sedan.yaml"

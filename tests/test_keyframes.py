@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simserver.sim import keyframes as K
 from simserver.adapters.validate import ConfigError
+from simserver.sim import keyframes as K
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = [p for p in sorted((REPO / "configs" / "scenarios").glob("*.yaml"))

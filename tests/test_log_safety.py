@@ -73,7 +73,7 @@ def _drive_until_cut(server: ServerProcess, probe: Client, log: Path) -> tuple[i
 def _check_cut_log_replays(server: ServerProcess, probe: Client, log: Path) -> None:
     """The server stops cleanly with its statistics; the cut log is whole lines ending with
     a cut end line, replays with ``simserver replay``, and the replay is the live run."""
-    from simserver.server.app import read_command_log, replay_command_log
+    from simserver.server.command_log import read_command_log, replay_command_log
 
     code = server.stop()
     out = server.text()
@@ -195,7 +195,7 @@ def test_the_tick_hands_lines_over_and_another_thread_writes_them(tmp_path):
     it. Now ``log_inputs`` and ``write`` only queue a line: with no further call from
     the tick, the lines reach the file within ``COMMAND_LOG_FLUSH_S``, written by the
     log's own thread, and the tick thread never writes (checked by its thread id)."""
-    from simserver.server.app import COMMAND_LOG_FLUSH_S, CommandLog, read_command_log
+    from simserver.server.command_log import COMMAND_LOG_FLUSH_S, CommandLog, read_command_log
 
     scene = REPO / "configs" / "scenes" / "flat_paper_sedan.yaml"
     path = tmp_path / "cmd.jsonl"

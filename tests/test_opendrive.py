@@ -185,7 +185,7 @@ def test_a_scene_starts_by_road_s_and_lane_on_the_surface(tmp_path):
     car is put on the surface (its wheels on the 60 degree bank, all four in contact)."""
     from simserver.adapters.opendrive import lane_start
     from simserver.core import layout as L
-    from simserver.sim.scenario import load_scene
+    from simserver.sim.scene import load_scene
     from simserver.sim.simulation import Simulation
 
     scene = load_scene(_scene(tmp_path, '{road: "1", s: 750.0, lane: -2}'))
@@ -212,7 +212,7 @@ def test_a_scene_starts_by_road_s_and_lane_on_the_surface(tmp_path):
 ])
 def test_a_bad_start_names_the_key(tmp_path, start, initial, terrain, needle):
     from simserver.adapters.validate import ConfigError
-    from simserver.sim.scenario import load_scene
+    from simserver.sim.scene import load_scene
 
     path = _scene(tmp_path, start, initial, *([terrain] if terrain else []))
     with pytest.raises(ConfigError) as err:

@@ -184,7 +184,7 @@ def test_unknown_model_option_is_an_error():
 
 def test_the_scene_road_ranges_are_the_road_table():
     """scenario.py validates the ``road:`` section; the docs print the ROAD table."""
-    from simserver.sim.scenario import ROAD_RANGES
+    from simserver.sim.scene import ROAD_RANGES
 
     assert ROAD_RANGES == {p.yaml_key: (p.lo, p.hi) for p in P.ROAD if not p.derived}
 

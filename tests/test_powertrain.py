@@ -20,7 +20,7 @@ from simserver.adapters.config import ConfigError, load_vehicle, resolve_vehicle
 from simserver.core import layout as L
 from simserver.core import params as P
 from simserver.core.powertrain import RADPS_PER_RPM, creep_hold_brake_pedal
-from simserver.sim.scenario import Scene
+from simserver.sim.scene import Scene
 from simserver.sim.simulation import Simulation
 from simserver.testing import Client, ServerProcess
 from simserver.wire import protocol as proto

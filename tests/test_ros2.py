@@ -617,7 +617,7 @@ def test_serve_ros2_flag_and_a_killed_adapter_is_restarted_within_2_s() -> None:
 def test_a_bad_ros2_section_is_refused_at_load_naming_file_and_key(section, message,
                                                                    tmp_path) -> None:
     from simserver.adapters.config import ConfigError
-    from simserver.server.app import load_server_config
+    from simserver.server.config import load_server_config
 
     config = tmp_path / "server.yaml"
     config.write_text(f"scene: {FLAT_SCENE}\n{section}\n", encoding="utf-8")
@@ -627,7 +627,7 @@ def test_a_bad_ros2_section_is_refused_at_load_naming_file_and_key(section, mess
 
 
 def test_ros2_section_and_flags_decide_together(tmp_path) -> None:
-    from simserver.server.app import load_server_config
+    from simserver.server.config import load_server_config
 
     config = tmp_path / "server.yaml"
     config.write_text(f"scene: {FLAT_SCENE}\nros2: {{domain_id: 3}}\n", encoding="utf-8")

@@ -44,7 +44,7 @@ from simserver.adapters.zenoh_io import (
     config_warnings,
     make_zenoh_config,
 )
-from simserver.server.app import DEFAULT_SERVER_CONFIG, load_server_config
+from simserver.server.config import DEFAULT_SERVER_CONFIG, load_server_config
 from simserver.testing import (
     CONFIGS,
     Client,

@@ -19,18 +19,13 @@ import numpy as np
 import pytest
 
 from simserver.core import layout as L
-from simserver.server.app import (
-    DEFAULT_SERVER_CONFIG,
-    REPO_CONFIGS,
-    CommandLog,
-    new_simulation,
-    read_command_log,
-    replay_command_log,
-)
-from simserver.server.app import load_server_config as _load_server_config
+from simserver.server.app import new_simulation
+from simserver.server.command_log import CommandLog, read_command_log, replay_command_log
+from simserver.server.config import DEFAULT_SERVER_CONFIG, REPO_CONFIGS
+from simserver.server.config import load_server_config as _load_server_config
 from simserver.server.loop import CONTROLS, ServerLoop, SlotPorts
 from simserver.server.slot import VehicleSlot
-from simserver.sim.scenario import Scene, load_scene
+from simserver.sim.scene import Scene, load_scene
 from simserver.wire import protocol as proto
 
 pytestmark = pytest.mark.timeout(120)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from simserver.core import layout as L
-from simserver.sim.scenario import load_scene
+from simserver.sim.scene import load_scene
 from simserver.sim.soak import check_invariants, manoeuvre_plan, run_soak
 from tests.conftest import CONFIGS, REPO
 

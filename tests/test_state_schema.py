@@ -19,14 +19,10 @@ import pytest
 from clients import recorder
 from simserver.adapters.history import HISTORY_COLUMNS, column_unit
 from simserver.core import layout as L
-from simserver.server.app import (
-    DEFAULT_SERVER_CONFIG,
-    REPO_CONFIGS,
-    load_server_config,
-    new_simulation,
-)
+from simserver.server.app import new_simulation
+from simserver.server.config import DEFAULT_SERVER_CONFIG, REPO_CONFIGS, load_server_config
 from simserver.server.slot import COMPUTED_STATE_FIELDS, VehicleSlot
-from simserver.sim.scenario import load_scene
+from simserver.sim.scene import load_scene
 from simserver.testing import Client, OutputProcess, ServerProcess, client_command, client_env
 from simserver.wire import protocol as proto
 from simserver.wire import state_schema as S

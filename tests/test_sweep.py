@@ -203,7 +203,7 @@ def test_resume_after_ctrl_c_runs_only_the_rest(tmp_path):
 
 
 def test_soak_case_is_run_soak_of_its_scene_and_seed(tmp_path):
-    from simserver.sim.scenario import load_scene
+    from simserver.sim.scene import load_scene
     from simserver.sim.soak import run_soak
     from simserver.sweep.worker import run_case
 

@@ -25,7 +25,7 @@ from simserver.core.params import (
 )
 from simserver.core.road import road_axes
 from simserver.core.terrain import TERRAIN_HEIGHTMAP, heightmap_terrain, surface_at
-from simserver.sim.scenario import load_scene
+from simserver.sim.scene import load_scene
 from simserver.sim.simulation import Simulation
 
 REPO = Path(__file__).resolve().parents[1]

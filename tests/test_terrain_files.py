@@ -18,7 +18,8 @@ from simserver.adapters.terrain_files import TERRAIN_SCHEMAS, terrain_spec
 from simserver.adapters.validate import ConfigError, confined_to
 from simserver.core.terrain import TERRAIN_HEIGHTMAP, TERRAIN_KINDS
 from simserver.server.slot import prepare_load
-from simserver.sim.scenario import load_scenario, load_scene, resolve_scenario
+from simserver.sim.scenario import load_scenario, resolve_scenario
+from simserver.sim.scene import load_scene
 from simserver.sweep.resolved import run_id
 
 REPO = Path(__file__).resolve().parents[1]

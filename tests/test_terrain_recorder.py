@@ -30,7 +30,7 @@ SCENE = "hills_paper_sedan"
 def test_recorder_on_a_height_map_uses_the_reference_plane(tmp_path):
     from simserver.adapters.history import read_history
     from simserver.core import layout as L
-    from simserver.sim.scenario import load_scene
+    from simserver.sim.scene import load_scene
     from simserver.sim.simulation import Simulation
 
     server = ServerProcess(vehicle_id="terr", scene=SCENE)

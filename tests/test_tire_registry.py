@@ -42,7 +42,8 @@ from simserver.core.tire_layout import (
     TP_MODEL_BASE,
 )
 from simserver.core.variants import UnknownVariantError
-from simserver.sim.scenario import load_scenario, load_scene, run_scenario
+from simserver.sim.scenario import load_scenario, run_scenario
+from simserver.sim.scene import load_scene
 from simserver.sim.simulation import Simulation
 from simserver.tires.registry import (
     LoadedTire,

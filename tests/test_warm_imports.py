@@ -21,10 +21,10 @@ FLAT = CONFIGS / "scenes" / "flat_paper_sedan.yaml"
 TIRE = CONFIGS / "tires" / "paper_sti.yaml"
 CMDLOG = REPO / "tests" / "data" / "first_release_live.cmdlog"
 HEAVY = ("matplotlib", "pyarrow", "dask", "distributed", "rerun", "zenoh",
-         "simserver.server.app")
-"""Packages (and the real-time server module) that cost start-up time and that some warm
+         "simserver.server.app", "simserver.server.command_log")
+"""Packages (and the real-time server's modules) that cost start-up time and that some warm
 path does not need; ``simserver.server.app`` pulls in the tick loop, the workers and the
-ROS 2 supervisor."""
+ROS 2 supervisor; ``simserver.server.command_log`` is the replay's (the sign it ran)."""
 
 REPORT = "import json, sys\nprint(json.dumps(sorted(m for m in {heavy!r} if m in sys.modules)))\n"
 
@@ -57,8 +57,8 @@ def _cli(*argv: str) -> str:
      set(), {"matplotlib", "pyarrow", "rerun", "dask", "distributed", "zenoh",
              "simserver.server.app"}),
     (("replay", str(CMDLOG)),
-     {"simserver.server.app"}, {"matplotlib", "pyarrow", "rerun", "dask", "distributed",
-                            "zenoh"}),
+     {"simserver.server.command_log"}, {"matplotlib", "pyarrow", "rerun", "dask",
+                                        "distributed", "zenoh", "simserver.server.app"}),
 ], ids=["run-scenario-no-plots", "run-scenario-plots-rrd", "tire-curves", "soak", "replay"])
 def test_a_warm_command_imports_only_what_it_uses(tmp_path, argv, needed, not_needed):
     loaded = _loaded(_cli(*(a.format(tmp=tmp_path) for a in argv)))

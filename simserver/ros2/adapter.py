@@ -52,7 +52,7 @@ import zenoh
 from simserver.ros2 import wire
 from simserver.ros2.control import DriveTarget, SpeedController, VehicleLimits, twist_steer_angle
 from simserver.ros2.convert import StateConverter
-from simserver.server.slot import RateLimitedLog
+from simserver.server.logfile import RateLimitedLog
 from simserver.wire import protocol as proto
 
 log = logging.getLogger("simserver.ros2")

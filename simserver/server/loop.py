@@ -54,7 +54,7 @@ from simserver.server.slot import StagedStart, VehicleSlot, unwrap_prepared
 from simserver.wire import protocol as proto
 
 if TYPE_CHECKING:
-    from simserver.server.app import ServerConfig
+    from simserver.server.config import ServerConfig
 
 log = logging.getLogger("simserver.server")
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -32,12 +31,14 @@ from simserver.adapters.validate import ConfigError, confined_to, display_path, 
 from simserver.core import layout as L
 from simserver.core.terrain import TERRAIN_KINDS, TERRAIN_PLANE
 from simserver.server.load_worker import release_later
-from simserver.sim.scenario import Scene, load_scene
+from simserver.server.logfile import RateLimitedLog
+from simserver.sim.scene import Scene, load_scene
 from simserver.wire import protocol as proto
 from simserver.wire.state_schema import SERVER_FIELDS, fill_record
 
 if TYPE_CHECKING:
-    from simserver.server.app import CommandLog, ServerConfig
+    from simserver.server.command_log import CommandLog
+    from simserver.server.config import ServerConfig
     from simserver.sim.simulation import PreparedStart
 
 log = logging.getLogger("simserver.server")
@@ -98,28 +99,6 @@ def ground_slopes_pct(sim: SimulationAPI, yaw_rad: float) -> tuple[float, float]
     return proto.ground_slopes_pct(grade, cross, yaw_rad)
 
 
-class RateLimitedLog:
-    """Log a recurring warning at most once per ``interval_s``, with the count in between
-    (to ``logger``, default this module's)."""
-
-    def __init__(self, interval_s: float = 1.0, logger: logging.Logger | None = None) -> None:
-        self.interval_s = interval_s
-        self.log = logger or log
-        self._last = -math.inf
-        self._suppressed = 0
-
-    def warn(self, message: str, now_s: float | None = None) -> None:
-        """Log ``message`` unless one was logged less than ``interval_s`` before ``now_s``."""
-        now = time.monotonic() if now_s is None else now_s
-        if now - self._last >= self.interval_s:
-            extra = f" ({self._suppressed} more since the last report)" if self._suppressed else ""
-            self.log.warning("%s%s", message, extra)
-            self._last = now
-            self._suppressed = 0
-        else:
-            self._suppressed += 1
-
-
 class CommandArbiter:
     """Decode, validate and arbitrate the driver commands of one car (docs/protocol.md 2.1).
 
@@ -137,7 +116,7 @@ class CommandArbiter:
         self.last_cmd_ns: int | None = None  # loop clock when the last valid one arrived
         self.last_sender_ns = 0
         self.commanded = initial_inputs.copy()
-        self.reject_log = RateLimitedLog()
+        self.reject_log = RateLimitedLog(logger=log)
 
     def take(self, payloads: list[bytes], now_ns: int, buffer_full: bool = False) -> None:
         """Apply the newest valid command among ``payloads`` (oldest first), if any.

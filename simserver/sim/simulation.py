@@ -47,7 +47,7 @@ from simserver.core.world import step as world_step
 from simserver.tires.registry import check_tire_vectors, tire_kernels
 
 if TYPE_CHECKING:
-    from simserver.sim.scenario import Scene
+    from simserver.sim.scene import Scene
 
 
 def initial_state(scene: Scene) -> np.ndarray:

@@ -30,7 +30,7 @@ import numpy as np
 
 from simserver.core import layout as L
 from simserver.core.chassis import static_wheel_load
-from simserver.sim.scenario import Scene
+from simserver.sim.scene import Scene
 from simserver.sim.simulation import Simulation
 
 SPEED_LIMIT_MPS = 80.0

@@ -172,7 +172,7 @@ def run_for_metrics(scenario: Any, names: Iterable[str]) -> MetricRun:
 def warm_up(resolved: dict[str, Any], label: str) -> float:
     """Load (or compile) the compiled kernels on a case's scene (``Simulation.warm_up``).
     Returns the seconds; a scene that does not load warms nothing (its runs say why)."""
-    from simserver.sim.scenario import parse_scene
+    from simserver.sim.scene import parse_scene
     from simserver.sim.simulation import Simulation
 
     t0 = time.perf_counter()
@@ -254,7 +254,7 @@ def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -
 
 def run_soak_case(case: Case, row: dict[str, Any]) -> None:
     """A soak case: ``run_soak`` on the case's scene, as ``simserver soak`` runs it."""
-    from simserver.sim.scenario import parse_scene
+    from simserver.sim.scene import parse_scene
     from simserver.sim.soak import run_soak
 
     soak = case.resolved["soak"]

@@ -340,7 +340,7 @@ def read_tire_params(path: Path, data: dict[str, Any], table: ParamTable,
     Optional keys absent from the file are absent from the result when their default is a
     text (a value the loader computes), else they take their default.
     """
-    from simserver.adapters.config import check_keys, number
+    from simserver.adapters.validate import check_keys, number
 
     check_keys(path, data, ("model", *path_keys, *table.keys),
                required=("model", *path_keys, *table.required_keys))
@@ -422,9 +422,8 @@ def _load_mf61(path: Path, data: dict[str, Any]) -> LoadedTire:
     """``model: mf61`` (core.tire_mf61): a ``tir_file`` (relative to the tire file) and
     optional radius and relaxation lengths (defaults from the .tir file, see
     ``mf61_relaxation_lengths``); the tire's side from the .tir's ``TYRESIDE``."""
-    from simserver.adapters.config import ConfigError, number
     from simserver.adapters.tir_file import TirError, load_tir, mf61_coefficients
-    from simserver.adapters.validate import referenced_file
+    from simserver.adapters.validate import ConfigError, number, referenced_file
 
     vals = read_tire_params(path, data, MF61_TIRE_PARAMS, path_keys=("tir_file",))
     tir_path = referenced_file(path, "tir_file", data["tir_file"])
