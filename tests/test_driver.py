@@ -28,7 +28,7 @@ from simserver.core.param_table import slot_constants_source
 from simserver.core.params import VP_CG_HEIGHT_M, VP_CG_TO_FRONT_AXLE_M, VP_CG_TO_REAR_AXLE_M
 from simserver.core.pose import world_pose
 from simserver.core.road import road_axes
-from simserver.scenario import (
+from simserver.sim.scenario import (
     load_scenario,
     load_world_scenario,
     run_scenario,

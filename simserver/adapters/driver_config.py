@@ -43,8 +43,8 @@ from simserver.core.terrain import TERRAIN_PLANE, Terrain, surface_at
 from simserver.core.tire_layout import TP_RADIUS_M
 
 if TYPE_CHECKING:
-    from simserver.scenario import Scene
-    from simserver.simulation import World
+    from simserver.sim.scene import Scene
+    from simserver.sim.simulation import World
 
 PATH_POINTS_KEYS = ("points",)
 PATH_LANE_KEYS = ("road", "lane", "s_from_m", "s_to_m", "step_m")
