@@ -97,7 +97,8 @@ def test_follows_a_lane_of_curves_elevation_at_15_mps_within_0p3_m_rms(duration_
     radius and the spirals into the right turn); the long form 900 m."""
     if duration_s > 40.0 and not slow_enabled(request.config.getoption("markexpr")):
         pytest.skip("long form: run with -m slow or SIMSERVER_SLOW=1")
-    scenario = dataclasses.replace(load_scenario(LANE), duration_s=duration_s)
+    scenario = dataclasses.replace(load_world_scenario(LANE).cars["driven"],
+                                   duration_s=duration_s)
     result = run_scenario(scenario)
     assert np.isfinite(result.states).all()
     err = lane_error_m(result)
