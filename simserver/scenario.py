@@ -71,6 +71,7 @@ from simserver.core import layout as L
 from simserver.core.terrain import TERRAIN_OPENDRIVE, Terrain, plane_terrain
 from simserver.keyframes import input_table, read_keyframe_file
 from simserver.simulation import Simulation
+from simserver.speed_hold import SpeedController, SpeedHold, parse_speed_hold
 
 ROAD_RANGES = {"grade_pct": (-100.0, 100.0), "cross_slope_pct": (-100.0, 100.0),
                "friction_scale": (0.0, 3.0)}
@@ -129,6 +130,8 @@ class Scenario:
     dt_s: float
     record_every: int
     keyframes: list[dict[str, Any]]
+    analysis: dict[str, Any] | None = None  # analysis.manoeuvres.parse_analysis
+    speed_hold: SpeedHold | None = None  # speed_hold.parse_speed_hold
 
     @property
     def n_steps(self) -> int:
@@ -237,7 +240,7 @@ def start_by_lane(path: Path | str, key: str, raw: Any, roads: OpenDrive | None
     return {"x_m": x_m, "y_m": y_m, "yaw_rad": yaw_rad}
 
 
-SCENARIO_ONLY_KEYS = ("duration_s", "dt_s", "record_every", "inputs")
+SCENARIO_ONLY_KEYS = ("duration_s", "dt_s", "record_every", "inputs", "analysis", "speed_hold")
 
 
 def load_scene(path: str | Path, vehicle_path: str | Path | None = None) -> Scene:
@@ -268,10 +271,13 @@ def load_scenario(path: str | Path, data: dict[str, Any] | None = None) -> Scena
     dt = number(path, "dt_s", data.get("dt_s", 0.001), 1e-5, 0.01)
     record_every = integer(path, "record_every", data.get("record_every", 1), 1, 1_000_000)
     check_run_size(path, run.duration_s, dt, record_every)
+    from simserver.analysis.manoeuvres import parse_analysis
+
     return Scenario(
         name=run.name, path=path, description=str(data.get("description", "")), scene=scene,
         duration_s=run.duration_s, dt_s=dt, record_every=record_every,
-        keyframes=run.keyframes,
+        keyframes=run.keyframes, analysis=parse_analysis(path, data.get("analysis")),
+        speed_hold=parse_speed_hold(path, data.get("speed_hold")),
     )
 
 
@@ -356,10 +362,17 @@ def run_scenario(
     n_rec = (n + every - 1) // every
     states = np.zeros((n_rec, L.N_STATE))
     outputs = np.zeros((n_rec, L.N_OUT))
+    hold = None
+    if scenario.speed_hold is not None:  # the throttle of each period set from the state
+        hold = SpeedController(scenario.speed_hold, inputs, scenario.dt_s, every)
+        chunk_steps = hold.period
+        hold.control(0, sim.x)
     t0 = time.perf_counter()
     for done, _, _, _ in step_chunks(sim, inputs, every, chunk_steps,
                                      lambda r0, rows: (states[r0:r0 + rows],
                                                        outputs[r0:r0 + rows])):
+        if hold is not None and done < n:
+            hold.control(done, sim.x)
         if progress is not None:
             progress(done, n)
     wall = time.perf_counter() - t0
@@ -371,7 +384,7 @@ def run_scenario(
 
 # ------------------------------------------------------------------- several cars, one world
 WORLD_KEYS = ("name", "description", "road", "terrain", "duration_s", "dt_s", "record_every",
-              "cars")
+              "analysis", "cars")
 """The keys of a scenario with ``cars:``: the world's (shared by every car) and the list."""
 CAR_KEYS = ("id", "vehicle", "initial", "start", "model", "inputs")
 """The keys of one car of ``cars:``: what a single car's scenario gives for its car."""
