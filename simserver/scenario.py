@@ -19,6 +19,10 @@ Scenario YAML (paths relative to the scenario file)::
       - {t: 0.0, gear: D}
       - {t: 1.0, brake: 0.0}
       - {t: 1.3, brake: 0.6}
+    analysis: iso7401_step_steer   # optional: a standard manoeuvre's figures and criteria
+                             # in the summary (simserver.analysis.manoeuvres, docs/manoeuvres.md)
+    speed_hold: {speed_mps: 22.2}  # optional: the throttle holds a speed
+                             # (simserver.speed_hold; not with cars:)
 
 Several cars on one terrain (``cars:``; docs/model.md section 14): the world's keys
 (``name``, ``description``, ``road``, ``terrain``, ``duration_s``, ``dt_s``,

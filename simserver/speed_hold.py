@@ -14,14 +14,14 @@ A scenario's ``speed_hold`` key::
                  from_s: 0.0, until_s: 40.0, keep_throttle: 1}
 
 Over ``[from_s, until_s)`` the throttle of each control period (``PERIOD_S``) is the
-keyframes' throttle (a feed-forward) plus a PI term on ``speed_mps - u``, clipped to
-[0, 1]; the brake is the keyframes'. With ``keep_throttle: 1`` the throttle stays
-where the hold left it from ``until_s`` to the end (a driver keeping the pedal still
-through a step steer, ISO 7401); otherwise the keyframes' throttle applies again. The
-controller reads the state at the end of the period before (a driver's delay of one
-period) and writes the inputs the runner then steps, so the history's ``input_throttle``
-is what was applied. Only ``run_scenario`` applies it (the sweep's workers and the world
-runner of ``cars:`` run open-loop keyframes; ``cars:`` refuses the key).
+keyframes' throttle (a feed-forward) plus a PI term on ``speed_mps - u``, clipped to [0,
+1]; the brake is the keyframes'. With ``keep_throttle: 1`` the throttle stays where the
+hold left it from ``until_s`` to the end (a driver keeping the pedal still through a
+step steer, ISO 7401); otherwise the keyframes' throttle applies again. The controller
+reads the state at the start of each period and writes the period's inputs before the
+runner steps them, so the history's ``input_throttle`` is what was applied.
+``run_scenario`` applies it (and so the sweep's workers, which run a scenario with a
+hold through it); a scenario of several cars (``cars:``) refuses the key.
 """
 
 from __future__ import annotations
