@@ -21,7 +21,14 @@ from simserver.analysis import manoeuvres as M
 from simserver.core import params as P
 from simserver.core.layout import GEAR_D, GEAR_R
 from simserver.core.tire import BUILTIN_KERNELS, tire_forces
-from simserver.core.tire_layout import N_TIRE_OUT, OUT_FY, OUT_MY, OUT_MZ, TP_RADIUS_M
+from simserver.core.tire_layout import (
+    N_TIRE_OUT,
+    OUT_FY,
+    OUT_MY,
+    OUT_MZ,
+    TP_RADIUS_M,
+    TP_RELAX_LAT_M,
+)
 from simserver.scenario import (
     is_world_scenario,
     load_scenario,
@@ -129,8 +136,50 @@ def linear_steady_state(vehicle_file: Path, fz: list[float], kappa: list[float],
                      + mz_z * d_fz - y_wheel[i] * d_fx)
     tan_f, tan_r = np.linalg.solve(coef, np.array([m, 0.0]) - const)
     return {"tan_alpha_per_ay": (tan_f, tan_r), "understeer_rad": tan_r - tan_f,
-            "roll_rad": phi, "b_m": b, "wheelbase_m": a + b,
-            "steering_ratio": vp[P.VP_STEERING_RATIO]}
+            "roll_rad": phi, "a_m": a, "b_m": b, "wheelbase_m": a + b, "mass_kg": m,
+            "yaw_inertia_kgm2": vp[P.VP_YAW_INERTIA_KGM2],
+            "steering_ratio": vp[P.VP_STEERING_RATIO], "coef": coef, "const": const,
+            "relaxation_m": (veh.tp[0][TP_RELAX_LAT_M], veh.tp[2][TP_RELAX_LAT_M])}
+
+
+def linear_step_response(ref, u: float, delta_h, t):
+    """The linear single-track model's response to the steering-wheel angle ``delta_h(t)``
+    (rad) at speed ``u``: lateral velocity, yaw rate and each axle's lagged slip
+    ``tan a'`` (``b d(tan a')/dt + u tan a' = v_hub``, docs/model.md section 3, with the
+    tire's own relaxation length), the axle forces and moments of ``linear_steady_state``
+    and its chassis terms taken as quasi-static in the lateral acceleration. Integrated by
+    RK4 on the rows ``t``; returns yaw rate and lateral acceleration."""
+    (ff, fr), (mf_yaw, mr_yaw) = ref["coef"]
+    c_force, c_moment = ref["const"]
+    m, iz, a, b = ref["mass_kg"], ref["yaw_inertia_kgm2"], ref["a_m"], ref["b_m"]
+    sig_f, sig_r = ref["relaxation_m"]
+    ratio = ref["steering_ratio"]
+
+    def ay_of(x):
+        return (ff * x[2] + fr * x[3]) / (m - c_force)
+
+    def f(x, tt):
+        v, r, tf, tr = x
+        ay = ay_of(x)
+        delta = delta_h(tt) / ratio
+        return np.array([ay - u * r,
+                         (mf_yaw * tf + mr_yaw * tr + c_moment * ay) / iz,
+                         (v + a * r - u * delta - u * tf) / sig_f,
+                         (v - b * r - u * tr) / sig_r])
+
+    x = np.zeros(4)
+    r_out, ay_out = np.zeros_like(t), np.zeros_like(t)
+    for k in range(len(t)):
+        r_out[k], ay_out[k] = x[1], ay_of(x)
+        if k + 1 == len(t):
+            break
+        h = t[k + 1] - t[k]
+        k1 = f(x, t[k])
+        k2 = f(x + 0.5 * h * k1, t[k] + 0.5 * h)
+        k3 = f(x + 0.5 * h * k2, t[k] + 0.5 * h)
+        k4 = f(x + h * k3, t[k] + h)
+        x = x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    return r_out, ay_out
 
 
 def _straight_point(cols, before_s: float):
@@ -220,6 +269,37 @@ def test_step_steer_steady_state_against_the_linear_model(step_steer):
     gain = u / (ref["steering_ratio"] * (ref["wheelbase_m"] + ref["understeer_rad"] * u ** 2))
     run = summary["manoeuvre"]["figures"]["yaw_rate_gain_per_s"]
     assert gain * 0.88 < run < gain
+
+
+def test_small_step_against_the_linear_single_track_response():
+    """The shipped step steer at 4 deg instead of 24 (0.7 m/s^2, the tires' linear range)
+    against the linear single-track model with lagged slip (``linear_step_response``,
+    the same steering ramp): response and peak response times within 5 %, overshoots
+    within half a point, steady values within 2 %. (The ISO level, 24 deg, is past the
+    linear range: there the run's yaw overshoot is 7.2 % against the model's 2.9 %.)"""
+    step = math.radians(4.0)
+    inputs = [{"t": 0.0, "steer": 0.0, "throttle": 0.0, "gear": "D"}, {"t": 2.0, "steer": 0.0},
+              {"t": 2.1, "steer": step / 8.2}]  # the hatchback's steering_wheel_max_rad
+    cols, summary = _run("iso7401_step_steer", inputs=inputs)["car0"]
+    run = summary["manoeuvre"]["figures"]
+    fz, kappa, u = _straight_point(cols, 2.0)
+    vehicle = CONFIGS / "vehicles/mf_hatchback/vehicle.yaml"
+    ref = linear_steady_state(vehicle, fz, kappa, u)
+    t = cols["time_s"]
+    # the state's steering-wheel angle is the step's input one row later (1 ms)
+    r, ay = linear_step_response(
+        ref, u, lambda tt: step * min(1.0, max(0.0, (tt - 2.001) / 0.1)), t)
+    lin = M.iso7401_step_steer({"time_s": t, "steering_wheel_angle_rad":
+                                cols["steering_wheel_angle_rad"], "yaw_rate_radps": r,
+                                "ay_mps2": ay, "u_mps": cols["u_mps"]},
+                               M.car_facts(load_vehicle(vehicle, {}).vp))["figures"]
+    for name in ("yaw_rate", "ay"):
+        for key in (f"{name}_response_time_s", f"{name}_peak_response_time_s"):
+            assert run[key] == pytest.approx(lin[key], rel=0.05), key
+        assert run[f"{name}_overshoot_pct"] == pytest.approx(lin[f"{name}_overshoot_pct"],
+                                                             abs=0.5)
+    assert run["yaw_rate_steady_degps"] == pytest.approx(lin["yaw_rate_steady_degps"], rel=0.02)
+    assert run["ay_steady_mps2"] == pytest.approx(lin["ay_steady_mps2"], rel=0.02)
 
 
 def test_sis_angle_and_the_sine_with_dwell_scenario_it_sets(sis, swd):
