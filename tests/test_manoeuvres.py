@@ -324,6 +324,30 @@ def test_sis_angle_and_the_sine_with_dwell_scenario_it_sets(sis, swd):
     assert amplitude == pytest.approx(6.5 * f["A_deg"], abs=0.06)
 
 
+def test_the_series_file_and_its_mirrored_runs(sis):
+    """The shipped two-series file is the generator's text for the A of the slowly
+    increasing steer; its right-first runs are the left-first ones mirrored (the car is
+    symmetric: the same figures, the steering and yaw rate of opposite sign), run here for
+    the 6.5 A pair and the final 270 deg pair (the full file: 50 runs)."""
+    a_deg = sis[1]["manoeuvre"]["figures"]["A_deg"]
+    path = SCENARIOS / "fmvss126_sine_with_dwell_series.yaml"
+    assert path.read_text() == M.sine_with_dwell_series_scenario(
+        a_deg, "../vehicles/mf_hatchback/vehicle.yaml", 8.2)
+    data = read_yaml(path)
+    ids = [c["id"] for c in data["cars"]]
+    assert len(ids) == 2 * len(M.swd_amplitudes_deg(a_deg))
+    pick = [f"{side}_{amp}deg" for side in ("left", "right") for amp in ("131p4", "270p0")]
+    data["cars"] = [c for c in data["cars"] if c["id"] in pick]
+    result = run_world_scenario(load_world_scenario(path, data))
+    figures = {cid: summarize(r)["manoeuvre"]["figures"] for cid, r in result.cars.items()}
+    for amp in ("131p4", "270p0"):
+        left, right = figures[f"left_{amp}deg"], figures[f"right_{amp}deg"]
+        assert left["first_left"] and not right["first_left"]
+        for key in ("amplitude_deg", "yaw_rate_peak_degps", "yaw_rate_ratio_1p0_s_pct",
+                    "yaw_rate_ratio_1p75_s_pct", "lateral_displacement_1p07_s_m", "cos_s"):
+            assert right[key] == pytest.approx(left[key], rel=1e-6, abs=1e-9), key
+
+
 def test_swd_amplitude_series():
     """S7.9: 1.5 A up in 0.5 A steps to the final run, the greater of 6.5 A and 270 deg,
     300 deg when 6.5 A is over 300 deg."""

@@ -55,8 +55,13 @@ def manoeuvre_figure(title: str, sections: Mapping[str, Mapping[str, Any]],
                      cols: Mapping[str, Cols]) -> Figure:
     """The plot of a manoeuvre (one kind for every car of the run)."""
     kind = next(iter(sections.values()))["analysis"]
-    draw = _DRAW[kind]
-    return draw(title, sections, cols)
+    if kind == "fmvss126_sine_with_dwell" and len(sections) > 1:
+        return _swd_series(title, sections)
+    if kind not in ("hill_start", "fmvss105_parking_brake") and len(sections) > 1:
+        first = next(iter(sections))  # a one-car plot: the first car's
+        return _DRAW[kind](f"{title} (car {first}, the first of {len(sections)})",
+                           {first: sections[first]}, cols)
+    return _DRAW[kind](title, sections, cols)
 
 
 def _fit_line(ax: Any, x0: float, x1: float, slope: float, y_at: float, x_at: float,
@@ -181,6 +186,43 @@ def _swd(title: str, sections: Mapping[str, Any], cols: Mapping[str, Cols]) -> F
     axes[2].set_ylabel("lateral displacement (m)")
     axes[2].set_xlabel("time (s)")
     return fig
+
+
+def _swd_series(title: str, sections: Mapping[str, Any]) -> Figure:
+    """Both series of a sine with dwell: each run's figures against its amplitude."""
+    fig, axes = _axes(2, f"{title}: FMVSS 126 sine with dwell, every run")
+    for k, side in enumerate(("left first", "right first")):
+        runs = [m["figures"] for m in sections.values()
+                if (m["figures"]["steer_sign_change_s"] is not None)
+                and _first_left(m) == (k == 0)]
+        runs.sort(key=lambda f: f["amplitude_deg"])
+        amp = [f["amplitude_deg"] for f in runs]
+        style = dict(color=RUN_COLORS[k], ls="-" if k == 0 else "--", marker="o", ms=3)
+        axes[0].plot(amp, [_nan(f["yaw_rate_ratio_1p0_s_pct"]) for f in runs],
+                     label=f"{side}: at COS+1.0 s", **style)
+        axes[0].plot(amp, [_nan(f["yaw_rate_ratio_1p75_s_pct"]) for f in runs],
+                     label=f"{side}: at COS+1.75 s", alpha=0.5, **style)
+        axes[1].plot(amp, [_nan(f["lateral_displacement_1p07_s_m"]) for f in runs],
+                     label=side, **style)
+    axes[0].axhline(35.0, color="tab:red", lw=0.8, label="limit 35 % (S5.2.1)")
+    axes[0].axhline(20.0, color="tab:orange", lw=0.8, label="limit 20 % (S5.2.2)")
+    axes[0].set_ylabel("yaw rate / first peak (%)")
+    axes[0].legend(fontsize=7)
+    axes[1].axhline(1.83, color="tab:red", lw=0.8, label="1.83 m (S5.2.3)")
+    axes[1].set_ylabel("lateral displacement at BOS+1.07 s (m)")
+    axes[1].set_xlabel("steering amplitude (deg)")
+    axes[1].legend(fontsize=7)
+    return fig
+
+
+def _first_left(m: Mapping[str, Any]) -> bool:
+    """Whether a sine-with-dwell run turned left first (its first lobe before the sign
+    change: the id says it too, but the figures are what was run)."""
+    return bool(m["figures"].get("first_left", True))
+
+
+def _nan(value: float | None) -> float:
+    return float("nan") if value is None else float(value)
 
 
 def _pct(value: float | None) -> str:
