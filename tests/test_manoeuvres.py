@@ -30,7 +30,7 @@ from simserver.core.tire_layout import (
     TP_RADIUS_M,
     TP_RELAX_LAT_M,
 )
-from simserver.scenario import (
+from simserver.sim.scenario import (
     is_world_scenario,
     load_scenario,
     load_world_scenario,
