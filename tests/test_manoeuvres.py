@@ -483,6 +483,22 @@ def test_swd_criteria_flip():
     assert not M.fmvss126_sine_with_dwell(short, _car(), sis_angle_deg=18.0)["passed"]
 
 
+def test_a_run_without_the_manoeuvre_fails_without_an_error():
+    """An analysis given a history that lacks its manoeuvre (no steering, no hold) reports
+    a failed criterion instead of raising."""
+    t = np.arange(0.0, 5.0, 0.001)
+    zero = np.zeros_like(t)
+    cols = {"time_s": t, "steering_wheel_angle_rad": zero, "yaw_rate_radps": zero,
+            "yaw_rad": zero, "x_m": 20.0 * t, "y_m": zero, "ay_mps2": zero,
+            "u_mps": np.full_like(t, 20.0), "v_mps": zero, "roll_rad": zero,
+            "ax_mps2": zero, "input_brake": zero, "input_throttle": zero,
+            "input_parking_brake": zero, "input_gear": np.full_like(t, float(GEAR_D)),
+            "ref_grade_pct": zero}
+    for name, (function, _) in M.ANALYSES.items():
+        result = function(cols, _car())
+        assert not result["passed"], name
+
+
 def test_parking_brake_and_hill_start_criteria_flip():
     t = np.arange(0.0, 310.0, 0.05)
     held = t >= 2.0

@@ -295,12 +295,19 @@ def fmvss126_sine_with_dwell(cols: Cols, car: Car, sis_angle_deg: float | None =
     amplitude of 5 A or more, so judged when ``sis_angle_deg`` (A) is given)."""
     t, delta_h, r = cols["time_s"], cols["steering_wheel_angle_rad"], cols["yaw_rate_radps"]
     dh = np.degrees(delta_h)
-    k_first = int(np.argmax(np.abs(dh) >= 5.0))
-    s1 = 1.0 if dh[k_first] > 0.0 else -1.0  # the first lobe's direction
-    bos = _crossing(t, s1 * dh, 5.0)
     amplitude = float(np.max(np.abs(dh)))
-    k_sign = k_first + int(np.argmax(s1 * dh[k_first:] < 0.0))  # the steering changes sign
-    k_dwell_end = k_sign + int(np.flatnonzero(-s1 * dh[k_sign:] >= amplitude - 1e-6)[-1])
+    past = np.flatnonzero(np.abs(dh) >= 5.0)
+    s1 = 1.0 if past.size and dh[past[0]] > 0.0 else -1.0  # the first lobe's direction
+    opposite = np.flatnonzero(s1 * dh[past[0]:] < 0.0) if past.size else past
+    if opposite.size == 0:  # no sine with dwell in this run: nothing to judge it by
+        return _result(FMVSS126, "sine with dwell", {"amplitude_deg": amplitude}, [
+            criterion("a steering input past 5 deg that changes sign", None, 1.0, ">=",
+                      f"{FMVSS126} S7.9")])
+    k_first = int(past[0])
+    bos = _crossing(t, s1 * dh, 5.0)
+    k_sign = k_first + int(opposite[0])  # the steering changes sign
+    k_dwell_end = k_sign + int(np.flatnonzero(-s1 * dh[k_sign:] >= np.max(-s1 * dh[k_sign:])
+                                              - 1e-6)[-1])
     cos_ = _crossing(t, s1 * dh, 0.0, k_dwell_end)
     figures: dict[str, Any] = {"amplitude_deg": amplitude, "first_left": s1 > 0.0,
                                "bos_s": bos, "cos_s": cos_,
