@@ -484,11 +484,13 @@ def test_swd_criteria_flip():
 
 
 def test_a_run_without_the_manoeuvre_fails_without_an_error():
-    """An analysis given a history that lacks its manoeuvre (no steering, no hold) reports
-    a failed criterion instead of raising."""
+    """An analysis given a history that lacks its manoeuvre (a steering step the car does
+    not answer, no hold) reports a failed criterion instead of raising (the sine with
+    dwell raised an IndexError on a steering input of one sign)."""
     t = np.arange(0.0, 5.0, 0.001)
     zero = np.zeros_like(t)
-    cols = {"time_s": t, "steering_wheel_angle_rad": zero, "yaw_rate_radps": zero,
+    step = np.where(t > 1.0, math.radians(20.0), 0.0)
+    cols = {"time_s": t, "steering_wheel_angle_rad": step, "yaw_rate_radps": zero,
             "yaw_rad": zero, "x_m": 20.0 * t, "y_m": zero, "ay_mps2": zero,
             "u_mps": np.full_like(t, 20.0), "v_mps": zero, "roll_rad": zero,
             "ax_mps2": zero, "input_brake": zero, "input_throttle": zero,
