@@ -586,6 +586,8 @@ def test_a_criterion_without_a_value_fails():
     ("speed_hold", {"speed_mps": 20.0, "from_s": 5.0, "until_s": 2.0},
      "key 'speed_hold.until_s'"),
     ("speed_hold", {"speed_mps": 20.0, "keep_throttle": 2}, "key 'speed_hold.keep_throttle'"),
+    ("driver", {"path": {"points": [[0.0, 0.0], [300.0, 0.0]]}},
+     "key 'speed_hold': the driver holds its own speed"),
 ])
 def test_bad_manoeuvre_keys_name_the_file_and_key(key, value, message):
     path = SCENARIOS / "iso7401_step_steer.yaml"
