@@ -208,6 +208,15 @@ def make_zenoh_config(
     return cfg
 
 
+def effective_endpoints(zcfg: zenoh.Config, key: str = "listen/endpoints") -> list[str]:
+    """The endpoints a zenoh config really has (a list, or per mode for routers/peers)."""
+    value = json.loads(zcfg.get_json(key))
+    if isinstance(value, dict):
+        mode = json.loads(zcfg.get_json("mode")) or "peer"
+        value = value.get(mode, [])
+    return [str(v) for v in value or []]
+
+
 def config_warnings(cfg: zenoh.Config) -> list[str]:
     """Settings of a (user-given) config that ``docs/protocol.md`` advises against.
 
