@@ -46,6 +46,9 @@ RUN_ELSEWHERE = {
     ".venv/bin/simserver compare out/e2 out/e1 --out out/e2_vs_e1":
         "test_compare.py::test_readme_command_as_written (beside runs of E2 and E1)",
     "python -m pytest tests/test_scenarios.py -s": "the default suite runs that file",
+    "simserver router --listen tcp/127.0.0.1:7450 --connect tcp/127.0.0.1:7447 --connect "
+    "tcp/127.0.0.1:7448": "test_router.py runs it joining two servers (on free ports, not "
+                          "these fixed ones)",
 }
 
 NOT_RUN_HERE = {
