@@ -540,6 +540,19 @@ hypervisor's) wake-up. The bare pacer as the tick thread on this VM, interleaved
 more than 1 ms late without, 0.010 % with, lateness p99 12 / 1 us, the same CPU. The
 cost: idle CPUs spin (power, and a hypervisor's CPU) while the server runs."""
 
+EXPECTED_LATENESS_WITHOUT_RT = (
+    "expect late ticks when other processes want the CPU: measured on a 2-core machine "
+    "as an ordinary user, beside two CPU-bound processes 1.9 % of ticks were more than "
+    "1 ms late (lateness p99 1.94 ms; with SCHED_FIFO 4-5 ticks in 20 s), beside other "
+    "real-time servers up to 46 % of the deadlines of a window skipped (lateness p99 "
+    "18-93 ms, max 0.2 s)")
+"""What the warning says to expect when no real-time policy was obtained (issue 35's
+adversarial round, checkout 362909f; ``docs/performance.md``, "Real time without root")."""
+RTKIT_SOFT_SHARE = 0.5
+"""``RLIMIT_RTTIME``'s soft limit as a share of RealtimeKit's hard one: past the soft
+limit the kernel sends SIGXCPU, on which the tick thread leaves SCHED_RR, long before the
+hard limit's SIGKILL (a tick thread that never sleeps: ticks longer than the period)."""
+
 try:  # children (the viewer, the load worker) must not inherit a real-time policy
     _RESET_ON_FORK = os.SCHED_RESET_ON_FORK
 except AttributeError:  # pragma: no cover - not Linux
@@ -650,6 +663,7 @@ class RealtimeScheduler:
         self._seen: set[int] = set(process_threads())
         self._rt_priority = settings.priority
         self._latency_fd: int | None = None
+        self.rtkit_refusal = ""  # why RealtimeKit granted nothing, when asked
 
     def apply(self) -> str:
         """Scheduling of the calling thread, affinity, locked memory; the summary line."""
@@ -670,11 +684,16 @@ class RealtimeScheduler:
             self.policy = "SCHED_FIFO"
             self.applied.insert(0, f"SCHED_FIFO priority {priority} for the tick thread")
         except (OSError, AttributeError) as exc:
-            self.warnings.append(
-                f"SCHED_FIFO refused ({getattr(exc, 'strerror', None) or exc}): grant "
-                "CAP_SYS_NICE or an rtprio limit (ulimit -r 99; docker run --ulimit "
-                "rtprio=99), or pass --realtime off to silence this")
-            self._nice_fallback()
+            refused = getattr(exc, "strerror", None) or exc
+            granted = self._ask_realtimekit(priority, refused)
+            if not granted:
+                self.warnings.append(
+                    f"SCHED_FIFO refused ({refused}) and RealtimeKit granted nothing "
+                    f"({self.rtkit_refusal}): {EXPECTED_LATENESS_WITHOUT_RT}; grant "
+                    "CAP_SYS_NICE, an rtprio limit (ulimit -r 99; docker run --cap-add "
+                    "SYS_NICE --ulimit rtprio=99) or RealtimeKit (docs/performance.md), "
+                    "or pass --realtime off to silence this")
+                self._nice_fallback()
         if s.cpu_latency_us is not None:
             try:
                 self._latency_fd = hold_cpu_latency(s.cpu_latency_us)
@@ -690,6 +709,51 @@ class RealtimeScheduler:
                                      "ulimit -l unlimited")
         self.promote_new_threads()
         return self.summary()
+
+    def _ask_realtimekit(self, priority: int, refused: object) -> bool:
+        """SCHED_RR from RealtimeKit for the calling (tick) thread
+        (:mod:`simserver.adapters.rtkit`); True if granted. Its RLIMIT_RTTIME is set
+        below RealtimeKit's hard limit, with a SIGXCPU handler that takes the tick thread
+        back to SCHED_OTHER before the kernel would kill the process."""
+        import signal
+        import threading
+
+        from simserver.adapters import rtkit
+
+        try:
+            grant = rtkit.make_thread_realtime(threading.get_native_id(), priority)
+        except rtkit.RtkitError as exc:
+            self.rtkit_refusal = str(exc)
+            return False
+        import resource
+
+        soft = max(1, int(grant.rttime_usec * RTKIT_SOFT_SHARE))
+        try:
+            resource.setrlimit(resource.RLIMIT_RTTIME, (soft, grant.rttime_usec))
+        except (OSError, ValueError):
+            pass  # the hard limit alone: RealtimeKit's condition holds
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGXCPU, self._leave_realtime)
+        self._rt_priority = grant.priority
+        self.policy = "SCHED_RR"
+        self.applied.insert(0, (
+            f"SCHED_FIFO refused ({refused}); RealtimeKit granted SCHED_RR priority "
+            f"{grant.priority} for the tick thread (RLIMIT_RTTIME {soft / 1e3:g} ms, "
+            f"{grant.rttime_usec / 1e3:g} ms hard; zenoh's threads at normal priority)"))
+        return True
+
+    def _leave_realtime(self, signum: int, frame: object) -> None:
+        """SIGXCPU: the tick thread ran RLIMIT_RTTIME's soft limit without sleeping;
+        back to SCHED_OTHER (the kernel kills the process at the hard limit)."""
+        try:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except OSError:
+            return
+        self.policy = "unchanged"
+        if self.log is not None:
+            self.log(logging.WARNING, "real-time scheduling: the tick thread ran "
+                     "RealtimeKit's RLIMIT_RTTIME without sleeping (ticks longer than the "
+                     "period?): back to normal priority")
 
     def release(self) -> None:
         """Stop holding ``/dev/cpu_dma_latency`` (idempotent; a process's end does it too)."""
@@ -723,7 +787,10 @@ class RealtimeScheduler:
 
     def promote_new_threads(self) -> int:
         """Give zenoh's threads not seen before the tick thread's policy (priority - 1)."""
-        if self.settings.mode == "off" or self.policy == "unchanged":
+        if self.settings.mode == "off" or self.policy in ("unchanged", "SCHED_RR"):
+            # SCHED_RR: RealtimeKit's, for the tick thread alone (this process may not
+            # set a real-time policy itself, and zenoh's threads are not ours to keep
+            # under RLIMIT_RTTIME)
             return 0
         prefixes = self.settings.zenoh_threads
         try:  # once a second in the tick: list the ids, read only the new threads' names
@@ -760,7 +827,7 @@ class RealtimeScheduler:
     def summary(self) -> str:
         """One line: what was applied, and the warnings."""
         parts = list(self.applied)
-        if self.policy not in ("off", "unchanged"):
+        if self.policy not in ("off", "unchanged", "SCHED_RR"):
             what = f"SCHED_FIFO priority {self._rt_priority - 1}" \
                 if self.policy == "SCHED_FIFO" else self.policy
             names = ", ".join(p + "*" for p in self.settings.zenoh_threads) or \
