@@ -547,7 +547,7 @@ EXPECTED_LATENESS_WITHOUT_RT = (
     "real-time servers up to 46 % of the deadlines of a window skipped (lateness p99 "
     "18-93 ms, max 0.2 s)")
 """What the warning says to expect when no real-time policy was obtained (issue 35's
-adversarial round, checkout 362909f; ``docs/performance.md``, "Real time without root")."""
+adversarial round, checkout 362909f; ``docs/realtime.md``)."""
 RTKIT_SOFT_SHARE = 0.5
 """``RLIMIT_RTTIME``'s soft limit as a share of RealtimeKit's hard one: past the soft
 limit the kernel sends SIGXCPU, on which the tick thread leaves SCHED_RR, long before the
@@ -664,6 +664,7 @@ class RealtimeScheduler:
         self._rt_priority = settings.priority
         self._latency_fd: int | None = None
         self.rtkit_refusal = ""  # why RealtimeKit granted nothing, when asked
+        self.rtkit_thread_refusals = 0  # threads RealtimeKit did not promote
 
     def apply(self) -> str:
         """Scheduling of the calling thread, affinity, locked memory; the summary line."""
@@ -691,7 +692,7 @@ class RealtimeScheduler:
                     f"SCHED_FIFO refused ({refused}) and RealtimeKit granted nothing "
                     f"({self.rtkit_refusal}): {EXPECTED_LATENESS_WITHOUT_RT}; grant "
                     "CAP_SYS_NICE, an rtprio limit (ulimit -r 99; docker run --cap-add "
-                    "SYS_NICE --ulimit rtprio=99) or RealtimeKit (docs/performance.md), "
+                    "SYS_NICE --ulimit rtprio=99) or RealtimeKit (docs/realtime.md), "
                     "or pass --realtime off to silence this")
                 self._nice_fallback()
         if s.cpu_latency_us is not None:
@@ -712,54 +713,88 @@ class RealtimeScheduler:
 
     def _ask_realtimekit(self, priority: int, refused: object) -> bool:
         """SCHED_RR from RealtimeKit for the calling (tick) thread
-        (:mod:`simserver.adapters.rtkit`); True if granted. Its RLIMIT_RTTIME is set
-        below RealtimeKit's hard limit, with a SIGXCPU handler that takes the tick thread
-        back to SCHED_OTHER before the kernel would kill the process."""
+        (:mod:`simserver.adapters.rtkit`); True if granted.
+
+        RLIMIT_RTTIME is set as RealtimeKit requires, its soft limit at
+        :data:`RTKIT_SOFT_SHARE` of the hard one with a SIGXCPU handler that takes every
+        thread back to SCHED_OTHER before the kernel would kill the process. The other
+        threads (zenoh's, the state and log writers, whose GIL the tick waits for) get
+        ``priority - 1`` from RealtimeKit too, asked by a thread of their own as
+        :meth:`promote_new_threads` finds them (a D-Bus call takes milliseconds: never
+        in the tick)."""
+        import queue
         import signal
         import threading
 
         from simserver.adapters import rtkit
 
         try:
-            grant = rtkit.make_thread_realtime(threading.get_native_id(), priority)
+            kit = rtkit.RealtimeKit()
         except rtkit.RtkitError as exc:
             self.rtkit_refusal = str(exc)
             return False
-        import resource
-
-        soft = max(1, int(grant.rttime_usec * RTKIT_SOFT_SHARE))
         try:
-            resource.setrlimit(resource.RLIMIT_RTTIME, (soft, grant.rttime_usec))
-        except (OSError, ValueError):
-            pass  # the hard limit alone: RealtimeKit's condition holds
+            soft, hard = kit.limit_rttime(RTKIT_SOFT_SHARE)
+            granted = kit.make_thread_realtime(threading.get_native_id(), priority)
+        except rtkit.RtkitError as exc:
+            kit.close()
+            self.rtkit_refusal = str(exc)
+            return False
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGXCPU, self._leave_realtime)
-        self._rt_priority = grant.priority
+        self._rt_priority = granted
         self.policy = "SCHED_RR"
         self.applied.insert(0, (
             f"SCHED_FIFO refused ({refused}); RealtimeKit granted SCHED_RR priority "
-            f"{grant.priority} for the tick thread (RLIMIT_RTTIME {soft / 1e3:g} ms, "
-            f"{grant.rttime_usec / 1e3:g} ms hard; zenoh's threads at normal priority)"))
+            f"{granted} for the tick thread (RLIMIT_RTTIME {soft / 1e3:g} ms, "
+            f"{hard / 1e3:g} ms hard)"))
+        self._rtkit_queue: queue.SimpleQueue = queue.SimpleQueue()
+        started = threading.Event()
+
+        def promote() -> None:
+            self._seen.add(threading.get_native_id())  # not itself
+            started.set()
+            while True:
+                item = self._rtkit_queue.get()
+                if item is None:
+                    break
+                tid, name = item
+                try:
+                    kit.make_thread_realtime(tid, granted - 1)
+                    self.promoted[tid] = name
+                except rtkit.RtkitError as exc:  # ended meanwhile, or RealtimeKit's limits
+                    self.rtkit_thread_refusals += 1
+                    self.rtkit_refusal = str(exc)
+            kit.close()
+
+        threading.Thread(target=promote, name="rtkit-promote", daemon=True).start()
+        started.wait(5.0)
         return True
 
     def _leave_realtime(self, signum: int, frame: object) -> None:
-        """SIGXCPU: the tick thread ran RLIMIT_RTTIME's soft limit without sleeping;
-        back to SCHED_OTHER (the kernel kills the process at the hard limit)."""
-        try:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        except OSError:
-            return
-        self.policy = "unchanged"
+        """SIGXCPU: a real-time thread ran RLIMIT_RTTIME's soft limit without sleeping
+        (which one the signal does not say); every thread back to SCHED_OTHER, before
+        the kernel kills the process at the hard limit."""
+        self.policy = "unchanged"  # no more promotions
+        for tid in [0, *self.promoted]:
+            try:
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            except OSError:
+                continue
         if self.log is not None:
-            self.log(logging.WARNING, "real-time scheduling: the tick thread ran "
-                     "RealtimeKit's RLIMIT_RTTIME without sleeping (ticks longer than the "
-                     "period?): back to normal priority")
+            self.log(logging.WARNING, "real-time scheduling: a thread ran RealtimeKit's "
+                     "RLIMIT_RTTIME without sleeping (ticks longer than the period?): "
+                     "every thread back to normal priority")
 
     def release(self) -> None:
-        """Stop holding ``/dev/cpu_dma_latency`` (idempotent; a process's end does it too)."""
+        """Stop holding ``/dev/cpu_dma_latency`` and asking RealtimeKit (idempotent; a
+        process's end does it too)."""
         fd, self._latency_fd = self._latency_fd, None
         if fd is not None:
             os.close(fd)
+        promoting = getattr(self, "_rtkit_queue", None)
+        if promoting is not None:  # RealtimeKit's promoting thread ends
+            promoting.put(None)
 
     def _permitted_priority(self) -> int:
         """The asked priority, capped by RLIMIT_RTPRIO unless we may exceed it."""
@@ -787,10 +822,7 @@ class RealtimeScheduler:
 
     def promote_new_threads(self) -> int:
         """Give zenoh's threads not seen before the tick thread's policy (priority - 1)."""
-        if self.settings.mode == "off" or self.policy in ("unchanged", "SCHED_RR"):
-            # SCHED_RR: RealtimeKit's, for the tick thread alone (this process may not
-            # set a real-time policy itself, and zenoh's threads are not ours to keep
-            # under RLIMIT_RTTIME)
+        if self.settings.mode == "off" or self.policy == "unchanged":
             return 0
         prefixes = self.settings.zenoh_threads
         try:  # once a second in the tick: list the ids, read only the new threads' names
@@ -810,6 +842,10 @@ class RealtimeScheduler:
                 continue  # ended meanwhile
             if prefixes and not name.startswith(prefixes):
                 continue
+            if self.policy == "SCHED_RR":  # RealtimeKit's: its own thread asks for it
+                self._rtkit_queue.put((tid, name))
+                n += 1
+                continue
             try:
                 if self.policy == "SCHED_FIFO":
                     os.sched_setscheduler(tid, os.SCHED_FIFO | _RESET_ON_FORK,
@@ -827,9 +863,11 @@ class RealtimeScheduler:
     def summary(self) -> str:
         """One line: what was applied, and the warnings."""
         parts = list(self.applied)
-        if self.policy not in ("off", "unchanged", "SCHED_RR"):
-            what = f"SCHED_FIFO priority {self._rt_priority - 1}" \
-                if self.policy == "SCHED_FIFO" else self.policy
+        if self.policy not in ("off", "unchanged"):
+            what = f"{self.policy} priority {self._rt_priority - 1}" \
+                if self.policy in ("SCHED_FIFO", "SCHED_RR") else self.policy
+            if self.policy == "SCHED_RR":
+                what += " from RealtimeKit"
             names = ", ".join(p + "*" for p in self.settings.zenoh_threads) or \
                 "(every thread started from now on)"
             parts.append(f"{what} for zenoh's threads {names} as they start "

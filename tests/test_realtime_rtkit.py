@@ -21,8 +21,16 @@ from pathlib import Path
 
 import pytest
 
-from simserver.realtime import thread_policy
-from simserver.testing import Client, ServerProcess, free_port, process_argv, rtkit_bus, serve_args
+from simserver.realtime import process_threads, thread_policy
+from simserver.testing import (
+    Client,
+    ServerProcess,
+    free_port,
+    process_argv,
+    rtkit_bus,
+    serve_args,
+    wait_until,
+)
 
 pytestmark = [pytest.mark.timeout(300),
               pytest.mark.skipif(rtkit_bus.missing() is not None,
@@ -42,6 +50,17 @@ def user_env():
         yield user, env
     finally:
         shutil.rmtree(home, ignore_errors=True)
+
+
+def policies(server: ServerProcess) -> dict[str, list[tuple[str, int]]]:
+    """Thread name -> the (policy, priority) of each thread of that name."""
+    out: dict[str, list[tuple[str, int]]] = {}
+    for tid, name in process_threads(server.pid).items():
+        try:
+            out.setdefault(name, []).append(thread_policy(tid))
+        except OSError:
+            continue  # ended meanwhile
+    return out
 
 
 def sched_field(pid: int, tid: int, name: str) -> int:
@@ -75,6 +94,16 @@ def test_an_unprivileged_servers_tick_thread_gets_sched_rr_from_realtimekit(user
             assert sched_field(server.pid, server.pid, "prio") == 99 - 20
             for child in server.children():
                 assert thread_policy(child) == ("SCHED_OTHER", 0)
+            # zenoh's threads (and the server's other threads) one lower, asked of
+            # RealtimeKit by a thread of the server's own
+            pol = wait_until(lambda: policies(server),
+                             lambda p: any(n.startswith("rx-") for n in p) and all(
+                                 v == ("SCHED_RR", 19) for n, vs in p.items()
+                                 if n.startswith(("rx-", "tx-")) for v in vs),
+                             timeout_s=20, what="zenoh's rx/tx threads at SCHED_RR 19")
+            assert sum(v == ("SCHED_RR", 19) for vs in pol.values() for v in vs) >= 4, pol
+            line = server.wait_for_line("real-time scheduling:")
+            assert "SCHED_RR priority 19 from RealtimeKit for zenoh's threads" in line, line
             # RealtimeKit's condition, and the soft limit under it
             with open(f"/proc/{server.pid}/limits", encoding="ascii") as fh:
                 rttime = next(ln for ln in fh if ln.startswith("Max realtime timeout"))

@@ -3,7 +3,7 @@
 Several servers (one per car, on one or several machines) meet their clients through a
 zenoh router (``docs/protocol.md`` section 5). zenoh's own router is the ``zenohd``
 binary, which is not a Python package; a Python zenoh session opened with ``mode:
-"router"`` routes the same way (``docs/platform-notes.md``), so this is that session,
+"router"`` routes the same way, so this is that session,
 run until SIGINT/SIGTERM, with the defaults the server has:
 
 - explicit listen endpoints only, loopback by default (``tcp/127.0.0.1:7447``); the

@@ -15,15 +15,15 @@ an active local session by default). Its conditions, all checked by the daemon:
 - a few threads and requests per user (25 threads, 25 requests in 20 s).
 
 The D-Bus client is ``jeepney`` (pure Python, blocking I/O): one connection, two
-property reads and one method call, from the tick thread before its clock starts
-(``realtime.RealtimeScheduler.apply``), never in the tick.
+property reads, then one method call per thread: the tick thread's from itself before
+its clock starts (``realtime.RealtimeScheduler.apply``), the other threads' from a
+thread of their own as they start, never in the tick.
 """
 
 from __future__ import annotations
 
 import os
 import resource
-from dataclasses import dataclass
 
 BUS_NAME = "org.freedesktop.RealtimeKit1"
 OBJECT_PATH = "/org/freedesktop/RealtimeKit1"
@@ -35,15 +35,6 @@ CALL_TIMEOUT_S = 2.0
 class RtkitError(Exception):
     """RealtimeKit did not grant a priority; the message says why (no system bus, no
     daemon, refused by its policy or its limits)."""
-
-
-@dataclass(frozen=True)
-class Grant:
-    """What RealtimeKit granted: ``SCHED_RR`` at ``priority`` for thread ``tid``."""
-
-    tid: int
-    priority: int
-    rttime_usec: int
 
 
 def _bus_address() -> str:
@@ -85,6 +76,66 @@ def _property(conn, name: str) -> int:  # noqa: ANN001
     return int(value)
 
 
+class RealtimeKit:
+    """A connection to RealtimeKit on the system bus, its limits read once.
+
+    Raises
+    ------
+    RtkitError
+        No system bus, or no RealtimeKit on it.
+    """
+
+    def __init__(self) -> None:
+        self.conn = _connect()
+        try:
+            self.max_priority = _property(self.conn, "MaxRealtimePriority")
+            self.rttime_usec_max = _property(self.conn, "RTTimeUSecMax")
+        except BaseException:
+            self.conn.close()
+            raise
+
+    def limit_rttime(self, soft_share: float = 1.0) -> tuple[int, int]:
+        """Set this process's ``RLIMIT_RTTIME`` hard limit to ``RTTimeUSecMax`` (unless
+        lower already) and its soft one to ``soft_share`` of it; ``(soft, hard)`` in us.
+
+        Raises
+        ------
+        RtkitError
+            The limit cannot be set.
+        """
+        _, hard = resource.getrlimit(resource.RLIMIT_RTTIME)
+        if hard == resource.RLIM_INFINITY or hard > self.rttime_usec_max:
+            hard = self.rttime_usec_max
+        soft = max(1, int(hard * soft_share))
+        try:
+            resource.setrlimit(resource.RLIMIT_RTTIME, (soft, hard))
+        except (OSError, ValueError) as exc:
+            raise RtkitError(f"RLIMIT_RTTIME cannot be set to {hard} us ({exc})") from None
+        return soft, int(hard)
+
+    def make_thread_realtime(self, tid: int, priority: int, pid: int | None = None) -> int:
+        """``SCHED_RR`` at ``priority`` (capped at ``max_priority``) for thread ``tid``
+        of process ``pid`` (default this one); the priority granted. Call
+        :meth:`limit_rttime` first (RealtimeKit refuses otherwise).
+
+        Raises
+        ------
+        RtkitError
+            Not granted; the message names the reason RealtimeKit or the bus gave.
+        """
+        from jeepney import DBusAddress, new_method_call
+
+        priority = max(1, min(int(priority), self.max_priority))
+        addr = DBusAddress(OBJECT_PATH, bus_name=BUS_NAME, interface=INTERFACE)
+        _call(self.conn, new_method_call(addr, "MakeThreadRealtimeWithPID", "ttu",
+                                         (os.getpid() if pid is None else pid, tid,
+                                          priority)))
+        return priority
+
+    def close(self) -> None:
+        self.conn.close()
+
+
 def limits() -> tuple[int, int]:
     """RealtimeKit's ``(MaxRealtimePriority, RTTimeUSecMax)``.
 
@@ -93,43 +144,6 @@ def limits() -> tuple[int, int]:
     RtkitError
         No system bus, or no RealtimeKit on it.
     """
-    conn = _connect()
-    try:
-        return _property(conn, "MaxRealtimePriority"), _property(conn, "RTTimeUSecMax")
-    finally:
-        conn.close()
-
-
-def make_thread_realtime(tid: int, priority: int, pid: int | None = None) -> Grant:
-    """Ask RealtimeKit for ``SCHED_RR`` at ``priority`` (capped at its maximum) for
-    thread ``tid`` of process ``pid`` (default this one).
-
-    Sets this process's ``RLIMIT_RTTIME`` to RealtimeKit's ``RTTimeUSecMax`` first (soft
-    and hard: the daemon requires the hard limit), unless it is lower already.
-
-    Raises
-    ------
-    RtkitError
-        Not granted; the message names the reason RealtimeKit or the bus gave.
-    """
-    from jeepney import DBusAddress, new_method_call
-
-    conn = _connect()
-    try:
-        max_priority, rttime_max = _property(conn, "MaxRealtimePriority"), \
-            _property(conn, "RTTimeUSecMax")
-        soft, hard = resource.getrlimit(resource.RLIMIT_RTTIME)
-        if hard == resource.RLIM_INFINITY or hard > rttime_max:
-            try:
-                resource.setrlimit(resource.RLIMIT_RTTIME, (rttime_max, rttime_max))
-            except (OSError, ValueError) as exc:
-                raise RtkitError(f"RLIMIT_RTTIME cannot be set to {rttime_max} us "
-                                 f"({exc})") from None
-            hard = rttime_max
-        priority = max(1, min(int(priority), max_priority))
-        addr = DBusAddress(OBJECT_PATH, bus_name=BUS_NAME, interface=INTERFACE)
-        _call(conn, new_method_call(addr, "MakeThreadRealtimeWithPID", "ttu",
-                                    (os.getpid() if pid is None else pid, tid, priority)))
-        return Grant(tid=tid, priority=priority, rttime_usec=int(hard))
-    finally:
-        conn.close()
+    kit = RealtimeKit()
+    kit.close()
+    return kit.max_priority, kit.rttime_usec_max

@@ -212,17 +212,21 @@ def user_kernel_cache(root: Path, user: pwd.struct_passwd) -> Path:
     return root
 
 
-def as_user(user: pwd.struct_passwd, argv: list[str]) -> list[str]:
+def as_user(user: pwd.struct_passwd, argv: list[str], cap: str | None = None) -> list[str]:
     """``argv`` run as ``user`` (its groups, no capabilities, rtprio limit 0: SCHED_FIFO
-    refused, as for an ordinary login).
+    refused, as for an ordinary login); with ``cap`` (e.g. ``"sys_nice"``, what ``docker
+    run --cap-add SYS_NICE`` gives) that one capability, ambient, and no other.
 
     This machine's Python lives under ``/root`` (mode 0700), where another user cannot
     reach it: the command then runs in a mount namespace of its own (``unshare``) in
     which ``/root`` is an empty folder open to all holding only the Python installation,
     bound from the real one. Nothing outside that namespace changes.
     """
+    caps = ["--inh-caps=-all", "--bounding-set=-all"] if cap is None else \
+        [f"--inh-caps=-all,+{cap}", f"--ambient-caps=-all,+{cap}",
+         f"--bounding-set=-all,+{cap}"]
     drop = ["setpriv", f"--reuid={user.pw_uid}", f"--regid={user.pw_gid}", "--init-groups",
-            "--inh-caps=-all", "--bounding-set=-all", "prlimit", "--rtprio=0", "--"]
+            *caps, "prlimit", "--rtprio=0", "--"]
     prefix = Path(sys.prefix).resolve()
     if not prefix.is_relative_to("/root"):
         return [*drop, *argv]
