@@ -13,7 +13,6 @@ import sys
 import numpy as np
 import pytest
 
-from simserver import protocol as proto
 from simserver.adapters.zenoh_io import Inbox, ZenohEndpoint, make_zenoh_config
 from simserver.testing import (
     OutputProcess,
@@ -22,6 +21,7 @@ from simserver.testing import (
     process_sockets,
     wait_until,
 )
+from simserver.wire import protocol as proto
 
 pytestmark = pytest.mark.timeout(300)
 
