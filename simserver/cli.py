@@ -665,6 +665,28 @@ def tls_front_command(args: argparse.Namespace) -> int:
         raise CliError(f"tls-front: {exc}", exit_code=2) from exc
 
 
+def _add_router_arguments(parser: argparse.ArgumentParser) -> None:
+    from simserver.adapters import router
+
+    router.add_arguments(parser)
+
+
+def router_command(args: argparse.Namespace) -> int:
+    """``simserver router``: a zenoh router with the project's safe defaults."""
+    from simserver.adapters import router
+    from simserver.adapters.tls_front import FrontError
+    from simserver.adapters.zenoh_io import ZenohConfigError, ZenohOpenError
+
+    if args.duration is not None and not args.duration >= 0:
+        raise CliError(f"--duration {args.duration:g}: expected seconds >= 0", exit_code=2)
+    try:
+        return router.main(args)
+    except ZenohConfigError as exc:
+        raise CliError(f"zenoh configuration: {exc}", exit_code=2) from exc
+    except (ZenohOpenError, FrontError) as exc:
+        raise CliError(str(exc), exit_code=2) from exc
+
+
 SUBCOMMANDS: dict[str, Subcommand] = {
     "run-scenario": Subcommand(
         help="run a scenario headless; write history.parquet, summary.json and plots",
@@ -732,6 +754,18 @@ SUBCOMMANDS: dict[str, Subcommand] = {
                     "the start of a TLS ClientHello; silent, closed or non-TLS connections "
                     "never reach zenoh (whose TLS listener pauses 100 ms after each failed "
                     "handshake). 'simserver serve' starts one per tls/ endpoint itself.",
+    ),
+    "router": Subcommand(
+        help="a zenoh router for servers on several machines (loopback by default)",
+        add_arguments=_add_router_arguments,
+        run=router_command,
+        description="Run a zenoh router (this Python process, mode router) until "
+                    "SIGINT/SIGTERM: servers and clients on several machines meet here. "
+                    "Safe defaults as the server's: explicit endpoints only (listen on "
+                    "tcp/127.0.0.1:7447 unless told), multicast scouting and gossip off, "
+                    "shared memory off; a --zenoh-config file (TLS, user/password, "
+                    "access control) is used as it is; every tls/ listener gets the TLS "
+                    "front (docs/security.md 5.1).",
     ),
 }
 """Every subcommand, by name, in ``--help`` order."""

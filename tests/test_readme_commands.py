@@ -49,6 +49,9 @@ RUN_ELSEWHERE = {
     ".venv/bin/simserver run-scenario configs/scenarios/iso7401_step_steer.yaml --out "
     "out/iso7401": "test_manoeuvres.py::test_one_command_writes_the_figures_and_the_report "
                    "(into a temporary folder)",
+    "simserver router --listen tcp/127.0.0.1:7450 --connect tcp/127.0.0.1:7447 --connect "
+    "tcp/127.0.0.1:7448": "test_router.py runs it joining two servers (on free ports, not "
+                          "these fixed ones)",
 }
 
 NOT_RUN_HERE = {

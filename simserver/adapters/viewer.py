@@ -165,6 +165,7 @@ def wait_for_config(ep: Any, where: str, wait_s: float, say: Any = None,
     backoff_s = RETRY_FIRST_S
     attempts = 0
     token_seen = False
+    diagnosis: str | None = None  # what the server wants that this client lacks
     while True:
         attempts += 1
         remaining = deadline - time.monotonic()
@@ -184,12 +185,19 @@ def wait_for_config(ep: Any, where: str, wait_s: float, say: Any = None,
             if not reply.get("ok"):
                 raise RuntimeError(f"get_config failed on {where}: {reply}")
             return reply["config"]
+        if not token_seen:
+            # a plain-TCP peer pointed at a TLS server opens its session and then reaches
+            # nobody: tell it what the server wants (issue 35); asked again each attempt
+            # (a server started meanwhile changes the answer)
+            diagnosis = _diagnose(ep)
         remaining = deadline - time.monotonic()
         if remaining <= 0:
             break
         pause_s = min(backoff_s, remaining)
         token_text = (f"the liveliness token {alive_key} is there: the server is up, busy?"
                       if token else f"no liveliness token on {alive_key} yet")
+        if diagnosis and not token:
+            token_text += f"; {diagnosis}"
         say(f"waiting for {where}: no reply to get_config yet ({token_text}), "
             f"retrying in {pause_s:.2g} s")
         time.sleep(pause_s)
@@ -199,6 +207,8 @@ def wait_for_config(ep: Any, where: str, wait_s: float, say: Any = None,
         why = (f"its liveliness token {alive_key} was seen, so the server is up but too "
                "busy to answer (a loaded machine: give it a longer --wait, or start the "
                "viewer with --normal-priority)")
+    elif diagnosis:
+        why = f"its liveliness token {alive_key} was never seen: {diagnosis}"
     else:
         why = (f"its liveliness token {alive_key} was never seen, so no server for this "
                "vehicle is reachable there: it is not started, stopped, or --connect, "
@@ -207,6 +217,17 @@ def wait_for_config(ep: Any, where: str, wait_s: float, say: Any = None,
     raise ServerWaitError(
         f"no reply to get_config from {where} after waiting {waited_s:.1f} s "
         f"({attempts} attempt(s), --wait {wait_s:g}): {why}")
+
+
+def _diagnose(ep: Any) -> str:
+    """What the server at the viewer's endpoints wants that its config lacks (TLS, the
+    CA, a client certificate, credentials), or "" (``zenoh_diagnose.explain_unreached``)."""
+    config = getattr(ep, "config", None)
+    if config is None:
+        return ""
+    from simserver.adapters.zenoh_diagnose import explain_unreached
+
+    return explain_unreached(config)
 
 
 @dataclass

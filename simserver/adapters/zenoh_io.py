@@ -208,6 +208,15 @@ def make_zenoh_config(
     return cfg
 
 
+def effective_endpoints(zcfg: zenoh.Config, key: str = "listen/endpoints") -> list[str]:
+    """The endpoints a zenoh config really has (a list, or per mode for routers/peers)."""
+    value = json.loads(zcfg.get_json(key))
+    if isinstance(value, dict):
+        mode = json.loads(zcfg.get_json("mode")) or "peer"
+        value = value.get(mode, [])
+    return [str(v) for v in value or []]
+
+
 def config_warnings(cfg: zenoh.Config) -> list[str]:
     """Settings of a (user-given) config that ``docs/protocol.md`` advises against.
 
@@ -804,10 +813,20 @@ class ZenohEndpoint:
     ) -> None:
         self.keys = vehicle_keys(prefix, vehicle)
         self._closeables: list[Any] = []
+        config = config if config is not None else make_zenoh_config()
+        self.config = config
+        """The session's config (a diagnosis of an unreached server reads it)."""
         try:
-            self.session = zenoh.open(config if config is not None else make_zenoh_config())
+            self.session = zenoh.open(config)
         except zenoh.ZError as exc:
-            raise ZenohOpenError(f"cannot open the zenoh session: {_clean(exc)}") from None
+            text = _clean(exc)
+            if "Unable to connect" in text:  # zenoh says the same whatever the cause:
+                # find what the server wants that this client lacks (issue 35)
+                from simserver.adapters.zenoh_diagnose import explain
+
+                why = explain(config)
+                text += f" ({why})" if why else ""
+            raise ZenohOpenError(f"cannot open the zenoh session: {text}") from None
         # sent with control requests: the server queues them per client (ControlInbox)
         self._client_id = str(self.session.zid()).encode()
 

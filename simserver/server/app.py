@@ -106,15 +106,6 @@ class CompileProgress:
             self._print(f"simserver: compiled in {time.perf_counter() - self._t0:.1f} s")
 
 
-def effective_endpoints(zcfg: Any, key: str = "listen/endpoints") -> list[str]:
-    """The endpoints a zenoh config really has (a list, or per mode for routers/peers)."""
-    value = json.loads(zcfg.get_json(key))
-    if isinstance(value, dict):
-        mode = json.loads(zcfg.get_json("mode")) or "peer"
-        value = value.get(mode, [])
-    return [str(v) for v in value or []]
-
-
 def loopback_of(endpoint: str) -> str:
     """An endpoint a local client can connect to (``0.0.0.0``/``[::]`` -> loopback)."""
     return endpoint.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
@@ -166,7 +157,11 @@ class SimServer:
         DuplicateVehicleError
             When the vehicle's liveliness token already exists on the network.
         """
-        from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
+        from simserver.adapters.zenoh_io import (
+            ZenohEndpoint,
+            effective_endpoints,
+            make_zenoh_config,
+        )
 
         cfg = self.cfg
         t_compile = time.perf_counter()
