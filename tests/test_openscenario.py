@@ -7,6 +7,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from simserver.adapters.openscenario import (
@@ -275,3 +276,52 @@ def test_nan_is_refused(tmp_path: Path) -> None:
                  '<ParameterDeclaration name="T" parameterType="double" value="1"/>')
     expect_error(path, line_of(path, "AbsoluteTargetSpeed"), "AbsoluteTargetSpeed",
                  "not finite")
+
+
+# ------------------------------------------------------------------ played with physical cars
+@pytest.fixture(scope="module")
+def cut_in():  # noqa: ANN201 - an XoscRun
+    from simserver.sim.xosc_run import play
+
+    return play(XOSC / "cut-in_simple.xosc", duration_s=20.0)
+
+
+def test_cut_in_events_fire_in_storyboard_order(cut_in) -> None:  # noqa: ANN001
+    started = [e["name"] for e in cut_in.trace if e["kind"] == "event" and e["to"] == "running"]
+    assert started == ["CutInEvent", "BrakeEvent"]
+    assert cut_in.ended_by == "stop trigger"
+
+
+def test_cut_in_time_headway_fires_when_the_history_says(cut_in) -> None:  # noqa: ANN001
+    """Each TimeHeadwayCondition (Ego to OverTaker, freespace, > 0.4 s and > 1.0 s) fires
+    within 0.1 s of the first recorded instant at which the headway computed here from the
+    two cars' simulated positions and speeds exceeds its value (straight road along x)."""
+    from simserver.core import layout as L
+
+    ego, over = cut_in.result.cars["Ego"], cut_in.result.cars["OverTaker"]
+    front_ego, _ = cut_in.bumpers_m["Ego"]
+    _, rear_over = cut_in.bumpers_m["OverTaker"]
+    gap = over.states[:, L.X_M] - ego.states[:, L.X_M] - front_ego - rear_over
+    headway = np.where(gap > 0, gap / ego.states[:, L.U_MPS], -1.0)
+    fired = {e["name"]: e["t_s"] for e in cut_in.trace
+             if e["kind"] == "event" and e["to"] == "running"}
+    for event, value in (("CutInEvent", 0.4), ("BrakeEvent", 1.0)):
+        k = int(np.argmax(headway > value))
+        assert headway[k] > value
+        assert abs(ego.time_s[k] - fired[event]) <= 0.1, (event, ego.time_s[k], fired[event])
+
+
+def test_cut_in_lane_change_ends_on_the_lane_centre(cut_in) -> None:  # noqa: ANN001
+    """The sinusoidal lane change (3 s) ends with the cutter within 0.2 m of the centre of
+    the Ego's lane (-1 of road 1) within 3 s + 1 s of its start (or at the run's end,
+    if the stop trigger comes first)."""
+    from simserver.adapters.opendrive import lane_start, load_opendrive
+    from simserver.core import layout as L
+
+    od = load_opendrive(REPO / "configs/openscenario/xodr/straight_500m.xodr")
+    start = next(e["t_s"] for e in cut_in.trace if e["name"] == "CutInEvent")
+    over = cut_in.result.cars["OverTaker"]
+    k = min(int(np.searchsorted(over.time_s, start + 4.0)), len(over.time_s) - 1)
+    assert over.time_s[k] >= start + 3.0
+    _, y_centre, _ = lane_start(od, "1", float(over.states[k, L.X_M]), -1)
+    assert abs(over.states[k, L.Y_M] - y_centre) <= 0.2

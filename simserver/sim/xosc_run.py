@@ -223,6 +223,7 @@ class XoscRun:
     end_time_s: float
     ended_by: str
     wall_time_s: float
+    bumpers_m: dict[str, tuple[float, float]]  # per car: CG to front and to rear bumper
 
 
 class Storyboard:
@@ -776,5 +777,7 @@ def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
             inputs=np.ascontiguousarray(applied[:rows, c]),
             final_state=world.data.x[c].copy(), wall_time_s=wall,
             driver_states=np.ascontiguousarray(dstates[:rows, c]))
+    bumpers = {cid: (float(drivers.params[c, D.DP_FRONT_M]),
+                     float(drivers.params[c, D.DP_REAR_M])) for c, cid in enumerate(ids)}
     return XoscRun(sc, WorldResult(ws, out, wall), board.trace, rows * every * dt, ended_by,
-                   wall)
+                   wall, bumpers)
