@@ -484,7 +484,8 @@ def summarize(result: ScenarioResult) -> dict[str, Any]:
     dict
         Sections ``scenario``, ``vehicle``, ``road``, ``model_options``, ``initial``,
         ``run``, ``final``, ``extremes``, ``rest``, ``holds`` (every stop held, its creep
-        and its restart: ``simserver.analysis.holds``), ``finite`` and ``timing`` (the
+        and its restart: ``simserver.analysis.holds``), ``manoeuvre`` (when the scenario
+        names an ``analysis``: ``simserver.analysis.manoeuvres``), ``finite`` and ``timing`` (the
         only non-deterministic one). ``final`` is the last recorded row of the history, the
         same numbers as the last row of ``history.parquet`` (forces are only known at
         recorded rows); its ``time_s`` says when that is.
@@ -577,6 +578,10 @@ def summarize(result: ScenarioResult) -> dict[str, Any]:
     summary["holds"] = holds_summary(cols)
     if getattr(result, "driver_states", None) is not None:
         summary["driver"] = driver_summary(result.driver_states, cols["time_s"])
+    if getattr(sc, "analysis", None):  # a standard manoeuvre (docs/manoeuvres.md)
+        from simserver.analysis.manoeuvres import analyse, car_facts
+
+        summary["manoeuvre"] = analyse(sc.analysis, cols, car_facts(sc.scene.vehicle.vp))
     return _rounded(summary)
 
 

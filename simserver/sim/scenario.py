@@ -19,6 +19,10 @@ Scenario YAML (paths relative to the scenario file)::
       - {t: 0.0, gear: D}
       - {t: 1.0, brake: 0.0}
       - {t: 1.3, brake: 0.6}
+    analysis: iso7401_step_steer   # optional: a standard manoeuvre's figures and criteria
+                             # in the summary (simserver.analysis.manoeuvres, docs/manoeuvres.md)
+    speed_hold: {speed_mps: 22.2}  # optional: the throttle holds a speed
+                             # (simserver.sim.speed_hold; not with cars:)
 
 Several cars on one terrain (``cars:``; docs/model.md section 14): the world's keys
 (``name``, ``description``, ``road``, ``terrain``, ``duration_s``, ``dt_s``,
@@ -48,17 +52,10 @@ from typing import Any
 
 import numpy as np
 
-from simserver.adapters.config import (
-    MODEL_OPTION_DEFAULTS,
-    ConfigError,
-    check_keys,
-    number,
-    read_yaml,
-    resolve_vehicle,
-)
+from simserver.adapters.config import MODEL_OPTION_DEFAULTS, resolve_vehicle
 from simserver.adapters.driver_config import DriverSpec, build_drivers, parse_driver
 from simserver.adapters.terrain_files import terrain_spec
-from simserver.adapters.validate import integer
+from simserver.adapters.validate import ConfigError, check_keys, integer, number, read_yaml
 from simserver.core import layout as L
 from simserver.core.driver import N_DRIVER_STATE, simulate_driven
 from simserver.sim.keyframes import input_table, read_keyframe_file
@@ -71,6 +68,7 @@ from simserver.sim.scene import (
     parse_scene,
 )
 from simserver.sim.simulation import Simulation
+from simserver.sim.speed_hold import SpeedController, SpeedHold, parse_speed_hold
 
 MAX_SCENARIO_STEPS = 10_000_000
 """Most steps of a headless run: its input table holds 40 bytes a step (400 MB here)."""
@@ -106,6 +104,8 @@ class Scenario:
     record_every: int
     keyframes: list[dict[str, Any]]
     driver: DriverSpec | None = None  # the built-in driver drives the car (``driver:``)
+    analysis: dict[str, Any] | None = None  # analysis.manoeuvres.parse_analysis
+    speed_hold: SpeedHold | None = None  # speed_hold.parse_speed_hold
 
     @property
     def n_steps(self) -> int:
@@ -160,10 +160,17 @@ def load_scenario(path: str | Path, data: dict[str, Any] | None = None) -> Scena
     dt = number(path, "dt_s", data.get("dt_s", 0.001), 1e-5, 0.01)
     record_every = integer(path, "record_every", data.get("record_every", 1), 1, 1_000_000)
     check_run_size(path, run.duration_s, dt, record_every)
+    from simserver.analysis.manoeuvres import parse_analysis
+
+    if driven and data.get("speed_hold") is not None:
+        raise ConfigError(f"{path}: key 'speed_hold': the driver holds its own speed "
+                          "profile; give one or the other")
     return Scenario(
         name=run.name, path=path, description=str(data.get("description", "")), scene=scene,
         duration_s=run.duration_s, dt_s=dt, record_every=record_every,
         keyframes=run.keyframes, driver=driver,
+        analysis=parse_analysis(path, data.get("analysis")),
+        speed_hold=parse_speed_hold(path, data.get("speed_hold")),
     )
 
 
@@ -253,10 +260,17 @@ def run_scenario(
     n_rec = (n + every - 1) // every
     states = np.zeros((n_rec, L.N_STATE))
     outputs = np.zeros((n_rec, L.N_OUT))
+    hold = None
+    if scenario.speed_hold is not None:  # the throttle of each period set from the state
+        hold = SpeedController(scenario.speed_hold, inputs, scenario.dt_s, every)
+        chunk_steps = hold.period
+        hold.control(0, sim.x)
     t0 = time.perf_counter()
     for done, _, _, _ in step_chunks(sim, inputs, every, chunk_steps,
                                      lambda r0, rows: (states[r0:r0 + rows],
                                                        outputs[r0:r0 + rows])):
+        if hold is not None and done < n:
+            hold.control(done, sim.x)
         if progress is not None:
             progress(done, n)
     wall = time.perf_counter() - t0
@@ -268,7 +282,7 @@ def run_scenario(
 
 # ------------------------------------------------------------------- several cars, one world
 WORLD_KEYS = ("name", "description", "road", "terrain", "duration_s", "dt_s", "record_every",
-              "cars")
+              "analysis", "cars")
 """The keys of a scenario with ``cars:``: the world's (shared by every car) and the list."""
 CAR_KEYS = ("id", "vehicle", "initial", "start", "model", "inputs", "driver")
 """The keys of one car of ``cars:``: what a single car's scenario gives for its car."""
