@@ -365,3 +365,29 @@ def test_linear_speed_change_reaches_its_target_on_time(tmp_path: Path) -> None:
     assert abs(u[mid] - 15.0) <= 0.5, u[mid]
     after = int(np.searchsorted(car.time_s, 7.0))
     assert abs(u[after] - 10.0) <= 0.3, u[after]
+
+
+def test_hill_queue_stops_and_drives_off_on_15_percent() -> None:
+    """Our own scenario: the queue on the 15 % grade stops (the StandStill condition on the
+    third car fires after it has stood 2 s), no car touches the one ahead (bumper gaps from
+    the history stay positive), and the lead drives off again up the hill."""
+    from simserver.core import layout as L
+    from simserver.sim.xosc_run import play
+
+    run = play(REPO / "configs/openscenario/simserver/hill_queue_15pct.xosc", duration_s=60.0)
+    fired = [(e["name"], e["t_s"]) for e in run.trace
+             if e["kind"] == "event" and e["to"] == "running"]
+    assert [name for name, _ in fired] == ["LeadStops", "LeadGoes"]
+    assert run.ended_by == "stop trigger"
+    cars = run.result.cars
+    third = cars["Third"]
+    go_t = fired[1][1]
+    k_go = int(np.searchsorted(third.time_s, go_t - 1e-9))
+    still = np.abs(third.states[:k_go + 1, L.U_MPS]) < 0.01
+    assert still[-int(2.0 / 0.01):].all()  # stood still for the 2 s before it fired
+    for ahead, behind in (("Lead", "Second"), ("Second", "Third")):
+        gap = (cars[ahead].states[:, L.X_M] - cars[behind].states[:, L.X_M]
+               - run.bumpers_m[ahead][1] - run.bumpers_m[behind][0])
+        assert gap.min() > 0.5, (ahead, behind, gap.min())
+    lead_u = cars["Lead"].states[:, L.U_MPS]
+    assert lead_u[-1] > 3.0

@@ -49,6 +49,8 @@ PATH_STEP_M = 0.5  # spacing of a car's path points along the road
 TERRAIN_CELL_M = 0.5
 EQUAL_TOLERANCE = 0.01  # ``equalTo``/``notEqualTo`` compare within this (the quantity's unit)
 STANDSTILL_MPS = 0.01  # a car slower than this stands still
+STOP_MARGIN_M = 0.1  # a target speed of 0: the stop point this beyond the braking distance
+STOP_CRAWL_MPS = 0.5  # ... and the desired speed meanwhile (the stop law governs)
 DEFAULT_DURATION_S = 60.0  # a run ends here if the stop trigger has not fired
 TRACKING_IDM_A_MPS2 = 5.0  # the IDM's a and delta of a scenario car: a tight speed tracker
 TRACKING_IDM_DELTA = 10.0  # (the speed lag of a ramp is about 2 v / (a delta): section 15)
@@ -151,6 +153,7 @@ class Car:
     target_speed: float = 0.0
     speed_action: tuple | None = None  # (t0, v0, v1, T, shape, relative entity/None, ...)
     lateral_action: tuple | None = None  # (t0, T)
+    stopping: bool = False  # a speed target of 0: held at a stop point
 
 
 def _place(pos: X.Position, cars: dict[str, Car], frames: dict[str, RoadFrame],
@@ -533,10 +536,21 @@ class Storyboard:
         if car.speed_action is None:
             return
         car.target_speed = max(0.0, self._speed_now(car, now))
-        if car.target_speed <= 0.0:  # to rest: the stop law brings the car to a hold
-            D.set_target_speed(self.drivers, car.index, 0.0)
+        c = car.index
+        if car.target_speed <= 0.0:
+            # to rest: the driver's stop law brings the car to a hold (the IDM alone would
+            # drive off again from v = 0 towards a desired speed of 0)
+            if not car.stopping:
+                st, dp = self.drivers.state[c], self.drivers.params[c]
+                D.stop_at(self.drivers, c, st[D.DS_STATION_M] + dp[D.DP_FRONT_M]
+                          + car.u * car.u / (2.0 * dp[D.DP_STOP_DECEL_MPS2]) + STOP_MARGIN_M)
+                car.stopping = True
+            D.set_target_speed(self.drivers, c, STOP_CRAWL_MPS)
         else:
-            D.set_target_speed(self.drivers, car.index, car.target_speed)
+            if car.stopping:
+                D.go(self.drivers, c)
+                car.stopping = False
+            D.set_target_speed(self.drivers, c, car.target_speed)
 
     def start_lateral(self, car: Car, a: X.Action, now: float) -> None:
         tgt = a.target
