@@ -6,4 +6,5 @@ replay, scenarios, soak, sweep worker, benchmarks); headless scenarios of one ca
 several on one terrain (``scenario``) with their keyframed inputs (``keyframes``, parsed
 and sampled without the core, also for the player; or driven closed loop by the built-in
 driver, ``core.driver``, or held at a speed for the constant-speed manoeuvres,
-``speed_hold``), OpenSCENARIO files played with physical cars (``xosc_run``, docs/openscenario.md) and the seeded soak (``soak``)."""
+``speed_hold``), OpenSCENARIO files played with physical cars (``xosc_run``,
+docs/openscenario.md) and the seeded soak (``soak``)."""
