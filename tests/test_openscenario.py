@@ -391,3 +391,59 @@ def test_hill_queue_stops_and_drives_off_on_15_percent() -> None:
         assert gap.min() > 0.5, (ahead, behind, gap.min())
     lead_u = cars["Lead"].states[:, L.U_MPS]
     assert lead_u[-1] > 3.0
+
+
+def test_transition_shapes_hand_values() -> None:
+    """The shapes' fractions done: linear x; cubic 3x^2 - 2x^3 (0.15625 at 1/4); sinusoidal
+    (1 - cos(pi x)) / 2 (0.1464466 at 1/4); step 1 from the start; all 0 -> 1."""
+    from simserver.sim.xosc_run import shape
+
+    assert shape("linear", 0.25) == 0.25
+    assert shape("cubic", 0.25) == pytest.approx(0.15625, abs=1e-15)
+    assert shape("cubic", 0.5) == pytest.approx(0.5, abs=1e-15)
+    assert shape("sinusoidal", 0.25) == pytest.approx(0.1464466094, abs=1e-9)
+    assert shape("step", 0.0) == 1.0
+    for kind in ("linear", "cubic", "sinusoidal"):
+        assert shape(kind, 0.0) == 0.0 and shape(kind, 1.0) == 1.0 and shape(kind, 2.0) == 1.0
+
+
+def test_travelled_distance_and_reach_position_fire_on_time(tmp_path: Path) -> None:
+    """A car cruising at 20 m/s from s = 20 m: TraveledDistance 100 m fires at 100 / 20 =
+    5.0 s and ReachPosition (s = 220 m, tolerance 1 m) at (200 - 1) / 20 = 9.95 s, each
+    within 0.1 s (the car holds 20 m/s within the driver's error; ticks are 10 ms)."""
+    from simserver.sim.xosc_run import play
+
+    road = (REPO / "configs/openscenario/xodr/straight_500m.xodr").as_posix()
+    init = """<Private entityRef="A"><PrivateAction><TeleportAction><Position>
+      <LanePosition roadId="1" laneId="-1" offset="0" s="20"/></Position></TeleportAction>
+      </PrivateAction><PrivateAction><LongitudinalAction><SpeedAction>
+      <SpeedActionDynamics dynamicsShape="step" dynamicsDimension="time" value="0"/>
+      <SpeedActionTarget><AbsoluteTargetSpeed value="20"/></SpeedActionTarget>
+      </SpeedAction></LongitudinalAction></PrivateAction></Private>"""
+    ents = """<ScenarioObject name="A"><CatalogReference catalogName="VehicleCatalog"
+        entryName="car_white"/></ScenarioObject>"""
+
+    def by_entity(inner: str) -> str:
+        return ('<Condition name="c" delay="0" conditionEdge="rising"><ByEntityCondition>'
+                '<TriggeringEntities triggeringEntitiesRule="any"><EntityRef entityRef="A"/>'
+                f'</TriggeringEntities><EntityCondition>{inner}</EntityCondition>'
+                '</ByEntityCondition></Condition>')
+
+    travelled = speed_event("20", by_entity('<TraveledDistanceCondition value="100"/>'),
+                            name="Travelled")
+    reach = speed_event("20", by_entity(
+        '<ReachPositionCondition tolerance="1"><Position><LanePosition roadId="1" '
+        'laneId="-1" s="220"/></Position></ReachPositionCondition>'), name="Reached")
+    body = travelled + reach.replace('Story name="S"', 'Story name="S2"').replace(
+        'Act name="Act"', 'Act name="Act2"').replace('ManeuverGroup name="G"',
+                                                     'ManeuverGroup name="G2"').replace(
+        'Maneuver name="M"', 'Maneuver name="M2"').replace('Action name="act"',
+                                                             'Action name="act2"')
+    path = write(tmp_path, body, entities=ents, road=f'<LogicFile filepath="{road}"/>')
+    path.write_text(path.read_text().replace("<Init><Actions/></Init>",
+                                             f"<Init><Actions>{init}</Actions></Init>"))
+    run = play(path, duration_s=11.0)
+    fired = {e["name"]: e["t_s"] for e in run.trace
+             if e["kind"] == "event" and e["to"] == "running"}
+    assert abs(fired["Travelled"] - 5.0) <= 0.1, fired
+    assert abs(fired["Reached"] - 9.95) <= 0.1, fired
