@@ -242,6 +242,7 @@ class Storyboard:
         self.by_name: dict[tuple[str, str], Element] = {}
         self.stories = [self._tree("story", s, None) for s in sc.stories]
         self.action_elements: list[Element] = []
+        self._targets: dict[tuple[int, str], tuple[float, float]] = {}
 
     def _tree(self, kind: str, obj: Any, parent: Element | None) -> Element:
         e = Element(kind, obj.name, obj, parent)
@@ -340,10 +341,13 @@ class Storyboard:
             held = 0.0 if car.still_since is None else now - car.still_since
             return car.still_since is not None and held >= v["duration"], held
         if c.kind == "ReachPositionCondition":
-            road, s, t, _ = _place(c.position, self.cars, {car.frame.road.id: car.frame},
-                                   self.sc.path)
+            key = (id(c), car.name)  # an absolute position is placed once
+            if key not in self._targets or c.position.kind.startswith("Relative"):
+                _, s, t, _ = _place(c.position, self.cars, {car.frame.road.id: car.frame},
+                                    self.sc.path)
+                self._targets[key] = car.frame.xy(s, t)
             xa, ya = car.frame.xy(car.s, car.t)
-            xb, yb = car.frame.xy(s, t)
+            xb, yb = self._targets[key]
             val = float(math.hypot(xb - xa, yb - ya))
             return val <= v["tolerance"], val
         raise X.XoscError(f"{self.sc.path}:{c.line}: <{c.kind}>: not evaluated")
