@@ -73,6 +73,9 @@ def _add_run_scenario_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dt", type=float, default=None, metavar="S",
                         help="override the scenario's step dt_s (s)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="an OpenSCENARIO file: end here if its stop trigger has not "
+                             "fired (default 60 s)")
     # --- rerun scene (issue 5) ---
     parser.add_argument("--rrd", type=Path, default=None, metavar="FILE",
                         help="also write the Rerun scene to FILE.rrd (open with `rerun FILE`)")
@@ -124,6 +127,8 @@ def run_scenario_command(args: argparse.Namespace) -> int:
     from simserver.sim.scenario import is_world_scenario, load_scenario, run_scenario
 
     out: Path = args.out
+    if args.scenario.suffix.lower() == ".xosc":
+        return _run_xosc_command(args, out)
     data = read_yaml(args.scenario)
     if is_world_scenario(data):
         return _run_world_scenario_command(args, data, out)
@@ -191,6 +196,62 @@ def _make_out_dir(out: Path) -> None:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise CliError(f"{out}: cannot create the output directory: {exc.strerror}") from exc
+
+
+XOSC_TRACE_FILE = "storyboard_trace.jsonl"
+"""The storyboard trace of an OpenSCENARIO run, beside the summary: one JSON object a line
+(time, element kind and name, from and to state, the condition values that fired it)."""
+
+
+def _run_xosc_command(args: argparse.Namespace, out: Path) -> int:
+    """``run-scenario FILE.xosc``: play it with physical cars (``simserver.sim.xosc_run``),
+    write the history (``car_id`` column), the summary, the plots and the storyboard
+    trace (:data:`XOSC_TRACE_FILE`)."""
+    import json
+
+    from simserver.adapters.history import (
+        HISTORY_FILE,
+        SUMMARY_FILE,
+        summarize,
+        write_summary,
+        write_world_history,
+    )
+    from simserver.sim.xosc_run import DEFAULT_DURATION_S, play
+
+    duration = DEFAULT_DURATION_S if args.duration is None else args.duration
+    if not (math.isfinite(duration) and 0.0 < duration <= 3600.0):
+        raise CliError(f"--duration: {duration:g} is outside (0, 3600] s")
+    run = play(args.scenario, duration_s=duration, dt_s=args.dt or 0.001)
+    for line in run.scenario.ignored:
+        print(f"warning: {line}", file=sys.stderr)
+    _make_out_dir(out)
+    result = run.result
+    summary = {"scenario": args.scenario.stem, "end_time_s": run.end_time_s,
+               "ended_by": run.ended_by,
+               "cars": {cid: summarize(r) for cid, r in result.cars.items()}}
+    try:
+        write_world_history(result.cars, out / HISTORY_FILE)
+        write_summary(summary, out / SUMMARY_FILE)
+        with open(out / XOSC_TRACE_FILE, "w") as f:
+            for entry in run.trace:
+                f.write(json.dumps(entry, default=float) + "\n")
+        written = [HISTORY_FILE, SUMMARY_FILE, XOSC_TRACE_FILE]
+        if not args.no_plots:
+            from simserver.adapters.plots import plot_comparison
+
+            written.append(plot_comparison(result.cars, out / "cars.png",
+                                           signals=("u_mps", "x_m", "y_m"),
+                                           title=f"{args.scenario.stem}: every car").name)
+    except OSError as exc:
+        raise CliError(f"{out}: cannot write the results: {exc.strerror or exc}") from exc
+    print(f"{args.scenario.name}: {len(result.cars)} cars, {run.end_time_s:.2f} s simulated "
+          f"({run.ended_by}) in {run.wall_time_s:.3g} s; wrote {out}/ ({', '.join(written)})")
+    bad = [cid for cid, s in summary["cars"].items() if not s["finite"]["all"]]
+    if bad:
+        print(f"error: {args.scenario}: car(s) {bad} went non-finite (NaN or inf)",
+              file=sys.stderr)
+        return 1
+    return 0
 
 
 def _run_world_scenario_command(args: argparse.Namespace, data: dict, out: Path) -> int:
