@@ -41,6 +41,7 @@ name it is defined in :mod:`simserver.keyframes`, which the player client shares
 from __future__ import annotations
 
 import time
+import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,7 +71,7 @@ from simserver.adapters.validate import integer, referenced_file, short_repr
 from simserver.core import layout as L
 from simserver.core.terrain import TERRAIN_OPENDRIVE, Terrain, plane_terrain
 from simserver.keyframes import input_table, read_keyframe_file
-from simserver.simulation import Simulation
+from simserver.simulation import Simulation, world_poses
 
 ROAD_RANGES = {"grade_pct": (-100.0, 100.0), "cross_slope_pct": (-100.0, 100.0),
                "friction_scale": (0.0, 3.0)}
@@ -160,6 +161,24 @@ class ScenarioResult:
     def output(self, index: int) -> np.ndarray:
         """Column ``index`` of the outputs (a ``core.layout`` ``O_*`` constant)."""
         return self.outputs[:, index]
+
+    @property
+    def poses(self) -> np.ndarray:
+        """The world pose of each row's state, ``(rows, N_POSE)`` (``core.layout.POSE_*``):
+        what the server publishes for that state (``simulation.world_poses``; made once
+        per states array, 3-7 us a row)."""
+        key = id(self.states)
+        hit = _POSES.get(key)
+        if hit is not None and hit[0]() is self.states:
+            return hit[1]
+        poses = world_poses(self.scenario.scene, self.states)
+        _POSES[key] = (weakref.ref(self.states, lambda _, k=key: _POSES.pop(k, None)), poses)
+        return poses
+
+
+_POSES: dict[int, tuple[weakref.ref, np.ndarray]] = {}
+"""``ScenarioResult.poses`` by the states array they were made from (kept while it lives;
+a result copied with other states makes its own)."""
 
 
 SCENE_KEYS = ("vehicle", "road", "initial", "model", "terrain", "start")

@@ -438,8 +438,8 @@ def test_recorder_road_frame_inverts_the_servers_world_pose():
 def test_recorder_columns_are_the_headless_history_names_and_every_state_field():
     """History-named columns are history columns with the history's units (time_s and
     the road-frame pose first), no state-only column takes a history name, and every
-    field of the state is recorded: under its history name where it has one, the world
-    pose as world_*, the others under their own names."""
+    field of the state is recorded: under its history name where it has one (the world
+    pose as world_*), the others under their own names."""
     from simserver.adapters.history import HISTORY_COLUMNS, column_unit
 
     names = [c.name for c in recorder.HISTORY_NAMED]
@@ -449,8 +449,8 @@ def test_recorder_columns_are_the_headless_history_names_and_every_state_field()
         assert c.unit == column_unit(c.name), c.name
         assert c.arrow_type == pa.float64(), c.name
     assert not {c.name for c in recorder.STATE_ONLY} & set(HISTORY_COLUMNS)
-    assert {"tick", "flags", "cmd_age_s", "world_x_m", "world_yaw_rad"} <= \
-        {c.name for c in recorder.STATE_ONLY}
+    assert {"tick", "flags", "cmd_age_s"} <= {c.name for c in recorder.STATE_ONLY}
+    assert {"world_x_m", "world_z_m", "world_yaw_rad"} <= set(names)  # as the history
     recorded = {c.name for c in recorder.COLUMNS}
     assert len(recorded) == len(recorder.COLUMNS)
     for f in proto.STATE_FIELDS:
@@ -459,8 +459,6 @@ def test_recorder_columns_are_the_headless_history_names_and_every_state_field()
         if f.history is not None:
             want = [f.history.format(w=w) for w in recorder.WHEELS] if f.count > 1 \
                 else [f.history]
-        elif f.source.startswith("pose:"):
-            want = [f"world_{f.name}"]
         else:
             want = [f"{f.name}_{w}" for w in recorder.WHEELS] if f.count > 1 else [f.name]
         assert set(want) <= recorded, (f.name, want)
