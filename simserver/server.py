@@ -83,6 +83,7 @@ SERVER_KEYS: dict[str, tuple[float, float] | None] = {
     "command_log": None,
     "config_dirs": None,
     "viewer": None,
+    "viewer_fps": (0.1, 1000.0),
     "realtime": None,
     "rt_priority": (2, 99),
     "rt_cpus": None,
@@ -120,6 +121,7 @@ class ServerConfig:
     command_log: Path | None = None
     config_dirs: list[Path] = field(default_factory=list)
     viewer: str = "off"
+    viewer_fps: float = 50.0  # simserver.viewer.DEFAULT_FPS (a test checks they agree)
     realtime: str = "auto"
     rt_priority: int = DEFAULT_RT_PRIORITY
     rt_cpus: tuple[int, ...] = ()
@@ -634,7 +636,7 @@ class SimServer:
             log.info("open the live viewer with: rerun rerun+http://127.0.0.1:%d/proxy", port)
         args = [sys.executable, "-m", "simserver", "view", "--sink", sink,
                 "--connect", loopback_of(listen[0]), "--prefix", cfg.prefix,
-                "--vehicle-id", cfg.vehicle_id]
+                "--vehicle-id", cfg.vehicle_id, "--fps", f"{cfg.viewer_fps:g}"]
         self.viewer_command = "simserver " + " ".join(args[3:])
         log.info("live viewer: %s", self.viewer_command)
         return subprocess.Popen(args)

@@ -1,0 +1,89 @@
+"""The live view's frame rate, the rate a ``save:`` recording grows with (issue 32 item
+5): the server's ``viewer_fps`` (``--viewer-fps``) reaches the viewer it starts, and the
+recording keeps that many frames per simulated second, read back from the .rrd."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+
+import pytest
+
+from simserver.adapters.rerun_scene import CAR, TIMELINE
+from simserver.adapters.validate import ConfigError
+from simserver.server import DEFAULT_SERVER_CONFIG, ServerConfig, load_server_config
+from simserver.testing import OutputProcess, ServerProcess, wait_until
+from simserver.viewer import DEFAULT_FPS
+
+
+def test_viewer_fps_default_is_the_viewers_and_bad_values_are_refused(tmp_path):
+    assert load_server_config(DEFAULT_SERVER_CONFIG).viewer_fps == DEFAULT_FPS
+    assert ServerConfig(path=tmp_path, scene=tmp_path).viewer_fps == DEFAULT_FPS
+    assert load_server_config(DEFAULT_SERVER_CONFIG, viewer_fps=10.0).viewer_fps == 10.0
+    for bad in (0.0, -5.0, 5000.0, "fast"):
+        with pytest.raises(ConfigError, match="viewer_fps"):
+            load_server_config(DEFAULT_SERVER_CONFIG, viewer_fps=bad)
+
+
+def car_frame_times(path) -> list[int]:
+    """sim_time (ns) of every frame of the car in a recording."""
+    from rerun.chunk import RrdReader
+
+    times: set[int] = set()
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path == "/" + CAR and not chunk.is_static:
+            times.update(chunk.to_record_batch().column(TIMELINE).cast("int64").to_pylist())
+    return sorted(times)
+
+
+def test_serve_passes_viewer_fps_to_its_viewer(tmp_path):
+    """The server's viewer is started with the configured rate (its command is logged: the
+    viewer itself runs at idle priority and may get no CPU on a busy machine)."""
+    server = ServerProcess(viewer=f"save:{tmp_path / 'v.rrd'}",
+                           extra_args=["--viewer-fps", "10"])
+    try:
+        wait_until(lambda: "live viewer: simserver view" in server.text(), bool,
+                   timeout_s=30, what="the viewer's command line", interval_s=0.2)
+    finally:
+        server.stop(signal.SIGINT)
+    (line,) = [ln for ln in server.text().splitlines() if "live viewer: simserver view" in ln]
+    assert line.endswith("--fps 10"), line
+
+
+def test_view_fps_decimates_the_saved_recording(tmp_path):
+    """``simserver view --fps 10`` (what the server starts) keeps 10 car frames per
+    simulated second in a ``save:`` recording."""
+    rrd = tmp_path / "live.rrd"
+    with ServerProcess() as server:
+        view = OutputProcess([sys.executable, "-m", "simserver", "view", "--sink",
+                              f"save:{rrd}", "--connect", server.endpoint, "--fps", "10",
+                              "--normal-priority"])
+        try:
+            wait_until(lambda: rrd.exists() and os.path.getsize(rrd) > 100_000, bool,
+                       timeout_s=240, what="the recording growing", interval_s=0.5)
+        finally:
+            code = view.stop(signal.SIGINT, timeout_s=60)
+    assert code == 0, view.text()
+    times = car_frame_times(rrd)
+    span_s = (times[-1] - times[0]) / 1e9
+    rate = (len(times) - 1) / span_s
+    print(f"\n{len(times)} car frames over {span_s:.1f} simulated s: {rate:.2f} per s")
+    assert span_s > 2.0
+    # RateGate lets through the first state at or after each 0.1 s grid point: one frame
+    # a grid interval, fewer only if the viewer dropped states behind
+    assert 9.0 <= rate <= 10.0 + 1e-6
+
+
+def test_the_help_states_the_default_rate():
+    """``view --fps`` and ``serve --viewer-fps`` state ``viewer.DEFAULT_FPS`` (the CLI does
+    not import the viewer to build its parser, so the figure is written there too)."""
+    import argparse
+
+    from simserver.cli import build_parser
+
+    (sub,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    (fps,) = [a for a in sub.choices["view"]._actions if "--fps" in a.option_strings]
+    assert fps.default is None and f"(default {DEFAULT_FPS:g};" in fps.help
+    (rate,) = [a for a in sub.choices["serve"]._actions if "--viewer-fps" in a.option_strings]
+    assert rate.default is None and f"'viewer_fps', {DEFAULT_FPS:g})" in rate.help
