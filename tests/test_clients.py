@@ -946,3 +946,32 @@ def test_keyboard_driver_rearms_its_hold_and_names_the_new_car_after_a_load_by_a
     # held by the driver's re-armed hold: without it the car rolled back at once
     assert float(later["brake"]) >= 0.99
     assert abs(float(later["u_mps"])) < 0.01
+
+
+def test_keyboard_driver_shows_road_lane_s_and_edge_on_an_opendrive_road():
+    """On an OpenDRIVE scene the driver's screen has a road line (issue 32): road, lane,
+    s and the distance to the road's edge, on or off the road, from the road file the
+    server names (clients.road_view). The crest scene starts on lane -1 at s = 270 m
+    (lane -1 is 3.2 m wide and the right border lane 30 m: 31.60 m from the right edge);
+    a reset to a pose 40 m right of the straight's reference line (x = 50 m) puts the car
+    6.80 m beyond the road's right edge, a reset to lane 1 at s = 50 m back on it, 34.80 m
+    from the nearer (right) edge."""
+    server = ServerProcess(vehicle_id="road", scene="crest_curve_paper_sedan")
+    watcher = Client(server)
+    drv = PtyProcess(client_command("driver", "--rate", "200", *server.client_args()))
+    try:
+        drv.wait_for("road    road 0  lane -1 (driving)  s   270.0 m  t  -1.60 m  ON the "
+                     "road, 31.60 m from its edge", 60)
+        assert watcher.request("reset", {"pose": {"x_m": 50.0, "y_m": -40.0,
+                                                  "yaw_rad": 0.0}})["ok"]
+        drv.wait_for("lane -2 (border)  s    50.0 m  t -40.00 m  OFF the road, 6.80 m "
+                     "beyond its edge", 20)
+        assert watcher.request("reset", {"lane": {"road": "0", "s": 50.0, "lane": 1}})["ok"]
+        drv.wait_for("lane 1 (driving)  s    50.0 m  t  +1.60 m  ON the road, 34.80 m from "
+                     "its edge", 20)
+        drv.send(b"q")
+        assert drv.wait(15) == 0, drv.text()
+    finally:
+        drv.close()
+        watcher.close()
+        server.stop()
