@@ -91,7 +91,7 @@ from clients.keyboard import (
 )
 from clients.profile import ProfileError
 from clients.road_view import RoadView
-from simserver import protocol as proto
+from simserver.wire import protocol as proto
 
 PROG = "simserver-driver"
 REPO_CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "clients"

@@ -135,7 +135,7 @@ def test_readme_defaults_are_one_endpoint():
     from clients import driver, player, recorder
     from clients.common import endpoints_text
     from simserver.adapters.rerun_sink import DEFAULT_GRPC_PORT
-    from simserver.server import DEFAULT_SERVER_CONFIG, load_server_config
+    from simserver.server.config import DEFAULT_SERVER_CONFIG, load_server_config
 
     assert f"`{README_ENDPOINT}`" in README
     cfg = load_server_config(DEFAULT_SERVER_CONFIG)

@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
 from simserver.adapters.history import result_columns  # noqa: E402
-from simserver.scenario import load_scenario, resolve_scenario, run_scenario  # noqa: E402
+from simserver.sim.scenario import load_scenario, resolve_scenario, run_scenario
 from simserver.sweep.metrics import METRIC_KINDS, METRIC_LABELS, evaluate  # noqa: E402
 from simserver.sweep.report import PLOT_DIR, metric_figure, plot_metrics  # noqa: E402
 from simserver.sweep.resolved import with_overrides  # noqa: E402

@@ -26,7 +26,7 @@ import pytest
 from simserver.adapters.history import read_history, write_history
 from simserver.adapters.opendrive import load_opendrive, profile_at
 from simserver.adapters.road_position import RoadLocator
-from simserver.scenario import load_scenario, run_scenario
+from simserver.sim.scenario import load_scenario, run_scenario
 from simserver.testing import CONFIGS
 
 SCENARIOS = CONFIGS / "scenarios"

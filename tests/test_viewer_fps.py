@@ -12,9 +12,9 @@ import pytest
 
 from simserver.adapters.rerun_scene import CAR, TIMELINE
 from simserver.adapters.validate import ConfigError
-from simserver.server import DEFAULT_SERVER_CONFIG, ServerConfig, load_server_config
+from simserver.adapters.viewer import DEFAULT_FPS
+from simserver.server.config import DEFAULT_SERVER_CONFIG, ServerConfig, load_server_config
 from simserver.testing import OutputProcess, ServerProcess, wait_until
-from simserver.viewer import DEFAULT_FPS
 
 
 def test_viewer_fps_default_is_the_viewers_and_bad_values_are_refused(tmp_path):

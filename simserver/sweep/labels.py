@@ -27,7 +27,7 @@ _INITIAL_WORDS = {"x_m": "initial position x", "y_m": "initial position y",
 def _tables() -> dict[str, dict[str, tuple[str, str]]]:
     """Every parameter table's rows as ``yaml key -> (meaning, unit)``, by section."""
     from simserver.core.params import MODEL_OPTIONS, ROAD, VEHICLE_PARAM_TABLES
-    from simserver.tire_models import tire_models
+    from simserver.tires.registry import tire_models
 
     def rows(*tables) -> dict[str, tuple[str, str]]:  # noqa: ANN002 - ParamTables
         return {p.yaml_key: (_words(p.meaning, p.name, p.unit), p.unit)
