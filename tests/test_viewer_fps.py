@@ -8,6 +8,7 @@ import os
 import signal
 import sys
 
+import numpy as np
 import pytest
 
 from simserver.adapters.rerun_scene import CAR, TIMELINE
@@ -66,24 +67,15 @@ def test_view_fps_decimates_the_saved_recording(tmp_path):
             code = view.stop(signal.SIGINT, timeout_s=60)
     assert code == 0, view.text()
     times = car_frame_times(rrd)
+    gaps_s = np.diff(times) / 1e9
     span_s = (times[-1] - times[0]) / 1e9
-    rate = (len(times) - 1) / span_s
-    print(f"\n{len(times)} car frames over {span_s:.1f} simulated s: {rate:.2f} per s")
+    print(f"\n{len(times)} car frames over {span_s:.1f} simulated s: "
+          f"{(len(times) - 1) / span_s:.2f} per s; gaps {gaps_s.min():.3f} .. "
+          f"{gaps_s.max():.3f} s, median {np.median(gaps_s):.3f} s")
     assert span_s > 2.0
-    # RateGate lets through the first state at or after each 0.1 s grid point: one frame
-    # a grid interval, fewer only if the viewer dropped states behind
-    assert 9.0 <= rate <= 10.0 + 1e-6
-
-
-def test_the_help_states_the_default_rate():
-    """``view --fps`` and ``serve --viewer-fps`` state ``viewer.DEFAULT_FPS`` (the CLI does
-    not import the viewer to build its parser, so the figure is written there too)."""
-    import argparse
-
-    from simserver.cli import build_parser
-
-    (sub,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
-    (fps,) = [a for a in sub.choices["view"]._actions if "--fps" in a.option_strings]
-    assert fps.default is None and f"(default {DEFAULT_FPS:g};" in fps.help
-    (rate,) = [a for a in sub.choices["serve"]._actions if "--viewer-fps" in a.option_strings]
-    assert rate.default is None and f"'viewer_fps', {DEFAULT_FPS:g})" in rate.help
+    # RateGate lets through the first state at or after each 0.1 s grid point: no two
+    # frames closer than 0.1 s (at the default 50 they are 0.02 s apart), and the regular
+    # gap is 0.1 s; a viewer that fell behind (a busy machine) drops states, which only
+    # makes some gaps longer
+    assert gaps_s.min() >= 0.1 - 1.5e-3
+    assert np.median(gaps_s) == pytest.approx(0.1, abs=1.5e-3)
