@@ -434,6 +434,9 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help="live Rerun view in its own process: serve[:PORT] (loopback "
                              "gRPC + web viewer), save:FILE.rrd, connect:URL, spawn, off "
                              "(default: the config's 'viewer')")
+    parser.add_argument("--stats-json", action="store_true",
+                        help="on the stop, also print the statistics as one JSON line "
+                             "('simserver: stopped {...}', for scripts) after the table")
     parser.add_argument("--viewer-fps", type=float, default=None, metavar="HZ",
                         help="frames the live view draws (and a save: recording keeps) per "
                              "simulated second (default: the config's 'viewer_fps', 50)")
@@ -488,7 +491,7 @@ def _serve(args: argparse.Namespace) -> int:
     from simserver.server.app import DuplicateVehicleError
 
     try:
-        SimServer(cfg).run()
+        SimServer(cfg).run(stats_json=args.stats_json)
     except (ZenohConfigError, ZenohOpenError, DuplicateVehicleError, FrontError) as exc:
         raise CliError(str(exc), exit_code=2) from exc
     return 0
