@@ -15,7 +15,7 @@ from simserver.adapters.rerun_scene import CAR, TIMELINE
 from simserver.adapters.validate import ConfigError
 from simserver.adapters.viewer import DEFAULT_FPS
 from simserver.server.config import DEFAULT_SERVER_CONFIG, ServerConfig, load_server_config
-from simserver.testing import OutputProcess, ServerProcess, wait_until
+from simserver.testing import Client, OutputProcess, ServerProcess, wait_until
 
 
 def test_viewer_fps_default_is_the_viewers_and_bad_values_are_refused(tmp_path):
@@ -63,6 +63,11 @@ def test_view_fps_decimates_the_saved_recording(tmp_path):
         try:
             wait_until(lambda: rrd.exists() and os.path.getsize(rrd) > 100_000, bool,
                        timeout_s=240, what="the recording growing", interval_s=0.5)
+            # then 4 s more of the server's simulated time in the recording
+            with Client(server) as client:
+                t0 = float(client.wait_state(timeout_s=20.0)["sim_time_s"])
+                client.wait_state(lambda st: float(st["sim_time_s"]) > t0 + 4.0, 30.0,
+                                  "4 s more of simulated time")
         finally:
             code = view.stop(signal.SIGINT, timeout_s=60)
     assert code == 0, view.text()
