@@ -90,6 +90,7 @@ from clients.keyboard import (
     load_keyboard_profile,
 )
 from clients.profile import ProfileError
+from clients.road_view import RoadView
 from simserver.wire import protocol as proto
 
 PROG = "simserver-driver"
@@ -371,6 +372,9 @@ class StatusView:
                    f"        {ground_text(s)}",
                    f"        nose up {-math.degrees(float(s['pitch_rad'])):+5.1f} deg  heading "
                    f"{heading:+6.1f} deg"]
+            road = d.road.line(float(s["x_m"]), float(s["y_m"]))
+            if road is not None:
+                car.append(road)
             age = float(s["cmd_age_s"])
             silent = time.monotonic() - d.state_wall
             server = [f"server  t {float(s['sim_time_s']):9.3f} s  [{' '.join(names) or 'ok'}]"
@@ -467,6 +471,8 @@ class Driver:
             ["keys    q quit, space pause/resume, x reset, 1-4 gear P R N D, h parking brake, "
              "b auto hold"]
         self.view = StatusView(out, self._header(conn.config), help_lines)
+        self.road = RoadView()  # on an OpenDRIVE scene: road, lane, s, edge (clients.road_view)
+        self.road.follow(conn.config)
 
     def _header(self, config: dict[str, Any]) -> str:
         """The status block's first line: where, which vehicle and scene, input, rate."""
@@ -497,6 +503,7 @@ class Driver:
             return
         self.conn.config = config
         self.view.header = self._header(config)
+        self.road.follow(config)
 
     @property
     def message(self) -> str:

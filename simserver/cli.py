@@ -512,6 +512,12 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help="live Rerun view in its own process: serve[:PORT] (loopback "
                              "gRPC + web viewer), save:FILE.rrd, connect:URL, spawn, off "
                              "(default: the config's 'viewer')")
+    parser.add_argument("--stats-json", action="store_true",
+                        help="on the stop, also print the statistics as one JSON line "
+                             "('simserver: stopped {...}', for scripts) after the table")
+    parser.add_argument("--viewer-fps", type=float, default=None, metavar="HZ",
+                        help="frames the live view draws (and a save: recording keeps) per "
+                             "simulated second (default: the config's 'viewer_fps', 50)")
     parser.add_argument("--realtime", default=None, choices=("auto", "off"),
                         help="auto (default): SCHED_FIFO for the tick thread and zenoh's "
                              "threads where the OS allows it (root, CAP_SYS_NICE or an "
@@ -554,6 +560,7 @@ def _serve(args: argparse.Namespace) -> int:
         args.config or DEFAULT_SERVER_CONFIG, scene=args.scene, vehicle_id=args.vehicle_id,
         prefix=args.prefix, listen=args.listen, connect=args.connect,
         zenoh_config=args.zenoh_config, command_log=args.command_log, viewer=args.viewer,
+        viewer_fps=args.viewer_fps,
         realtime=args.realtime, rt_priority=args.rt_priority, rt_cpus=args.rt_cpus,
         rt_lock_memory=args.rt_lock_memory,
         ros2=args.ros2, tls_front=args.tls_front)
@@ -562,7 +569,7 @@ def _serve(args: argparse.Namespace) -> int:
     from simserver.server.app import DuplicateVehicleError
 
     try:
-        SimServer(cfg).run()
+        SimServer(cfg).run(stats_json=args.stats_json)
     except (ZenohConfigError, ZenohOpenError, DuplicateVehicleError, FrontError) as exc:
         raise CliError(str(exc), exit_code=2) from exc
     return 0
@@ -666,8 +673,9 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
                              "machine the viewer may get no CPU for seconds)")
     parser.add_argument("--vehicle-id", default="car0")
     parser.add_argument("--prefix", default="simserver")
-    parser.add_argument("--fps", type=float, default=50.0,
-                        help="frames drawn per simulated second (default 50)")
+    parser.add_argument("--fps", type=float, default=None,
+                        help="frames drawn per simulated second (default 50; a save: "
+                             "recording grows with it, docs/clients.md section 5b)")
     parser.add_argument("--web-port", type=int, default=None, metavar="PORT",
                         help="serve: also host Rerun's web viewer on PORT (rerun-sdk 0.41 "
                              "binds it to all interfaces; off by default)")
@@ -684,7 +692,7 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
 def view_command(args: argparse.Namespace) -> int:
     """``simserver view``: the live Rerun scene of a running server (its own process)."""
     from simserver.adapters.rerun_sink import RerunSinkError
-    from simserver.adapters.viewer import DEFAULT_WAIT_S, ServerWaitError, run_viewer
+    from simserver.adapters.viewer import DEFAULT_FPS, DEFAULT_WAIT_S, ServerWaitError, run_viewer
     from simserver.adapters.zenoh_io import ZenohConfigError
 
     # a --zenoh-config keeps its own endpoints (a TLS client's server name) unless
@@ -694,8 +702,12 @@ def view_command(args: argparse.Namespace) -> int:
     if not wait_s >= 0:
         raise CliError(f"--wait {args.wait:g}: expected a number of seconds >= 0",
                        exit_code=2)
+    fps = DEFAULT_FPS if args.fps is None else args.fps
+    if not 0.1 <= fps <= 1000.0:
+        raise CliError(f"--fps {args.fps:g}: expected frames per simulated second from 0.1 "
+                       "to 1000", exit_code=2)
     try:
-        stats = run_viewer(args.sink, connect, args.prefix, args.vehicle_id, args.fps,
+        stats = run_viewer(args.sink, connect, args.prefix, args.vehicle_id, fps,
                            duration_s=args.duration, config_file=args.zenoh_config,
                            web_port=args.web_port, check_listener=not args.no_listener_check,
                            idle_priority=not args.normal_priority, wait_s=wait_s)

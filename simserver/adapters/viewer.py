@@ -59,6 +59,10 @@ from simserver.wire.state_schema import record_to_pose, record_to_rows
 
 ROAD_POLL_S = 1.0
 
+DEFAULT_FPS = 50.0
+"""Frames the viewer draws per simulated second (``simserver view --fps``, the server's
+``viewer_fps``): what a ``save:`` recording grows with (docs/clients.md section 5b)."""
+
 DEFAULT_WAIT_S = 60.0
 """How long ``simserver view`` waits for its server's first ``get_config`` reply
 (``--wait``). On a busy machine the viewer runs at idle priority (``lower_priority``) and
@@ -342,7 +346,7 @@ def log_diagnostics_payload(rec_stream: Any, payload: bytes, period_s: float,
 
 
 def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
-               vehicle_id: str = "car0", fps: float = 50.0, queue: int = 2048,
+               vehicle_id: str = "car0", fps: float = DEFAULT_FPS, queue: int = 2048,
                duration_s: float | None = None, config_file: Path | None = None,
                web_port: int | None = None, check_listener: bool = True,
                idle_priority: bool = True, wait_s: float = DEFAULT_WAIT_S) -> ViewerStats:

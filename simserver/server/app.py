@@ -36,6 +36,7 @@ from simserver.server.logfile import renew_log_thread
 from simserver.server.loop import ServerLoop, SlotPorts
 from simserver.server.realtime import RealtimeScheduler, TickTrace, process_threads
 from simserver.server.slot import VehicleSlot
+from simserver.server.stats_text import stop_text
 from simserver.sim.scene import Scene, load_scene
 from simserver.sim.simulation import Simulation
 from simserver.wire import protocol as proto
@@ -149,8 +150,10 @@ class SimServer:
         """Ask the loop to finish (signal handler)."""
         self.loop.stop()
 
-    def run(self) -> dict[str, Any]:
-        """Serve until stopped; returns the final statistics.
+    def run(self, stats_json: bool = False) -> dict[str, Any]:
+        """Serve until stopped; returns the final statistics, printed as a few lines
+        (``server.stats_text``) and, with ``stats_json``, as the JSON line
+        ``simserver: stopped {...}`` too.
 
         Raises
         ------
@@ -208,7 +211,9 @@ class SimServer:
                     controls = ep.declare_control_inbox(keys=keys, validate=False)
                     loop.add(slot, SlotPorts(commands, controls, publisher))
                 first = self.slots[0]
-                log.info("serving %s (vehicle %s) every %.3f ms; compiled in %.2f s",
+                # the kernels compiled (if at all) in __init__, which said so
+                # (CompileProgress); here they load from the cache
+                log.info("serving %s (vehicle %s) every %.3f ms; kernels ready in %.2f s",
                          first.keys.base, first.sim.scene.vehicle.name,
                          1e3 * cfg.period_s, compile_s)
                 summary = self.scheduler.apply()
@@ -242,7 +247,9 @@ class SimServer:
                 if s.command_log is not None and s.command_log.cut is not None]
         if cuts:  # the live run went on without its log (docs/reliability.md)
             final["command_log_cut"] = cuts[0]
-        print("simserver: stopped " + json.dumps(final), flush=True)
+        print(stop_text(final), flush=True)
+        if stats_json:
+            print("simserver: stopped " + json.dumps(final), flush=True)
         return final
 
     # ------------------------------------------------------------------ one vehicle id
@@ -317,7 +324,7 @@ class SimServer:
             log.info("open the live viewer with: rerun rerun+http://127.0.0.1:%d/proxy", port)
         args = [sys.executable, "-m", "simserver", "view", "--sink", sink,
                 "--connect", loopback_of(listen[0]), "--prefix", cfg.prefix,
-                "--vehicle-id", cfg.vehicle_id]
+                "--vehicle-id", cfg.vehicle_id, "--fps", f"{cfg.viewer_fps:g}"]
         self.viewer_command = "simserver " + " ".join(args[3:])
         log.info("live viewer: %s", self.viewer_command)
         return subprocess.Popen(args)

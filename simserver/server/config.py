@@ -59,6 +59,7 @@ class ServerConfig:
     command_log: Path | None = None
     config_dirs: list[Path] = field(default_factory=list)
     viewer: str = "off"
+    viewer_fps: float = 50.0  # adapters.viewer.DEFAULT_FPS (a test checks they agree)
     realtime: str = "auto"
     rt_priority: int = DEFAULT_RT_PRIORITY
     rt_cpus: tuple[int, ...] = ()
@@ -295,6 +296,7 @@ SERVER_KEYS: dict[str, ServerKey] = {
     "command_log": ServerKey(_command_log),
     "config_dirs": ServerKey(_folders),
     "viewer": ServerKey(_viewer),
+    "viewer_fps": _number_key(0.1, 1000.0),
     "realtime": _one_of(REALTIME_MODES),
     "rt_priority": _integer_key(2, 99),
     "rt_cpus": ServerKey(_cpus),

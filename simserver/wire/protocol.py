@@ -428,16 +428,21 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
               source="server"),
     FieldSpec("sim_time_s", "<f8", 1, "s", 0.0, None, "simulated time = tick x period",
               source="server", history="time_s"),
-    FieldSpec("x_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}", source="pose:x_m"),
-    FieldSpec("y_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}", source="pose:y_m"),
-    FieldSpec("z_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}", source="pose:z_m"),
+    FieldSpec("x_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}",
+              source="pose:x_m", history="world_x_m"),
+    FieldSpec("y_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}",
+              source="pose:y_m", history="world_y_m"),
+    FieldSpec("z_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}",
+              source="pose:z_m", history="world_z_m"),
     FieldSpec("yaw_rad", "<f8", 1, "rad", None, None,
               f"heading from world x toward y, continuous (not wrapped); {_ATT}",
-              source="pose:yaw_rad"),
+              source="pose:yaw_rad", history="world_yaw_rad"),
     FieldSpec("pitch_rad", "<f8", 1, "rad", None, None,
-              f"pitch, positive = nose down; {_ATT}", source="pose:pitch_rad"),
+              f"pitch, positive = nose down; {_ATT}", source="pose:pitch_rad",
+              history="world_pitch_rad"),
     FieldSpec("roll_rad", "<f8", 1, "rad", None, None,
-              f"roll, positive = left side up; {_ATT}", source="pose:roll_rad"),
+              f"roll, positive = left side up; {_ATT}", source="pose:roll_rad",
+              history="world_roll_rad"),
     FieldSpec("cmd_age_s", "<f4", 1, "s", -1.0, None,
               "wall time since the last valid command arrived; -1 before the first",
               source="server"),
@@ -648,9 +653,9 @@ class StateColumn:
     Attributes
     ----------
     name : str
-        Column name: the field's ``history`` column (the wheel filled in), else
-        ``world_<field>`` for the world pose (the history's ``x_m`` is in the road plane),
-        else the field's own name.
+        Column name: the field's ``history`` column (the wheel filled in; the world pose's
+        is ``world_<field>``, the history's ``x_m`` being on the road plane), else the
+        field's own name.
     field : str
         The VehicleState field it is read from.
     wheel : int or None
@@ -685,7 +690,7 @@ def _column_of(f: FieldSpec, wheel: int | None) -> StateColumn:
     if f.history is not None:
         return StateColumn(f.history.format(w=w), f.name, wheel, "<f8",
                            "1" if f.unit == "-" else f.unit, text, True)
-    name = f"world_{f.name}" if kind == "pose" else f.name
+    name = f.name
     if w is not None:
         name = f"{name}_{w}"
     dtype = "<f8" if f.dtype.lstrip("<")[0] == "f" else f.dtype
@@ -722,7 +727,8 @@ def _check_state_table() -> None:
         for text in (name, f.history or ""):
             if text:
                 assert ("{w}" in text) == per_wheel, f"{f.name}: {text!r} and count {f.count}"
-        assert kind != "pose" or f.history is None, f"{f.name}: pose in the history frame"
+        # the history's x_m, y_m, yaw_rad are on the road plane; its world pose is world_*
+        assert kind != "pose" or f.history == f"world_{name}", f"{f.name}: {f.history!r}"
     for c in state_columns():
         assert c.name not in seen, f"two state columns named {c.name!r}"
         seen.add(c.name)
@@ -1750,11 +1756,9 @@ def _source_text(f: FieldSpec) -> str:
 def _recorded_text(f: FieldSpec) -> str:
     if not f.source:
         return "-"
-    kind, _ = state_source(f)
     if f.history is not None:
         return f"`{f.history}` (history)"
-    name = f"world_{f.name}" if kind == "pose" else f.name
-    return f"`{name}_{{w}}`" if f.count > 1 else f"`{name}`"
+    return f"`{f.name}_{{w}}`" if f.count > 1 else f"`{f.name}`"
 
 
 def fields_markdown(fields: Sequence[FieldSpec], *, with_rule: bool = False,
