@@ -939,6 +939,10 @@ class ZenohEndpoint:
         key = self.keys.state_decimated if decimated else self.keys.state
         return self._keep(Inbox(self.session, key, capacity))
 
+    def declare_inbox(self, key: str, capacity: int = 16) -> Inbox:
+        """Subscriber on any key (``{prefix}/world/state``, ...) with a ring of ``capacity``."""
+        return self._keep(Inbox(self.session, key, capacity))
+
     def declare_diag_inbox(self, capacity: int = 64) -> Inbox:
         """Subscriber on ``diag`` with a ring of ``capacity``."""
         return self._keep(Inbox(self.session, self.keys.diag, capacity))
