@@ -337,3 +337,88 @@ def check_apart(cars: list[CarSpec], scenes: dict[str, Scene]) -> None:
                     f"{a.where}: its start ({pa['x_m']:.2f}, {pa['y_m']:.2f}) m overlaps the "
                     f"start of car {b.id!r} ({pb['x_m']:.2f}, {pb['y_m']:.2f}) m (bodies "
                     f"{sum(boxes[a.id][:2]):.2f} x {2 * boxes[a.id][2]:.2f} m): move one")
+
+
+# ------------------------------------------------------------------ the cars' world
+def build_world(scenes: dict[str, Scene], dt_s: float) -> dict[str, Any]:
+    """One ``Simulation`` per car (in ``scenes`` order), all cars of one world on the first
+    car's terrain (the scenes share the world scene's terrain): each is made alone, as a
+    single car's server makes it, then moved into the world (``Simulation.move_to``:
+    copies of its rows, nothing recompiled), so a car starts with the bits it would have
+    alone. Returns ``{id: Simulation}``."""
+    from simserver.simulation import Simulation
+
+    sims: dict[str, Any] = {}
+    world = None
+    for car_id, scene in scenes.items():
+        sim = Simulation(scene, dt_s, car_id=car_id)
+        if world is None:
+            world = sim.world
+        else:
+            sim.move_to(world)
+        sims[car_id] = sim
+    return sims
+
+
+class WorldMessage:
+    """The world message of a server's cars (``protocol.WorldBuffer``), from each car's
+    newest published VehicleState: ``due(tick)`` every ``every`` ticks, ``payload(...)``
+    a few vectorised copies (microseconds for 32 cars)."""
+
+    def __init__(self, ids: list[str], driven_by: list[str], every: int,
+                 capacity: int | None = None) -> None:
+        self.every = max(1, int(every))
+        self.buffer = proto.WorldBuffer(capacity or len(ids))
+        self.states = np.zeros(self.buffer.cars.size, dtype=proto.STATE_DTYPE)
+        self._raw = self.states.view(np.uint8)
+        self.set_cars(ids, driven_by)
+
+    def set_cars(self, ids: list[str], driven_by: list[str]) -> None:
+        """The cars, in order (when the world changes; between ticks)."""
+        self.buffer.set_cars(ids, driven_by)
+        self.states[:] = 0
+        self.have = np.zeros(len(ids), dtype=bool)
+
+    def due(self, tick: int) -> bool:
+        return tick % self.every == 0
+
+    def payload(self, states: list[bytes | None], tick: int, uptime_s: float) -> bytes:
+        """The message, with car ``k``'s values from ``states[k]`` (its newest published
+        VehicleState bytes; None: none yet, its record stays zero)."""
+        size = proto.STATE_SIZE
+        raw = self._raw
+        for k, state in enumerate(states):
+            if state is not None:
+                raw[k * size:(k + 1) * size] = np.frombuffer(state, dtype=np.uint8)
+        self.buffer.fill_from(self.states)
+        return self.buffer.payload(tick, uptime_s)
+
+
+def world_every(world_hz: float, period_s: float) -> int:
+    """Ticks between two world messages at ``world_hz`` (at least 1)."""
+    return max(1, int(round(1.0 / (world_hz * period_s))))
+
+
+MAX_KEYFRAME_STEPS = 3_600_000
+"""Longest keyframe table a car plays (an hour at 1 kHz, 144 MB): longer is an error."""
+
+
+def keyframe_table(car: CarSpec, dt_s: float) -> np.ndarray:
+    """The inputs a car ``driven_by: keyframes`` applies at each of its ticks: its file's
+    keyframes sampled every ``dt_s`` over the file's ``duration_s`` (``simserver.keyframes``,
+    the headless runner's and the player's sampling); past the end the last row holds.
+    Read off the tick (the server's start, the load worker). ``ConfigError`` naming the
+    car."""
+    from simserver.adapters.config import read_yaml
+    from simserver.keyframes import input_table, read_keyframe_file
+
+    assert car.keyframes is not None
+    try:
+        run = read_keyframe_file(car.keyframes, read_yaml(car.keyframes))
+    except ConfigError as exc:
+        raise ConfigError(f"{car.where}: key 'keyframes': {exc}") from None
+    steps = int(round(run.duration_s / dt_s)) + 1
+    if steps > MAX_KEYFRAME_STEPS:
+        raise ConfigError(f"{car.where}: key 'keyframes': {car.keyframes} lasts "
+                          f"{run.duration_s:g} s, more than {MAX_KEYFRAME_STEPS * dt_s:g} s")
+    return np.ascontiguousarray(input_table(run.keyframes, np.arange(steps) * dt_s))

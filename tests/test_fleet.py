@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from simserver import fleet
@@ -189,3 +190,47 @@ def test_off_the_road_on_opendrive(tmp_path, crest):
                                                              "lane": -9}}])
     with pytest.raises(ConfigError, match=r"cars\[0\] \(a\): key 'start.lane'"):
         fleet.car_scenes(bad_lane, crest)
+
+
+def test_the_cars_world_steps_each_car_as_alone(tmp_path, flat):
+    """build_world: one world of both cars; each car's bits are those of its run alone."""
+    import numpy as np
+
+    from simserver.simulation import Simulation
+
+    cars = fleet.parse_cars(_cfg(tmp_path), [
+        {"id": "a"}, {"id": "b", "vehicle": str(HATCH), "pose": {"x_m": 12.0, "y_m": 1.0}}])
+    scenes = fleet.car_scenes(cars, flat)
+    sims = fleet.build_world(scenes, 0.001)
+    world = sims["a"].world
+    assert sims["b"].world is world and world.ids == ["a", "b"]
+    alone = {cid: Simulation(scenes[cid], 0.001, car_id=cid) for cid in scenes}
+    for k in range(400):
+        for cid, throttle in (("a", 0.3), ("b", 0.5)):
+            for sim in (sims[cid], alone[cid]):
+                sim.inputs[:] = (0.1 * math.sin(k / 50), throttle, 0.0, 0.0, 3.0)
+        world.step()
+        for sim in alone.values():
+            sim.step()
+    for cid in scenes:
+        assert np.array_equal(sims[cid].x, alone[cid].x), cid
+    assert sims["b"].x[0] > 12.0  # it drove
+
+
+def test_keyframe_table_samples_the_file_and_names_the_car(tmp_path):
+    scenario = REPO / "configs" / "scenarios" / "e3_stop_from_turn.yaml"
+    path = _cfg(tmp_path)
+    car, = fleet.parse_cars(path, [{"id": "k", "driven_by": "keyframes",
+                                    "keyframes": str(scenario)}])
+    table = fleet.keyframe_table(car, 0.001)
+    from simserver.scenario import load_scenario, start_run
+
+    sc = load_scenario(scenario)
+    _, inputs = start_run(sc)
+    n = min(len(inputs), len(table))
+    assert np.array_equal(table[:n], inputs[:n])
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nduration_s: 1\ninputs: [{t: 0, gear: Q}]\n")
+    car, = fleet.parse_cars(path, [{"id": "k", "driven_by": "keyframes", "keyframes": str(bad)}])
+    with pytest.raises(ConfigError, match=r"cars\[0\] \(k\): key 'keyframes'.*bad.yaml"):
+        fleet.keyframe_table(car, 0.001)
