@@ -18,9 +18,9 @@ scene's terrain and road (``simserver.simulation.World``, docs/model.md section 
 
 Each car's ``vehicle`` defaults to the scene's and its start to the scene's ``initial``
 (``pose`` replaces the scene's ``x_m``, ``y_m``, ``yaw_rad``; ``start`` gives them from a
-road, s and lane of an OpenDRIVE terrain). The checks (:func:`car_scenes`) run before
-anything is swapped, so a running world is never touched by a bad list; each error names
-the file and the car (``cars[k] (id)``):
+road, s and lane of an OpenDRIVE terrain); every car starts at rest. The checks
+(:func:`car_scenes`) run before anything is swapped, so a running world is never touched
+by a bad list; each error names the file and the car (``cars[k] (id)``):
 
 - an id given twice, an id that is not one key chunk, an id longer than
   :data:`simserver.protocol.WORLD_ID_BYTES` (the world message's id field), or the reserved
@@ -223,10 +223,11 @@ def car_scenes(cars: list[CarSpec], scene: Scene) -> dict[str, Scene]:
                 except ConfigError as exc:
                     raise ConfigError(f"{car.where}: key 'vehicle': {exc}") from None
             vehicle = vehicles[car.vehicle]
-        initial = dict(scene.initial)
+        # every car starts at rest (a reset to its pose gives the same state: its command
+        # log names that pose, and the replay starts there)
+        initial = {**scene.initial, "u_mps": 0.0, "v_mps": 0.0, "yaw_rate_radps": 0.0}
         if car.start is not None:
             initial.update(start_by_lane(car.where, "start", car.start, scene.roads))
-            initial.update(u_mps=0.0, v_mps=0.0, yaw_rate_radps=0.0)
         elif car.pose is not None:
             initial.update(car.pose)
         one = dataclasses.replace(scene, vehicle=vehicle, initial=initial)
@@ -422,3 +423,19 @@ def keyframe_table(car: CarSpec, dt_s: float) -> np.ndarray:
         raise ConfigError(f"{car.where}: key 'keyframes': {car.keyframes} lasts "
                           f"{run.duration_s:g} s, more than {MAX_KEYFRAME_STEPS * dt_s:g} s")
     return np.ascontiguousarray(input_table(run.keyframes, np.arange(steps) * dt_s))
+
+
+def log_start(slot: Any, car: CarSpec) -> None:
+    """The first lines of a car's command log (after its header, which names the world's
+    scene): a ``load`` of the scene with the car's vehicle and a ``reset`` to the car's
+    start pose, so that ``simserver replay`` starts the car where the live world did (every
+    car starts at rest, so the reset gives the very start state)."""
+    log = slot.command_log
+    if log is None:
+        return
+    initial = slot.sim.scene.initial
+    log.write({"step": slot.steps_total, "load": {
+        "scene": str(slot.scene_path),
+        "vehicle": None if car.vehicle is None else str(car.vehicle)}})
+    log.write({"step": slot.steps_total,
+               "reset": {k: float(initial[k]) for k in ("x_m", "y_m", "yaw_rad")}})

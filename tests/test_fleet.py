@@ -49,7 +49,7 @@ def test_two_cars_on_the_flat_get_their_poses_and_vehicles(tmp_path, flat):
     assert [c.id for c in cars] == ["car0", "car1"]
     assert cars[1].vehicle == HATCH.resolve() and cars[1].driven_by == "client"
     scenes = fleet.car_scenes(cars, flat)
-    assert scenes["car0"].initial == flat.initial
+    assert scenes["car0"].initial == {**flat.initial, "u_mps": 0.0}
     assert scenes["car1"].initial["x_m"] == 10.0 and scenes["car1"].initial["yaw_rad"] == 0.1
     assert scenes["car1"].vehicle.path == HATCH.resolve()
     assert scenes["car0"].vehicle is flat.vehicle
