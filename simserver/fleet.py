@@ -439,3 +439,56 @@ def log_start(slot: Any, car: CarSpec) -> None:
         "vehicle": None if car.vehicle is None else str(car.vehicle)}})
     log.write({"step": slot.steps_total,
                "reset": {k: float(initial[k]) for k in ("x_m", "y_m", "yaw_rad")}})
+
+
+# ------------------------------------------------------------------ the server's cars
+@dataclass
+class ServedCar:
+    """A car of the server: its spec (None: the single car of a config without ``cars:``)
+    and its slot (``simserver.vehicle_slot.VehicleSlot``)."""
+
+    spec: CarSpec | None
+    slot: Any
+
+
+def car_log_path(log_path: Path | None, car_id: str, several: bool) -> Path | None:
+    """A car's command log: the server config's ``command_log`` itself for one car; with
+    several, ``NAME.<id>.SUFFIX`` beside it (``run.jsonl`` -> ``run.car0.jsonl``)."""
+    if log_path is None or not several:
+        return log_path
+    return log_path.with_name(f"{log_path.stem}.{car_id}{log_path.suffix}")
+
+
+def make_cars(cfg: Any, scene: Scene) -> list[ServedCar]:
+    """The server's cars from its config: the one car ``vehicle_id`` on ``scene`` (no
+    ``cars:``, as always), or every car of ``cars:`` in one world (:func:`car_scenes`,
+    :func:`build_world`; keyframed cars given their tables). Each slot has the server
+    config with its own ``vehicle_id`` and command log path. ``ConfigError`` naming the
+    file and the car; nothing is built for a list that fails."""
+    from simserver.vehicle_slot import VehicleSlot
+
+    if not cfg.cars:
+        from simserver.server import new_simulation
+
+        return [ServedCar(None, VehicleSlot(cfg, new_simulation(scene, cfg.period_s)))]
+    scenes = car_scenes(cfg.cars, scene)
+    tables = {car.id: keyframe_table(car, cfg.period_s) for car in cfg.cars
+              if car.driven_by == "keyframes"}
+    sims = build_world(scenes, cfg.period_s)
+    several = len(cfg.cars) > 1
+    served = []
+    for car in cfg.cars:
+        car_cfg = dataclasses.replace(
+            cfg, vehicle_id=car.id, command_log=car_log_path(cfg.command_log, car.id, several))
+        slot = VehicleSlot(car_cfg, sims[car.id])
+        if car.id in tables:
+            slot.drive_by_keyframes(tables[car.id])
+        served.append(ServedCar(car, slot))
+    return served
+
+
+def world_message_for(cars: list[ServedCar], cfg: Any) -> WorldMessage:
+    """The world message of the server's cars at the config's ``world_hz``."""
+    return WorldMessage([c.slot.keys.vehicle for c in cars], [c.slot.driven_by for c in cars],
+                        every=world_every(cfg.world_hz, cfg.period_s),
+                        capacity=max(len(cars), getattr(cfg, "max_cars", len(cars))))

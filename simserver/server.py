@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from simserver import fleet
 from simserver import protocol as proto
 from simserver.adapters.config import ConfigError, check_keys, number, read_yaml
 from simserver.adapters.validate import integer, is_path_text, short_repr
@@ -89,6 +90,9 @@ SERVER_KEYS: dict[str, tuple[float, float] | None] = {
     "rt_lock_memory": None,
     "ros2": None,
     "tls_front": None,
+    "cars": None,
+    "max_cars": fleet.MAX_CARS_RANGE,
+    "world_hz": (1.0, 1000.0),
 }
 
 
@@ -126,6 +130,9 @@ class ServerConfig:
     rt_lock_memory: bool = False
     ros2: dict[str, Any] | None = None  # the ROS 2 adapter's settings; None: off
     tls_front: str = "auto"  # auto: an accept-filtering front per tls/ listen endpoint
+    cars: list[fleet.CarSpec] | None = None  # None: the one car vehicle_id (simserver.fleet)
+    max_cars: int = fleet.DEFAULT_MAX_CARS
+    world_hz: float = proto.WORLD_HZ_DEFAULT  # the world message's rate
 
     def realtime_settings(self) -> RealtimeSettings:
         """The real-time scheduling asked for (``simserver.realtime``)."""
@@ -219,10 +226,10 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
 
     cfg = ServerConfig(path=path, scene=Path(base["scene"]))
     for key, rng in SERVER_KEYS.items():
-        if key not in base or key in ("scene", "ros2") or base[key] is None:
+        if key not in base or key in ("scene", "ros2", "cars") or base[key] is None:
             continue
         value = base[key]
-        if key in ("state_every", "max_catchup_ticks", "rt_priority"):
+        if key in ("state_every", "max_catchup_ticks", "rt_priority", "max_cars"):
             lo, hi = rng
             setattr(cfg, key, integer(path, key, value, int(lo), int(hi)))
         elif rng is not None:
@@ -264,6 +271,8 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
         file = getattr(cfg, key)
         if file is not None and not file.is_file():
             raise ConfigError(f"{where(key)}: {file}: no such file")
+    if base.get("cars") is not None:  # several cars in one world (simserver.fleet)
+        cfg.cars = fleet.parse_cars(path, base["cars"], cfg.max_cars)
     if cfg.command_log is not None:
         _check_command_log(where("command_log"), cfg.command_log)
     try:
@@ -445,8 +454,10 @@ class SimServer:
     def __init__(self, cfg: ServerConfig) -> None:
         self.cfg = cfg
         with CompileProgress():
-            self.slots = [VehicleSlot(cfg, new_simulation(load_scene(cfg.scene),
-                                                          cfg.period_s))]
+            # one car, or the cars of cfg.cars in one world (checked: ConfigError naming
+            # the file and the car before anything runs)
+            self.cars = fleet.make_cars(cfg, load_scene(cfg.scene))
+            self.slots: list[VehicleSlot] = [car.slot for car in self.cars]
             for slot in self.slots:
                 slot.warm_up()
         self.preparer = ProcessPreparer()
@@ -510,10 +521,13 @@ class SimServer:
                 self._zid = str(ep.session.zid())
                 for slot in self.slots:
                     self._claim_vehicle(ep, slot)
-                for slot in self.slots:
+                for car in self.cars:
+                    slot = car.slot
                     if slot.cfg.command_log is not None:
                         slot.command_log = CommandLog(slot.cfg.command_log, {
                             "scene": str(slot.scene_path), "dt_s": cfg.period_s, "step": 0})
+                        if car.spec is not None:  # its vehicle and start (a replay's)
+                            fleet.log_start(slot, car.spec)
                 for slot in self.slots:
                     keys = slot.keys
                     commands = ep.declare_command_inbox(capacity=proto.COMMAND_RING_SLOTS,
@@ -524,6 +538,9 @@ class SimServer:
                         sender_thread=True, inline_while_cheap=True)
                     controls = ep.declare_control_inbox(keys=keys, validate=False)
                     loop.add(slot, SlotPorts(commands, controls, publisher))
+                # every car's id, pose and speed at world_hz (docs/protocol.md 5.1)
+                loop.world_message = fleet.world_message_for(self.cars, cfg)
+                loop.publish_world = ep.declare_world_publisher(cfg.prefix).put
                 first = self.slots[0]
                 log.info("serving %s (vehicle %s) every %.3f ms; compiled in %.2f s",
                          first.keys.base, first.sim.scene.vehicle.name,
@@ -537,7 +554,9 @@ class SimServer:
                 loop.every_second.append(self._housekeeping)
                 where = f"listen {', '.join(listen)}" if listen else \
                     f"connect {', '.join(effective_endpoints(zcfg, 'connect/endpoints'))}"
-                print(f"simserver: ready on {first.keys.base} ({where})", flush=True)
+                cars = "" if len(self.slots) == 1 else \
+                    f", {len(self.slots)} cars: {', '.join(s.keys.vehicle for s in self.slots)}"
+                print(f"simserver: ready on {first.keys.base} ({where}){cars}", flush=True)
                 self.viewer = self._start_viewer(listen)
                 ros2 = self._start_ros2(listen)
                 loop.run()

@@ -45,6 +45,7 @@ from simserver.protocol import (
     ENCODING_CONTROL,
     ENCODING_DIAGNOSTICS,
     ENCODING_STATE,
+    ENCODING_WORLD,
     STATE_DECIMATED_HZ,
     ProtocolError,
     VehicleKeys,
@@ -54,6 +55,7 @@ from simserver.protocol import (
     reply_ok,
     validate_control,
     vehicle_keys,
+    world_keys,
 )
 from simserver.realtime import open_files
 
@@ -909,6 +911,13 @@ class ZenohEndpoint:
                                       zenoh.CongestionControl.DROP),
             decimate_every=round(states_per_s / STATE_DECIMATED_HZ),
             sender_thread=sender_thread, inline_while_cheap=inline_while_cheap))
+
+    def declare_world_publisher(self, prefix: str | None = None) -> zenoh.Publisher:
+        """Publisher on the world message ``{prefix}/world/state``: DATA priority,
+        batched, DROP (the loop never waits for a reader, as for the diagnostics)."""
+        key = world_keys(prefix or self.keys.prefix).state
+        return self._publisher(key, ENCODING_WORLD, zenoh.Priority.DATA, False,
+                               zenoh.CongestionControl.DROP)
 
     def declare_control_inbox(self, per_client: int = 16, keys: VehicleKeys | None = None,
                               validate: bool = True) -> ControlInbox:
