@@ -118,6 +118,10 @@ STATE_DECIMATED_HZ: Final[int] = 100
 consumers that do not need every tick (the ROS 2 adapter at its default 100 Hz): they
 receive and wake a tenth as often, and the 1 kHz key has one subscriber less (issue 19)."""
 
+TRAFFIC_STATE_HZ: Final[int] = 100
+"""Rate of the ``state`` key of a car that no client drives (a server's traffic, driven
+by keyframes or the built-in driver; docs/protocol.md section 5.1)."""
+
 KEY_SPECS: Final[tuple[KeySpec, ...]] = (
     KeySpec(
         "cmd",
@@ -133,7 +137,8 @@ KEY_SPECS: Final[tuple[KeySpec, ...]] = (
         "VehicleState (binary)",
         ENCODING_STATE,
         "REAL_TIME, DROP (waits at most 50 us for a full link); not express",
-        "every tick (1 kHz) by default; server-side decimation",
+        "every tick (1 kHz) by default; server-side decimation; a car no client drives "
+        f"(traffic): {TRAFFIC_STATE_HZ} Hz",
     ),
     KeySpec(
         f"state/{STATE_DECIMATED_HZ}hz",
