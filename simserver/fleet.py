@@ -492,3 +492,56 @@ def world_message_for(cars: list[ServedCar], cfg: Any) -> WorldMessage:
     return WorldMessage([c.slot.keys.vehicle for c in cars], [c.slot.driven_by for c in cars],
                         every=world_every(cfg.world_hz, cfg.period_s),
                         capacity=max(len(cars), getattr(cfg, "max_cars", len(cars))))
+
+
+# ------------------------------------------------------------------ cars added while running
+def check_clear(car: CarSpec, scene: Scene, others: dict[str, tuple[dict[str, float],
+                                                                     np.ndarray]]) -> None:
+    """A car to add at ``scene``'s start does not overlap any car of a running world
+    (``others``: id -> (its pose now: x_m, y_m, yaw_rad, and its vehicle parameters));
+    ``ConfigError`` naming the car and the one in the way."""
+    if car.id in others:
+        raise ConfigError(f"{car.where}: key 'id': the world has a car {car.id!r} already")
+    box = footprint(scene.vehicle.vp)
+    for other_id, (pose, vp) in others.items():
+        if overlap(scene.initial, box, pose, footprint(vp)):
+            raise ConfigError(f"{car.where}: its start ({scene.initial['x_m']:.2f}, "
+                              f"{scene.initial['y_m']:.2f}) m overlaps car {other_id!r} where "
+                              f"it is now ({pose['x_m']:.2f}, {pose['y_m']:.2f}) m")
+
+
+def new_car(car: CarSpec, scene: Scene, dt_s: float,
+            others: dict[str, tuple[dict[str, float], np.ndarray]]
+            ) -> tuple[Scene, np.ndarray | None]:
+    """What adding ``car`` to a running world on ``scene`` needs, read and checked (off the
+    tick: the vehicle file, the keyframes): the car's scene and its keyframe table (None
+    for a client's car). ``ConfigError`` naming the car; nothing changes."""
+    scenes = car_scenes([car], scene)
+    check_clear(car, scenes[car.id], others)
+    table = keyframe_table(car, dt_s) if car.driven_by == "keyframes" else None
+    return scenes[car.id], table
+
+
+def poses_now(slots: list[Any]) -> dict[str, tuple[dict[str, float], np.ndarray]]:
+    """Each served car's position and heading now, in the frame its start is given in
+    (the state's ``x_m``, ``y_m``, ``yaw_rad``), and its vehicle parameters."""
+    from simserver.core import layout as L
+
+    return {slot.keys.vehicle: ({"x_m": float(slot.sim.x[L.X_M]),
+                                 "y_m": float(slot.sim.x[L.Y_M]),
+                                 "yaw_rad": float(slot.sim.x[L.YAW_RAD])},
+                                slot.sim.vp.copy()) for slot in slots}
+
+
+def join_world(slot_cfg: Any, scene: Scene, table: np.ndarray | None, world: Any) -> Any:
+    """A new car's slot, its car made alone and moved into the running ``world``
+    (between ticks: tens to hundreds of microseconds, nothing recompiled)."""
+    from simserver.simulation import Simulation
+    from simserver.vehicle_slot import VehicleSlot
+
+    sim = Simulation(scene, slot_cfg.period_s, car_id=slot_cfg.vehicle_id)
+    sim.move_to(world)
+    slot = VehicleSlot(slot_cfg, sim)
+    if table is not None:
+        slot.drive_by_keyframes(table)
+    return slot

@@ -391,6 +391,41 @@ class ServerLoop:
         for s, _ in self.slots:
             s.shared_world = shared
         self.world = slot.sim.world if shared else None
+        self._cars_changed()
+
+    def remove(self, slot: VehicleSlot) -> SlotPorts:
+        """Stop serving ``slot`` (between ticks) and take its car out of the world
+        (``World.remove_car``: the other cars keep their rows' bits); its ports are
+        returned for the caller to close. A job of its still pending is answered with an
+        error."""
+        index = next(i for i, (s, _) in enumerate(self.slots) if s is slot)
+        _, ports = self.slots.pop(index)
+        job = self.pending.pop(index, None)
+        if job is not None:
+            name = job.request.name
+            job.request.reply(proto.reply_error(f"{name}: the car was removed; nothing "
+                                                "changed", field=name))
+        self.pending = {i - (i > index): j for i, j in self.pending.items()}
+        self._jobs_busy = {i - (i > index): n for i, n in self._jobs_busy.items()
+                           if i != index}
+        world = getattr(slot.sim, "world", None)
+        if world is not None and slot.keys.vehicle in getattr(world, "ids", ()):
+            if len(world) > 1:
+                world.remove_car(slot.keys.vehicle)
+        shared = len(self.slots) > 1 and self.world is not None
+        for s, _ in self.slots:
+            s.shared_world = shared
+        if not shared:
+            self.world = None
+        self._cars_changed()
+        return ports
+
+    def _cars_changed(self) -> None:
+        """The world message's cars after a car was added or removed."""
+        message = self.world_message
+        if message is not None:
+            message.set_cars([s.keys.vehicle for s, _ in self.slots],
+                             [s.driven_by for s, _ in self.slots])
 
     def start(self) -> None:
         """Start the clock: tick 0 is due now.

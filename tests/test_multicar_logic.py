@@ -214,3 +214,50 @@ def test_each_cars_command_log_replays_bit_for_bit(flat_scene, tmp_path):
         assert replay.steps == slot.steps_total
         assert replay.final_state_matches, cid
         assert replay.final_state[L.X_M] != 0.0
+
+
+def test_a_car_added_and_one_removed_while_the_world_runs(flat_scene):
+    rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "b", "pose": {"x_m": 15.0, "y_m": 0.0}}])
+    rig.loop.world_message = fleet.WorldMessage(["a", "b"], ["client", "client"], every=10,
+                                                capacity=8)
+    alone = Simulation(rig.scenes["a"], 0.001, car_id="a")
+    for _ in range(100):
+        rig.send("a", throttle=0.5, gear=proto.Gear.D)
+        rig.run()
+        alone.inputs[:] = rig.slots["a"].sim.inputs
+        alone.step()
+    # a third car, read and checked as the load worker would, joined between two ticks
+    spec, = fleet.parse_cars(Path(FLAT), [{"id": "c", "vehicle": str(HATCH),
+                                           "pose": {"x_m": 40.0, "y_m": 0.0}}])
+    slots = list(rig.slots.values())
+    scene, table = fleet.new_car(spec, flat_scene, 0.001, fleet.poses_now(slots))
+    clash, = fleet.parse_cars(Path(FLAT), [{"id": "d", "pose": {"x_m": 16.0, "y_m": 0.5}}])
+    with pytest.raises(fleet.ConfigError, match=r"\(d\): its start .* overlaps car 'b'"):
+        fleet.new_car(clash, flat_scene, 0.001, fleet.poses_now(slots))
+    taken, = fleet.parse_cars(Path(FLAT), [{"id": "b", "pose": {"x_m": 90.0, "y_m": 0.0}}])
+    with pytest.raises(fleet.ConfigError, match="has a car 'b' already"):
+        fleet.new_car(taken, flat_scene, 0.001, fleet.poses_now(slots))
+    cfg = dataclasses.replace(rig.cfg, vehicle_id="c")
+    slot = fleet.join_world(cfg, scene, table, rig.loop.world)
+    ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
+    rig.loop.add(slot, ports)
+    rig.slots["c"], rig.ports["c"] = slot, ports
+    assert rig.loop.world.ids == ["a", "b", "c"]
+    for _ in range(100):
+        rig.send("a", throttle=0.5, gear=proto.Gear.D)
+        rig.send("c", throttle=0.9, gear=proto.Gear.D)
+        rig.run()
+        alone.inputs[:] = rig.slots["a"].sim.inputs
+        alone.step()
+    assert rig.state("c")["u_mps"] > 0.2 and rig.state("c")["x_m"] > 40.0
+    assert proto.decode_world(rig.world_payloads[-1]).ids == ("a", "b", "c")
+    rig.loop.remove(rig.slots.pop("b"))
+    assert rig.loop.world.ids == ["a", "c"]
+    for _ in range(100):
+        rig.send("a", throttle=0.5, gear=proto.Gear.D)
+        rig.run()
+        alone.inputs[:] = rig.slots["a"].sim.inputs
+        alone.step()
+    assert proto.decode_world(rig.world_payloads[-1]).ids == ("a", "c")
+    assert np.array_equal(rig.slots["a"].sim.x, alone.x)  # unchanged by the others
+    assert rig.state("a")["tick"] == 300
