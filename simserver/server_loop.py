@@ -520,16 +520,21 @@ class ServerLoop:
         only when something is not finite); a car not driven by a client (keyframes, the
         built-in driver) publishes its state at :attr:`traffic_every` ticks, car ``k`` at
         its own phase (its clients want the traffic, not its every tick: the world message
-        carries every car); and car ``k``'s diagnostics go out at its own phase of the
-        diagnostics period."""
+        carries every car), and its command inbox and control requests are looked at then
+        too (a control to it is answered within 10 ms); car ``k``'s diagnostics go out at
+        its own phase of the diagnostics period."""
         slots = self.slots
         count = self.loop_count
+        traffic_every = self.traffic_every
         stepped = False
-        for slot, ports in slots:
+        for index, (slot, ports) in enumerate(slots):
             if skipped:
                 slot.skipped_before = True
-            payloads = ports.commands.drain_newest()
-            slot.take_commands(payloads, now, len(payloads) >= ports.commands.capacity)
+            if slot.keyframes is None or (count + index) % traffic_every == 0:
+                # a car no client drives applies no command: its inbox is drained (and
+                # counted) at its own phase only
+                payloads = ports.commands.drain_newest()
+                slot.take_commands(payloads, now, len(payloads) >= ports.commands.capacity)
             slot.apply_inputs(now)
             slot.stepping = slot.advance(step=False)
             stepped = stepped or slot.stepping
@@ -543,14 +548,15 @@ class ServerLoop:
         data = self.world.data
         all_finite = bool(np.isfinite(data.x).all() and np.isfinite(data.out).all())
         diag = None
-        traffic_every = self.traffic_every
+        pending = self.pending
         for index, (slot, ports) in enumerate(slots):
             if all_finite:
                 slot.state_finite = True  # check_finite's verdict, without its own look
             else:
                 slot.check_finite()  # before publishing: nothing non-finite leaves
-            if publish_state and (slot.driven_by == "client"
-                                  or (count + index) % traffic_every == 0):
+            client = slot.driven_by == "client"
+            phase = (count + index) % traffic_every == 0
+            if publish_state and (client or phase):
                 payload = slot.state_payload(now, catching_up)
                 if payload is not None:
                     ports.publisher.publish_state(payload)
@@ -558,7 +564,8 @@ class ServerLoop:
                 diag = diag or self._diagnostics_source()
                 self._port_counters(index, slot, ports)
                 ports.publisher.publish_diagnostics(self._diagnostics(slot, *diag))
-            self._serve_controls(index, slot, ports, now, catching_up)
+            if client or phase or index in pending:  # traffic: at its phase (10 ms)
+                self._serve_controls(index, slot, ports, now, catching_up)
 
     def _serve_controls(self, index: int, slot: VehicleSlot, ports: SlotPorts,
                         now: int, catching_up: bool = False) -> None:
