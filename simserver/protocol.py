@@ -1615,7 +1615,8 @@ def _check_object(
     return out
 
 
-def validate_control(name: str, payload: bytes | bytearray | memoryview | None) -> dict:
+def validate_control(name: str, payload: bytes | bytearray | memoryview | None,
+                     specs: Mapping[str, ControlSpec] | None = None) -> dict:
     """Validate a control request and return its arguments, defaults filled in.
 
     Parameters
@@ -1636,10 +1637,11 @@ def validate_control(name: str, payload: bytes | bytearray | memoryview | None) 
         Naming the field (``"n"``, ``"pose.yaw_rad"``, ...), or ``"control"`` for an
         unknown control, ``"request"`` for a payload that is not a UTF-8 JSON object.
     """
-    spec = CONTROL_SPECS.get(name)
+    specs = CONTROL_SPECS if specs is None else specs
+    spec = specs.get(name)
     if spec is None:
         raise ProtocolError(
-            "control", f"unknown control {name!r}; known: {', '.join(CONTROL_NAMES)}"
+            "control", f"unknown control {name!r}; known: {', '.join(specs)}"
         )
     if payload is None:
         payload = b""
@@ -1671,7 +1673,8 @@ def validate_control(name: str, payload: bytes | bytearray | memoryview | None) 
     return args
 
 
-def encode_control(name: str, args: Mapping[str, Any] | None = None) -> bytes:
+def encode_control(name: str, args: Mapping[str, Any] | None = None,
+                   specs: Mapping[str, ControlSpec] | None = None) -> bytes:
     """Encode a control request (client side); validated with :func:`validate_control`.
 
     Raises
@@ -1680,7 +1683,7 @@ def encode_control(name: str, args: Mapping[str, Any] | None = None) -> bytes:
         When the server would reject the request.
     """
     payload = json.dumps(dict(args or {}), allow_nan=False).encode() if args else b""
-    validate_control(name, payload)
+    validate_control(name, payload, specs)
     return payload
 
 
@@ -1749,6 +1752,9 @@ ENCODING_WORLD: Final[str] = "application/octet-stream;simserver.WorldState.v1"
 DRIVEN_BY_CODES: Final[tuple[str, ...]] = ("client", "keyframes", "driver")
 """``WorldState`` cars' ``driven_by`` code -> who drives the car (``simserver.fleet``)."""
 
+WORLD_CONTROL_NAMES: Final[tuple[str, ...]] = ("add_car", "remove_car", "get_config")
+"""The world's controls (:data:`WORLD_CONTROL_SPECS`)."""
+
 WORLD_KEY_SPECS: Final[tuple[KeySpec, ...]] = (
     KeySpec(
         "state",
@@ -1757,6 +1763,12 @@ WORLD_KEY_SPECS: Final[tuple[KeySpec, ...]] = (
         ENCODING_WORLD,
         "DATA, DROP, not express",
         f"`world_hz` of the server config (default {WORLD_HZ_DEFAULT:g} Hz); also with one car",
+    ),
+    *(
+        KeySpec(f"ctl/{name}", "client -> server (get / queryable)",
+                f"JSON request `{name}` -> JSON reply", ENCODING_CONTROL, "default",
+                "on demand")
+        for name in WORLD_CONTROL_NAMES
     ),
 )
 
@@ -1769,6 +1781,22 @@ class WorldKeys:
     base: str  # "{prefix}/world"
     state: str  # the WorldState messages
     alive_all: str  # "{prefix}/*/alive": every car's liveliness token (discovery)
+    ctl: Mapping[str, str]  # world control name -> queryable key "{base}/ctl/{name}"
+    ctl_wildcard: str  # "{base}/ctl/**"
+
+    def control(self, name: str) -> str:
+        """Key of world control ``name`` (:class:`ProtocolError` for an unknown one)."""
+        try:
+            return self.ctl[name]
+        except KeyError:
+            raise ProtocolError("control", f"unknown world control {name!r}; known: "
+                                           f"{', '.join(WORLD_CONTROL_NAMES)}") from None
+
+    def control_name(self, key: str) -> str | None:
+        """The world control named by a concrete key, or None."""
+        head = self.base + "/ctl/"
+        name = key[len(head):] if key.startswith(head) else None
+        return name if name in self.ctl else None
 
 
 def world_keys(prefix: str = DEFAULT_PREFIX) -> WorldKeys:
@@ -1776,7 +1804,60 @@ def world_keys(prefix: str = DEFAULT_PREFIX) -> WorldKeys:
     validate_prefix(prefix)
     base = f"{prefix}/{WORLD_KEY}"
     return WorldKeys(prefix=prefix, base=base, state=f"{base}/state",
-                     alive_all=f"{prefix}/*/alive")
+                     alive_all=f"{prefix}/*/alive",
+                     ctl={name: f"{base}/ctl/{name}" for name in WORLD_CONTROL_NAMES},
+                     ctl_wildcard=f"{base}/ctl/**")
+
+
+_WORLD_POSE = ArgSpec("pose", "object", False, "", None, None,
+                      "its start pose at rest (default the scene's), on the road plane or "
+                      "the terrain's horizontal axes", (
+                          ArgSpec("x_m", "number", True, "m", -1e6, 1e6, "position x"),
+                          ArgSpec("y_m", "number", True, "m", -1e6, 1e6, "position y"),
+                          ArgSpec("yaw_rad", "number", True, "rad", -YAW_BOUND_RAD,
+                                  YAW_BOUND_RAD, "heading, + = left of world x")))
+
+WORLD_CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
+    spec.name: spec
+    for spec in (
+        ControlSpec(
+            "add_car",
+            "Add a car to the running world, driven by a client: its keys "
+            "`{prefix}/{id}/...` with their own command inbox, watchdog, liveliness token "
+            "and controls, as a car of the server config's `cars:` list. Its files are read "
+            "off the tick (the load worker) and it joins between two ticks; answered when "
+            "it is served (its liveliness token declared). Errors name the argument: an id "
+            "taken, a start overlapping a car where that car is now or off the road, more "
+            "cars than `max_cars`, a vehicle file outside the config directories; nothing "
+            "changes then.",
+            (
+                ArgSpec("id", "name", True, "", None, None,
+                        f"the car's id: one key chunk, at most {WORLD_ID_BYTES} characters, "
+                        f"not `{WORLD_KEY}`"),
+                ArgSpec("vehicle", "path", False, "", None, None,
+                        "vehicle YAML (default the world scene's), as `load`'s"),
+                _WORLD_POSE,
+            ),
+            reply='"car": id, "cars": [ids]',
+        ),
+        ControlSpec(
+            "remove_car",
+            "Take a car out of the running world between two ticks: its keys stop being "
+            "served and its liveliness token goes; the other cars go on with their bits. "
+            "The last car cannot be removed.",
+            (ArgSpec("id", "name", True, "", None, None, "the car's id"),),
+            reply='"car": id, "cars": [ids]',
+        ),
+        ControlSpec(
+            "get_config",
+            "The world: its cars in the order of the world message, who drives each, "
+            "`max_cars` and `world_hz`.",
+            reply='"cars": [{"id": ..., "driven_by": ...}], "max_cars": n, "world_hz": hz',
+        ),
+    )
+}
+"""The world's controls (``{prefix}/world/ctl/{name}``, docs/protocol.md section 5.1)."""
+assert tuple(WORLD_CONTROL_SPECS) == WORLD_CONTROL_NAMES
 
 
 WORLD_HEADER_FIELDS: Final[tuple[FieldSpec, ...]] = (
@@ -2059,11 +2140,13 @@ def _arg_rows(args: Sequence[ArgSpec], prefix: str = "") -> list[str]:
     return rows
 
 
-def controls_markdown() -> str:
-    """Markdown description of every control: arguments and reply fields."""
+def controls_markdown(specs: Mapping[str, ControlSpec] | None = None,
+                      key: str = "ctl") -> str:
+    """Markdown description of every control (of ``specs``, default the car's):
+    arguments and reply fields."""
     out = []
-    for spec in CONTROL_SPECS.values():
-        out.append(f"#### `ctl/{spec.name}`\n\n{spec.description}\n")
+    for spec in (CONTROL_SPECS if specs is None else specs).values():
+        out.append(f"#### `{key}/{spec.name}`\n\n{spec.description}\n")
         if spec.args:
             extra = " At least one argument is required." if spec.at_least_one else ""
             out.append(f"Arguments (unknown keys are rejected).{extra}\n")
@@ -2107,6 +2190,7 @@ def doc_sections() -> dict[str, str]:
         "world_keys": world_keys_markdown(),
         "world_header": fields_markdown(WORLD_HEADER_FIELDS),
         "world_car": fields_markdown(WORLD_CAR_FIELDS),
+        "world_controls": controls_markdown(WORLD_CONTROL_SPECS, f"{WORLD_KEY}/ctl"),
     }
 
 

@@ -373,6 +373,7 @@ class ServerLoop:
         self.world_message: Any = None
         self.traffic_every = max(1, int(round(1.0 / (proto.TRAFFIC_STATE_HZ * cfg.period_s))))
         self.publish_world: Callable[[bytes], None] | None = None
+        self.world_desk: Any = None  # the world's controls (simserver.world_desk)
         self.loop_count = 0
         self.t0_ns = 0
         self._skipped_seen = 0
@@ -474,6 +475,8 @@ class ServerLoop:
             self._tick_world(now, skipped, catching_up, publish_state, diag_tick)
         else:
             self._tick_slots(now, skipped, catching_up, publish_state, diag_tick)
+        if self.world_desk is not None:  # cars added and removed between two ticks
+            self.world_desk.tick(now)
         message = self.world_message
         if message is not None and message.due(count):
             self.publish_world(message.payload([s.last_published for s, _ in self.slots],

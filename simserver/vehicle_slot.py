@@ -275,6 +275,7 @@ class VehicleSlot:
         self.stepping = False  # this tick: the car takes part in the world's step
         self.driven_by = "client"  # protocol.DRIVEN_BY_CODES
         self.keyframes: np.ndarray | None = None  # driven_by keyframes: inputs per tick
+        self.final_state: np.ndarray | None = None  # its state when taken out of the world
 
     def drive_by_keyframes(self, table: np.ndarray) -> None:
         """Drive this car by an input table (``simserver.fleet.keyframe_table``): row

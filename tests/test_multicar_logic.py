@@ -261,3 +261,63 @@ def test_a_car_added_and_one_removed_while_the_world_runs(flat_scene):
     assert proto.decode_world(rig.world_payloads[-1]).ids == ("a", "c")
     assert np.array_equal(rig.slots["a"].sim.x, alone.x)  # unchanged by the others
     assert rig.state("a")["tick"] == 300
+
+
+def test_world_controls_add_and_remove_cars_between_ticks(flat_scene):
+    from simserver.world_desk import WorldDesk
+
+    rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "b", "pose": {"x_m": 15.0, "y_m": 0.0}}])
+    rig.loop.world_message = fleet.WorldMessage(["a", "b"], ["client", "client"], every=10,
+                                                capacity=4)
+    controls = ListControls()
+    made, closed = [], []
+
+    def make_ports(cfg):
+        made.append(cfg.vehicle_id)
+        ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
+        rig.ports[cfg.vehicle_id] = ports
+        return ports
+
+    desk = WorldDesk(rig.loop, dataclasses.replace(rig.cfg, max_cars=3), controls,
+                     make_ports, lambda slot, ports: closed.append(slot.keys.vehicle))
+    rig.loop.world_desk = desk
+
+    def ask(name, args=None, ticks=200):
+        req = LocalRequest(name, json.dumps(args).encode() if args is not None else b"")
+        controls.pending.append(req)
+        for _ in range(ticks):
+            rig.loop.tick()
+            if req.body is not None:
+                break
+        return req.answer
+
+    try:
+        bad = ask("add_car", {"id": "c", "pose": {"x_m": 15.5, "y_m": 0.0, "yaw_rad": 0.0}})
+        assert not bad["ok"] and bad["field"] == "pose" and "overlaps car 'b'" in bad["error"]
+        assert not ask("add_car", {"id": "world"})["ok"]
+        assert ask("add_car", {"id": "b"})["field"] == "id"
+        nofile = ask("add_car", {"id": "c", "vehicle": "no_such_vehicle.yaml"})
+        assert nofile["field"] == "vehicle" and "no such file" in nofile["error"]
+        assert rig.loop.world.ids == ["a", "b"] and made == []  # nothing changed
+        ok = ask("add_car", {"id": "c", "vehicle": str(HATCH),
+                             "pose": {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}})
+        assert ok == {"ok": True, "car": "c", "cars": ["a", "b", "c"]}, ok
+        assert made == ["c"] and rig.loop.world.ids == ["a", "b", "c"]
+        full = ask("add_car", {"id": "d", "pose": {"x_m": 80.0, "y_m": 0.0, "yaw_rad": 0.0}})
+        assert full["field"] == "id" and "max_cars (3)" in full["error"]
+        for _ in range(300):
+            rig.ports["c"].commands.pending.append(proto.encode_command(
+                seq=_ + 1, throttle=0.8, gear=proto.Gear.D))
+            rig.run()
+        c = rig.ports["c"].publisher.states[-1]
+        assert c["x_m"] > 40.0 and c["u_mps"] > 0.5
+        assert ask("remove_car", {"id": "b"}) == {"ok": True, "car": "b", "cars": ["a", "c"]}
+        rig.run(20)
+        assert proto.decode_world(rig.world_payloads[-1]).ids == ("a", "c")
+        assert ask("remove_car", {"id": "zz"})["field"] == "id"
+        config = ask("get_config")
+        assert config["cars"] == [{"id": "a", "driven_by": "client"},
+                                  {"id": "c", "driven_by": "client"}]
+    finally:
+        desk.close()
+    assert closed == ["b"]

@@ -100,3 +100,38 @@ def test_a_bad_cars_list_stops_the_server_naming_the_file_and_the_car(tmp_path, 
         assert p.wait(120) == 2, p.text()
     assert f"error: {config}: {error}" in p.text()
     assert "ready on" not in p.text()
+
+
+def test_a_car_added_and_removed_over_zenoh_while_the_world_runs(tmp_path):
+    from simserver.adapters.zenoh_io import ZenohEndpoint
+
+    config = tmp_path / "server.yaml"
+    config.write_text(TWO_CARS.read_text().replace("../", f"{TWO_CARS.parent}/../")
+                      + f"command_log: {tmp_path / 'run.jsonl'}\n")
+    with ServerProcess(config=config, scene=None) as server, \
+            ZenohEndpoint(client_config(server.endpoint)) as ep:
+        cars = cw.CarsWatch(ep, "simserver")
+        wait_until(cars.poll, lambda c: c == {"car0", "car1"}, timeout_s=10)
+        bad = ep.request_world("add_car", {"id": "car2", "pose": {
+            "x_m": 0.5, "y_m": 0.0, "yaw_rad": 0.0}})
+        assert not bad["ok"] and bad["field"] == "pose" and "overlaps car 'car0'" in \
+            bad["error"], bad
+        reply = ep.request_world("add_car", {"id": "car2", "pose": {
+            "x_m": 60.0, "y_m": 0.0, "yaw_rad": 0.0}}, timeout_s=60)
+        assert reply == {"ok": True, "car": "car2", "cars": ["car0", "car1", "car2"]}, reply
+        wait_until(cars.poll, lambda c: "car2" in c, timeout_s=10)
+        with Client(server, vehicle_id="car2") as car2:
+            state = car2.drive(1.0, throttle=0.5, gear=proto.Gear.D)
+            assert state["x_m"] > 60.0 and state["u_mps"] > 0.1
+        world = wait_until(cw.WorldWatch(ep, "simserver").poll, timeout_s=10)
+        assert world.ids == ("car0", "car1", "car2")
+        assert ep.request_world("remove_car", {"id": "car1"})["cars"] == ["car0", "car2"]
+        wait_until(cars.poll, lambda c: c == {"car0", "car2"}, timeout_s=10)
+        config_reply = ep.request_world("get_config")
+        assert [c["id"] for c in config_reply["cars"]] == ["car0", "car2"]
+    assert server.returncode == 0, server.text()
+    from simserver.server import replay_command_log
+
+    for car in ("car0", "car1", "car2"):  # the removed car's log ends where it left
+        replay = replay_command_log(tmp_path / f"run.{car}.jsonl")
+        assert replay.final_state_matches, car

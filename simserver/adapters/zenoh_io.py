@@ -47,6 +47,7 @@ from simserver.protocol import (
     ENCODING_STATE,
     ENCODING_WORLD,
     STATE_DECIMATED_HZ,
+    WORLD_CONTROL_SPECS,
     ProtocolError,
     VehicleKeys,
     decode_reply,
@@ -965,6 +966,15 @@ class ZenohEndpoint:
         replies = self.session.liveliness().get(key or self.keys.alive, timeout=timeout_s)
         return [str(r.ok.key_expr) for r in replies if r.ok is not None]
 
+    def request_world(self, name: str, args: dict[str, Any] | None = None, *,
+                      payload: bytes | None = None, timeout_s: float = 10.0) -> dict[str, Any]:
+        """A world control (``{prefix}/world/ctl/{name}``: ``add_car``, ``remove_car``,
+        ``get_config``) of this endpoint's prefix, as :meth:`request`."""
+        keys = world_keys(self.keys.prefix)
+        body = payload if payload is not None else encode_control(name, args,
+                                                                  WORLD_CONTROL_SPECS)
+        return self._query(keys.control(name), body, timeout_s)
+
     def request(
         self,
         name: str,
@@ -1000,6 +1010,10 @@ class ZenohEndpoint:
         """
         key = self.keys.control(name)
         body = payload if payload is not None else encode_control(name, args)
+        return self._query(key, body, timeout_s)
+
+    def _query(self, key: str, body: bytes, timeout_s: float) -> dict[str, Any]:
+        """A control query on ``key`` and its decoded reply (:meth:`request`)."""
         replies = self.session.get(
             key, payload=body, encoding=zenoh.Encoding(ENCODING_CONTROL), timeout=timeout_s,
             attachment=self._client_id,
