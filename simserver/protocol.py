@@ -1752,7 +1752,7 @@ ENCODING_WORLD: Final[str] = "application/octet-stream;simserver.WorldState.v1"
 DRIVEN_BY_CODES: Final[tuple[str, ...]] = ("client", "keyframes", "driver")
 """``WorldState`` cars' ``driven_by`` code -> who drives the car (``simserver.fleet``)."""
 
-WORLD_CONTROL_NAMES: Final[tuple[str, ...]] = ("add_car", "remove_car", "get_config")
+WORLD_CONTROL_NAMES: Final[tuple[str, ...]] = ("add_car", "remove_car", "reset", "get_config")
 """The world's controls (:data:`WORLD_CONTROL_SPECS`)."""
 
 WORLD_KEY_SPECS: Final[tuple[KeySpec, ...]] = (
@@ -1847,6 +1847,14 @@ WORLD_CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
             "The last car cannot be removed.",
             (ArgSpec("id", "name", True, "", None, None, "the car's id"),),
             reply='"car": id, "cars": [ids]',
+        ),
+        ControlSpec(
+            "reset",
+            "Every car back to its start, at rest, all in the same tick (each car's own "
+            "`reset` without arguments: its tick restarts at 0, its log has the line). The "
+            "cars' start states are made one car a tick beside the running world, then "
+            "swapped in together; answered then (within about one tick per car).",
+            reply='"cars": [ids]',
         ),
         ControlSpec(
             "get_config",

@@ -12,9 +12,12 @@ slow runs there:
   ticks (``fleet.join_world``) and served from the next tick; answered then.
 - ``remove_car``: the car taken out between two ticks (``ServerLoop.remove``), its
   transport closed in the desk's thread.
+- ``reset``: every car back to its start together: the start states made one car a tick
+  beside the running world (``VehicleSlot.begin_reset``, settled in pieces), then all
+  committed in one tick (a copy of each car's rows).
 - ``get_config``: the cars, who drives each, ``max_cars`` and ``world_hz``.
 
-One add or remove at a time: another meanwhile is answered busy.
+One add, remove or reset at a time: another meanwhile is answered busy.
 """
 
 from __future__ import annotations
@@ -100,6 +103,7 @@ class WorldDesk:
         self.on_added = on_added
         self._threads = ThreadPoolExecutor(max_workers=1, thread_name_prefix="world-desk")
         self._adding: _Adding | None = None
+        self._resetting: dict[str, Any] | None = None
 
     def close(self) -> None:
         self._threads.shutdown(wait=True)
@@ -111,6 +115,8 @@ class WorldDesk:
         """Advance an add in progress one step; serve at most one new request."""
         if self._adding is not None:
             self._advance(self._adding)
+        if self._resetting is not None:
+            self._reset_step(self._resetting)
         for request in self.controls.poll(1):
             try:
                 args = proto.validate_control(request.name, request.payload,
@@ -133,7 +139,44 @@ class WorldDesk:
                          for s, _ in self.loop.slots],
                 "max_cars": self.cfg.max_cars, "world_hz": self.cfg.world_hz}
 
+    def _busy(self, name: str) -> None:
+        if self._adding is not None or self._resetting is not None:
+            what = "a car is still being added" if self._adding else "a reset is under way"
+            raise proto.ProtocolError(name, f"busy: {what}; ask again when it has been "
+                                      "answered")
+
+    def _ctl_reset(self, request: Any, args: dict[str, Any]) -> None:
+        self._busy("reset")
+        self._resetting = {"request": request, "staged": [], "slots": [
+            s for s, _ in self.loop.slots]}
+        self._reset_step(self._resetting)
+        return None
+
+    def _reset_step(self, job: dict[str, Any]) -> None:
+        """Make the next car's start (or settle it a piece further); when every car's is
+        ready, commit them all in this tick and answer."""
+        from simserver.server_loop import SETTLE_STEPS_PER_TICK
+
+        staged = job["staged"]
+        slots = job["slots"]
+        if staged and not staged[-1].advance(SETTLE_STEPS_PER_TICK):
+            return
+        if len(staged) < len(slots):
+            try:
+                staged.append(slots[len(staged)].begin_reset({}))
+            except Exception as exc:  # noqa: BLE001 - answered; nothing was changed
+                self._resetting = None
+                job["request"].reply(proto.reply_error(f"reset: {exc}", "reset"))
+            return
+        self._resetting = None
+        current = [s for s, _ in self.loop.slots]
+        for slot, start in zip(slots, staged, strict=True):
+            if slot in current:  # not removed meanwhile
+                start.commit()
+        job["request"].reply(proto.reply_ok(cars=self._ids()))
+
     def _ctl_add_car(self, request: Any, args: dict[str, Any]) -> None:
+        self._busy("add_car")
         if self._adding is not None:
             raise proto.ProtocolError("add_car", "busy: a car is still being added; ask "
                                       "again when it has been answered")
@@ -212,9 +255,7 @@ class WorldDesk:
                                       f"{', '.join(self._ids())})")
         if len(self.loop.slots) == 1:
             raise proto.ProtocolError("id", f"{car_id!r} is the world's last car")
-        if self._adding is not None:
-            raise proto.ProtocolError("remove_car", "busy: a car is being added; ask again "
-                                      "when it has been answered")
+        self._busy("remove_car")
         slot.final_state = slot.sim.x.copy()  # its rows leave the world with it
         ports = self.loop.remove(slot)
         self._threads.submit(self.close_ports, slot, ports)

@@ -318,6 +318,13 @@ def test_world_controls_add_and_remove_cars_between_ticks(flat_scene):
         config = ask("get_config")
         assert config["cars"] == [{"id": "a", "driven_by": "client"},
                                   {"id": "c", "driven_by": "client"}]
+        # the whole world back to its starts, in one tick
+        assert ask("reset") == {"ok": True, "cars": ["a", "c"]}
+        rig.run()
+        a, c = rig.ports["a"].publisher.states[-1], rig.ports["c"].publisher.states[-1]
+        assert a["tick"] == c["tick"] == 1
+        assert a["x_m"] == pytest.approx(0.0, abs=1e-3) and c["x_m"] == pytest.approx(
+            40.0, abs=1e-3) and abs(c["u_mps"]) < 0.01  # one step from rest
     finally:
         desk.close()
     assert closed == ["b"]
