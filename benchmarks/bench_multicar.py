@@ -5,7 +5,7 @@ Run from the repository root::
     python -m benchmarks.bench_multicar [--cars 1,8,32] [--seconds 20] [--hogs 2]
 
 For each car count ``n`` it writes a server config of ``n`` cars on the flat
-(``configs/server/two_cars.yaml``'s form, ``simserver.fleet``): ``car0`` and ``car1``
+(``configs/server/two_cars.yaml``'s form, ``simserver.server.fleet``): ``car0`` and ``car1``
 driven over zenoh by this process, the others driven by keyframes (traffic creeping in D
 at a light throttle, each in its own lane), and starts ``simserver serve`` on it (its own
 process, the default real-time scheduling; the world message at its default 100 Hz). This
@@ -36,8 +36,8 @@ import numpy as np
 import zenoh
 
 from benchmarks.bench_server import TICK_S, cpu_hogs
-from simserver import protocol as proto
 from simserver.testing import REPO, Client, ServerProcess
+from simserver.wire import protocol as proto
 
 FLAT = REPO / "configs" / "scenes" / "flat_paper_sedan.yaml"
 DRIVEN = ("car0", "car1")
@@ -77,7 +77,7 @@ def run_once(n_cars: int, seconds: float, cmd_hz: float, folder: Path) -> dict:
 
 
 def _measure(server: ServerProcess, n_cars: int, seconds: float, cmd_hz: float) -> dict:
-    from simserver.realtime import RealtimeScheduler, RealtimeSettings
+    from simserver.server.realtime import RealtimeScheduler, RealtimeSettings
 
     client_rt = RealtimeScheduler(RealtimeSettings(mode="auto", priority=40,
                                                    cpu_latency_us=None))

@@ -33,8 +33,8 @@ from clients.common import (
     client_main,
     connect,
 )
-from simserver import protocol as proto
 from simserver.adapters.zenoh_io import AliveWatch, Inbox, ZenohEndpoint
+from simserver.wire import protocol as proto
 
 PROG = "simserver-world"
 

@@ -24,14 +24,14 @@ from test_server_logic import (
     load_server_config,
 )
 
-from simserver import fleet
-from simserver import protocol as proto
 from simserver.core import layout as L
-from simserver.scenario import load_scene
-from simserver.server import CommandLog, replay_command_log
-from simserver.server_loop import ServerLoop, SlotPorts
-from simserver.simulation import Simulation
-from simserver.vehicle_slot import VehicleSlot
+from simserver.server import cars_config, fleet
+from simserver.server.command_log import CommandLog, replay_command_log
+from simserver.server.loop import ServerLoop, SlotPorts
+from simserver.server.slot import VehicleSlot
+from simserver.sim.scene import load_scene
+from simserver.sim.simulation import Simulation
+from simserver.wire import protocol as proto
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -49,8 +49,8 @@ class WorldRig:
     def __init__(self, scene, cars, tmp_path: Path | None = None) -> None:
         self.clock = FakeClock()
         self.cfg = load_server_config()
-        specs = fleet.parse_cars(Path(FLAT), cars)
-        self.scenes = fleet.car_scenes(specs, scene)
+        specs = cars_config.parse_cars(Path(FLAT), cars)
+        self.scenes = cars_config.car_scenes(specs, scene)
         sims = fleet.build_world(self.scenes, self.cfg.period_s)
         self.loop = ServerLoop(self.cfg, clock=self.clock, sleep=self.clock.sleep, spin_ns=0)
         self.ports: dict[str, SlotPorts] = {}
@@ -65,7 +65,7 @@ class WorldRig:
             if log is not None:
                 fleet.log_start(slot, spec)
             if spec.driven_by == "keyframes":
-                slot.drive_by_keyframes(fleet.keyframe_table(spec, cfg.period_s))
+                slot.drive_by_keyframes(cars_config.keyframe_table(spec, cfg.period_s))
             ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
             self.loop.add(slot, ports)
             self.slots[spec.id], self.ports[spec.id] = slot, ports
@@ -227,16 +227,16 @@ def test_a_car_added_and_one_removed_while_the_world_runs(flat_scene):
         alone.inputs[:] = rig.slots["a"].sim.inputs
         alone.step()
     # a third car, read and checked as the load worker would, joined between two ticks
-    spec, = fleet.parse_cars(Path(FLAT), [{"id": "c", "vehicle": str(HATCH),
+    spec, = cars_config.parse_cars(Path(FLAT), [{"id": "c", "vehicle": str(HATCH),
                                            "pose": {"x_m": 40.0, "y_m": 0.0}}])
     slots = list(rig.slots.values())
-    scene, table = fleet.new_car(spec, flat_scene, 0.001, fleet.poses_now(slots))
-    clash, = fleet.parse_cars(Path(FLAT), [{"id": "d", "pose": {"x_m": 16.0, "y_m": 0.5}}])
-    with pytest.raises(fleet.ConfigError, match=r"\(d\): its start .* overlaps car 'b'"):
-        fleet.new_car(clash, flat_scene, 0.001, fleet.poses_now(slots))
-    taken, = fleet.parse_cars(Path(FLAT), [{"id": "b", "pose": {"x_m": 90.0, "y_m": 0.0}}])
-    with pytest.raises(fleet.ConfigError, match="has a car 'b' already"):
-        fleet.new_car(taken, flat_scene, 0.001, fleet.poses_now(slots))
+    scene, table = cars_config.new_car(spec, flat_scene, 0.001, fleet.poses_now(slots))
+    clash, = cars_config.parse_cars(Path(FLAT), [{"id": "d", "pose": {"x_m": 16.0, "y_m": 0.5}}])
+    with pytest.raises(cars_config.ConfigError, match=r"\(d\): its start .* overlaps car 'b'"):
+        cars_config.new_car(clash, flat_scene, 0.001, fleet.poses_now(slots))
+    taken, = cars_config.parse_cars(Path(FLAT), [{"id": "b", "pose": {"x_m": 90.0, "y_m": 0.0}}])
+    with pytest.raises(cars_config.ConfigError, match="has a car 'b' already"):
+        cars_config.new_car(taken, flat_scene, 0.001, fleet.poses_now(slots))
     cfg = dataclasses.replace(rig.cfg, vehicle_id="c")
     slot = fleet.join_world(cfg, scene, table, rig.loop.world)
     ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
@@ -264,7 +264,7 @@ def test_a_car_added_and_one_removed_while_the_world_runs(flat_scene):
 
 
 def test_world_controls_add_and_remove_cars_between_ticks(flat_scene):
-    from simserver.world_desk import WorldDesk
+    from simserver.server.world_desk import WorldDesk
 
     rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "b", "pose": {"x_m": 15.0, "y_m": 0.0}}])
     rig.loop.world_message = fleet.WorldMessage(["a", "b"], ["client", "client"], every=10,

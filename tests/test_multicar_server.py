@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from clients import world as cw
-from simserver import protocol as proto
 from simserver.testing import Client, OutputProcess, ServerProcess, client_config, wait_until
+from simserver.wire import protocol as proto
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -112,8 +112,8 @@ def test_a_car_added_and_removed_over_zenoh_while_the_world_runs(tmp_path):
             ZenohEndpoint(client_config(server.endpoint)) as ep:
         cars = cw.CarsWatch(ep, "simserver")
         wait_until(cars.poll, lambda c: c == {"car0", "car1"}, timeout_s=10)
-        bad = ep.request_world("add_car", {"id": "car2", "pose": {
-            "x_m": 0.5, "y_m": 0.0, "yaw_rad": 0.0}})
+        bad = ep.request_world("add_car", {"id": "car2", "pose": {  # the load worker may
+            "x_m": 0.5, "y_m": 0.0, "yaw_rad": 0.0}}, timeout_s=120)  # still warm up
         assert not bad["ok"] and bad["field"] == "pose" and "overlaps car 'car0'" in \
             bad["error"], bad
         reply = ep.request_world("add_car", {"id": "car2", "pose": {
@@ -130,7 +130,7 @@ def test_a_car_added_and_removed_over_zenoh_while_the_world_runs(tmp_path):
         config_reply = ep.request_world("get_config")
         assert [c["id"] for c in config_reply["cars"]] == ["car0", "car2"]
     assert server.returncode == 0, server.text()
-    from simserver.server import replay_command_log
+    from simserver.server.command_log import replay_command_log
 
     for car in ("car0", "car1", "car2"):  # the removed car's log ends where it left
         replay = replay_command_log(tmp_path / f"run.{car}.jsonl")

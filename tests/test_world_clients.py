@@ -8,7 +8,7 @@ import math
 import pytest
 
 from clients import world as cw
-from simserver import protocol as proto
+from simserver.wire import protocol as proto
 
 
 def _car(car_id: str, x: float, y: float = 0.0, yaw: float = 0.0, u: float = 0.0,

@@ -1,4 +1,4 @@
-"""The world message (``{prefix}/world/state``, simserver.protocol WorldState): layout,
+"""The world message (``{prefix}/world/state``, simserver.wire.protocol WorldState): layout,
 round trip, rejection of malformed payloads, nothing non-finite published."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import struct
 import numpy as np
 import pytest
 
-from simserver import protocol as proto
+from simserver.wire import protocol as proto
 
 
 def _car(car_id: str, x: float, driven_by: str = "client", **extra) -> dict:

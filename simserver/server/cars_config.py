@@ -1,8 +1,10 @@
 """The cars of a live server: the ``cars:`` list of a server config, validated (issue 30).
 
+The world they make and the loop's glue are :mod:`simserver.server.fleet`.
+
 A server config without ``cars:`` serves one car, ``vehicle_id`` (default ``car0``), on its
 scene, as it always has. With ``cars:`` it serves each car listed, all in one world on the
-scene's terrain and road (``simserver.simulation.World``, docs/model.md section 14)::
+scene's terrain and road (``simserver.sim.simulation.World``, docs/model.md section 14)::
 
     scene: ../scenes/crest_curve_paper_sedan.yaml   # the terrain, the road, the defaults
     max_cars: 32                  # more cars than this is an error (default 32)
@@ -23,7 +25,7 @@ road, s and lane of an OpenDRIVE terrain); every car starts at rest. The checks
 by a bad list; each error names the file and the car (``cars[k] (id)``):
 
 - an id given twice, an id that is not one key chunk, an id longer than
-  :data:`simserver.protocol.WORLD_ID_BYTES` (the world message's id field), or the reserved
+  :data:`simserver.wire.protocol.WORLD_ID_BYTES` (the world message's id field), or the reserved
   id :data:`WORLD_KEY` (the world's own keys, ``{prefix}/world/...``);
 - more cars than ``max_cars``;
 - a start off the road: on an OpenDRIVE terrain the car's CG must be on a lane of a road
@@ -43,7 +45,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from simserver import protocol as proto
 from simserver.adapters.config import ConfigError, check_keys, load_vehicle, number
 from simserver.adapters.validate import integer, referenced_file, short_repr
 from simserver.core.params import (
@@ -60,10 +61,11 @@ from simserver.core.terrain import (
     TERRAIN_HEIGHTMAP,
     TERRAIN_OPENDRIVE,
 )
+from simserver.wire import protocol as proto
 
 if TYPE_CHECKING:
     from simserver.adapters.opendrive import OpenDrive, Road
-    from simserver.scenario import Scene
+    from simserver.sim.scene import Scene
 
 WORLD_KEY = "world"
 """The key chunk of the world's own keys (``{prefix}/world/state``): no car may take it."""
@@ -163,7 +165,7 @@ def _parse_car(path: Path, where: str, car_id: str, entry: dict[str, Any]) -> Ca
         if not isinstance(raw, dict):
             raise ConfigError(f"{where}: key 'pose': expected a mapping {{x_m, y_m, yaw_rad}}")
         check_keys(f"{where} (pose)", raw, POSE_KEYS, required=("x_m", "y_m"))
-        from simserver.scenario import INITIAL_RANGES
+        from simserver.sim.scene import INITIAL_RANGES
 
         pose = {key: number(where, f"pose.{key}", raw.get(key, 0.0), *INITIAL_RANGES[key])
                 for key in POSE_KEYS}
@@ -209,7 +211,7 @@ def car_scenes(cars: list[CarSpec], scene: Scene) -> dict[str, Scene]:
     start pose. Reads the vehicle files (once per file) and checks every start: on the road
     and apart from every other car's (module docstring). ``ConfigError`` naming the file
     and the car; nothing is built for a list that fails."""
-    from simserver.scenario import start_by_lane
+    from simserver.sim.scene import start_by_lane
 
     vehicles: dict[Path, Any] = {}
     scenes: dict[str, Scene] = {}
@@ -340,78 +342,18 @@ def check_apart(cars: list[CarSpec], scenes: dict[str, Scene]) -> None:
                     f"{sum(boxes[a.id][:2]):.2f} x {2 * boxes[a.id][2]:.2f} m): move one")
 
 
-# ------------------------------------------------------------------ the cars' world
-def build_world(scenes: dict[str, Scene], dt_s: float) -> dict[str, Any]:
-    """One ``Simulation`` per car (in ``scenes`` order), all cars of one world on the first
-    car's terrain (the scenes share the world scene's terrain): each is made alone, as a
-    single car's server makes it, then moved into the world (``Simulation.move_to``:
-    copies of its rows, nothing recompiled), so a car starts with the bits it would have
-    alone. Returns ``{id: Simulation}``."""
-    from simserver.simulation import Simulation
-
-    sims: dict[str, Any] = {}
-    world = None
-    for car_id, scene in scenes.items():
-        sim = Simulation(scene, dt_s, car_id=car_id)
-        if world is None:
-            world = sim.world
-        else:
-            sim.move_to(world)
-        sims[car_id] = sim
-    return sims
-
-
-class WorldMessage:
-    """The world message of a server's cars (``protocol.WorldBuffer``), from each car's
-    newest published VehicleState: ``due(tick)`` every ``every`` ticks, ``payload(...)``
-    a few vectorised copies (microseconds for 32 cars)."""
-
-    def __init__(self, ids: list[str], driven_by: list[str], every: int,
-                 capacity: int | None = None) -> None:
-        self.every = max(1, int(every))
-        self.buffer = proto.WorldBuffer(capacity or len(ids))
-        self.states = np.zeros(self.buffer.cars.size, dtype=proto.STATE_DTYPE)
-        self._raw = self.states.view(np.uint8)
-        self.set_cars(ids, driven_by)
-
-    def set_cars(self, ids: list[str], driven_by: list[str]) -> None:
-        """The cars, in order (when the world changes; between ticks)."""
-        self.buffer.set_cars(ids, driven_by)
-        self.states[:] = 0
-        self.have = np.zeros(len(ids), dtype=bool)
-
-    def due(self, tick: int) -> bool:
-        return tick % self.every == 0
-
-    def payload(self, states: list[bytes | None], tick: int, uptime_s: float) -> bytes:
-        """The message, with car ``k``'s values from ``states[k]`` (its newest published
-        VehicleState bytes; None: none yet, its record stays zero)."""
-        size = proto.STATE_SIZE
-        raw = self._raw
-        for k, state in enumerate(states):
-            if state is not None:
-                raw[k * size:(k + 1) * size] = np.frombuffer(state, dtype=np.uint8)
-        self.buffer.fill_from(self.states)
-        return self.buffer.payload(tick, uptime_s)
-
-
-def world_every(world_hz: float, period_s: float) -> int:
-    """Ticks between two world messages at ``world_hz`` (at least 1)."""
-    return max(1, int(round(1.0 / (world_hz * period_s))))
-
-
 MAX_KEYFRAME_STEPS = 3_600_000
 """Longest keyframe table a car plays (an hour at 1 kHz, 144 MB): longer is an error."""
 
 
 def keyframe_table(car: CarSpec, dt_s: float) -> np.ndarray:
     """The inputs a car ``driven_by: keyframes`` applies at each of its ticks: its file's
-    keyframes sampled every ``dt_s`` over the file's ``duration_s`` (``simserver.keyframes``,
+    keyframes sampled every ``dt_s`` over the file's ``duration_s`` (``simserver.sim.keyframes``,
     the headless runner's and the player's sampling); past the end the last row holds.
     Read off the tick (the server's start, the load worker). ``ConfigError`` naming the
     car."""
     from simserver.adapters.config import read_yaml
-    from simserver.keyframes import input_table, read_keyframe_file
+    from simserver.sim.keyframes import input_table, read_keyframe_file
 
     assert car.keyframes is not None
     try:
@@ -425,76 +367,6 @@ def keyframe_table(car: CarSpec, dt_s: float) -> np.ndarray:
     return np.ascontiguousarray(input_table(run.keyframes, np.arange(steps) * dt_s))
 
 
-def log_start(slot: Any, car: CarSpec) -> None:
-    """The first lines of a car's command log (after its header, which names the world's
-    scene): a ``load`` of the scene with the car's vehicle and a ``reset`` to the car's
-    start pose, so that ``simserver replay`` starts the car where the live world did (every
-    car starts at rest, so the reset gives the very start state)."""
-    log = slot.command_log
-    if log is None:
-        return
-    initial = slot.sim.scene.initial
-    log.write({"step": slot.steps_total, "load": {
-        "scene": str(slot.scene_path),
-        "vehicle": None if car.vehicle is None else str(car.vehicle)}})
-    log.write({"step": slot.steps_total,
-               "reset": {k: float(initial[k]) for k in ("x_m", "y_m", "yaw_rad")}})
-
-
-# ------------------------------------------------------------------ the server's cars
-@dataclass
-class ServedCar:
-    """A car of the server: its spec (None: the single car of a config without ``cars:``)
-    and its slot (``simserver.vehicle_slot.VehicleSlot``)."""
-
-    spec: CarSpec | None
-    slot: Any
-
-
-def car_log_path(log_path: Path | None, car_id: str, several: bool) -> Path | None:
-    """A car's command log: the server config's ``command_log`` itself for one car; with
-    several, ``NAME.<id>.SUFFIX`` beside it (``run.jsonl`` -> ``run.car0.jsonl``)."""
-    if log_path is None or not several:
-        return log_path
-    return log_path.with_name(f"{log_path.stem}.{car_id}{log_path.suffix}")
-
-
-def make_cars(cfg: Any, scene: Scene) -> list[ServedCar]:
-    """The server's cars from its config: the one car ``vehicle_id`` on ``scene`` (no
-    ``cars:``, as always), or every car of ``cars:`` in one world (:func:`car_scenes`,
-    :func:`build_world`; keyframed cars given their tables). Each slot has the server
-    config with its own ``vehicle_id`` and command log path. ``ConfigError`` naming the
-    file and the car; nothing is built for a list that fails."""
-    from simserver.vehicle_slot import VehicleSlot
-
-    if not cfg.cars:
-        from simserver.server import new_simulation
-
-        return [ServedCar(None, VehicleSlot(cfg, new_simulation(scene, cfg.period_s)))]
-    scenes = car_scenes(cfg.cars, scene)
-    tables = {car.id: keyframe_table(car, cfg.period_s) for car in cfg.cars
-              if car.driven_by == "keyframes"}
-    sims = build_world(scenes, cfg.period_s)
-    several = len(cfg.cars) > 1
-    served = []
-    for car in cfg.cars:
-        car_cfg = dataclasses.replace(
-            cfg, vehicle_id=car.id, command_log=car_log_path(cfg.command_log, car.id, several))
-        slot = VehicleSlot(car_cfg, sims[car.id])
-        if car.id in tables:
-            slot.drive_by_keyframes(tables[car.id])
-        served.append(ServedCar(car, slot))
-    return served
-
-
-def world_message_for(cars: list[ServedCar], cfg: Any) -> WorldMessage:
-    """The world message of the server's cars at the config's ``world_hz``."""
-    return WorldMessage([c.slot.keys.vehicle for c in cars], [c.slot.driven_by for c in cars],
-                        every=world_every(cfg.world_hz, cfg.period_s),
-                        capacity=max(len(cars), getattr(cfg, "max_cars", len(cars))))
-
-
-# ------------------------------------------------------------------ cars added while running
 def check_clear(car: CarSpec, scene: Scene, others: dict[str, tuple[dict[str, float],
                                                                      np.ndarray]]) -> None:
     """A car to add at ``scene``'s start does not overlap any car of a running world
@@ -520,28 +392,3 @@ def new_car(car: CarSpec, scene: Scene, dt_s: float,
     check_clear(car, scenes[car.id], others)
     table = keyframe_table(car, dt_s) if car.driven_by == "keyframes" else None
     return scenes[car.id], table
-
-
-def poses_now(slots: list[Any]) -> dict[str, tuple[dict[str, float], np.ndarray]]:
-    """Each served car's position and heading now, in the frame its start is given in
-    (the state's ``x_m``, ``y_m``, ``yaw_rad``), and its vehicle parameters."""
-    from simserver.core import layout as L
-
-    return {slot.keys.vehicle: ({"x_m": float(slot.sim.x[L.X_M]),
-                                 "y_m": float(slot.sim.x[L.Y_M]),
-                                 "yaw_rad": float(slot.sim.x[L.YAW_RAD])},
-                                slot.sim.vp.copy()) for slot in slots}
-
-
-def join_world(slot_cfg: Any, scene: Scene, table: np.ndarray | None, world: Any) -> Any:
-    """A new car's slot, its car made alone and moved into the running ``world``
-    (between ticks: tens to hundreds of microseconds, nothing recompiled)."""
-    from simserver.simulation import Simulation
-    from simserver.vehicle_slot import VehicleSlot
-
-    sim = Simulation(scene, slot_cfg.period_s, car_id=slot_cfg.vehicle_id)
-    sim.move_to(world)
-    slot = VehicleSlot(slot_cfg, sim)
-    if table is not None:
-        slot.drive_by_keyframes(table)
-    return slot

@@ -6,8 +6,8 @@ slow runs there:
 
 - ``add_car``: checked in the tick (the id, the count), its files read by the load worker
   (the vehicle file, the world's scene for its defaults and roads; a start clear of where
-  the other cars are now: ``simserver.fleet.new_car``), its transport made in a thread of
-  the desk (``make_ports``: the zenoh subscriber, publishers, queryable and liveliness
+  the other cars are now: ``simserver.server.cars_config.new_car``), its transport made in
+  a thread of the desk (``make_ports``: the zenoh subscriber, publishers, queryable and liveliness
   token, milliseconds), then the car made alone and moved into the world between two
   ticks (``fleet.join_world``) and served from the next tick; answered then.
 - ``remove_car``: the car taken out between two ticks (``ServerLoop.remove``), its
@@ -30,10 +30,10 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from simserver import fleet
-from simserver import protocol as proto
 from simserver.adapters.validate import ConfigError, confined_to
-from simserver.load_worker import opened
+from simserver.server import cars_config, fleet
+from simserver.server.load_worker import opened
+from simserver.wire import protocol as proto
 
 log = logging.getLogger("simserver.server")
 
@@ -45,19 +45,19 @@ def prepare_added_car(car_id: str, vehicle: str | None, pose: dict[str, float] |
     """Read and check a car to add (run in the load worker): ``("ok", (scene, table,
     vehicle path))`` or ``("error", field, message)`` (errors as data: they cross a process
     boundary)."""
-    from simserver.scenario import load_scene
-    from simserver.vehicle_slot import redacted, resolve_config_path
+    from simserver.server.slot import redacted, resolve_config_path
+    from simserver.sim.scene import load_scene
 
     try:
         vehicle_path = None if vehicle is None else resolve_config_path(
             "vehicle", vehicle, config_dirs, cwd, config_folder)
     except proto.ProtocolError as exc:
         return "error", exc.field, redacted(str(exc), config_dirs, cwd)
-    spec = fleet.CarSpec(id=car_id, where=f"add_car ({car_id})", vehicle=vehicle_path,
+    spec = cars_config.CarSpec(id=car_id, where=f"add_car ({car_id})", vehicle=vehicle_path,
                          pose=pose)
     with confined_to(config_dirs):
         try:
-            scene, table = fleet.new_car(spec, load_scene(scene_path), dt_s, others)
+            scene, table = cars_config.new_car(spec, load_scene(scene_path), dt_s, others)
         except ConfigError as exc:
             message = redacted(str(exc), config_dirs, cwd)
             field = "vehicle" if "key 'vehicle'" in message else \
@@ -155,7 +155,7 @@ class WorldDesk:
     def _reset_step(self, job: dict[str, Any]) -> None:
         """Make the next car's start (or settle it a piece further); when every car's is
         ready, commit them all in this tick and answer."""
-        from simserver.server_loop import SETTLE_STEPS_PER_TICK
+        from simserver.server.loop import SETTLE_STEPS_PER_TICK
 
         staged = job["staged"]
         slots = job["slots"]
@@ -182,9 +182,10 @@ class WorldDesk:
                                       "again when it has been answered")
         car_id = args["id"]
         try:
-            fleet.check_car_id("add_car", car_id)
+            cars_config.check_car_id("add_car", car_id)
         except ConfigError as exc:
-            raise proto.ProtocolError("id", str(exc).removeprefix("add_car: key 'id': ")) from None
+            raise proto.ProtocolError(
+                "id", str(exc).removeprefix("add_car: key 'id': ")) from None
         if car_id in self._ids():
             raise proto.ProtocolError("id", f"the world has a car {car_id!r} already")
         if len(self.loop.slots) >= self.cfg.max_cars:
