@@ -86,6 +86,8 @@ NOT_RUN_HERE = {
     "python -m benchmarks.bench_sweep": "the same",
     "python benchmarks/bench_tire.py": "the same",
     "python docs/figures.py": "regenerates the README's figures (minutes)",
+    "python docs/rooms.py --write README.md": "rewrites the README's rooms table: "
+                                              "test_import_cycles.py runs its --check",
 }
 
 

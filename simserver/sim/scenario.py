@@ -52,17 +52,10 @@ from typing import Any
 
 import numpy as np
 
-from simserver.adapters.config import (
-    MODEL_OPTION_DEFAULTS,
-    ConfigError,
-    check_keys,
-    number,
-    read_yaml,
-    resolve_vehicle,
-)
+from simserver.adapters.config import MODEL_OPTION_DEFAULTS, resolve_vehicle
 from simserver.adapters.driver_config import DriverSpec, build_drivers, parse_driver
 from simserver.adapters.terrain_files import terrain_spec
-from simserver.adapters.validate import integer
+from simserver.adapters.validate import ConfigError, check_keys, integer, number, read_yaml
 from simserver.core import layout as L
 from simserver.core.driver import N_DRIVER_STATE, simulate_driven
 from simserver.sim.keyframes import input_table, read_keyframe_file
