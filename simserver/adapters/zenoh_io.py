@@ -46,7 +46,9 @@ from simserver.wire.protocol import (
     ENCODING_CONTROL,
     ENCODING_DIAGNOSTICS,
     ENCODING_STATE,
+    ENCODING_WORLD,
     STATE_DECIMATED_HZ,
+    WORLD_CONTROL_SPECS,
     ProtocolError,
     VehicleKeys,
     decode_reply,
@@ -55,6 +57,7 @@ from simserver.wire.protocol import (
     reply_ok,
     validate_control,
     vehicle_keys,
+    world_keys,
 )
 
 log = logging.getLogger("simserver.server")
@@ -929,6 +932,13 @@ class ZenohEndpoint:
             decimate_every=round(states_per_s / STATE_DECIMATED_HZ),
             sender_thread=sender_thread, inline_while_cheap=inline_while_cheap))
 
+    def declare_world_publisher(self, prefix: str | None = None) -> zenoh.Publisher:
+        """Publisher on the world message ``{prefix}/world/state``: DATA priority,
+        batched, DROP (the loop never waits for a reader, as for the diagnostics)."""
+        key = world_keys(prefix or self.keys.prefix).state
+        return self._publisher(key, ENCODING_WORLD, zenoh.Priority.DATA, False,
+                               zenoh.CongestionControl.DROP)
+
     def declare_control_inbox(self, per_client: int = 16, keys: VehicleKeys | None = None,
                               validate: bool = True) -> ControlInbox:
         """Queryable serving every ``ctl/*`` key, ``per_client`` requests queued per client
@@ -958,6 +968,10 @@ class ZenohEndpoint:
         key = self.keys.state_decimated if decimated else self.keys.state
         return self._keep(Inbox(self.session, key, capacity))
 
+    def declare_inbox(self, key: str, capacity: int = 16) -> Inbox:
+        """Subscriber on any key (``{prefix}/world/state``, ...) with a ring of ``capacity``."""
+        return self._keep(Inbox(self.session, key, capacity))
+
     def declare_diag_inbox(self, capacity: int = 64) -> Inbox:
         """Subscriber on ``diag`` with a ring of ``capacity``."""
         return self._keep(Inbox(self.session, self.keys.diag, capacity))
@@ -970,6 +984,15 @@ class ZenohEndpoint:
         """Keys of the liveliness tokens present now (this vehicle's, or matching ``key``)."""
         replies = self.session.liveliness().get(key or self.keys.alive, timeout=timeout_s)
         return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+    def request_world(self, name: str, args: dict[str, Any] | None = None, *,
+                      payload: bytes | None = None, timeout_s: float = 10.0) -> dict[str, Any]:
+        """A world control (``{prefix}/world/ctl/{name}``: ``add_car``, ``remove_car``,
+        ``get_config``) of this endpoint's prefix, as :meth:`request`."""
+        keys = world_keys(self.keys.prefix)
+        body = payload if payload is not None else encode_control(name, args,
+                                                                  WORLD_CONTROL_SPECS)
+        return self._query(keys.control(name), body, timeout_s)
 
     def request(
         self,
@@ -1006,6 +1029,10 @@ class ZenohEndpoint:
         """
         key = self.keys.control(name)
         body = payload if payload is not None else encode_control(name, args)
+        return self._query(key, body, timeout_s)
+
+    def _query(self, key: str, body: bytes, timeout_s: float) -> dict[str, Any]:
+        """A control query on ``key`` and its decoded reply (:meth:`request`)."""
         replies = self.session.get(
             key, payload=body, encoding=zenoh.Encoding(ENCODING_CONTROL), timeout=timeout_s,
             attachment=self._client_id,

@@ -4,4 +4,6 @@ fixed-rate loop with controls dispatched through a table (``loop``), the car it 
 with its arbitration and watchdog (``slot``; both tested in-process,
 ``tests/test_server_logic.py``), scene loads off the tick (``load_worker``), the pacer
 (``realtime``) and its log files opened without following links and written off the tick
-(``logfile``)."""
+(``logfile``); several cars in one world (issue 30): the ``cars:`` list and its checks
+(``cars_config``), the cars' world and the world message (``fleet``), cars added and
+removed while it runs (``world_desk``)."""

@@ -19,6 +19,7 @@ from simserver.adapters.validate import (
     short_repr,
 )
 from simserver.ros2 import cli as ros2_cli
+from simserver.server import cars_config
 from simserver.server.logfile import check_log_path
 from simserver.server.realtime import (
     DEFAULT_RT_PRIORITY,
@@ -66,6 +67,9 @@ class ServerConfig:
     rt_lock_memory: bool = False
     ros2: dict[str, Any] | None = None  # the ROS 2 adapter's settings; None: off
     tls_front: str = "auto"  # auto: an accept-filtering front per tls/ listen endpoint
+    cars: list[cars_config.CarSpec] | None = None  # None: the one car vehicle_id
+    max_cars: int = cars_config.DEFAULT_MAX_CARS
+    world_hz: float = proto.WORLD_HZ_DEFAULT  # the world message's rate
 
     def realtime_settings(self) -> RealtimeSettings:
         """The real-time scheduling asked for (``simserver.server.realtime``)."""
@@ -303,6 +307,9 @@ SERVER_KEYS: dict[str, ServerKey] = {
     "rt_lock_memory": ServerKey(_flag),
     "ros2": ServerKey(None),
     "tls_front": _one_of(TLS_FRONT_MODES, src_where=True),
+    "max_cars": _integer_key(*cars_config.MAX_CARS_RANGE),
+    "world_hz": _number_key(1.0, 1000.0),
+    "cars": ServerKey(None),  # read at the end: it needs max_cars (server.cars_config)
 }
 """Every key of a server file and its reader; a new key is one row here and one field of
 ``ServerConfig`` (of the same name)."""
@@ -327,6 +334,8 @@ def load_server_config(path: str | Path, **overrides: Any) -> ServerConfig:
                                            source=f"{src.path}: ros2")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+    if src.values.get("cars") is not None:  # several cars in one world
+        cfg.cars = cars_config.parse_cars(src.path, src.values["cars"], cfg.max_cars)
     if not cfg.config_dirs:
         cfg.config_dirs = [REPO_CONFIGS, src.path.parent]
     return cfg

@@ -305,10 +305,12 @@ class Simulation:
         inputs are kept."""
         self.commit(self.prepare_load(scene).finish())
 
-    def prepare_load(self, scene: Scene) -> PreparedStart:
+    def prepare_load(self, scene: Scene, keep_terrain: bool = False) -> PreparedStart:
         """A ``load`` of ``scene`` made ready beside the running model (which is not
         touched): its model and initial state, the settling left to :meth:`PreparedStart.advance`;
-        :meth:`commit` swaps it in."""
+        :meth:`commit` swaps it in. ``keep_terrain``: the car takes the scene's vehicle and
+        start only, on the world's terrain and road as they are (a car of a world of
+        several: the other cars' ground does not change)."""
         vp = scene.vehicle.vp.copy()
         tp = np.ascontiguousarray(scene.vehicle.tp, dtype=np.float64).copy()
         check_model(vp, tp)
@@ -318,7 +320,11 @@ class Simulation:
                       derived=derive_constants(vp, tp, self.dt_s))
         road = {key: scene.road[key] for key in ("grade_pct", "cross_slope_pct",
                                                   "friction_scale")}
-        set_road(model.terrain.road, **road, gravity_mps2=vp[P.VP_GRAVITY_MPS2])
+        if keep_terrain and self.world is not None:
+            model = model._replace(terrain=self.world.model.terrain)
+            road = dict(self.world.road)
+        else:
+            set_road(model.terrain.road, **road, gravity_mps2=vp[P.VP_GRAVITY_MPS2])
         return self._prepare(scene, model, road, None, None, load=True)
 
     def set_road(self, grade_pct: float, cross_slope_pct: float, friction_scale: float) -> None:
