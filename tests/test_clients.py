@@ -22,6 +22,7 @@ import importlib.util
 import math
 import os
 import pty
+import re
 import signal
 import struct
 import subprocess
@@ -190,15 +191,22 @@ def test_clients_import_only_the_protocol_and_the_zenoh_adapter():
     """The clients prove the contract: no server, core or physics imports."""
     allowed = {"simserver", "simserver.wire.protocol", "simserver.adapters.zenoh_io",
                "simserver.sim.keyframes",  # the player reads the scenario file format only
-               "simserver.adapters.validate"}  # (core-free: tests/test_keyframes.py)
+               "simserver.adapters.validate",  # (core-free: tests/test_keyframes.py)
+               # the driver's road line reads the road file the server names, with the
+               # server's own reader and projection (file readers: no core, no server)
+               "simserver.adapters.opendrive", "simserver.adapters.road_position"}
     users: dict[str, set[str]] = {}
     for path in sorted((REPO / "clients").glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Import):
                 names = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom) and node.module:
-                names = [f"{node.module}.{a.name}" for a in node.names] \
-                    if node.module == "simserver" else [node.module]
+                # ``from simserver.wire import protocol`` imports the module
+                # simserver.wire.protocol; ``from simserver.wire.protocol import X`` that
+                # module too
+                names = [f"{node.module}.{a.name}"
+                         if (REPO / (node.module.replace(".", "/") + f"/{a.name}.py")).exists()
+                         else node.module for a in node.names]
             else:
                 continue
             for name in names:
@@ -206,6 +214,11 @@ def test_clients_import_only_the_protocol_and_the_zenoh_adapter():
                     assert name in allowed, f"{path.name} imports {name}"
                     users.setdefault(name, set()).add(path.name)
     assert users["simserver.sim.keyframes"] == {"player.py"}
+    assert users["simserver.adapters.opendrive"] == {"road_view.py"}
+    for module in ("opendrive", "road_position"):  # the road readers stay core-free
+        text = (REPO / "simserver" / "adapters" / f"{module}.py").read_text()
+        assert not re.search(r"^\s*(from|import) simserver\.(core|server|sim)\b", text, re.M), \
+            module
 
 
 # ============================================================================ keyboard
