@@ -691,7 +691,7 @@ def render(report: Report, sections: list[str]) -> str:
         "own zenoh session) checking every tick arrives, and 10 sessions a second joining "
         "(state subscription, `get_config`) and leaving a second later; late ticks from the "
         "server's diagnostics over the loaded period. Their causes from the server's tick "
-        "trace (`SIMSERVER_TICK_TRACE`, `simserver.realtime.TickTrace`: per tick the tick "
+        "trace (`SIMSERVER_TICK_TRACE`, `simserver.server.realtime.TickTrace`: per tick the tick "
         "thread's CPU time, run-queue wait and switches from `/proc/thread-self/schedstat`, "
         "the pacer's sleep, GC): per episode of late ticks, the time in the ticks' own CPU, "
         "in run-queue waits (other processes at its priority or above), blocked in the work "

@@ -6,7 +6,7 @@ Run from the repository root::
         [--realtime off|auto] [--cpu-latency-us N] [--save FILE] [--json]
     python -m benchmarks.bench_clock --compare 8 --seconds 5
 
-Runs :class:`simserver.realtime.Pacer` for the given wall time with an empty loop body and
+Runs :class:`simserver.server.realtime.Pacer` for the given wall time with an empty loop body and
 prints, over every tick: start lateness p50 / p99 / max, the number and share of ticks
 more than 1 ms late, overruns and skipped ticks, the achieved period, the drift of the
 deadline sequence from wall time, and the process CPU use. This is the floor under the
@@ -23,7 +23,7 @@ import sys
 
 import numpy as np
 
-from simserver.realtime import (
+from simserver.server.realtime import (
     CpuMeter,
     Pacer,
     RealtimeScheduler,

@@ -49,9 +49,9 @@ def _child(scene_path: str) -> None:
 
     from simserver.core import tire_layout as TL
     from simserver.core.tire import tire_forces
-    from simserver.scenario import load_scene
-    from simserver.simulation import Simulation
-    from simserver.tire_models import tire_kernels
+    from simserver.sim.scene import load_scene
+    from simserver.sim.simulation import Simulation
+    from simserver.tires.registry import tire_kernels
 
     mark("import")
     sim = Simulation(load_scene(scene_path), 0.001)

@@ -41,11 +41,11 @@ from pathlib import Path
 
 import numpy as np
 
-from simserver import protocol as proto
-from simserver.realtime import TickTrace
-from simserver.server import TICK_TRACE_ENV
+from simserver.server.app import TICK_TRACE_ENV
+from simserver.server.realtime import TickTrace
 from simserver.testing import CONFIGS, Client, RoleProcess, ServerProcess, wait_until
 from simserver.testing.hostile import hostile_files
+from simserver.wire import protocol as proto
 
 
 def run(seconds: float, subscribers: int, churn: float, realtime: str = "auto",
@@ -400,11 +400,12 @@ PIECE_SCENES = ("scenes/velodrome_paper_sedan.yaml", "scenes/flat_paper_sedan.ya
 def pieces(rounds: int = 5) -> dict:
     """Per-tick work of a load (each scene of ``PIECE_SCENES``) and of a reset at 1 and
     20 m/s, in microseconds: ``{label: {piece: [per round]}}``."""
-    from simserver.load_worker import ProcessPreparer, opened
-    from simserver.scenario import load_scene
-    from simserver.server import load_server_config, new_simulation
-    from simserver.server_loop import SETTLE_STEPS_PER_TICK
-    from simserver.vehicle_slot import VehicleSlot, unwrap_prepared
+    from simserver.server.app import new_simulation
+    from simserver.server.config import load_server_config
+    from simserver.server.load_worker import ProcessPreparer, opened
+    from simserver.server.loop import SETTLE_STEPS_PER_TICK
+    from simserver.server.slot import VehicleSlot, unwrap_prepared
+    from simserver.sim.scene import load_scene
 
     cfg = load_server_config(CONFIGS / "server" / "default.yaml", viewer="off")
     slot = VehicleSlot(cfg, new_simulation(load_scene(cfg.scene), cfg.period_s))

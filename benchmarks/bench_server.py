@@ -46,8 +46,8 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from simserver import protocol as proto
 from simserver.testing import Client, ServerProcess, wait_until
+from simserver.wire import protocol as proto
 
 TICK_S = 1e-3
 """The server's default period: a command's send instant is uniform over one of these."""
@@ -113,7 +113,7 @@ def _run(seconds: float, cmd_hz: float, viewer: str, realtime: str,
 
 def _measure(server: ServerProcess, startup_s: float, seconds: float, cmd_hz: float,
              client_realtime: str, ready: Callable[[], bool] | None) -> dict:
-    from simserver.realtime import RealtimeScheduler, RealtimeSettings
+    from simserver.server.realtime import RealtimeScheduler, RealtimeSettings
 
     # the server holds /dev/cpu_dma_latency itself (where permitted): the client leaves it
     client_rt = RealtimeScheduler(RealtimeSettings(mode=client_realtime, priority=40,

@@ -13,7 +13,7 @@ median and the 10th/90th percentiles over the repeats, and the real-time factor 
 median (simulated time / wall time). Target (issue 3): under 5 us per step with four MF
 6.1 tires, i.e. 200 x real time or more.
 
-``--world-sizes``: worlds of that many independent cars (``simserver.simulation.World``,
+``--world-sizes``: worlds of that many independent cars (``simserver.sim.simulation.World``,
 one compiled step for all, issue 29), each car the brush car with its own throttle; the
 cost per car-step (CPU time / cars / steps) of each size against the world of one, in
 one run, recording every 1000th step.
@@ -40,8 +40,8 @@ import numpy as np
 
 from simserver.adapters.config import load_vehicle
 from simserver.core import layout as L
-from simserver.scenario import INITIAL_RANGES, Scene
-from simserver.simulation import Simulation
+from simserver.sim.scene import INITIAL_RANGES, Scene
+from simserver.sim.simulation import Simulation
 
 REPO = Path(__file__).resolve().parents[1]
 VEHICLES = {
@@ -90,7 +90,7 @@ def bench_world(path: Path, n_cars: int, seconds: float, repeats: int,
     """ns per car-step of a world of ``n_cars`` brush cars for each repeat (the process's
     CPU time by default), each car with its own throttle (0.4 .. 0.8) on the driving
     cycle."""
-    from simserver.simulation import World
+    from simserver.sim.simulation import World
 
     initial = dict.fromkeys(INITIAL_RANGES, 0.0) | {"u_mps": 5.0}
     road = {"grade_pct": 3.0, "cross_slope_pct": 2.0, "friction_scale": 1.0}

@@ -25,8 +25,8 @@ import numpy as np
 from benchmarks.bench_step import DT_S, driving_cycle
 from simserver.core import layout as L
 from simserver.core.terrain import heightmap_terrain
-from simserver.scenario import load_scene
-from simserver.simulation import Simulation
+from simserver.sim.scene import load_scene
+from simserver.sim.simulation import Simulation
 
 REPO = Path(__file__).resolve().parents[1]
 GRADE_PCT, CROSS_PCT = 3.0, 2.0

@@ -53,9 +53,9 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from simserver import protocol as proto
 from simserver.testing import Client, ServerProcess, loopback_endpoint
 from simserver.testing.pki import make_pki, materialize
+from simserver.wire import protocol as proto
 
 TICK_S = 1e-3
 """The server's default period: a command's send instant is uniform over one of these."""

@@ -13,7 +13,7 @@ The runs (issue 29's acceptance: one car gives the same bits after the world red
   alone by ``tests/test_world_scenario.py``);
 - the terrain scenes (a height map, two OpenDRIVE roads) and the MF 6.1 car, each driven
   by a short keyframed run, so the terrain and MF paths of the step are covered too;
-- the seeded soak (``simserver.soak.run_soak``, seed 11; every chunk's states and outputs
+- the seeded soak (``simserver.sim.soak.run_soak``, seed 11; every chunk's states and outputs
   are hashed as ``Simulation.run`` returns them);
 - the first release's command-log replay (``tests/data/first_release_live.cmdlog``).
 
@@ -63,7 +63,7 @@ def digest(*arrays: np.ndarray) -> str:
 
 
 def scenario_digest(path: Path, data: dict | None = None) -> str:
-    from simserver.scenario import load_scenario, run_scenario
+    from simserver.sim.scenario import load_scenario, run_scenario
 
     r = run_scenario(load_scenario(path, data))
     return digest(r.states, r.outputs, r.inputs, r.final_state)
@@ -82,7 +82,7 @@ def scene_digest(path: Path) -> str:
 def hashing_runs() -> Iterator[hashlib._Hash]:
     """While inside: every ``Simulation.run`` feeds its states and outputs to the yielded
     hash after it returns."""
-    from simserver.simulation import Simulation
+    from simserver.sim.simulation import Simulation
 
     h = hashlib.sha256()
     original = Simulation.run
@@ -100,8 +100,8 @@ def hashing_runs() -> Iterator[hashlib._Hash]:
 
 
 def soak_digest(seconds: float) -> str:
-    from simserver.scenario import load_scene
-    from simserver.soak import run_soak
+    from simserver.sim.scene import load_scene
+    from simserver.sim.soak import run_soak
 
     scene = load_scene(REPO / "configs/scenes/flat_paper_sedan.yaml")
     with hashing_runs() as h:
@@ -111,7 +111,7 @@ def soak_digest(seconds: float) -> str:
 
 
 def replay_digest() -> str:
-    from simserver.server import replay_command_log
+    from simserver.server.command_log import replay_command_log
 
     cwd = os.getcwd()
     os.chdir(REPO)  # the log's scene paths are relative to the repository

@@ -39,9 +39,9 @@ CLOCK_FLOOR = "clock floor"
 def clock_floor(seconds: float) -> dict:
     """One ``benchmarks.bench_clock`` run of ``seconds`` in a process of its own, the pacer
     scheduled as the server's tick thread (SCHED_FIFO if permitted, ``/dev/cpu_dma_latency``
-    held at the server's :data:`simserver.realtime.DEFAULT_CPU_LATENCY_US` if permitted), in
+    held at the server's :data:`simserver.server.realtime.DEFAULT_CPU_LATENCY_US` if permitted), in
     the format of ``benchmarks.bench_server.run``'s lateness figures."""
-    from simserver.realtime import DEFAULT_CPU_LATENCY_US
+    from simserver.server.realtime import DEFAULT_CPU_LATENCY_US
 
     latency = []
     if os.access("/dev/cpu_dma_latency", os.W_OK):

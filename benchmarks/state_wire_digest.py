@@ -23,14 +23,10 @@ TICKS = 3000
 def digests(ticks: int = TICKS) -> dict[str, str]:
     """Scene name -> SHA-256 of the concatenated state payloads of ``ticks`` ticks."""
     from simserver.core import layout as L
-    from simserver.scenario import load_scene
-    from simserver.server import (
-        DEFAULT_SERVER_CONFIG,
-        REPO_CONFIGS,
-        load_server_config,
-        new_simulation,
-    )
-    from simserver.vehicle_slot import VehicleSlot
+    from simserver.server.app import new_simulation
+    from simserver.server.config import DEFAULT_SERVER_CONFIG, REPO_CONFIGS, load_server_config
+    from simserver.server.slot import VehicleSlot
+    from simserver.sim.scene import load_scene
 
     cfg = load_server_config(DEFAULT_SERVER_CONFIG, viewer="off")
     out = {}

@@ -1,10 +1,10 @@
 """Zenoh clients of the simserver protocol: a driver, a maneuver player and a recorder.
 
-They use only the published contract: :mod:`simserver.protocol` (the codec of
+They use only the published contract: :mod:`simserver.wire.protocol` (the codec of
 ``docs/protocol.md``) and :mod:`simserver.adapters.zenoh_io` (sessions with safe
 defaults). They never import the server, its physics core or its configuration loaders,
 so they prove that the contract is enough to drive a car (the player also reads the
-scenario *file format* through :mod:`simserver.keyframes`, the headless runner's keyframe
+scenario *file format* through :mod:`simserver.sim.keyframes`, the headless runner's keyframe
 parser and sampler, which loads neither numba nor the compiled core).
 
 Modules

@@ -25,7 +25,6 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from simserver import protocol as proto
 from simserver.adapters.validate import short_repr
 from simserver.adapters.zenoh_io import (
     ZenohConfigError,
@@ -33,6 +32,7 @@ from simserver.adapters.zenoh_io import (
     ZenohOpenError,
     make_zenoh_config,
 )
+from simserver.wire import protocol as proto
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 """The server's embedded default endpoint (loopback only)."""
@@ -432,7 +432,7 @@ class StateFilter:
 
     On a network without access control anyone may publish on the state key
     (``docs/security.md``). A state is **rejected** when it is malformed (size, version)
-    or carries what no server publishes (:func:`simserver.protocol.invalid_fields`:
+    or carries what no server publishes (:func:`simserver.wire.protocol.invalid_fields`:
     a non-finite value, a value outside its field's range, an undefined flag bit). It is
     **out of order** when its tick does not continue the run being followed: lower than
     the last (but a reset or load restarts the tick), or further ahead than the wall

@@ -90,7 +90,7 @@ from clients.keyboard import (
     load_keyboard_profile,
 )
 from clients.profile import ProfileError
-from simserver import protocol as proto
+from simserver.wire import protocol as proto
 
 PROG = "simserver-driver"
 REPO_CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "clients"

@@ -36,7 +36,7 @@ from types import ModuleType
 from typing import Any, Protocol
 
 from clients.profile import ProfileError, boolean, check_mapping, number, short_repr
-from simserver import protocol as proto
+from simserver.wire import protocol as proto
 
 EVDEV_VERSION = "1.9.2"
 """The python-evdev release these clients are tested with (the ``ffb`` extra pins it)."""

@@ -1,10 +1,10 @@
 """``simserver-player``: play a scenario's input keyframes live, in real time.
 
 The scenario file is the headless runner's (``configs/scenarios/*.yaml``); its name,
-duration and keyframes are read by :mod:`simserver.keyframes`, the keyframe parser and
+duration and keyframes are read by :mod:`simserver.sim.keyframes`, the keyframe parser and
 sampler of ``simserver run-scenario`` (the file format, not the server, and without the
 compiled core). The channels are sampled by the same function as the headless input
-table (:func:`simserver.keyframes.sample_keyframes`: steer, throttle and brake linear
+table (:func:`simserver.sim.keyframes.sample_keyframes`: steer, throttle and brake linear
 between their keyframes, gear and parking brake switching at theirs) and sent as
 DriverCommands at a steady rate (``--rate``, default 1000 Hz, on absolute deadlines of
 this process's monotonic clock). The rest of the file (vehicle, road, initial state) is
@@ -53,9 +53,9 @@ from clients.common import (
     gear_name,
     state_filter,
 )
-from simserver import protocol as proto
 from simserver.adapters.validate import ConfigError
-from simserver.keyframes import load_keyframe_file, sample_keyframes
+from simserver.sim.keyframes import load_keyframe_file, sample_keyframes
+from simserver.wire import protocol as proto
 
 PROG = "simserver-player"
 DEFAULT_RATE_HZ = 1000.0
@@ -76,7 +76,7 @@ class InputTrack:
         Normalised inputs (float64).
     parking_brake : ndarray of bool
     gear : ndarray of int
-        :class:`simserver.protocol.Gear` codes.
+        :class:`simserver.wire.protocol.Gear` codes.
     """
 
     rate_hz: float

@@ -96,8 +96,8 @@ from clients.common import (
     connect,
     state_filter,
 )
-from simserver import protocol as proto
-from simserver.protocol import reference_plane_slopes, world_to_road
+from simserver.wire import protocol as proto
+from simserver.wire.protocol import reference_plane_slopes, world_to_road
 
 # the wire's frames (docs/protocol.md section 2.4) live in the protocol; kept here by name
 # for this module's readers (recorder.road_axes, recorder.world_to_road, ...)

@@ -30,8 +30,8 @@ def check(connect: str, key: str, timeout_s: float) -> dict[str, float] | None:
     """The first state received within ``timeout_s`` (tick and simulated time), or None."""
     import zenoh
 
-    from simserver import protocol as proto
     from simserver.adapters.zenoh_io import make_zenoh_config
+    from simserver.wire import protocol as proto
 
     cfg = make_zenoh_config(listen=[], connect=[connect], mode="client")
     with zenoh.open(cfg) as session:

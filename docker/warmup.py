@@ -12,7 +12,7 @@ under ``--configs``, i.e. the simple brush tire and the MF 6.1 tire) it runs:
 1. the headless path: ``simserver soak --scene SCENE --duration 1 --quiet`` (the compiled
    ``simulate`` loop and everything it calls), in this process through ``simserver.cli``;
 2. the ``serve`` path: the server config ``server/default.yaml`` loaded with the scene,
-   ``simserver.server.SimServer`` constructed (no network is opened) and its
+   ``simserver.server.app.SimServer`` constructed (no network is opened) and its
    ``Simulation.warm_up()`` called, exactly what ``simserver serve`` does before its clock
    starts (``step``, ``world_pose``, ``set_road``);
 3. the ``tire-curves`` path: ``core.tire.tire_forces`` called from Python with the
@@ -123,11 +123,12 @@ def warm_scene(configs: Path, scene: Path) -> None:
     import numpy as np
 
     from simserver import cli
-    from simserver import protocol as proto
+    from simserver.adapters.viewer import rows_from_state
     from simserver.core import layout as L
     from simserver.core.params import VP_CG_HEIGHT_M
-    from simserver.server import SimServer, load_server_config
-    from simserver.viewer import rows_from_state
+    from simserver.server.app import SimServer
+    from simserver.server.config import load_server_config
+    from simserver.wire import protocol as proto
 
     # 1. headless: the soak command as a user runs it (its JSON summary is not wanted here).
     buf = io.StringIO()

@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from simserver.adapters.plots import plot_comparison, plot_trajectory
-from simserver.scenario import load_scenario, run_scenario
+from simserver.sim.scenario import load_scenario, run_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 SCEN = REPO / "configs" / "scenarios"

@@ -24,12 +24,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from simserver import compare as compare_cli
+from simserver.analysis import cli as compare_cli
+from simserver.errors import CliError
 from simserver.ros2 import cli as ros2_cli
 from simserver.sweep import cli as sweep_cli
 
 if TYPE_CHECKING:
-    from simserver.scenario import Scenario
+    from simserver.sim.scenario import Scenario
 
 DT_RANGE_S = (1e-5, 0.01)
 """Accepted ``--dt`` values (the same range as a scenario's ``dt_s``)."""
@@ -63,14 +64,6 @@ class Subcommand:
     description: str = ""
 
 
-class CliError(Exception):
-    """An error to report as ``error: <message>`` with the given exit code."""
-
-    def __init__(self, message: str, exit_code: int = 1) -> None:
-        super().__init__(message)
-        self.exit_code = exit_code
-
-
 # ------------------------------------------------------------------------ run-scenario
 def _add_run_scenario_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scenario", type=Path, help="scenario YAML file")
@@ -95,7 +88,7 @@ def _with_dt(scenario: Scenario, dt_s: float | None) -> Scenario:
         if not (math.isfinite(dt_s) and lo <= dt_s <= hi):
             raise ConfigError(f"--dt: {dt_s:g} is outside [{lo:g}, {hi:g}] s")
         scenario = dataclasses.replace(scenario, dt_s=float(dt_s))
-        from simserver.scenario import check_run_size
+        from simserver.sim.scenario import check_run_size
 
         check_run_size(f"{scenario.path} with --dt {dt_s:g}", scenario.duration_s,
                        scenario.dt_s, scenario.record_every)
@@ -128,7 +121,7 @@ def run_scenario_command(args: argparse.Namespace) -> int:
         write_history,
         write_summary,
     )
-    from simserver.scenario import is_world_scenario, load_scenario, run_scenario
+    from simserver.sim.scenario import is_world_scenario, load_scenario, run_scenario
 
     out: Path = args.out
     data = read_yaml(args.scenario)
@@ -205,7 +198,7 @@ def _run_world_scenario_command(args: argparse.Namespace, data: dict, out: Path)
         write_summary,
         write_world_history,
     )
-    from simserver.scenario import load_world_scenario, run_world_scenario
+    from simserver.sim.scenario import load_world_scenario, run_world_scenario
 
     world = load_world_scenario(args.scenario, data)
     world.cars = {cid: _with_dt(sc, args.dt) for cid, sc in world.cars.items()}
@@ -242,7 +235,7 @@ def _run_world_scenario_command(args: argparse.Namespace, data: dict, out: Path)
 # ------------------------------------------------------------------------- tire-curves
 def nominal_load_n(tp: np.ndarray) -> float:
     """Nominal load of a packed tire vector, from its model's registry entry
-    (``simserver.tire_models``): ``FNOMIN`` (mf61), ``nominal_load_n`` (simple).
+    (``simserver.tires.registry``): ``FNOMIN`` (mf61), ``nominal_load_n`` (simple).
 
     Parameters
     ----------
@@ -254,7 +247,7 @@ def nominal_load_n(tp: np.ndarray) -> float:
     float
         Nominal wheel load (N).
     """
-    from simserver.tire_models import nominal_load_n as registered_nominal_load_n
+    from simserver.tires.registry import nominal_load_n as registered_nominal_load_n
 
     return registered_nominal_load_n(tp)
 
@@ -304,7 +297,7 @@ def tire_curve_data(
     """
     from simserver.core.tire import tire_forces
     from simserver.core.tire_layout import N_TIRE_OUT, OUT_FX, OUT_FY, OUT_MZ
-    from simserver.tire_models import check_tire_vectors, tire_kernels
+    from simserver.tires.registry import check_tire_vectors, tire_kernels
 
     loads = np.asarray(loads_n, dtype=np.float64)
     alpha_deg = np.linspace(-alpha_max_deg, alpha_max_deg, n_points)
@@ -468,7 +461,7 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
 
 def serve_command(args: argparse.Namespace) -> int:
     """``simserver serve``: the real-time server, until SIGINT/SIGTERM."""
-    from simserver.logfile import configure_logging
+    from simserver.server.logfile import configure_logging
 
     process_log = configure_logging(args.log_level)  # no log call waits on the output
     try:
@@ -478,7 +471,8 @@ def serve_command(args: argparse.Namespace) -> int:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from simserver.server import DEFAULT_SERVER_CONFIG, SimServer, load_server_config
+    from simserver.server.app import SimServer
+    from simserver.server.config import DEFAULT_SERVER_CONFIG, load_server_config
 
     cfg = load_server_config(
         args.config or DEFAULT_SERVER_CONFIG, scene=args.scene, vehicle_id=args.vehicle_id,
@@ -489,7 +483,7 @@ def _serve(args: argparse.Namespace) -> int:
         ros2=args.ros2, tls_front=args.tls_front)
     from simserver.adapters.tls_front import FrontError
     from simserver.adapters.zenoh_io import ZenohConfigError, ZenohOpenError
-    from simserver.server import DuplicateVehicleError
+    from simserver.server.app import DuplicateVehicleError
 
     try:
         SimServer(cfg).run()
@@ -509,7 +503,7 @@ def replay_command(args: argparse.Namespace) -> int:
     """``simserver replay``: re-run a command log headless and check the final state."""
     import numpy as np
 
-    from simserver.server import replay_command_log
+    from simserver.server.command_log import replay_command_log
 
     rep = replay_command_log(args.log)
     if args.out is not None:
@@ -547,15 +541,15 @@ def soak_command(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from simserver.scenario import load_scene
-    from simserver.soak import run_soak
+    from simserver.sim.scene import load_scene
+    from simserver.sim.soak import run_soak
 
     if not (math.isfinite(args.duration) and 0.0 < args.duration <= 1e7):
         raise CliError("--duration: expected a positive number of seconds", exit_code=2)
     if args.scene is None:
         # the server module only for its configs folder: a soak with --scene needs none
         # of the real-time machinery (issue 33)
-        from simserver.server import REPO_CONFIGS
+        from simserver.server.config import REPO_CONFIGS
 
         args.scene = REPO_CONFIGS / "scenes" / "flat_paper_sedan.yaml"
     scene = load_scene(args.scene)
@@ -614,8 +608,8 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
 def view_command(args: argparse.Namespace) -> int:
     """``simserver view``: the live Rerun scene of a running server (its own process)."""
     from simserver.adapters.rerun_sink import RerunSinkError
+    from simserver.adapters.viewer import DEFAULT_WAIT_S, ServerWaitError, run_viewer
     from simserver.adapters.zenoh_io import ZenohConfigError
-    from simserver.viewer import DEFAULT_WAIT_S, ServerWaitError, run_viewer
 
     # a --zenoh-config keeps its own endpoints (a TLS client's server name) unless
     # --connect is given

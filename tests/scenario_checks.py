@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from simserver.core import layout as L
-from simserver.scenario import ScenarioResult
+from simserver.sim.scenario import ScenarioResult
 
 
 def travel_along_heading(result: ScenarioResult) -> np.ndarray:

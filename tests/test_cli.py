@@ -177,18 +177,18 @@ def test_help_lists_the_subcommands():
 
 def test_a_run_that_goes_non_finite_exits_1_but_writes_its_files(tmp_path, capsys,
                                                                    monkeypatch):
-    import simserver.scenario
+    import simserver.sim.scenario
     from simserver.cli import main
     from simserver.core.layout import U_MPS
 
-    real_run = simserver.scenario.run_scenario
+    real_run = simserver.sim.scenario.run_scenario
 
     def run_then_break(scenario, **kwargs):
         result = real_run(scenario, **kwargs)
         result.states[-1, U_MPS] = float("nan")
         return result
 
-    monkeypatch.setattr(simserver.scenario, "run_scenario", run_then_break)
+    monkeypatch.setattr(simserver.sim.scenario, "run_scenario", run_then_break)
     path = write_scenario(tmp_path / "s.yaml", SCENARIO.replace("2.5", "0.2"))
     out = tmp_path / "out"
     assert main(["run-scenario", str(path), "--out", str(out), "--quiet"]) == 1

@@ -27,7 +27,6 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from simserver import protocol as proto
 from simserver.testing import (
     CONFIGS,
     REPO,
@@ -38,6 +37,7 @@ from simserver.testing import (
     client_env,
     wait_until,
 )
+from simserver.wire import protocol as proto
 from tests.test_clients import PtyProcess, hold_until
 
 pytestmark = pytest.mark.timeout(300)

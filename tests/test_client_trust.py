@@ -19,7 +19,6 @@ import pyarrow.parquet as pq
 import pytest
 import zenoh
 
-from simserver import protocol as proto
 from simserver.testing import (
     Client,
     OutputProcess,
@@ -28,6 +27,7 @@ from simserver.testing import (
     client_env,
     wait_until,
 )
+from simserver.wire import protocol as proto
 
 
 def _state(tick: int, **values: float) -> bytes:

@@ -40,7 +40,6 @@ from clients import player, recorder
 from clients.common import EXIT_NO_SERVER
 from clients.driver import AUTO_HOLD_REST_MPS
 from clients.profile import ProfileError
-from simserver import protocol as proto
 from simserver.analysis.holds import CREEP_SETTLE_S
 from simserver.testing import (
     CONFIGS,
@@ -53,6 +52,7 @@ from simserver.testing import (
     free_port,
     wait_until,
 )
+from simserver.wire import protocol as proto
 from tests.conftest import slow_enabled
 
 pytestmark = pytest.mark.timeout(240)
@@ -188,8 +188,8 @@ def write(tmp_path: Path, name: str, text: str) -> Path:
 
 def test_clients_import_only_the_protocol_and_the_zenoh_adapter():
     """The clients prove the contract: no server, core or physics imports."""
-    allowed = {"simserver", "simserver.protocol", "simserver.adapters.zenoh_io",
-               "simserver.keyframes",  # the player reads the scenario file format only
+    allowed = {"simserver", "simserver.wire.protocol", "simserver.adapters.zenoh_io",
+               "simserver.sim.keyframes",  # the player reads the scenario file format only
                "simserver.adapters.validate"}  # (core-free: tests/test_keyframes.py)
     users: dict[str, set[str]] = {}
     for path in sorted((REPO / "clients").glob("*.py")):
@@ -205,7 +205,7 @@ def test_clients_import_only_the_protocol_and_the_zenoh_adapter():
                 if name.startswith("simserver"):
                     assert name in allowed, f"{path.name} imports {name}"
                     users.setdefault(name, set()).add(path.name)
-    assert users["simserver.keyframes"] == {"player.py"}
+    assert users["simserver.sim.keyframes"] == {"player.py"}
 
 
 # ============================================================================ keyboard
@@ -381,7 +381,8 @@ def test_axis_mapping_with_a_scripted_device():
 
 def test_player_samples_keyframes_like_the_headless_input_table():
     from simserver.core import layout as L
-    from simserver.scenario import input_table, load_scenario
+    from simserver.sim.keyframes import input_table
+    from simserver.sim.scenario import load_scenario
 
     assert tuple(g.name for g in proto.Gear) == L.GEAR_NAMES
     for name in ("e2_stop_downslope_paper_damping", "e3_stop_from_turn",
@@ -544,7 +545,7 @@ def test_player_and_recorder_reproduce_the_headless_e2_stop(tmp_path):
     to the float32 of the wire); up to E = 0.003, 0.036 m/s and 12 cm on a loaded one.
     """
     from simserver.adapters.history import read_history, result_columns
-    from simserver.scenario import load_scenario, run_scenario
+    from simserver.sim.scenario import load_scenario, run_scenario
 
     server = ServerProcess(vehicle_id="e2", scene="flat_paper_sedan")
     out = tmp_path / "rec"

@@ -25,9 +25,10 @@ from hypothesis import strategies as st
 from simserver.adapters.config import ConfigError, load_tire, load_vehicle
 from simserver.adapters.tir_file import TirError, load_tir, mf61_coefficients
 from simserver.adapters.validate import read_yaml
-from simserver.keyframes import load_keyframe_file
-from simserver.scenario import load_scenario
-from simserver.server import load_server_config, read_command_log
+from simserver.server.command_log import read_command_log
+from simserver.server.config import load_server_config
+from simserver.sim.keyframes import load_keyframe_file
+from simserver.sim.scenario import load_scenario
 from simserver.testing import CONFIGS
 
 pytestmark = pytest.mark.timeout(300)

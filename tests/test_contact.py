@@ -33,7 +33,7 @@ from simserver.core.contact import (
     footprint,
     pair_contact,
 )
-from simserver.scenario import load_world_scenario, run_scenario, run_world_scenario
+from simserver.sim.scenario import load_world_scenario, run_scenario, run_world_scenario
 from simserver.testing import REPO
 
 SCENARIOS = REPO / "configs" / "scenarios"

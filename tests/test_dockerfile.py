@@ -252,7 +252,7 @@ def test_documents_the_real_time_capability_and_ulimit() -> None:
     """The server asks for SCHED_FIFO; the image's non-root user needs an rtprio limit at
     least the server's priority (and CAP_SYS_NICE for root or the nice fallback): the
     Dockerfile's header says how to grant them, in a run line that parses."""
-    from simserver.realtime import DEFAULT_RT_PRIORITY
+    from simserver.server.realtime import DEFAULT_RT_PRIORITY
 
     header = [line[1:].strip() for line in DOCKERFILE.read_text().splitlines()
               if line.startswith("#")]

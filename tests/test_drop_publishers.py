@@ -28,8 +28,8 @@ import time
 import pytest
 import zenoh
 
-from simserver import protocol as proto
 from simserver.testing import Client, ServerProcess, loopback_endpoint
+from simserver.wire import protocol as proto
 from tests.conftest import slow_enabled
 
 pytestmark = pytest.mark.timeout(600)

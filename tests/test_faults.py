@@ -39,7 +39,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simserver import protocol as proto
 from simserver.testing import (
     CONFIGS,
     REPO,
@@ -53,6 +52,7 @@ from simserver.testing import (
     wait_until,
 )
 from simserver.testing.realtime_soak import format_report, run_realtime_soak
+from simserver.wire import protocol as proto
 from tests.conftest import slow_enabled
 
 pytestmark = pytest.mark.timeout(300)
@@ -534,7 +534,11 @@ def test_kill_9_loses_at_most_the_last_100_ms_of_the_command_log(tmp_path):
     ``kill -9`` at 2.5 s left an empty file. Now inputs reach the OS within 100 ms and a
     line torn by the kill is ignored: what the log holds replays the live run exactly."""
     from simserver.core import layout as L
-    from simserver.server import COMMAND_LOG_FLUSH_S, read_command_log, replay_command_log
+    from simserver.server.command_log import (
+        COMMAND_LOG_FLUSH_S,
+        read_command_log,
+        replay_command_log,
+    )
 
     log = tmp_path / "run.jsonl"
     server = ServerProcess(command_log=log)
@@ -604,7 +608,7 @@ def test_kill_9_leaves_no_process_of_the_server_behind():
 def test_a_torn_last_line_is_ignored_but_a_broken_complete_line_is_an_error(tmp_path):
     """The line a kill cut short has no newline: dropped; any other bad line: an error."""
     from simserver.adapters.config import ConfigError
-    from simserver.server import read_command_log
+    from simserver.server.command_log import read_command_log
 
     scene = CONFIGS / "scenes" / "flat_paper_sedan.yaml"
     header = json.dumps({"simserver_command_log": 1, "scene": str(scene), "dt_s": 0.001,

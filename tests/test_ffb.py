@@ -25,8 +25,8 @@ import pytest
 from clients import ffb as F
 from clients.joystick import load_joystick_profile
 from clients.profile import ProfileError
-from simserver import protocol as proto
 from simserver.testing import CONFIGS, Client, ServerProcess, wait_until
+from simserver.wire import protocol as proto
 
 evdev_ff = pytest.importorskip("evdev.ff")
 

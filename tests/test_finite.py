@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simserver import protocol as proto
 from simserver.adapters.terrain_files import load_terrain
 from simserver.adapters.validate import ConfigError
 from simserver.core.terrain import (
@@ -29,9 +28,10 @@ from simserver.core.terrain import (
     SLOPE_MAX,
     heightmap_terrain,
 )
-from simserver.scenario import load_scene
-from simserver.server import REPO_CONFIGS
+from simserver.server.config import REPO_CONFIGS
+from simserver.sim.scene import load_scene
 from simserver.testing import CONFIGS, Client, ServerProcess, state_is_finite
+from simserver.wire import protocol as proto
 from tests.test_server_logic import Rig
 
 pytestmark = pytest.mark.timeout(300)

@@ -37,8 +37,9 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from simserver import protocol as proto
-from simserver.protocol import (
+from simserver.testing import CONFIGS, Client, ServerProcess, state_is_finite
+from simserver.wire import protocol as proto
+from simserver.wire.protocol import (
     CLAMP_TOLERANCE,
     COMMAND_DTYPE,
     COMMAND_SIZE,
@@ -48,7 +49,6 @@ from simserver.protocol import (
     decode_command,
     validate_control,
 )
-from simserver.testing import CONFIGS, Client, ServerProcess, state_is_finite
 
 pytestmark = pytest.mark.timeout(600)
 

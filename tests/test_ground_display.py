@@ -15,18 +15,14 @@ import numpy as np
 import pytest
 
 from clients.driver import ground_text
-from simserver import protocol as proto
 from simserver.core.chassis import wheel_position
 from simserver.core.params import VP_CG_HEIGHT_M
 from simserver.core.terrain import surface_at
-from simserver.scenario import load_scene
-from simserver.server import (
-    DEFAULT_SERVER_CONFIG,
-    REPO_CONFIGS,
-    load_server_config,
-    new_simulation,
-)
-from simserver.vehicle_slot import VehicleSlot
+from simserver.server.app import new_simulation
+from simserver.server.config import DEFAULT_SERVER_CONFIG, REPO_CONFIGS, load_server_config
+from simserver.server.slot import VehicleSlot
+from simserver.sim.scene import load_scene
+from simserver.wire import protocol as proto
 
 HILLS = REPO_CONFIGS / "scenes" / "hills_paper_sedan.yaml"
 HILL_10 = REPO_CONFIGS / "scenes" / "hill_10pct_paper_sedan.yaml"

@@ -33,7 +33,7 @@ inputs:
 @pytest.fixture(scope="module")
 def result(tmp_path_factory):
     """A short run: brake to a stop from 8 m/s."""
-    from simserver.scenario import load_scenario, run_scenario
+    from simserver.sim.scenario import load_scenario, run_scenario
 
     path = tmp_path_factory.mktemp("scenario") / "stop.yaml"
     path.write_text(SCENARIO.format(vehicle=VEHICLE.as_posix()), encoding="utf-8")

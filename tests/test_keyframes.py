@@ -1,4 +1,4 @@
-"""Scenario keyframes (simserver.keyframes): parsed and sampled without the compiled core."""
+"""Scenario keyframes (simserver.sim.keyframes): parsed and sampled without the compiled core."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simserver import keyframes as K
 from simserver.adapters.validate import ConfigError
+from simserver.sim import keyframes as K
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = [p for p in sorted((REPO / "configs" / "scenarios").glob("*.yaml"))
@@ -21,7 +21,7 @@ SCENARIOS = [p for p in sorted((REPO / "configs" / "scenarios").glob("*.yaml"))
 
 @pytest.mark.parametrize("call", [
     "from clients.player import load_track; load_track(PATH, 1000.0, None)",
-    "from simserver.keyframes import load_keyframe_file, input_table; "
+    "from simserver.sim.keyframes import load_keyframe_file, input_table; "
     "input_table(load_keyframe_file(PATH).keyframes, __import__('numpy').arange(9.0))",
 ])
 def test_reading_keyframes_loads_neither_numba_nor_the_core(call):
@@ -30,7 +30,7 @@ def test_reading_keyframes_loads_neither_numba_nor_the_core(call):
     code = (
         f"import json, sys\nPATH = {str(path)!r}\n{call}\n"
         "print(json.dumps(sorted(m for m in sys.modules if m == 'numba' or "
-        "m.startswith(('numba.', 'simserver.core', 'simserver.scenario', "
+        "m.startswith(('numba.', 'simserver.core', 'simserver.sim.scenario', "
         "'simserver.adapters.config')))))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
@@ -49,7 +49,7 @@ def test_keyframe_columns_and_gears_are_the_cores_input_layout():
 
 def _reference_input_table(keyframes, times_s):
     """The headless input table as the core's layout defines it, written out column by
-    column (the form it had before the keyframes left simserver.scenario)."""
+    column (the form it had before the keyframes left simserver.sim.scenario)."""
     from simserver.core import layout as L
 
     table = np.zeros((times_s.size, L.N_INPUT), dtype=np.float64)
@@ -91,7 +91,7 @@ def test_sampling_rule_linear_and_switched_channels():
 
 
 def test_keyframe_file_matches_the_full_scenario_loader():
-    from simserver.scenario import load_scenario
+    from simserver.sim.scenario import load_scenario
 
     path = REPO / "configs" / "scenarios" / "e5_hold_restart_uphill.yaml"
     kf, sc = K.load_keyframe_file(path), load_scenario(path)

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from simserver.server.slot import prepare_load
 from simserver.testing import CONFIGS, Client, ServerProcess
-from simserver.vehicle_slot import prepare_load
 
 VEHICLE = CONFIGS / "vehicles" / "paper_sedan" / "vehicle.yaml"
 

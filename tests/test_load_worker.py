@@ -1,4 +1,4 @@
-"""The load worker's results through shared memory (``simserver.load_worker``, issue 13):
+"""The load worker's results through shared memory (``simserver.server.load_worker``, issue 13):
 a terrain scene's grids reach the server as views of a block the worker wrote, with no
 copy; the block's name is gone once mapped, its memory once the arrays are; blocks left by
 a killed worker or a dead server are removed.
@@ -14,7 +14,7 @@ import sys
 import numpy as np
 import pytest
 
-from simserver.load_worker import (
+from simserver.server.load_worker import (
     SHARE_PREFIX,
     ProcessPreparer,
     SharedResult,
@@ -22,8 +22,8 @@ from simserver.load_worker import (
     remove_stale_blocks,
     share_result,
 )
+from simserver.server.slot import prepare_load, unwrap_prepared
 from simserver.testing import CONFIGS
-from simserver.vehicle_slot import prepare_load, unwrap_prepared
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -72,7 +72,7 @@ def test_a_terrain_scene_comes_back_as_views_of_a_shared_block():
 
 
 def test_a_small_result_is_pickled_as_before(tmp_path, monkeypatch):
-    monkeypatch.setattr("simserver.load_worker.SHARE_DIR", tmp_path)
+    monkeypatch.setattr("simserver.server.load_worker.SHARE_DIR", tmp_path)
     small = {"a": np.arange(10.0), "b": "text"}
     result = share_result(small, os.getpid())
     assert result.path is None and _blocks(tmp_path) == []
@@ -107,7 +107,7 @@ def test_a_block_that_does_not_fit_falls_back_to_the_pipe(tmp_path, monkeypatch)
     def full(fd, offset, length):  # a full tmpfs (a container's 64 MB /dev/shm)
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr("simserver.load_worker.SHARE_DIR", tmp_path)
+    monkeypatch.setattr("simserver.server.load_worker.SHARE_DIR", tmp_path)
     monkeypatch.setattr(os, "posix_fallocate", full)
     grid = np.arange(100_000.0).reshape(100, 1000)
     result = share_result({"grid": grid}, os.getpid())

@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simserver import protocol as proto
 from simserver.adapters.config import ConfigError
 from simserver.core import layout as L
 from simserver.testing import REPO, Client, ServerProcess, free_port, serve_args, wait_until
+from simserver.wire import protocol as proto
 
 CUT_WARNING = "the command log cannot be written"
 
@@ -73,7 +73,7 @@ def _drive_until_cut(server: ServerProcess, probe: Client, log: Path) -> tuple[i
 def _check_cut_log_replays(server: ServerProcess, probe: Client, log: Path) -> None:
     """The server stops cleanly with its statistics; the cut log is whole lines ending with
     a cut end line, replays with ``simserver replay``, and the replay is the live run."""
-    from simserver.server import read_command_log, replay_command_log
+    from simserver.server.command_log import read_command_log, replay_command_log
 
     code = server.stop()
     out = server.text()
@@ -195,7 +195,7 @@ def test_the_tick_hands_lines_over_and_another_thread_writes_them(tmp_path):
     it. Now ``log_inputs`` and ``write`` only queue a line: with no further call from
     the tick, the lines reach the file within ``COMMAND_LOG_FLUSH_S``, written by the
     log's own thread, and the tick thread never writes (checked by its thread id)."""
-    from simserver.server import COMMAND_LOG_FLUSH_S, CommandLog, read_command_log
+    from simserver.server.command_log import COMMAND_LOG_FLUSH_S, CommandLog, read_command_log
 
     scene = REPO / "configs" / "scenes" / "flat_paper_sedan.yaml"
     path = tmp_path / "cmd.jsonl"
@@ -234,7 +234,7 @@ def test_the_tick_hands_lines_over_and_another_thread_writes_them(tmp_path):
 def _open_in_thread(path: Path) -> BaseException | int | None:
     """``open_log_file(path)`` in a thread: its result, an exception, or None if it is
     still blocked after 5 s."""
-    from simserver.logfile import open_log_file
+    from simserver.server.logfile import open_log_file
 
     got: list[BaseException | int] = []
 

@@ -185,8 +185,8 @@ def test_a_scene_starts_by_road_s_and_lane_on_the_surface(tmp_path):
     car is put on the surface (its wheels on the 60 degree bank, all four in contact)."""
     from simserver.adapters.opendrive import lane_start
     from simserver.core import layout as L
-    from simserver.scenario import load_scene
-    from simserver.simulation import Simulation
+    from simserver.sim.scene import load_scene
+    from simserver.sim.simulation import Simulation
 
     scene = load_scene(_scene(tmp_path, '{road: "1", s: 750.0, lane: -2}'))
     x, y, yaw = lane_start(scene.roads, "1", 750.0, -2)
@@ -212,7 +212,7 @@ def test_a_scene_starts_by_road_s_and_lane_on_the_surface(tmp_path):
 ])
 def test_a_bad_start_names_the_key(tmp_path, start, initial, terrain, needle):
     from simserver.adapters.validate import ConfigError
-    from simserver.scenario import load_scene
+    from simserver.sim.scene import load_scene
 
     path = _scene(tmp_path, start, initial, *([terrain] if terrain else []))
     with pytest.raises(ConfigError) as err:
@@ -221,7 +221,7 @@ def test_a_bad_start_names_the_key(tmp_path, start, initial, terrain, needle):
 
 
 def test_a_scenario_with_a_start_resolves_to_the_same_run(tmp_path):
-    from simserver.scenario import load_scenario, resolve_scenario
+    from simserver.sim.scenario import load_scenario, resolve_scenario
 
     path = _scene(tmp_path, '{road: "1", s: 100.0, lane: -1}')
     text = path.read_text(encoding="utf-8")

@@ -17,7 +17,7 @@ import yaml
 from simserver.adapters import config as C
 from simserver.core import param_table as T
 from simserver.core import params as P
-from simserver.tire_models import tire_models
+from simserver.tires.registry import tire_models
 from tests.conftest import CONFIGS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -184,7 +184,7 @@ def test_unknown_model_option_is_an_error():
 
 def test_the_scene_road_ranges_are_the_road_table():
     """scenario.py validates the ``road:`` section; the docs print the ROAD table."""
-    from simserver.scenario import ROAD_RANGES
+    from simserver.sim.scene import ROAD_RANGES
 
     assert ROAD_RANGES == {p.yaml_key: (p.lo, p.hi) for p in P.ROAD if not p.derived}
 

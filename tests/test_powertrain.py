@@ -16,14 +16,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simserver import protocol as proto
 from simserver.adapters.config import ConfigError, load_vehicle, resolve_vehicle
 from simserver.core import layout as L
 from simserver.core import params as P
 from simserver.core.powertrain import RADPS_PER_RPM, creep_hold_brake_pedal
-from simserver.scenario import Scene
-from simserver.simulation import Simulation
+from simserver.sim.scene import Scene
+from simserver.sim.simulation import Simulation
 from simserver.testing import Client, ServerProcess
+from simserver.wire import protocol as proto
 
 REPO = Path(__file__).resolve().parents[1]
 AUTOMATIC = REPO / "configs/vehicles/paper_sedan_automatic/vehicle.yaml"
@@ -362,7 +362,7 @@ def test_a_live_session_reset_at_speed_drives_on():
 def test_a_scenario_starts_relaxed_when_it_asks(tmp_path):
     """``initial.relaxed: 1``: the scenario starts at speed with the slips and powertrain
     relaxed (settled with its first inputs); 0, the default, keeps the paper's start."""
-    from simserver.scenario import load_scenario, run_scenario
+    from simserver.sim.scenario import load_scenario, run_scenario
 
     def first_fx_jump(relaxed) -> float:
         path = tmp_path / f"s{relaxed}.yaml"

@@ -1,4 +1,4 @@
-"""The server's own log lines (``simserver.logfile.ProcessLog``): a log call never waits
+"""The server's own log lines (``simserver.server.logfile.ProcessLog``): a log call never waits
 on the output. A terminal or pipe that nobody reads blocks its writer once full (64 KiB
 for a pipe); the tick thread logs (watchdog trips, refused controls), so with
 ``logging.basicConfig`` it would have waited there (issue 34, the ROS 2 flood finding)."""
@@ -10,7 +10,7 @@ import threading
 
 import pytest
 
-from simserver.logfile import LOG_QUEUE_LINES, ProcessLog
+from simserver.server.logfile import LOG_QUEUE_LINES, ProcessLog
 from simserver.testing import wait_until
 
 pytestmark = pytest.mark.timeout(60)

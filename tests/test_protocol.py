@@ -1,4 +1,4 @@
-"""The wire contract (simserver.protocol): keys, payload layouts, validation, docs."""
+"""The wire contract (simserver.wire.protocol): keys, payload layouts, validation, docs."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simserver import protocol as P
-from simserver.protocol import ProtocolError
+from simserver.wire import protocol as P
+from simserver.wire.protocol import ProtocolError
 
 REPO = Path(__file__).resolve().parents[1]
 DOC = REPO / "docs" / "protocol.md"
@@ -437,8 +437,8 @@ def test_encode_control_and_replies():
 def test_doc_tables_match_protocol():
     text = DOC.read_text(encoding="utf-8")
     assert P.update_doc(text) == text, (
-        "docs/protocol.md drifted from simserver/protocol.py: run "
-        "python -m simserver.protocol --write docs/protocol.md"
+        "docs/protocol.md drifted from simserver/wire/protocol.py: run "
+        "python -m simserver.wire.protocol --write docs/protocol.md"
     )
     for section in P.doc_sections():
         assert f"<!-- BEGIN GENERATED: {section} -->" in text
@@ -451,7 +451,7 @@ def test_doc_check_detects_drift(tmp_path):
     assert P.update_doc(drifted) != drifted
     path = tmp_path / "protocol.md"
     path.write_text(drifted, encoding="utf-8")
-    run = [sys.executable, "-m", "simserver.protocol", str(path)]
+    run = [sys.executable, "-m", "simserver.wire.protocol", str(path)]
     env = {"PYTHONPATH": str(REPO)}
     res = subprocess.run(run, capture_output=True, text=True, cwd=REPO, env=env, timeout=60)
     assert res.returncode == 1 and "out of date" in res.stderr

@@ -2,7 +2,7 @@
 
 The doc said the server keeps at most 32 commands between two ticks while the server's
 receive ring held 256. The size is now one constant of the contract,
-``simserver.protocol.COMMAND_RING_SLOTS``: the server declares its command subscriber
+``simserver.wire.protocol.COMMAND_RING_SLOTS``: the server declares its command subscriber
 with it, the doc's generated constants list prints it, and the rule that mentions the
 ring names the constant instead of a number of its own.
 """
@@ -12,8 +12,8 @@ from __future__ import annotations
 import ast
 import re
 
-from simserver import protocol as P
 from simserver.testing import REPO
+from simserver.wire import protocol as P
 
 DOC = REPO / "docs" / "protocol.md"
 SERVER_SOURCES = sorted((REPO / "simserver").glob("*.py"))

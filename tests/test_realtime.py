@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from simserver.realtime import CpuMeter, Pacer, window_percentiles
+from simserver.server.realtime import CpuMeter, Pacer, window_percentiles
 
 P = 1_000_000  # 1 ms in ns
 T0 = 5_000_000_000
@@ -261,7 +261,7 @@ def test_tick_trace_tells_a_ticks_own_cpu_from_a_wait(tmp_path):
     import json
     import time
 
-    from simserver.realtime import TickTrace
+    from simserver.server.realtime import TickTrace
 
     path = str(tmp_path / "ticks.npy")
     trace = TickTrace(path, capacity=64)

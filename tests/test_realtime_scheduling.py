@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from simserver.realtime import (
+from simserver.server.realtime import (
     RealtimeScheduler,
     RealtimeSettings,
     open_files,

@@ -194,7 +194,7 @@ def test_scene_logger_logs_the_same_frames_as_log_result(tmp_path):
     import rerun as rr
 
     from simserver.adapters import rerun_scene as S
-    from simserver.scenario import load_scenario, run_scenario
+    from simserver.sim.scenario import load_scenario, run_scenario
 
     scenario_file = tmp_path / "turn.yaml"
     scenario_file.write_text(SCENARIO.format(vehicle=VEHICLE.as_posix(), duration=1.0),

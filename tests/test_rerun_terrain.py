@@ -106,7 +106,7 @@ def hill_run(tmp_path_factory):
     6 m hill, logged by ``log_result`` (the ``run-scenario --rrd`` path)."""
     import rerun as rr
 
-    from simserver.scenario import load_scenario, run_scenario
+    from simserver.sim.scenario import load_scenario, run_scenario
 
     root = tmp_path_factory.mktemp("rerun_terrain")
     path = root / "hill.yaml"
@@ -200,8 +200,8 @@ def test_a_wheel_off_the_ground_hangs_and_a_loaded_one_stands_on_it():
     import dataclasses
 
     from simserver.core.terrain import heightmap_terrain
-    from simserver.scenario import load_scene
-    from simserver.simulation import Simulation
+    from simserver.sim.scene import load_scene
+    from simserver.sim.simulation import Simulation
 
     scene = load_scene(REPO / "configs" / "scenes" / "flat_paper_sedan.yaml")
     x = np.arange(0.0, 60.01, 0.5)
@@ -277,7 +277,7 @@ XODR = """\
 
 @pytest.fixture(scope="module")
 def road_scene(tmp_path_factory):
-    from simserver.scenario import load_scene
+    from simserver.sim.scene import load_scene
 
     root = tmp_path_factory.mktemp("xodr")
     (root / "road.xodr").write_text(XODR, encoding="utf-8")
@@ -359,8 +359,8 @@ def test_the_live_path_draws_the_wire_pose_on_the_terrain(hill_run, tmp_path):
     pose, the wheels stand on the ground."""
     import rerun as rr
 
-    from simserver import protocol as proto
-    from simserver.viewer import rows_from_state
+    from simserver.adapters.viewer import rows_from_state
+    from simserver.wire import protocol as proto
 
     scene = hill_run["scenario"].scene
     result = hill_run["result"]
@@ -448,7 +448,7 @@ def test_simserver_view_draws_the_terrain_and_the_car_on_it(tmp_path, request):
     pose = {round(float(s["sim_time_s"]) * 1e9): s for s in watcher.history}
     terrain_t = [t for t, _ in rows if t in pose]
     assert terrain_t, "the watcher saw states the viewer drew"
-    from simserver.scenario import load_scene
+    from simserver.sim.scene import load_scene
 
     scene = load_scene(REPO / "configs" / "scenes" / "hills_paper_sedan.yaml")
     radius = S.CarGeometry.from_params(scene.vehicle.vp, scene.vehicle.tp).wheel_radius_m

@@ -36,7 +36,6 @@ import xxhash
 import zenoh
 
 from benchmarks.ros2_flood import typestore
-from simserver import protocol as proto
 from simserver.adapters.zenoh_io import make_zenoh_config
 from simserver.testing import (
     CONFIGS,
@@ -47,6 +46,7 @@ from simserver.testing import (
     process_argv,
     wait_until,
 )
+from simserver.wire import protocol as proto
 
 REPO = Path(__file__).resolve().parents[1]
 HILL_SCENE = CONFIGS / "scenes" / "hill_10pct_paper_sedan.yaml"
@@ -617,7 +617,7 @@ def test_serve_ros2_flag_and_a_killed_adapter_is_restarted_within_2_s() -> None:
 def test_a_bad_ros2_section_is_refused_at_load_naming_file_and_key(section, message,
                                                                    tmp_path) -> None:
     from simserver.adapters.config import ConfigError
-    from simserver.server import load_server_config
+    from simserver.server.config import load_server_config
 
     config = tmp_path / "server.yaml"
     config.write_text(f"scene: {FLAT_SCENE}\n{section}\n", encoding="utf-8")
@@ -627,7 +627,7 @@ def test_a_bad_ros2_section_is_refused_at_load_naming_file_and_key(section, mess
 
 
 def test_ros2_section_and_flags_decide_together(tmp_path) -> None:
-    from simserver.server import load_server_config
+    from simserver.server.config import load_server_config
 
     config = tmp_path / "server.yaml"
     config.write_text(f"scene: {FLAT_SCENE}\nros2: {{domain_id: 3}}\n", encoding="utf-8")
@@ -747,8 +747,8 @@ def test_integral_does_not_wind_up_while_the_throttle_is_saturated() -> None:
 
 
 def test_reverse_waits_for_the_car_to_stop_before_shifting() -> None:
-    from simserver.protocol import Gear
     from simserver.ros2 import control as C
+    from simserver.wire.protocol import Gear
 
     ctl = C.SpeedController(paper_sedan_limits())
     rolling = ctl.update(C.DriveTarget(speed_mps=-2.0), 3.0, 0.0, 0.01)

@@ -21,7 +21,7 @@ from scenario_checks import (
 from simserver.adapters.config import apply_model_options, model_option_values
 from simserver.core import layout as L
 from simserver.core.params import VP_DAMPING_TRIGGER_V_MPS, VP_GRAVITY_MPS2, VP_MASS_KG
-from simserver.scenario import load_scenario, run_scenario
+from simserver.sim.scenario import load_scenario, run_scenario
 from tests.conftest import CONFIGS
 
 SCEN = CONFIGS / "scenarios"

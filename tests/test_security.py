@@ -38,14 +38,13 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from simserver import protocol as proto
 from simserver.adapters.zenoh_io import (
     DEFAULT_LISTEN,
     ZenohOpenError,
     config_warnings,
     make_zenoh_config,
 )
-from simserver.server import DEFAULT_SERVER_CONFIG, load_server_config
+from simserver.server.config import DEFAULT_SERVER_CONFIG, load_server_config
 from simserver.testing import (
     CONFIGS,
     Client,
@@ -60,6 +59,7 @@ from simserver.testing import (
     wait_until,
 )
 from simserver.testing.pki import ZENOH_EXAMPLES, make_pki, materialize
+from simserver.wire import protocol as proto
 
 pytestmark = pytest.mark.timeout(300)
 

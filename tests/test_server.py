@@ -14,9 +14,9 @@ import sys
 import numpy as np
 import pytest
 
-from simserver import protocol as proto
 from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
 from simserver.testing import CONFIGS, REPO, Client, ServerProcess, wait_until
+from simserver.wire import protocol as proto
 
 WATCHDOG = proto.StateFlag.WATCHDOG
 
@@ -231,7 +231,7 @@ def test_replay_reproduces_the_live_run_bit_for_bit(served):
     assert "identical" in proc.stdout
     # and the published states (after the last reset) match the replayed ones field by field
     from simserver.core import layout as L
-    from simserver.server import read_command_log, replay_command_log
+    from simserver.server.command_log import read_command_log, replay_command_log
 
     rep = replay_command_log(server.command_log)
     entries = read_command_log(server.command_log)
@@ -290,7 +290,7 @@ def test_a_first_release_log_still_replays_bit_for_bit(monkeypatch):
     has that release's 37 slots, the prefix of today's layout, and replaying it today gives
     those 37 values bit for bit (the redesign changed no arithmetic)."""
     from simserver.core import layout as L
-    from simserver.server import replay_command_log
+    from simserver.server.command_log import replay_command_log
 
     monkeypatch.chdir(REPO)
     rep = replay_command_log(REPO / "tests" / "data" / "first_release_live.cmdlog")

@@ -1,7 +1,7 @@
 """The server's logic in-process: the real loop, slot and simulation on a fake clock.
 
-No zenoh, no subprocess, no sleep: :class:`simserver.server_loop.ServerLoop` drives a
-:class:`simserver.vehicle_slot.VehicleSlot` stepping the real compiled simulation, with
+No zenoh, no subprocess, no sleep: :class:`simserver.server.loop.ServerLoop` drives a
+:class:`simserver.server.slot.VehicleSlot` stepping the real compiled simulation, with
 the pacer on a :class:`FakeClock`, commands pushed into a list inbox, controls into a list
 of requests, and states and diagnostics decoded by a recording publisher. The rules
 checked are those of ``docs/protocol.md`` (2.1 commands, 2.2 state, 3 controls). The
@@ -18,20 +18,15 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from simserver import protocol as proto
 from simserver.core import layout as L
-from simserver.scenario import Scene, load_scene
-from simserver.server import (
-    DEFAULT_SERVER_CONFIG,
-    REPO_CONFIGS,
-    CommandLog,
-    new_simulation,
-    read_command_log,
-    replay_command_log,
-)
-from simserver.server import load_server_config as _load_server_config
-from simserver.server_loop import CONTROLS, ServerLoop, SlotPorts
-from simserver.vehicle_slot import VehicleSlot
+from simserver.server.app import new_simulation
+from simserver.server.command_log import CommandLog, read_command_log, replay_command_log
+from simserver.server.config import DEFAULT_SERVER_CONFIG, REPO_CONFIGS
+from simserver.server.config import load_server_config as _load_server_config
+from simserver.server.loop import CONTROLS, ServerLoop, SlotPorts
+from simserver.server.slot import VehicleSlot
+from simserver.sim.scene import Scene, load_scene
+from simserver.wire import protocol as proto
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -391,7 +386,7 @@ def test_a_reset_at_speed_settles_between_ticks_and_equals_a_reset_in_one_go(fla
     SETTLE_STEPS_PER_TICK steps per tick beside the running car, which keeps its ticks and
     its commands; the state swapped in is the one a reset in place gives, to the bit."""
     from simserver.core.start import settle_steps
-    from simserver.server_loop import SETTLE_STEPS_PER_TICK
+    from simserver.server.loop import SETTLE_STEPS_PER_TICK
 
     rig = Rig(flat_scene)
     rig.send(throttle=0.3, gear=proto.Gear.D, steer=0.02)
@@ -550,7 +545,7 @@ def test_load_is_prepared_off_the_tick_and_applied_between_two_ticks(flat_scene)
     assert rig.control("get_config")["ok"] is True  # quick controls are still served
     held.finish()
     # applied in pieces, one a tick after that tick's step: the result mapped, the model
-    # and start state built, committed (simserver.server_loop: each well under a tick)
+    # and start state built, committed (simserver.server.loop: each well under a tick)
     before = int(rig.run()["tick"])
     assert int(rig.run()["tick"]) == before + 1 and req.body is None
     assert rig.slot.sim.road["grade_pct"] == 0  # not yet swapped in
@@ -947,7 +942,7 @@ def test_a_child_at_idle_priority_is_stopped_at_normal_priority():
     import subprocess
     import sys
 
-    from simserver.server import SimServer
+    from simserver.server.app import SimServer
 
     child = subprocess.Popen([sys.executable, "-c", CHILD_AT_IDLE], stdout=subprocess.PIPE,
                              text=True)

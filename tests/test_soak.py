@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from simserver.core import layout as L
-from simserver.scenario import load_scene
-from simserver.soak import check_invariants, manoeuvre_plan, run_soak
+from simserver.sim.scene import load_scene
+from simserver.sim.soak import check_invariants, manoeuvre_plan, run_soak
 from tests.conftest import CONFIGS, REPO
 
 

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from simserver.core import layout as L
-from simserver.scenario import load_scenario, run_scenario
+from simserver.sim.scenario import load_scenario, run_scenario
 from tests.conftest import CONFIGS
 
 

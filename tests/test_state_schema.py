@@ -1,6 +1,6 @@
 """One table of the published state (issue 29 item 5): ``protocol.STATE_FIELDS`` gives each
 field's layout, source and history column, and the server's fill, the viewer's inverse and
-the recorder's columns are derived from it (``simserver.state_schema``,
+the recorder's columns are derived from it (``simserver.wire.state_schema``,
 ``protocol.STATE_COLUMNS``).
 
 The fill is checked against an oracle written out by hand below from the core's layout
@@ -17,14 +17,15 @@ import pyarrow.parquet as pq
 import pytest
 
 from clients import recorder
-from simserver import protocol as proto
-from simserver import state_schema as S
 from simserver.adapters.history import HISTORY_COLUMNS, column_unit
 from simserver.core import layout as L
-from simserver.scenario import load_scene
-from simserver.server import DEFAULT_SERVER_CONFIG, REPO_CONFIGS, load_server_config, new_simulation
+from simserver.server.app import new_simulation
+from simserver.server.config import DEFAULT_SERVER_CONFIG, REPO_CONFIGS, load_server_config
+from simserver.server.slot import COMPUTED_STATE_FIELDS, VehicleSlot
+from simserver.sim.scene import load_scene
 from simserver.testing import Client, OutputProcess, ServerProcess, client_command, client_env
-from simserver.vehicle_slot import COMPUTED_STATE_FIELDS, VehicleSlot
+from simserver.wire import protocol as proto
+from simserver.wire import state_schema as S
 
 
 def test_every_history_column_of_the_table_is_a_history_column_with_its_unit():

@@ -22,7 +22,7 @@ from simserver.core import layout as L
 from simserver.core.param_table import Param
 from simserver.core.params import STEERING
 from simserver.core.tire_layout import TP_RADIUS_M, TP_RELAX_LAT_M
-from simserver.scenario import load_scenario, run_scenario
+from simserver.sim.scenario import load_scenario, run_scenario
 from tests.conftest import CONFIGS
 
 SEDAN = CONFIGS / "vehicles" / "paper_sedan"

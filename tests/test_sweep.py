@@ -23,7 +23,7 @@ import yaml
 
 from simserver.adapters.history import read_history, result_columns
 from simserver.adapters.validate import ConfigError
-from simserver.scenario import load_scenario, resolve_scenario, run_scenario
+from simserver.sim.scenario import load_scenario, resolve_scenario, run_scenario
 from simserver.sweep.engine import HISTORY_DIR, RESULTS_FILE, run_sweep
 from simserver.sweep.metrics import evaluate
 from simserver.sweep.resolved import run_id, with_overrides
@@ -203,8 +203,8 @@ def test_resume_after_ctrl_c_runs_only_the_rest(tmp_path):
 
 
 def test_soak_case_is_run_soak_of_its_scene_and_seed(tmp_path):
-    from simserver.scenario import load_scene
-    from simserver.soak import run_soak
+    from simserver.sim.scene import load_scene
+    from simserver.sim.soak import run_soak
     from simserver.sweep.worker import run_case
 
     scene_file = CONFIGS / "scenes" / "flat_mf_hatchback.yaml"

@@ -12,8 +12,8 @@ import pytest
 
 from simserver.adapters.history import result_columns
 from simserver.core import layout as L
-from simserver.scenario import load_scenario, resolve_scenario, run_scenario
-from simserver.simulation import Simulation
+from simserver.sim.scenario import load_scenario, resolve_scenario, run_scenario
+from simserver.sim.simulation import Simulation
 from simserver.sweep.metrics import METRIC_KINDS, Metric
 from simserver.sweep.spec import Case
 from simserver.sweep.worker import (

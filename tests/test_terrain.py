@@ -25,8 +25,8 @@ from simserver.core.params import (
 )
 from simserver.core.road import road_axes
 from simserver.core.terrain import TERRAIN_HEIGHTMAP, heightmap_terrain, surface_at
-from simserver.scenario import load_scene
-from simserver.simulation import Simulation
+from simserver.sim.scene import load_scene
+from simserver.sim.simulation import Simulation
 
 REPO = Path(__file__).resolve().parents[1]
 FLAT_SCENE = REPO / "configs" / "scenes" / "flat_paper_sedan.yaml"

@@ -36,8 +36,8 @@ from simserver.core.params import (
     VP_SPRING_REAR_NPM,
 )
 from simserver.core.terrain import heightmap_terrain
-from simserver.scenario import load_scene
-from simserver.simulation import Simulation
+from simserver.sim.scene import load_scene
+from simserver.sim.simulation import Simulation
 from simserver.testing import CONFIGS, REPO
 from tests.test_terrain_physics import run, world_cg
 

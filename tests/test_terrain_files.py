@@ -17,9 +17,10 @@ from hypothesis import strategies as st
 from simserver.adapters.terrain_files import TERRAIN_SCHEMAS, terrain_spec
 from simserver.adapters.validate import ConfigError, confined_to
 from simserver.core.terrain import TERRAIN_HEIGHTMAP, TERRAIN_KINDS
-from simserver.scenario import load_scenario, load_scene, resolve_scenario
+from simserver.server.slot import prepare_load
+from simserver.sim.scenario import load_scenario, resolve_scenario
+from simserver.sim.scene import load_scene
 from simserver.sweep.resolved import run_id
-from simserver.vehicle_slot import prepare_load
 
 REPO = Path(__file__).resolve().parents[1]
 VEHICLE = REPO / "configs" / "vehicles" / "paper_sedan" / "vehicle.yaml"

@@ -23,8 +23,8 @@ from simserver.core.road import road_axes
 from simserver.core.terrain import heightmap_terrain, surface_at
 from simserver.core.tire_layout import TP_MODEL_BASE
 from simserver.core.tire_simple import SP_MU
-from simserver.scenario import load_scene
-from simserver.simulation import Simulation
+from simserver.sim.scene import load_scene
+from simserver.sim.simulation import Simulation
 
 REPO = Path(__file__).resolve().parents[1]
 SCENES = REPO / "configs" / "scenes"

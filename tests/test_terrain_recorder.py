@@ -30,8 +30,8 @@ SCENE = "hills_paper_sedan"
 def test_recorder_on_a_height_map_uses_the_reference_plane(tmp_path):
     from simserver.adapters.history import read_history
     from simserver.core import layout as L
-    from simserver.scenario import load_scene
-    from simserver.simulation import Simulation
+    from simserver.sim.scene import load_scene
+    from simserver.sim.simulation import Simulation
 
     server = ServerProcess(vehicle_id="terr", scene=SCENE)
     out = tmp_path / "rec"

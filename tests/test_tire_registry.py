@@ -2,7 +2,7 @@
 unknown tire, slip or damping model is an error, never a fallback.
 
 The toy model below is this file's own "module": a linear tire saturating at the friction
-limit, registered through ``simserver.tire_models.register_tire_model`` and run in a
+limit, registered through ``simserver.tires.registry.register_tire_model`` and run in a
 scenario through the ordinary config loader and ``run_scenario``; nothing else is changed.
 (Registering lasts for the process: the compiled step is specialised once more for the
 longer kernel tuple and cached like any other specialisation.)
@@ -42,9 +42,10 @@ from simserver.core.tire_layout import (
     TP_MODEL_BASE,
 )
 from simserver.core.variants import UnknownVariantError
-from simserver.scenario import load_scenario, load_scene, run_scenario
-from simserver.simulation import Simulation
-from simserver.tire_models import (
+from simserver.sim.scenario import load_scenario, run_scenario
+from simserver.sim.scene import load_scene
+from simserver.sim.simulation import Simulation
+from simserver.tires.registry import (
     LoadedTire,
     UnknownTireModelError,
     register_tire_model,
@@ -162,7 +163,7 @@ def test_a_registered_toy_tire_gives_its_forces_through_the_compiled_dispatch(
     of the friction limit and at two loads."""
     from simserver.core.tire import tire_forces
     from simserver.core.tire_layout import N_TIRE_OUT
-    from simserver.tire_models import tire_kernels
+    from simserver.tires.registry import tire_kernels
 
     (tmp_path / "toy_tire.yaml").write_text(TOY_TIRE)
     tp, name = load_tire(tmp_path / "toy_tire.yaml")
@@ -275,7 +276,7 @@ def test_builtin_kernels_compile_on_first_use_and_match_the_step_dispatch():
     uses, to the bit (the same inlined body, the same compile options)."""
     from simserver.core.tire import tire_forces
     from simserver.core.tire_layout import N_TIRE_COEF, N_TIRE_OUT
-    from simserver.tire_models import tire_kernels
+    from simserver.tires.registry import tire_kernels
 
     mf61 = tire_model("mf61")
     assert not mf61.prepare.signatures and not mf61.evaluate.signatures
@@ -300,7 +301,7 @@ def test_a_model_needing_more_than_the_workspace_is_refused_by_name_and_numbers(
     declaring one slot more than either is refused, naming itself and both numbers, and
     the registry is left as it was."""
     from simserver.core.tire_layout import N_TIRE_COEF
-    from simserver.tire_models import N_MODEL_PARAM_MAX, TireWorkspaceError
+    from simserver.tires.registry import N_MODEL_PARAM_MAX, TireWorkspaceError
 
     before = tire_models()
     cases = ((N_TIRE_COEF + 1, 4, f"declares {N_TIRE_COEF + 1} coefficient slots",
@@ -325,7 +326,7 @@ def test_a_model_at_the_workspace_limit_is_accepted_and_its_loader_held_to_it(tm
     loads when its loader packs the declared count, and a loader packing one more than
     the model declared is a config error naming the file, the model and the numbers."""
     from simserver.core.tire_layout import N_TIRE_COEF
-    from simserver.tire_models import N_MODEL_PARAM_MAX
+    from simserver.tires.registry import N_MODEL_PARAM_MAX
 
     packed = {"n": N_MODEL_PARAM_MAX}
 
@@ -373,7 +374,7 @@ import numpy as np
 
 from simserver.core.tire_layout import (EVALUATE_SIGNATURE, OUT_FX, PREPARE_SIGNATURE,
                                         TP_MODEL_BASE)
-from simserver.tire_models import LoadedTire, register_tire_model
+from simserver.tires.registry import LoadedTire, register_tire_model
 
 
 @nb.njit(PREPARE_SIGNATURE)
@@ -402,8 +403,8 @@ import sys
 from pathlib import Path
 
 from simserver.adapters.config import load_tire
-from simserver.load_worker import ProcessPreparer, opened
-from simserver.tire_models import PLUGINS, tire_model
+from simserver.server.load_worker import ProcessPreparer, opened
+from simserver.tires.registry import PLUGINS, tire_model
 
 if __name__ == "__main__":
     here = tire_model("plugged").id
@@ -447,9 +448,9 @@ def test_an_entry_point_registers_a_model_in_every_process_the_load_worker_too(t
 
 def test_a_broken_plugin_is_an_error_naming_it(tmp_path):
     _install_plugin(tmp_path, "toy_tire_plugin:no_such_function")
-    proc = _python(tmp_path, "-c", "import simserver.tire_models")
+    proc = _python(tmp_path, "-c", "import simserver.tires.registry")
     assert proc.returncode != 0
     last = proc.stderr.strip().splitlines()[-1]
-    assert last.startswith("simserver.tire_models.TirePluginError: tire model plug-in "
+    assert last.startswith("simserver.tires.registry.TirePluginError: tire model plug-in "
                            "'plugged' = 'toy_tire_plugin:no_such_function' (entry point group "
                            "'simserver.tire_models', from toy-tire-plugin) failed"), last

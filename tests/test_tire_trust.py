@@ -29,7 +29,7 @@ from simserver.core.tire_layout import (
     TP_RELAX_LONG_M,
 )
 from simserver.core.tire_mf61 import P_VXLOW
-from simserver.scenario import load_scenario, run_scenario
+from simserver.sim.scenario import load_scenario, run_scenario
 from tests.conftest import CONFIGS, SAMPLE_TIR
 
 SAMPLE_TEXT = SAMPLE_TIR.read_text()

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from simserver import protocol as proto
 from simserver.adapters.rerun_scene import TICK_JITTER, TIMELINE
-from simserver.viewer import log_diagnostics_payload
+from simserver.adapters.viewer import log_diagnostics_payload
+from simserver.wire import protocol as proto
 
 
 def _diagnostics(tick: int, lateness_p99_us: float) -> bytes:

@@ -144,8 +144,8 @@ def test_diagnostics_of_a_past_segment_are_not_logged_into_the_new_one(tmp_path)
     show it, is ahead of the new segment's newest tick: it stays out of its recording."""
     import rerun as rr
 
-    from simserver import protocol as proto
-    from simserver.viewer import log_diagnostics_payload
+    from simserver.adapters.viewer import log_diagnostics_payload
+    from simserver.wire import protocol as proto
 
     values = {f.name: (0.0 if f.count == 1 else [0.0] * f.count)
               for f in proto.DIAGNOSTICS_FIELDS if f.name not in ("version", "reserved")}

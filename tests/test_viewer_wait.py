@@ -109,8 +109,8 @@ def test_a_token_without_an_answer_is_reported_as_a_busy_server():
     """The liveliness token is there (a real zenoh session declares it) but nobody answers
     ``get_config``: what a server too busy to answer looks like to the viewer. The error
     says the server is up but busy, and every wait line said the token was there."""
+    from simserver.adapters.viewer import ServerWaitError, wait_for_config
     from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
-    from simserver.viewer import ServerWaitError, wait_for_config
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     lines: list[str] = []
@@ -137,8 +137,8 @@ def test_the_help_states_the_default_wait():
     to build its parser, so the figure is written there too)."""
     import argparse
 
+    from simserver.adapters.viewer import DEFAULT_WAIT_S
     from simserver.cli import build_parser
-    from simserver.viewer import DEFAULT_WAIT_S
 
     parser = build_parser()
     (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]

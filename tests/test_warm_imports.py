@@ -21,10 +21,10 @@ FLAT = CONFIGS / "scenes" / "flat_paper_sedan.yaml"
 TIRE = CONFIGS / "tires" / "paper_sti.yaml"
 CMDLOG = REPO / "tests" / "data" / "first_release_live.cmdlog"
 HEAVY = ("matplotlib", "pyarrow", "dask", "distributed", "rerun", "zenoh",
-         "simserver.server")
-"""Packages (and the real-time server module) that cost start-up time and that some warm
-path does not need; ``simserver.server`` pulls in the tick loop, the workers and the
-ROS 2 supervisor."""
+         "simserver.server.app", "simserver.server.command_log")
+"""Packages (and the real-time server's modules) that cost start-up time and that some warm
+path does not need; ``simserver.server.app`` pulls in the tick loop, the workers and the
+ROS 2 supervisor; ``simserver.server.command_log`` is the replay's (the sign it ran)."""
 
 REPORT = "import json, sys\nprint(json.dumps(sorted(m for m in {heavy!r} if m in sys.modules)))\n"
 
@@ -48,17 +48,17 @@ def _cli(*argv: str) -> str:
 
 @pytest.mark.parametrize(("argv", "needed", "not_needed"), [
     (("run-scenario", str(E2), "--out", "{tmp}", "--no-plots", "--quiet"),
-     {"pyarrow"}, {"matplotlib", "rerun", "dask", "distributed", "zenoh", "simserver.server"}),
+     {"pyarrow"}, {"matplotlib", "rerun", "dask", "distributed", "zenoh", "simserver.server.app"}),
     (("run-scenario", str(E2), "--out", "{tmp}", "--quiet", "--rrd", "{tmp}/e2.rrd"),
-     {"pyarrow", "matplotlib", "rerun"}, {"dask", "distributed", "zenoh", "simserver.server"}),
+     {"pyarrow", "matplotlib", "rerun"}, {"dask", "distributed", "zenoh", "simserver.server.app"}),
     (("tire-curves", str(TIRE), "--out", "{tmp}/curves.png"),
-     {"matplotlib"}, {"pyarrow", "rerun", "dask", "distributed", "zenoh", "simserver.server"}),
+     {"matplotlib"}, {"pyarrow", "rerun", "dask", "distributed", "zenoh", "simserver.server.app"}),
     (("soak", "--scene", str(FLAT), "--duration", "0.2", "--quiet"),
      set(), {"matplotlib", "pyarrow", "rerun", "dask", "distributed", "zenoh",
-             "simserver.server"}),
+             "simserver.server.app"}),
     (("replay", str(CMDLOG)),
-     {"simserver.server"}, {"matplotlib", "pyarrow", "rerun", "dask", "distributed",
-                            "zenoh"}),
+     {"simserver.server.command_log"}, {"matplotlib", "pyarrow", "rerun", "dask",
+                                        "distributed", "zenoh", "simserver.server.app"}),
 ], ids=["run-scenario-no-plots", "run-scenario-plots-rrd", "tire-curves", "soak", "replay"])
 def test_a_warm_command_imports_only_what_it_uses(tmp_path, argv, needed, not_needed):
     loaded = _loaded(_cli(*(a.format(tmp=tmp_path) for a in argv)))
@@ -70,7 +70,7 @@ def test_a_sweep_worker_without_histories_loads_no_table_plot_or_recording_libra
     """A Dask worker's case, run as ``run_batch`` runs it, with no history directory: its
     row comes from the metrics alone, so no Parquet, no plot, no recording."""
     body = (
-        "from simserver.scenario import resolve_scenario\n"
+        "from simserver.sim.scenario import resolve_scenario\n"
         "from simserver.sweep.metrics import Metric\n"
         "from simserver.sweep.spec import Case\n"
         "from simserver.sweep.worker import OK, run_batch\n"
@@ -81,5 +81,5 @@ def test_a_sweep_worker_without_histories_loads_no_table_plot_or_recording_libra
     )
     loaded = _loaded(body)
     assert "distributed" in loaded  # the worker plugin's module: a worker runs in dask
-    assert not loaded & {"matplotlib", "pyarrow", "rerun", "zenoh", "simserver.server"}, \
+    assert not loaded & {"matplotlib", "pyarrow", "rerun", "zenoh", "simserver.server.app"}, \
         sorted(loaded)

@@ -13,8 +13,8 @@ import pytest
 from simserver.core import layout as L
 from simserver.core import world as W
 from simserver.core.params import VP_GRAVITY_MPS2
-from simserver.scenario import load_scene
-from simserver.simulation import Simulation, World
+from simserver.sim.scene import load_scene
+from simserver.sim.simulation import Simulation, World
 from simserver.testing import REPO
 
 SCENES = REPO / "configs" / "scenes"

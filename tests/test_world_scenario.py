@@ -18,7 +18,7 @@ from simserver.adapters.config import ConfigError, read_yaml
 from simserver.adapters.history import CAR_ID_COLUMN, read_history, write_world_history
 from simserver.core import layout as L
 from simserver.core.params import VP_CG_TO_FRONT_AXLE_M, VP_CG_TO_REAR_AXLE_M
-from simserver.scenario import load_world_scenario, run_scenario, run_world_scenario
+from simserver.sim.scenario import load_world_scenario, run_scenario, run_world_scenario
 from simserver.testing import REPO
 
 HILL = REPO / "configs" / "scenarios" / "two_car_hill_stop_short.yaml"

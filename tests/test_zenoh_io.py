@@ -20,7 +20,6 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from simserver import protocol as P
 from simserver.adapters.zenoh_io import (
     DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US,
     MISMATCHED_LINK_QUEUE_BATCHES,
@@ -31,6 +30,7 @@ from simserver.adapters.zenoh_io import (
     make_zenoh_config,
 )
 from simserver.testing import free_port, wait_until
+from simserver.wire import protocol as P
 
 REPO = Path(__file__).resolve().parents[1]
 TIMEOUT_S = 5.0

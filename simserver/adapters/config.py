@@ -49,7 +49,7 @@ from simserver.core.tire_layout import (
     TP_RELAX_LAT_M,
     TP_RELAX_LONG_M,
 )
-from simserver.tire_models import N_MODEL_PARAM_MAX, TIRE_MODEL_NAMES, tire_model, tire_models
+from simserver.tires.registry import N_MODEL_PARAM_MAX, TIRE_MODEL_NAMES, tire_model, tire_models
 
 # The vehicle file's subsystem keys, one file each, and the ``model:`` section's defaults,
 # from the parameter tables (core/params.py).
@@ -191,7 +191,7 @@ def load_tire(path: Path, data: dict[str, Any] | None = None) -> tuple[np.ndarra
     """Load a tire file into a packed ``float64[N_TIRE_PARAM]`` vector; returns it and the
     model's name.
 
-    The file's ``model`` key names a registered tire model (``simserver.tire_models``),
+    The file's ``model`` key names a registered tire model (``simserver.tires.registry``),
     whose loader reads the rest. A ``.tir`` file is read as a tire file holding only
     ``model: mf61`` and ``tir_file: <itself>``. The two built-in forms::
 
@@ -398,7 +398,7 @@ def config_reference_markdown() -> str:
     lines += ["", "## Tire files", "",
               f"`model`: one of {', '.join(f'`{m.name}`' for m in tire_models())}; the "
               "other keys are the model's (from its parameter table in "
-              "`simserver/tire_models.py`). A default in words is computed by the loader "
+              "`simserver/tires/registry.py`). A default in words is computed by the loader "
               "when the key is absent. Wherever a tire file is named (a vehicle's `tires:`, "
               "`simserver tire-curves`), an MF-Tyre `.tir` file may be named instead: it is "
               "read as `model: mf61` with `tir_file` itself and every default.",

@@ -41,7 +41,7 @@ from simserver.core import layout as L
 if TYPE_CHECKING:  # scenario imports the compiled core; keep this module light to import
     import pyarrow as pa
 
-    from simserver.scenario import ScenarioResult
+    from simserver.sim.scenario import ScenarioResult
 
 HISTORY_FILE = "history.parquet"
 SUMMARY_FILE = "summary.json"
@@ -235,7 +235,7 @@ def column_doc_markdown() -> str:
     """The column documentation as a Markdown table (for the README), with the
     VehicleState field that carries each column live (``protocol.STATE_FIELDS``' history
     columns; ``simserver-recorder`` writes it under the column's name)."""
-    from simserver.protocol import STATE_COLUMNS
+    from simserver.wire.protocol import STATE_COLUMNS
 
     live = {c.name: f"`{c.field}`" if c.wheel is None else f"`{c.field}[{c.wheel}]`"
             for c in STATE_COLUMNS if c.history}

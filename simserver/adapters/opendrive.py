@@ -258,7 +258,7 @@ class GeometryArray(Sequence[Geometry]):
 
     A road of a million geometries is 46 MB of arrays, not a million Python objects: the
     load worker's result is pickled as those arrays (written to its shared block,
-    ``simserver.load_worker``) and unpickled in the server's tick in microseconds, where
+    ``simserver.server.load_worker``) and unpickled in the server's tick in microseconds, where
     a list of objects took seconds."""
 
     def __init__(self, base: np.ndarray, kind: np.ndarray, p_range: np.ndarray,

@@ -44,7 +44,7 @@ from simserver.analysis.holds import Hold, find_holds
 from simserver.core import layout as L
 
 if TYPE_CHECKING:
-    from simserver.scenario import ScenarioResult
+    from simserver.sim.scenario import ScenarioResult
 
 WHEEL_LABELS = ("FL", "FR", "RL", "RR")
 WHEEL_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red")

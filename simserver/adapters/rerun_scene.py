@@ -98,7 +98,7 @@ from simserver.core.terrain import TERRAIN_PLANE, Terrain, fit_plane, plane_terr
 from simserver.core.tire_layout import TP_RADIUS_M
 
 if TYPE_CHECKING:  # scenario imports the compiled core at run time only where needed
-    from simserver.scenario import ScenarioResult
+    from simserver.sim.scenario import ScenarioResult
 
 # ----------------------------------------------------------------------------- names
 TIMELINE = "sim_time"
@@ -947,7 +947,7 @@ def log_result(
     rec : rerun.RecordingStream
         Where to log (``adapters.rerun_sink.open_recording``).
     result : ScenarioResult
-        The run (``simserver.scenario.run_scenario``).
+        The run (``simserver.sim.scenario.run_scenario``).
     fps : float
         3D frames per simulated second.
     plot_fps : float, optional

@@ -173,7 +173,7 @@ def segment_sink(mode: str, target: str | None, segment: int) -> tuple[str, str 
 
     A reset or a load restarts the server's ``sim_time``; the live viewer starts a new
     recording for each such segment so that no recording's timeline runs backwards
-    (``simserver.viewer``). Segment 0 goes to the sink as given; the later ones:
+    (``simserver.adapters.viewer``). Segment 0 goes to the sink as given; the later ones:
 
     - ``save``: a file of their own beside the first (``segment_path``);
     - ``serve``: streamed (``connect``) to the gRPC server the first segment's stream
@@ -264,7 +264,7 @@ def open_recording(
             raise RerunSinkError(f"rerun save: {path}: cannot write: "
                                  f"{exc.strerror or exc}") from exc
         from simserver.adapters.config import ConfigError
-        from simserver.logfile import open_log_file
+        from simserver.server.logfile import open_log_file
 
         try:  # like every file the server writes: no link followed, regular files only,
             # never blocking on a FIFO (docs/security.md section 1)

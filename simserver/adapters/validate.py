@@ -1,7 +1,7 @@
 """Validation of configuration values and safe reading of configuration files.
 
 The helpers every loader uses (vehicle and tire files, scenes, scenarios, the keyframe
-reader of :mod:`simserver.keyframes`, the server config, .tir files). They import only the
+reader of :mod:`simserver.sim.keyframes`, the server config, .tir files). They import only the
 standard library and PyYAML, so a client can validate a scenario's keyframes without
 loading numba or :mod:`simserver.core`. Every error is a :class:`ConfigError` whose
 message names the file and the key.
@@ -55,14 +55,14 @@ _progress_sink: Any = None
 
 def set_progress_sink(sink: Any) -> None:
     """Where :func:`report_progress` goes: a callable taking the message (the server's load
-    worker: ``simserver.load_worker``), or None (nowhere: the default)."""
+    worker: ``simserver.server.load_worker``), or None (nowhere: the default)."""
     global _progress_sink
     _progress_sink = sink
 
 
 def report_progress(message: str) -> None:
     """A long read saying how far it got (``FILE: 3 of 80 MiB read``); the server's load
-    worker counts these as signs of life and logs the last one (``simserver.load_worker``).
+    worker counts these as signs of life and logs the last one (``simserver.server.load_worker``).
     Cheap when nobody listens."""
     if _progress_sink is not None:
         _progress_sink(message)

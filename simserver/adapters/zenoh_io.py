@@ -3,7 +3,7 @@
 - :func:`make_zenoh_config`: the safe default (a peer listening on ``tcp/127.0.0.1:7447``
   only, multicast scouting off, shared memory off) or any zenoh JSON5/YAML config file.
 - :class:`ZenohEndpoint`: one zenoh session bound to one vehicle's keys
-  (:func:`simserver.protocol.vehicle_keys`), with the few entities the server and the
+  (:func:`simserver.wire.protocol.vehicle_keys`), with the few entities the server and the
   clients declare. Every receiver uses a channel handler polled with ``try_recv()``:
   nothing here blocks a real-time loop, and no Python callback keeps a process alive
   (a process with a callback subscriber does not exit until its session is closed).
@@ -15,7 +15,7 @@ congestion control DROP lost up to 0.5 % of a 1 kHz stream on loopback while BLO
 none.
 
 For the server this module is the adapter of the loop's ports
-(:class:`simserver.server_loop.SlotPorts`): :class:`Inbox` is its command inbox,
+(:class:`simserver.server.loop.SlotPorts`): :class:`Inbox` is its command inbox,
 :class:`ControlInbox` its control inbox and :class:`VehiclePublisher` its publisher.
 """
 
@@ -37,7 +37,8 @@ from typing import Any
 
 import zenoh
 
-from simserver.protocol import (
+from simserver.server.realtime import open_files
+from simserver.wire.protocol import (
     COMMAND_RING_SLOTS,
     DEFAULT_PREFIX,
     DEFAULT_VEHICLE,
@@ -55,7 +56,6 @@ from simserver.protocol import (
     validate_control,
     vehicle_keys,
 )
-from simserver.realtime import open_files
 
 log = logging.getLogger("simserver.server")
 
@@ -440,7 +440,7 @@ class VehiclePublisher:
     :data:`STATE_DROP_WAIT_US`), so these are the ticks a congested link cost something.
 
     With ``decimated`` (the ``state/100hz`` publisher) every ``decimate_every``-th state is
-    put there too (:data:`simserver.protocol.STATE_DECIMATED_HZ`).
+    put there too (:data:`simserver.wire.protocol.STATE_DECIMATED_HZ`).
 
     With ``sender_thread`` the puts run in a thread of their own (``state-tx``), not in
     the caller's: :meth:`publish_state` only queues the payload (a few microseconds). On
@@ -775,7 +775,7 @@ class ZenohEndpoint:
 
     Raises
     ------
-    simserver.protocol.ProtocolError
+    simserver.wire.protocol.ProtocolError
         For an invalid prefix or vehicle id.
     ZenohOpenError
         When the session cannot be opened (a listen port in use, a bad endpoint).
@@ -967,7 +967,7 @@ class ZenohEndpoint:
         name : str
             Control name (``"reset"``, ``"step"``, ...).
         args : dict, optional
-            Arguments, validated locally first (:func:`simserver.protocol.encode_control`).
+            Arguments, validated locally first (:func:`simserver.wire.protocol.encode_control`).
         payload : bytes, optional
             Raw request body sent as is, instead of ``args`` (for tests of bad input).
         timeout_s : float, optional

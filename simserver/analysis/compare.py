@@ -1,6 +1,6 @@
 """Two histories side by side: aligned time, the differences of signals and of holds.
 
-``simserver compare A B`` (``simserver.compare``) reads the files; this module only
+``simserver compare A B`` (``simserver.analysis.cli``) reads the files; this module only
 computes, from two mappings of history columns (``history.parquet`` of ``run-scenario``
 or of ``clients/recorder.py``: the same column names, docs/history_columns.md).
 

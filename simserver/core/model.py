@@ -10,7 +10,7 @@
 
 Both are ``NamedTuple``\\ s of arrays, valid (and cacheable) arguments of compiled
 functions, so every stage of the step takes ``(model, data)`` instead of a list of
-positional arrays. ``simserver.simulation.Simulation`` builds them from a scene.
+positional arrays. ``simserver.sim.simulation.Simulation`` builds them from a scene.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 The lagged slip states of SAE 950311 (see :mod:`simserver.core.slip`) "can be paired
 with any semi-empirical tire model". Every model here is a compiled kernel split in
 two with the signatures of ``tire_layout.PREPARE_SIGNATURE`` and ``EVALUATE_SIGNATURE``
-(below), listed in the tire-model registry (``simserver.tire_models``: id, name,
+(below), listed in the tire-model registry (``simserver.tires.registry``: id, name,
 parameter loader, kernels, stiffness report). The dispatchers here take the registered
 kernels (``TireKernels``, indexed by model id) and the tire's packed parameters:
 
@@ -88,7 +88,7 @@ N_TIRE_PARAM = TP_MODEL_BASE + max(N_SIMPLE_PARAM, N_MF61_PARAM)
 
 BUILTIN_KERNELS = TireKernels((), ())
 """The ``kernels`` argument when only the built-in models are used (they are called
-directly); ``simserver.tire_models.tire_kernels()`` adds every other registered model's."""
+directly); ``simserver.tires.registry.tire_kernels()`` adds every other registered model's."""
 
 
 # Mirroring (``tp[TP_MIRRORED] = 1``): a tire used on the side opposite to the one its file
@@ -120,7 +120,7 @@ def _no_load(out: np.ndarray) -> None:
 # and the indirect call is not even compiled (the two functions below are resolved on the
 # tuples' type): the default step carries no function-pointer machinery (measured: about
 # +0.3 us a step when it did). The registry checks the ids before anything is compiled
-# (``simserver.simulation.check_model``); an id that got past it anyway yields NaN, which
+# (``simserver.sim.simulation.check_model``); an id that got past it anyway yields NaN, which
 # every check downstream reports, never another model's forces. (Not an exception: its
 # exit path would keep numba from pruning the reference counts of the dispatchers' views.)
 N_BUILTIN_TIRE_MODELS = 2
@@ -183,7 +183,7 @@ def tire_prepare(
     Parameters
     ----------
     kernels : TireKernels
-        The registered models' kernels (``simserver.tire_models.tire_kernels()``).
+        The registered models' kernels (``simserver.tires.registry.tire_kernels()``).
     tp : float64[N_TIRE_PARAM]
         Packed tire parameters.
     gamma_rad, fz_n, mu_scale : float

@@ -20,7 +20,7 @@ from numba.extending import intrinsic, overload
 
 # --- model ids (tp[TP_MODEL]) -----------------------------------------------------
 # The ids of the two built-in models, which the dispatchers of core.tire call directly
-# (inlined); every other id is a registered model (simserver.tire_models), called through
+# (inlined); every other id is a registered model (simserver.tires.registry), called through
 # its kernels. The registry is the one list of models, names and ids.
 TIRE_MODEL_SIMPLE = 0  # brush-type (Fiala) combined-slip model, explicit stiffnesses
 TIRE_MODEL_MF61 = 1  # Magic Formula 6.1 from a .tir property file

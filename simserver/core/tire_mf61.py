@@ -1435,7 +1435,7 @@ def _pack_derived(vec: np.ndarray) -> None:
     vec[D_INV_FNOMIN] = 1.0 / vec[P_FNOMIN]
 
 
-# ---- the kernels registered for this model (simserver.tire_models): the packed tire vector
+# ---- the kernels registered for this model (simserver.tires.registry): the packed tire vector
 # in full (core.tire_layout.PREPARE_SIGNATURE, EVALUATE_SIGNATURE), the body inlined.
 # Compiled on first use, not at import: the step inlines the body itself (core.tire)
 

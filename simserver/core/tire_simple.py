@@ -270,7 +270,7 @@ def simple_evaluate(
     _simple_evaluate(p, coef, kappa, tan_alpha, fz_n, vx_mps, out)
 
 
-# ---- the kernels registered for this model (simserver.tire_models): the packed tire vector
+# ---- the kernels registered for this model (simserver.tires.registry): the packed tire vector
 # in full (core.tire_layout.PREPARE_SIGNATURE, EVALUATE_SIGNATURE), the body inlined.
 # Compiled on first use, not at import: the step inlines the body itself (core.tire)
 

@@ -22,7 +22,7 @@ touches nothing steps exactly as alone.
 
 The row views of C-contiguous stacks are C-contiguous arrays of the single car's ranks,
 so the car step compiled for one car is the one the world calls: adding or removing a car
-(``simserver.simulation.World``) reallocates the stacks but recompiles nothing.
+(``simserver.sim.simulation.World``) reallocates the stacks but recompiles nothing.
 """
 
 from __future__ import annotations

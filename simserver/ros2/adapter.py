@@ -1,6 +1,6 @@
 """The ROS 2 adapter process: a ROS 2 node (as rmw_zenoh makes one) fed by the state topic.
 
-Like the viewer (``simserver.viewer``), it is a separate process that talks to the server
+Like the viewer (``simserver.adapters.viewer``), it is a separate process that talks to the server
 only through the protocol: it subscribes to the state (a bounded ring, newest wins; the
 server's ``state/100hz`` key at rates up to 100 Hz, else the 1 kHz ``state``),
 sends DriverCommands, and reads the vehicle with the ``get_config`` control. The 1 kHz
@@ -49,11 +49,11 @@ from typing import Any, TypeVar
 
 import zenoh
 
-from simserver import protocol as proto
 from simserver.ros2 import wire
 from simserver.ros2.control import DriveTarget, SpeedController, VehicleLimits, twist_steer_angle
 from simserver.ros2.convert import StateConverter
-from simserver.vehicle_slot import RateLimitedLog
+from simserver.server.logfile import RateLimitedLog
+from simserver.wire import protocol as proto
 
 log = logging.getLogger("simserver.ros2")
 
@@ -265,7 +265,7 @@ class RosNode:
 def _vehicle_from_config(config: dict[str, Any]) -> tuple[VehicleLimits, float, str]:
     """Controller limits, gravity and a change marker from a ``get_config`` reply."""
     from simserver.adapters.config import load_vehicle
-    from simserver.viewer import local_config_file
+    from simserver.adapters.viewer import local_config_file
 
     vehicle_path = local_config_file(config["vehicle"]["path"])  # shown relative to configs/
     model = config["scene"].get("model") or {}

@@ -65,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the adapter; errors in the flags exit 2, no server exits 3."""
-    from simserver.cli import CliError
+    from simserver.errors import CliError
     from simserver.ros2.adapter import Ros2Options, run_ros2
     from simserver.ros2.wire import Ros2WireError
 

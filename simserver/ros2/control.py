@@ -49,7 +49,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from simserver.protocol import Gear
+from simserver.wire.protocol import Gear
 
 KP_PER_S = 1.5
 """Proportional gain: m/s^2 of demand per m/s of speed error."""

@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from simserver import protocol as proto
 from simserver.ros2.wire import typestore
+from simserver.wire import protocol as proto
 
 WHEEL_JOINTS = ("front_left_wheel_joint", "front_right_wheel_joint",
                 "rear_left_wheel_joint", "rear_right_wheel_joint")

@@ -1,7 +1,7 @@
 """A run's fully resolved configuration: one nested mapping, changed by dotted paths,
 identified by a hash.
 
-``resolve_scenario`` (simserver/scenario.py) turns a scenario file into one mapping with
+``resolve_scenario`` (simserver/sim/scenario.py) turns a scenario file into one mapping with
 everything it refers to inline (the vehicle, its subsystem and tire files, every
 default); ``load_scenario(label, resolved)`` loads it back into the same ``Scenario``.
 A sweep changes it by dotted paths (``vehicle.chassis.mass_kg``,

@@ -13,7 +13,7 @@
     metrics: [stopping_distance, time_to_rest, {column: u_mps, stat: min}]
     histories: false              # optional: write each run's history.parquet
 
-A soak sweep (``kind: soak``) runs ``simserver.soak.run_soak`` on each base (a scene or
+A soak sweep (``kind: soak``) runs ``simserver.sim.soak.run_soak`` on each base (a scene or
 a scenario file, of which only the scene counts) for every seed 0 .. seeds-1::
 
     kind: soak
@@ -49,7 +49,7 @@ from simserver.adapters.validate import (
     read_yaml,
     short_repr,
 )
-from simserver.scenario import resolve_scenario
+from simserver.sim.scenario import resolve_scenario
 from simserver.sweep.metrics import Metric, parse_metrics
 from simserver.sweep.resolved import file_digest, run_id, with_overrides
 

@@ -133,7 +133,7 @@ def run_for_metrics(scenario: Any, names: Iterable[str]) -> MetricRun:
     gathered into arrays reused from run to run (``scenario.step_chunks``, the stepper of
     ``run_scenario``). The columns are valid until the next run in this thread."""
     from simserver.core import layout as L
-    from simserver.scenario import start_run, step_chunks
+    from simserver.sim.scenario import start_run, step_chunks
 
     sim, inputs = start_run(scenario)
     n, every = scenario.n_steps, scenario.record_every
@@ -172,8 +172,8 @@ def run_for_metrics(scenario: Any, names: Iterable[str]) -> MetricRun:
 def warm_up(resolved: dict[str, Any], label: str) -> float:
     """Load (or compile) the compiled kernels on a case's scene (``Simulation.warm_up``).
     Returns the seconds; a scene that does not load warms nothing (its runs say why)."""
-    from simserver.scenario import parse_scene
-    from simserver.simulation import Simulation
+    from simserver.sim.scene import parse_scene
+    from simserver.sim.simulation import Simulation
 
     t0 = time.perf_counter()
     try:
@@ -203,7 +203,7 @@ class WarmUp(WorkerPlugin):
 def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -> dict[str, Any]:
     """One case -> its row: run id, case, parameters, metrics, status, error, wall time."""
     from simserver.adapters.history import write_history
-    from simserver.scenario import load_scenario, run_scenario
+    from simserver.sim.scenario import load_scenario, run_scenario
 
     t0 = time.perf_counter()
     row: dict[str, Any] = {"run_id": case.run_id, "case": case.index,
@@ -254,8 +254,8 @@ def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -
 
 def run_soak_case(case: Case, row: dict[str, Any]) -> None:
     """A soak case: ``run_soak`` on the case's scene, as ``simserver soak`` runs it."""
-    from simserver.scenario import parse_scene
-    from simserver.soak import run_soak
+    from simserver.sim.scene import parse_scene
+    from simserver.sim.soak import run_soak
 
     soak = case.resolved["soak"]
     scene = parse_scene(Path(case.base), case.resolved)

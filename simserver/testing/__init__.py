@@ -46,8 +46,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from simserver import protocol as proto
-from simserver.realtime import open_files
+from simserver.server.realtime import open_files
+from simserver.wire import protocol as proto
 
 REPO = Path(__file__).resolve().parents[2]
 """The source checkout (the servers and client programs are started from here; scene

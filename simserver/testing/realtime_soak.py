@@ -34,9 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from simserver import protocol as proto
 from simserver.testing import Client, RoleProcess, ServerProcess
 from simserver.testing.roles import percentile
+from simserver.wire import protocol as proto
 
 
 @dataclass

@@ -33,8 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from simserver import protocol as proto
 from simserver.testing import ROLES_MODULE, client_config
+from simserver.wire import protocol as proto
 
 
 def percentile(values: Sequence[float], q: float) -> float:

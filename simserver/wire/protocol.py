@@ -3,7 +3,7 @@
 This module is the single definition of everything that crosses the network between the
 server and its clients. It is pure Python and numpy (no zenoh), so that any client, test
 or tool can import it without the transport. ``docs/protocol.md`` is generated from the
-tables below (``python -m simserver.protocol --write docs/protocol.md``) and a test fails
+tables below (``python -m simserver.wire.protocol --write docs/protocol.md``) and a test fails
 when the two drift apart.
 
 Overview
@@ -17,7 +17,7 @@ Overview
 - :data:`STATE_FIELDS` is also the one table of the published state: each row names its
   source in the server (``FieldSpec.source``) and its headless history column
   (``FieldSpec.history``). The recorder's columns (:data:`STATE_COLUMNS`), the server's
-  fill and the viewer's inverse (``simserver.state_schema``) and the docs derive from it.
+  fill and the viewer's inverse (``simserver.wire.state_schema``) and the docs derive from it.
 - The frames of the wire (:func:`road_axes`, :func:`world_to_road`,
   :func:`ground_slopes_pct`, :func:`reference_plane_slopes`) for clients.
 - Decoding a driver command (:func:`decode_command`) is the only gate between the network
@@ -618,7 +618,7 @@ assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 160
 # STATE_FIELDS is the one table of the published state: each row gives a field's layout,
 # where the server takes it from (``source``) and the headless history column that holds
 # the same quantity (``history``). Everything else is derived from it: the server's fill
-# (simserver.state_schema, used by the vehicle slot), the viewer's inverse (the same
+# (simserver.wire.state_schema, used by the vehicle slot), the viewer's inverse (the same
 # module), the recorder's columns and mapping (:data:`STATE_COLUMNS`) and the state table
 # of docs/protocol.md. Adding a field is one row here plus the version bump.
 
@@ -1896,7 +1896,7 @@ def update_doc(text: str) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m simserver.protocol [--check|--write] PATH``: check or regenerate a doc."""
+    """``python -m simserver.wire.protocol [--check|--write] PATH``: check or regenerate a doc."""
     import argparse
 
     parser = argparse.ArgumentParser(description=main.__doc__)
@@ -1912,7 +1912,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 fh.write(new)
         return 0
     if new != text:
-        print(f"{args.path} is out of date: run python -m simserver.protocol --write "
+        print(f"{args.path} is out of date: run python -m simserver.wire.protocol --write "
               f"{args.path}", file=sys.stderr)
         return 1
     return 0

@@ -469,7 +469,7 @@ class TickTrace:
         from pathlib import Path
 
         from simserver.adapters.config import ConfigError
-        from simserver.logfile import write_log_bytes
+        from simserver.server.logfile import write_log_bytes
 
         buf = io.BytesIO()
         np.save(buf, rows)

@@ -31,7 +31,7 @@ loader that packs more parameters than its model declared is refused when the fi
 Where a registration must live. Every process that reads a vehicle or runs the step needs
 the same registry, with the same ids (``tp[TP_MODEL]`` crosses processes: the server's
 load worker packs the tire vectors its loop then steps). The load worker is *spawned*
-(``simserver.load_worker``: a fresh interpreter that imports ``simserver`` anew), and so
+(``simserver.server.load_worker``: a fresh interpreter that imports ``simserver`` anew), and so
 are a sweep's workers when their nanny restarts them or with ``--numba-cache``, and a
 remote Dask worker shares nothing with the process that submitted the sweep. A
 ``register_tire_model`` call made in a script's ``__main__``, a test or a notebook is
@@ -340,7 +340,7 @@ def read_tire_params(path: Path, data: dict[str, Any], table: ParamTable,
     Optional keys absent from the file are absent from the result when their default is a
     text (a value the loader computes), else they take their default.
     """
-    from simserver.adapters.config import check_keys, number
+    from simserver.adapters.validate import check_keys, number
 
     check_keys(path, data, ("model", *path_keys, *table.keys),
                required=("model", *path_keys, *table.required_keys))
@@ -422,9 +422,8 @@ def _load_mf61(path: Path, data: dict[str, Any]) -> LoadedTire:
     """``model: mf61`` (core.tire_mf61): a ``tir_file`` (relative to the tire file) and
     optional radius and relaxation lengths (defaults from the .tir file, see
     ``mf61_relaxation_lengths``); the tire's side from the .tir's ``TYRESIDE``."""
-    from simserver.adapters.config import ConfigError, number
     from simserver.adapters.tir_file import TirError, load_tir, mf61_coefficients
-    from simserver.adapters.validate import referenced_file
+    from simserver.adapters.validate import ConfigError, number, referenced_file
 
     vals = read_tire_params(path, data, MF61_TIRE_PARAMS, path_keys=("tir_file",))
     tir_path = referenced_file(path, "tir_file", data["tir_file"])

@@ -1,7 +1,7 @@
 """One car served by the live server: the simulation it steps and what belongs to it alone.
 
 A :class:`VehicleSlot` holds, for one vehicle id, everything the fixed-rate loop
-(:mod:`simserver.server_loop`) must not share between cars: its keys, the command
+(:mod:`simserver.server.loop`) must not share between cars: its keys, the command
 arbitration (:class:`CommandArbiter`), the :class:`Watchdog`, the run state (tick,
 pause, pending steps), the counters of its diagnostics, its state record and its command
 log. It knows no transport and no clock: the loop hands it the payloads it drained and
@@ -20,25 +20,26 @@ from __future__ import annotations
 import logging
 import math
 import os
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from simserver import protocol as proto
 from simserver.adapters.opendrive import LaneStartError, lane_start
 from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
 from simserver.core import layout as L
 from simserver.core.terrain import TERRAIN_KINDS, TERRAIN_PLANE
-from simserver.load_worker import release_later
-from simserver.scenario import Scene, load_scene
-from simserver.state_schema import SERVER_FIELDS, fill_record
+from simserver.server.load_worker import release_later
+from simserver.server.logfile import RateLimitedLog
+from simserver.sim.scene import Scene, load_scene
+from simserver.wire import protocol as proto
+from simserver.wire.state_schema import SERVER_FIELDS, fill_record
 
 if TYPE_CHECKING:
-    from simserver.server import CommandLog, ServerConfig
-    from simserver.simulation import PreparedStart
+    from simserver.server.command_log import CommandLog
+    from simserver.server.config import ServerConfig
+    from simserver.sim.simulation import PreparedStart
 
 log = logging.getLogger("simserver.server")
 
@@ -60,7 +61,8 @@ if set(COMPUTED_STATE_FIELDS) != set(SERVER_FIELDS):
 
 
 class SimulationAPI(Protocol):
-    """What a slot uses of the simulation (``simserver.simulation.Simulation``): nothing else."""
+    """What a slot uses of the simulation (``simserver.sim.simulation.Simulation``): nothing
+    else."""
 
     x: np.ndarray
     inputs: np.ndarray
@@ -97,28 +99,6 @@ def ground_slopes_pct(sim: SimulationAPI, yaw_rad: float) -> tuple[float, float]
     return proto.ground_slopes_pct(grade, cross, yaw_rad)
 
 
-class RateLimitedLog:
-    """Log a recurring warning at most once per ``interval_s``, with the count in between
-    (to ``logger``, default this module's)."""
-
-    def __init__(self, interval_s: float = 1.0, logger: logging.Logger | None = None) -> None:
-        self.interval_s = interval_s
-        self.log = logger or log
-        self._last = -math.inf
-        self._suppressed = 0
-
-    def warn(self, message: str, now_s: float | None = None) -> None:
-        """Log ``message`` unless one was logged less than ``interval_s`` before ``now_s``."""
-        now = time.monotonic() if now_s is None else now_s
-        if now - self._last >= self.interval_s:
-            extra = f" ({self._suppressed} more since the last report)" if self._suppressed else ""
-            self.log.warning("%s%s", message, extra)
-            self._last = now
-            self._suppressed = 0
-        else:
-            self._suppressed += 1
-
-
 class CommandArbiter:
     """Decode, validate and arbitrate the driver commands of one car (docs/protocol.md 2.1).
 
@@ -136,7 +116,7 @@ class CommandArbiter:
         self.last_cmd_ns: int | None = None  # loop clock when the last valid one arrived
         self.last_sender_ns = 0
         self.commanded = initial_inputs.copy()
-        self.reject_log = RateLimitedLog()
+        self.reject_log = RateLimitedLog(logger=log)
 
     def take(self, payloads: list[bytes], now_ns: int, buffer_full: bool = False) -> None:
         """Apply the newest valid command among ``payloads`` (oldest first), if any.
@@ -437,7 +417,7 @@ class VehicleSlot:
         """``reset`` in one go (tools, tests): :meth:`begin_reset` settled at once, applied.
 
         The server's loop runs the settling of a start at speed in pieces between ticks
-        instead (``simserver.server_loop``) and applies it when it is done."""
+        instead (``simserver.server.loop``) and applies it when it is done."""
         staged = self.begin_reset(args)
         staged.prepared.finish()
         return staged.commit()
@@ -522,7 +502,7 @@ class VehicleSlot:
     def ctl_load(self, args: dict[str, Any]) -> dict[str, Any]:
         """``load`` in one go (tests and tools): :meth:`load_job` run here, then applied.
 
-        The server runs the job off the tick (``simserver.server_loop``: a worker process)
+        The server runs the job off the tick (``simserver.server.loop``: a worker process)
         and calls :meth:`apply_load` between two ticks.
         """
         fn, job_args = self.load_job(args)
@@ -548,7 +528,7 @@ class VehicleSlot:
         """A prepared scene made ready beside the running car: its model and initial state
         (tens of microseconds: the kernels are those already compiled, the model's array
         signature does not change with the vehicle; a terrain's grids are views of the
-        worker's shared block, ``simserver.load_worker``), a relaxed start's settling left
+        worker's shared block, ``simserver.server.load_worker``), a relaxed start's settling left
         to :meth:`StagedStart.advance`; :meth:`StagedStart.commit` swaps it in (tick 0,
         logged) and gives the reply."""
         scene, scene_path, vehicle_path = prepared

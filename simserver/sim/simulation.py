@@ -52,10 +52,10 @@ from simserver.core.tire_layout import TP_RADIUS_M
 from simserver.core.world import WorldData, WorldModel, car_views, stack_data
 from simserver.core.world import simulate as world_simulate
 from simserver.core.world import step as world_step
-from simserver.tire_models import check_tire_vectors, tire_kernels
+from simserver.tires.registry import check_tire_vectors, tire_kernels
 
 if TYPE_CHECKING:
-    from simserver.scenario import Scene
+    from simserver.sim.scene import Scene
 
 
 def initial_state(scene: Scene) -> np.ndarray:
@@ -430,7 +430,7 @@ class Simulation:
         """Swap a finished :class:`PreparedStart` in: its state (and, for a load, its scene,
         model and road); the inputs are kept. Returns the scene and model a load replaced
         (None otherwise): dropping them frees a terrain's grids, which the live server does
-        outside the tick (``simserver.load_worker.release_later``).
+        outside the tick (``simserver.server.load_worker.release_later``).
 
         A load writes the car's rows of the world's parameters in place (their shapes are
         fixed) and swaps the world's terrain; the first load makes the world of one car."""

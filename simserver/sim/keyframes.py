@@ -1,6 +1,6 @@
 """Driver-input keyframes of a scenario file: parsing and sampling, free of the compiled core.
 
-A scenario's ``inputs`` list (format in :mod:`simserver.scenario`) is read by two programs:
+A scenario's ``inputs`` list (format in :mod:`simserver.sim.scenario`) is read by two programs:
 the headless runner, which samples it into the core's input table, and the player client
 (``clients/player.py``), which samples it in real time and sends the samples as commands.
 Both use the functions below, so both apply the same rule, channel by channel, over the
@@ -11,7 +11,7 @@ them and hold their first value before the first and their last value after the 
 names keeps its default throughout.
 
 This module imports numpy, the validation helpers of :mod:`simserver.adapters.validate` and
-the gear codes of the wire protocol (:class:`simserver.protocol.Gear`), never numba or
+the gear codes of the wire protocol (:class:`simserver.wire.protocol.Gear`), never numba or
 :mod:`simserver.core`: a client reading keyframes depends on the file format and the
 protocol only (a test checks ``sys.modules``).
 """
@@ -27,11 +27,11 @@ from typing import Any
 import numpy as np
 
 from simserver.adapters.validate import ConfigError, check_keys, number, read_yaml, short_repr
-from simserver.protocol import Gear
+from simserver.wire.protocol import Gear
 
 MAX_DURATION_S = 3600.0
 """Longest scenario (``duration_s``): the headless runner keeps every step's sampled inputs
-and every recorded row in memory (:data:`simserver.scenario.MAX_SCENARIO_STEPS`)."""
+and every recorded row in memory (:data:`simserver.sim.scenario.MAX_SCENARIO_STEPS`)."""
 CONTINUOUS_CHANNELS = {"steer": (-1.0, 1.0), "throttle": (0.0, 1.0), "brake": (0.0, 1.0)}
 """Channels interpolated linearly between keyframes, with their ranges."""
 DISCRETE_CHANNELS = ("parking_brake", "gear")
@@ -41,7 +41,7 @@ GEAR_CODES = {g.name: int(g) for g in Gear}
 test checks against ``core.layout.GEAR_*``)."""
 INPUT_CHANNELS = ("steer", "throttle", "brake", "parking_brake", "gear")
 """The columns of :func:`input_table`, in the order of ``core.layout.INPUT_NAMES`` (checked
-where the core meets this module, in :mod:`simserver.scenario`)."""
+where the core meets this module, in :mod:`simserver.sim.scenario`)."""
 CHANNEL_DEFAULTS: dict[str, float] = {"steer": 0.0, "throttle": 0.0, "brake": 0.0,
                                       "parking_brake": 0.0, "gear": float(Gear.D)}
 """A channel's value where no keyframe has set it yet (switched channels) or at all."""

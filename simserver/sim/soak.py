@@ -30,8 +30,8 @@ import numpy as np
 
 from simserver.core import layout as L
 from simserver.core.chassis import static_wheel_load
-from simserver.scenario import Scene
-from simserver.simulation import Simulation
+from simserver.sim.scene import Scene
+from simserver.sim.simulation import Simulation
 
 SPEED_LIMIT_MPS = 80.0
 SPIN_LIMIT_RADPS = 600.0

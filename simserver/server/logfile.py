@@ -25,16 +25,18 @@ import ctypes.util
 import errno
 import logging
 import logging.handlers
+import math
 import os
 import queue
 import resource
 import stat
 import sys
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
-from simserver.adapters.config import ConfigError
+from simserver.adapters.validate import ConfigError
 
 log = logging.getLogger("simserver")
 
@@ -435,3 +437,25 @@ def renew_log_thread() -> None:
     (a server run in-process by tests keeps the caller's logging)."""
     if _process_log is not None:
         _process_log.renew_thread()
+
+
+class RateLimitedLog:
+    """Log a recurring warning at most once per ``interval_s``, with the count in between
+    (to ``logger``, default the ``simserver`` logger)."""
+
+    def __init__(self, interval_s: float = 1.0, logger: logging.Logger | None = None) -> None:
+        self.interval_s = interval_s
+        self.log = logger or log
+        self._last = -math.inf
+        self._suppressed = 0
+
+    def warn(self, message: str, now_s: float | None = None) -> None:
+        """Log ``message`` unless one was logged less than ``interval_s`` before ``now_s``."""
+        now = time.monotonic() if now_s is None else now_s
+        if now - self._last >= self.interval_s:
+            extra = f" ({self._suppressed} more since the last report)" if self._suppressed else ""
+            self.log.warning("%s%s", message, extra)
+            self._last = now
+            self._suppressed = 0
+        else:
+            self._suppressed += 1

@@ -27,8 +27,8 @@ from typing import Final, NamedTuple
 
 import numpy as np
 
-from simserver import protocol as proto
 from simserver.core import layout as L
+from simserver.wire import protocol as proto
 
 ARRAYS: Final[tuple[str, ...]] = ("state", "output", "input", "pose")
 """The simulation's arrays a field is copied from or to, in :func:`fill_record`'s order."""

@@ -208,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
         (out / COMPARE_JSON).write_text(
             json.dumps(report, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     except OSError as exc:
-        from simserver.cli import CliError
+        from simserver.errors import CliError
 
         raise CliError(f"{out}: cannot write {COMPARE_JSON}: {exc.strerror}") from exc
     if not args.no_plot:

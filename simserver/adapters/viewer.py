@@ -51,11 +51,11 @@ from typing import Any
 
 import numpy as np
 
-from simserver import protocol as proto
 from simserver.core import layout as L
 from simserver.core.params import VP_CG_HEIGHT_M
 from simserver.core.road import road_axes
-from simserver.state_schema import record_to_pose, record_to_rows
+from simserver.wire import protocol as proto
+from simserver.wire.state_schema import record_to_pose, record_to_rows
 
 ROAD_POLL_S = 1.0
 
@@ -73,7 +73,7 @@ QUERY_TIMEOUT_MAX_S = 5.0
 with the backoff: a starved viewer gets a longer window each time)."""
 
 
-CONFIG_FOLDERS = (Path(__file__).resolve().parents[1] / "configs",)
+CONFIG_FOLDERS = (Path(__file__).resolve().parents[2] / "configs",)
 """Where the viewer looks for the vehicle file ``get_config`` names: the server shows its
 paths relative to its config folders (never absolute, ``docs/security.md``), by default
 this installation's ``configs/``."""

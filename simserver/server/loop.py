@@ -2,20 +2,20 @@
 
 One thread, one loop; every tick (:meth:`ServerLoop.tick`), for each vehicle slot in turn:
 
-1. wait for the tick's absolute deadline (:class:`simserver.realtime.Pacer`: no drift;
+1. wait for the tick's absolute deadline (:class:`simserver.server.realtime.Pacer`: no drift;
    up to ``max_catchup_ticks`` late ticks run back to back, beyond that the passed
    deadlines are skipped and counted);
 2. drain every command received since the last tick without blocking, and arbitrate
-   (:class:`simserver.vehicle_slot.CommandArbiter`: the newest valid one wins);
-3. the watchdog (:class:`simserver.vehicle_slot.Watchdog`);
+   (:class:`simserver.server.slot.CommandArbiter`: the newest valid one wins);
+3. the watchdog (:class:`simserver.server.slot.Watchdog`);
 4. step the simulation once, unless paused;
 5. check the state is finite, else stop the car in a safe state
-   (:meth:`simserver.vehicle_slot.VehicleSlot.check_finite`): before publishing;
+   (:meth:`simserver.server.slot.VehicleSlot.check_finite`): before publishing;
 6. publish the state (every ``state_every`` ticks) and, a few times a second, the
    diagnostics (the zenoh adapter's publisher puts a state in the tick while that is
    cheap, else queues it for its ``state-tx`` thread; the diagnostics always go there);
 7. serve control requests through :data:`CONTROLS` (name -> handler), each validated
-   first (:func:`simserver.protocol.validate_control`). A ``load`` is read by a worker
+   first (:func:`simserver.wire.protocol.validate_control`). A ``load`` is read by a worker
    process; a ``load``'s result and a ``reset`` with ``u_mps`` are then applied one piece
    a tick after the tick's step (the result mapped, the model and start state built,
    ``SETTLE_STEPS_PER_TICK`` settling steps at a time, committed), each piece well under
@@ -24,7 +24,7 @@ One thread, one loop; every tick (:meth:`ServerLoop.tick`), for each vehicle slo
 What the loop talks to is injected: the clock and sleep of its pacer, and per slot a
 :class:`SlotPorts` (a command inbox, a control inbox, a publisher). The zenoh adapter is
 one implementation (:mod:`simserver.adapters.zenoh_io`: ``Inbox``, ``ControlInbox`` with
-``validate=False``, ``VehiclePublisher``; wired by ``simserver.server.SimServer``);
+``validate=False``, ``VehiclePublisher``; wired by ``simserver.server.app.SimServer``);
 ``tests/test_server_logic.py`` drives the same loop with a fake clock, list inboxes and a
 recording publisher. The rules are those of ``docs/protocol.md``.
 """
@@ -40,21 +40,28 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
-from simserver import protocol as proto
 from simserver.adapters.config import ConfigError
-from simserver.load_worker import opened
-from simserver.realtime import DEFAULT_SPIN_NS, NS_PER_S, CpuMeter, Pacer, PacerStats, TickTrace
-from simserver.vehicle_slot import StagedStart, VehicleSlot, unwrap_prepared
+from simserver.server.load_worker import opened
+from simserver.server.realtime import (
+    DEFAULT_SPIN_NS,
+    NS_PER_S,
+    CpuMeter,
+    Pacer,
+    PacerStats,
+    TickTrace,
+)
+from simserver.server.slot import StagedStart, VehicleSlot, unwrap_prepared
+from simserver.wire import protocol as proto
 
 if TYPE_CHECKING:
-    from simserver.server import ServerConfig
+    from simserver.server.config import ServerConfig
 
 log = logging.getLogger("simserver.server")
 
 JOB_TIMEOUT_S = 10.0
 """A control's off-tick job (``load``) that has shown no progress for this long is
 abandoned (a FIFO; server config ``load_stall_s``). Progress: the worker's reports
-(``simserver.load_worker.Progress``: a MiB of a large ``.xodr`` read, a piece of a road
+(``simserver.server.load_worker.Progress``: a MiB of a large ``.xodr`` read, a piece of a road
 rasterised) or CPU time it used (``ProcessPreparer.worker_cpu_s``: a worker at nice +5 on
 a busy machine may take many seconds for one second of work; a blocked one uses none)."""
 WORKING_CPU_S = 0.05
@@ -146,7 +153,7 @@ class Control:
         steps and returns the reply members. ``handler`` is then the in-one-go form
         (tools, tests).
     apply : callable, optional
-        See ``job``; it returns a :class:`simserver.vehicle_slot.StagedStart`, settled and
+        See ``job``; it returns a :class:`simserver.server.slot.StagedStart`, settled and
         committed like ``stage``'s.
     stage : callable, optional
         For a control that starts the car anew (``reset``): ``stage(slot, args) ->
@@ -510,7 +517,7 @@ class ServerLoop:
                 self.preparer.restart()
                 return
             # a worker's result maps its big arrays (shared memory: no copy, no unpickling
-            # of megabytes in the tick; simserver.load_worker) in this tick; the next one
+            # of megabytes in the tick; simserver.server.load_worker) in this tick; the next one
             # builds its model and start state, the ones after settle (a relaxed start) and
             # commit it: a few hundred microseconds of work per tick at most
             value = _attempt(pending.request, name, lambda: opened(future.result()))

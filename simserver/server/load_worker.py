@@ -5,7 +5,7 @@ A process, not a thread: YAML parsing holds Python's GIL for as long as it runs 
 would stop the tick just the same), an alias bomb's memory stays in the worker, and a
 worker stuck on a file that never ends (a FIFO) is killed and replaced
 (:meth:`ProcessPreparer.restart`). The loop submits a picklable ``(function, arguments)``
-and polls the future between ticks (:class:`simserver.server_loop.ServerLoop`); the
+and polls the future between ticks (:class:`simserver.server.loop.ServerLoop`); the
 worker runs at a lower priority than the server (nice +5, ``SCHED_OTHER``) and is
 started and warmed (its imports, the configured scene read once) as the server starts.
 
@@ -285,7 +285,7 @@ class Progress:
     worker bumps at each :func:`simserver.adapters.validate.report_progress` (a MiB of an
     ``.xodr`` read, a road rasterised) and the last message. The loop abandons a job whose
     counter has not moved for its stall time (a FIFO, a parser that does not return), not
-    one that is slow but going on (``simserver.server_loop``); reading it is two memory
+    one that is slow but going on (``simserver.server.loop``); reading it is two memory
     loads, fit for the tick."""
 
     def __init__(self) -> None:
@@ -319,7 +319,7 @@ def _worker_init(server_pid: int, progress: Progress | None = None) -> None:
 
         set_progress_sink(progress.report)
         progress.report("worker started")
-        import simserver.scenario  # noqa: F401 - the heavy imports, then said done
+        import simserver.sim.scenario  # noqa: F401 - the heavy imports, then said done
         from simserver.adapters.opendrive import compile_kernels
 
         progress.report("worker imports done")
