@@ -56,24 +56,30 @@ CHASSIS = ParamTable("chassis", "mass, inertias, geometry, aerodynamics", (
     # docs/model.md section 15): slots appended after the historical ones; the defaults
     # are the reference car's (paper_sedan: the viewer's 0.85 m overhangs, track + 0.2 m)
     Param("body_front_overhang_m", "m", 0.0, 5.0,
-          "body's front bumper ahead of the front axle (footprint box, contact)",
+          "body's front bumper ahead of the front axle (footprint box, contact; default "
+          "0.85, the reference car's)",
           default=0.85, slot=168),
     Param("body_rear_overhang_m", "m", 0.0, 5.0,
-          "body's rear bumper behind the rear axle (footprint box, contact)",
+          "body's rear bumper behind the rear axle (footprint box, contact; default 0.85)",
           default=0.85, slot=169),
-    Param("body_width_m", "m", 0.3, 5.0, "body's width (footprint box, contact)",
+    Param("body_width_m", "m", 0.3, 5.0,
+          "body's width (footprint box, contact; default 1.78: track + 0.2)",
           default=1.78, slot=170),
     Param("bumper_height_m", "m", 0.0, 3.0,
-          "height above the ground at which a contact with another car acts",
+          "height above the ground at which a contact with another car acts "
+          "(default 0.5)",
           default=0.5, slot=171),
     Param("contact_stiffness_n_per_m", "N/m", 1e4, 1e9,
-          "body's stiffness against another car's (two cars: in series)",
+          "body's stiffness against another car's (two cars: in series; default 1e7, "
+          "docs/model.md section 15)",
           default=1.0e7, slot=172),
     Param("contact_damping_ratio", "-", 0.0, 0.95,
-          "damping of a contact, fraction of critical for the pair (two cars: the mean)",
+          "damping of a contact, fraction of critical for the pair (two cars: the mean; "
+          "default 0.36)",
           default=0.36, slot=173),
     Param("contact_friction", "-", 0.0, 2.0,
-          "Coulomb friction between the bodies at a contact (two cars: the mean)",
+          "Coulomb friction between the bodies at a contact (two cars: the mean; "
+          "default 0.3)",
           default=0.3, slot=174),
 ))
 SUSPENSION = ParamTable("suspension", "springs, dampers, anti-roll bars (rates at the wheel)", (
