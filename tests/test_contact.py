@@ -301,3 +301,36 @@ def test_run_scenario_writes_the_contacts_section(tmp_path):
         car = contacts["cars"][cid]
         assert car["events"] == 1 and car["rows_in_contact"] > 10
         assert 0.0 < car["max_penetration_m"] < 0.05
+
+
+def test_the_live_api_drains_the_events_with_the_ids():
+    """The world stepped as the live loop steps it (``World.step``): the event ring drained
+    with the cars' ids, the per-car output block, the count; an overrun ring says how many
+    it lost."""
+    from simserver.core.contact import EV_SEQ, EVENT_RING, K_EVENTS, drain_events
+    from simserver.sim.scenario import start_run
+
+    scenario = load_world_scenario(REAR_END)
+    runs = {cid: start_run(sc, car_id=cid) for cid, sc in scenario.cars.items()}
+    world = runs["struck"][0].world
+    runs["striking"][0].move_to(world)
+    for k in range(190):  # to 0.19 s: the boxes met at 0.167 s and still touch
+        for sim, inputs in runs.values():
+            sim.inputs[:] = inputs[k]
+        world.step()
+    events, seen, lost = world.contact_events(0)
+    assert seen == world.contact_count() == 1 and lost == 0
+    assert {events[0]["car_a"], events[0]["car_b"]} == {"struck", "striking"}
+    assert world.contact_events(seen) == ([], 1, 0)
+    for cid in ("struck", "striking"):
+        block = world.car_contact(cid)
+        assert block[0] == 1.0 and block[5] == 1.0  # in contact, one event
+    assert world.car_contact("struck")[1] == -world.car_contact("striking")[1] > 0.0
+    # a ring overrun: 70 events written, 64 kept, the 6 oldest reported lost
+    contacts = world.data.contacts
+    for n in range(1, 71):
+        contacts.events[(n - 1) % EVENT_RING, EV_SEQ] = n
+    contacts.count[K_EVENTS] = 70
+    events, seen, lost = drain_events(contacts, 0)
+    assert (seen, lost) == (70, 6)
+    assert [e["seq"] for e in events] == list(range(7, 71))

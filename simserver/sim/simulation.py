@@ -251,6 +251,12 @@ class World:
             e["car_b"] = self.ids[e["car_b"]]
         return events, total, lost
 
+    def car_contact(self, car_id: str) -> np.ndarray:
+        """The car's contact output of the last step, a view (``core.contact.CC_*``, names
+        ``CAR_CONTACT_NAMES``: the flag, the force on it and its moment, its depth, its
+        events so far)."""
+        return self.data.contacts.car[self.index(car_id), :N_CAR_CONTACT_OUT]
+
     def contact_count(self) -> int:
         """Contact events since the world was made (a pair of cars that starts to touch)."""
         return int(self.data.contacts.count[K_EVENTS])
