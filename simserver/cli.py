@@ -144,6 +144,13 @@ def run_scenario_command(args: argparse.Namespace) -> int:
         write_history(result, out / HISTORY_FILE)
         write_summary(summary, out / SUMMARY_FILE)
         written = [HISTORY_FILE, SUMMARY_FILE]
+        if "manoeuvre" in summary:  # a standard manoeuvre's report (docs/manoeuvres.md)
+            from simserver.adapters.history import result_columns
+            from simserver.adapters.manoeuvre_report import write_manoeuvre_outputs
+
+            written += write_manoeuvre_outputs(
+                out, scenario.name, {scenario.name: summary["manoeuvre"]},
+                {scenario.name: result_columns(result)}, plots=not args.no_plots)
         if not args.no_plots:
             from simserver.adapters.plots import plot_result
 
@@ -211,6 +218,16 @@ def _run_world_scenario_command(args: argparse.Namespace, data: dict, out: Path)
         write_world_history(result.cars, out / HISTORY_FILE)
         write_summary(summary, out / SUMMARY_FILE)
         written = [HISTORY_FILE, SUMMARY_FILE]
+        sections = {cid: s["manoeuvre"] for cid, s in summary["cars"].items()
+                    if "manoeuvre" in s}
+        if sections:  # a standard manoeuvre's report, every car's (docs/manoeuvres.md)
+            from simserver.adapters.history import result_columns
+            from simserver.adapters.manoeuvre_report import write_manoeuvre_outputs
+
+            written += write_manoeuvre_outputs(
+                out, world.name, sections,
+                {cid: result_columns(result.cars[cid]) for cid in sections},
+                plots=not args.no_plots)
         if not args.no_plots:
             from simserver.adapters.plots import plot_comparison, plot_result
 

@@ -1,4 +1,4 @@
-"""Cars that touch (issue 30 item 3; ``core.contact``, docs/model.md section 15).
+"""Cars that touch (issue 30 item 3; ``core.contact``, docs/model.md section 16).
 
 Every check is computed from the histories, independently of the contact stage's own
 numbers:

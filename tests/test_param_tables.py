@@ -64,7 +64,7 @@ def test_every_key_has_unit_range_and_meaning():
     for table in P.VEHICLE_SUBSYSTEMS:  # a vehicle file has no defaults: every key required
         # but the powertrain's kind (simple by default: the files before it stay valid) and
         # the chassis' body box and contact keys (issue 30: the reference car's by default,
-        # docs/model.md section 15; the files before them stay valid)
+        # docs/model.md section 16; the files before them stay valid)
         optional = {P.POWERTRAIN.name: ("kind",),
                     P.CHASSIS.name: ("body_front_overhang_m", "body_rear_overhang_m",
                                 "body_width_m", "bumper_height_m",

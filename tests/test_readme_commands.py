@@ -46,6 +46,9 @@ RUN_ELSEWHERE = {
     ".venv/bin/simserver compare out/e2 out/e1 --out out/e2_vs_e1":
         "test_compare.py::test_readme_command_as_written (beside runs of E2 and E1)",
     "python -m pytest tests/test_scenarios.py -s": "the default suite runs that file",
+    ".venv/bin/simserver run-scenario configs/scenarios/iso7401_step_steer.yaml --out "
+    "out/iso7401": "test_manoeuvres.py::test_one_command_writes_the_figures_and_the_report "
+                   "(into a temporary folder)",
 }
 
 NOT_RUN_HERE = {
@@ -83,6 +86,8 @@ NOT_RUN_HERE = {
     "python -m benchmarks.bench_sweep": "the same",
     "python benchmarks/bench_tire.py": "the same",
     "python docs/figures.py": "regenerates the README's figures (minutes)",
+    "python docs/rooms.py --write README.md": "rewrites the README's rooms table: "
+                                              "test_import_cycles.py runs its --check",
 }
 
 

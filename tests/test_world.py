@@ -37,7 +37,7 @@ CARS = {
     "auto": (SCENES / "hill_10pct_paper_sedan_automatic.yaml", 0.6, 0.1),
 }
 N = 1500
-# each car on its own lane, 20 m apart: cars touch since issue 30 (docs/model.md section 15),
+# each car on its own lane, 20 m apart: cars touch since issue 30 (docs/model.md section 16),
 # and these cars are to be independent; a car's lateral position is its own wherever it runs
 LANE_Y_M = {"sedan": 0.0, "hatch": 20.0, "auto": 40.0}
 

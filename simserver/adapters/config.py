@@ -397,8 +397,8 @@ def config_reference_markdown() -> str:
     lines += _param_rows(P.AUTOMATIC, with_default=False)
     lines += ["", "## Tire files", "",
               f"`model`: one of {', '.join(f'`{m.name}`' for m in tire_models())}; the "
-              "other keys are the model's (from its parameter table in "
-              "`simserver/tires/registry.py`). A default in words is computed by the loader "
+              "other keys are the model's (from its parameter table, in its module of "
+              "`simserver/tires/`). A default in words is computed by the loader "
               "when the key is absent. Wherever a tire file is named (a vehicle's `tires:`, "
               "`simserver tire-curves`), an MF-Tyre `.tir` file may be named instead: it is "
               "read as `model: mf61` with `tir_file` itself and every default.",
@@ -432,6 +432,7 @@ def config_reference_markdown() -> str:
               "| key | unit | meaning |", "|---|---|---|"]
     lines += [f"| `{key}` | {unit} | {meaning} |" for key, (unit, meaning) in START_KEYS.items()]
     lines += _terrain_section()
+    lines += _driver_section()
     lines += ["", "Scenario files (initial state, duration, input keyframes) are described in "
               "the README; the server's own config, key by key, in "
               "`configs/server/default.yaml`.", ""]
@@ -464,6 +465,34 @@ def _terrain_section() -> list[str]:
         lines += _param_rows(schema.numbers, with_default=True)
         if variant.name == "opendrive":
             lines += _xodr_bounds()
+    return lines
+
+
+def _driver_section() -> list[str]:
+    """A scenario car's ``driver:`` keys, from ``core.driver``'s tables and
+    ``adapters.driver_config``."""
+    from simserver.core import driver as D
+
+    lines = ["", "## `driver:` of a scenario's car", "",
+             "The built-in driver (docs/model.md section 15) drives the car through its steer, "
+             "throttle, brake, parking brake and gear: a car of `cars:` (or a single car's "
+             "scenario) with a `driver:` needs no `inputs`. Required: `path`, either "
+             "`{points: [[x, y], ...]}` (a polyline in world x, y, m; 2 or more points) or "
+             "`{road, lane}` (a lane of the scene's OpenDRIVE terrain, optional `s_from_m`, "
+             "`s_to_m` along the road's reference line and `step_m`, the samples' spacing, "
+             "default 0.5 m; the path runs in the lane's direction of travel). Stations are "
+             "distances along the path (over the terrain's surface) from its first point; the "
+             "car stops at the path's end. A path that leaves the road (OpenDRIVE: beyond the "
+             "outer lanes' edges; a height map: off its grid) is refused. Optional: "
+             "`speed_profile` (`[{s_m, v_mps}, ...]`, stations increasing: the desired speed "
+             "along the path, linear between, `idm.v0_mps` without one), `stop_s_m` (the "
+             "front bumper stops at this station and holds), `go_t_s` (the simulated time "
+             "the stop point is released), `idm:` (below) and the driver's keys (below).", "",
+             "### `idm:` of a `driver:`", "", f"{D.IDM.title[0].upper()}{D.IDM.title[1:]}.", ""]
+    lines += _param_rows(D.IDM, with_default=True)
+    lines += ["", "### The driver's keys", "", f"{D.CONTROL.title[0].upper()}"
+              f"{D.CONTROL.title[1:]}.", ""]
+    lines += _param_rows(D.CONTROL, with_default=True)
     return lines
 
 

@@ -484,7 +484,8 @@ def summarize(result: ScenarioResult) -> dict[str, Any]:
     dict
         Sections ``scenario``, ``vehicle``, ``road``, ``model_options``, ``initial``,
         ``run``, ``final``, ``extremes``, ``rest``, ``holds`` (every stop held, its creep
-        and its restart: ``simserver.analysis.holds``), ``finite`` and ``timing`` (the
+        and its restart: ``simserver.analysis.holds``), ``manoeuvre`` (when the scenario
+        names an ``analysis``: ``simserver.analysis.manoeuvres``), ``finite`` and ``timing`` (the
         only non-deterministic one). ``final`` is the last recorded row of the history, the
         same numbers as the last row of ``history.parquet`` (forces are only known at
         recorded rows); its ``time_s`` says when that is.
@@ -575,7 +576,35 @@ def summarize(result: ScenarioResult) -> dict[str, Any]:
         "at_rest_at_end": bool(abs(last["u_mps"]) < REST_SPEED_MPS),
     }
     summary["holds"] = holds_summary(cols)
+    if getattr(result, "driver_states", None) is not None:
+        summary["driver"] = driver_summary(result.driver_states, cols["time_s"])
+    if getattr(sc, "analysis", None):  # a standard manoeuvre (docs/manoeuvres.md)
+        from simserver.analysis.manoeuvres import analyse, car_facts
+
+        summary["manoeuvre"] = analyse(sc.analysis, cols, car_facts(sc.scene.vehicle.vp))
     return _rounded(summary)
+
+
+def driver_summary(driver_states: np.ndarray, time_s: np.ndarray) -> dict[str, Any]:
+    """What the built-in driver saw over a run (``core.driver.DS_*`` per recorded row):
+    its lateral offset from the path (RMS, largest), the gap to the car ahead (smallest,
+    last; None when there was none), the time held, and its mode at the end."""
+    from simserver.core import driver as D
+
+    lat = driver_states[:, D.DS_LATERAL_M]
+    gap = driver_states[:, D.DS_GAP_M]
+    mode = driver_states[:, D.DS_MODE]
+    seen = np.isfinite(gap)
+    dt = float(np.median(np.diff(time_s))) if len(time_s) > 1 else 0.0
+    return {
+        "lateral_rms_m": float(np.sqrt(np.mean(lat ** 2))),
+        "lateral_max_m": float(np.max(np.abs(lat))),
+        "gap_min_m": float(gap[seen].min()) if seen.any() else None,
+        "gap_final_m": float(gap[-1]) if seen[-1] else None,
+        "held_s": float(np.count_nonzero(mode == D.MODE_HOLD) * dt),
+        "mode_final": D.MODE_NAMES[int(mode[-1])],
+        "station_final_m": float(driver_states[-1, D.DS_STATION_M]),
+    }
 
 
 def summary_json(summary: dict[str, Any]) -> str:

@@ -797,7 +797,7 @@ def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> No
     force_x = fx_sum + mass * g_x - drag
     force_y = fy_sum + mass * g_y
     if body[B_CONTACT_ACTIVE] > 0.5:
-        # another car's push (core.contact, docs/model.md section 15): held over the step
+        # another car's push (core.contact, docs/model.md section 16): held over the step
         # in the plane's axes, turned into body axes at each stage's heading, acting at the
         # bumper's height (its overturning arm to the CG). Only while a contact acts: a
         # car that touches nothing does exactly the arithmetic it did without contacts.

@@ -1,5 +1,5 @@
 """Cars that touch: footprint boxes and a compliant contact between them (docs/model.md
-section 15).
+section 16).
 
 The world's contact stage (``contact_stage``, called by ``core.world.step`` before the car
 step of each car) finds the pairs of cars whose body boxes overlap and gives each car of
@@ -79,7 +79,7 @@ from simserver.core.road import road_frame
 
 V_SLIP_MPS = 0.05
 """Sliding speed at which the regularised contact friction reaches 71 % of Coulomb's
-``mu F_n`` (section 15): below it the friction grows with the speed, as a stiff viscous
+``mu F_n`` (section 16): below it the friction grows with the speed, as a stiff viscous
 contact would; it cannot hold a tangential load at zero speed (nothing in a footprint
 contact sticks)."""
 

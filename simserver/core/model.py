@@ -81,7 +81,7 @@ B_GRAVITY_Y_MPS2 = 4
 B_FX_SUM_N = 5
 B_FY_SUM_N = 6
 # ... and what another car applies through a contact over the step (core.contact,
-# docs/model.md section 15): written by the world's contact stage before the car step,
+# docs/model.md section 16): written by the world's contact stage before the car step,
 # held over the step; B_CONTACT_ACTIVE 0 (the contact stage's reset, and a fresh
 # workspace): no contact, and the body's rates do exactly what they did without contacts
 B_CONTACT_ACTIVE = 7  # 1 when another car pushes on this one over the step

@@ -53,7 +53,7 @@ CHASSIS = ParamTable("chassis", "mass, inertias, geometry, aerodynamics", (
     Param("air_density_kg_per_m3", "kg/m^3", 0.0, 2.0, "air density (0 switches drag off)",
           slot=29, const="VP_AIR_DENSITY_KGPM3"),
     # the body's footprint box and its contact with other cars (issue 30, core/contact.py,
-    # docs/model.md section 15): slots appended after the historical ones; the defaults
+    # docs/model.md section 16): slots appended after the historical ones; the defaults
     # are the reference car's (paper_sedan: the viewer's 0.85 m overhangs, track + 0.2 m)
     Param("body_front_overhang_m", "m", 0.0, 5.0,
           "body's front bumper ahead of the front axle (footprint box, contact; default "
@@ -71,7 +71,7 @@ CHASSIS = ParamTable("chassis", "mass, inertias, geometry, aerodynamics", (
           default=0.5, slot=171),
     Param("contact_stiffness_n_per_m", "N/m", 1e4, 1e9,
           "body's stiffness against another car's (two cars: in series; default 1e7, "
-          "docs/model.md section 15)",
+          "docs/model.md section 16)",
           default=1.0e7, slot=172),
     Param("contact_damping_ratio", "-", 0.0, 0.95,
           "damping of a contact, fraction of critical for the pair (two cars: the mean; "

@@ -19,6 +19,10 @@ Scenario YAML (paths relative to the scenario file)::
       - {t: 0.0, gear: D}
       - {t: 1.0, brake: 0.0}
       - {t: 1.3, brake: 0.6}
+    analysis: iso7401_step_steer   # optional: a standard manoeuvre's figures and criteria
+                             # in the summary (simserver.analysis.manoeuvres, docs/manoeuvres.md)
+    speed_hold: {speed_mps: 22.2}  # optional: the throttle holds a speed
+                             # (simserver.sim.speed_hold; not with cars:)
 
 Several cars on one terrain (``cars:``; docs/model.md section 14): the world's keys
 (``name``, ``description``, ``road``, ``terrain``, ``duration_s``, ``dt_s``,
@@ -48,18 +52,13 @@ from typing import Any
 
 import numpy as np
 
-from simserver.adapters.config import (
-    MODEL_OPTION_DEFAULTS,
-    ConfigError,
-    check_keys,
-    number,
-    read_yaml,
-    resolve_vehicle,
-)
+from simserver.adapters.config import MODEL_OPTION_DEFAULTS, resolve_vehicle
+from simserver.adapters.driver_config import DriverSpec, build_drivers, parse_driver
 from simserver.adapters.terrain_files import terrain_spec
-from simserver.adapters.validate import integer
+from simserver.adapters.validate import ConfigError, check_keys, integer, number, read_yaml
 from simserver.core import layout as L
 from simserver.core.contact import CAR_CONTACT_NAMES, N_CAR_CONTACT_OUT
+from simserver.core.driver import N_DRIVER_STATE, simulate_driven
 from simserver.sim.keyframes import input_table, read_keyframe_file
 from simserver.sim.scene import (
     INITIAL_RANGES,
@@ -70,6 +69,7 @@ from simserver.sim.scene import (
     parse_scene,
 )
 from simserver.sim.simulation import Simulation
+from simserver.sim.speed_hold import SpeedController, SpeedHold, parse_speed_hold
 
 MAX_SCENARIO_STEPS = 10_000_000
 """Most steps of a headless run: its input table holds 40 bytes a step (400 MB here)."""
@@ -104,6 +104,9 @@ class Scenario:
     dt_s: float
     record_every: int
     keyframes: list[dict[str, Any]]
+    driver: DriverSpec | None = None  # the built-in driver drives the car (``driver:``)
+    analysis: dict[str, Any] | None = None  # analysis.manoeuvres.parse_analysis
+    speed_hold: SpeedHold | None = None  # speed_hold.parse_speed_hold
 
     @property
     def n_steps(self) -> int:
@@ -127,6 +130,7 @@ class ScenarioResult:
     inputs: np.ndarray
     final_state: np.ndarray
     wall_time_s: float
+    driver_states: np.ndarray | None = None  # a driven car's driver state per row (DS_*)
 
     def state(self, index: int) -> np.ndarray:
         """Column ``index`` of the states (a ``core.layout`` constant)."""
@@ -146,16 +150,28 @@ def load_scenario(path: str | Path, data: dict[str, Any] | None = None) -> Scena
     path = Path(path)
     data = read_yaml(path) if data is None else data
     allowed = ("name", "description", *SCENE_KEYS, *SCENARIO_ONLY_KEYS)
-    check_keys(path, data, allowed, required=("name", "vehicle", "duration_s", "inputs"))
+    driven = data.get("driver") is not None
+    check_keys(path, data, allowed, required=("name", "vehicle", "duration_s")
+               + (() if driven else ("inputs",)))
     scene = parse_scene(path, data)
+    if driven and "inputs" not in data:  # the driver gives every input
+        data = {**data, "inputs": [{"t": 0.0, "gear": "D"}]}
     run = read_keyframe_file(path, data)
+    driver = parse_driver(path, data["driver"], scene) if driven else None
     dt = number(path, "dt_s", data.get("dt_s", 0.001), 1e-5, 0.01)
     record_every = integer(path, "record_every", data.get("record_every", 1), 1, 1_000_000)
     check_run_size(path, run.duration_s, dt, record_every)
+    from simserver.analysis.manoeuvres import parse_analysis
+
+    if driven and data.get("speed_hold") is not None:
+        raise ConfigError(f"{path}: key 'speed_hold': the driver holds its own speed "
+                          "profile; give one or the other")
     return Scenario(
         name=run.name, path=path, description=str(data.get("description", "")), scene=scene,
         duration_s=run.duration_s, dt_s=dt, record_every=record_every,
-        keyframes=run.keyframes,
+        keyframes=run.keyframes, driver=driver,
+        analysis=parse_analysis(path, data.get("analysis")),
+        speed_hold=parse_speed_hold(path, data.get("speed_hold")),
     )
 
 
@@ -232,18 +248,30 @@ def run_scenario(
     """Run a scenario headless as fast as the CPU allows.
 
     Deterministic: the same scenario gives the same arrays bit for bit.
-    ``progress(done_steps, total_steps)`` is called after each chunk.
+    ``progress(done_steps, total_steps)`` is called after each chunk. A car driven by the
+    built-in driver runs closed loop, as a world of one car (``run_world_scenario``).
     """
+    if scenario.driver is not None:
+        world = WorldScenario(name=scenario.name, path=scenario.path,
+                              description=scenario.description, cars={"car0": scenario})
+        return run_world_scenario(world, progress, chunk_steps).cars["car0"]
     sim, inputs = start_run(scenario)
     n = scenario.n_steps
     every = scenario.record_every
     n_rec = (n + every - 1) // every
     states = np.zeros((n_rec, L.N_STATE))
     outputs = np.zeros((n_rec, L.N_OUT))
+    hold = None
+    if scenario.speed_hold is not None:  # the throttle of each period set from the state
+        hold = SpeedController(scenario.speed_hold, inputs, scenario.dt_s, every)
+        chunk_steps = hold.period
+        hold.control(0, sim.x)
     t0 = time.perf_counter()
     for done, _, _, _ in step_chunks(sim, inputs, every, chunk_steps,
                                      lambda r0, rows: (states[r0:r0 + rows],
                                                        outputs[r0:r0 + rows])):
+        if hold is not None and done < n:
+            hold.control(done, sim.x)
         if progress is not None:
             progress(done, n)
     wall = time.perf_counter() - t0
@@ -255,9 +283,9 @@ def run_scenario(
 
 # ------------------------------------------------------------------- several cars, one world
 WORLD_KEYS = ("name", "description", "road", "terrain", "duration_s", "dt_s", "record_every",
-              "cars")
+              "analysis", "cars")
 """The keys of a scenario with ``cars:``: the world's (shared by every car) and the list."""
-CAR_KEYS = ("id", "vehicle", "initial", "start", "model", "inputs")
+CAR_KEYS = ("id", "vehicle", "initial", "start", "model", "inputs", "driver")
 """The keys of one car of ``cars:``: what a single car's scenario gives for its car."""
 
 
@@ -301,7 +329,7 @@ class WorldResult:
         closing speed, the contact point), their number, and per car its events, the
         recorded rows it was in contact and its deepest recorded penetration."""
         cars = {}
-        for cid in self.cars:
+        for cid in self.cars if self.contact_rows is not None else ():
             flag = self.contact(cid, "contact")
             cars[cid] = {"events": int(self.contact(cid, "contact_events")[-1])
                          if len(flag) else 0,
@@ -333,7 +361,8 @@ def load_world_scenario(path: str | Path, data: dict[str, Any] | None = None) ->
     for k, car in enumerate(raw):
         if not isinstance(car, dict):
             raise ConfigError(f"{path}: key 'cars[{k}]': expected a mapping")
-        check_keys(f"{path} (cars[{k}])", car, CAR_KEYS, required=("id", "vehicle", "inputs"))
+        check_keys(f"{path} (cars[{k}])", car, CAR_KEYS,
+                   required=("id", "vehicle") + (() if "driver" in car else ("inputs",)))
         car_id = car["id"]
         if not isinstance(car_id, str) or not car_id:
             raise ConfigError(f"{path}: key 'cars[{k}].id': expected a non-empty string")
@@ -366,7 +395,14 @@ def run_world_scenario(world_scenario: WorldScenario,
     n_rec = (n + every - 1) // every
     states = np.zeros((n_rec, len(ids), L.N_STATE))
     outputs = np.zeros((n_rec, len(ids), L.N_OUT))
-    contact_rows = np.zeros((n_rec, len(ids), N_CAR_CONTACT_OUT))
+    specs = {cid: sc.driver for cid, sc in world_scenario.cars.items()}
+    driven = any(spec is not None for spec in specs.values())
+    if driven:  # closed loop: the inputs applied are the drivers' (core.driver)
+        drivers = build_drivers(world, specs)
+        applied = np.zeros((n_rec, len(ids), L.N_INPUT))
+        driver_states = np.zeros((n_rec, len(ids), N_DRIVER_STATE))
+    # the cars' contact outputs per row (not recorded by the drivers' loop: events only)
+    contact_rows = None if driven else np.zeros((n_rec, len(ids), N_CAR_CONTACT_OUT))
     events: list[dict[str, Any]] = []
     seen = world.contact_count()
     lost = 0
@@ -377,8 +413,13 @@ def run_world_scenario(world_scenario: WorldScenario,
         m = min(chunk, n - done)
         r0 = done // every
         rows = (m + every - 1) // every
-        world.run(inputs[done:done + m], states[r0:r0 + rows], outputs[r0:r0 + rows], every,
-                  contact_rows[r0:r0 + rows])
+        if driven:
+            simulate_driven(world.model, world.data, drivers, inputs[done:done + m],
+                            states[r0:r0 + rows], outputs[r0:r0 + rows],
+                            applied[r0:r0 + rows], driver_states[r0:r0 + rows], every)
+        else:
+            world.run(inputs[done:done + m], states[r0:r0 + rows], outputs[r0:r0 + rows],
+                      every, contact_rows[r0:r0 + rows])
         new, seen, missed = world.contact_events(seen)
         events += new
         lost += missed
@@ -392,8 +433,10 @@ def run_world_scenario(world_scenario: WorldScenario,
         cars[cid] = ScenarioResult(
             scenario=world_scenario.cars[cid], time_s=st[:, L.TIME_S].copy(), states=st,
             outputs=np.ascontiguousarray(outputs[:, c]),
-            inputs=np.ascontiguousarray(inputs[::every, c]),
-            final_state=world.data.x[world.index(cid)].copy(), wall_time_s=wall)
+            inputs=np.ascontiguousarray(applied[:, c] if driven else inputs[::every, c]),
+            final_state=world.data.x[world.index(cid)].copy(), wall_time_s=wall,
+            driver_states=(np.ascontiguousarray(driver_states[:, c])
+                           if specs[cid] is not None else None))
     return WorldResult(scenario=world_scenario, cars=cars, wall_time_s=wall,
                        contact_rows=contact_rows, contact_events=events,
                        contact_events_lost=lost)

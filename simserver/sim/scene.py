@@ -135,7 +135,8 @@ def start_by_lane(path: Path | str, key: str, raw: Any, roads: OpenDrive | None
     return {"x_m": x_m, "y_m": y_m, "yaw_rad": yaw_rad}
 
 
-SCENARIO_ONLY_KEYS = ("duration_s", "dt_s", "record_every", "inputs")
+SCENARIO_ONLY_KEYS = ("duration_s", "dt_s", "record_every", "inputs", "driver", "analysis",
+                      "speed_hold")
 
 
 def load_scene(path: str | Path, vehicle_path: str | Path | None = None) -> Scene:

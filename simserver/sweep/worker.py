@@ -223,7 +223,8 @@ def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -
             row["scenario"] = scenario.name
             if scenario.n_steps < 1:
                 raise ConfigError(f"{case.base}: key 'duration_s': shorter than one step")
-            if history_dir is None:  # only the columns the metrics read
+            if history_dir is None and scenario.speed_hold is None:  # only the columns
+                # the metrics read (a speed hold steps in its control periods: run_scenario)
                 run = run_for_metrics(scenario, (c for m in metrics for c in m.columns))
                 row["sim_wall_time_s"] = run.wall_time_s
                 row["metrics"] = evaluate(metrics, run.columns)
