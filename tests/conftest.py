@@ -1,37 +1,13 @@
-"""Shared fixtures: repository paths, the reference tire of the paper, the long forms'
-switch, and the README's server.
-
-For tests of every module (use them rather than a copy of your own):
-
-- ``slow_enabled(markexpr)`` / the ``only_when_slow`` fixture: a long form runs only with
-  ``-m slow`` or ``SIMSERVER_SLOW=1``; the default suite (and CI) runs its short form, a
-  test of its own beside it (the house rule for anything over ~10 s of waiting).
-- ``paper_tire`` (session): the paper's packed tire.
-- ``readme_server`` (module): the README's server on its fixed default port 7447. Only one
-  may run at a time on the machine, so it holds ``readme_port_lock`` (a file lock shared by
-  this run's xdist workers) while it runs.
-
-The README's test command runs the suite in two xdist workers (``-n 2``), a file per worker
-at a time (``--dist loadfile`` in ``pyproject.toml``), so a module's module-scoped server is
-started once. Tests must therefore take free ports (``simserver.testing.free_port``) and
-their own ``tmp_path``, never a fixed port or a fixed file of the checkout they write to.
-Before the workers start, the controller compiles the numba kernels once
-(``docker/warmup.py``, both tire models) so that the workers load them from the cache
-instead of compiling the same kernels side by side; a run without ``-n`` compiles lazily
-as before.
-"""
+"""Shared fixtures: repository paths and the reference tire of the paper."""
 
 from __future__ import annotations
 
-import fcntl
 import os
 import re
 import shlex
 import signal
 import socket
-import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -66,40 +42,6 @@ def slow_enabled(markexpr: str | None) -> bool:
     """
     expr = markexpr or ""
     return os.environ.get("SIMSERVER_SLOW") == "1" or ("slow" in expr and "not slow" not in expr)
-
-
-@pytest.fixture
-def only_when_slow(request: pytest.FixtureRequest) -> None:
-    """Skip the long form unless asked for (``-m slow`` or ``SIMSERVER_SLOW=1``)."""
-    if not slow_enabled(request.config.getoption("markexpr")):
-        pytest.skip("long form: run with -m slow or SIMSERVER_SLOW=1")
-
-
-def _xdist_controller(config: pytest.Config) -> bool:
-    """This process distributes the tests to xdist workers (``-n N``, N > 0)."""
-    return not hasattr(config, "workerinput") and bool(
-        getattr(config.option, "numprocesses", None)) and config.option.dist != "no"
-
-
-def pytest_sessionstart(session: pytest.Session) -> None:
-    """Under xdist, compile the numba kernels once, before the workers start (this hook runs
-    before xdist's own, which is ``trylast``): the workers then load them from the cache.
-    Without it both workers' first servers compile the same kernels side by side (about a
-    minute of CPU each on this 2-core machine). With a warm cache this costs a few seconds
-    (the kernels loaded, a one-second soak per tire model)."""
-    if not _xdist_controller(session.config) or session.config.option.collectonly:
-        return
-    t0 = time.monotonic()
-    proc = subprocess.run([sys.executable, str(REPO / "docker" / "warmup.py"), "--configs",
-                           str(CONFIGS)], cwd=REPO, capture_output=True, text=True,
-                          timeout=900)
-    if proc.returncode != 0:  # the tests that need the kernels will say why, one by one
-        print(f"numba warm-up failed (exit {proc.returncode}):\n{proc.stdout}{proc.stderr}",
-              file=sys.stderr)
-    else:
-        summary = proc.stdout.strip().splitlines()[-1:] or [""]
-        print(f"\nnumba warm-up before the workers: {time.monotonic() - t0:.0f} s "
-              f"({summary[0]})", file=sys.stderr)
 
 
 @pytest.fixture(scope="session")
@@ -147,29 +89,14 @@ def readme_main_job() -> str:
     return first.split("&&")[-1].strip()
 
 
-@pytest.fixture(scope="session")
-def readme_port_lock(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A lock file shared by this run's xdist workers (in their common temporary root) for
-    the README's fixed port: hold it (``fcntl.flock``) while a server listens there."""
-    base = tmp_path_factory.getbasetemp()  # .../pytest-N/popen-gwK under xdist
-    return (base.parent if base.name.startswith("popen-gw") else base) / "readme_port.lock"
-
-
 @pytest.fixture(scope="module")
-def readme_server(readme_port_lock: Path) -> Iterator[ServerProcess]:
+def readme_server() -> Iterator[ServerProcess]:
     """The README's main job as written, on its default endpoint (tcp/127.0.0.1:7447);
     at the end it must stop cleanly on SIGINT with its final statistics.
 
     The README's commands use the default port: if something else holds it, the tests of
     those commands cannot run, and that is a failure to fix (stop the other server), not
-    a reason to skip them. Another module of this run that holds it (an xdist worker) is
-    waited for, through ``readme_port_lock``."""
-    with open(readme_port_lock, "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # released once the module's server has stopped
-        yield from _readme_server()
-
-
-def _readme_server() -> Iterator[ServerProcess]:
+    a reason to skip them."""
     with socket.socket() as probe:
         if probe.connect_ex(("127.0.0.1", 7447)) == 0:
             pytest.fail("something already listens on 127.0.0.1:7447, the README's default "
