@@ -632,7 +632,10 @@ def body_corners(x_m: np.ndarray, y_m: np.ndarray, yaw_rad: np.ndarray, front_m:
 def cone_strikes(corners_xy: np.ndarray, lanes: tuple[DlcLane, ...]) -> np.ndarray:
     """Per row, whether the body box (``body_corners`` in the track's frame) strikes a
     cone line: a corner beyond a lane's line (outside the lane) while within the lane's
-    length, or a lane's end cone inside the box (a box that straddles the lane's end)."""
+    length (the box over the line, or beside the lane: a lane missed fails the run as a
+    strike does), or a lane's end cone inside the box (a box that straddles the lane's
+    end). Cones are taken as continuous lines tangent to their bases (ISO 3888-2 4.2 as
+    publicly previewed): a gap between two cones is not a way through."""
     hit = np.zeros(corners_xy.shape[0], dtype=bool)
     cx, cy = corners_xy[..., 0], corners_xy[..., 1]
     for lane in lanes:
