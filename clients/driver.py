@@ -6,7 +6,9 @@ arrives for 200 ms), each with the next ``seq`` and ``sender_time_ns`` on this p
 monotonic clock, and shows what comes back: speed, gear, parking brake, the grade and
 cross-slope of the ground under the car and which wheels touch it, the watchdog / paused /
 brake-hold flags, the command-to-state latency and the server's health from the
-diagnostics (tick lateness p99, overruns, rejected commands).
+diagnostics (tick lateness p99, overruns, rejected commands); in a server's world of
+several cars, the nearest car ahead and behind with the distance and the closing speed
+(the world message, :mod:`clients.world`).
 
 Input modes
 -----------
@@ -90,6 +92,8 @@ from clients.keyboard import (
     load_keyboard_profile,
 )
 from clients.profile import ProfileError
+from clients.road_view import RoadView
+from clients.world import WorldWatch, traffic_text
 from simserver.wire import protocol as proto
 
 PROG = "simserver-driver"
@@ -371,6 +375,9 @@ class StatusView:
                    f"        {ground_text(s)}",
                    f"        nose up {-math.degrees(float(s['pitch_rad'])):+5.1f} deg  heading "
                    f"{heading:+6.1f} deg"]
+            road = d.road.line(float(s["x_m"]), float(s["y_m"]))
+            if road is not None:
+                car.append(road)
             age = float(s["cmd_age_s"])
             silent = time.monotonic() - d.state_wall
             server = [f"server  t {float(s['sim_time_s']):9.3f} s  [{' '.join(names) or 'ok'}]"
@@ -388,12 +395,14 @@ class StatusView:
                       f"        overruns {int(g['overruns'])}  skipped "
                       f"{int(g['skipped_ticks'])}  rejected {int(g['cmd_rejected'])}  stale "
                       f"{int(g['cmd_stale'])}  watchdog trips {int(g['watchdog_trips'])}"]
+        traffic = traffic_text(d.world.poll(), d.conn.ep.keys.vehicle)
+        traffic_lines = [f"traffic {traffic}"] if traffic else []  # other cars, if any
         hold = f"hold    {d.hold.status(d.source_brake)}"
         if s is not None and int(s["flags"]) & proto.StateFlag.HILL_HOLD:
             hold += ("  |  HILL-START ASSIST holds the brakes for a moment after the pedal "
                      "is released, then lets go: press the throttle")
-        return [self.header, *car, drive, hold, *server, *health, f"note    {d.message}",
-                *self.help_lines]
+        return [self.header, *car, drive, hold, *server, *health, *traffic_lines,
+                f"note    {d.message}", *self.help_lines]
 
     def draw(self, d: Driver, now_s: float) -> None:
         """Redraw (terminal) or print one line per second (pipe)."""
@@ -403,7 +412,8 @@ class StatusView:
                 self.out.write(self.header + "\n")
             if now_s - self._last_plain >= 1.0:
                 self._last_plain = now_s
-                self.out.write(" | ".join(x.strip() for x in lines[1:10]) + "\n")
+                self.out.write(" | ".join(x.strip() for x in lines[1:10] + [
+                    x for x in lines[10:11] if x.startswith("traffic")]) + "\n")
                 self.out.flush()
             return
         width = max(20, shutil.get_terminal_size((120, 24)).columns - 1)
@@ -462,11 +472,14 @@ class Driver:
         self.filter = state_filter(conn, PROG, out=None)
         self._filtered_seen = (0, 0)
         self.diags = ep.declare_diag_inbox(capacity=16)
+        self.world = WorldWatch(ep, ep.keys.prefix)  # the other cars (clients.world)
         self.presence = ServerPresence(ep)
         help_lines = list(KEY_HELP_LINES) if isinstance(source, KeyboardSource) else \
             ["keys    q quit, space pause/resume, x reset, 1-4 gear P R N D, h parking brake, "
              "b auto hold"]
         self.view = StatusView(out, self._header(conn.config), help_lines)
+        self.road = RoadView()  # on an OpenDRIVE scene: road, lane, s, edge (clients.road_view)
+        self.road.follow(conn.config)
 
     def _header(self, config: dict[str, Any]) -> str:
         """The status block's first line: where, which vehicle and scene, input, rate."""
@@ -497,6 +510,7 @@ class Driver:
             return
         self.conn.config = config
         self.view.header = self._header(config)
+        self.road.follow(config)
 
     @property
     def message(self) -> str:

@@ -19,9 +19,10 @@ then lags the headless time line by the resume round trip and the command transi
 tick or two, which a comparison removes by aligning on an input event.
 
 It prints its progress once a second (its time, the server's simulated time, speed,
-applied brake and gear) and exits when the maneuver ends (``duration_s`` of the
-scenario, or ``--duration``); the server's watchdog then holds the car unless
-``--pause-at-end`` freezes it where the maneuver ended.
+applied brake and gear; with other cars in the server's world, the nearest car ahead and
+behind with the distance and closing speed, from the world message: ``clients.world``)
+and exits when the maneuver ends (``duration_s`` of the scenario, or ``--duration``); the
+server's watchdog then holds the car unless ``--pause-at-end`` freezes it where the maneuver ended.
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ from clients.common import (
     gear_name,
     state_filter,
 )
+from clients.world import WorldWatch, traffic_text
 from simserver.adapters.validate import ConfigError
 from simserver.sim.keyframes import load_keyframe_file, sample_keyframes
 from simserver.wire import protocol as proto
@@ -136,6 +138,12 @@ class Progress:
         self.inbox = conn.ep.declare_state_inbox(capacity=64)
         self.filter = state_filter(conn, PROG)  # only the server's states, others counted
         self.state: np.void | None = None
+        self.world = WorldWatch(conn.ep, conn.ep.keys.prefix)  # the other cars, if any
+        self.vehicle = conn.ep.keys.vehicle
+
+    def traffic(self) -> str:
+        """The nearest cars ahead and behind (``clients.world.traffic_text``), or ""."""
+        return traffic_text(self.world.poll(), self.vehicle)
 
     def poll(self) -> np.void | None:
         """The newest valid state received so far."""
@@ -226,8 +234,9 @@ def play(conn: Connection, track: InputTrack, stop: StopFlag, *, load: str | Non
             server = "-" if s is None else (
                 f"{float(s['sim_time_s']):7.3f} s, u {float(s['u_mps']):+7.3f} m/s, brake "
                 f"{float(s['brake']):.3f}, gear {gear_name(int(s['gear']))}")
-            print(f"{PROG}: t {min(t, end_s):7.3f} / {end_s:.3f} s | server {server}",
-                  flush=True)
+            traffic = progress.traffic()
+            print(f"{PROG}: t {min(t, end_s):7.3f} / {end_s:.3f} s | server {server}"
+                  + (f" | {traffic}" if traffic else ""), flush=True)
         if k >= n - 1 and t >= end_s:
             break
     elapsed = time.monotonic() - t0

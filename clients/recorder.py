@@ -23,12 +23,12 @@ recorder writes the history's names in the **road-plane** frame, converted from 
 world pose with the road the server reports (``ctl/get_config``, read at start, after
 every reset or load, and every ``--road-poll`` seconds: a ``set_road`` between two polls
 is converted with the previous road for at most that long), and the world pose itself
-under distinct names: ``world_x_m``, ``world_y_m``, ``world_z_m``, ``world_yaw_rad``,
-``world_pitch_rad``, ``world_roll_rad``. The road plane is the one ``ctl/set_road``
-describes: it passes through the world origin and rises ``grade_pct`` % along world x
-and ``cross_slope_pct`` % along world y; ``e1`` is its direction above world x, ``n``
-its upward normal, ``e2 = n x e1`` (the server's convention; the tests check this
-inverse against it).
+under distinct names, as the headless history does: ``world_x_m``, ``world_y_m``,
+``world_z_m``, ``world_yaw_rad``, ``world_pitch_rad``, ``world_roll_rad``. The road plane
+is the one ``ctl/set_road`` describes: it passes through the world origin and rises
+``grade_pct`` % along world x and ``cross_slope_pct`` % along world y; ``e1`` is its
+direction above world x, ``n`` its upward normal, ``e2 = n x e1`` (the server's
+convention; the tests check this inverse against it).
 
 On a terrain (a height map or an OpenDRIVE road: ``get_config``'s ``scene.terrain``) the
 headless history's planar states live on the *reference plane* fitted under the four
@@ -182,7 +182,7 @@ STATE_ONLY: tuple[Column, ...] = (
            "a terrain)"),
 )
 """Columns the headless history does not have: the recorder's own, every other state
-field (``protocol.STATE_COLUMNS``: the world pose as ``world_*``) and the road used."""
+field (``protocol.STATE_COLUMNS``) and the road used."""
 
 COLUMNS: tuple[Column, ...] = HISTORY_NAMED + STATE_ONLY
 

@@ -73,6 +73,9 @@ def _add_run_scenario_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dt", type=float, default=None, metavar="S",
                         help="override the scenario's step dt_s (s)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="an OpenSCENARIO file: end here if its stop trigger has not "
+                             "fired (default 60 s)")
     # --- rerun scene (issue 5) ---
     parser.add_argument("--rrd", type=Path, default=None, metavar="FILE",
                         help="also write the Rerun scene to FILE.rrd (open with `rerun FILE`)")
@@ -124,6 +127,8 @@ def run_scenario_command(args: argparse.Namespace) -> int:
     from simserver.sim.scenario import is_world_scenario, load_scenario, run_scenario
 
     out: Path = args.out
+    if args.scenario.suffix.lower() == ".xosc":
+        return _run_xosc_command(args, out)
     data = read_yaml(args.scenario)
     if is_world_scenario(data):
         return _run_world_scenario_command(args, data, out)
@@ -191,6 +196,62 @@ def _make_out_dir(out: Path) -> None:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise CliError(f"{out}: cannot create the output directory: {exc.strerror}") from exc
+
+
+XOSC_TRACE_FILE = "storyboard_trace.jsonl"
+"""The storyboard trace of an OpenSCENARIO run, beside the summary: one JSON object a line
+(time, element kind and name, from and to state, the condition values that fired it)."""
+
+
+def _run_xosc_command(args: argparse.Namespace, out: Path) -> int:
+    """``run-scenario FILE.xosc``: play it with physical cars (``simserver.sim.xosc_run``),
+    write the history (``car_id`` column), the summary, the plots and the storyboard
+    trace (:data:`XOSC_TRACE_FILE`)."""
+    import json
+
+    from simserver.adapters.history import (
+        HISTORY_FILE,
+        SUMMARY_FILE,
+        summarize,
+        write_summary,
+        write_world_history,
+    )
+    from simserver.sim.xosc_run import DEFAULT_DURATION_S, play
+
+    duration = DEFAULT_DURATION_S if args.duration is None else args.duration
+    if not (math.isfinite(duration) and 0.0 < duration <= 3600.0):
+        raise CliError(f"--duration: {duration:g} is outside (0, 3600] s")
+    run = play(args.scenario, duration_s=duration, dt_s=args.dt or 0.001)
+    for line in run.scenario.ignored:
+        print(f"warning: {line}", file=sys.stderr)
+    _make_out_dir(out)
+    result = run.result
+    summary = {"scenario": args.scenario.stem, "end_time_s": run.end_time_s,
+               "ended_by": run.ended_by,
+               "cars": {cid: summarize(r) for cid, r in result.cars.items()}}
+    try:
+        write_world_history(result.cars, out / HISTORY_FILE)
+        write_summary(summary, out / SUMMARY_FILE)
+        with open(out / XOSC_TRACE_FILE, "w") as f:
+            for entry in run.trace:
+                f.write(json.dumps(entry, default=float) + "\n")
+        written = [HISTORY_FILE, SUMMARY_FILE, XOSC_TRACE_FILE]
+        if not args.no_plots:
+            from simserver.adapters.plots import plot_comparison
+
+            written.append(plot_comparison(result.cars, out / "cars.png",
+                                           signals=("u_mps", "x_m", "y_m"),
+                                           title=f"{args.scenario.stem}: every car").name)
+    except OSError as exc:
+        raise CliError(f"{out}: cannot write the results: {exc.strerror or exc}") from exc
+    print(f"{args.scenario.name}: {len(result.cars)} cars, {run.end_time_s:.2f} s simulated "
+          f"({run.ended_by}) in {run.wall_time_s:.3g} s; wrote {out}/ ({', '.join(written)})")
+    bad = [cid for cid, s in summary["cars"].items() if not s["finite"]["all"]]
+    if bad:
+        print(f"error: {args.scenario}: car(s) {bad} went non-finite (NaN or inf)",
+              file=sys.stderr)
+        return 1
+    return 0
 
 
 def _run_world_scenario_command(args: argparse.Namespace, data: dict, out: Path) -> int:
@@ -457,6 +518,12 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
                         help="live Rerun view in its own process: serve[:PORT] (loopback "
                              "gRPC + web viewer), save:FILE.rrd, connect:URL, spawn, off "
                              "(default: the config's 'viewer')")
+    parser.add_argument("--stats-json", action="store_true",
+                        help="on the stop, also print the statistics as one JSON line "
+                             "('simserver: stopped {...}', for scripts) after the table")
+    parser.add_argument("--viewer-fps", type=float, default=None, metavar="HZ",
+                        help="frames the live view draws (and a save: recording keeps) per "
+                             "simulated second (default: the config's 'viewer_fps', 50)")
     parser.add_argument("--realtime", default=None, choices=("auto", "off"),
                         help="auto (default): SCHED_FIFO for the tick thread and zenoh's "
                              "threads where the OS allows it (root, CAP_SYS_NICE or an "
@@ -499,6 +566,7 @@ def _serve(args: argparse.Namespace) -> int:
         args.config or DEFAULT_SERVER_CONFIG, scene=args.scene, vehicle_id=args.vehicle_id,
         prefix=args.prefix, listen=args.listen, connect=args.connect,
         zenoh_config=args.zenoh_config, command_log=args.command_log, viewer=args.viewer,
+        viewer_fps=args.viewer_fps,
         realtime=args.realtime, rt_priority=args.rt_priority, rt_cpus=args.rt_cpus,
         rt_lock_memory=args.rt_lock_memory,
         ros2=args.ros2, tls_front=args.tls_front)
@@ -507,7 +575,7 @@ def _serve(args: argparse.Namespace) -> int:
     from simserver.server.app import DuplicateVehicleError
 
     try:
-        SimServer(cfg).run()
+        SimServer(cfg).run(stats_json=args.stats_json)
     except (ZenohConfigError, ZenohOpenError, DuplicateVehicleError, FrontError) as exc:
         raise CliError(str(exc), exit_code=2) from exc
     return 0
@@ -611,8 +679,9 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
                              "machine the viewer may get no CPU for seconds)")
     parser.add_argument("--vehicle-id", default="car0")
     parser.add_argument("--prefix", default="simserver")
-    parser.add_argument("--fps", type=float, default=50.0,
-                        help="frames drawn per simulated second (default 50)")
+    parser.add_argument("--fps", type=float, default=None,
+                        help="frames drawn per simulated second (default 50; a save: "
+                             "recording grows with it, docs/clients.md section 5b)")
     parser.add_argument("--web-port", type=int, default=None, metavar="PORT",
                         help="serve: also host Rerun's web viewer on PORT (rerun-sdk 0.41 "
                              "binds it to all interfaces; off by default)")
@@ -629,7 +698,7 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
 def view_command(args: argparse.Namespace) -> int:
     """``simserver view``: the live Rerun scene of a running server (its own process)."""
     from simserver.adapters.rerun_sink import RerunSinkError
-    from simserver.adapters.viewer import DEFAULT_WAIT_S, ServerWaitError, run_viewer
+    from simserver.adapters.viewer import DEFAULT_FPS, DEFAULT_WAIT_S, ServerWaitError, run_viewer
     from simserver.adapters.zenoh_io import ZenohConfigError
 
     # a --zenoh-config keeps its own endpoints (a TLS client's server name) unless
@@ -639,8 +708,12 @@ def view_command(args: argparse.Namespace) -> int:
     if not wait_s >= 0:
         raise CliError(f"--wait {args.wait:g}: expected a number of seconds >= 0",
                        exit_code=2)
+    fps = DEFAULT_FPS if args.fps is None else args.fps
+    if not 0.1 <= fps <= 1000.0:
+        raise CliError(f"--fps {args.fps:g}: expected frames per simulated second from 0.1 "
+                       "to 1000", exit_code=2)
     try:
-        stats = run_viewer(args.sink, connect, args.prefix, args.vehicle_id, args.fps,
+        stats = run_viewer(args.sink, connect, args.prefix, args.vehicle_id, fps,
                            duration_s=args.duration, config_file=args.zenoh_config,
                            web_port=args.web_port, check_listener=not args.no_listener_check,
                            idle_priority=not args.normal_priority, wait_s=wait_s)
@@ -669,6 +742,28 @@ def tls_front_command(args: argparse.Namespace) -> int:
         return tls_front.main(args)
     except (ValueError, OSError) as exc:
         raise CliError(f"tls-front: {exc}", exit_code=2) from exc
+
+
+def _add_router_arguments(parser: argparse.ArgumentParser) -> None:
+    from simserver.adapters import router
+
+    router.add_arguments(parser)
+
+
+def router_command(args: argparse.Namespace) -> int:
+    """``simserver router``: a zenoh router with the project's safe defaults."""
+    from simserver.adapters import router
+    from simserver.adapters.tls_front import FrontError
+    from simserver.adapters.zenoh_io import ZenohConfigError, ZenohOpenError
+
+    if args.duration is not None and not args.duration >= 0:
+        raise CliError(f"--duration {args.duration:g}: expected seconds >= 0", exit_code=2)
+    try:
+        return router.main(args)
+    except ZenohConfigError as exc:
+        raise CliError(f"zenoh configuration: {exc}", exit_code=2) from exc
+    except (ZenohOpenError, FrontError) as exc:
+        raise CliError(str(exc), exit_code=2) from exc
 
 
 SUBCOMMANDS: dict[str, Subcommand] = {
@@ -738,6 +833,18 @@ SUBCOMMANDS: dict[str, Subcommand] = {
                     "the start of a TLS ClientHello; silent, closed or non-TLS connections "
                     "never reach zenoh (whose TLS listener pauses 100 ms after each failed "
                     "handshake). 'simserver serve' starts one per tls/ endpoint itself.",
+    ),
+    "router": Subcommand(
+        help="a zenoh router for servers on several machines (loopback by default)",
+        add_arguments=_add_router_arguments,
+        run=router_command,
+        description="Run a zenoh router (this Python process, mode router) until "
+                    "SIGINT/SIGTERM: servers and clients on several machines meet here. "
+                    "Safe defaults as the server's: explicit endpoints only (listen on "
+                    "tcp/127.0.0.1:7447 unless told), multicast scouting and gossip off, "
+                    "shared memory off; a --zenoh-config file (TLS, user/password, "
+                    "access control) is used as it is; every tls/ listener gets the TLS "
+                    "front (docs/security.md 5.1).",
     ),
 }
 """Every subcommand, by name, in ``--help`` order."""

@@ -6,14 +6,13 @@ import os
 import re
 import shlex
 import signal
-import socket
 import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from simserver.testing import CONFIGS, REPO, ServerProcess
+from simserver.testing import CONFIGS, REPO, ServerProcess, free_port
 
 SAMPLE_TIR = CONFIGS / "tires" / "data" / "mf61_225_50R17_sample.tir"
 """The MF 6.1 sample property file, as shipped with the repository (the one the
@@ -89,20 +88,37 @@ def readme_main_job() -> str:
     return first.split("&&")[-1].strip()
 
 
+README_ENDPOINT = "tcp/127.0.0.1:7447"
+"""The README's zenoh endpoint: the server's default listen and the clients' default
+connect. The README's commands run in tests with it moved to a free loopback port (and
+the live view's gRPC port with it), so the README's test command passes while the
+README's own server holds 7447 (as a newcomer leaves it running); the defaults themselves
+are checked apart (``test_readme_commands.py::test_readme_defaults_are_one_endpoint``)."""
+
+
+def readme_on(endpoint: str, text: str) -> str:
+    """``text`` (a README command or its Python snippet) with the README's endpoint moved to
+    ``endpoint``; a text that names none is returned as it is."""
+    return text.replace(README_ENDPOINT, endpoint)
+
+
+def readme_client(command: str, server: ServerProcess) -> list[str]:
+    """argv of a README client command run against ``server`` (``readme_server``): as
+    written, plus ``--connect`` to the server's endpoint in place of the default one."""
+    return [*as_written(command), "--connect", server.endpoint]
+
+
 @pytest.fixture(scope="module")
 def readme_server() -> Iterator[ServerProcess]:
-    """The README's main job as written, on its default endpoint (tcp/127.0.0.1:7447);
-    at the end it must stop cleanly on SIGINT with its final statistics.
-
-    The README's commands use the default port: if something else holds it, the tests of
-    those commands cannot run, and that is a failure to fix (stop the other server), not
-    a reason to skip them."""
-    with socket.socket() as probe:
-        if probe.connect_ex(("127.0.0.1", 7447)) == 0:
-            pytest.fail("something already listens on 127.0.0.1:7447, the README's default "
-                        "endpoint: stop it (another simserver?) to run the README's commands",
-                        pytrace=False)
-    server = ServerProcess(argv=as_written(readme_main_job()), listen=["tcp/127.0.0.1:7447"])
+    """The README's main job as written, with the default config, except its two ports:
+    zenoh listens on a free loopback port instead of 7447 and the live view serves on a
+    free port instead of 9876 (``--listen``, ``--viewer serve:PORT``), so it runs beside a
+    server the README started. At the end it must stop cleanly on SIGINT with its final
+    statistics."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    argv = [*as_written(readme_main_job()), "--listen", endpoint,
+            "--viewer", f"serve:{free_port()}"]
+    server = ServerProcess(argv=argv, listen=[endpoint])
     try:
         assert "ready on simserver/car0" in server.ready_line, server.ready_line
         yield server

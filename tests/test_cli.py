@@ -76,6 +76,8 @@ def test_parquet_columns_match_the_layout(two_runs):
     cols = read_history(two_runs[0] / "a" / "history.parquet")
     expected = {"time_s", *L.OUTPUT_NAMES, *("input_" + n for n in L.INPUT_NAMES)}
     expected |= {n for n in L.STATE_NAMES if not n.startswith("hub_u_prev_")}
+    expected |= {"world_x_m", "world_y_m", "world_z_m", "world_yaw_rad", "world_pitch_rad",
+                 "world_roll_rad"}  # the world pose of each row
     assert set(cols) == expected
     assert cols["time_s"][0] == 0.0 and cols["time_s"].size == 2500
     assert all(arr.dtype == np.float64 for arr in cols.values())

@@ -22,6 +22,7 @@ import importlib.util
 import math
 import os
 import pty
+import re
 import signal
 import struct
 import subprocess
@@ -190,15 +191,22 @@ def test_clients_import_only_the_protocol_and_the_zenoh_adapter():
     """The clients prove the contract: no server, core or physics imports."""
     allowed = {"simserver", "simserver.wire.protocol", "simserver.adapters.zenoh_io",
                "simserver.sim.keyframes",  # the player reads the scenario file format only
-               "simserver.adapters.validate"}  # (core-free: tests/test_keyframes.py)
+               "simserver.adapters.validate",  # (core-free: tests/test_keyframes.py)
+               # the driver's road line reads the road file the server names, with the
+               # server's own reader and projection (file readers: no core, no server)
+               "simserver.adapters.opendrive", "simserver.adapters.road_position"}
     users: dict[str, set[str]] = {}
     for path in sorted((REPO / "clients").glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Import):
                 names = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom) and node.module:
-                names = [f"{node.module}.{a.name}" for a in node.names] \
-                    if node.module == "simserver" else [node.module]
+                # ``from simserver.wire import protocol`` imports the module
+                # simserver.wire.protocol; ``from simserver.wire.protocol import X`` that
+                # module too
+                names = [f"{node.module}.{a.name}"
+                         if (REPO / (node.module.replace(".", "/") + f"/{a.name}.py")).exists()
+                         else node.module for a in node.names]
             else:
                 continue
             for name in names:
@@ -206,6 +214,11 @@ def test_clients_import_only_the_protocol_and_the_zenoh_adapter():
                     assert name in allowed, f"{path.name} imports {name}"
                     users.setdefault(name, set()).add(path.name)
     assert users["simserver.sim.keyframes"] == {"player.py"}
+    assert users["simserver.adapters.opendrive"] == {"road_view.py"}
+    for module in ("opendrive", "road_position"):  # the road readers stay core-free
+        text = (REPO / "simserver" / "adapters" / f"{module}.py").read_text()
+        assert not re.search(r"^\s*(from|import) simserver\.(core|server|sim)\b", text, re.M), \
+            module
 
 
 # ============================================================================ keyboard
@@ -439,8 +452,8 @@ def test_recorder_road_frame_inverts_the_servers_world_pose():
 def test_recorder_columns_are_the_headless_history_names_and_every_state_field():
     """History-named columns are history columns with the history's units (time_s and
     the road-frame pose first), no state-only column takes a history name, and every
-    field of the state is recorded: under its history name where it has one, the world
-    pose as world_*, the others under their own names."""
+    field of the state is recorded: under its history name where it has one (the world
+    pose as world_*), the others under their own names."""
     from simserver.adapters.history import HISTORY_COLUMNS, column_unit
 
     names = [c.name for c in recorder.HISTORY_NAMED]
@@ -450,8 +463,8 @@ def test_recorder_columns_are_the_headless_history_names_and_every_state_field()
         assert c.unit == column_unit(c.name), c.name
         assert c.arrow_type == pa.float64(), c.name
     assert not {c.name for c in recorder.STATE_ONLY} & set(HISTORY_COLUMNS)
-    assert {"tick", "flags", "cmd_age_s", "world_x_m", "world_yaw_rad"} <= \
-        {c.name for c in recorder.STATE_ONLY}
+    assert {"tick", "flags", "cmd_age_s"} <= {c.name for c in recorder.STATE_ONLY}
+    assert {"world_x_m", "world_z_m", "world_yaw_rad"} <= set(names)  # as the history
     recorded = {c.name for c in recorder.COLUMNS}
     assert len(recorded) == len(recorder.COLUMNS)
     for f in proto.STATE_FIELDS:
@@ -460,8 +473,6 @@ def test_recorder_columns_are_the_headless_history_names_and_every_state_field()
         if f.history is not None:
             want = [f.history.format(w=w) for w in recorder.WHEELS] if f.count > 1 \
                 else [f.history]
-        elif f.source.startswith("pose:"):
-            want = [f"world_{f.name}"]
         else:
             want = [f"{f.name}_{w}" for w in recorder.WHEELS] if f.count > 1 else [f.name]
         assert set(want) <= recorded, (f.name, want)
@@ -949,3 +960,32 @@ def test_keyboard_driver_rearms_its_hold_and_names_the_new_car_after_a_load_by_a
     # held by the driver's re-armed hold: without it the car rolled back at once
     assert float(later["brake"]) >= 0.99
     assert abs(float(later["u_mps"])) < 0.01
+
+
+def test_keyboard_driver_shows_road_lane_s_and_edge_on_an_opendrive_road():
+    """On an OpenDRIVE scene the driver's screen has a road line (issue 32): road, lane,
+    s and the distance to the road's edge, on or off the road, from the road file the
+    server names (clients.road_view). The crest scene starts on lane -1 at s = 270 m
+    (lane -1 is 3.2 m wide and the right border lane 30 m: 31.60 m from the right edge);
+    a reset to a pose 40 m right of the straight's reference line (x = 50 m) puts the car
+    6.80 m beyond the road's right edge, a reset to lane 1 at s = 50 m back on it, 34.80 m
+    from the nearer (right) edge."""
+    server = ServerProcess(vehicle_id="road", scene="crest_curve_paper_sedan")
+    watcher = Client(server)
+    drv = PtyProcess(client_command("driver", "--rate", "200", *server.client_args()))
+    try:
+        drv.wait_for("road    road 0  lane -1 (driving)  s   270.0 m  t  -1.60 m  ON the "
+                     "road, 31.60 m from its edge", 60)
+        assert watcher.request("reset", {"pose": {"x_m": 50.0, "y_m": -40.0,
+                                                  "yaw_rad": 0.0}})["ok"]
+        drv.wait_for("lane -2 (border)  s    50.0 m  t -40.00 m  OFF the road, 6.80 m "
+                     "beyond its edge", 20)
+        assert watcher.request("reset", {"lane": {"road": "0", "s": 50.0, "lane": 1}})["ok"]
+        drv.wait_for("lane 1 (driving)  s    50.0 m  t  +1.60 m  ON the road, 34.80 m from "
+                     "its edge", 20)
+        drv.send(b"q")
+        assert drv.wait(15) == 0, drv.text()
+    finally:
+        drv.close()
+        watcher.close()
+        server.stop()

@@ -46,8 +46,12 @@ def test_columns_come_from_the_layout():
         + [n for n in L.STATE_NAMES if n != "time_s" and not n.startswith("hub_u_prev_")]
         + list(L.OUTPUT_NAMES)
         + ["input_" + n for n in L.INPUT_NAMES]
+        + ["world_x_m", "world_y_m", "world_z_m", "world_yaw_rad", "world_pitch_rad",
+           "world_roll_rad"]
     )
     assert list(H.HISTORY_COLUMNS) == expected
+    assert [slot for _, slot in H.POSE_COLUMNS] == [
+        L.POSE_X_M, L.POSE_Y_M, L.POSE_Z_M, L.POSE_YAW_RAD, L.POSE_PITCH_RAD, L.POSE_ROLL_RAD]
     assert len(set(expected)) == len(expected)
 
 

@@ -12,6 +12,8 @@ module below both (``simserver.sim.scene``, ``simserver.server.config``,
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 from simserver.testing import REPO
@@ -150,3 +152,12 @@ def test_a_cycle_through_a_lazy_or_type_only_import_is_found(tmp_path):
     _write(tmp_path, {"pkg/sub/inner.py": "import pkg.back\n"})  # inner -> back -> user -> inner
     assert ["pkg.back", "pkg.user", "pkg.sub", "pkg.sub.inner", "pkg.back"] in \
         import_cycles(import_graph(tmp_path, "pkg"))
+
+
+def test_the_readme_rooms_table_is_the_package():
+    """README.md's rooms table is what docs/rooms.py makes of the package now (every room
+    placed, its modules as on disk, its text from its docstring)."""
+    proc = subprocess.run([sys.executable, str(REPO / "docs" / "rooms.py"), "--check",
+                           str(REPO / "README.md")], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr

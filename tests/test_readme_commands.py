@@ -1,10 +1,13 @@
 """Every command the README gives, run as written, or named here with why it is not.
 
 One server runs the README's main job as written (``readme_server`` of conftest: the
-default loopback endpoint ``tcp/127.0.0.1:7447``, the default config); the README's client
-commands and its Python driver then run against it, word for word, with ``.venv/bin/``
-meaning the environment running these tests and relative output paths landing in a
-temporary directory. ``test_every_readme_command_is_accounted_for`` fails when the README
+default config), its endpoint moved from the README's ``tcp/127.0.0.1:7447`` to a free
+loopback port so that the tests pass while the README's own server runs; the README's
+client commands and its Python driver then run against it, word for word but for that
+endpoint (``--connect``, or the snippet's endpoint string), with ``.venv/bin/`` meaning the
+environment running these tests and relative output paths landing in a temporary
+directory. ``test_readme_defaults_are_one_endpoint`` checks that, as written, they all
+meet on the README's endpoint. ``test_every_readme_command_is_accounted_for`` fails when the README
 gains a command that is neither run here nor listed in ``NOT_RUN_HERE``.
 """
 
@@ -20,7 +23,14 @@ import pyarrow.parquet as pq
 import pytest
 
 from simserver.testing import Client, OutputProcess, client_env, wait_until
-from tests.conftest import REPO, as_written, readme_without_performance_block
+from tests.conftest import (
+    README_ENDPOINT,
+    REPO,
+    as_written,
+    readme_client,
+    readme_on,
+    readme_without_performance_block,
+)
 from tests.test_clients import PtyProcess, hold_until
 
 README = (REPO / "README.md").read_text()
@@ -49,6 +59,9 @@ RUN_ELSEWHERE = {
     ".venv/bin/simserver run-scenario configs/scenarios/iso7401_step_steer.yaml --out "
     "out/iso7401": "test_manoeuvres.py::test_one_command_writes_the_figures_and_the_report "
                    "(into a temporary folder)",
+    "simserver router --listen tcp/127.0.0.1:7450 --connect tcp/127.0.0.1:7447 --connect "
+    "tcp/127.0.0.1:7448": "test_router.py runs it joining two servers (on free ports, not "
+                          "these fixed ones)",
 }
 
 NOT_RUN_HERE = {
@@ -86,6 +99,8 @@ NOT_RUN_HERE = {
     "python -m benchmarks.bench_sweep": "the same",
     "python benchmarks/bench_tire.py": "the same",
     "python docs/figures.py": "regenerates the README's figures (minutes)",
+    "python docs/rooms.py --write README.md": "rewrites the README's rooms table: "
+                                              "test_import_cycles.py runs its --check",
 }
 
 
@@ -119,16 +134,41 @@ def python_driver_snippet() -> str:
     return snippet
 
 
+def test_readme_defaults_are_one_endpoint():
+    """The commands above run on a moved endpoint; as written, with nothing running here,
+    they meet on the README's: the server's default listen (the default config as ``serve``
+    reads it), every client's default connect (their own parsers, no flags), the Python
+    driver's endpoint, and the live view's default port that the README's ``rerun`` command
+    opens."""
+    from clients import driver, player, recorder
+    from clients.common import endpoints_text
+    from simserver.adapters.rerun_sink import DEFAULT_GRPC_PORT
+    from simserver.server.config import DEFAULT_SERVER_CONFIG, load_server_config
+
+    assert f"`{README_ENDPOINT}`" in README
+    cfg = load_server_config(DEFAULT_SERVER_CONFIG)
+    assert cfg.listen == [README_ENDPOINT]
+    required = {player: ["x.yaml"], recorder: ["--out", "x"]}  # parsed, never opened
+    for client in (driver, player, recorder):
+        args = client.build_parser().parse_args(required.get(client, []))
+        assert endpoints_text(args) == README_ENDPOINT, client.__name__
+    assert python_driver_snippet().count(f'"{README_ENDPOINT}"') == 1
+    assert cfg.viewer == "serve"
+    assert f"rerun rerun+http://127.0.0.1:{DEFAULT_GRPC_PORT}/proxy" in README
+
+
 def test_recorder_and_python_driver_as_written(readme_server, tmp_path):
     """The recorder records while the README's Python driver drives (10 s at throttle 0.3):
     the file holds the car speeding up; Ctrl-C closes it."""
     watcher = Client(readme_server, state_capacity=1 << 15, keep_history=True)
     assert watcher.ep.request("reset")["ok"]
-    recorder = OutputProcess(as_written(".venv/bin/simserver-recorder --out out/live"),
+    recorder = OutputProcess(readme_client(".venv/bin/simserver-recorder --out out/live",
+                                           readme_server),
                              ready="recording simserver/car0", env=client_env(), cwd=tmp_path)
     try:
         assert recorder.wait_ready(60), recorder.text()
-        driver = subprocess.run([sys.executable, "-c", python_driver_snippet()], cwd=REPO,
+        snippet = readme_on(readme_server.endpoint, python_driver_snippet())
+        driver = subprocess.run([sys.executable, "-c", snippet], cwd=REPO,
                                 capture_output=True, text=True, timeout=120)
         assert driver.returncode == 0, driver.stderr
     finally:
@@ -148,7 +188,7 @@ def test_recorder_and_python_driver_as_written(readme_server, tmp_path):
 
 def test_keyboard_driver_as_written(readme_server):
     watcher = Client(readme_server)
-    drv = PtyProcess(as_written(".venv/bin/simserver-driver"))
+    drv = PtyProcess(readme_client(".venv/bin/simserver-driver", readme_server))
     try:
         drv.wait_for("connected to simserver/car0", 30)
         drv.wait_for("health", 10)
@@ -167,8 +207,8 @@ def test_player_as_written(readme_server):
     Ctrl-C ends it cleanly."""
     watcher = Client(readme_server, state_capacity=1 << 15, keep_history=True)
     player = subprocess.Popen(
-        as_written(".venv/bin/simserver-player configs/scenarios/e5_hold_restart_uphill.yaml "
-                   "--load"), cwd=REPO, env=client_env(), stdout=subprocess.PIPE,
+        readme_client(".venv/bin/simserver-player configs/scenarios/e5_hold_restart_uphill.yaml "
+                      "--load", readme_server), cwd=REPO, env=client_env(), stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT, text=True)
     try:
         wait_until(lambda: watcher.request("get_config", timeout_s=2.0),

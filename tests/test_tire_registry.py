@@ -404,7 +404,8 @@ from pathlib import Path
 
 from simserver.adapters.config import load_tire
 from simserver.server.load_worker import ProcessPreparer, opened
-from simserver.tires.registry import PLUGINS, tire_model
+from simserver.tires import PLUGINS
+from simserver.tires.registry import tire_model
 
 if __name__ == "__main__":
     here = tire_model("plugged").id

@@ -397,8 +397,8 @@ def config_reference_markdown() -> str:
     lines += _param_rows(P.AUTOMATIC, with_default=False)
     lines += ["", "## Tire files", "",
               f"`model`: one of {', '.join(f'`{m.name}`' for m in tire_models())}; the "
-              "other keys are the model's (from its parameter table in "
-              "`simserver/tires/registry.py`). A default in words is computed by the loader "
+              "other keys are the model's (from its parameter table, in its module of "
+              "`simserver/tires/`). A default in words is computed by the loader "
               "when the key is absent. Wherever a tire file is named (a vehicle's `tires:`, "
               "`simserver tire-curves`), an MF-Tyre `.tir` file may be named instead: it is "
               "read as `model: mf61` with `tir_file` itself and every default.",

@@ -12,7 +12,13 @@
       state);
     - every name of ``INPUT_NAMES`` prefixed with ``input_`` (the driver inputs applied
       over the step that starts at the row's time; ``input_gear`` holds the code of
-      ``core.layout.GEAR_NAMES``: 0 P, 1 R, 2 N, 3 D).
+      ``core.layout.GEAR_NAMES``: 0 P, 1 R, 2 N, 3 D);
+    - the world pose of each row's state, ``world_`` and the names of ``core.layout``'s
+      ``POSE_*`` slots (``world_x_m``, ``world_y_m``, ``world_z_m``, ``world_yaw_rad``,
+      ``world_pitch_rad``, ``world_roll_rad``): what the server publishes as the state's
+      pose (``simulation.pose_of``). The states' ``x_m``, ``y_m`` are on the road plane,
+      and on a terrain on the reference plane under the wheels, which moves from row to
+      row; ``world_*`` place the car on the terrain (its files' axes, z up).
 
     Units are carried in the names (``_m``, ``_mps``, ``_n``, ...; no suffix means
     dimensionless) and, with a description, in each Arrow field's metadata (keys
@@ -46,6 +52,7 @@ if TYPE_CHECKING:  # scenario imports the compiled core; keep this module light 
 HISTORY_FILE = "history.parquet"
 SUMMARY_FILE = "summary.json"
 INPUT_PREFIX = "input_"
+WORLD_PREFIX = "world_"
 SKIPPED_STATE_PREFIXES = ("hub_u_prev_",)
 """State slots left out of the history (internal bookkeeping, see the module docstring)."""
 
@@ -147,6 +154,14 @@ _DESCRIPTIONS: dict[str, str] = {
     "input_brake": "driver brake pedal [0, 1]",
     "input_parking_brake": "parking brake (0 or 1)",
     "input_gear": "gear code: 0 P, 1 R, 2 N, 3 D",
+    # --- world pose
+    "world_x_m": "CG position along world x (z up; a terrain's own axes)",
+    "world_y_m": "CG position along world y",
+    "world_z_m": "CG height along world z (up)",
+    "world_yaw_rad": "heading from world x toward world y, continuous (not wrapped)",
+    "world_pitch_rad": "body pitch in world axes, nose down + (R = Rz(yaw) Ry(pitch) "
+                       "Rx(roll))",
+    "world_roll_rad": "body roll in world axes, left side up +",
 }
 
 
@@ -161,11 +176,17 @@ def _state_columns() -> tuple[tuple[str, int], ...]:
 STATE_COLUMNS = _state_columns()
 """(column name, state index) of the states written to the history."""
 
+POSE_COLUMNS: tuple[tuple[str, int], ...] = tuple(sorted(
+    ((WORLD_PREFIX + key.removeprefix("POSE_").lower(), slot)
+     for key, slot in vars(L).items() if key.startswith("POSE_")), key=lambda c: c[1]))
+"""(column name, ``core.layout`` pose slot) of the world pose's columns, in slot order."""
+
 HISTORY_COLUMNS: tuple[str, ...] = (
     ("time_s",)
     + tuple(name for name, _ in STATE_COLUMNS)
     + L.OUTPUT_NAMES
     + tuple(INPUT_PREFIX + name for name in L.INPUT_NAMES)
+    + tuple(name for name, _ in POSE_COLUMNS)
 )
 """Every column of ``history.parquet``, in file order."""
 
@@ -275,6 +296,9 @@ def result_columns(result: ScenarioResult) -> dict[str, np.ndarray]:
         cols[name] = result.outputs[:, idx]
     for idx, name in enumerate(L.INPUT_NAMES):
         cols[INPUT_PREFIX + name] = result.inputs[:, idx]
+    poses = result.poses
+    for name, slot in POSE_COLUMNS:
+        cols[name] = poses[:, slot]
     return {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in cols.items()}
 
 

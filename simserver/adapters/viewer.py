@@ -59,6 +59,10 @@ from simserver.wire.state_schema import record_to_pose, record_to_rows
 
 ROAD_POLL_S = 1.0
 
+DEFAULT_FPS = 50.0
+"""Frames the viewer draws per simulated second (``simserver view --fps``, the server's
+``viewer_fps``): what a ``save:`` recording grows with (docs/clients.md section 5b)."""
+
 DEFAULT_WAIT_S = 60.0
 """How long ``simserver view`` waits for its server's first ``get_config`` reply
 (``--wait``). On a busy machine the viewer runs at idle priority (``lower_priority``) and
@@ -165,6 +169,7 @@ def wait_for_config(ep: Any, where: str, wait_s: float, say: Any = None,
     backoff_s = RETRY_FIRST_S
     attempts = 0
     token_seen = False
+    diagnosis: str | None = None  # what the server wants that this client lacks
     while True:
         attempts += 1
         remaining = deadline - time.monotonic()
@@ -184,12 +189,19 @@ def wait_for_config(ep: Any, where: str, wait_s: float, say: Any = None,
             if not reply.get("ok"):
                 raise RuntimeError(f"get_config failed on {where}: {reply}")
             return reply["config"]
+        if not token_seen:
+            # a plain-TCP peer pointed at a TLS server opens its session and then reaches
+            # nobody: tell it what the server wants (issue 35); asked again each attempt
+            # (a server started meanwhile changes the answer)
+            diagnosis = _diagnose(ep)
         remaining = deadline - time.monotonic()
         if remaining <= 0:
             break
         pause_s = min(backoff_s, remaining)
         token_text = (f"the liveliness token {alive_key} is there: the server is up, busy?"
                       if token else f"no liveliness token on {alive_key} yet")
+        if diagnosis and not token:
+            token_text += f"; {diagnosis}"
         say(f"waiting for {where}: no reply to get_config yet ({token_text}), "
             f"retrying in {pause_s:.2g} s")
         time.sleep(pause_s)
@@ -199,6 +211,8 @@ def wait_for_config(ep: Any, where: str, wait_s: float, say: Any = None,
         why = (f"its liveliness token {alive_key} was seen, so the server is up but too "
                "busy to answer (a loaded machine: give it a longer --wait, or start the "
                "viewer with --normal-priority)")
+    elif diagnosis:
+        why = f"its liveliness token {alive_key} was never seen: {diagnosis}"
     else:
         why = (f"its liveliness token {alive_key} was never seen, so no server for this "
                "vehicle is reachable there: it is not started, stopped, or --connect, "
@@ -207,6 +221,17 @@ def wait_for_config(ep: Any, where: str, wait_s: float, say: Any = None,
     raise ServerWaitError(
         f"no reply to get_config from {where} after waiting {waited_s:.1f} s "
         f"({attempts} attempt(s), --wait {wait_s:g}): {why}")
+
+
+def _diagnose(ep: Any) -> str:
+    """What the server at the viewer's endpoints wants that its config lacks (TLS, the
+    CA, a client certificate, credentials), or "" (``zenoh_diagnose.explain_unreached``)."""
+    config = getattr(ep, "config", None)
+    if config is None:
+        return ""
+    from simserver.adapters.zenoh_diagnose import explain_unreached
+
+    return explain_unreached(config)
 
 
 @dataclass
@@ -321,7 +346,7 @@ def log_diagnostics_payload(rec_stream: Any, payload: bytes, period_s: float,
 
 
 def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
-               vehicle_id: str = "car0", fps: float = 50.0, queue: int = 2048,
+               vehicle_id: str = "car0", fps: float = DEFAULT_FPS, queue: int = 2048,
                duration_s: float | None = None, config_file: Path | None = None,
                web_port: int | None = None, check_listener: bool = True,
                idle_priority: bool = True, wait_s: float = DEFAULT_WAIT_S) -> ViewerStats:

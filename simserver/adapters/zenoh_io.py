@@ -46,7 +46,9 @@ from simserver.wire.protocol import (
     ENCODING_CONTROL,
     ENCODING_DIAGNOSTICS,
     ENCODING_STATE,
+    ENCODING_WORLD,
     STATE_DECIMATED_HZ,
+    WORLD_CONTROL_SPECS,
     ProtocolError,
     VehicleKeys,
     decode_reply,
@@ -55,6 +57,7 @@ from simserver.wire.protocol import (
     reply_ok,
     validate_control,
     vehicle_keys,
+    world_keys,
 )
 
 log = logging.getLogger("simserver.server")
@@ -206,6 +209,15 @@ def make_zenoh_config(
     _insert(cfg, "transport/link/tx/queue/congestion_control/drop/wait_before_drop",
             STATE_DROP_WAIT_US, origin)
     return cfg
+
+
+def effective_endpoints(zcfg: zenoh.Config, key: str = "listen/endpoints") -> list[str]:
+    """The endpoints a zenoh config really has (a list, or per mode for routers/peers)."""
+    value = json.loads(zcfg.get_json(key))
+    if isinstance(value, dict):
+        mode = json.loads(zcfg.get_json("mode")) or "peer"
+        value = value.get(mode, [])
+    return [str(v) for v in value or []]
 
 
 def config_warnings(cfg: zenoh.Config) -> list[str]:
@@ -804,10 +816,20 @@ class ZenohEndpoint:
     ) -> None:
         self.keys = vehicle_keys(prefix, vehicle)
         self._closeables: list[Any] = []
+        config = config if config is not None else make_zenoh_config()
+        self.config = config
+        """The session's config (a diagnosis of an unreached server reads it)."""
         try:
-            self.session = zenoh.open(config if config is not None else make_zenoh_config())
+            self.session = zenoh.open(config)
         except zenoh.ZError as exc:
-            raise ZenohOpenError(f"cannot open the zenoh session: {_clean(exc)}") from None
+            text = _clean(exc)
+            if "Unable to connect" in text:  # zenoh says the same whatever the cause:
+                # find what the server wants that this client lacks (issue 35)
+                from simserver.adapters.zenoh_diagnose import explain
+
+                why = explain(config)
+                text += f" ({why})" if why else ""
+            raise ZenohOpenError(f"cannot open the zenoh session: {text}") from None
         # sent with control requests: the server queues them per client (ControlInbox)
         self._client_id = str(self.session.zid()).encode()
 
@@ -910,6 +932,13 @@ class ZenohEndpoint:
             decimate_every=round(states_per_s / STATE_DECIMATED_HZ),
             sender_thread=sender_thread, inline_while_cheap=inline_while_cheap))
 
+    def declare_world_publisher(self, prefix: str | None = None) -> zenoh.Publisher:
+        """Publisher on the world message ``{prefix}/world/state``: DATA priority,
+        batched, DROP (the loop never waits for a reader, as for the diagnostics)."""
+        key = world_keys(prefix or self.keys.prefix).state
+        return self._publisher(key, ENCODING_WORLD, zenoh.Priority.DATA, False,
+                               zenoh.CongestionControl.DROP)
+
     def declare_control_inbox(self, per_client: int = 16, keys: VehicleKeys | None = None,
                               validate: bool = True) -> ControlInbox:
         """Queryable serving every ``ctl/*`` key, ``per_client`` requests queued per client
@@ -939,6 +968,10 @@ class ZenohEndpoint:
         key = self.keys.state_decimated if decimated else self.keys.state
         return self._keep(Inbox(self.session, key, capacity))
 
+    def declare_inbox(self, key: str, capacity: int = 16) -> Inbox:
+        """Subscriber on any key (``{prefix}/world/state``, ...) with a ring of ``capacity``."""
+        return self._keep(Inbox(self.session, key, capacity))
+
     def declare_diag_inbox(self, capacity: int = 64) -> Inbox:
         """Subscriber on ``diag`` with a ring of ``capacity``."""
         return self._keep(Inbox(self.session, self.keys.diag, capacity))
@@ -951,6 +984,15 @@ class ZenohEndpoint:
         """Keys of the liveliness tokens present now (this vehicle's, or matching ``key``)."""
         replies = self.session.liveliness().get(key or self.keys.alive, timeout=timeout_s)
         return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+    def request_world(self, name: str, args: dict[str, Any] | None = None, *,
+                      payload: bytes | None = None, timeout_s: float = 10.0) -> dict[str, Any]:
+        """A world control (``{prefix}/world/ctl/{name}``: ``add_car``, ``remove_car``,
+        ``get_config``) of this endpoint's prefix, as :meth:`request`."""
+        keys = world_keys(self.keys.prefix)
+        body = payload if payload is not None else encode_control(name, args,
+                                                                  WORLD_CONTROL_SPECS)
+        return self._query(keys.control(name), body, timeout_s)
 
     def request(
         self,
@@ -987,6 +1029,10 @@ class ZenohEndpoint:
         """
         key = self.keys.control(name)
         body = payload if payload is not None else encode_control(name, args)
+        return self._query(key, body, timeout_s)
+
+    def _query(self, key: str, body: bytes, timeout_s: float) -> dict[str, Any]:
+        """A control query on ``key`` and its decoded reply (:meth:`request`)."""
         replies = self.session.get(
             key, payload=body, encoding=zenoh.Encoding(ENCODING_CONTROL), timeout=timeout_s,
             attachment=self._client_id,

@@ -29,6 +29,7 @@ from typing import Any
 
 from simserver.ros2 import cli as ros2_cli
 from simserver.ros2.supervisor import AdapterSupervisor
+from simserver.server import cars_config, fleet
 from simserver.server.command_log import CommandLog
 from simserver.server.config import ServerConfig
 from simserver.server.load_worker import ProcessPreparer
@@ -36,6 +37,8 @@ from simserver.server.logfile import renew_log_thread
 from simserver.server.loop import ServerLoop, SlotPorts
 from simserver.server.realtime import RealtimeScheduler, TickTrace, process_threads
 from simserver.server.slot import VehicleSlot
+from simserver.server.stats_text import stop_text
+from simserver.server.world_desk import WorldDesk
 from simserver.sim.scene import Scene, load_scene
 from simserver.sim.simulation import Simulation
 from simserver.wire import protocol as proto
@@ -106,15 +109,6 @@ class CompileProgress:
             self._print(f"simserver: compiled in {time.perf_counter() - self._t0:.1f} s")
 
 
-def effective_endpoints(zcfg: Any, key: str = "listen/endpoints") -> list[str]:
-    """The endpoints a zenoh config really has (a list, or per mode for routers/peers)."""
-    value = json.loads(zcfg.get_json(key))
-    if isinstance(value, dict):
-        mode = json.loads(zcfg.get_json("mode")) or "peer"
-        value = value.get(mode, [])
-    return [str(v) for v in value or []]
-
-
 def loopback_of(endpoint: str) -> str:
     """An endpoint a local client can connect to (``0.0.0.0``/``[::]`` -> loopback)."""
     return endpoint.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
@@ -133,8 +127,10 @@ class SimServer:
     def __init__(self, cfg: ServerConfig) -> None:
         self.cfg = cfg
         with CompileProgress():
-            self.slots = [VehicleSlot(cfg, new_simulation(load_scene(cfg.scene),
-                                                          cfg.period_s))]
+            # one car, or the cars of cfg.cars in one world (checked: ConfigError naming
+            # the file and the car before anything runs)
+            self.cars = fleet.make_cars(cfg, load_scene(cfg.scene))
+            self.slots: list[VehicleSlot] = [car.slot for car in self.cars]
             for slot in self.slots:
                 slot.warm_up()
         self.preparer = ProcessPreparer()
@@ -146,6 +142,9 @@ class SimServer:
         self.viewer_command: str | None = None
         self._viewer_reported = False
         self._alive_watches: list[Any] = []
+        self._tokens: dict[str, Any] = {}  # each car's liveliness token, by id
+        self._new_logs: dict[str, CommandLog] = {}  # of cars being added, by id
+        self._removed_slots: list[VehicleSlot] = []
         self._zid = ""
         self.fronts: Any = None  # the TLS fronts (simserver.adapters.tls_front), if any
 
@@ -158,15 +157,21 @@ class SimServer:
         """Ask the loop to finish (signal handler)."""
         self.loop.stop()
 
-    def run(self) -> dict[str, Any]:
-        """Serve until stopped; returns the final statistics.
+    def run(self, stats_json: bool = False) -> dict[str, Any]:
+        """Serve until stopped; returns the final statistics, printed as a few lines
+        (``server.stats_text``) and, with ``stats_json``, as the JSON line
+        ``simserver: stopped {...}`` too.
 
         Raises
         ------
         DuplicateVehicleError
             When the vehicle's liveliness token already exists on the network.
         """
-        from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
+        from simserver.adapters.zenoh_io import (
+            ZenohEndpoint,
+            effective_endpoints,
+            make_zenoh_config,
+        )
 
         cfg = self.cfg
         t_compile = time.perf_counter()
@@ -198,22 +203,28 @@ class SimServer:
                 self._zid = str(ep.session.zid())
                 for slot in self.slots:
                     self._claim_vehicle(ep, slot)
-                for slot in self.slots:
+                for car in self.cars:
+                    slot = car.slot
                     if slot.cfg.command_log is not None:
                         slot.command_log = CommandLog(slot.cfg.command_log, {
                             "scene": str(slot.scene_path), "dt_s": cfg.period_s, "step": 0})
+                        if car.spec is not None:  # its vehicle and start (a replay's)
+                            fleet.log_start(slot, car.spec)
                 for slot in self.slots:
-                    keys = slot.keys
-                    commands = ep.declare_command_inbox(capacity=proto.COMMAND_RING_SLOTS,
-                                                        keys=keys)
-                    # puts in the tick while they are cheap, else off the tick thread
-                    publisher = ep.declare_vehicle_publisher(
-                        keys=keys, states_per_s=1.0 / (cfg.period_s * cfg.state_every),
-                        sender_thread=True, inline_while_cheap=True)
-                    controls = ep.declare_control_inbox(keys=keys, validate=False)
-                    loop.add(slot, SlotPorts(commands, controls, publisher))
+                    loop.add(slot, self._ports(ep, slot.keys))
+                # every car's id, pose and speed at world_hz (docs/protocol.md 5.1), and
+                # the world's controls: cars added and removed while it runs
+                loop.world_message = fleet.world_message_for(self.cars, cfg)
+                loop.publish_world = ep.declare_world_publisher(cfg.prefix).put
+                loop.world_desk = WorldDesk(
+                    loop, cfg, ep.declare_control_inbox(keys=proto.world_keys(cfg.prefix),
+                                                        validate=False),
+                    lambda car_cfg: self._added_ports(ep, car_cfg), self._removed,
+                    on_added=self._added)
                 first = self.slots[0]
-                log.info("serving %s (vehicle %s) every %.3f ms; compiled in %.2f s",
+                # the kernels compiled (if at all) in __init__, which said so
+                # (CompileProgress); here they load from the cache
+                log.info("serving %s (vehicle %s) every %.3f ms; kernels ready in %.2f s",
                          first.keys.base, first.sim.scene.vehicle.name,
                          1e3 * cfg.period_s, compile_s)
                 summary = self.scheduler.apply()
@@ -225,7 +236,9 @@ class SimServer:
                 loop.every_second.append(self._housekeeping)
                 where = f"listen {', '.join(listen)}" if listen else \
                     f"connect {', '.join(effective_endpoints(zcfg, 'connect/endpoints'))}"
-                print(f"simserver: ready on {first.keys.base} ({where})", flush=True)
+                cars = "" if len(self.slots) == 1 else \
+                    f", {len(self.slots)} cars: {', '.join(s.keys.vehicle for s in self.slots)}"
+                print(f"simserver: ready on {first.keys.base} ({where}){cars}", flush=True)
                 self.viewer = self._start_viewer(listen)
                 ros2 = self._start_ros2(listen)
                 loop.run()
@@ -238,17 +251,66 @@ class SimServer:
             if ros2 is not None:
                 ros2.stop(self._stop_viewer)
             self.preparer.close()
+            if loop.world_desk is not None:
+                loop.world_desk.close()
             self.scheduler.release()
-            for slot in self.slots:
+            served = [s for s, _ in loop.slots] or self.slots  # cars added and removed
+            for slot in served:
                 if slot.command_log is not None:
                     slot.command_log.close(slot.steps_total, slot.sim.x)
         final = loop.final_stats()
-        cuts = [s.command_log.cut for s in self.slots
+        cuts = [s.command_log.cut for s in (*served, *self._removed_slots)
                 if s.command_log is not None and s.command_log.cut is not None]
         if cuts:  # the live run went on without its log (docs/reliability.md)
             final["command_log_cut"] = cuts[0]
-        print("simserver: stopped " + json.dumps(final), flush=True)
+        print(stop_text(final), flush=True)
+        if stats_json:
+            print("simserver: stopped " + json.dumps(final), flush=True)
         return final
+
+    def _ports(self, ep: Any, keys: proto.VehicleKeys) -> SlotPorts:
+        """A car's transport: its command inbox, publisher and control queryable."""
+        cfg = self.cfg
+        commands = ep.declare_command_inbox(capacity=proto.COMMAND_RING_SLOTS, keys=keys)
+        # puts in the tick while they are cheap, else off the tick thread
+        publisher = ep.declare_vehicle_publisher(
+            keys=keys, states_per_s=1.0 / (cfg.period_s * cfg.state_every),
+            sender_thread=True, inline_while_cheap=True)
+        controls = ep.declare_control_inbox(keys=keys, validate=False)
+        return SlotPorts(commands, controls, publisher)
+
+    def _added_ports(self, ep: Any, car_cfg: ServerConfig) -> SlotPorts:
+        """A car added while running (``world_desk``, in its thread): its id claimed on the
+        network, its transport, its command log; its liveliness token last (clients find
+        it once it is served)."""
+        keys = proto.vehicle_keys(car_cfg.prefix, car_cfg.vehicle_id)
+        if ep.alive_tokens(keys.alive, timeout_s=ALIVE_QUERY_S):
+            raise DuplicateVehicleError(f"vehicle '{car_cfg.vehicle_id}' is already served "
+                                        "on this zenoh network")
+        ports = self._ports(ep, keys)
+        if car_cfg.command_log is not None:  # opened here: a file and a thread, not the tick
+            self._new_logs[car_cfg.vehicle_id] = CommandLog(car_cfg.command_log, {
+                "scene": str(car_cfg.scene), "dt_s": car_cfg.period_s, "step": 0})
+        self._tokens[car_cfg.vehicle_id] = ep.declare_alive_token(keys=keys)
+        return ports
+
+    def _added(self, slot: VehicleSlot) -> None:
+        """A car joined the world (in the tick): its command log, opened beforehand."""
+        slot.command_log = self._new_logs.pop(slot.keys.vehicle, None)
+        fleet.log_start(slot, cars_config.CarSpec(id=slot.keys.vehicle, where="",
+                                            vehicle=slot.sim.scene.vehicle.path))
+
+    def _removed(self, slot: VehicleSlot, ports: SlotPorts) -> None:
+        """A removed car's transport closed (``world_desk``, in its thread); its log ends
+        with the state it had when it left (``slot.final_state``)."""
+        token = self._tokens.pop(slot.keys.vehicle, None)
+        if token is not None:
+            token.undeclare()
+        for port in (ports.commands, ports.controls, ports.publisher):
+            port.close()
+        self._removed_slots.append(slot)
+        if slot.command_log is not None:
+            slot.command_log.close(slot.steps_total, slot.final_state)
 
     # ------------------------------------------------------------------ one vehicle id
     def _claim_vehicle(self, ep: Any, slot: VehicleSlot) -> None:
@@ -266,7 +328,7 @@ class SimServer:
                 f"vehicle '{cfg_vehicle(slot)}' is already served on this zenoh network "
                 f"(liveliness token {keys.alive} exists): stop that server or give this one "
                 "another --vehicle-id")
-        ep.declare_alive_token(keys=keys)
+        self._tokens[slot.keys.vehicle] = ep.declare_alive_token(keys=keys)
         ep._keep(ep.session.liveliness().declare_token(f"{keys.alive}/{self._zid}"))
         self._alive_watches.append((slot, ep.declare_alive_watch(f"{keys.alive}/*")))
 
@@ -322,7 +384,7 @@ class SimServer:
             log.info("open the live viewer with: rerun rerun+http://127.0.0.1:%d/proxy", port)
         args = [sys.executable, "-m", "simserver", "view", "--sink", sink,
                 "--connect", loopback_of(listen[0]), "--prefix", cfg.prefix,
-                "--vehicle-id", cfg.vehicle_id]
+                "--vehicle-id", cfg.vehicle_id, "--fps", f"{cfg.viewer_fps:g}"]
         self.viewer_command = "simserver " + " ".join(args[3:])
         log.info("live viewer: %s", self.viewer_command)
         return subprocess.Popen(args)

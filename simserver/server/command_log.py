@@ -258,7 +258,7 @@ def read_command_log(path: str | Path) -> list[dict[str, Any]]:
     where = f"{path}:1"
     if not isinstance(header.get("scene"), str):
         raise ConfigError(f"{where}: key 'scene': expected a scene path")
-    number(where, "dt_s", header.get("dt_s"), *SERVER_KEYS["period_s"])
+    number(where, "dt_s", header.get("dt_s"), *SERVER_KEYS["period_s"].range)
     last_step = 0
     for n, entry in enumerate(entries[1:], 2):
         if last_step is None:

@@ -8,7 +8,8 @@ One thread, one loop; every tick (:meth:`ServerLoop.tick`), for each vehicle slo
 2. drain every command received since the last tick without blocking, and arbitrate
    (:class:`simserver.server.slot.CommandArbiter`: the newest valid one wins);
 3. the watchdog (:class:`simserver.server.slot.Watchdog`);
-4. step the simulation once, unless paused;
+4. step the simulation once, unless paused (with several cars, every car's inputs
+   first, then one compiled step of their world for all: :meth:`ServerLoop._tick_world`);
 5. check the state is finite, else stop the car in a safe state
    (:meth:`simserver.server.slot.VehicleSlot.check_finite`): before publishing;
 6. publish the state (every ``state_every`` ticks) and, a few times a second, the
@@ -39,6 +40,8 @@ from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
 
 from simserver.adapters.config import ConfigError
 from simserver.server.load_worker import opened
@@ -251,6 +254,35 @@ def serve_control(slot: VehicleSlot, request: ControlRequest) -> Control | None:
     return CONTROLS[name] if _answer(request, name, run) else None
 
 
+WORLD_CONTROLS = ("pause", "resume", "step", "set_road")
+"""The controls that act on the whole world when the loop serves several cars: one clock
+steps every car (a car cannot pause alone), and the road is the world's. Asked on any car's
+key; each car's handler runs (each car's log has the line) and the reply is the asking
+car's."""
+
+
+def serve_world_control(slot: VehicleSlot, slots: list[VehicleSlot],
+                        request: ControlRequest) -> None:
+    """A :data:`WORLD_CONTROLS` control asked on ``slot``'s key, run on every car of the
+    world: the asking car's first (an error there is the answer, nothing changed), then
+    the others'; answered once, with the asking car's members."""
+    name = request.name
+
+    def run() -> dict[str, Any]:
+        args = _validated(name, request.payload)
+        handler = CONTROLS[name].handler
+        members = handler(slot, args)
+        for other in slots:
+            if other is not slot:
+                try:
+                    handler(other, args)
+                except proto.ProtocolError:
+                    pass  # ``step`` on a car not paused (the asking one was, by a fault stop)
+        return members
+
+    _answer(request, name, run)
+
+
 def _validated(name: str, payload: bytes) -> dict[str, Any]:
     try:
         return proto.validate_control(name, payload)
@@ -342,14 +374,66 @@ class ServerLoop:
         self.pending: dict[int, PendingJob] = {}  # by slot index
         self.every_second: list[Callable[[], None]] = []
         self.running = False
+        # several cars: the world they share, stepped once a tick for all (add()), and the
+        # world message (simserver.server.fleet.WorldMessage) with where it goes
+        self.world: Any = None
+        self.world_message: Any = None
+        self.traffic_every = max(1, int(round(1.0 / (proto.TRAFFIC_STATE_HZ * cfg.period_s))))
+        self.publish_world: Callable[[bytes], None] | None = None
+        self.world_desk: Any = None  # the world's controls (simserver.server.world_desk)
         self.loop_count = 0
         self.t0_ns = 0
         self._skipped_seen = 0
         self._jobs_busy: dict[int, int] = {}
 
     def add(self, slot: VehicleSlot, ports: SlotPorts) -> None:
-        """Serve ``slot`` through ``ports`` from the next tick on."""
+        """Serve ``slot`` through ``ports`` from the next tick on.
+
+        Slots whose simulations share one ``world`` (``simserver.server.fleet.build_world``) are
+        the cars of that world: the tick steps it once for all (:meth:`_tick_world`), and
+        the controls that act on the world (``pause``,
+        ``resume``, ``step``, ``set_road``: :data:`WORLD_CONTROLS`) act on every car."""
         self.slots.append((slot, ports))
+        worlds = {id(getattr(s.sim, "world", s.sim)) for s, _ in self.slots}
+        shared = len(self.slots) > 1 and len(worlds) == 1  # else each slot its own world
+        for s, _ in self.slots:
+            s.shared_world = shared
+        self.world = slot.sim.world if shared else None
+        self._cars_changed()
+
+    def remove(self, slot: VehicleSlot) -> SlotPorts:
+        """Stop serving ``slot`` (between ticks) and take its car out of the world
+        (``World.remove_car``: the other cars keep their rows' bits); its ports are
+        returned for the caller to close. A job of its still pending is answered with an
+        error."""
+        index = next(i for i, (s, _) in enumerate(self.slots) if s is slot)
+        _, ports = self.slots.pop(index)
+        job = self.pending.pop(index, None)
+        if job is not None:
+            name = job.request.name
+            job.request.reply(proto.reply_error(f"{name}: the car was removed; nothing "
+                                                "changed", field=name))
+        self.pending = {i - (i > index): j for i, j in self.pending.items()}
+        self._jobs_busy = {i - (i > index): n for i, n in self._jobs_busy.items()
+                           if i != index}
+        world = getattr(slot.sim, "world", None)
+        if world is not None and slot.keys.vehicle in getattr(world, "ids", ()):
+            if len(world) > 1:
+                world.remove_car(slot.keys.vehicle)
+        shared = len(self.slots) > 1 and self.world is not None
+        for s, _ in self.slots:
+            s.shared_world = shared
+        if not shared:
+            self.world = None
+        self._cars_changed()
+        return ports
+
+    def _cars_changed(self) -> None:
+        """The world message's cars after a car was added or removed."""
+        message = self.world_message
+        if message is not None:
+            message.set_cars([s.keys.vehicle for s, _ in self.slots],
+                             [s.driven_by for s, _ in self.slots])
 
     def start(self) -> None:
         """Start the clock: tick 0 is due now.
@@ -394,6 +478,26 @@ class ServerLoop:
         count = self.loop_count
         publish_state = count % self.state_every == 0
         diag_tick = count % self.diag_every == 0
+        if self.world is not None:
+            self._tick_world(now, skipped, catching_up, publish_state, diag_tick)
+        else:
+            self._tick_slots(now, skipped, catching_up, publish_state, diag_tick)
+        if self.world_desk is not None:  # cars added and removed between two ticks
+            self.world_desk.tick(now)
+        message = self.world_message
+        if message is not None and message.due(count):
+            self.publish_world(message.payload([s.last_published for s, _ in self.slots],
+                                               count, (now - self.t0_ns) / NS_PER_S))
+        if count % self.second_every == self.second_every // 2:  # between diagnostics
+            for job in self.every_second:
+                job()
+        self.loop_count += 1
+        if trace is not None:
+            trace.end()
+
+    def _tick_slots(self, now: int, skipped: bool, catching_up: bool, publish_state: bool,
+                    diag_tick: bool) -> None:
+        """One tick of a single car (each slot steps its own simulation)."""
         diag = None
         for index, (slot, ports) in enumerate(self.slots):
             if skipped:
@@ -412,12 +516,66 @@ class ServerLoop:
                 self._port_counters(index, slot, ports)
                 ports.publisher.publish_diagnostics(self._diagnostics(slot, *diag))
             self._serve_controls(index, slot, ports, now, catching_up)
-        if count % self.second_every == self.second_every // 2:  # between diagnostics
-            for job in self.every_second:
-                job()
-        self.loop_count += 1
-        if trace is not None:
-            trace.end()
+
+    def _tick_world(self, now: int, skipped: bool, catching_up: bool, publish_state: bool,
+                    diag_tick: bool) -> None:
+        """One tick of the cars of a world: every car's commands and inputs, then one
+        compiled step of the world for all of them (docs/model.md section 14), then each
+        car's checks, state, diagnostics and controls. A car paused alone (a fault stop)
+        keeps its state through the world's step (its rows are put back after it).
+
+        What costs per car is spread so that no tick carries it for every car at once
+        (the tick's budget is 1 ms, a car's state about 20-30 us of Python): the states
+        are checked for finite values once for the whole world (a car is looked at alone
+        only when something is not finite); a car not driven by a client (keyframes, the
+        built-in driver) publishes its state at :attr:`traffic_every` ticks, car ``k`` at
+        its own phase (its clients want the traffic, not its every tick: the world message
+        carries every car), and its command inbox and control requests are looked at then
+        too (a control to it is answered within 10 ms); car ``k``'s diagnostics go out at
+        its own phase of the diagnostics period."""
+        slots = self.slots
+        count = self.loop_count
+        traffic_every = self.traffic_every
+        stepped = False
+        for index, (slot, ports) in enumerate(slots):
+            if skipped:
+                slot.skipped_before = True
+            if slot.keyframes is None or (count + index) % traffic_every == 0:
+                # a car no client drives applies no command: its inbox is drained (and
+                # counted) at its own phase only
+                payloads = ports.commands.drain_newest()
+                slot.take_commands(payloads, now, len(payloads) >= ports.commands.capacity)
+            slot.apply_inputs(now)
+            slot.stepping = slot.advance(step=False)
+            stepped = stepped or slot.stepping
+        if stepped:
+            held = [(s.sim, s.sim.x.copy(), s.sim.out.copy()) for s, _ in slots
+                    if not s.stepping]
+            self.world.step()
+            for sim, x, out in held:
+                sim.x[:] = x
+                sim.out[:] = out
+        data = self.world.data
+        all_finite = bool(np.isfinite(data.x).all() and np.isfinite(data.out).all())
+        diag = None
+        pending = self.pending
+        for index, (slot, ports) in enumerate(slots):
+            if all_finite:
+                slot.state_finite = True  # check_finite's verdict, without its own look
+            else:
+                slot.check_finite()  # before publishing: nothing non-finite leaves
+            client = slot.driven_by == "client"
+            phase = (count + index) % traffic_every == 0
+            if publish_state and (client or phase):
+                payload = slot.state_payload(now, catching_up)
+                if payload is not None:
+                    ports.publisher.publish_state(payload)
+            if (count + index) % self.diag_every == 0:
+                diag = diag or self._diagnostics_source()
+                self._port_counters(index, slot, ports)
+                ports.publisher.publish_diagnostics(self._diagnostics(slot, *diag))
+            if client or phase or index in pending:  # traffic: at its phase (10 ms)
+                self._serve_controls(index, slot, ports, now, catching_up)
 
     def _serve_controls(self, index: int, slot: VehicleSlot, ports: SlotPorts,
                         now: int, catching_up: bool = False) -> None:
@@ -437,6 +595,9 @@ class ServerLoop:
         for request in ports.controls.poll(self.controls_per_tick):
             name = request.name
             control = CONTROLS.get(name)
+            if self.world is not None and name in WORLD_CONTROLS:
+                serve_world_control(slot, [s for s, _ in self.slots], request)
+                continue
             if control is None or (control.job is None and control.stage is None):
                 serve_control(slot, request)
                 continue

@@ -540,6 +540,19 @@ hypervisor's) wake-up. The bare pacer as the tick thread on this VM, interleaved
 more than 1 ms late without, 0.010 % with, lateness p99 12 / 1 us, the same CPU. The
 cost: idle CPUs spin (power, and a hypervisor's CPU) while the server runs."""
 
+EXPECTED_LATENESS_WITHOUT_RT = (
+    "expect late ticks when other processes want the CPU: measured on a 2-core machine "
+    "as an ordinary user, beside two CPU-bound processes 1.9 % of ticks were more than "
+    "1 ms late (lateness p99 1.94 ms; with SCHED_FIFO 4-5 ticks in 20 s), beside other "
+    "real-time servers up to 46 % of the deadlines of a window skipped (lateness p99 "
+    "18-93 ms, max 0.2 s)")
+"""What the warning says to expect when no real-time policy was obtained (issue 35's
+adversarial round, checkout 362909f; ``docs/realtime.md``)."""
+RTKIT_SOFT_SHARE = 0.5
+"""``RLIMIT_RTTIME``'s soft limit as a share of RealtimeKit's hard one: past the soft
+limit the kernel sends SIGXCPU, on which the tick thread leaves SCHED_RR, long before the
+hard limit's SIGKILL (a tick thread that never sleeps: ticks longer than the period)."""
+
 try:  # children (the viewer, the load worker) must not inherit a real-time policy
     _RESET_ON_FORK = os.SCHED_RESET_ON_FORK
 except AttributeError:  # pragma: no cover - not Linux
@@ -650,6 +663,8 @@ class RealtimeScheduler:
         self._seen: set[int] = set(process_threads())
         self._rt_priority = settings.priority
         self._latency_fd: int | None = None
+        self.rtkit_refusal = ""  # why RealtimeKit granted nothing, when asked
+        self.rtkit_thread_refusals = 0  # threads RealtimeKit did not promote
 
     def apply(self) -> str:
         """Scheduling of the calling thread, affinity, locked memory; the summary line."""
@@ -670,11 +685,16 @@ class RealtimeScheduler:
             self.policy = "SCHED_FIFO"
             self.applied.insert(0, f"SCHED_FIFO priority {priority} for the tick thread")
         except (OSError, AttributeError) as exc:
-            self.warnings.append(
-                f"SCHED_FIFO refused ({getattr(exc, 'strerror', None) or exc}): grant "
-                "CAP_SYS_NICE or an rtprio limit (ulimit -r 99; docker run --ulimit "
-                "rtprio=99), or pass --realtime off to silence this")
-            self._nice_fallback()
+            refused = getattr(exc, "strerror", None) or exc
+            granted = self._ask_realtimekit(priority, refused)
+            if not granted:
+                self.warnings.append(
+                    f"SCHED_FIFO refused ({refused}) and RealtimeKit granted nothing "
+                    f"({self.rtkit_refusal}): {EXPECTED_LATENESS_WITHOUT_RT}; grant "
+                    "CAP_SYS_NICE, an rtprio limit (ulimit -r 99; docker run --cap-add "
+                    "SYS_NICE --ulimit rtprio=99) or RealtimeKit (docs/realtime.md), "
+                    "or pass --realtime off to silence this")
+                self._nice_fallback()
         if s.cpu_latency_us is not None:
             try:
                 self._latency_fd = hold_cpu_latency(s.cpu_latency_us)
@@ -691,11 +711,90 @@ class RealtimeScheduler:
         self.promote_new_threads()
         return self.summary()
 
+    def _ask_realtimekit(self, priority: int, refused: object) -> bool:
+        """SCHED_RR from RealtimeKit for the calling (tick) thread
+        (:mod:`simserver.adapters.rtkit`); True if granted.
+
+        RLIMIT_RTTIME is set as RealtimeKit requires, its soft limit at
+        :data:`RTKIT_SOFT_SHARE` of the hard one with a SIGXCPU handler that takes every
+        thread back to SCHED_OTHER before the kernel would kill the process. The other
+        threads (zenoh's, the state and log writers, whose GIL the tick waits for) get
+        ``priority - 1`` from RealtimeKit too, asked by a thread of their own as
+        :meth:`promote_new_threads` finds them (a D-Bus call takes milliseconds: never
+        in the tick)."""
+        import queue
+        import signal
+        import threading
+
+        from simserver.adapters import rtkit
+
+        try:
+            kit = rtkit.RealtimeKit()
+        except rtkit.RtkitError as exc:
+            self.rtkit_refusal = str(exc)
+            return False
+        try:
+            soft, hard = kit.limit_rttime(RTKIT_SOFT_SHARE)
+            granted = kit.make_thread_realtime(threading.get_native_id(), priority)
+        except rtkit.RtkitError as exc:
+            kit.close()
+            self.rtkit_refusal = str(exc)
+            return False
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGXCPU, self._leave_realtime)
+        self._rt_priority = granted
+        self.policy = "SCHED_RR"
+        self.applied.insert(0, (
+            f"SCHED_FIFO refused ({refused}); RealtimeKit granted SCHED_RR priority "
+            f"{granted} for the tick thread (RLIMIT_RTTIME {soft / 1e3:g} ms, "
+            f"{hard / 1e3:g} ms hard)"))
+        self._rtkit_queue: queue.SimpleQueue = queue.SimpleQueue()
+        started = threading.Event()
+
+        def promote() -> None:
+            self._seen.add(threading.get_native_id())  # not itself
+            started.set()
+            while True:
+                item = self._rtkit_queue.get()
+                if item is None:
+                    break
+                tid, name = item
+                try:
+                    kit.make_thread_realtime(tid, granted - 1)
+                    self.promoted[tid] = name
+                except rtkit.RtkitError as exc:  # ended meanwhile, or RealtimeKit's limits
+                    self.rtkit_thread_refusals += 1
+                    self.rtkit_refusal = str(exc)
+            kit.close()
+
+        threading.Thread(target=promote, name="rtkit-promote", daemon=True).start()
+        started.wait(5.0)
+        return True
+
+    def _leave_realtime(self, signum: int, frame: object) -> None:
+        """SIGXCPU: a real-time thread ran RLIMIT_RTTIME's soft limit without sleeping
+        (which one the signal does not say); every thread back to SCHED_OTHER, before
+        the kernel kills the process at the hard limit."""
+        self.policy = "unchanged"  # no more promotions
+        for tid in [0, *self.promoted]:
+            try:
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            except OSError:
+                continue
+        if self.log is not None:
+            self.log(logging.WARNING, "real-time scheduling: a thread ran RealtimeKit's "
+                     "RLIMIT_RTTIME without sleeping (ticks longer than the period?): "
+                     "every thread back to normal priority")
+
     def release(self) -> None:
-        """Stop holding ``/dev/cpu_dma_latency`` (idempotent; a process's end does it too)."""
+        """Stop holding ``/dev/cpu_dma_latency`` and asking RealtimeKit (idempotent; a
+        process's end does it too)."""
         fd, self._latency_fd = self._latency_fd, None
         if fd is not None:
             os.close(fd)
+        promoting = getattr(self, "_rtkit_queue", None)
+        if promoting is not None:  # RealtimeKit's promoting thread ends
+            promoting.put(None)
 
     def _permitted_priority(self) -> int:
         """The asked priority, capped by RLIMIT_RTPRIO unless we may exceed it."""
@@ -743,6 +842,10 @@ class RealtimeScheduler:
                 continue  # ended meanwhile
             if prefixes and not name.startswith(prefixes):
                 continue
+            if self.policy == "SCHED_RR":  # RealtimeKit's: its own thread asks for it
+                self._rtkit_queue.put((tid, name))
+                n += 1
+                continue
             try:
                 if self.policy == "SCHED_FIFO":
                     os.sched_setscheduler(tid, os.SCHED_FIFO | _RESET_ON_FORK,
@@ -761,8 +864,10 @@ class RealtimeScheduler:
         """One line: what was applied, and the warnings."""
         parts = list(self.applied)
         if self.policy not in ("off", "unchanged"):
-            what = f"SCHED_FIFO priority {self._rt_priority - 1}" \
-                if self.policy == "SCHED_FIFO" else self.policy
+            what = f"{self.policy} priority {self._rt_priority - 1}" \
+                if self.policy in ("SCHED_FIFO", "SCHED_RR") else self.policy
+            if self.policy == "SCHED_RR":
+                what += " from RealtimeKit"
             names = ", ".join(p + "*" for p in self.settings.zenoh_threads) or \
                 "(every thread started from now on)"
             parts.append(f"{what} for zenoh's threads {names} as they start "

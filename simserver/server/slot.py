@@ -17,6 +17,7 @@ applies to commands and controls are those of ``docs/protocol.md`` (sections 2.1
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -247,16 +248,46 @@ class VehicleSlot:
         self._braking = np.zeros(4, dtype=bool)
         self._held = np.zeros(4, dtype=bool)
         self.skipped_before = False  # deadlines were skipped since the last state
+        # a car of a world of several (simserver.server.fleet; docs/protocol.md 5.1): its loads
+        # change its vehicle only, on the world's terrain, from its own start (set by the
+        # loop when it serves more than one car)
+        self.shared_world = False
+        self.stepping = False  # this tick: the car takes part in the world's step
+        self.driven_by = "client"  # protocol.DRIVEN_BY_CODES
+        self.keyframes: np.ndarray | None = None  # driven_by keyframes: inputs per tick
+        self.final_state: np.ndarray | None = None  # its state when taken out of the world
+
+    def drive_by_keyframes(self, table: np.ndarray) -> None:
+        """Drive this car by an input table (``simserver.server.cars_config.keyframe_table``): row
+        ``tick`` at each tick, the last row after the end; commands are not applied (each
+        counted in ``cmd_rejected``) and the watchdog does not act."""
+        self.keyframes = table
+        self.driven_by = "keyframes"
+        self.watchdog.engaged = False
+
+    @property
+    def last_published(self) -> bytes | None:
+        """The newest finite VehicleState published (None before the first)."""
+        return self._last_finite
 
     # ------------------------------------------------------------------ each tick
     def take_commands(self, payloads: list[bytes], now_ns: int,
                       buffer_full: bool = False) -> None:
         """Arbitrate the command payloads drained this tick (``buffer_full``: see
         :meth:`CommandArbiter.take`)."""
+        if self.keyframes is not None:  # a keyframed car takes no commands
+            self.counters["cmd_received"] += len(payloads)
+            self.counters["cmd_rejected"] += len(payloads)
+            return
         self.arbiter.take(payloads, now_ns, buffer_full)
 
     def apply_inputs(self, now_ns: int) -> None:
-        """Commanded inputs through the watchdog into the simulation's input vector."""
+        """Commanded inputs through the watchdog into the simulation's input vector (a
+        keyframed car: its table's row of this tick)."""
+        if self.keyframes is not None:
+            table = self.keyframes
+            self.sim.inputs[:] = table[min(self.tick, len(table) - 1)]
+            return
         if self.watchdog.update(self.arbiter.last_cmd_ns, now_ns):
             self.counters["watchdog_trips"] += 1
             self.arbiter.last_seq = None  # a restarted client may begin its sequence anew
@@ -265,13 +296,18 @@ class VehicleSlot:
         if self.watchdog.engaged:
             self.watchdog.hold(inputs)
 
-    def advance(self) -> bool:
-        """Step the simulation once unless paused with no ``step`` pending; True if stepped."""
+    def advance(self, step: bool = True) -> bool:
+        """Step the simulation once unless paused with no ``step`` pending; True if stepped.
+
+        ``step=False``: the car's part of a world step only (its inputs logged, its ticks
+        counted); the loop then steps the world once for every car (``simserver.server.loop``).
+        """
         if self.paused and self.steps_to_run <= 0:
             return False
         if self.command_log is not None:
             self.command_log.log_inputs(self.steps_total, self.sim.inputs)
-        self.sim.step()
+        if step:
+            self.sim.step()
         self._stopped = False
         self.tick += 1
         self.steps_total += 1
@@ -439,6 +475,9 @@ class VehicleSlot:
             if pose is not None:
                 raise proto.ProtocolError("lane", "give pose or lane, not both")
             pose = self._lane_pose(args["lane"])
+        if pose is None and self.shared_world:  # the car's own start, named in the log (a
+            # replay's scene is the world's, whose start is another)
+            pose = {k: float(p.scene.initial[k]) for k in ("x_m", "y_m", "yaw_rad")}
         prepared = p.prepare_reset(pose, u_mps)
 
         def commit() -> dict[str, Any]:
@@ -514,8 +553,14 @@ class VehicleSlot:
         """The file reading of a ``load``, as a picklable ``(function, arguments)``.
 
         It touches nothing of the slot: run it anywhere (a worker process), then hand its
-        result to :meth:`apply_load`.
+        result to :meth:`apply_load`. A car of a world of several cars loads another
+        vehicle only (``ProtocolError`` naming ``scene`` otherwise): the scene is the
+        world's.
         """
+        if self.shared_world and args.get("scene") is not None:
+            raise proto.ProtocolError("scene", "this car is one of several in a world: its "
+                                      "load changes its vehicle only (the scene is the "
+                                      "world's)")
         return prepare_load, (args.get("scene"), args.get("vehicle"), self.scene_path,
                               tuple(self.cfg.config_dirs), os.getcwd(), self.cfg.path.parent)
 
@@ -532,7 +577,12 @@ class VehicleSlot:
         to :meth:`StagedStart.advance`; :meth:`StagedStart.commit` swaps it in (tick 0,
         logged) and gives the reply."""
         scene, scene_path, vehicle_path = prepared
-        staged = self.sim.prepare_load(scene)
+        start = None
+        if self.shared_world:  # another vehicle for this car, from its own start, on the
+            # world's terrain and road (docs/protocol.md 5.1; load_job refused a scene)
+            start = {k: float(self.sim.scene.initial[k]) for k in ("x_m", "y_m", "yaw_rad")}
+            scene = dataclasses.replace(scene, initial=dict(self.sim.scene.initial))
+        staged = self.sim.prepare_load(scene, keep_terrain=self.shared_world)
 
         def commit() -> dict[str, Any]:
             replaced = self.sim.commit(staged)
@@ -547,6 +597,9 @@ class VehicleSlot:
             self._log({"step": self.steps_total, "load": {
                 "scene": str(scene_path), "vehicle": None if vehicle_path is None
                 else str(vehicle_path)}})
+            if start is not None:  # a replay loads the scene's start, then goes to the car's
+                self._log({"step": self.steps_total, "set_road": dict(self.sim.road)})
+                self._log({"step": self.steps_total, "reset": start})
             return {"vehicle": self._shown(self.sim.scene.vehicle.path),
                     "scene": self._shown(scene_path)}
 

@@ -45,6 +45,7 @@ name it is defined in :mod:`simserver.sim.keyframes`, which the player client sh
 from __future__ import annotations
 
 import time
+import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,17 +53,10 @@ from typing import Any
 
 import numpy as np
 
-from simserver.adapters.config import (
-    MODEL_OPTION_DEFAULTS,
-    ConfigError,
-    check_keys,
-    number,
-    read_yaml,
-    resolve_vehicle,
-)
+from simserver.adapters.config import MODEL_OPTION_DEFAULTS, resolve_vehicle
 from simserver.adapters.driver_config import DriverSpec, build_drivers, parse_driver
 from simserver.adapters.terrain_files import terrain_spec
-from simserver.adapters.validate import integer
+from simserver.adapters.validate import ConfigError, check_keys, integer, number, read_yaml
 from simserver.core import layout as L
 from simserver.core.driver import N_DRIVER_STATE, simulate_driven
 from simserver.sim.keyframes import input_table, read_keyframe_file
@@ -74,7 +68,7 @@ from simserver.sim.scene import (
     Scene,
     parse_scene,
 )
-from simserver.sim.simulation import Simulation
+from simserver.sim.simulation import Simulation, world_poses
 from simserver.sim.speed_hold import SpeedController, SpeedHold, parse_speed_hold
 
 MAX_SCENARIO_STEPS = 10_000_000
@@ -145,6 +139,24 @@ class ScenarioResult:
     def output(self, index: int) -> np.ndarray:
         """Column ``index`` of the outputs (a ``core.layout`` ``O_*`` constant)."""
         return self.outputs[:, index]
+
+    @property
+    def poses(self) -> np.ndarray:
+        """The world pose of each row's state, ``(rows, N_POSE)`` (``core.layout.POSE_*``):
+        what the server publishes for that state (``simulation.world_poses``; made once
+        per states array, 3-7 us a row)."""
+        key = id(self.states)
+        hit = _POSES.get(key)
+        if hit is not None and hit[0]() is self.states:
+            return hit[1]
+        poses = world_poses(self.scenario.scene, self.states)
+        _POSES[key] = (weakref.ref(self.states, lambda _, k=key: _POSES.pop(k, None)), poses)
+        return poses
+
+
+_POSES: dict[int, tuple[weakref.ref, np.ndarray]] = {}
+"""``ScenarioResult.poses`` by the states array they were made from (kept while it lives;
+a result copied with other states makes its own)."""
 
 
 def load_scenario(path: str | Path, data: dict[str, Any] | None = None) -> Scenario:

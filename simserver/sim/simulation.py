@@ -50,6 +50,36 @@ if TYPE_CHECKING:
     from simserver.sim.scene import Scene
 
 
+def pose_of(x: np.ndarray, on_plane: bool, axes: np.ndarray, cg_height_m: float,
+            scratch_axes: np.ndarray, pose: np.ndarray) -> None:
+    """The world pose of the state ``x`` into ``pose`` (``core.layout.POSE_*``): on the
+    plane terrain the states live on the road plane (``axes``, ``core.road.road_axes``); on
+    another terrain on the reference plane fitted under the wheels in the step before
+    (its slopes and height are states, docs/model.md section 11; ``scratch_axes`` takes its
+    axes). The one rule of the server's published pose (:meth:`Simulation.update_pose`) and
+    the headless history's ``world_*`` columns (:func:`world_poses`)."""
+    if on_plane:
+        world_pose(x, axes, cg_height_m, pose)
+    else:
+        road_frame(x[L.REF_GRADE_PCT], x[L.REF_CROSS_SLOPE_PCT], scratch_axes)
+        world_pose(x, scratch_axes, cg_height_m, pose)
+        pose[L.POSE_Z_M] += x[L.REF_HEIGHT_M]
+
+
+def world_poses(scene: Scene, states: np.ndarray) -> np.ndarray:
+    """The world pose of each row of ``states`` (a run's recorded states of a car of
+    ``scene``, its road plane being the world's), float64 ``(rows, N_POSE)``: what the
+    server publishes for each of those states (:func:`pose_of`)."""
+    on_plane = scene.terrain.kind == TERRAIN_PLANE
+    axes = road_axes(scene.road["grade_pct"], scene.road["cross_slope_pct"])
+    cg_height_m = float(scene.vehicle.vp[VP_CG_HEIGHT_M])
+    scratch = np.zeros((3, 3))
+    poses = np.zeros((len(states), L.N_POSE))
+    for row, x in zip(poses, states, strict=True):
+        pose_of(x, on_plane, axes, cg_height_m, scratch, row)
+    return poses
+
+
 def initial_state(scene: Scene) -> np.ndarray:
     """The state at t = 0: given pose and velocities, wheels rolling freely, springs
     static, no previous wheel loads, the engine (automatic powertrain) at idle, no gear
@@ -275,10 +305,12 @@ class Simulation:
         inputs are kept."""
         self.commit(self.prepare_load(scene).finish())
 
-    def prepare_load(self, scene: Scene) -> PreparedStart:
+    def prepare_load(self, scene: Scene, keep_terrain: bool = False) -> PreparedStart:
         """A ``load`` of ``scene`` made ready beside the running model (which is not
         touched): its model and initial state, the settling left to :meth:`PreparedStart.advance`;
-        :meth:`commit` swaps it in."""
+        :meth:`commit` swaps it in. ``keep_terrain``: the car takes the scene's vehicle and
+        start only, on the world's terrain and road as they are (a car of a world of
+        several: the other cars' ground does not change)."""
         vp = scene.vehicle.vp.copy()
         tp = np.ascontiguousarray(scene.vehicle.tp, dtype=np.float64).copy()
         check_model(vp, tp)
@@ -288,7 +320,11 @@ class Simulation:
                       derived=derive_constants(vp, tp, self.dt_s))
         road = {key: scene.road[key] for key in ("grade_pct", "cross_slope_pct",
                                                   "friction_scale")}
-        set_road(model.terrain.road, **road, gravity_mps2=vp[P.VP_GRAVITY_MPS2])
+        if keep_terrain and self.world is not None:
+            model = model._replace(terrain=self.world.model.terrain)
+            road = dict(self.world.road)
+        else:
+            set_road(model.terrain.road, **road, gravity_mps2=vp[P.VP_GRAVITY_MPS2])
         return self._prepare(scene, model, road, None, None, load=True)
 
     def set_road(self, grade_pct: float, cross_slope_pct: float, friction_scale: float) -> None:
@@ -455,14 +491,8 @@ class Simulation:
 
     def update_pose(self) -> np.ndarray:
         """The world pose of the current state into ``self.pose`` (``core.layout.POSE_*``)."""
-        x = self.data.x
-        if self.model.terrain.kind == TERRAIN_PLANE:
-            world_pose(x, self.axes, self.model.vp[VP_CG_HEIGHT_M], self.pose)
-        else:  # the states live on the reference plane of the last step
-            axes = self._reference_axes
-            road_frame(x[L.REF_GRADE_PCT], x[L.REF_CROSS_SLOPE_PCT], axes)
-            world_pose(x, axes, self.model.vp[VP_CG_HEIGHT_M], self.pose)
-            self.pose[L.POSE_Z_M] += x[L.REF_HEIGHT_M]
+        pose_of(self.data.x, self.model.terrain.kind == TERRAIN_PLANE, self.axes,
+                self.model.vp[VP_CG_HEIGHT_M], self._reference_axes, self.pose)
         return self.pose
 
     def warm_up(self) -> None:

@@ -1,4 +1,4 @@
-"""``simserver sweep``: many scenario runs on Dask distributed (issue 18).
+"""Sweeps, the ``sweep`` subcommand: many scenario runs on Dask distributed (issue 18).
 
 - ``resolved``: a run's fully resolved configuration, dotted-path overrides, its hash.
 - ``spec``: the sweep file (base scenarios, parameters, metrics) -> cases.

@@ -101,6 +101,31 @@ METRIC_KINDS: dict[str, MetricKind] = {
 }
 
 
+METRIC_LABELS: dict[str, str] = {
+    "stopping_distance_m": "stopping distance",
+    "time_to_rest_s": "time to rest",
+    "creep_m": "creep over the window",
+    "holds": "held: creep under the limit (1 yes, 0 no)",
+    "peak_yaw_rate_radps": "peak yaw rate",
+    "yaw_change_rad": "yaw change, start to end",
+    "fx_front_n": "resting longitudinal force, front axle",
+    "fx_rear_n": "resting longitudinal force, rear axle",
+    "fy_front_n": "resting lateral force, front axle",
+    "fy_rear_n": "resting lateral force, rear axle",
+    "fx_body_sum_n": "resting longitudinal force, whole car",
+    # a soak case's (sweep.worker.SOAK_METRICS)
+    "violations": "invariants broken",
+    "holds_checked": "holds judged",
+    "holds_unjudged": "holds too short to judge",
+    "max_hold_creep_m": "largest creep over a hold",
+    "max_speed_mps": "largest speed",
+    "min_fz_n": "smallest tire load",
+    "simulated_s": "simulated time",
+}
+"""Each metric column in words, for the plots' axes (``sweep.labels``; the unit comes from
+the name's suffix, as the history's). A test keeps every kind's columns here."""
+
+
 @dataclass(frozen=True)
 class Metric:
     """One entry of ``metrics:``: a kind with its options, or a column statistic."""

@@ -7,6 +7,8 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from simserver.sweep.spec import Sweep
 
 PLOT_DIR = "plots"
@@ -22,10 +24,68 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text.replace("*", "all")).strip("_")
 
 
+JITTER = 0.012
+"""Horizontal spread of the points of one parameter value, as a share of the parameter's
+range: runs that differ only in another parameter without effect land on one point, and
+the spread (seeded, the same each time) shows them side by side."""
+
+
+def _spread(xs: list[float], groups: int) -> np.ndarray:
+    """``xs`` spread evenly within +-JITTER of the range where several runs share an x
+    (the same offsets for the same data: no random draw)."""
+    x = np.asarray(xs, dtype=np.float64)
+    span = float(np.ptp(x)) or max(abs(float(x[0])), 1.0)
+    out = x.copy()
+    for value in np.unique(x):
+        at = np.flatnonzero(x == value)
+        if at.size > 1 and groups > 1:
+            out[at] += np.linspace(-JITTER, JITTER, at.size) * span
+    return out
+
+
+def metric_figure(sweep: Sweep, ok: list[dict[str, Any]], metric: str, parameter: str) -> Any:
+    """The figure of one (metric, numeric varied parameter) over the runs ``ok``: the
+    metric against the parameter, coloured by the next varied numeric parameter when there
+    is one (a matplotlib Figure; the caller saves and closes it).
+
+    The axes say what they show in words with units (``sweep.labels``). Runs that share
+    the x value are spread a little sideways (``JITTER``) and drawn as translucent markers
+    with a dark edge, so points that coincide (another parameter without effect) stay
+    visible, each colour of the colour bar among them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from simserver.sweep.labels import metric_label, parameter_label
+
+    numeric = [q for q in sweep.parameters
+               if _numeric([r[q] for r in ok if r.get(q) is not None])]
+    others = [q for q in numeric if q != parameter]
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    xs = [r[parameter] for r in ok]
+    ys = [r.get(metric) for r in ok]
+    marker = {"s": 26, "alpha": 0.6, "edgecolors": "0.15", "linewidths": 0.6}
+    if others:
+        colour_by = others[0]
+        sc = ax.scatter(_spread(xs, len(ok)), ys, c=[r[colour_by] for r in ok],
+                        cmap="viridis", **marker)
+        fig.colorbar(sc, ax=ax, label=parameter_label(colour_by))
+    else:
+        ax.scatter(xs, ys, **marker)
+    ax.set_xlabel(parameter_label(parameter))
+    ax.set_ylabel(metric_label(metric))
+    ax.set_title(f"{sweep.name}: {metric}", fontsize=10)
+    ax.ticklabel_format(axis="y", useOffset=False)
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
 def plot_metrics(sweep: Sweep, rows: list[dict[str, Any]], metric_columns: list[str],
                  out: Path) -> list[Path]:
-    """One PNG per (metric, numeric varied parameter): the metric of every run that ended
-    ok against the parameter, coloured by the next varied parameter when there is one."""
+    """One PNG per (metric, numeric varied parameter): :func:`metric_figure` of every run
+    that ended ok."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -39,25 +99,10 @@ def plot_metrics(sweep: Sweep, rows: list[dict[str, Any]], metric_columns: list[
         return written
     (out / PLOT_DIR).mkdir(parents=True, exist_ok=True)
     for metric in metric_columns:
-        ys = [r.get(metric) for r in ok]
-        if not _numeric([y for y in ys if y is not None]):
+        if not _numeric([y for y in (r.get(metric) for r in ok) if y is not None]):
             continue
         for p in params:
-            others = [q for q in params if q != p]
-            fig, ax = plt.subplots(figsize=(6.5, 4.2))
-            xs = [r[p] for r in ok]
-            if others:
-                colour_by = others[0]
-                sc = ax.scatter(xs, ys, c=[r[colour_by] for r in ok], cmap="viridis", s=18)
-                fig.colorbar(sc, ax=ax, label=colour_by)
-            else:
-                ax.plot(xs, ys, "o", ms=4)
-            ax.set_xlabel(p)
-            ax.set_ylabel(metric)
-            ax.set_title(f"{sweep.name}: {metric}", fontsize=10)
-            ax.ticklabel_format(axis="y", useOffset=False)
-            ax.grid(True, alpha=0.3)
-            fig.tight_layout()
+            fig = metric_figure(sweep, ok, metric, p)
             path = out / PLOT_DIR / f"{_slug(metric)}__{_slug(p)}.png"
             fig.savefig(path, dpi=DPI, metadata={"Software": None})
             plt.close(fig)

@@ -332,6 +332,12 @@ class OutputProcess:
 # ============================================================================ the server
 
 
+STATS_JSON = "--stats-json"
+"""The flag that makes ``simserver serve`` print its stop statistics as a JSON line too
+(``final_stats`` reads it): the harness adds it to every server it starts, a README
+command as written included."""
+
+
 def serve_args(*, vehicle_id: str = "car0", scene: str | Path | None = "flat_paper_sedan",
                listen: Sequence[str] = (), viewer: str = "off", log_level: str = "INFO",
                command_log: Path | None = None, config: Path | None = None,
@@ -339,7 +345,7 @@ def serve_args(*, vehicle_id: str = "car0", scene: str | Path | None = "flat_pap
     """The ``simserver serve`` command line (``scene``: a name of ``configs/scenes``, a
     path, or None for the server config's)."""
     args = [sys.executable, "-m", "simserver", "serve", "--vehicle-id", vehicle_id,
-            "--viewer", viewer, "--log-level", log_level]
+            "--viewer", viewer, "--log-level", log_level, STATS_JSON]
     if scene is not None:
         scene_path = Path(scene) if str(scene).endswith((".yaml", ".yml")) else \
             CONFIGS / "scenes" / f"{scene}.yaml"
@@ -407,6 +413,8 @@ class ServerProcess(OutputProcess):
             argv = serve_args(vehicle_id=vehicle_id, scene=scene, listen=listen,
                               viewer=viewer, log_level=log_level, command_log=command_log,
                               config=config, extra_args=extra_args)
+        elif "serve" in argv and STATS_JSON not in argv:
+            argv = [*argv, STATS_JSON]
         super().__init__(argv, ready="ready on", env=env, cwd=cwd, new_session=new_session)
         if not self.wait_ready(ready_timeout_s) or not self.alive():
             self.kill()
@@ -434,7 +442,8 @@ class ServerProcess(OutputProcess):
         return ["--connect", self.endpoint, "--vehicle-id", self.vehicle_id]
 
     def final_stats(self) -> dict[str, Any] | None:
-        """The JSON of the ``simserver: stopped {...}`` line, once stopped cleanly."""
+        """The JSON of the ``simserver: stopped {...}`` line (``--stats-json``, which this
+        harness passes), once stopped cleanly."""
         for line in reversed(self.output):
             if line.startswith("simserver: stopped "):
                 return json.loads(line[len("simserver: stopped "):])

@@ -17,8 +17,10 @@ An entry (``TireModel``) holds everything that is particular to a model:
 
 Everything else reads the registry: the config loader (``adapters.config.load_tire``),
 the simulation (``tire_kernels()``, handed to the compiled step), the CLI and the docs.
-A new tire model is one module (its kernels and loader) plus one ``register_tire_model``
-call; an unknown name or id is an error (``UnknownTireModelError``), never a fallback.
+A new tire model is its compiled body plus one module holding its tire-file keys (a
+``ParamTable``), its loader and its ``register_tire_model`` call, as the built-in ones
+(``simserver.tires.simple``, ``simserver.tires.mf61``); an unknown name or id is an error
+(``UnknownTireModelError``), never a fallback. This module knows no model.
 
 Workspace. A model declares how many coefficient slots (``n_coef``) its ``prepare``
 writes and ``evaluate`` reads, and how many model-specific parameter slots (``n_params``,
@@ -43,16 +45,15 @@ be registered by a module that every process imports. That is what the entry poi
     [project.entry-points."simserver.tire_models"]
     my_tire = "my_package.my_tire:register"
 
-and this module, on import (so in every process, after the built-in models), calls each
-such function with no argument (it calls ``register_tire_model``), in the order of the
-entry point names, so that every process gives the same model the same id. A plug-in that
-fails to load is an error naming it (``TirePluginError``), never skipped (the ids of the
-others would shift).
+and the package ``simserver.tires``, on import (so in every process, after the built-in
+models), calls each such function with no argument (it calls ``register_tire_model``), in
+the order of the entry point names, so that every process gives the same model the same
+id. A plug-in that fails to load is an error naming it (``TirePluginError``), never
+skipped (the ids of the others would shift).
 """
 
 from __future__ import annotations
 
-import math
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -63,12 +64,11 @@ from typing import Any
 import numpy as np
 from numba.core.errors import NumbaExperimentalFeatureWarning
 
+from simserver.adapters.validate import check_keys, number
 from simserver.core.param_table import Param, ParamTable
 from simserver.core.tire import N_BUILTIN_TIRE_MODELS, N_TIRE_PARAM, tire_forces
 from simserver.core.tire_layout import (
     EVALUATE_SIGNATURE,
-    N_MF61_COEF,
-    N_SIMPLE_COEF,
     N_TIRE_COEF,
     N_TIRE_OUT,
     OUT_C_ALPHA,
@@ -78,26 +78,9 @@ from simserver.core.tire_layout import (
     OUT_KAPPA_SLIDE,
     OUT_TAN_ALPHA_SLIDE,
     PREPARE_SIGNATURE,
-    TIRE_MODEL_MF61,
-    TIRE_MODEL_SIMPLE,
     TP_MODEL,
     TP_MODEL_BASE,
     TireKernels,
-)
-from simserver.core.tire_mf61 import (
-    N_MF61_PARAM,
-    P_FNOMIN,
-    mf61_evaluate_kernel,
-    mf61_param_vector,
-    mf61_prepare_kernel,
-)
-from simserver.core.tire_simple import (
-    N_SIMPLE_PARAM,
-    SIMPLE_PARAM_NAMES,
-    SP_FZ_NOM,
-    simple_evaluate_kernel,
-    simple_param_vector,
-    simple_prepare_kernel,
 )
 
 # Tuples of first-class function pointers are what makes the kernels a cacheable argument
@@ -285,50 +268,15 @@ def stiffness_report(tp: np.ndarray, fz_n: float | None = None,
             "tan_alpha_slide": float(out[OUT_TAN_ALPHA_SLIDE])}
 
 
-# ------------------------------------------------------------------- the built-in models
-def _relaxation_param(name: str, which: str, default: str | None) -> Param:
+# ------------------------------------------------------- what every model's tire file has
+def relaxation_param(name: str, which: str, default: str | None) -> Param:
+    """A relaxation-length row of a model's ``ParamTable`` (m, 0.005-5 m)."""
     return Param(name, "m", 0.005, 5.0, which, default=default)
 
 
 RADIUS_MEANING = "effective rolling radius R"
 RELAX_LAT_MEANING = "lateral relaxation length b (paper eq. 16)"
 RELAX_LONG_MEANING = "longitudinal relaxation length B (paper eq. 26)"
-AT_NOMINAL = ("; its default is MF 6.1's relaxation length at the nominal load "
-              "Fz = LFZO FNOMIN and zero camber (a .tir key that is missing, not a number "
-              "or not > 0 is an error naming it)")
-
-SIMPLE_TIRE_PARAMS = ParamTable("simple", "the brush combined-slip tire (core/tire_simple.py)", (
-    Param("cornering_stiffness_n_per_rad", "N/rad", 100.0, 1e7,
-          "C_alpha at nominal_load_n, linear in the load"),
-    Param("longitudinal_stiffness_n", "N", 100.0, 1e7,
-          "C_kappa (N per unit slip) at nominal_load_n, linear in the load"),
-    Param("nominal_load_n", "N", 10.0, 1e6, "load at which the stiffnesses are given"),
-    Param("friction_coefficient", "-", 0.01, 3.0,
-          "peak friction mu (times the road's friction scale)"),
-    Param("rolling_resistance_coefficient", "-", 0.0, 0.5, "rolling-resistance force / Fz"),
-    Param("pneumatic_trail_m", "m", 0.0, 0.5,
-          "pneumatic trail at zero slip (Mz = -t Fy, t falls to 0 at full sliding)"),
-    Param("rolling_radius_m", "m", 0.05, 2.0, RADIUS_MEANING),
-    _relaxation_param("relaxation_length_lat_m", RELAX_LAT_MEANING, None),
-    _relaxation_param("relaxation_length_long_m", RELAX_LONG_MEANING, None),
-))
-if tuple(p.name for p in SIMPLE_TIRE_PARAMS)[:len(SIMPLE_PARAM_NAMES)] != SIMPLE_PARAM_NAMES:
-    raise ImportError("SIMPLE_TIRE_PARAMS must list core.tire_simple's slots first, in order")
-
-MF61_TIRE_PARAMS = ParamTable("mf61", "Magic Formula 6.1 from a .tir file (core/tire_mf61.py)", (
-    Param("rolling_radius_m", "m", 0.05, 2.0, RADIUS_MEANING,
-          default="the .tir's UNLOADED_RADIUS"),
-    _relaxation_param("relaxation_length_lat_m", RELAX_LAT_MEANING + AT_NOMINAL,
-                      "PTY1 sin(2 atan(1/PTY2)) R0 LFZO LSGAL"),
-    _relaxation_param("relaxation_length_long_m", RELAX_LONG_MEANING + AT_NOMINAL,
-                      "PTX1 R0 LFZO LSGKP"),
-))
-MF61_PATH_KEYS = (("tir_file", "the MF-Tyre .tir property file (MF 6.1 or 6.2), relative to "
-                               "the tire file; required"),)
-
-MF61_TYRESIDES = {"left": "left", "right": "right", "symmetric": None}
-"""Accepted ``TYRESIDE`` values of a .tir file (any case); absent means ``Left``, as in
-MF-Tyre."""
 
 
 def read_tire_params(path: Path, data: dict[str, Any], table: ParamTable,
@@ -340,8 +288,6 @@ def read_tire_params(path: Path, data: dict[str, Any], table: ParamTable,
     Optional keys absent from the file are absent from the result when their default is a
     text (a value the loader computes), else they take their default.
     """
-    from simserver.adapters.validate import check_keys, number
-
     check_keys(path, data, ("model", *path_keys, *table.keys),
                required=("model", *path_keys, *table.required_keys))
     values: dict[str, float] = {}
@@ -354,123 +300,9 @@ def read_tire_params(path: Path, data: dict[str, Any], table: ParamTable,
     return values
 
 
-def _load_simple(path: Path, data: dict[str, Any]) -> LoadedTire:
-    """``model: simple`` (core.tire_simple): every key of ``SIMPLE_TIRE_PARAMS``."""
-    vals = read_tire_params(path, data, SIMPLE_TIRE_PARAMS)
-    return LoadedTire(
-        model_params=simple_param_vector(vals), rolling_radius_m=vals["rolling_radius_m"],
-        relax_lat_m=vals["relaxation_length_lat_m"],
-        relax_long_m=vals["relaxation_length_long_m"])
-
-
-def mf61_relaxation_lengths(tir: Any, coeffs: dict[str, float]) -> dict[str, float]:
-    """The relaxation lengths MF 6.1 defines in a .tir file, at the nominal load.
-
-    MF-Tyre 6.1 (as in MFeval): ``sigma_kappa = Fz (PTX1 + PTX2 dfz) exp(-PTX3 dfz)
-    (R0 / Fz0) LSGKP`` and ``sigma_alpha = PTY1 sin(2 atan(Fz / (PTY2 Fz0'))) (1 - PKY3
-    |gamma|) R0 LFZO LSGAL``. The lagged slip states of SAE 950311 take one length each
-    (paper eqs. 16 and 26), so they are evaluated at the scaled nominal load
-    ``Fz = Fz0' = LFZO FNOMIN`` (``dfz = 0``) and zero camber::
-
-        relaxation_length_long_m = PTX1 R0 LFZO LSGKP
-        relaxation_length_lat_m  = PTY1 sin(2 atan(1 / PTY2)) R0 LFZO LSGAL
-
-    Returns a dict with the keys that could be computed (a key is absent when a .tir key
-    it needs is absent); raises ``TirError`` naming the .tir key for a value that is not a
-    number or out of its range (``PTX1 > 0``, ``PTY1 > 0``, ``PTY2 > 0``, ``LSGKP > 0``,
-    ``LSGAL > 0``).
-    """
-    from simserver.adapters.tir_file import TirError
-
-    def value(key: str, default: float | None = None) -> float | None:
-        if key in tir.ambiguous:
-            raise TirError(f"{tir.path}: {key}: appears in several sections with different "
-                           "values")
-        if key not in tir.values:
-            return default
-        v = tir.values[key]
-        if isinstance(v, str):
-            raise TirError(f"{tir.where(key)}: {key}: non-numeric value {v!r}")
-        if not v > 0.0:
-            raise TirError(f"{tir.where(key)}: {key} = {v:g}: must be > 0 (relaxation length)")
-        return float(v)
-
-    r0_scaled = coeffs["UNLOADED_RADIUS"] * coeffs["LFZO"]
-    lengths: dict[str, float] = {}
-    ptx1, lsgkp = value("PTX1"), value("LSGKP", 1.0)
-    if ptx1 is not None:
-        lengths["relaxation_length_long_m"] = ptx1 * r0_scaled * lsgkp
-    pty1, pty2, lsgal = value("PTY1"), value("PTY2"), value("LSGAL", 1.0)
-    if pty1 is not None and pty2 is not None:
-        lengths["relaxation_length_lat_m"] = (
-            pty1 * math.sin(2.0 * math.atan(1.0 / pty2)) * r0_scaled * lsgal)
-    return lengths
-
-
-def _mf61_side(tir: Any) -> str | None:
-    """The tire's ``TYRESIDE`` (``MF61_TYRESIDES``): left, right or None (symmetric)."""
-    from simserver.adapters.tir_file import TirError
-
-    raw = tir.values.get("TYRESIDE", "Left")
-    if not isinstance(raw, str) or raw.strip().lower() not in MF61_TYRESIDES:
-        raise TirError(f"{tir.where('TYRESIDE')}: TYRESIDE = {raw!r}: expected one of "
-                       "'Left', 'Right', 'Symmetric'")
-    return MF61_TYRESIDES[raw.strip().lower()]
-
-
-def _load_mf61(path: Path, data: dict[str, Any]) -> LoadedTire:
-    """``model: mf61`` (core.tire_mf61): a ``tir_file`` (relative to the tire file) and
-    optional radius and relaxation lengths (defaults from the .tir file, see
-    ``mf61_relaxation_lengths``); the tire's side from the .tir's ``TYRESIDE``."""
-    from simserver.adapters.tir_file import TirError, load_tir, mf61_coefficients
-    from simserver.adapters.validate import ConfigError, number, referenced_file
-
-    vals = read_tire_params(path, data, MF61_TIRE_PARAMS, path_keys=("tir_file",))
-    tir_path = referenced_file(path, "tir_file", data["tir_file"])
-    try:
-        tir = load_tir(tir_path)
-        coeffs = mf61_coefficients(tir)
-        if not coeffs["VXLOW"] >= 0.0:
-            raise TirError(f"{tir.where('VXLOW')}: VXLOW = {coeffs['VXLOW']:g}: must be >= 0")
-        from_tir = mf61_relaxation_lengths(tir, coeffs)
-        side = _mf61_side(tir)
-    except TirError as exc:
-        raise ConfigError(f"{path}: key 'tir_file': {exc}") from exc
-    from_tir["rolling_radius_m"] = coeffs["UNLOADED_RADIUS"]
-    needs = {"relaxation_length_long_m": ("PTX1",), "relaxation_length_lat_m": ("PTY1", "PTY2")}
-    for param in MF61_TIRE_PARAMS:
-        key = param.yaml_key
-        if key in vals:
-            continue  # the tire file overrides the .tir
-        if key not in from_tir:
-            missing = ", ".join(k for k in needs[key] if k not in tir.values)
-            raise ConfigError(f"{path}: key 'tir_file': {tir_path}: missing key {missing} "
-                              f"(for the {param.meaning}; or give {key} in the tire file)")
-        vals[key] = number(f"{path} (from {tir_path.name})", key, from_tir[key], param.lo,
-                           param.hi)
-    return LoadedTire(model_params=mf61_param_vector(coeffs),
-                      rolling_radius_m=vals["rolling_radius_m"],
-                      relax_lat_m=vals["relaxation_length_lat_m"],
-                      relax_long_m=vals["relaxation_length_long_m"], side=side)
-
-
-_simple = register_tire_model(
-    "simple", "brush (Fiala) combined-slip model with explicit stiffnesses (core/tire_simple.py)",
-    _load_simple, simple_prepare_kernel, simple_evaluate_kernel, lambda p: p[SP_FZ_NOM],
-    n_coef=N_SIMPLE_COEF, n_params=N_SIMPLE_PARAM, params=SIMPLE_TIRE_PARAMS, _builtin=True)
-_mf61 = register_tire_model(
-    "mf61", "Magic Formula 6.1 from a .tir property file (core/tire_mf61.py)",
-    _load_mf61, mf61_prepare_kernel, mf61_evaluate_kernel, lambda p: p[P_FNOMIN],
-    n_coef=N_MF61_COEF, n_params=N_MF61_PARAM, params=MF61_TIRE_PARAMS,
-    path_keys=MF61_PATH_KEYS, _builtin=True)
-if (_simple.id, _mf61.id, len(_REGISTRY)) != (TIRE_MODEL_SIMPLE, TIRE_MODEL_MF61,
-                                               N_BUILTIN_TIRE_MODELS):
-    raise ImportError("the built-in tire models must keep the ids of core.tire_layout")
-
-
 def load_plugin_tire_models(group: str = ENTRY_POINT_GROUP) -> tuple[str, ...]:
     """Call every entry point of ``group``, in name order (each registers its model);
-    returns their names. Run once when this module is imported (module docstring).
+    returns their names. Run once when ``simserver.tires`` is imported (module docstring).
 
     Raises
     ------
@@ -489,7 +321,3 @@ def load_plugin_tire_models(group: str = ENTRY_POINT_GROUP) -> tuple[str, ...]:
             raise TirePluginError(f"tire model plug-in {ep.name!r} = {ep.value!r} (entry point "
                                   f"group {group!r}, from {dist}) failed: {exc}") from exc
     return tuple(ep.name for ep in found)
-
-
-PLUGINS: tuple[str, ...] = load_plugin_tire_models()
-"""The entry points of :data:`ENTRY_POINT_GROUP` this process loaded."""

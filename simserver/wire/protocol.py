@@ -118,6 +118,10 @@ STATE_DECIMATED_HZ: Final[int] = 100
 consumers that do not need every tick (the ROS 2 adapter at its default 100 Hz): they
 receive and wake a tenth as often, and the 1 kHz key has one subscriber less (issue 19)."""
 
+TRAFFIC_STATE_HZ: Final[int] = 100
+"""Rate of the ``state`` key of a car that no client drives (a server's traffic, driven
+by keyframes or the built-in driver; docs/protocol.md section 5.1)."""
+
 KEY_SPECS: Final[tuple[KeySpec, ...]] = (
     KeySpec(
         "cmd",
@@ -133,7 +137,8 @@ KEY_SPECS: Final[tuple[KeySpec, ...]] = (
         "VehicleState (binary)",
         ENCODING_STATE,
         "REAL_TIME, DROP (waits at most 50 us for a full link); not express",
-        "every tick (1 kHz) by default; server-side decimation",
+        "every tick (1 kHz) by default; server-side decimation; a car no client drives "
+        f"(traffic): {TRAFFIC_STATE_HZ} Hz",
     ),
     KeySpec(
         f"state/{STATE_DECIMATED_HZ}hz",
@@ -428,16 +433,21 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
               source="server"),
     FieldSpec("sim_time_s", "<f8", 1, "s", 0.0, None, "simulated time = tick x period",
               source="server", history="time_s"),
-    FieldSpec("x_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}", source="pose:x_m"),
-    FieldSpec("y_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}", source="pose:y_m"),
-    FieldSpec("z_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}", source="pose:z_m"),
+    FieldSpec("x_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}",
+              source="pose:x_m", history="world_x_m"),
+    FieldSpec("y_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}",
+              source="pose:y_m", history="world_y_m"),
+    FieldSpec("z_m", "<f8", 1, "m", None, None, f"CG position, {_POSE}",
+              source="pose:z_m", history="world_z_m"),
     FieldSpec("yaw_rad", "<f8", 1, "rad", None, None,
               f"heading from world x toward y, continuous (not wrapped); {_ATT}",
-              source="pose:yaw_rad"),
+              source="pose:yaw_rad", history="world_yaw_rad"),
     FieldSpec("pitch_rad", "<f8", 1, "rad", None, None,
-              f"pitch, positive = nose down; {_ATT}", source="pose:pitch_rad"),
+              f"pitch, positive = nose down; {_ATT}", source="pose:pitch_rad",
+              history="world_pitch_rad"),
     FieldSpec("roll_rad", "<f8", 1, "rad", None, None,
-              f"roll, positive = left side up; {_ATT}", source="pose:roll_rad"),
+              f"roll, positive = left side up; {_ATT}", source="pose:roll_rad",
+              history="world_roll_rad"),
     FieldSpec("cmd_age_s", "<f4", 1, "s", -1.0, None,
               "wall time since the last valid command arrived; -1 before the first",
               source="server"),
@@ -648,9 +658,9 @@ class StateColumn:
     Attributes
     ----------
     name : str
-        Column name: the field's ``history`` column (the wheel filled in), else
-        ``world_<field>`` for the world pose (the history's ``x_m`` is in the road plane),
-        else the field's own name.
+        Column name: the field's ``history`` column (the wheel filled in; the world pose's
+        is ``world_<field>``, the history's ``x_m`` being on the road plane), else the
+        field's own name.
     field : str
         The VehicleState field it is read from.
     wheel : int or None
@@ -685,7 +695,7 @@ def _column_of(f: FieldSpec, wheel: int | None) -> StateColumn:
     if f.history is not None:
         return StateColumn(f.history.format(w=w), f.name, wheel, "<f8",
                            "1" if f.unit == "-" else f.unit, text, True)
-    name = f"world_{f.name}" if kind == "pose" else f.name
+    name = f.name
     if w is not None:
         name = f"{name}_{w}"
     dtype = "<f8" if f.dtype.lstrip("<")[0] == "f" else f.dtype
@@ -722,7 +732,8 @@ def _check_state_table() -> None:
         for text in (name, f.history or ""):
             if text:
                 assert ("{w}" in text) == per_wheel, f"{f.name}: {text!r} and count {f.count}"
-        assert kind != "pose" or f.history is None, f"{f.name}: pose in the history frame"
+        # the history's x_m, y_m, yaw_rad are on the road plane; its world pose is world_*
+        assert kind != "pose" or f.history == f"world_{name}", f"{f.name}: {f.history!r}"
     for c in state_columns():
         assert c.name not in seen, f"two state columns named {c.name!r}"
         seen.add(c.name)
@@ -1610,7 +1621,8 @@ def _check_object(
     return out
 
 
-def validate_control(name: str, payload: bytes | bytearray | memoryview | None) -> dict:
+def validate_control(name: str, payload: bytes | bytearray | memoryview | None,
+                     specs: Mapping[str, ControlSpec] | None = None) -> dict:
     """Validate a control request and return its arguments, defaults filled in.
 
     Parameters
@@ -1631,10 +1643,11 @@ def validate_control(name: str, payload: bytes | bytearray | memoryview | None) 
         Naming the field (``"n"``, ``"pose.yaw_rad"``, ...), or ``"control"`` for an
         unknown control, ``"request"`` for a payload that is not a UTF-8 JSON object.
     """
-    spec = CONTROL_SPECS.get(name)
+    specs = CONTROL_SPECS if specs is None else specs
+    spec = specs.get(name)
     if spec is None:
         raise ProtocolError(
-            "control", f"unknown control {name!r}; known: {', '.join(CONTROL_NAMES)}"
+            "control", f"unknown control {name!r}; known: {', '.join(specs)}"
         )
     if payload is None:
         payload = b""
@@ -1666,7 +1679,8 @@ def validate_control(name: str, payload: bytes | bytearray | memoryview | None) 
     return args
 
 
-def encode_control(name: str, args: Mapping[str, Any] | None = None) -> bytes:
+def encode_control(name: str, args: Mapping[str, Any] | None = None,
+                   specs: Mapping[str, ControlSpec] | None = None) -> bytes:
     """Encode a control request (client side); validated with :func:`validate_control`.
 
     Raises
@@ -1675,7 +1689,7 @@ def encode_control(name: str, args: Mapping[str, Any] | None = None) -> bytes:
         When the server would reject the request.
     """
     payload = json.dumps(dict(args or {}), allow_nan=False).encode() if args else b""
-    validate_control(name, payload)
+    validate_control(name, payload, specs)
     return payload
 
 
@@ -1718,6 +1732,318 @@ def decode_reply(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
     return obj
 
 
+# ============================================================================ the world
+# Several cars in one server (issue 30): each car keeps every key above under its own id;
+# the world's own keys live under ``{prefix}/world`` (so no car may take the id ``world``),
+# and one compact message carries every car's id, pose and speed for a client that wants
+# to see the others (a HUD's nearest car ahead, a viewer drawing the traffic) without
+# subscribing to N full states.
+
+WORLD_KEY: Final[str] = "world"
+"""The key chunk of the world's keys, ``{prefix}/world/...``: reserved, not a vehicle id."""
+
+WORLD_ID_BYTES: Final[int] = 32
+"""Bytes of a car's id in the world message (UTF-8, NUL-padded): the longest id a server
+with several cars accepts."""
+
+WORLD_HZ_DEFAULT: Final[float] = 100.0
+"""Default rate of ``{prefix}/world/state`` (server config ``world_hz``). Not 1 kHz: a
+client that needs a car's every tick subscribes to that car's ``state`` (1 kHz, the full
+state); the world message is for seeing the traffic (a HUD, a viewer, a driver model's
+gap to the car ahead), for which 100 Hz moves a car at 30 m/s by 0.3 m between messages,
+at a tenth of the publishing cost in the tick."""
+
+ENCODING_WORLD: Final[str] = "application/octet-stream;simserver.WorldState.v1"
+
+DRIVEN_BY_CODES: Final[tuple[str, ...]] = ("client", "keyframes", "driver")
+"""``WorldState`` cars' ``driven_by`` code -> who drives the car (``simserver.server.fleet``)."""
+
+WORLD_CONTROL_NAMES: Final[tuple[str, ...]] = ("add_car", "remove_car", "reset", "get_config")
+"""The world's controls (:data:`WORLD_CONTROL_SPECS`)."""
+
+WORLD_KEY_SPECS: Final[tuple[KeySpec, ...]] = (
+    KeySpec(
+        "state",
+        "server -> clients (put)",
+        "WorldState (binary): a header and one record per car",
+        ENCODING_WORLD,
+        "DATA, DROP, not express",
+        f"`world_hz` of the server config (default {WORLD_HZ_DEFAULT:g} Hz); also with one car",
+    ),
+    *(
+        KeySpec(f"ctl/{name}", "client -> server (get / queryable)",
+                f"JSON request `{name}` -> JSON reply", ENCODING_CONTROL, "default",
+                "on demand")
+        for name in WORLD_CONTROL_NAMES
+    ),
+)
+
+
+@dataclass(frozen=True)
+class WorldKeys:
+    """The world's key expressions (built by :func:`world_keys`)."""
+
+    prefix: str
+    base: str  # "{prefix}/world"
+    state: str  # the WorldState messages
+    alive_all: str  # "{prefix}/*/alive": every car's liveliness token (discovery)
+    ctl: Mapping[str, str]  # world control name -> queryable key "{base}/ctl/{name}"
+    ctl_wildcard: str  # "{base}/ctl/**"
+
+    def control(self, name: str) -> str:
+        """Key of world control ``name`` (:class:`ProtocolError` for an unknown one)."""
+        try:
+            return self.ctl[name]
+        except KeyError:
+            raise ProtocolError("control", f"unknown world control {name!r}; known: "
+                                           f"{', '.join(WORLD_CONTROL_NAMES)}") from None
+
+    def control_name(self, key: str) -> str | None:
+        """The world control named by a concrete key, or None."""
+        head = self.base + "/ctl/"
+        name = key[len(head):] if key.startswith(head) else None
+        return name if name in self.ctl else None
+
+
+def world_keys(prefix: str = DEFAULT_PREFIX) -> WorldKeys:
+    """The world's keys under ``prefix`` (:class:`ProtocolError` for a bad prefix)."""
+    validate_prefix(prefix)
+    base = f"{prefix}/{WORLD_KEY}"
+    return WorldKeys(prefix=prefix, base=base, state=f"{base}/state",
+                     alive_all=f"{prefix}/*/alive",
+                     ctl={name: f"{base}/ctl/{name}" for name in WORLD_CONTROL_NAMES},
+                     ctl_wildcard=f"{base}/ctl/**")
+
+
+_WORLD_POSE = ArgSpec("pose", "object", False, "", None, None,
+                      "its start pose at rest (default the scene's), on the road plane or "
+                      "the terrain's horizontal axes", (
+                          ArgSpec("x_m", "number", True, "m", -1e6, 1e6, "position x"),
+                          ArgSpec("y_m", "number", True, "m", -1e6, 1e6, "position y"),
+                          ArgSpec("yaw_rad", "number", True, "rad", -YAW_BOUND_RAD,
+                                  YAW_BOUND_RAD, "heading, + = left of world x")))
+
+WORLD_CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
+    spec.name: spec
+    for spec in (
+        ControlSpec(
+            "add_car",
+            "Add a car to the running world, driven by a client: its keys "
+            "`{prefix}/{id}/...` with their own command inbox, watchdog, liveliness token "
+            "and controls, as a car of the server config's `cars:` list. Its files are read "
+            "off the tick (the load worker) and it joins between two ticks; answered when "
+            "it is served (its liveliness token declared). Errors name the argument: an id "
+            "taken, a start overlapping a car where that car is now or off the road, more "
+            "cars than `max_cars`, a vehicle file outside the config directories; nothing "
+            "changes then.",
+            (
+                ArgSpec("id", "name", True, "", None, None,
+                        f"the car's id: one key chunk, at most {WORLD_ID_BYTES} characters, "
+                        f"not `{WORLD_KEY}`"),
+                ArgSpec("vehicle", "path", False, "", None, None,
+                        "vehicle YAML (default the world scene's), as `load`'s"),
+                _WORLD_POSE,
+            ),
+            reply='"car": id, "cars": [ids]',
+        ),
+        ControlSpec(
+            "remove_car",
+            "Take a car out of the running world between two ticks: its keys stop being "
+            "served and its liveliness token goes; the other cars go on with their bits. "
+            "The last car cannot be removed.",
+            (ArgSpec("id", "name", True, "", None, None, "the car's id"),),
+            reply='"car": id, "cars": [ids]',
+        ),
+        ControlSpec(
+            "reset",
+            "Every car back to its start, at rest, all in the same tick (each car's own "
+            "`reset` without arguments: its tick restarts at 0, its log has the line). The "
+            "cars' start states are made one car a tick beside the running world, then "
+            "swapped in together; answered then (within about one tick per car).",
+            reply='"cars": [ids]',
+        ),
+        ControlSpec(
+            "get_config",
+            "The world: its cars in the order of the world message, who drives each, "
+            "`max_cars` and `world_hz`.",
+            reply='"cars": [{"id": ..., "driven_by": ...}], "max_cars": n, "world_hz": hz',
+        ),
+    )
+}
+"""The world's controls (``{prefix}/world/ctl/{name}``, docs/protocol.md section 5.1)."""
+assert tuple(WORLD_CONTROL_SPECS) == WORLD_CONTROL_NAMES
+
+
+WORLD_HEADER_FIELDS: Final[tuple[FieldSpec, ...]] = (
+    FieldSpec("version", "<u2", 1, "-", PROTOCOL_VERSION, PROTOCOL_VERSION,
+              "protocol version"),
+    FieldSpec("n_cars", "<u2", 1, "-", 0, 65535,
+              "car records that follow the header (the payload is 24 + 80 n_cars bytes)"),
+    FieldSpec("reserved", "<u4", 1, "-", 0, 0, "zero"),
+    FieldSpec("tick", "<u8", 1, "-", None, None,
+              "the world's tick: ticks of the server's clock since it started (a car's "
+              "own VehicleState.tick restarts at its reset or load)"),
+    FieldSpec("uptime_s", "<f8", 1, "s", 0.0, None, "wall time since the clock started"),
+)
+
+def _state_copy(name: str, dtype: str) -> FieldSpec:
+    """A world car field copied from the VehicleState field ``name`` (its unit and meaning;
+    ``dtype`` may be narrower)."""
+    f = next(f for f in STATE_FIELDS if f.name == name)
+    return FieldSpec(name, dtype, 1, f.unit, f.lo, f.hi, f"as VehicleState: {f.description}")
+
+
+WORLD_CAR_FIELDS: Final[tuple[FieldSpec, ...]] = (
+    FieldSpec("id", "u1", WORLD_ID_BYTES, "-", None, None,
+              "the car's vehicle id, UTF-8, padded with NUL bytes (its keys: "
+              "`{prefix}/{id}/...`)"),
+    *(_state_copy(name, dtype) for name, dtype in (
+        ("x_m", "<f8"), ("y_m", "<f8"), ("z_m", "<f8"), ("yaw_rad", "<f4"),
+        ("pitch_rad", "<f4"), ("roll_rad", "<f4"), ("u_mps", "<f4"), ("v_mps", "<f4"),
+        ("flags", "<u2"))),
+    FieldSpec("driven_by", "u1", 1, "-", 0, len(DRIVEN_BY_CODES) - 1,
+              "who drives it: " + ", ".join(f"{k} = {name}"
+                                             for k, name in enumerate(DRIVEN_BY_CODES))),
+    FieldSpec("reserved", "u1", 1, "-", 0, 0, "zero"),
+)
+"""One car of the world message; the values are those of the car's newest VehicleState
+published (the same bits, ``yaw``/``pitch``/``roll`` narrowed to f32)."""
+
+WORLD_HEADER_DTYPE: Final[np.dtype] = _make_dtype(WORLD_HEADER_FIELDS)
+WORLD_CAR_DTYPE: Final[np.dtype] = _make_dtype(WORLD_CAR_FIELDS)
+WORLD_HEADER_SIZE: Final[int] = WORLD_HEADER_DTYPE.itemsize
+WORLD_CAR_SIZE: Final[int] = WORLD_CAR_DTYPE.itemsize
+assert WORLD_HEADER_SIZE == 24 and WORLD_CAR_SIZE == 80  # 8-byte aligned records
+WORLD_STATE_COPIED: Final[tuple[str, ...]] = tuple(
+    f.name for f in WORLD_CAR_FIELDS if f.name not in ("id", "driven_by", "reserved"))
+"""The car fields copied from the car's VehicleState record, by name."""
+
+
+def car_id_field(car_id: str) -> np.ndarray:
+    """A car id as the world message's ``id`` field (``ProtocolError`` if too long)."""
+    raw = validate_vehicle_id(car_id).encode()
+    if len(raw) > WORLD_ID_BYTES:
+        raise ProtocolError("vehicle", f"{car_id!r} is longer than {WORLD_ID_BYTES} bytes, "
+                                       "the world message's id field")
+    out = np.zeros(WORLD_ID_BYTES, dtype=np.uint8)
+    out[:len(raw)] = np.frombuffer(raw, dtype=np.uint8)
+    return out
+
+
+class WorldBuffer:
+    """The world message of up to ``capacity`` cars, filled in place (the server's tick:
+    no allocation but the bytes it publishes)."""
+
+    def __init__(self, capacity: int) -> None:
+        self.buffer = np.zeros(WORLD_HEADER_SIZE + capacity * WORLD_CAR_SIZE, dtype=np.uint8)
+        self.header = self.buffer[:WORLD_HEADER_SIZE].view(WORLD_HEADER_DTYPE)[0:1]
+        self.cars = self.buffer[WORLD_HEADER_SIZE:].view(WORLD_CAR_DTYPE)
+        self.header["version"] = PROTOCOL_VERSION
+        self.n_cars = 0
+
+    def set_cars(self, ids: Sequence[str], driven_by: Sequence[str]) -> None:
+        """The cars of the message, in order (between ticks: when the world changes)."""
+        if len(ids) > self.cars.size:
+            raise ValueError(f"{len(ids)} cars, more than this buffer's {self.cars.size}")
+        self.cars[:] = 0
+        for k, (car_id, who) in enumerate(zip(ids, driven_by, strict=True)):
+            self.cars["id"][k] = car_id_field(car_id)
+            self.cars["driven_by"][k] = DRIVEN_BY_CODES.index(who)
+        self.n_cars = len(ids)
+        self.header["n_cars"] = self.n_cars
+
+    def fill_from(self, states: np.ndarray) -> None:
+        """The cars' poses and speeds from their VehicleState records ``states`` (the
+        first ``n_cars`` rows, in the cars' order), a few vectorised copies; a car whose
+        record is not finite keeps the values it had (nothing non-finite is published)."""
+        n = self.n_cars
+        rows = states[:n]
+        ok = np.ones(n, dtype=bool)
+        for name in WORLD_STATE_COPIED:
+            if rows.dtype[name].kind == "f":
+                ok &= np.isfinite(rows[name])
+        cars = self.cars[:n]
+        for name in WORLD_STATE_COPIED:
+            column = cars[name]
+            column[ok] = rows[name][ok]
+
+    def payload(self, tick: int, uptime_s: float) -> bytes:
+        """The message's bytes, with the header's ``tick`` and ``uptime_s``."""
+        self.header["tick"] = tick
+        self.header["uptime_s"] = uptime_s
+        return self.buffer[:WORLD_HEADER_SIZE + self.n_cars * WORLD_CAR_SIZE].tobytes()
+
+
+@dataclass(frozen=True)
+class WorldState:
+    """A decoded world message: the header's ``tick`` and ``uptime_s``, the cars' records
+    (``cars["x_m"]``, ...) and their ids as text."""
+
+    tick: int
+    uptime_s: float
+    ids: tuple[str, ...]
+    cars: np.ndarray  # WORLD_CAR_DTYPE[n_cars]
+
+    def car(self, car_id: str) -> np.void | None:
+        """The record of car ``car_id``, or None if the world has no such car."""
+        return self.cars[self.ids.index(car_id)] if car_id in self.ids else None
+
+
+def encode_world(tick: int, uptime_s: float, cars: Sequence[Mapping[str, Any]]) -> bytes:
+    """A world message from plain values (tools, tests): each car a mapping with ``id``,
+    ``driven_by`` (a name of :data:`DRIVEN_BY_CODES`) and every copied field."""
+    buf = WorldBuffer(len(cars))
+    buf.set_cars([c["id"] for c in cars], [c["driven_by"] for c in cars])
+    states = np.zeros(len(cars), dtype=STATE_DTYPE)
+    for k, c in enumerate(cars):
+        for name in WORLD_STATE_COPIED:
+            states[name][k] = c[name]
+    buf.fill_from(states)
+    return buf.payload(tick, uptime_s)
+
+
+def decode_world(payload: bytes | bytearray | memoryview) -> WorldState:
+    """Decode a WorldState payload.
+
+    Raises
+    ------
+    ProtocolError
+        A size that is not 24 + 80 n_cars bytes for the header's ``n_cars``, another
+        ``version``, a non-zero reserved field, an id that is not a vehicle id, or a
+        ``driven_by`` code out of range.
+    """
+    try:
+        raw = np.frombuffer(payload, dtype=np.uint8)
+    except (TypeError, ValueError, BufferError):
+        raise ProtocolError("payload", f"expected bytes, got {type(payload).__name__}") from None
+    if raw.size < WORLD_HEADER_SIZE:
+        raise ProtocolError("payload", f"WorldState is at least {WORLD_HEADER_SIZE} bytes, "
+                                       f"got {raw.size}")
+    header = raw[:WORLD_HEADER_SIZE].view(WORLD_HEADER_DTYPE)[0]
+    if header["version"] != PROTOCOL_VERSION:
+        raise ProtocolError("version", f"{int(header['version'])} is not the supported "
+                                       f"version {PROTOCOL_VERSION}")
+    n = int(header["n_cars"])
+    if raw.size != WORLD_HEADER_SIZE + n * WORLD_CAR_SIZE:
+        raise ProtocolError("payload", f"WorldState of {n} cars is "
+                                       f"{WORLD_HEADER_SIZE + n * WORLD_CAR_SIZE} bytes, got "
+                                       f"{raw.size}")
+    if header["reserved"] != 0:
+        raise ProtocolError("reserved", "must be zero")
+    cars = raw[WORLD_HEADER_SIZE:].copy().view(WORLD_CAR_DTYPE)
+    ids = []
+    for k in range(n):
+        text = bytes(cars[k]["id"]).rstrip(b"\0")
+        try:
+            ids.append(validate_vehicle_id(text.decode("ascii")))
+        except (UnicodeDecodeError, ProtocolError):
+            raise ProtocolError(f"cars[{k}].id", f"not a vehicle id: {text!r}") from None
+        if cars[k]["driven_by"] >= len(DRIVEN_BY_CODES) or cars[k]["reserved"] != 0:
+            raise ProtocolError(f"cars[{k}].driven_by", "unknown code or reserved not zero")
+    return WorldState(tick=int(header["tick"]), uptime_s=float(header["uptime_s"]),
+                      ids=tuple(ids), cars=cars)
+
+
 # ============================================================================ docs
 
 
@@ -1750,11 +2076,9 @@ def _source_text(f: FieldSpec) -> str:
 def _recorded_text(f: FieldSpec) -> str:
     if not f.source:
         return "-"
-    kind, _ = state_source(f)
     if f.history is not None:
         return f"`{f.history}` (history)"
-    name = f"world_{f.name}" if kind == "pose" else f.name
-    return f"`{name}_{{w}}`" if f.count > 1 else f"`{name}`"
+    return f"`{f.name}_{{w}}`" if f.count > 1 else f"`{f.name}`"
 
 
 def fields_markdown(fields: Sequence[FieldSpec], *, with_rule: bool = False,
@@ -1800,6 +2124,16 @@ def keys_markdown() -> str:
     return "\n".join(rows)
 
 
+def world_keys_markdown() -> str:
+    """Markdown table of the world's key expressions."""
+    rows = ["| key | direction | payload | encoding | QoS | rate |",
+            "|---|---|---|---|---|---|"]
+    for k in WORLD_KEY_SPECS:
+        rows.append(f"| `{{prefix}}/{WORLD_KEY}/{k.suffix}` | {k.direction} | {k.payload} "
+                    f"| `{k.encoding}` | {k.qos} | {k.rate} |")
+    return "\n".join(rows)
+
+
 def _arg_rows(args: Sequence[ArgSpec], prefix: str = "") -> list[str]:
     rows = []
     for a in args:
@@ -1818,11 +2152,13 @@ def _arg_rows(args: Sequence[ArgSpec], prefix: str = "") -> list[str]:
     return rows
 
 
-def controls_markdown() -> str:
-    """Markdown description of every control: arguments and reply fields."""
+def controls_markdown(specs: Mapping[str, ControlSpec] | None = None,
+                      key: str = "ctl") -> str:
+    """Markdown description of every control (of ``specs``, default the car's):
+    arguments and reply fields."""
     out = []
-    for spec in CONTROL_SPECS.values():
-        out.append(f"#### `ctl/{spec.name}`\n\n{spec.description}\n")
+    for spec in (CONTROL_SPECS if specs is None else specs).values():
+        out.append(f"#### `{key}/{spec.name}`\n\n{spec.description}\n")
         if spec.args:
             extra = " At least one argument is required." if spec.at_least_one else ""
             out.append(f"Arguments (unknown keys are rejected).{extra}\n")
@@ -1848,6 +2184,8 @@ def constants_markdown() -> str:
             f"- command receive ring: the server keeps the last {COMMAND_RING_SLOTS} "
             f"commands (`COMMAND_RING_SLOTS`) that arrived since its previous tick",
             f"- default prefix `{DEFAULT_PREFIX}`, default vehicle id `{DEFAULT_VEHICLE}`",
+            f"- WorldState: {WORLD_HEADER_SIZE} + {WORLD_CAR_SIZE} bytes per car; a car id "
+            f"at most {WORLD_ID_BYTES} bytes; `{WORLD_KEY}` is no vehicle id",
         ]
     )
 
@@ -1861,6 +2199,10 @@ def doc_sections() -> dict[str, str]:
         "state": fields_markdown(STATE_FIELDS, with_source=True),
         "diagnostics": fields_markdown(DIAGNOSTICS_FIELDS),
         "controls": controls_markdown(),
+        "world_keys": world_keys_markdown(),
+        "world_header": fields_markdown(WORLD_HEADER_FIELDS),
+        "world_car": fields_markdown(WORLD_CAR_FIELDS),
+        "world_controls": controls_markdown(WORLD_CONTROL_SPECS, f"{WORLD_KEY}/ctl"),
     }
 
 

@@ -1,0 +1,231 @@
+"""Command-to-state latency under many viewers, split by direction (issue 35 item 2).
+
+Run from the repository root::
+
+    python -m benchmarks.bench_cmd_latency [--seconds 15] [--rounds 2] [--subscribers 20]
+
+Starts ``simserver serve`` (its default real-time scheduling) on a free loopback port and,
+in this process, a driver at ``--cmd-hz`` (200) that stamps each command's send instant
+and each state's arrival (in zenoh's receiving thread, as ``benchmarks.bench_server``):
+the latency of a command is the arrival of the first state that reflects it minus its
+send instant. Two kinds of driver, interleaved in each round:
+
+- ``project``: the project's client config (``make_zenoh_config``: low-latency transport,
+  QoS off) and command publisher (REAL_TIME, express, BLOCK);
+- ``zenoh_defaults``: a session on zenoh's default config (peer, normal transport with
+  QoS; only multicast scouting off and no listener, to stay on loopback) and a publisher
+  with express and BLOCK, as the issue's driver had.
+
+Each kind is measured without other clients (the baseline) and beside ``--subscribers``
+state subscribers (one zenoh session each, ``roles multisub``), one subscriber that never
+reads (``roles slowsub``) and ``--churn`` sessions a second joining and leaving
+(``roles churn``).
+
+Which direction waits: the state carries its tick, not a server time stamp, so the
+tick's instant is estimated as ``T0 + tick x 1 ms`` with ``T0`` the earliest ``arrival -
+tick x 1 ms`` of the window (the fastest state: its transport at the minimum). Then
+``state part = arrival - tick instant`` (the tick's lateness and work, the put, the
+transport to this client) and ``command part = latency - state part`` (the transport to
+the server, the wait for the tick that applies it). Both are relative to the fastest
+state, so their p50/p99 growth under load, not their absolute values, tells which
+direction waits.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from simserver.server.realtime import RealtimeScheduler, RealtimeSettings
+from simserver.testing import RoleProcess, ServerProcess
+from simserver.wire import protocol as proto
+
+TICK_NS = 1_000_000
+KINDS = ("project", "zenoh_defaults")
+
+
+def _session(kind: str, endpoint: str) -> zenoh.Session:
+    from simserver.adapters.zenoh_io import make_zenoh_config
+
+    if kind == "project":
+        cfg = make_zenoh_config(listen=[], connect=[endpoint], mode="client")
+    else:
+        cfg = zenoh.Config()  # zenoh's defaults, but for staying on loopback
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        cfg.insert_json5("listen/endpoints", "[]")
+        cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    return zenoh.open(cfg)
+
+
+def measure(kind: str, endpoint: str, seconds: float, cmd_hz: float,
+            vehicle: str = "car0") -> dict[str, Any]:
+    """One window of ``seconds``: the latencies and their split (us)."""
+    keys = proto.vehicle_keys("simserver", vehicle)
+    arrivals: deque[tuple[int, bytes]] = deque()
+    with _session(kind, endpoint) as session:
+        if kind == "project":
+            pub = session.declare_publisher(keys.cmd, priority=zenoh.Priority.REAL_TIME,
+                                            express=True,
+                                            congestion_control=zenoh.CongestionControl.BLOCK)
+        else:
+            pub = session.declare_publisher(keys.cmd, express=True,
+                                            congestion_control=zenoh.CongestionControl.BLOCK)
+
+        def on_state(sample: Any) -> None:  # zenoh's thread: stamp first, decode later
+            arrivals.append((time.monotonic_ns(), sample.payload.to_bytes()))
+
+        sub = session.declare_subscriber(keys.state,
+                                         zenoh.handlers.Callback(on_state, indirect=False))
+        # the client at a real-time priority (this thread, its zenoh threads) as
+        # bench_server's: a client starved by the load would time its own scheduling
+        client_rt = RealtimeScheduler(RealtimeSettings(priority=40, cpu_latency_us=None))
+        client_rt.apply()
+        time.sleep(1.0)  # links up, first states in (not measured)
+        client_rt.promote_new_threads()
+        warmup_states = len(arrivals)
+        arrivals.clear()
+        sent: dict[int, int] = {}
+        pairs: list[tuple[int, int, int]] = []  # (send, arrival, tick) per command
+        rx_minus_tick: list[int] = []
+        rng = np.random.default_rng(11)
+        period = 1.0 / cmd_hz
+        seq = 0
+        t_slot = time.monotonic()
+        t_end = t_slot + seconds
+        t_next = t_slot + rng.uniform(0.0, 1e-3)
+        while time.monotonic() < t_end:
+            if time.monotonic() >= t_next:
+                seq += 1
+                t_ns = time.monotonic_ns()
+                sent[seq] = t_ns
+                pub.put(proto.encode_command(throttle=0.1, seq=seq, sender_time_ns=t_ns))
+                t_slot += period
+                t_next = t_slot + rng.uniform(0.0, 1e-3)
+            while arrivals:
+                t_rx, payload = arrivals.popleft()
+                st = proto.decode_state(payload)
+                tick = int(st["tick"])
+                rx_minus_tick.append(t_rx - tick * TICK_NS)
+                s = int(st["last_cmd_seq"])
+                if s in sent:
+                    pairs.append((sent.pop(s), t_rx, tick))
+            time.sleep(0.0005)
+        client_rt.promote_new_threads()
+        peers = len(list(session.info.peers_zid())) + len(list(session.info.routers_zid()))
+        sub.undeclare()
+        pub.undeclare()
+    # back to normal priority: the next window's client promotes its own threads
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    if not pairs:  # no state reflecting a command arrived: the stream was lost
+        return {"commands": seq, "acknowledged": 0, "states": len(rx_minus_tick),
+                "peers": peers,
+                "warmup_states": warmup_states, "latency_us": None,
+                "command_part_us": None, "state_part_us": None}
+    t0 = min(rx_minus_tick)
+    total = np.array([(rx - tx) / 1e3 for tx, rx, _ in pairs])
+    state = np.array([(rx - tick * TICK_NS - t0) / 1e3 for _, rx, tick in pairs])
+    command = total - state
+
+    def pct(a: np.ndarray) -> dict[str, float]:
+        return {"p50": round(float(np.percentile(a, 50)), 1),
+                "p99": round(float(np.percentile(a, 99)), 1),
+                "max": round(float(a.max()), 1)}
+
+    return {"commands": seq, "acknowledged": len(pairs), "states": len(rx_minus_tick),
+            "peers": peers,
+            "warmup_states": warmup_states, "latency_us": pct(total),
+            "command_part_us": pct(command), "state_part_us": pct(state)}
+
+
+class Load:
+    """``subscribers`` state subscribers, one that never reads, ``churn`` joins a second."""
+
+    def __init__(self, endpoint: str, subscribers: int, churn: float,
+                 slow: bool = True) -> None:
+        conn = ["--connect", endpoint]
+        self.roles = [RoleProcess("multisub", [*conn, "--sessions", str(subscribers)])]
+        if slow:
+            self.roles.append(RoleProcess("slowsub", [*conn, "--capacity", "1"]))
+        if churn > 0:
+            self.roles.append(RoleProcess("churn", [*conn, "--rate", str(churn),
+                                                    "--life", "1.0"]))
+
+    def stop(self) -> None:
+        for role in self.roles:
+            role.stop()
+
+
+def run(seconds: float, rounds: int, subscribers: int, churn: float,
+        cmd_hz: float, slow: bool = True) -> dict[str, Any]:
+    out: dict[str, dict[str, list[dict[str, Any]]]] = {
+        k: {"baseline": [], "loaded": []} for k in KINDS}
+    load_avg = []
+    for r in range(rounds):
+        with ServerProcess(scene=None, log_level="WARNING") as server:
+            for kind in KINDS:
+                out[kind]["baseline"].append(measure(kind, server.endpoint, seconds, cmd_hz))
+                print(f"round {r + 1} {kind} baseline: {out[kind]['baseline'][-1]}",
+                      flush=True)
+            load = Load(server.endpoint, subscribers, churn, slow)
+            try:
+                for kind in KINDS:
+                    out[kind]["loaded"].append(measure(kind, server.endpoint, seconds,
+                                                       cmd_hz))
+                    print(f"round {r + 1} {kind} loaded: {out[kind]['loaded'][-1]}",
+                          flush=True)
+                    load_avg.append(os.getloadavg()[0])
+            finally:
+                load.stop()
+    summary: dict[str, Any] = {}
+    for kind, by in out.items():
+        summary[kind] = {}
+        for cond, runs in by.items():
+            measured = [x for x in runs if x["latency_us"] is not None]
+            summary[kind][cond] = {
+                part: {q: float(np.median([x[part][q] for x in measured]))
+                       if measured else float("nan") for q in ("p50", "p99", "max")}
+                for part in ("latency_us", "command_part_us", "state_part_us")}
+            summary[kind][cond]["windows_without_states"] = len(runs) - len(measured)
+    return {"seconds": seconds, "rounds": rounds, "subscribers": subscribers,
+            "churn": churn, "slow_subscriber": slow, "cmd_hz": cmd_hz,
+            "load_average": [min(load_avg), max(load_avg)] if load_avg else [],
+            "summary": summary, "runs": out}
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=15.0)
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--subscribers", type=int, default=20)
+    parser.add_argument("--churn", type=float, default=10.0)
+    parser.add_argument("--cmd-hz", type=float, default=200.0)
+    parser.add_argument("--no-slow", action="store_true",
+                        help="without the subscriber that never reads")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    r = run(args.seconds, args.rounds, args.subscribers, args.churn, args.cmd_hz,
+            not args.no_slow)
+    for kind, by in r["summary"].items():
+        for cond, parts in by.items():
+            lost = parts.pop("windows_without_states")
+            print(f"{kind:>15} {cond:>8}: " + "; ".join(
+                f"{part[:-3]} p50 {v['p50']:.0f} p99 {v['p99']:.0f} max {v['max']:.0f} us"
+                for part, v in parts.items())
+                + (f"; {lost} window(s) without a state" if lost else ""))
+    print(f"medians of {r['rounds']} rounds, {r['seconds']:g} s each; load average "
+          f"{r['load_average']}")
+    if args.json is not None:
+        args.json.write_text(json.dumps(r, indent=1) + "\n", encoding="utf-8")
+    return r
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,394 @@
+"""The cars of a live server: the ``cars:`` list of a server config, validated (issue 30).
+
+The world they make and the loop's glue are :mod:`simserver.server.fleet`.
+
+A server config without ``cars:`` serves one car, ``vehicle_id`` (default ``car0``), on its
+scene, as it always has. With ``cars:`` it serves each car listed, all in one world on the
+scene's terrain and road (``simserver.sim.simulation.World``, docs/model.md section 14)::
+
+    scene: ../scenes/crest_curve_paper_sedan.yaml   # the terrain, the road, the defaults
+    max_cars: 32                  # more cars than this is an error (default 32)
+    cars:
+      - id: car0                  # its keys: {prefix}/car0/...
+        start: {road: "0", s: 270.0, lane: -1}       # or pose: {x_m, y_m, yaw_rad}
+        driven_by: client         # client (default) | keyframes
+      - id: lead
+        vehicle: ../vehicles/paper_sedan/vehicle.yaml   # default: the scene's vehicle
+        start: {road: "0", s: 290.0, lane: -1}
+        driven_by: keyframes
+        keyframes: ../scenarios/e3_stop_from_turn.yaml  # a scenario's inputs, in real time
+
+Each car's ``vehicle`` defaults to the scene's and its start to the scene's ``initial``
+(``pose`` replaces the scene's ``x_m``, ``y_m``, ``yaw_rad``; ``start`` gives them from a
+road, s and lane of an OpenDRIVE terrain); every car starts at rest. The checks
+(:func:`car_scenes`) run before anything is swapped, so a running world is never touched
+by a bad list; each error names the file and the car (``cars[k] (id)``):
+
+- an id given twice, an id that is not one key chunk, an id longer than
+  :data:`simserver.wire.protocol.WORLD_ID_BYTES` (the world message's id field), or the reserved
+  id :data:`WORLD_KEY` (the world's own keys, ``{prefix}/world/...``);
+- more cars than ``max_cars``;
+- a start off the road: on an OpenDRIVE terrain the car's CG must be on a lane of a road
+  (:func:`on_lane`), on a height map inside the grid (beyond it the ground is the edge's,
+  extended flat: no road);
+- two start poses whose body footprints overlap (:func:`footprint`, :func:`overlap`):
+  oriented rectangles in the horizontal plane, by the separating axis theorem.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from simserver.adapters.config import ConfigError, check_keys, load_vehicle, number
+from simserver.adapters.validate import integer, referenced_file, short_repr
+from simserver.core.params import (
+    VP_CG_TO_FRONT_AXLE_M,
+    VP_CG_TO_REAR_AXLE_M,
+    VP_TRACK_FRONT_M,
+    VP_TRACK_REAR_M,
+)
+from simserver.core.terrain import (
+    GRID_DX_M,
+    GRID_DY_M,
+    GRID_X0_M,
+    GRID_Y0_M,
+    TERRAIN_HEIGHTMAP,
+    TERRAIN_OPENDRIVE,
+)
+from simserver.wire import protocol as proto
+
+if TYPE_CHECKING:
+    from simserver.adapters.opendrive import OpenDrive, Road
+    from simserver.sim.scene import Scene
+
+WORLD_KEY = "world"
+"""The key chunk of the world's own keys (``{prefix}/world/state``): no car may take it."""
+
+CAR_KEYS = ("id", "vehicle", "pose", "start", "driven_by", "keyframes")
+"""The keys of one entry of ``cars:``."""
+
+DRIVEN_BY: dict[str, str] = {
+    "client": "a client over zenoh ({prefix}/{id}/cmd), as a single car's server is driven",
+    "keyframes": "a scenario's input keyframes (`keyframes:` FILE), played in real time "
+                 "from the car's tick 0; commands sent to it are not applied",
+}
+"""Who drives a car (``driven_by``), with what it means: one table for checks and docs."""
+
+DEFAULT_MAX_CARS = 32
+MAX_CARS_RANGE = (1, 256)
+"""``max_cars``: the default and the range it may be set in."""
+
+POSE_KEYS = ("x_m", "y_m", "yaw_rad")
+
+BODY_OVERHANG_M = 0.85
+"""The body's length beyond each axle, and (``BODY_SIDE_M``) its width beyond half the
+track: the footprint the overlap check uses, the viewer's body (``adapters.rerun_scene``
+``CarGeometry.body_boxes``, styling numbers of a mid-size sedan). Until the vehicle files
+carry body dimensions (the contact issue), both read these."""
+BODY_SIDE_M = 0.1
+
+LANE_SAMPLE_M = 0.5
+"""Spacing of the reference-line samples :func:`on_lane` projects a point onto."""
+
+
+@dataclass(frozen=True)
+class CarSpec:
+    """One car of ``cars:``, as written (checked for form; files not read yet)."""
+
+    id: str
+    where: str  # "FILE: cars[k] (id)": the prefix of every error about this car
+    vehicle: Path | None = None  # None: the scene's vehicle
+    pose: dict[str, float] | None = None  # x_m, y_m, yaw_rad; None: the scene's (or start)
+    start: dict[str, Any] | None = None  # road, s, lane on the scene's OpenDRIVE roads
+    driven_by: str = "client"
+    keyframes: Path | None = None
+
+
+def parse_cars(path: Path, raw: Any, max_cars: int = DEFAULT_MAX_CARS) -> list[CarSpec]:
+    """The ``cars:`` list of the server config ``path``, checked for form: ids (unique,
+    one key chunk, not ``world``, at most ``proto.WORLD_ID_BYTES`` bytes), the count, each
+    entry's keys and values. Files are resolved (relative to ``path``) but not read."""
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError(f"{path}: key 'cars': expected a non-empty list of cars")
+    if len(raw) > max_cars:
+        raise ConfigError(f"{path}: key 'cars': {len(raw)} cars, more than max_cars "
+                          f"({max_cars})")
+    cars: list[CarSpec] = []
+    seen: dict[str, int] = {}
+    for k, entry in enumerate(raw):
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{path}: key 'cars[{k}]': expected a mapping, got "
+                              f"{short_repr(entry)}")
+        car_id = entry.get("id")
+        where = f"{path}: cars[{k}]" + (f" ({car_id})" if isinstance(car_id, str) else "")
+        check_keys(where, entry, CAR_KEYS, required=("id",))
+        car_id = check_car_id(where, car_id)
+        if car_id in seen:
+            raise ConfigError(f"{where}: key 'id': {car_id!r} is the id of cars[{seen[car_id]}] "
+                              "too; each car needs its own")
+        seen[car_id] = k
+        cars.append(_parse_car(path, where, car_id, entry))
+    return cars
+
+
+def check_car_id(where: str, car_id: Any) -> str:
+    """A car id: one key chunk (``proto.validate_vehicle_id``), not :data:`WORLD_KEY`, at
+    most ``proto.WORLD_ID_BYTES`` bytes; ``ConfigError`` naming ``where`` and the id."""
+    if not isinstance(car_id, str):
+        raise ConfigError(f"{where}: key 'id': expected a string, got {short_repr(car_id)}")
+    try:
+        proto.validate_vehicle_id(car_id)
+    except proto.ProtocolError as exc:
+        raise ConfigError(f"{where}: key 'id': {exc}") from None
+    if car_id == WORLD_KEY:
+        raise ConfigError(f"{where}: key 'id': {WORLD_KEY!r} is reserved for the world's own "
+                          f"keys ({{prefix}}/{WORLD_KEY}/...)")
+    if len(car_id.encode()) > proto.WORLD_ID_BYTES:
+        raise ConfigError(f"{where}: key 'id': {car_id!r} is longer than "
+                          f"{proto.WORLD_ID_BYTES} characters (the world message's id field)")
+    return car_id
+
+
+def _parse_car(path: Path, where: str, car_id: str, entry: dict[str, Any]) -> CarSpec:
+    vehicle = None
+    if entry.get("vehicle") is not None:
+        vehicle = _file(path, where, "vehicle", entry["vehicle"])
+    pose = None
+    if entry.get("pose") is not None:
+        raw = entry["pose"]
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{where}: key 'pose': expected a mapping {{x_m, y_m, yaw_rad}}")
+        check_keys(f"{where} (pose)", raw, POSE_KEYS, required=("x_m", "y_m"))
+        from simserver.sim.scene import INITIAL_RANGES
+
+        pose = {key: number(where, f"pose.{key}", raw.get(key, 0.0), *INITIAL_RANGES[key])
+                for key in POSE_KEYS}
+    start = entry.get("start")
+    if start is not None and pose is not None:
+        raise ConfigError(f"{where}: key 'start': give pose or start, not both")
+    if start is not None and not isinstance(start, dict):
+        raise ConfigError(f"{where}: key 'start': expected a mapping {{road, s, lane}}, got "
+                          f"{short_repr(start)}")
+    driven_by = entry.get("driven_by", "client")
+    if driven_by not in DRIVEN_BY:
+        raise ConfigError(f"{where}: key 'driven_by': expected one of "
+                          f"{', '.join(DRIVEN_BY)}, got {short_repr(driven_by)}")
+    keyframes = None
+    if driven_by == "keyframes":
+        if entry.get("keyframes") is None:
+            raise ConfigError(f"{where}: key 'keyframes': a car driven by keyframes needs a "
+                              "scenario file whose inputs it plays")
+        keyframes = _file(path, where, "keyframes", entry["keyframes"])
+    elif entry.get("keyframes") is not None:
+        raise ConfigError(f"{where}: key 'keyframes': only a car driven_by keyframes plays "
+                          "them")
+    return CarSpec(id=car_id, where=where, vehicle=vehicle, pose=pose,
+                   start=None if start is None else dict(start), driven_by=driven_by,
+                   keyframes=keyframes)
+
+
+def _file(path: Path, where: str, key: str, value: Any) -> Path:
+    try:
+        return referenced_file(path, key, value)
+    except ConfigError as exc:  # name the car too
+        raise ConfigError(f"{where}: {str(exc).removeprefix(f'{path}: ')}") from None
+
+
+def parse_max_cars(path: Path, value: Any) -> int:
+    """``max_cars`` of the server config."""
+    return integer(path, "max_cars", value, *MAX_CARS_RANGE)
+
+
+# ------------------------------------------------------------------ scenes of the cars
+def car_scenes(cars: list[CarSpec], scene: Scene) -> dict[str, Scene]:
+    """Each car's scene (in ``cars`` order): the world's ``scene`` with the car's vehicle and
+    start pose. Reads the vehicle files (once per file) and checks every start: on the road
+    and apart from every other car's (module docstring). ``ConfigError`` naming the file
+    and the car; nothing is built for a list that fails."""
+    from simserver.sim.scene import start_by_lane
+
+    vehicles: dict[Path, Any] = {}
+    scenes: dict[str, Scene] = {}
+    for car in cars:
+        vehicle = scene.vehicle
+        if car.vehicle is not None:
+            if car.vehicle not in vehicles:
+                try:
+                    vehicles[car.vehicle] = load_vehicle(car.vehicle, scene.model_options,
+                                                         options_source=str(scene.path))
+                except ConfigError as exc:
+                    raise ConfigError(f"{car.where}: key 'vehicle': {exc}") from None
+            vehicle = vehicles[car.vehicle]
+        # every car starts at rest (a reset to its pose gives the same state: its command
+        # log names that pose, and the replay starts there)
+        initial = {**scene.initial, "u_mps": 0.0, "v_mps": 0.0, "yaw_rate_radps": 0.0}
+        if car.start is not None:
+            initial.update(start_by_lane(car.where, "start", car.start, scene.roads))
+        elif car.pose is not None:
+            initial.update(car.pose)
+        one = dataclasses.replace(scene, vehicle=vehicle, initial=initial)
+        check_on_road(car.where, one)
+        scenes[car.id] = one
+    check_apart(cars, scenes)
+    return scenes
+
+
+def check_on_road(where: str, scene: Scene) -> None:
+    """The scene's start is on its road (module docstring); else ``ConfigError``."""
+    x, y = scene.initial["x_m"], scene.initial["y_m"]
+    terrain = scene.terrain
+    if terrain.kind == TERRAIN_OPENDRIVE and scene.roads is not None:
+        if not on_lane(scene.roads, x, y):
+            raise ConfigError(f"{where}: the start ({x:.2f}, {y:.2f}) m is off the road: not "
+                              f"on a lane of {scene.roads.path.name}")
+    elif terrain.kind == TERRAIN_HEIGHTMAP:
+        g = terrain.grid
+        ny, nx = terrain.heights.shape
+        x0, y0 = g[GRID_X0_M], g[GRID_Y0_M]
+        x1, y1 = x0 + (nx - 1) * g[GRID_DX_M], y0 + (ny - 1) * g[GRID_DY_M]
+        if not (x0 <= x <= x1 and y0 <= y <= y1):
+            raise ConfigError(f"{where}: the start ({x:.2f}, {y:.2f}) m is off the height "
+                              f"map ({x0:g} .. {x1:g}, {y0:g} .. {y1:g}) m")
+
+
+def _reference_samples(road: Road, step_m: float) -> tuple[np.ndarray, ...]:
+    """``(s, x, y, heading)`` of the reference line every ``step_m`` (and at its end)."""
+    from simserver.adapters.opendrive import GeometryArray
+
+    s = np.append(np.arange(0.0, road.length, step_m), road.length)
+    geos = road.geometries
+    starts = geos.starts if isinstance(geos, GeometryArray) else np.array(
+        [g.s for g in geos])
+    which = np.clip(np.searchsorted(starts, s + 1e-9, side="right") - 1, 0, len(geos) - 1)
+    x, y, h = (np.empty_like(s) for _ in range(3))
+    for k in np.unique(which):
+        sel = which == k
+        geo = geos[int(k)]
+        x[sel], y[sel], h[sel] = geo.points(np.clip(s[sel] - geo.s, 0.0, geo.length))
+    return s, x, y, h
+
+
+def on_lane(od: OpenDrive, x_m: float, y_m: float, step_m: float = LANE_SAMPLE_M) -> bool:
+    """Whether the point ``(x_m, y_m)`` is on a lane of a road of ``od``: its projection on
+    some road's reference line (the nearest of samples every ``step_m``, refined along the
+    local heading) falls within the road's length, and its lateral offset within the
+    road's lanes there (``road_extents``; superelevation ignored: a lateral error of
+    ``t (1 - cos roll)``, 2 mm for 4 m at 4 %)."""
+    from simserver.adapters.opendrive import road_extents
+
+    for road in od.roads:
+        if road.length <= 0.0:
+            continue
+        s, x, y, h = _reference_samples(road, step_m)
+        dx, dy = x_m - x, y_m - y
+        n = int(np.argmin(dx * dx + dy * dy))
+        c, sn = math.cos(h[n]), math.sin(h[n])
+        along = dx[n] * c + dy[n] * sn
+        s_here = s[n] + along
+        if not -1e-6 <= s_here <= road.length + 1e-6 or abs(along) > step_m:
+            continue
+        t = -dx[n] * sn + dy[n] * c
+        right, left = road_extents(road, np.array([min(max(s_here, 0.0), road.length)]))
+        if right[0] - 1e-6 <= t <= left[0] + 1e-6:
+            return True
+    return False
+
+
+def footprint(vp: np.ndarray) -> tuple[float, float, float]:
+    """The body's footprint: ``(front_m, rear_m, half_width_m)`` from the CG (module
+    constants ``BODY_*``)."""
+    return (float(vp[VP_CG_TO_FRONT_AXLE_M]) + BODY_OVERHANG_M,
+            float(vp[VP_CG_TO_REAR_AXLE_M]) + BODY_OVERHANG_M,
+            0.5 * max(float(vp[VP_TRACK_FRONT_M]), float(vp[VP_TRACK_REAR_M])) + BODY_SIDE_M)
+
+
+def _corners(pose: dict[str, float], box: tuple[float, float, float]) -> np.ndarray:
+    front, rear, half = box
+    c, s = math.cos(pose["yaw_rad"]), math.sin(pose["yaw_rad"])
+    local = np.array([[front, half], [front, -half], [-rear, -half], [-rear, half]])
+    return np.column_stack((pose["x_m"] + c * local[:, 0] - s * local[:, 1],
+                            pose["y_m"] + s * local[:, 0] + c * local[:, 1]))
+
+
+def overlap(pose_a: dict[str, float], box_a: tuple[float, float, float],
+            pose_b: dict[str, float], box_b: tuple[float, float, float]) -> bool:
+    """Whether two footprints (``footprint``) at two poses overlap (touching is not):
+    the separating axis theorem on the rectangles' four edge normals."""
+    a, b = _corners(pose_a, box_a), _corners(pose_b, box_b)
+    for yaw in (pose_a["yaw_rad"], pose_b["yaw_rad"]):
+        for axis in ((math.cos(yaw), math.sin(yaw)), (-math.sin(yaw), math.cos(yaw))):
+            pa, pb = a @ axis, b @ axis
+            if pa.max() <= pb.min() or pb.max() <= pa.min():
+                return False
+    return True
+
+
+def check_apart(cars: list[CarSpec], scenes: dict[str, Scene]) -> None:
+    """No two cars' start footprints overlap; else ``ConfigError`` naming both."""
+    boxes = {car.id: footprint(scenes[car.id].vehicle.vp) for car in cars}
+    for i, a in enumerate(cars):
+        for b in cars[:i]:
+            pa, pb = scenes[a.id].initial, scenes[b.id].initial
+            if overlap(pa, boxes[a.id], pb, boxes[b.id]):
+                raise ConfigError(
+                    f"{a.where}: its start ({pa['x_m']:.2f}, {pa['y_m']:.2f}) m overlaps the "
+                    f"start of car {b.id!r} ({pb['x_m']:.2f}, {pb['y_m']:.2f}) m (bodies "
+                    f"{sum(boxes[a.id][:2]):.2f} x {2 * boxes[a.id][2]:.2f} m): move one")
+
+
+MAX_KEYFRAME_STEPS = 3_600_000
+"""Longest keyframe table a car plays (an hour at 1 kHz, 144 MB): longer is an error."""
+
+
+def keyframe_table(car: CarSpec, dt_s: float) -> np.ndarray:
+    """The inputs a car ``driven_by: keyframes`` applies at each of its ticks: its file's
+    keyframes sampled every ``dt_s`` over the file's ``duration_s`` (``simserver.sim.keyframes``,
+    the headless runner's and the player's sampling); past the end the last row holds.
+    Read off the tick (the server's start, the load worker). ``ConfigError`` naming the
+    car."""
+    from simserver.adapters.config import read_yaml
+    from simserver.sim.keyframes import input_table, read_keyframe_file
+
+    assert car.keyframes is not None
+    try:
+        run = read_keyframe_file(car.keyframes, read_yaml(car.keyframes))
+    except ConfigError as exc:
+        raise ConfigError(f"{car.where}: key 'keyframes': {exc}") from None
+    steps = int(round(run.duration_s / dt_s)) + 1
+    if steps > MAX_KEYFRAME_STEPS:
+        raise ConfigError(f"{car.where}: key 'keyframes': {car.keyframes} lasts "
+                          f"{run.duration_s:g} s, more than {MAX_KEYFRAME_STEPS * dt_s:g} s")
+    return np.ascontiguousarray(input_table(run.keyframes, np.arange(steps) * dt_s))
+
+
+def check_clear(car: CarSpec, scene: Scene, others: dict[str, tuple[dict[str, float],
+                                                                     np.ndarray]]) -> None:
+    """A car to add at ``scene``'s start does not overlap any car of a running world
+    (``others``: id -> (its pose now: x_m, y_m, yaw_rad, and its vehicle parameters));
+    ``ConfigError`` naming the car and the one in the way."""
+    if car.id in others:
+        raise ConfigError(f"{car.where}: key 'id': the world has a car {car.id!r} already")
+    box = footprint(scene.vehicle.vp)
+    for other_id, (pose, vp) in others.items():
+        if overlap(scene.initial, box, pose, footprint(vp)):
+            raise ConfigError(f"{car.where}: its start ({scene.initial['x_m']:.2f}, "
+                              f"{scene.initial['y_m']:.2f}) m overlaps car {other_id!r} where "
+                              f"it is now ({pose['x_m']:.2f}, {pose['y_m']:.2f}) m")
+
+
+def new_car(car: CarSpec, scene: Scene, dt_s: float,
+            others: dict[str, tuple[dict[str, float], np.ndarray]]
+            ) -> tuple[Scene, np.ndarray | None]:
+    """What adding ``car`` to a running world on ``scene`` needs, read and checked (off the
+    tick: the vehicle file, the keyframes): the car's scene and its keyframe table (None
+    for a client's car). ``ConfigError`` naming the car; nothing changes."""
+    scenes = car_scenes([car], scene)
+    check_clear(car, scenes[car.id], others)
+    table = keyframe_table(car, dt_s) if car.driven_by == "keyframes" else None
+    return scenes[car.id], table

@@ -1,0 +1,330 @@
+"""Several cars in one live server, in-process (issue 30 item 1): the real loop and slots
+stepping the cars of one world on a fake clock, fed and read through list ports (the
+fakes of tests/test_server_logic.py). Each car keeps its own commands, watchdog, state
+and log; one compiled world step a tick for all; the world's controls act on every car;
+the world message carries every car."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_server_logic import (
+    FLAT,
+    PAUSED,
+    WATCHDOG,
+    FakeClock,
+    ListControls,
+    ListInbox,
+    LocalRequest,
+    RecordingPublisher,
+    load_server_config,
+)
+
+from simserver.core import layout as L
+from simserver.server import cars_config, fleet
+from simserver.server.command_log import CommandLog, replay_command_log
+from simserver.server.loop import ServerLoop, SlotPorts
+from simserver.server.slot import VehicleSlot
+from simserver.sim.scene import load_scene
+from simserver.sim.simulation import Simulation
+from simserver.wire import protocol as proto
+
+pytestmark = pytest.mark.timeout(300)
+
+HATCH = Path(FLAT).parents[1] / "vehicles" / "mf_hatchback" / "vehicle.yaml"
+
+
+@pytest.fixture(scope="module")
+def flat_scene():
+    return load_scene(FLAT)
+
+
+class WorldRig:
+    """A loop serving the cars of ``cars`` (a ``cars:`` list) on the flat scene."""
+
+    def __init__(self, scene, cars, tmp_path: Path | None = None) -> None:
+        self.clock = FakeClock()
+        self.cfg = load_server_config()
+        specs = cars_config.parse_cars(Path(FLAT), cars)
+        self.scenes = cars_config.car_scenes(specs, scene)
+        sims = fleet.build_world(self.scenes, self.cfg.period_s)
+        self.loop = ServerLoop(self.cfg, clock=self.clock, sleep=self.clock.sleep, spin_ns=0)
+        self.ports: dict[str, SlotPorts] = {}
+        self.slots: dict[str, VehicleSlot] = {}
+        for spec in specs:
+            cfg = dataclasses.replace(self.cfg, vehicle_id=spec.id)
+            log = None
+            if tmp_path is not None:
+                log = CommandLog(tmp_path / f"{spec.id}.jsonl",
+                                 {"scene": str(FLAT), "dt_s": cfg.period_s, "step": 0})
+            slot = VehicleSlot(cfg, sims[spec.id], log)
+            if log is not None:
+                fleet.log_start(slot, spec)
+            if spec.driven_by == "keyframes":
+                slot.drive_by_keyframes(cars_config.keyframe_table(spec, cfg.period_s))
+            ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
+            self.loop.add(slot, ports)
+            self.slots[spec.id], self.ports[spec.id] = slot, ports
+        self.world_payloads: list[bytes] = []
+        self.loop.world_message = fleet.WorldMessage(
+            [s.id for s in specs], [s.driven_by for s in specs],
+            every=fleet.world_every(100.0, self.cfg.period_s))
+        self.loop.publish_world = self.world_payloads.append
+        self.loop.start()
+        self.seq: dict[str, int] = {}
+
+    def send(self, car: str, **fields) -> None:
+        self.seq[car] = self.seq.get(car, 0) + 1
+        self.ports[car].commands.pending.append(proto.encode_command(
+            seq=self.seq[car], sender_time_ns=self.seq[car], **fields))
+
+    def run(self, ticks: int = 1) -> None:
+        for _ in range(ticks):
+            self.loop.tick()
+
+    def state(self, car: str) -> np.void:
+        return self.ports[car].publisher.states[-1]
+
+    def control(self, car: str, name: str, args: dict | None = None) -> dict:
+        req = LocalRequest(name, json.dumps(args).encode() if args is not None else b"")
+        self.ports[car].controls.pending.append(req)
+        self.loop.tick()
+        return req.answer
+
+
+def test_each_car_its_own_commands_watchdog_and_state_one_world_step(flat_scene,
+                                                                     monkeypatch):
+    rig = WorldRig(flat_scene, [{"id": "car0"},
+                                {"id": "car1", "vehicle": str(HATCH),
+                                 "pose": {"x_m": 20.0, "y_m": 0.0}}])
+    world = rig.loop.world
+    assert world is rig.slots["car0"].sim.world is rig.slots["car1"].sim.world
+    calls = []
+    step = world.step
+    monkeypatch.setattr(world, "step", lambda: (calls.append(1), step()))
+    for _ in range(300):  # car1 driven, car0 left alone: its watchdog holds it
+        rig.send("car1", throttle=0.6, gear=proto.Gear.D)
+        rig.run()
+    assert len(calls) == 300  # one world step a tick, not one per car
+    s0, s1 = rig.state("car0"), rig.state("car1")
+    assert s0["flags"] & WATCHDOG and not s1["flags"] & WATCHDOG
+    assert s0["tick"] == s1["tick"] == 300
+    assert s1["u_mps"] > 0.5 and s1["x_m"] > 20.0 and abs(s0["u_mps"]) < 1e-3
+    assert s1["last_cmd_seq"] == 300 and s0["last_cmd_seq"] == 0
+    assert rig.slots["car1"].counters["cmd_received"] == 300
+    assert rig.slots["car0"].counters["cmd_received"] == 0
+    # the world message: both cars, their newest published states
+    w = proto.decode_world(rig.world_payloads[-1])
+    assert w.ids == ("car0", "car1") and len(rig.world_payloads) == 30  # 100 Hz, 300 ticks
+    for car in ("car0", "car1"):  # the states published in the world message's tick
+        state = rig.ports[car].publisher.states[290]
+        for name in ("x_m", "y_m", "z_m", "flags"):
+            assert w.car(car)[name] == state[name]
+        assert w.car(car)["u_mps"] == state["u_mps"]
+        assert w.car(car)["yaw_rad"] == np.float32(state["yaw_rad"])
+    assert w.car("car0")["flags"] & WATCHDOG and w.tick == 290
+
+
+def test_each_car_matches_its_run_alone_bit_for_bit(flat_scene):
+    """One world of two cars gives each car the bits of a single car's server stepping
+    the same inputs (cars do not touch yet)."""
+    rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "b", "pose": {"x_m": 15.0, "y_m": 0.0}}])
+    alone = {cid: Simulation(rig.scenes[cid], 0.001, car_id=cid) for cid in rig.scenes}
+    for _k in range(200):
+        rig.send("a", throttle=0.4, steer=0.2, gear=proto.Gear.D)
+        rig.send("b", throttle=0.7, gear=proto.Gear.D)
+        rig.run()
+        for cid, sim in alone.items():
+            sim.inputs[:] = rig.slots[cid].sim.inputs
+            sim.step()
+    for cid, sim in alone.items():
+        assert np.array_equal(rig.slots[cid].sim.x, sim.x), cid
+
+
+def test_world_controls_act_on_every_car_and_a_car_loads_its_vehicle_only(flat_scene):
+    rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "b", "pose": {"x_m": 15.0, "y_m": 0.0}}])
+    rig.run(5)
+    assert rig.control("b", "pause")["paused"] is True
+    rig.run(5)
+    assert rig.state("a")["flags"] & PAUSED and rig.state("b")["flags"] & PAUSED
+    assert rig.state("a")["tick"] == rig.state("b")["tick"] == 6
+    reply = rig.control("a", "step", {"n": 3})
+    assert reply["until_tick"] == 9
+    rig.run(5)
+    assert rig.state("a")["tick"] == rig.state("b")["tick"] == 9
+    assert rig.control("a", "resume")["paused"] is False
+    road = rig.control("b", "set_road", {"grade_pct": 5.0})["road"]
+    assert road["grade_pct"] == 5.0 and rig.slots["a"].sim.road["grade_pct"] == 5.0
+    err = rig.control("a", "load", {"scene": str(FLAT)})
+    assert not err["ok"] and err["field"] == "scene" and "vehicle only" in err["error"]
+    rig.send("b", throttle=0.5, gear=proto.Gear.D)
+    rig.run(50)
+    reply = rig.control("b", "load", {"vehicle": str(HATCH)})
+    assert reply["ok"], reply
+    rig.run(2)
+    b = rig.slots["b"]
+    assert b.sim.scene.vehicle.path == HATCH.resolve()
+    assert b.sim.road["grade_pct"] == 5.0  # the world's road, not the scene's
+    assert rig.state("b")["x_m"] == pytest.approx(15.0, abs=0.05)  # its own start again
+    assert rig.slots["a"].sim.scene.vehicle.path != HATCH.resolve()
+
+
+def test_a_keyframed_car_plays_its_table_and_ignores_commands(flat_scene, tmp_path):
+    frames = tmp_path / "go.yaml"
+    frames.write_text("name: go\nduration_s: 0.2\ninputs:\n  - {t: 0.0, gear: D, throttle: 0.0}"
+                      "\n  - {t: 0.1, throttle: 1.0}\n")
+    rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "kf", "driven_by": "keyframes",
+                                             "keyframes": str(frames),
+                                             "pose": {"x_m": 15.0, "y_m": 0.0}}])
+    for _ in range(400):
+        rig.send("kf", brake=1.0, gear=proto.Gear.R)  # not applied
+        rig.run()
+    s = rig.state("kf")
+    assert s["throttle"] == 1.0 and s["gear"] == proto.Gear.D and s["brake"] == 0.0
+    assert not s["flags"] & WATCHDOG and s["u_mps"] > 0.5
+    assert rig.slots["kf"].counters["cmd_rejected"] == 400
+    w = proto.decode_world(rig.world_payloads[-1])
+    assert proto.DRIVEN_BY_CODES[int(w.car("kf")["driven_by"])] == "keyframes"
+
+
+def test_each_cars_command_log_replays_bit_for_bit(flat_scene, tmp_path):
+    rig = WorldRig(flat_scene, [{"id": "a", "pose": {"x_m": -5.0, "y_m": 1.0,
+                                                     "yaw_rad": 0.2}},
+                                {"id": "b", "vehicle": str(HATCH),
+                                 "pose": {"x_m": 15.0, "y_m": 0.0}}], tmp_path)
+    for k in range(300):
+        rig.send("a", throttle=0.5, steer=0.1, gear=proto.Gear.D)
+        if k < 150:
+            rig.send("b", throttle=0.8, gear=proto.Gear.D)
+        rig.run()
+    assert rig.control("b", "reset")["ok"]
+    assert rig.control("a", "set_road", {"grade_pct": -3.0})["ok"]
+    rig.send("a", throttle=0.5, gear=proto.Gear.D)
+    rig.run(100)
+    assert rig.control("b", "load", {"vehicle": str(FLAT.parents[1] / "vehicles" /
+                                                   "paper_sedan" / "vehicle.yaml")})["ok"]
+    rig.run(100)
+    for cid, slot in rig.slots.items():
+        slot.command_log.close(slot.steps_total, slot.sim.x)
+        replay = replay_command_log(tmp_path / f"{cid}.jsonl")
+        assert replay.steps == slot.steps_total
+        assert replay.final_state_matches, cid
+        assert replay.final_state[L.X_M] != 0.0
+
+
+def test_a_car_added_and_one_removed_while_the_world_runs(flat_scene):
+    rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "b", "pose": {"x_m": 15.0, "y_m": 0.0}}])
+    rig.loop.world_message = fleet.WorldMessage(["a", "b"], ["client", "client"], every=10,
+                                                capacity=8)
+    alone = Simulation(rig.scenes["a"], 0.001, car_id="a")
+    for _ in range(100):
+        rig.send("a", throttle=0.5, gear=proto.Gear.D)
+        rig.run()
+        alone.inputs[:] = rig.slots["a"].sim.inputs
+        alone.step()
+    # a third car, read and checked as the load worker would, joined between two ticks
+    spec, = cars_config.parse_cars(Path(FLAT), [{"id": "c", "vehicle": str(HATCH),
+                                           "pose": {"x_m": 40.0, "y_m": 0.0}}])
+    slots = list(rig.slots.values())
+    scene, table = cars_config.new_car(spec, flat_scene, 0.001, fleet.poses_now(slots))
+    clash, = cars_config.parse_cars(Path(FLAT), [{"id": "d", "pose": {"x_m": 16.0, "y_m": 0.5}}])
+    with pytest.raises(cars_config.ConfigError, match=r"\(d\): its start .* overlaps car 'b'"):
+        cars_config.new_car(clash, flat_scene, 0.001, fleet.poses_now(slots))
+    taken, = cars_config.parse_cars(Path(FLAT), [{"id": "b", "pose": {"x_m": 90.0, "y_m": 0.0}}])
+    with pytest.raises(cars_config.ConfigError, match="has a car 'b' already"):
+        cars_config.new_car(taken, flat_scene, 0.001, fleet.poses_now(slots))
+    cfg = dataclasses.replace(rig.cfg, vehicle_id="c")
+    slot = fleet.join_world(cfg, scene, table, rig.loop.world)
+    ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
+    rig.loop.add(slot, ports)
+    rig.slots["c"], rig.ports["c"] = slot, ports
+    assert rig.loop.world.ids == ["a", "b", "c"]
+    for _ in range(100):
+        rig.send("a", throttle=0.5, gear=proto.Gear.D)
+        rig.send("c", throttle=0.9, gear=proto.Gear.D)
+        rig.run()
+        alone.inputs[:] = rig.slots["a"].sim.inputs
+        alone.step()
+    assert rig.state("c")["u_mps"] > 0.2 and rig.state("c")["x_m"] > 40.0
+    assert proto.decode_world(rig.world_payloads[-1]).ids == ("a", "b", "c")
+    rig.loop.remove(rig.slots.pop("b"))
+    assert rig.loop.world.ids == ["a", "c"]
+    for _ in range(100):
+        rig.send("a", throttle=0.5, gear=proto.Gear.D)
+        rig.run()
+        alone.inputs[:] = rig.slots["a"].sim.inputs
+        alone.step()
+    assert proto.decode_world(rig.world_payloads[-1]).ids == ("a", "c")
+    assert np.array_equal(rig.slots["a"].sim.x, alone.x)  # unchanged by the others
+    assert rig.state("a")["tick"] == 300
+
+
+def test_world_controls_add_and_remove_cars_between_ticks(flat_scene):
+    from simserver.server.world_desk import WorldDesk
+
+    rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "b", "pose": {"x_m": 15.0, "y_m": 0.0}}])
+    rig.loop.world_message = fleet.WorldMessage(["a", "b"], ["client", "client"], every=10,
+                                                capacity=4)
+    controls = ListControls()
+    made, closed = [], []
+
+    def make_ports(cfg):
+        made.append(cfg.vehicle_id)
+        ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
+        rig.ports[cfg.vehicle_id] = ports
+        return ports
+
+    desk = WorldDesk(rig.loop, dataclasses.replace(rig.cfg, max_cars=3), controls,
+                     make_ports, lambda slot, ports: closed.append(slot.keys.vehicle))
+    rig.loop.world_desk = desk
+
+    def ask(name, args=None, ticks=200):
+        req = LocalRequest(name, json.dumps(args).encode() if args is not None else b"")
+        controls.pending.append(req)
+        for _ in range(ticks):
+            rig.loop.tick()
+            if req.body is not None:
+                break
+        return req.answer
+
+    try:
+        bad = ask("add_car", {"id": "c", "pose": {"x_m": 15.5, "y_m": 0.0, "yaw_rad": 0.0}})
+        assert not bad["ok"] and bad["field"] == "pose" and "overlaps car 'b'" in bad["error"]
+        assert not ask("add_car", {"id": "world"})["ok"]
+        assert ask("add_car", {"id": "b"})["field"] == "id"
+        nofile = ask("add_car", {"id": "c", "vehicle": "no_such_vehicle.yaml"})
+        assert nofile["field"] == "vehicle" and "no such file" in nofile["error"]
+        assert rig.loop.world.ids == ["a", "b"] and made == []  # nothing changed
+        ok = ask("add_car", {"id": "c", "vehicle": str(HATCH),
+                             "pose": {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}})
+        assert ok == {"ok": True, "car": "c", "cars": ["a", "b", "c"]}, ok
+        assert made == ["c"] and rig.loop.world.ids == ["a", "b", "c"]
+        full = ask("add_car", {"id": "d", "pose": {"x_m": 80.0, "y_m": 0.0, "yaw_rad": 0.0}})
+        assert full["field"] == "id" and "max_cars (3)" in full["error"]
+        for _ in range(300):
+            rig.ports["c"].commands.pending.append(proto.encode_command(
+                seq=_ + 1, throttle=0.8, gear=proto.Gear.D))
+            rig.run()
+        c = rig.ports["c"].publisher.states[-1]
+        assert c["x_m"] > 40.0 and c["u_mps"] > 0.5
+        assert ask("remove_car", {"id": "b"}) == {"ok": True, "car": "b", "cars": ["a", "c"]}
+        rig.run(20)
+        assert proto.decode_world(rig.world_payloads[-1]).ids == ("a", "c")
+        assert ask("remove_car", {"id": "zz"})["field"] == "id"
+        config = ask("get_config")
+        assert config["cars"] == [{"id": "a", "driven_by": "client"},
+                                  {"id": "c", "driven_by": "client"}]
+        # the whole world back to its starts, in one tick
+        assert ask("reset") == {"ok": True, "cars": ["a", "c"]}
+        rig.run()
+        a, c = rig.ports["a"].publisher.states[-1], rig.ports["c"].publisher.states[-1]
+        assert a["tick"] == c["tick"] == 1
+        assert a["x_m"] == pytest.approx(0.0, abs=1e-3) and c["x_m"] == pytest.approx(
+            40.0, abs=1e-3) and abs(c["u_mps"]) < 0.01  # one step from rest
+    finally:
+        desk.close()
+    assert closed == ["b"]

@@ -1,0 +1,159 @@
+"""Several cars in one live server, end to end (issue 30 items 1 and 4): a real server
+process with two cars, two real client processes each driving one, real zenoh sessions on
+loopback. Each client sees the other car in the world message; the cars are discovered by
+liveliness; a single-car client works unchanged against car0."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from clients import world as cw
+from simserver.testing import Client, OutputProcess, ServerProcess, client_config, wait_until
+from simserver.wire import protocol as proto
+
+pytestmark = pytest.mark.timeout(300)
+
+REPO = Path(__file__).resolve().parents[1]
+TWO_CARS = REPO / "configs" / "server" / "two_cars.yaml"
+
+
+@pytest.fixture(scope="module")
+def two_cars():
+    with ServerProcess(config=TWO_CARS, scene=None) as server:
+        yield server
+
+
+def _player(server: ServerProcess, car: str, scenario: Path) -> OutputProcess:
+    return OutputProcess([sys.executable, "-m", "clients.player", str(scenario),
+                          "--connect", server.endpoint, "--vehicle-id", car, "--rate", "200"])
+
+
+def test_two_clients_drive_two_cars_and_each_sees_the_other(two_cars, tmp_path):
+    scenario = tmp_path / "creep.yaml"
+    scenario.write_text("name: creep\nduration_s: 3.5\ninputs:\n"
+                        "  - {t: 0.0, gear: D, throttle: 0.25, brake: 0.0}\n")
+    p0, p1 = _player(two_cars, "car0", scenario), _player(two_cars, "car1", scenario)
+    with p0, p1:
+        assert p0.wait(60) == 0, p0.text()
+        assert p1.wait(60) == 0, p1.text()
+    # car0 starts 25 m behind car1 (configs/server/two_cars.yaml): each names the other
+    ahead = [line for line in p0.output if "| ahead car1 " in line]
+    behind = [line for line in p1.output if "behind car0 " in line]
+    assert ahead and behind, p0.text() + p1.text()
+    assert "ahead -" in behind[-1]  # nothing ahead of car1
+    distance = float(ahead[-1].split("| ahead car1 ")[1].split(" m")[0])
+    assert 15.0 < distance < 30.0  # CG to CG, both cars driving the same inputs
+
+
+def test_discovery_the_world_message_and_a_single_car_client(two_cars):
+    from simserver.adapters.zenoh_io import ZenohEndpoint
+
+    with ZenohEndpoint(client_config(two_cars.endpoint)) as ep:
+        assert wait_until(lambda: cw.discover_cars(ep, "simserver", 0.5),
+                          lambda cars: cars == ["car0", "car1"], timeout_s=10)
+        watch = cw.WorldWatch(ep, "simserver")
+        world = wait_until(watch.poll, timeout_s=10)
+        assert world.ids == ("car0", "car1")
+        # car1 starts 25 m ahead of car0 (the other test may have driven both since)
+        assert world.car("car1")["x_m"] - world.car("car0")["x_m"] > 15.0
+        assert world.cars["driven_by"].tolist() == [0, 0]
+        ticks: set[int] = set()
+
+        def more() -> set[int]:
+            ticks.add(watch.poll().tick)
+            return ticks
+
+        wait_until(more, lambda t: len(t) >= 6, timeout_s=5)
+        assert all(t % 10 == 0 for t in ticks)  # 100 Hz of a 1 kHz clock
+    # a single-car client of car0 (the test harness's, as any older client) drives it
+    with Client(two_cars) as car0:
+        state = car0.drive(1.0, throttle=0.4, gear=proto.Gear.D)
+        assert state["u_mps"] > 0.1 and not state["flags"] & proto.StateFlag.WATCHDOG
+        config = car0.request("get_config")["config"]
+        assert config["keys"]["cmd"] == "simserver/car0/cmd"
+    out = OutputProcess([sys.executable, "-m", "clients.world", "--once", "--seconds", "20",
+                         "--connect", two_cars.endpoint])
+    with out:
+        assert out.wait(60) == 0, out.text()
+    line = json.loads(next(x for x in out.output if x.startswith("{")))
+    assert set(line["world"]) == {"car0", "car1"}
+
+
+@pytest.mark.parametrize(("cars", "error"), [
+    ("[{id: a}, {id: a, pose: {x_m: 30, y_m: 0}}]", "cars[1] (a): key 'id'"),
+    ("[{id: a}, {id: b, pose: {x_m: 2, y_m: 0}}]", "cars[1] (b): its start"),
+    ("[{id: a}, {id: b, pose: {x_m: 30, y_m: 0}}, {id: c, pose: {x_m: 60, y_m: 0}}]",
+     "key 'cars': 3 cars, more than max_cars (2)"),
+])
+def test_a_bad_cars_list_stops_the_server_naming_the_file_and_the_car(tmp_path, cars, error):
+    from simserver.testing import free_port
+
+    config = tmp_path / "server.yaml"
+    config.write_text(f"scene: {REPO / 'configs' / 'scenes' / 'flat_paper_sedan.yaml'}\n"
+                      f"max_cars: 2\ncars: {cars}\n")
+    with OutputProcess([sys.executable, "-m", "simserver", "serve", "--config", str(config),
+                        "--listen", f"tcp/127.0.0.1:{free_port()}", "--viewer", "off"]) as p:
+        assert p.wait(120) == 2, p.text()
+    assert f"error: {config}: {error}" in p.text()
+    assert "ready on" not in p.text()
+
+
+def test_a_car_added_and_removed_over_zenoh_while_the_world_runs(tmp_path):
+    from simserver.adapters.zenoh_io import ZenohEndpoint
+
+    config = tmp_path / "server.yaml"
+    config.write_text(TWO_CARS.read_text().replace("../", f"{TWO_CARS.parent}/../")
+                      + f"command_log: {tmp_path / 'run.jsonl'}\n")
+    with ServerProcess(config=config, scene=None) as server, \
+            ZenohEndpoint(client_config(server.endpoint)) as ep:
+        cars = cw.CarsWatch(ep, "simserver")
+        wait_until(cars.poll, lambda c: c == {"car0", "car1"}, timeout_s=10)
+        bad = ep.request_world("add_car", {"id": "car2", "pose": {  # the load worker may
+            "x_m": 0.5, "y_m": 0.0, "yaw_rad": 0.0}}, timeout_s=120)  # still warm up
+        assert not bad["ok"] and bad["field"] == "pose" and "overlaps car 'car0'" in \
+            bad["error"], bad
+        reply = ep.request_world("add_car", {"id": "car2", "pose": {
+            "x_m": 60.0, "y_m": 0.0, "yaw_rad": 0.0}}, timeout_s=60)
+        assert reply == {"ok": True, "car": "car2", "cars": ["car0", "car1", "car2"]}, reply
+        wait_until(cars.poll, lambda c: "car2" in c, timeout_s=10)
+        with Client(server, vehicle_id="car2") as car2:
+            state = car2.drive(1.0, throttle=0.5, gear=proto.Gear.D)
+            assert state["x_m"] > 60.0 and state["u_mps"] > 0.1
+        world = wait_until(cw.WorldWatch(ep, "simserver").poll, timeout_s=10)
+        assert world.ids == ("car0", "car1", "car2")
+        assert ep.request_world("remove_car", {"id": "car1"})["cars"] == ["car0", "car2"]
+        wait_until(cars.poll, lambda c: c == {"car0", "car2"}, timeout_s=10)
+        config_reply = ep.request_world("get_config")
+        assert [c["id"] for c in config_reply["cars"]] == ["car0", "car2"]
+    assert server.returncode == 0, server.text()
+    from simserver.server.command_log import replay_command_log
+
+    for car in ("car0", "car1", "car2"):  # the removed car's log ends where it left
+        replay = replay_command_log(tmp_path / f"run.{car}.jsonl")
+        assert replay.final_state_matches, car
+
+
+def test_the_keyboard_driver_shows_the_car_ahead(two_cars):
+    """The keyboard driver of car0 in a pseudo-terminal names car1 ahead, with the
+    distance and closing speed, from the world message."""
+    from test_clients import PtyProcess
+
+    from simserver.testing import client_command
+
+    drv = PtyProcess(client_command("driver", "--rate", "200", "--connect",
+                                    two_cars.endpoint, "--vehicle-id", "car0"))
+    try:
+        drv.wait_for("health", 30)
+        drv.wait_for("traffic ahead car1 ", 20)
+        screen = drv.text()
+        drv.send(b"q")
+        assert drv.wait(15) == 0, drv.text()
+    finally:
+        drv.close()
+    line = screen[screen.rindex("traffic ahead car1 "):].splitlines()[0]
+    distance = float(line.split("traffic ahead car1 ")[1].split(" m")[0])
+    assert 15.0 < distance < 60.0 and "behind -" in line, line
