@@ -275,12 +275,18 @@ def _run_world_scenario_command(args: argparse.Namespace, data: dict, out: Path)
     summary = {"scenario": world.name, "cars": {cid: summarize(r)
                                                 for cid, r in result.cars.items()},
                "contacts": result.contact_summary()}
+    sections = {cid: s["manoeuvre"] for cid, s in summary["cars"].items()
+                if "manoeuvre" in s}
+    if sections:  # a series' own figure (the double lane change's highest clean speed)
+        from simserver.analysis.manoeuvres import dlc_series
+
+        series = dlc_series(sections)
+        if series is not None:
+            summary["manoeuvre_series"] = series
     try:
         write_world_history(result.cars, out / HISTORY_FILE)
         write_summary(summary, out / SUMMARY_FILE)
         written = [HISTORY_FILE, SUMMARY_FILE]
-        sections = {cid: s["manoeuvre"] for cid, s in summary["cars"].items()
-                    if "manoeuvre" in s}
         if sections:  # a standard manoeuvre's report, every car's (docs/manoeuvres.md)
             from simserver.adapters.history import result_columns
             from simserver.adapters.manoeuvre_report import write_manoeuvre_outputs
