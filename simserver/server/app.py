@@ -65,12 +65,14 @@ COLD_COMPILE_S = (45, 90)
 
 
 class CompileProgress:
-    """Say so when compiling takes long (a cold numba cache), with the seconds so far.
+    """Say so when the kernels compile (a cold numba cache), with the seconds so far.
 
-    Silent when the kernels come from the cache (under ``quiet_s``); otherwise one line
-    ``simserver: compiling ... (first start only, about 45-90 s)``, one line every
-    ``every_s`` with the time so far, and one when done. A daemon thread prints them: the
-    compiling thread is busy.
+    Silent when the kernels come from the cache, however long that takes on a busy
+    machine (a cache load fires no ``numba:compile`` event; a start once said "compiling"
+    and "compiled in 1.7 s" loading from the cache); otherwise, once a compile has begun
+    and ``quiet_s`` passed, one line ``simserver: compiling ... (first start only, about
+    45-90 s)``, one line every ``every_s`` with the time so far, and one when done. A
+    daemon thread prints them: the compiling thread is busy.
     """
 
     def __init__(self, quiet_s: float = 1.0, every_s: float = 5.0,
@@ -80,6 +82,7 @@ class CompileProgress:
         self.out = out
         self.announced = False
         self._done = threading.Event()
+        self._compiling = threading.Event()  # a numba:compile event began
         self._t0 = 0.0
 
     def _print(self, text: str) -> None:
@@ -88,6 +91,9 @@ class CompileProgress:
     def _watch(self) -> None:
         if self._done.wait(self.quiet_s):
             return
+        while not self._compiling.wait(0.05):
+            if self._done.is_set():
+                return
         self.announced = True
         lo, hi = COLD_COMPILE_S
         self._print(f"simserver: compiling the vehicle kernels (first start only, about "
@@ -96,6 +102,19 @@ class CompileProgress:
             self._print(f"simserver: compiling ... {time.perf_counter() - self._t0:.0f} s")
 
     def __enter__(self) -> CompileProgress:
+        from numba.core import event
+
+        compiling = self._compiling
+
+        class _Seen(event.Listener):
+            def on_start(self, ev: event.Event) -> None:
+                compiling.set()
+
+            def on_end(self, ev: event.Event) -> None:
+                pass
+
+        self._listener = _Seen()
+        event.register("numba:compile", self._listener)
         self._t0 = time.perf_counter()
         self._thread = threading.Thread(target=self._watch, name="compile-progress",
                                         daemon=True)
@@ -103,6 +122,9 @@ class CompileProgress:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        from numba.core import event
+
+        event.unregister("numba:compile", self._listener)
         self._done.set()
         self._thread.join()
         if self.announced:
