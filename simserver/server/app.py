@@ -25,6 +25,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from simserver.ros2 import cli as ros2_cli
@@ -37,7 +38,7 @@ from simserver.server.logfile import renew_log_thread
 from simserver.server.loop import ServerLoop, SlotPorts
 from simserver.server.realtime import RealtimeScheduler, TickTrace, process_threads
 from simserver.server.slot import VehicleSlot
-from simserver.server.stats_text import stop_text
+from simserver.server.stats_text import start_text, stop_text
 from simserver.server.world_desk import WorldDesk
 from simserver.sim.scene import Scene, load_scene
 from simserver.sim.simulation import Simulation
@@ -129,6 +130,14 @@ class CompileProgress:
         self._thread.join()
         if self.announced:
             self._print(f"simserver: compiled in {time.perf_counter() - self._t0:.1f} s")
+
+
+def _shown_path(path: Any) -> str:
+    """A scene file as a person finds it: relative to the working directory when under it."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd()))
+    except (TypeError, ValueError, OSError):
+        return str(path)
 
 
 def loopback_of(endpoint: str) -> str:
@@ -260,7 +269,11 @@ class SimServer:
                     f"connect {', '.join(effective_endpoints(zcfg, 'connect/endpoints'))}"
                 cars = "" if len(self.slots) == 1 else \
                     f", {len(self.slots)} cars: {', '.join(s.keys.vehicle for s in self.slots)}"
-                print(f"simserver: ready on {first.keys.base} ({where}){cars}", flush=True)
+                print(start_text(
+                    f"simserver: ready on {first.keys.base} ({where}){cars}",
+                    [(s.keys.base, s.sim.scene.vehicle.name, _shown_path(s.scene_path))
+                     for s in self.slots], cfg.period_s,
+                    loopback_of(listen[0]) if listen else None), flush=True)
                 self.viewer = self._start_viewer(listen)
                 ros2 = self._start_ros2(listen)
                 loop.run()
