@@ -566,7 +566,7 @@ def test_player_and_recorder_reproduce_the_headless_e2_stop(tmp_path):
     out = tmp_path / "rec"
     rec = OutputProcess(client_command("recorder", "--out", str(out), "--quiet",
                                        *server.client_args()), ready="recording",
-                        env=client_env())
+                        env=client_env(), new_session=True)
     try:
         assert rec.wait_ready(30.0), rec.text()
         assert "recording simserver/e2" in rec.ready_line, rec.text()
@@ -577,9 +577,12 @@ def test_player_and_recorder_reproduce_the_headless_e2_stop(tmp_path):
                               timeout=60)
         assert play.returncode == 0, play.stdout + play.stderr
         assert "loaded" in play.stdout and "done: " in play.stdout
-        # Ctrl-C: the recorder writes what it received and exits 0
-        assert rec.stop(signal.SIGINT, timeout_s=30.0) == 0, rec.text()
+        # Ctrl-C (to its whole process group, as a terminal sends it): the recorder
+        # writes what it received and its hold report, exits 0, and prints no traceback
+        rec.signal_group(signal.SIGINT)
+        assert rec.wait(30.0) == 0, rec.text()
         assert "stopped by SIGINT" in rec.text(), rec.text()
+        assert "Traceback" not in rec.text() and "KeyboardInterrupt" not in rec.text()
     finally:
         rec.kill()
         server.stop()
