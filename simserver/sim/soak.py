@@ -167,7 +167,9 @@ class SoakReport:
         if not self.holds:
             return "holds: none"
         worst = max(self.holds, key=lambda h: abs(h["creep_m"]))
-        rolls = [h for h in self.holds if h["rollback_m"] is not None]
+        rolls = [h for h in self.holds
+                 if h["rollback_m"] is not None and "restart_cut_at_s" not in h]
+        cut = sum("restart_cut_at_s" in h for h in self.holds)
         text = (f"holds: {len(self.holds)}, worst creep {worst['creep_m'] * 1e3:+.3f} mm "
                 f"(t = {worst['start_s']:.3f} s, window {worst['creep_window_s'][0]:.3f}-"
                 f"{worst['creep_window_s'][1]:.3f} s)")
@@ -175,6 +177,8 @@ class SoakReport:
             back = max(rolls, key=lambda h: h["rollback_m"])
             text += (f", worst rollback {back['rollback_m'] * 1e3:.3f} mm "
                      f"(restart at t = {back['end_s']:.3f} s)")
+        if cut:
+            text += f", {cut} restart(s) not at 2 m/s by the next segment's end (not ranked)"
         return text
 
     @property
@@ -254,10 +258,23 @@ def hold_columns(states: np.ndarray, outputs: np.ndarray, inputs: np.ndarray,
 def window_holds(window: list[dict[str, np.ndarray]], held_from_s: float,
                  held_to_s: float) -> list[dict[str, Any]]:
     """The holds of a window of segments' columns (``hold_columns``) that overlap the
-    hold/park segments ``[held_from_s, held_to_s)``, as ``Hold.as_dict()``."""
+    hold/park segments ``[held_from_s, held_to_s)``, as ``Hold.as_dict()``.
+
+    A restart that does not reach 2 m/s in the gear's direction within the window (the
+    segment after the holds) is measured on the window's rows only: its dict says so with
+    ``restart_cut_at_s`` (the window's last row); its rollback is then a lower bound and
+    its times and jerk those of the rows kept (the whole drive may reach the speeds later).
+    """
     cols = {name: np.concatenate([w[name] for w in window]) for name in HOLD_COLUMNS}
-    return [h.as_dict() for h in find_holds(cols)
-            if h.start_s < held_to_s and h.end_s >= held_from_s]
+    rows = []
+    for h in find_holds(cols):
+        if not (h.start_s < held_to_s and h.end_s >= held_from_s):
+            continue
+        row = h.as_dict()
+        if h.rollback_m is not None and h.time_to_2_mps_s is None:
+            row["restart_cut_at_s"] = float(cols["time_s"][-1])
+        rows.append(row)
+    return rows
 
 
 def run_soak(scene: Scene, duration_s: float, seed: int = 0, dt_s: float = 0.001,
