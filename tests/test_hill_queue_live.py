@@ -92,9 +92,12 @@ def _held_behind(q: Queue) -> bool:
                 and np.all(np.abs(last[:, 1] - 1.0) < 0.05))
 
 
-def test_hill_queue_live_stops_1_m_behind_holds_and_follows():
+def test_hill_queue_live_stops_1_m_behind_holds_and_follows(tmp_path):
     hold = {"brake": 0.6, "throttle": 0.0, "gear": proto.Gear.D}
-    with ServerProcess(config=HILL_QUEUE, scene=None) as server, \
+    config = tmp_path / "server.yaml"  # the shipped scene, with command logs
+    config.write_text(HILL_QUEUE.read_text().replace("../", f"{HILL_QUEUE.parent}/../")
+                      + f"command_log: {tmp_path / 'run.jsonl'}\n")
+    with ServerProcess(config=config, scene=None) as server, \
             Client(server, vehicle_id="car0", keep_history=False) as car0, \
             Client(server, vehicle_id="car1", keep_history=False) as car1:
         q = Queue(car0, car1)
@@ -130,6 +133,11 @@ def test_hill_queue_live_stops_1_m_behind_holds_and_follows():
         q.drive(until=lambda qq: qq.sim_time() - t_off >= 28.0, timeout_s=90,
                 brake=0.0, throttle=0.31, gear=proto.Gear.D)
     assert server.returncode == 0, server.text()
+    # each car's command log replays it bit for bit: car1's holds the driver's inputs
+    from simserver.server.command_log import replay_command_log
+
+    for car in ("car0", "car1"):
+        assert replay_command_log(tmp_path / f"run.{car}.jsonl").final_state_matches, car
     rows = q.since(start_t)
     assert rows[:, 1].min() >= 0.99, rows[:, 1].min()  # never closer than 0.99 m
     after = q.since(t_off)
