@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python -m benchmarks                      # the full runs (about 16 minutes)
+    python -m benchmarks                      # the full runs (about 30 minutes)
     python -m benchmarks --quick              # short runs: a smoke test, not figures
     python -m benchmarks --only startup --only memory
 
@@ -35,8 +35,14 @@ In order:
    loaded, zenoh session open, before the first tick), cold = ``NUMBA_CACHE_DIR`` an empty
    temporary directory, warm = the same directory again; the median of the repeats; and
    ``benchmarks.bench_compile`` once: the physics' cold compile alone, per entry point;
+   then, with that warm cache, the wall time from launch to exit of the README's headless
+   commands (``run-scenario`` of E2 with and without its plots, ``tire-curves``), the median
+   of the warm repeats;
 7. memory of a headless run: peak RSS (``ru_maxrss`` from ``wait4``) of the README's
-   ``simserver run-scenario`` example, which also reports its real-time factor.
+   ``simserver run-scenario`` example, which also reports its real-time factor;
+8. ``suite``: the README's test command (``python -m pytest -q``), each run from an empty
+   numba cache (a fresh clone's cold compile included), median of three (not in
+   ``--quick``).
 
 Then it prints a markdown table (figure, value, the target the issues set, the command that
 reproduces it) with the machine's description, and writes it to ``--out`` (default
@@ -54,6 +60,7 @@ import json
 import os
 import platform
 import re
+import shlex
 import shutil
 import statistics
 import subprocess
@@ -79,7 +86,7 @@ HEADLESS_SCENARIO = "configs/scenarios/e2_stop_downslope_paper_damping.yaml"
 """The README's headless example, run for the headless memory figure."""
 
 SECTIONS = ("step", "commonroad", "server", "busy", "load", "hostile", "viewer", "ros2",
-            "tls_front", "startup", "memory")
+            "tls_front", "startup", "memory", "suite")
 """Benchmarks in the order they run (``--only`` takes these names)."""
 
 
@@ -98,19 +105,20 @@ class Settings:
     ros2_args: tuple[str, ...]
     startup_cold: int
     startup_warm: int
+    suite_runs: int
 
 
 FULL = Settings(step_args=(), commonroad_args=(), server_seconds=60.0, busy_runs=3,
                 load_seconds=30.0, viewer_seconds=60.0, viewer_rounds=2, hostile_rounds=3,
                 ros2_args=("--seconds", "12", "--rounds", "8"),
-                startup_cold=3, startup_warm=5)
+                startup_cold=3, startup_warm=5, suite_runs=3)
 QUICK = Settings(step_args=("--seconds", "5", "--repeats", "5"),
                  commonroad_args=("--rounds", "1", "--seconds", "2", "--steps", "300"),
                  server_seconds=8.0,
                  busy_runs=1, load_seconds=8.0, viewer_seconds=6.0, viewer_rounds=1,
                  hostile_rounds=1,
                  ros2_args=("--seconds", "6", "--rounds", "2", "--floor-seconds", "3"),
-                 startup_cold=1, startup_warm=3)
+                 startup_cold=1, startup_warm=3, suite_runs=0)
 """Short runs: long enough for the server's 4096-tick statistics window, no longer."""
 
 
@@ -334,10 +342,46 @@ def time_to_ready(numba_cache_dir: Path, timeout_s: float = 300.0) -> float:
     return server.ready_s
 
 
+HEADLESS_COMMANDS: dict[str, tuple[str, ...]] = {
+    "run-scenario E2, with plots": ("run-scenario", HEADLESS_SCENARIO, "--out", "{out}/e2",
+                                    "--quiet"),
+    "run-scenario E2, --no-plots": ("run-scenario", HEADLESS_SCENARIO, "--out", "{out}/e2",
+                                    "--quiet", "--no-plots"),
+    "tire-curves": ("tire-curves", "configs/tires/paper_sti.yaml", "--out",
+                    "{out}/curves.png"),
+}
+"""The warm headless commands timed from launch to exit (``simserver`` subcommand and its
+arguments; ``{out}`` is a scratch directory): the README's E2 example with and without its
+PNG plots, and the README's ``tire-curves`` (issue 33's targets 1.2, 0.6 and 2 s)."""
+HEADLESS_TARGETS = {"run-scenario E2, with plots": "<= 1.2 s",
+                    "run-scenario E2, --no-plots": "<= 0.6 s", "tire-curves": "<= 2 s"}
+
+
+def time_command(args: tuple[str, ...], numba_cache_dir: Path) -> float:
+    """Wall seconds from launch to exit of ``python -m simserver ARGS`` (``{out}`` in ARGS a
+    fresh scratch directory) with ``NUMBA_CACHE_DIR`` set; raises if it fails."""
+    out = Path(tempfile.mkdtemp(prefix="simserver_startup_"))
+    argv = [sys.executable, "-m", "simserver", *(a.format(out=out) for a in args)]
+    try:
+        t0 = time.perf_counter()
+        proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=600,
+                              env={**os.environ, "NUMBA_CACHE_DIR": str(numba_cache_dir)})
+        wall_s = time.perf_counter() - t0
+    finally:
+        shutil.rmtree(out, ignore_errors=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(argv[3:])} exited {proc.returncode}:\n"
+                           f"{proc.stdout}{proc.stderr}")
+    return wall_s
+
+
 def startup(cold: int, warm: int) -> dict[str, Any]:
-    """Median launch-to-ready time with an empty and with a warm numba cache."""
+    """Median launch-to-ready time of the server with an empty and with a warm numba cache,
+    then the median wall time of each warm headless command (``HEADLESS_COMMANDS``; one
+    unmeasured run first, which compiles what the server's warm-up did not)."""
     cold_s: list[float] = []
     warm_s: list[float] = []
+    headless: dict[str, list[float]] = {name: [] for name in HEADLESS_COMMANDS}
     dirs = [Path(tempfile.mkdtemp(prefix="simserver_numba_")) for _ in range(cold)]
     try:
         for d in dirs:
@@ -346,12 +390,49 @@ def startup(cold: int, warm: int) -> dict[str, Any]:
         for _ in range(warm):
             warm_s.append(time_to_ready(dirs[-1]))
             print(f"start-up, warm numba cache: {warm_s[-1]:.2f} s", flush=True)
+        for args in HEADLESS_COMMANDS.values():
+            time_command(args, dirs[-1])  # compiles what it needs beyond the server's kernels
+        for _ in range(warm):  # interleaved: a slow minute of the VM spreads over all three
+            for name, args in HEADLESS_COMMANDS.items():
+                headless[name].append(time_command(args, dirs[-1]))
+                print(f"warm {name}: {headless[name][-1]:.2f} s", flush=True)
     finally:
         for d in dirs:
             shutil.rmtree(d, ignore_errors=True)
     return {"cold_s": cold_s, "warm_s": warm_s,
             "cold_median_s": statistics.median(cold_s),
-            "warm_median_s": statistics.median(warm_s)}
+            "warm_median_s": statistics.median(warm_s),
+            "headless_s": headless,
+            "headless_median_s": {k: statistics.median(v) for k, v in headless.items()}}
+
+
+# --------------------------------------------------------------------- the test suite
+def suite_time(runs: int) -> dict[str, Any]:
+    """Wall time of the README's test command (``python -m pytest -q`` as the README writes
+    it), each run from an empty numba cache as a fresh clone has (the cold compile
+    included); its closing line and exit code per run."""
+    command = next(ln.strip() for ln in README.read_text(encoding="utf-8").splitlines()
+                   if ln.startswith("    python3 -m venv .venv") and "pytest" in ln)
+    job = shlex.split(command.split("&&")[-1])  # .venv/bin/python -m pytest ...
+    argv = [sys.executable, *job[1:]]
+    results = []
+    for _ in range(runs):
+        cache = Path(tempfile.mkdtemp(prefix="simserver_numba_suite_"))
+        load = os.getloadavg()[0]
+        try:
+            t0 = time.perf_counter()
+            proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True,
+                                  env={**os.environ, "NUMBA_CACHE_DIR": str(cache)})
+            wall_s = time.perf_counter() - t0
+        finally:
+            shutil.rmtree(cache, ignore_errors=True)
+        closing = next((ln.strip("= ") for ln in reversed(proc.stdout.splitlines())
+                        if " in " in ln and ("passed" in ln or "failed" in ln)), "")
+        results.append({"wall_s": wall_s, "returncode": proc.returncode, "closing": closing,
+                        "loadavg_1min_start": load, "loadavg_1min_end": os.getloadavg()[0]})
+        print(f"test suite: {wall_s:.0f} s, exit {proc.returncode}: {closing}", flush=True)
+    return {"runs": results, "median_s": statistics.median(r["wall_s"] for r in results),
+            "argv": argv}
 
 
 # --------------------------------------------------------------------- headless
@@ -624,6 +705,11 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
                         f"{s['cold_median_s']:.2f} s", cmd))
         rows.append(Row(f"start-up to ready, warm numba cache (median of {len(s['warm_s'])})",
                         f"{s['warm_median_s']:.2f} s", cmd))
+        for name, runs in s["headless_s"].items():
+            rows.append(Row(f"warm {name}, launch to exit (median of {len(runs)})",
+                            f"{s['headless_median_s'][name]:.2f} s (runs: "
+                            + ", ".join(f"{x:.2f}" for x in runs) + ")", cmd,
+                            HEADLESS_TARGETS.get(name, "")))
         from benchmarks import bench_compile
 
         raw["compile"] = c = bench_compile.measure(1, 0, bench_compile.DEFAULT_SCENE)["cold"]
@@ -643,6 +729,22 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
             rows.append(Row("headless run-scenario real-time factor (E2, 10 s simulated)",
                             f"{h['real_time_factor']:,.0f} x",
                             f"simserver run-scenario {HEADLESS_SCENARIO} --out out/e2"))
+    if "suite" in sections:
+        print("== the test suite", flush=True)
+        if settings.suite_runs == 0:
+            print("not in a --quick run (it takes minutes): python -m benchmarks --only suite",
+                  flush=True)
+        else:
+            raw["suite"] = r = suite_time(settings.suite_runs)
+            runs = r["runs"]
+            rows.append(Row(f"the README's test command, cold numba cache (median of "
+                            f"{len(runs)})", f"{r['median_s']:.0f} s (runs: "
+                            + ", ".join(f"{x['wall_s']:.0f} s" + ("" if x["returncode"] == 0
+                                        else f" exit {x['returncode']}") for x in runs)
+                            + f"; {runs[-1]['closing']}; load average "
+                            + ", ".join(f"{x['loadavg_1min_start']:.1f}-"
+                                        f"{x['loadavg_1min_end']:.1f}" for x in runs) + ")",
+                            "python -m benchmarks --only suite", "<= 300 s"))
     report.machine["load average at end"] = " / ".join(
         f"{x:.2f}" for x in os.getloadavg()) + " (1/5/15 min)"
     return report
@@ -714,7 +816,11 @@ def render(report: Report, sections: list[str]) -> str:
         "- Start-up: launch of `python -m simserver serve --viewer off` to its `ready` line "
         "(kernels compiled or loaded, zenoh open, before the first tick). Cold: "
         "`NUMBA_CACHE_DIR` an empty directory (Python bytecode already compiled); warm: the "
-        "same directory again.",
+        "same directory again. Headless commands: `python -m simserver run-scenario` (E2, "
+        "with and without `--no-plots`) and `tire-curves` from launch to exit with that warm "
+        "cache (one unmeasured run first), interleaved, median of the repeats.",
+        "- Test suite: the README's test command, each run with `NUMBA_CACHE_DIR` an empty "
+        "directory (the cold compile a fresh clone pays is included).",
         "- Memory: peak resident set (`VmHWM`, sampled once a second from "
         "`/proc/PID/status`) of the server during the server run, and `ru_maxrss` of the "
         "headless run.",

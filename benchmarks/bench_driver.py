@@ -40,6 +40,7 @@ from simserver.adapters.config import load_vehicle
 from simserver.adapters.driver_config import DriverSpec, build_drivers
 from simserver.core import driver as D
 from simserver.core import layout as L
+from simserver.core.contact import N_CAR_CONTACT_OUT
 from simserver.core.world import WorldData, WorldModel
 from simserver.core.world import simulate as world_simulate
 from simserver.sim.scene import INITIAL_RANGES, Scene
@@ -89,7 +90,8 @@ def make_world(n_cars: int) -> tuple[World, D.Drivers]:
 
 def _copy(data: WorldData) -> WorldData:
     return WorldData(data.x.copy(), data.inputs.copy(), data.out.copy(),
-                     type(data.ws)(*(a.copy() for a in data.ws)))
+                     type(data.ws)(*(a.copy() for a in data.ws)),
+                     type(data.contacts)(*(a.copy() for a in data.contacts)))
 
 
 def measure(n_cars: int, seconds: float, repeats: int) -> dict[str, np.ndarray]:
@@ -101,6 +103,7 @@ def measure(n_cars: int, seconds: float, repeats: int) -> dict[str, np.ndarray]:
     outputs = np.zeros((rows, n_cars, L.N_OUT))
     applied = np.zeros((rows, n_cars, L.N_INPUT))
     dstates = np.zeros((rows, n_cars, D.N_DRIVER_STATE))
+    contact_rows = np.zeros((rows, n_cars, N_CAR_CONTACT_OUT))
     start = _copy(world.data)
     # one closed-loop second first: the inputs the open loop repeats are a driver's
     data = _copy(start)
@@ -113,7 +116,7 @@ def measure(n_cars: int, seconds: float, repeats: int) -> dict[str, np.ndarray]:
     times: dict[str, list[float]] = {"step": [], "drive": [], "closed loop": []}
     for r in range(repeats + 1):  # the first round compiles or loads
         runs = (("step", lambda d: world_simulate(world.model, d, inputs, states, outputs,
-                                                  every)),
+                                                  every, contact_rows)),
                 ("drive", lambda d: drive_only(world.model, d, drivers, steps)),
                 ("closed loop", lambda d: D.simulate_driven(world.model, d, drivers, inputs,
                                                             states, outputs, applied,

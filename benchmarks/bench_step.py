@@ -14,9 +14,11 @@ median (simulated time / wall time). Target (issue 3): under 5 us per step with 
 6.1 tires, i.e. 200 x real time or more.
 
 ``--world-sizes``: worlds of that many independent cars (``simserver.sim.simulation.World``,
-one compiled step for all, issue 29), each car the brush car with its own throttle; the
-cost per car-step (CPU time / cars / steps) of each size against the world of one, in
-one run, recording every 1000th step.
+one compiled step for all, issue 29), each car the brush car with its own throttle, 20 m
+apart; the cost per car-step (CPU time / cars / steps) of each size against the world of
+one, in one run, recording every 1000th step; and the contact stage alone (issue 30) per
+car, the cars apart (its broad phase) and in a row bumper to bumper (every neighbour in
+contact).
 
 ``--ab TREE``: this tree's step cost against another tree's (e.g. a worktree of main), in
 interleaved rounds (A B A B ...: each round one fresh process per tree, so the machine's
@@ -89,13 +91,17 @@ def bench_world(path: Path, n_cars: int, seconds: float, repeats: int,
                 clock: Callable[[], int] = time.process_time_ns) -> np.ndarray:
     """ns per car-step of a world of ``n_cars`` brush cars for each repeat (the process's
     CPU time by default), each car with its own throttle (0.4 .. 0.8) on the driving
-    cycle."""
+    cycle, the cars side by side 20 m apart (they never touch: the contact stage costs
+    its broad phase, ``contact_stage_cost``)."""
+    import dataclasses
+
     from simserver.sim.simulation import World
 
     initial = dict.fromkeys(INITIAL_RANGES, 0.0) | {"u_mps": 5.0}
     road = {"grade_pct": 3.0, "cross_slope_pct": 2.0, "friction_scale": 1.0}
     scene = Scene(path=path, vehicle=load_vehicle(path), road=road, initial=initial)
-    sims = [Simulation(scene, DT_S, car_id=f"car{c}") for c in range(n_cars)]
+    sims = [Simulation(dataclasses.replace(scene, initial=initial | {"y_m": 20.0 * c}), DT_S,
+                       car_id=f"car{c}") for c in range(n_cars)]
     world: World = sims[0].world
     for sim in sims[1:]:
         sim.move_to(world)
@@ -118,17 +124,61 @@ def bench_world(path: Path, n_cars: int, seconds: float, repeats: int,
     return costs
 
 
+def contact_stage_cost(n_cars: int, touching: bool, steps: int = 20000,
+                       repeats: int = 5) -> float:
+    """ns per call of the world's contact stage alone (``core.world.contacts``) for
+    ``n_cars`` brush cars at rest: in a row 20 m apart (the broad phase only), or
+    ``touching``: bumper to bumper 1 cm deep in a row (every neighbouring pair in
+    contact). The median over repeats, the process's CPU time."""
+    import dataclasses
+
+    import numba as nb
+
+    from simserver.core.world import contacts
+
+    @nb.njit
+    def loop(world, data, n):  # noqa: ANN001, ANN202
+        for _ in range(n):
+            contacts(world, data)
+
+    path = VEHICLES["simple (paper_sedan)"]
+    initial = dict.fromkeys(INITIAL_RANGES, 0.0)
+    scene = Scene(path=path, vehicle=load_vehicle(path), road={"grade_pct": 0.0,
+                  "cross_slope_pct": 0.0, "friction_scale": 1.0}, initial=initial)
+    pitch = 4.6 - 0.01 if touching else 20.0  # the reference car's box is 4.6 m long
+    sims = [Simulation(dataclasses.replace(scene, initial=initial | {"x_m": pitch * c}),
+                       DT_S, car_id=f"car{c}") for c in range(n_cars)]
+    world = sims[0].world
+    for sim in sims[1:]:
+        sim.move_to(world)
+    loop(world.model, world.data, 1)  # compile
+    costs = []
+    for _ in range(repeats):
+        t0 = time.process_time_ns()
+        loop(world.model, world.data, steps)
+        costs.append((time.process_time_ns() - t0) / steps)
+    assert int(world.data.contacts.car[:, 0].sum()) == (n_cars if touching else 0)
+    return float(np.median(costs))
+
+
 def world_sizes(sizes: list[int], seconds: float, repeats: int) -> list[dict]:
-    """The world-size table: ns per car-step per size, and against the world of one."""
+    """The world-size table: ns per car-step per size, and against the world of one; the
+    contact stage's share (``contact_stage_cost``, apart and touching) per car-step."""
     path = VEHICLES["simple (paper_sedan)"]
     rows = []
     base = None
     for size in sizes:
         med = float(np.median(bench_world(path, size, seconds, repeats)))
         base = med if base is None else base
-        rows.append({"cars": size, "ns_per_car_step_median": med, "vs_first": med / base})
+        apart = contact_stage_cost(size, touching=False) / size
+        touching = contact_stage_cost(size, touching=True) / size if size > 1 else apart
+        rows.append({"cars": size, "ns_per_car_step_median": med, "vs_first": med / base,
+                     "contact_ns_per_car_apart": apart,
+                     "contact_ns_per_car_touching": touching})
         print(f"world of {size:3d} cars: {med / 1e3:6.2f} us per car-step "
-              f"({med / base:.3f} x the world of {sizes[0]})", flush=True)
+              f"({med / base:.3f} x the world of {sizes[0]}); contact stage "
+              f"{apart:6.1f} ns per car apart, {touching:6.1f} ns per car touching in a "
+              f"row", flush=True)
     return rows
 
 

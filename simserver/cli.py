@@ -256,7 +256,8 @@ def _run_xosc_command(args: argparse.Namespace, out: Path) -> int:
 
 def _run_world_scenario_command(args: argparse.Namespace, data: dict, out: Path) -> int:
     """``run-scenario`` of a scenario with ``cars:``: one history with a ``car_id`` column
-    (``history.write_world_history``), a summary per car, plots of every car (``cars.png``:
+    (``history.write_world_history``), a summary per car and of the cars' contacts
+    (``contacts``: ``WorldResult.contact_summary``), plots of every car (``cars.png``:
     every car's speed and position overlaid; each car's own plots in ``<out>/<id>/``)."""
     from simserver.adapters.history import (
         HISTORY_FILE,
@@ -272,13 +273,20 @@ def _run_world_scenario_command(args: argparse.Namespace, data: dict, out: Path)
     _make_out_dir(out)
     result = run_world_scenario(world)
     summary = {"scenario": world.name, "cars": {cid: summarize(r)
-                                                for cid, r in result.cars.items()}}
+                                                for cid, r in result.cars.items()},
+               "contacts": result.contact_summary()}
+    sections = {cid: s["manoeuvre"] for cid, s in summary["cars"].items()
+                if "manoeuvre" in s}
+    if sections:  # a series' own figure (the double lane change's highest clean speed)
+        from simserver.analysis.manoeuvres import dlc_series
+
+        series = dlc_series(sections)
+        if series is not None:
+            summary["manoeuvre_series"] = series
     try:
         write_world_history(result.cars, out / HISTORY_FILE)
         write_summary(summary, out / SUMMARY_FILE)
         written = [HISTORY_FILE, SUMMARY_FILE]
-        sections = {cid: s["manoeuvre"] for cid, s in summary["cars"].items()
-                    if "manoeuvre" in s}
         if sections:  # a standard manoeuvre's report, every car's (docs/manoeuvres.md)
             from simserver.adapters.history import result_columns
             from simserver.adapters.manoeuvre_report import write_manoeuvre_outputs

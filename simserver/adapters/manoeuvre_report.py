@@ -57,6 +57,8 @@ def manoeuvre_figure(title: str, sections: Mapping[str, Mapping[str, Any]],
     kind = next(iter(sections.values()))["analysis"]
     if kind == "fmvss126_sine_with_dwell" and len(sections) > 1:
         return _swd_series(title, sections)
+    if kind == "iso3888_2_double_lane_change":
+        return _dlc(title, sections, cols)
     if kind not in ("hill_start", "fmvss105_parking_brake") and len(sections) > 1:
         first = next(iter(sections))  # a one-car plot: the first car's
         return _DRAW[kind](f"{title} (car {first}, the first of {len(sections)})",
@@ -282,6 +284,44 @@ def _fmvss105(title: str, sections: Mapping[str, Any], cols: Mapping[str, Cols])
     axes[1].set_ylabel("u (mm/s)")
     axes[1].set_yscale("symlog", linthresh=1e-3)
     axes[1].set_xlabel("time (s)")
+    return fig
+
+
+def _dlc(title: str, sections: Mapping[str, Any], cols: Mapping[str, Cols]) -> Figure:
+    """Every run's body box corners' outline on the track (track frame) over the cone
+    lines, struck runs dashed; beside it, each run's result against its entry speed."""
+    from simserver.analysis.manoeuvres import body_corners, dlc_lanes
+
+    first = next(iter(sections.values()))["figures"]
+    width, front, rear = first["vehicle_width_m"], first["body_front_m"], first["body_rear_m"]
+    lanes = dlc_lanes(width)
+    fig, axes = _axes(2, f"{title}: ISO 3888-2 double lane change")
+    ax = axes[0]
+    for ln in lanes:
+        for y in (ln.y_right_m, ln.y_left_m):
+            ax.plot([ln.x_from_m, ln.x_to_m], [y, y], "o-", color="tab:orange", ms=3, lw=1)
+    for k, (cid, m) in enumerate(sections.items()):
+        c = cols[cid]
+        x, y, yaw = c["x_m"], c["y_m"], c["yaw_rad"]
+        c0, s0 = np.cos(yaw[0]), np.sin(yaw[0])
+        dx, dy = x - x[0], y - y[0]
+        run_up = m["figures"]["run_up_m"]
+        xt = dx * c0 + dy * s0 - run_up
+        yt = -dx * s0 + dy * c0 + lanes[0].centre_m
+        corners = body_corners(xt, yt, yaw - yaw[0], front, rear, width)
+        keep = (xt > -5.0) & (xt < lanes[-1].x_to_m + 5.0)
+        color = RUN_COLORS[k % len(RUN_COLORS)]
+        for j in range(4):
+            ax.plot(corners[keep, j, 0], corners[keep, j, 1], "-" if m["passed"] else "--",
+                    color=color, lw=0.7, label=f"{cid}" if j == 0 else None)
+    ax.set_xlabel("along the track from the entry gate (m)")
+    ax.set_ylabel("across (m)")
+    ax.legend(fontsize=6, ncols=3)
+    ax = axes[1]
+    v = [_nan(m["figures"]["entry_speed_kmh"]) for m in sections.values()]
+    ax.scatter(v, [1 if m["passed"] else 0 for m in sections.values()])
+    ax.set_yticks([0, 1], ["struck", "clean"])
+    ax.set_xlabel("entry speed (km/h)")
     return fig
 
 

@@ -46,6 +46,18 @@ class Car:
     wheelbase_m: float
     steering_ratio: float
     mass_kg: float
+    # the body box (the viewer's lower body box and the driver's default overhangs): CG
+    # to front and rear bumper along the car, width; 0 where not known
+    front_m: float = 0.0
+    rear_m: float = 0.0
+    width_m: float = 0.0
+
+
+BODY_OVERHANG_M = 0.85
+"""Bumper beyond the axle, front and rear: the viewer's body box and the driver's default
+(``core.driver`` ``front_overhang_m``, ``rear_overhang_m``)."""
+BODY_WIDTH_BEYOND_TRACK_M = 0.2
+"""Body width over the wider track: the viewer's body box (``rerun_scene.body_boxes``)."""
 
 
 def car_facts(vp: np.ndarray) -> Car:
@@ -54,7 +66,11 @@ def car_facts(vp: np.ndarray) -> Car:
 
     return Car(wheelbase_m=float(vp[P.VP_CG_TO_FRONT_AXLE_M] + vp[P.VP_CG_TO_REAR_AXLE_M]),
                steering_ratio=float(vp[P.VP_STEERING_RATIO]),
-               mass_kg=float(vp[P.VP_MASS_KG]))
+               mass_kg=float(vp[P.VP_MASS_KG]),
+               front_m=float(vp[P.VP_CG_TO_FRONT_AXLE_M]) + BODY_OVERHANG_M,
+               rear_m=float(vp[P.VP_CG_TO_REAR_AXLE_M]) + BODY_OVERHANG_M,
+               width_m=max(float(vp[P.VP_TRACK_FRONT_M]), float(vp[P.VP_TRACK_REAR_M]))
+               + BODY_WIDTH_BEYOND_TRACK_M)
 
 
 def criterion(name: str, value: float | None, limit: float, sense: str, source: str,
@@ -534,6 +550,268 @@ def fmvss105_parking_brake(cols: Cols, car: Car, hold_min_s: float = 300.0,
                    figures, criteria)
 
 
+# ------------------------------------------------------------------- ISO 3888-2
+ISO3888_2 = "ISO 3888-2 (severe lane change, obstacle avoidance)"
+DLC_SECTION_LENGTHS_M = (12.0, 13.5, 11.0, 12.5, 12.0)
+"""Sections 1 (entry lane) to 5 (exit lane), 61 m in all (docs/manoeuvres.md section 7)."""
+DLC_OFFSET_M = 1.0  # section 3's right line: this far left of section 1's left line
+DLC_EXIT_MIN_WIDTH_M = 3.0
+
+
+@dataclass(frozen=True)
+class DlcLane:
+    """A coned lane of the track in the track's frame: x from the entry gate along the
+    track, y to the left from section 1's right cone line (m)."""
+
+    section: int
+    x_from_m: float
+    x_to_m: float
+    y_right_m: float
+    y_left_m: float
+
+    @property
+    def centre_m(self) -> float:
+        return 0.5 * (self.y_right_m + self.y_left_m)
+
+
+def dlc_lanes(vehicle_width_m: float) -> tuple[DlcLane, DlcLane, DlcLane]:
+    """The coned lanes (sections 1, 3, 5) of the ISO 3888-2 track for a car of width
+    ``W``: widths ``1.1 W + 0.25``, ``W + 1`` and ``1.3 W + 0.25`` (at least 3 m); section
+    3 starts 1 m left of section 1's left line; sections 1 and 5 share their right line
+    (the dimensions as commonly reproduced; the ISO text was not read)."""
+    w = vehicle_width_m
+    edges = np.cumsum((0.0, *DLC_SECTION_LENGTHS_M))
+    w1, w3 = 1.1 * w + 0.25, w + 1.0
+    w5 = max(1.3 * w + 0.25, DLC_EXIT_MIN_WIDTH_M)
+    y3 = w1 + DLC_OFFSET_M
+    edges = [float(e) for e in edges]
+    return (DlcLane(1, edges[0], edges[1], 0.0, w1), DlcLane(3, edges[2], edges[3], y3, y3 + w3),
+            DlcLane(5, edges[4], edges[5], 0.0, w5))
+
+
+DLC_TRANSITIONS_M = ((-3.0, 4.0), (0.0, 2.0))
+"""Where the path's two transitions start before the end of section 1 (3) and end
+beyond the start of section 3 (5), in track x of the CG (m): chosen so a car of the
+shipped vehicle's body box that follows the path exactly (heading along the path) clears
+every cone line by 0.1 m (the kinematic check of docs/manoeuvres.md section 7); the
+transitions end in the lane before the next transition starts."""
+
+
+def dlc_path(vehicle_width_m: float, run_up_m: float, run_out_m: float,
+             step_m: float = 0.5) -> np.ndarray:
+    """The driver's path in the track's frame (``n x 2``), from ``run_up_m`` before the
+    entry gate to ``run_out_m`` beyond the exit: on each lane's centre, a half-cosine
+    from one centre to the next over sections 2 and 4, widened by ``DLC_TRANSITIONS_M``
+    (continuous heading; the curvature steps at the ends, which the driver's preview
+    smooths)."""
+    l1, l3, l5 = dlc_lanes(vehicle_width_m)
+    xs = [-run_up_m]
+    ys = [l1.centre_m]
+    for (a, b), (before, after) in zip(((l1, l3), (l3, l5)), DLC_TRANSITIONS_M, strict=True):
+        x0, x1 = a.x_to_m + before, b.x_from_m + after
+        n = max(2, int(math.ceil((x1 - x0) / step_m)))
+        f = np.linspace(0.0, 1.0, n + 1)
+        xs += list(x0 + f * (x1 - x0))
+        ys += list(a.centre_m + (b.centre_m - a.centre_m) * 0.5 * (1.0 - np.cos(math.pi * f)))
+    xs.append(l5.x_to_m + run_out_m)
+    ys.append(l5.centre_m)
+    return np.column_stack([xs, ys])
+
+
+def body_corners(x_m: np.ndarray, y_m: np.ndarray, yaw_rad: np.ndarray, front_m: float,
+                 rear_m: float, width_m: float) -> np.ndarray:
+    """The body box's corners (``rows x 4 x 2``: front left, front right, rear right, rear
+    left) in world x, y from the CG's position and the heading."""
+    c, s = np.cos(yaw_rad)[:, None], np.sin(yaw_rad)[:, None]
+    along = np.array([front_m, front_m, -rear_m, -rear_m])[None, :]
+    side = 0.5 * width_m * np.array([1.0, -1.0, -1.0, 1.0])[None, :]
+    return np.stack([x_m[:, None] + along * c - side * s,
+                     y_m[:, None] + along * s + side * c], axis=-1)
+
+
+def cone_strikes(corners_xy: np.ndarray, lanes: tuple[DlcLane, ...]) -> np.ndarray:
+    """Per row, whether the body box (``body_corners`` in the track's frame) strikes a
+    cone line: a corner beyond a lane's line (outside the lane) while within the lane's
+    length (the box over the line, or beside the lane: a lane missed fails the run as a
+    strike does), or a lane's end cone inside the box (a box that straddles the lane's
+    end). Cones are taken as continuous lines tangent to their bases (ISO 3888-2 4.2 as
+    publicly previewed): a gap between two cones is not a way through."""
+    hit = np.zeros(corners_xy.shape[0], dtype=bool)
+    cx, cy = corners_xy[..., 0], corners_xy[..., 1]
+    for lane in lanes:
+        inside_x = (cx >= lane.x_from_m) & (cx <= lane.x_to_m)
+        hit |= np.any(inside_x & ((cy < lane.y_right_m) | (cy > lane.y_left_m)), axis=1)
+        for x_cone in (lane.x_from_m, lane.x_to_m):
+            for y_cone in (lane.y_right_m, lane.y_left_m):
+                hit |= _point_in_box(corners_xy, x_cone, y_cone)
+    return hit
+
+
+def dlc_clearance(corners_xy: np.ndarray, lanes: tuple[DlcLane, ...]) -> float | None:
+    """The least distance across the track from a body corner within a lane's length to
+    that lane's cone lines (negative: beyond one); ``None`` if no corner was in a lane."""
+    cx, cy = corners_xy[..., 0], corners_xy[..., 1]
+    margin = []
+    for lane in lanes:
+        inside = (cx >= lane.x_from_m) & (cx <= lane.x_to_m)
+        if inside.any():
+            ys = cy[inside]
+            margin.append(float(min(np.min(ys) - lane.y_right_m, lane.y_left_m - np.max(ys))))
+    return min(margin) if margin else None
+
+
+def _point_in_box(corners_xy: np.ndarray, px: float, py: float) -> np.ndarray:
+    """Per row, whether the point is inside the convex box (corners in order)."""
+    inside = np.ones(corners_xy.shape[0], dtype=bool)
+    for k in range(4):
+        a, b = corners_xy[:, k], corners_xy[:, (k + 1) % 4]
+        cross = (b[:, 0] - a[:, 0]) * (py - a[:, 1]) - (b[:, 1] - a[:, 1]) * (px - a[:, 0])
+        inside &= cross <= 0.0  # clockwise corners: inside is to the right of each edge
+    return inside
+
+
+def iso3888_2_double_lane_change(cols: Cols, car: Car, run_up_m: float = 60.0
+                                 ) -> dict[str, Any]:
+    """Double lane change on the ISO 3888-2 track, one run: the track placed with its
+    entry gate ``run_up_m`` ahead of the car's start along its start heading and section
+    1's centre on the start (the shipped scenarios start the car so), the body box
+    (``Car.front_m``, ``rear_m``, ``width_m``) checked against the cone lines at every
+    row (``cone_strikes``). Figures: the entry speed (at the gate), the exit speed, the
+    first strike (time, section) and the least clearance to a cone line."""
+    t, x, y, yaw = cols["time_s"], cols["x_m"], cols["y_m"], cols["yaw_rad"]
+    lanes = dlc_lanes(car.width_m)
+    c0, s0 = math.cos(yaw[0]), math.sin(yaw[0])
+    # the track's frame: origin on section 1's right line at the entry gate
+    dx, dy = x - x[0], y - y[0]
+    xt = dx * c0 + dy * s0 - run_up_m
+    yt = -dx * s0 + dy * c0 + lanes[0].centre_m
+    corners = body_corners(xt, yt, yaw - yaw[0], car.front_m, car.rear_m, car.width_m)
+    hits = cone_strikes(corners, lanes)
+    speed = np.hypot(cols["u_mps"], cols["v_mps"])
+    on_track = (np.max(corners[..., 0], axis=1) >= 0.0) & (
+        np.min(corners[..., 0], axis=1) <= lanes[-1].x_to_m)
+    figures: dict[str, Any] = {
+        "vehicle_width_m": car.width_m, "body_front_m": car.front_m, "body_rear_m": car.rear_m,
+        "run_up_m": run_up_m,
+        "lane_widths_m": [ln.y_left_m - ln.y_right_m for ln in lanes],
+        "entry_speed_kmh": _at_x(xt, 3.6 * speed, 0.0),
+        "exit_speed_kmh": _at_x(xt, 3.6 * speed, lanes[-1].x_to_m),
+        "cone_strikes": int(np.count_nonzero(np.diff(hits.astype(np.int8)) == 1)
+                            + int(hits[0])),
+    }
+    if hits.any():
+        k = int(np.argmax(hits))
+        sec = [ln.section for ln in lanes
+               if np.any((corners[k, :, 0] >= ln.x_from_m - 1e-9)
+                         & (corners[k, :, 0] <= ln.x_to_m + 1e-9))]
+        figures.update(first_strike_s=float(t[k]), first_strike_x_m=float(xt[k]),
+                       first_strike_section=sec[0] if sec else None)
+    figures["least_clearance_m"] = dlc_clearance(corners, lanes)
+    reached = bool(on_track.any() and np.max(xt) >= lanes[-1].x_to_m)
+    criteria = [
+        criterion("the car passed the exit gate", float(reached), 1.0, ">=",
+                  "ISO 3888-2 (the run is through the 61 m track)"),
+        criterion("cones struck", float(figures["cone_strikes"]), 0.0, "<=",
+                  "ISO 3888-2 (a run that displaces a cone is invalid; the cone lines from "
+                  "the dimensions as commonly reproduced, the ISO text was not read)")]
+    return _result(ISO3888_2, "built-in driver on the lanes' centres, throttle released at "
+                   "the entry gate", figures, criteria,
+                   "the series' figure, the highest entry speed without a strike, is in "
+                   "the summary's manoeuvre_series (dlc_series)")
+
+
+def _at_x(xt: np.ndarray, y: np.ndarray, x_m: float) -> float | None:
+    """``y`` where the track's ``x`` first reaches ``x_m`` (``None`` if never)."""
+    k = np.flatnonzero(xt >= x_m)
+    if k.size == 0:
+        return None
+    k0 = int(k[0])
+    if k0 == 0:
+        return float(y[0])
+    f = (x_m - xt[k0 - 1]) / (xt[k0] - xt[k0 - 1])
+    return float(y[k0 - 1] + f * (y[k0] - y[k0 - 1]))
+
+
+def dlc_series(sections: Mapping[str, Mapping[str, Any]]) -> dict[str, Any] | None:
+    """The figure of a series of double lane changes (one car an entry speed): the highest
+    entry speed of a run through the track without a cone strike, and the lowest with a
+    strike; ``None`` unless every section is an ``iso3888_2_double_lane_change``."""
+    if not sections or any(m.get("analysis") != "iso3888_2_double_lane_change"
+                           for m in sections.values()):
+        return None
+    runs = sorted(((m["figures"]["entry_speed_kmh"], cid, m["passed"])
+                   for cid, m in sections.items()
+                   if m["figures"]["entry_speed_kmh"] is not None), key=lambda r: r[0])
+    clean = [v for v, _, ok in runs if ok]
+    struck = [v for v, _, ok in runs if not ok]
+    best = max(clean) if clean else None
+    return {"standard": ISO3888_2,
+            "runs": [{"car": cid, "entry_speed_kmh": v, "passed": ok} for v, cid, ok in runs],
+            "highest_entry_speed_without_strike_kmh": best,
+            "lowest_entry_speed_with_strike_kmh": min(struck) if struck else None,
+            "all_slower_runs_passed": bool(best is not None and all(
+                ok for v, _, ok in runs if v <= best))}
+
+
+DLC_RUN_UP_M = 60.0
+DLC_RUN_OUT_M = 200.0  # path beyond the exit: the driver's stop law (at the path's end)
+# stays out of reach before the gate, where the driver still holds its speed
+DLC_CARS_APART_M = 100.0
+DLC_PREVIEW_TIME_S = 0.4
+DLC_PREVIEW_MIN_M = 4.0
+
+
+def dlc_series_scenario(name: str, vehicle: str, vp: np.ndarray,
+                        speeds_kmh: list[float]) -> str:
+    """The text of a double-lane-change series (``configs/scenarios/iso3888_2_*.yaml``):
+    one car an entry speed, each on its own copy of the track ``DLC_CARS_APART_M`` to the
+    left of the previous one, started ``DLC_RUN_UP_M`` before the entry gate on section
+    1's centre at the entry speed, driven by the built-in driver on ``dlc_path`` holding
+    that speed, the pedals released once the front bumper reaches the gate
+    (``coast_from_s_m``)."""
+    car = car_facts(vp)
+    path = dlc_path(car.width_m, DLC_RUN_UP_M, DLC_RUN_OUT_M)
+    lane1 = dlc_lanes(car.width_m)[0]
+    duration = (DLC_RUN_UP_M + sum(DLC_SECTION_LENGTHS_M) + car.rear_m + 5.0) / (
+        min(speeds_kmh) / 3.6)
+    lines = [
+        "# ISO 3888-2 double lane change (docs/manoeuvres.md section 7): one car an entry "
+        "speed,",
+        f"# {min(speeds_kmh):g}..{max(speeds_kmh):g} km/h, the built-in driver on the lanes' "
+        "centres, pedals released at the",
+        f"# entry gate; vehicle width {car.width_m:.3f} m (the body box: track + "
+        f"{BODY_WIDTH_BEYOND_TRACK_M:g} m). Generated by",
+        "# simserver.analysis.manoeuvres.dlc_series_scenario (tests/test_manoeuvres.py "
+        "checks it).",
+        f"name: {name}",
+        "description: ISO 3888-2 double lane change, the highest entry speed without a "
+        "cone strike",
+        f"duration_s: {math.ceil(duration):g}",
+        "record_every: 5",
+        f"analysis: {{name: iso3888_2_double_lane_change, run_up_m: {DLC_RUN_UP_M:g}}}",
+        "cars:",
+    ]
+    for k, v_kmh in enumerate(speeds_kmh):
+        y0 = DLC_CARS_APART_M * k
+        pts = ", ".join(f"[{px + DLC_RUN_UP_M:.3f}, {py - lane1.centre_m + y0:.4f}]"
+                        for px, py in path)
+        wrapped = textwrap.wrap(pts, 80, break_on_hyphens=False)
+        v = v_kmh / 3.6
+        lines += [f"  - id: v{v_kmh:05.1f}kmh".replace(".", "p"),
+                  f"    vehicle: {vehicle}",
+                  f"    initial: {{u_mps: {v:.4f}, relaxed: 1, y_m: {y0:g}}}",
+                  "    driver:",
+                  f"      idm: {{v0_mps: {v:.4f}}}",
+                  f"      preview_time_s: {DLC_PREVIEW_TIME_S:g}",
+                  f"      preview_min_m: {DLC_PREVIEW_MIN_M:g}",
+                  f"      coast_from_s_m: {DLC_RUN_UP_M - car.front_m:.3f}",
+                  "      path:",
+                  f"        points: [{wrapped[0]}"]
+        lines += [f"                 {w}" for w in wrapped[1:]]
+        lines[-1] += "]"
+    return "\n".join(lines) + "\n"
+
+
 # ------------------------------------------------------------------- registry
 ANALYSES: dict[str, tuple[Callable[..., dict[str, Any]], dict[str, tuple[float, float]]]] = {
     "iso4138_steady_state_circular": (iso4138_steady_state_circular,
@@ -545,6 +823,8 @@ ANALYSES: dict[str, tuple[Callable[..., dict[str, Any]], dict[str, tuple[float, 
     "hill_start": (hill_start, {"rollback_max_m": (0.0, 100.0),
                                 "time_to_2_mps_max_s": (0.0, 3600.0)}),
     "fmvss105_parking_brake": (fmvss105_parking_brake, {"hold_min_s": (0.0, 3600.0)}),
+    "iso3888_2_double_lane_change": (iso3888_2_double_lane_change,
+                                     {"run_up_m": (0.0, 10000.0)}),
 }
 """Analysis name: its function and the options a scenario may give it (with ranges)."""
 
@@ -592,6 +872,15 @@ def _fmt(value: Any) -> str:
 def report_markdown(title: str, sections: Mapping[str, Mapping[str, Any]]) -> str:
     """A short Markdown report of one or more cars' ``manoeuvre`` sections."""
     lines = [f"# {title}", ""]
+    series = dlc_series(sections)
+    if series is not None:
+        best = series["highest_entry_speed_without_strike_kmh"]
+        lines += [f"**Highest entry speed without a cone strike: {_fmt(best)} km/h** "
+                  f"(lowest with a strike: {_fmt(series['lowest_entry_speed_with_strike_kmh'])}"
+                  " km/h)", "", "| car | entry speed km/h | result |", "|---|---|---|"]
+        lines += [f"| {r['car']} | {_fmt(r['entry_speed_kmh'])} | "
+                  f"{'pass' if r['passed'] else 'FAIL'} |" for r in series["runs"]]
+        lines.append("")
     for car_id, m in sections.items():
         head = f"## {m['standard']}: {m['method']}"
         lines += [head if len(sections) == 1 else f"{head} (car {car_id})", "",

@@ -82,6 +82,10 @@ from simserver.core.layout import (
 from simserver.core.model import (
     B_AX_MPS2,
     B_AY_MPS2,
+    B_CONTACT_ACTIVE,
+    B_CONTACT_E1_N,
+    B_CONTACT_E2_N,
+    B_CONTACT_MZ_NM,
     B_FX_SUM_N,
     B_FY_SUM_N,
     B_GRAVITY_X_MPS2,
@@ -156,6 +160,7 @@ from simserver.core.params import (
     ROAD_GRAVITY_N_MPS2,
     VP_ANTIROLL_FRONT_NPM,
     VP_ANTIROLL_REAR_NPM,
+    VP_BUMPER_HEIGHT_M,
     VP_CAMBER_HEAVE_GAIN_FRONT_RADPM,
     VP_CAMBER_HEAVE_GAIN_REAR_RADPM,
     VP_CAMBER_ROLL_GAIN_FRONT,
@@ -791,6 +796,21 @@ def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> No
     drag = derived[D_DRAG_NS2PM2] * u * abs(u)
     force_x = fx_sum + mass * g_x - drag
     force_y = fy_sum + mass * g_y
+    if body[B_CONTACT_ACTIVE] > 0.5:
+        # another car's push (core.contact, docs/model.md section 16): held over the step
+        # in the plane's axes, turned into body axes at each stage's heading, acting at the
+        # bumper's height (its overturning arm to the CG). Only while a contact acts: a
+        # car that touches nothing does exactly the arithmetic it did without contacts.
+        f_e1 = body[B_CONTACT_E1_N]
+        f_e2 = body[B_CONTACT_E2_N]
+        f_cx = f_e1 * cos_yaw + f_e2 * sin_yaw
+        f_cy = -f_e1 * sin_yaw + f_e2 * cos_yaw
+        force_x += f_cx
+        force_y += f_cy
+        mz_sum += body[B_CONTACT_MZ_NM]
+        arm = h_cg - vp[VP_BUMPER_HEIGHT_M]
+        roll_moment += arm * f_cy
+        pitch_moment -= arm * f_cx
     ax = force_x / mass
     ay = force_y / mass
     yaw_acc = mz_sum / vp[VP_YAW_INERTIA_KGM2]

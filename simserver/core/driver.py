@@ -107,6 +107,10 @@ CONTROL = ParamTable("driver", "the driver's path following, pedals and hold", (
     Param("brake_decel_mps2", "m/s^2", 0.1, 50.0,
           "deceleration at full brake, the feedforward's gain", slot=18,
           default="the vehicle's brake torque / (mass R)"),
+    Param("coast_from_s_m", "m", -1e7, 1e7,
+          "from this station of the CG on, both pedals are released (the car coasts; "
+          "ISO 3888-2's throttle released at the entry gate, docs/manoeuvres.md section 7)",
+          default=1e7, slot=29),
     # derived: packed from the vehicle and the scenario, never read from a file
     Param("enabled", "-", None, None, "1: the driver drives the car; 0: an obstacle only",
           slot=19),
@@ -156,6 +160,7 @@ DP_CG_HEIGHT_M = 25  # m, driver
 DP_STEER_PER_RAD = 26  # 1/rad, driver
 DP_MASS_KG = 27  # kg, driver
 DP_WHEEL_RADIUS_M = 28  # m, driver
+DP_COAST_FROM_S_M = 29  # m, driver
 # --- end of generated slot constants
 N_DRIVER_PARAM = slot_count(DRIVER_PARAMS)
 
@@ -493,6 +498,10 @@ def _drive_car(world: WorldModel, data: WorldData, drv: Drivers, c: int) -> None
                 ds[DS_SPEED_REF_MPS] = 0.0
         else:
             inputs[L.IN_BRAKE] = min(1.0, brake)
+        if s_cg >= dp[DP_COAST_FROM_S_M] and mode == MODE_DRIVE:
+            # coasting: the pedals released, the path still steered (docs/model.md s. 15)
+            inputs[L.IN_THROTTLE] = 0.0
+            inputs[L.IN_BRAKE] = 0.0
     ds[DS_MODE] = mode
     ds[DS_STATION_M] = s_cg
     ds[DS_LATERAL_M] = me[PROJ_LAT_M]

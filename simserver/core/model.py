@@ -80,7 +80,15 @@ B_GRAVITY_X_MPS2 = 3
 B_GRAVITY_Y_MPS2 = 4
 B_FX_SUM_N = 5
 B_FY_SUM_N = 6
-N_BODY = 7
+# ... and what another car applies through a contact over the step (core.contact,
+# docs/model.md section 16): written by the world's contact stage before the car step,
+# held over the step; B_CONTACT_ACTIVE 0 (the contact stage's reset, and a fresh
+# workspace): no contact, and the body's rates do exactly what they did without contacts
+B_CONTACT_ACTIVE = 7  # 1 when another car pushes on this one over the step
+B_CONTACT_E1_N = 8  # the contact force along the reference plane's e1, e2 (N)
+B_CONTACT_E2_N = 9
+B_CONTACT_MZ_NM = 10  # its moment about the CG, about the plane's normal (N m)
+N_BODY = 11
 
 # ---- the reference plane of the step (ws.ground[G_*], core.terrain)
 G_GRAVITY_E1_MPS2 = 0  # gravity along the reference plane's e1, e2, and pressing onto it

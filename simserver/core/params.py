@@ -52,6 +52,35 @@ CHASSIS = ParamTable("chassis", "mass, inertias, geometry, aerodynamics", (
     Param("drag_area_m2", "m^2", 0.0, 20.0, "aerodynamic drag area Cd A", slot=28),
     Param("air_density_kg_per_m3", "kg/m^3", 0.0, 2.0, "air density (0 switches drag off)",
           slot=29, const="VP_AIR_DENSITY_KGPM3"),
+    # the body's footprint box and its contact with other cars (issue 30, core/contact.py,
+    # docs/model.md section 16): slots appended after the historical ones; the defaults
+    # are the reference car's (paper_sedan: the viewer's 0.85 m overhangs, track + 0.2 m)
+    Param("body_front_overhang_m", "m", 0.0, 5.0,
+          "body's front bumper ahead of the front axle (footprint box, contact; default "
+          "0.85, the reference car's)",
+          default=0.85, slot=168),
+    Param("body_rear_overhang_m", "m", 0.0, 5.0,
+          "body's rear bumper behind the rear axle (footprint box, contact; default 0.85)",
+          default=0.85, slot=169),
+    Param("body_width_m", "m", 0.3, 5.0,
+          "body's width (footprint box, contact; default 1.78: track + 0.2)",
+          default=1.78, slot=170),
+    Param("bumper_height_m", "m", 0.0, 3.0,
+          "height above the ground at which a contact with another car acts "
+          "(default 0.5)",
+          default=0.5, slot=171),
+    Param("contact_stiffness_n_per_m", "N/m", 1e4, 1e9,
+          "body's stiffness against another car's (two cars: in series; default 1e7, "
+          "docs/model.md section 16)",
+          default=1.0e7, slot=172),
+    Param("contact_damping_ratio", "-", 0.0, 0.95,
+          "damping of a contact, fraction of critical for the pair (two cars: the mean; "
+          "default 0.36)",
+          default=0.36, slot=173),
+    Param("contact_friction", "-", 0.0, 2.0,
+          "Coulomb friction between the bodies at a contact (two cars: the mean; "
+          "default 0.3)",
+          default=0.3, slot=174),
 ))
 SUSPENSION = ParamTable("suspension", "springs, dampers, anti-roll bars (rates at the wheel)", (
     Param("spring_front_n_per_m", "N/m", 1e3, 1e7,
@@ -387,6 +416,13 @@ VP_UPSHIFT_SPEED_FULL_MPS = 156  # m/s, automatic, 9 slots
 VP_DOWNSHIFT_HYSTERESIS_MPS = 165  # m/s, automatic
 VP_KICKDOWN_THROTTLE = 166  # -, automatic
 VP_SHIFT_DELAY_S = 167  # s, automatic
+VP_BODY_FRONT_OVERHANG_M = 168  # m, chassis
+VP_BODY_REAR_OVERHANG_M = 169  # m, chassis
+VP_BODY_WIDTH_M = 170  # m, chassis
+VP_BUMPER_HEIGHT_M = 171  # m, chassis
+VP_CONTACT_STIFFNESS_N_PER_M = 172  # N/m, chassis
+VP_CONTACT_DAMPING_RATIO = 173  # -, chassis
+VP_CONTACT_FRICTION = 174  # -, chassis
 # the terrain's road (core.terrain.Terrain.road)
 ROAD_GRADE_PCT = 0  # %, road
 ROAD_CROSS_SLOPE_PCT = 1  # %, road

@@ -15,7 +15,10 @@ Car ``c`` of a world is the single-car ``core.model.Model`` / ``Data`` made of r
 of each array (``car_model``, ``car_data``: views, nothing copied), and the world's step is
 the car step (``core.integrator.step``) on each car in turn: a car's arithmetic is the
 same whatever the other cars are, and a world of one car gives the single car's bits.
-Cars do not touch yet (contact comes with the next issue).
+Cars touch through the world's contact stage (``core.contact``, docs/model.md section
+15), run before the car steps: it gives each car that touches another an equal and
+opposite push held over the step (the car's ``B_CONTACT_*`` body slots); a car that
+touches nothing steps exactly as alone.
 
 The row views of C-contiguous stacks are C-contiguous arrays of the single car's ranks,
 so the car step compiled for one car is the one the world calls: adding or removing a car
@@ -30,9 +33,10 @@ import numba as nb
 import numpy as np
 
 from simserver.core import layout as L
+from simserver.core.contact import Contacts, contact_stage, make_contacts
 from simserver.core.integrator import step as car_step
 from simserver.core.model import Data, Model, Workspace, make_data
-from simserver.core.terrain import Terrain
+from simserver.core.terrain import TERRAIN_PLANE, Terrain
 from simserver.core.tire_layout import TireKernels
 
 
@@ -55,6 +59,7 @@ class WorldData(NamedTuple):
     inputs: np.ndarray  # float64[n_cars, N_INPUT]
     out: np.ndarray  # float64[n_cars, N_OUT]
     ws: Workspace  # each array of core.model.Workspace with a leading n_cars axis
+    contacts: Contacts  # the cars' contacts (core.contact): per car, per pair, the events
 
 
 @nb.njit(cache=True, inline="always")
@@ -84,24 +89,36 @@ def step_cars(world: WorldModel, data: WorldData) -> None:
         car_step(car_model(world, c), car_data(data, c))
 
 
+@nb.njit(cache=True, inline="always")
+def contacts(world: WorldModel, data: WorldData) -> None:
+    """The contact stage (``core.contact.contact_stage``): each car's push from the cars it
+    touches, held over the step, before the cars step."""
+    contact_stage(world.vp, data.x, data.ws.body, data.ws.axes,
+                  world.terrain.kind == TERRAIN_PLANE, world.dt_s, data.contacts)
+
+
 # As core.integrator.step: no reference counting (the views are of the caller's arrays,
 # which the caller keeps alive) and numpy's error model.
 @nb.njit(cache=True, _nrt=False, error_model="numpy")
 def step(world: WorldModel, data: WorldData) -> None:
-    """Advance every car of the world by ``world.dt_s`` (``step_cars``)."""
+    """Advance every car of the world by ``world.dt_s``: the contacts, then ``step_cars``."""
+    contacts(world, data)
     step_cars(world, data)
 
 
 @nb.njit(cache=True, _nrt=False, error_model="numpy")
 def simulate(world: WorldModel, data: WorldData, inputs_per_step: np.ndarray,
-             states: np.ndarray, outputs: np.ndarray, record_every: int) -> None:
+             states: np.ndarray, outputs: np.ndarray, record_every: int,
+             contact_rows: np.ndarray) -> None:
     """Run ``len(inputs_per_step)`` world steps, recording every ``record_every``-th one.
 
     ``inputs_per_step``: float64[n_steps, n_cars, N_INPUT]; row ``k`` of ``states``
     (float64[rows, n_cars, N_STATE]) and ``outputs`` (float64[rows, n_cars, N_OUT]) holds
     each car's state at the start of step ``k * record_every`` and the forces evaluated at
-    it (``core.integrator.simulate``'s rows, per car). ``data.inputs`` ends holding the
-    last row of ``inputs_per_step``."""
+    it (``core.integrator.simulate``'s rows, per car), and ``contact_rows``
+    (float64[rows, n_cars, N_CAR_CONTACT_OUT]) the contacts of that step
+    (``core.contact.CC_*``, the output block). ``data.inputs`` ends holding the last row
+    of ``inputs_per_step``."""
     x, out, inputs = data.x, data.out, data.inputs
     n_cars = x.shape[0]
     row = 0
@@ -113,11 +130,14 @@ def simulate(world: WorldModel, data: WorldData, inputs_per_step: np.ndarray,
             for c in range(n_cars):
                 for j in range(L.N_STATE):
                     states[row, c, j] = x[c, j]
+        contacts(world, data)
         step_cars(world, data)
         if k % record_every == 0:
             for c in range(n_cars):
                 for j in range(L.N_OUT):
                     outputs[row, c, j] = out[c, j]
+                for j in range(contact_rows.shape[2]):
+                    contact_rows[row, c, j] = data.contacts.car[c, j]
             row += 1
 
 
@@ -126,11 +146,13 @@ def stack_data(cars: list[Data]) -> WorldData:
     if not cars:  # a world of no car: each array with a car axis of length 0
         empty = make_data()
         return WorldData(*(np.zeros((0, *a.shape)) for a in empty[:3]),
-                         Workspace(*(np.zeros((0, *a.shape)) for a in empty.ws)))
+                         Workspace(*(np.zeros((0, *a.shape)) for a in empty.ws)),
+                         make_contacts(0))
     return WorldData(x=np.stack([d.x for d in cars]), inputs=np.stack([d.inputs for d in cars]),
                      out=np.stack([d.out for d in cars]),
                      ws=Workspace(*(np.stack(parts) for parts in zip(*(d.ws for d in cars),
-                                                                     strict=True))))
+                                                                     strict=True))),
+                     contacts=make_contacts(len(cars)))
 
 
 def car_views(world: WorldModel, data: WorldData, c: int) -> tuple[Model, Data]:

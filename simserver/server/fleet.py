@@ -140,7 +140,6 @@ def prepare_drivers(cars: list[ServedCar]) -> Any:
     cache) by one call on copies of the world's arrays, so that the first tick does not
     compile it."""
     from simserver.core.driver import drive
-    from simserver.core.world import WorldData
     from simserver.server.live_drivers import LiveDrivers
 
     live = LiveDrivers()
@@ -151,7 +150,8 @@ def prepare_drivers(cars: list[ServedCar]) -> Any:
         world = cars[0].slot.sim.world
         drivers = live.assemble(world)
         data = world.data
-        scratch = WorldData(data.x.copy(), data.inputs.copy(), data.out.copy(), data.ws)
+        scratch = data._replace(x=data.x.copy(), inputs=data.inputs.copy(),
+                                out=data.out.copy())
         drive(world.model, scratch, drivers)  # reads x, writes inputs and drivers only
     return live
 

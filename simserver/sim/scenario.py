@@ -47,7 +47,7 @@ from __future__ import annotations
 import time
 import weakref
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +58,7 @@ from simserver.adapters.driver_config import DriverSpec, build_drivers, parse_dr
 from simserver.adapters.terrain_files import terrain_spec
 from simserver.adapters.validate import ConfigError, check_keys, integer, number, read_yaml
 from simserver.core import layout as L
+from simserver.core.contact import CAR_CONTACT_NAMES, N_CAR_CONTACT_OUT
 from simserver.core.driver import N_DRIVER_STATE, simulate_driven
 from simserver.sim.keyframes import input_table, read_keyframe_file
 from simserver.sim.scene import (
@@ -333,6 +334,31 @@ class WorldResult:
     scenario: WorldScenario
     cars: dict[str, ScenarioResult]
     wall_time_s: float
+    contact_rows: np.ndarray | None = None  # float64[rows, n_cars, N_CAR_CONTACT_OUT]
+    contact_events: list[dict[str, Any]] = field(default_factory=list)  # core.contact
+    contact_events_lost: int = 0  # events the ring overwrote before they were read
+
+    def contact(self, car_id: str, name: str) -> np.ndarray:
+        """One car's contact column (``core.contact.CAR_CONTACT_NAMES``) per recorded row."""
+        c = list(self.cars).index(car_id)
+        return self.contact_rows[:, c, CAR_CONTACT_NAMES.index(name)]
+
+    def contact_summary(self) -> dict[str, Any]:
+        """The summary's ``contacts`` section: the events (the two cars' ids, the time, the
+        closing speed, the contact point), their number, and per car its events, the
+        recorded rows it was in contact and its deepest recorded penetration."""
+        cars = {}
+        for cid in self.cars if self.contact_rows is not None else ():
+            flag = self.contact(cid, "contact")
+            cars[cid] = {"events": int(self.contact(cid, "contact_events")[-1])
+                         if len(flag) else 0,
+                         "rows_in_contact": int(np.count_nonzero(flag > 0.5)),
+                         "max_penetration_m": float(self.contact(cid, "contact_penetration_m")
+                                                    .max(initial=0.0))}
+        events = [{k: e[k] for k in ("time_s", "car_a", "car_b", "closing_speed_mps",
+                                     "x_m", "y_m")} for e in self.contact_events]
+        return {"count": len(events) + self.contact_events_lost,
+                "lost": self.contact_events_lost, "events": events, "cars": cars}
 
 
 def is_world_scenario(data: dict[str, Any]) -> bool:
@@ -394,6 +420,11 @@ def run_world_scenario(world_scenario: WorldScenario,
         drivers = build_drivers(world, specs)
         applied = np.zeros((n_rec, len(ids), L.N_INPUT))
         driver_states = np.zeros((n_rec, len(ids), N_DRIVER_STATE))
+    # the cars' contact outputs per row (not recorded by the drivers' loop: events only)
+    contact_rows = None if driven else np.zeros((n_rec, len(ids), N_CAR_CONTACT_OUT))
+    events: list[dict[str, Any]] = []
+    seen = world.contact_count()
+    lost = 0
     chunk = max(every, chunk_steps - chunk_steps % every)
     t0 = time.perf_counter()
     done = 0
@@ -407,7 +438,10 @@ def run_world_scenario(world_scenario: WorldScenario,
                             applied[r0:r0 + rows], driver_states[r0:r0 + rows], every)
         else:
             world.run(inputs[done:done + m], states[r0:r0 + rows], outputs[r0:r0 + rows],
-                      every)
+                      every, contact_rows[r0:r0 + rows])
+        new, seen, missed = world.contact_events(seen)
+        events += new
+        lost += missed
         done += m
         if progress is not None:
             progress(done, n)
@@ -422,4 +456,6 @@ def run_world_scenario(world_scenario: WorldScenario,
             final_state=world.data.x[world.index(cid)].copy(), wall_time_s=wall,
             driver_states=(np.ascontiguousarray(driver_states[:, c])
                            if specs[cid] is not None else None))
-    return WorldResult(scenario=world_scenario, cars=cars, wall_time_s=wall)
+    return WorldResult(scenario=world_scenario, cars=cars, wall_time_s=wall,
+                       contact_rows=contact_rows, contact_events=events,
+                       contact_events_lost=lost)

@@ -28,10 +28,18 @@ import numpy as np
 from simserver.core import layout as L
 from simserver.core import params as P
 from simserver.core.chassis import place_on_terrain
+from simserver.core.contact import (
+    K_EVENTS,
+    N_CAR_CONTACT_OUT,
+    Contacts,
+    drain_events,
+    with_car_added,
+    with_car_removed,
+)
 from simserver.core.damping import DAMPING_MODELS
 from simserver.core.integrator import derive_constants
 from simserver.core.integrator import simulate as car_simulate
-from simserver.core.model import N_DERIVED, Data, Model, Workspace, make_data
+from simserver.core.model import B_CONTACT_ACTIVE, N_DERIVED, Data, Model, Workspace, make_data
 from simserver.core.params import VP_CG_HEIGHT_M, VP_DAMPING_MODEL, VP_SLIP_MODEL
 from simserver.core.pose import world_pose
 from simserver.core.powertrain import RADPS_PER_RPM
@@ -203,7 +211,8 @@ class World:
         self.data = WorldData(
             *(np.concatenate([a, b[None]]) for a, b in zip(d[:3], data[:3], strict=True)),
             ws=Workspace(*(np.concatenate([a, b[None]])
-                           for a, b in zip(d.ws, data.ws, strict=True))))
+                           for a, b in zip(d.ws, data.ws, strict=True))),
+            contacts=with_car_added(d.contacts))
         self.ids.append(car_id)
         self.generation += 1
         return len(self.ids) - 1
@@ -216,7 +225,8 @@ class World:
                                 derived=np.delete(m.derived, c, axis=0))
         d = self.data
         self.data = WorldData(*(np.delete(a, c, axis=0) for a in d[:3]),
-                              ws=Workspace(*(np.delete(a, c, axis=0) for a in d.ws)))
+                              ws=Workspace(*(np.delete(a, c, axis=0) for a in d.ws)),
+                              contacts=with_car_removed(d.contacts, c))
         del self.ids[c]
         self.generation += 1
 
@@ -251,11 +261,35 @@ class World:
         world_step(self.model, self.data)
 
     def run(self, inputs_per_step: np.ndarray, states: np.ndarray, outputs: np.ndarray,
-            record_every: int = 1) -> None:
+            record_every: int = 1, contacts: np.ndarray | None = None) -> None:
         """``core.world.simulate``: inputs float64[n_steps, n_cars, N_INPUT], states and
-        outputs float64[rows, n_cars, N_STATE / N_OUT]."""
+        outputs float64[rows, n_cars, N_STATE / N_OUT], and, if given, the cars' contacts
+        float64[rows, n_cars, N_CAR_CONTACT_OUT] (``core.contact.CC_*``)."""
+        if contacts is None:
+            contacts = np.zeros((states.shape[0], len(self.ids), 0))
         world_simulate(self.model, self.data, np.ascontiguousarray(inputs_per_step), states,
-                       outputs, record_every)
+                       outputs, record_every, contacts)
+
+    def contact_events(self, seen: int) -> tuple[list[dict], int, int]:
+        """The contact events after the first ``seen`` (``core.contact.drain_events``), each
+        with the two cars' ids (``car_a``, ``car_b``, rows mapped to the ids of now: drain
+        before adding or removing a car), the number written so far and how many were
+        lost (the ring overwritten before this call)."""
+        events, total, lost = drain_events(self.data.contacts, seen)
+        for e in events:
+            e["car_a"] = self.ids[e["car_a"]]
+            e["car_b"] = self.ids[e["car_b"]]
+        return events, total, lost
+
+    def car_contact(self, car_id: str) -> np.ndarray:
+        """The car's contact output of the last step, a view (``core.contact.CC_*``, names
+        ``CAR_CONTACT_NAMES``: the flag, the force on it and its moment, its depth, its
+        events so far)."""
+        return self.data.contacts.car[self.index(car_id), :N_CAR_CONTACT_OUT]
+
+    def contact_count(self) -> int:
+        """Contact events since the world was made (a pair of cars that starts to touch)."""
+        return int(self.data.contacts.count[K_EVENTS])
 
 
 class Simulation:
@@ -417,6 +451,7 @@ class Simulation:
         # (the last bits of its forces differ with a fresh one), and a reset prepared
         # aside must give the very state a reset in place gives
         ws = Workspace(*(a.copy() for a in self.data.ws))
+        ws.body[B_CONTACT_ACTIVE] = 0.0  # a start is the car alone (core.start steps it)
         data = Data(x=initial_state(start_scene), inputs=self.data.inputs.copy(),
                     out=self.data.out.copy(), ws=ws)
         if model.terrain.kind != TERRAIN_PLANE:
@@ -486,6 +521,7 @@ class Simulation:
             raise ValueError(f"Simulation.run steps a world of one car; this one has "
                              f"{len(world)} (use World.run)")
         model, data = self._car()
+        data.ws.body[B_CONTACT_ACTIVE] = 0.0  # alone: nothing touches it (a car left behind)
         car_simulate(model, data, np.ascontiguousarray(inputs_per_step), states, outputs,
                      record_every)
 
@@ -508,7 +544,7 @@ class Simulation:
         world = self.world.model
         wd = self.world.data
         saved_world = WorldData(x=wd.x.copy(), inputs=wd.inputs.copy(), out=wd.out.copy(),
-                                ws=wd.ws)
+                                ws=wd.ws, contacts=Contacts(*(a.copy() for a in wd.contacts)))
         model, saved = car_views(world, saved_world, self.world.index(self.car_id))
         n = len(self.world)
         return [
@@ -517,7 +553,8 @@ class Simulation:
                                               model.vp[VP_CG_HEIGHT_M], self.pose)),
             ("simulate", lambda: world_simulate(world, saved_world, np.zeros((1, n, L.N_INPUT)),
                                                 np.zeros((1, n, L.N_STATE)),
-                                                np.zeros((1, n, L.N_OUT)), 1)),
+                                                np.zeros((1, n, L.N_OUT)), 1,
+                                                np.zeros((1, n, N_CAR_CONTACT_OUT)))),
             ("start_powertrain", lambda: start_powertrain(model, saved)),
             ("settle_at_velocity", lambda: settle_at_velocity(model, saved, 1,
                                                               np.zeros(BODY_SLOTS))),
