@@ -164,10 +164,12 @@ class SimServer:
             self.slots: list[VehicleSlot] = [car.slot for car in self.cars]
             for slot in self.slots:
                 slot.warm_up()
+            live_drivers = fleet.prepare_drivers(self.cars)  # and drive() compiled
         self.preparer = ProcessPreparer()
         trace = os.environ.get(TICK_TRACE_ENV)
         self.loop = ServerLoop(cfg, preparer=self.preparer,
                                trace=TickTrace(trace) if trace else None)
+        self.loop.live_drivers = live_drivers
         self.scheduler = RealtimeScheduler(cfg.realtime_settings(), log=log.log)
         self.viewer: subprocess.Popen | None = None
         self.viewer_command: str | None = None

@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from simserver.adapters.config import ConfigError
+from simserver.core.driver import drive
 from simserver.server.load_worker import opened
 from simserver.server.realtime import (
     DEFAULT_SPIN_NS,
@@ -381,6 +382,11 @@ class ServerLoop:
         self.traffic_every = max(1, int(round(1.0 / (proto.TRAFFIC_STATE_HZ * cfg.period_s))))
         self.publish_world: Callable[[bytes], None] | None = None
         self.world_desk: Any = None  # the world's controls (simserver.server.world_desk)
+        # the built-in driver's cars (simserver.server.live_drivers): prepared off the
+        # tick, their arrays assembled when the world's cars change, driven each tick
+        self.live_drivers: Any = None
+        self.drivers: Any = None  # core.driver.Drivers of the world's cars, or None
+        self._driver_ids: list[str] = []
         self.loop_count = 0
         self.t0_ns = 0
         self._skipped_seen = 0
@@ -400,6 +406,7 @@ class ServerLoop:
             s.shared_world = shared
         self.world = slot.sim.world if shared else None
         self._cars_changed()
+        self.assemble_drivers()
 
     def remove(self, slot: VehicleSlot) -> SlotPorts:
         """Stop serving ``slot`` (between ticks) and take its car out of the world
@@ -425,8 +432,23 @@ class ServerLoop:
             s.shared_world = shared
         if not shared:
             self.world = None
+        if self.live_drivers is not None:
+            self.live_drivers.forget(slot.keys.vehicle)
         self._cars_changed()
+        self.assemble_drivers()
         return ports
+
+    def assemble_drivers(self, fresh: bool = False) -> None:
+        """The driver arrays of the world's cars now (between ticks: after a car is added
+        or removed, each driven car's driver state carried over by id; ``fresh``: after a
+        reset, every driver starts anew). Nothing to drive: None."""
+        world, live = self.world, self.live_drivers
+        if world is None or not live:
+            self.drivers, self._driver_ids = None, []
+            return
+        self.drivers = live.assemble(world, None if fresh else self.drivers,
+                                     self._driver_ids)
+        self._driver_ids = list(world.ids)
 
     def _cars_changed(self) -> None:
         """The world message's cars after a car was added or removed."""
@@ -540,12 +562,16 @@ class ServerLoop:
         for index, (slot, ports) in enumerate(slots):
             if skipped:
                 slot.skipped_before = True
-            if slot.keyframes is None or (count + index) % traffic_every == 0:
+            if slot.driven_by == "client" or (count + index) % traffic_every == 0:
                 # a car no client drives applies no command: its inbox is drained (and
                 # counted) at its own phase only
                 payloads = ports.commands.drain_newest()
                 slot.take_commands(payloads, now, len(payloads) >= ports.commands.capacity)
             slot.apply_inputs(now)
+        drivers = self.drivers
+        if drivers is not None:  # the driven cars' inputs from the states now (model.md 15)
+            drive(self.world.model, self.world.data, drivers)
+        for slot, _ in slots:  # each car's inputs logged (the driver's too), ticks counted
             slot.stepping = slot.advance(step=False)
             stepped = stepped or slot.stepping
         if stepped:

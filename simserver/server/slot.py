@@ -265,6 +265,15 @@ class VehicleSlot:
         self.driven_by = "keyframes"
         self.watchdog.engaged = False
 
+    def drive_by_driver(self) -> None:
+        """The built-in driver drives this car (``driven_by: driver``,
+        ``simserver.server.live_drivers``): the loop's ``core.driver.drive`` writes its
+        inputs each tick before the world's step; commands are not applied (each counted in
+        ``cmd_rejected``; the world's ``get_config`` says who drives it) and the watchdog
+        does not act."""
+        self.driven_by = "driver"
+        self.watchdog.engaged = False
+
     @property
     def last_published(self) -> bytes | None:
         """The newest finite VehicleState published (None before the first)."""
@@ -275,7 +284,7 @@ class VehicleSlot:
                       buffer_full: bool = False) -> None:
         """Arbitrate the command payloads drained this tick (``buffer_full``: see
         :meth:`CommandArbiter.take`)."""
-        if self.keyframes is not None:  # a keyframed car takes no commands
+        if self.driven_by != "client":  # a keyframed or driven car takes no commands
             self.counters["cmd_received"] += len(payloads)
             self.counters["cmd_rejected"] += len(payloads)
             return
@@ -283,7 +292,10 @@ class VehicleSlot:
 
     def apply_inputs(self, now_ns: int) -> None:
         """Commanded inputs through the watchdog into the simulation's input vector (a
-        keyframed car: its table's row of this tick)."""
+        keyframed car: its table's row of this tick; a car of the built-in driver: nothing,
+        the loop's ``drive`` writes them)."""
+        if self.driven_by == "driver":
+            return
         if self.keyframes is not None:
             table = self.keyframes
             self.sim.inputs[:] = table[min(self.tick, len(table) - 1)]
