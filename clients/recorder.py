@@ -738,9 +738,9 @@ def merge_car_files(parts: dict[str, Path], out_dir: Path) -> None:
         tables = {car: pq.read_table(folder / name) for car, folder in parts.items()}
         first = next(iter(tables.values()))
         meta = dict(first.schema.metadata or {})
+        # the segments are in each file's footer (added at its close), not its schema
         meta[SEGMENTS_KEY.encode()] = json.dumps(
-            {car: json.loads((t.schema.metadata or {}).get(SEGMENTS_KEY.encode(), b"[]"))
-             for car, t in tables.items()}).encode()
+            {car: read_segments(folder / name) for car, folder in parts.items()}).encode()
         meta[b"simserver.recorder.keys"] = json.dumps(
             {car: (t.schema.metadata or {}).get(b"simserver.recorder.keys", b"").decode()
              for car, t in tables.items()}).encode()

@@ -74,18 +74,18 @@ def test_the_viewer_draws_every_car_and_follows_the_chosen_one(tmp_path):
     for car_id, x0_m in (("car0", 0.0), ("car1", 25.0)):
         cols = entities.get("/" + car_path(car_id))
         assert cols, f"no /{car_path(car_id)} in {sorted(entities)}"
-        xyz = np.array(_column(cols, "translation"), dtype=float)
+        xyz = np.array(_column(cols, "translation"), dtype=float).reshape(-1, 3)
         assert len(xyz) > 5  # one per frame of the followed car
         # parked cars on the flat (two_cars.yaml): at their start pose, CG above the road
         assert np.allclose(xyz[:, 0], x0_m, atol=0.05) and np.allclose(xyz[:, 1], 0.0,
                                                                          atol=0.05)
         assert np.all((xyz[:, 2] > 0.3) & (xyz[:, 2] < 0.8))
     # the label: car1 (followed) on a point above its roof, car0 on its box
-    assert _column(entities["/" + car_path("car1") + "/label"], "labels") == [["car1"]]
-    assert _column(entities["/" + car_path("car0") + "/box"], "labels") == [["car0"]]
+    assert _column(entities["/" + car_path("car1") + "/label"], ":labels") == [["car1"]]
+    assert _column(entities["/" + car_path("car0") + "/box"], ":labels") == [["car0"]]
     assert "/" + car_path("car1") + "/box" not in entities  # drawn in full under world/car
     # the full model is car1's (x = 25 m), and it has the driver's eye in its body
-    car = np.array(_column(entities["/" + CAR], "translation"), dtype=float)
+    car = np.array(_column(entities["/" + CAR], "translation"), dtype=float).reshape(-1, 3)
     assert np.allclose(car[:, 0], 25.0, atol=0.05)
     for path in (BODY_SHELL, DRIVER_EYE):
         assert "/" + path in entities
