@@ -46,6 +46,7 @@ REFERENCE_CAR = REPO / "configs" / "vehicles" / "paper_sedan" / "vehicle.yaml"
 STORYBOARD_PERIOD_S = 0.01
 """The storyboard is evaluated every 10 ms of simulated time (10 world steps at 1 kHz)."""
 PATH_STEP_M = 0.5  # spacing of a car's path points along the road
+NEAR_SAMPLES = 20  # a car's projection walks from its last sample at most this far
 TERRAIN_CELL_M = 0.5
 EQUAL_TOLERANCE = 0.01  # ``equalTo``/``notEqualTo`` compare within this (the quantity's unit)
 STANDSTILL_MPS = 0.01  # a car slower than this stands still
@@ -106,18 +107,48 @@ class RoadFrame:
         s, t = self.st_many(np.array([x]), np.array([y]))
         return s[0], t[0]
 
-    def st_many(self, x: np.ndarray, y: np.ndarray) -> tuple[list[float], list[float]]:
+    def st_many(self, x: np.ndarray, y: np.ndarray,
+                near: list[int] | None = None) -> tuple[list[float], list[float]]:
         """:meth:`st` of several points in one pass over the samples (the same arithmetic
-        element by element, so the same bits)."""
-        k = np.argmin((self.x[None, :] - x[:, None]) ** 2
-                      + (self.y[None, :] - y[:, None]) ** 2, axis=1)
+        element by element, so the same bits). ``near``: each point's nearest sample of the
+        last call (updated in place): the search walks from there (:meth:`_descend`)."""
+        if near is None:
+            k = np.argmin((self.x[None, :] - x[:, None]) ** 2
+                          + (self.y[None, :] - y[:, None]) ** 2, axis=1).tolist()
+        else:
+            k = [self._descend(float(x[j]), float(y[j]), k0) for j, k0 in enumerate(near)]
+            near[:] = k
         out_s, out_t = [], []
-        for j, kj in enumerate(k.tolist()):
-            dx, dy = float(x[j]) - self.x[kj], float(y[j]) - self.y[kj]
-            c, s = math.cos(self.hdg[kj]), math.sin(self.hdg[kj])
-            out_s.append(float(self.s[kj] + dx * c + dy * s))
-            out_t.append(float(-dx * s + dy * c))
+        for j, kj in enumerate(k):
+            dx, dy = float(x[j]) - self._xs[kj], float(y[j]) - self._ys[kj]
+            c, s = self._cos[kj], self._sin[kj]
+            out_s.append(self._ss[kj] + dx * c + dy * s)
+            out_t.append(-dx * s + dy * c)
         return out_s, out_t
+
+    def _descend(self, x: float, y: float, k: int) -> int:
+        """The nearest sample to (x, y), walking downhill in distance from sample ``k``
+        (the last tick's: a car moves less than a sample per tick, so a step or two); the
+        whole road is searched when ``k`` is unknown (-1) or the walk goes further than
+        ``NEAR_SAMPLES`` (the car jumped)."""
+        xs, ys = self._xs, self._ys
+        n = len(xs)
+        if k < 0:
+            return int(np.argmin((self.x - x) ** 2 + (self.y - y) ** 2))
+        d = (xs[k] - x) * (xs[k] - x) + (ys[k] - y) * (ys[k] - y)
+        k0 = k
+        for step in (1, -1):
+            while 0 <= k + step < n:
+                j = k + step
+                dj = (xs[j] - x) * (xs[j] - x) + (ys[j] - y) * (ys[j] - y)
+                if dj >= d:
+                    break
+                k, d = j, dj
+            if k != k0:
+                break
+        if abs(k - k0) > NEAR_SAMPLES:
+            return int(np.argmin((self.x - x) ** 2 + (self.y - y) ** 2))
+        return k
 
     def xy(self, s: np.ndarray | float, t: np.ndarray | float) -> tuple[Any, Any]:
         x = np.interp(s, self.s, self.x)
@@ -147,6 +178,13 @@ class RoadFrame:
 
     _od: OpenDrive = field(default=None, repr=False)  # type: ignore[assignment]
 
+    def __post_init__(self) -> None:
+        # plain floats for the per-tick projection (Python float arithmetic on them is
+        # the same IEEE arithmetic as on numpy scalars, and faster)
+        self._xs, self._ys, self._ss = self.x.tolist(), self.y.tolist(), self.s.tolist()
+        self._cos = [math.cos(h) for h in self.hdg.tolist()]
+        self._sin = [math.sin(h) for h in self.hdg.tolist()]
+
 
 # ------------------------------------------------------------------------- cars
 @dataclass
@@ -166,6 +204,14 @@ class Car:
     speed_action: tuple | None = None  # (t0, v0, v1, T, shape, relative entity/None, ...)
     lateral_action: tuple | None = None  # (t0, T)
     stopping: bool = False  # a speed target of 0: held at a stop point
+    xy_now: tuple[Any, Any] | None = None  # frame.xy(s, t) of this tick, once (conditions)
+
+    def road_xy(self) -> tuple[Any, Any]:
+        """World x, y of the car's (s, t) on its road, computed once per storyboard tick
+        (several conditions ask for it)."""
+        if self.xy_now is None:
+            self.xy_now = self.frame.xy(self.s, self.t)
+        return self.xy_now
 
 
 def _place(pos: X.Position, cars: dict[str, Car], frames: dict[str, RoadFrame],
@@ -337,8 +383,8 @@ class Storyboard:
             elif kind == "lateral":
                 val = abs(other.t - car.t)
             else:
-                xa, ya = car.frame.xy(car.s, car.t)
-                xb, yb = other.frame.xy(other.s, other.t)
+                xa, ya = car.road_xy()
+                xb, yb = other.road_xy()
                 val = float(math.hypot(xb - xa, yb - ya))
             return compare(v["rule"], val, v["value"]), val
         if c.kind == "RelativeSpeedCondition":
@@ -360,7 +406,7 @@ class Storyboard:
                 _, s, t, _ = _place(c.position, self.cars, {car.frame.road.id: car.frame},
                                     self.sc.path)
                 self._targets[key] = car.frame.xy(s, t)
-            xa, ya = car.frame.xy(car.s, car.t)
+            xa, ya = car.road_xy()
             xb, yb = self._targets[key]
             val = float(math.hypot(xb - xa, yb - ya))
             return val <= v["tolerance"], val
@@ -778,7 +824,7 @@ def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
     by_frame: dict[int, tuple[RoadFrame, list[Car]]] = {}
     for car in cars.values():  # the cars of one road are projected on it in one pass
         by_frame.setdefault(id(car.frame), (car.frame, []))[1].append(car)
-    groups = list(by_frame.values())
+    groups = [(f, members, [-1] * len(members)) for f, members in by_frame.values()]
     t0 = time.perf_counter()
     cpu0 = time.process_time()
     physics = 0.0
@@ -788,11 +834,11 @@ def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
         now = row * every * dt
         cg = {car.name: _cg_xy(world, drivers, car.index, axes, road, plane)
               for car in cars.values()}
-        for frame, members in groups:
+        for frame, members, near in groups:
             ss, ts = frame.st_many(np.array([cg[c.name][0] for c in members]),
-                                   np.array([cg[c.name][1] for c in members]))
+                                   np.array([cg[c.name][1] for c in members]), near)
             for car, s_m, t_m in zip(members, ss, ts, strict=True):
-                car.s, car.t = s_m, t_m
+                car.s, car.t, car.xy_now = s_m, t_m, None
         for car in cars.values():
             px, py = cg[car.name]
             u = float(world.data.x[car.index, L.U_MPS])
