@@ -25,6 +25,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 from simserver.ros2 import cli as ros2_cli
@@ -112,6 +113,18 @@ class CompileProgress:
 def loopback_of(endpoint: str) -> str:
     """An endpoint a local client can connect to (``0.0.0.0``/``[::]`` -> loopback)."""
     return endpoint.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
+
+
+def _collision_sender(loop: ServerLoop, publisher: Any) -> Callable[[bytes], None]:
+    """Where the loop's collision events go: put by the sender thread (``state-tx``) of
+    the world's first car (the cars change while the world runs; each has one), never
+    in the tick (docs/protocol.md 5.1)."""
+
+    def send(payload: bytes) -> None:
+        if loop.slots:
+            loop.slots[0][1].publisher.publish_on(publisher, payload)
+
+    return send
 
 
 class SimServer:
@@ -216,6 +229,8 @@ class SimServer:
                 # the world's controls: cars added and removed while it runs
                 loop.world_message = fleet.world_message_for(self.cars, cfg)
                 loop.publish_world = ep.declare_world_publisher(cfg.prefix).put
+                loop.publish_collision = _collision_sender(
+                    loop, ep.declare_collision_publisher(cfg.prefix))
                 loop.world_desk = WorldDesk(
                     loop, cfg, ep.declare_control_inbox(keys=proto.world_keys(cfg.prefix),
                                                         validate=False),
