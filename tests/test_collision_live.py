@@ -86,9 +86,10 @@ def test_a_car_driven_into_a_held_car_publishes_one_collision(tmp_path):
         # equal and opposite: the two cars' force magnitudes of one tick agree
         by_tick1 = {int(s["tick"]): s for s in flagged1}
         pairs = [(s, by_tick1[int(s["tick"])]) for s in flagged0 if int(s["tick"]) in by_tick1]
-        assert pairs
+        # (the overlap may outlast the push: the spring-damper is clamped at zero as the
+        # bodies part, docs/model.md section 16, so a flagged tick may carry no force)
+        assert pairs and max(s0["contact_force_n"] for s0, _ in pairs) > 0.0
         for s0, s1 in pairs:
-            assert s0["contact_force_n"] > 0.0
             assert s1["contact_force_n"] == pytest.approx(s0["contact_force_n"], rel=1e-5)
         # a state not in contact says so with no force
         assert all(s["contact_force_n"] == 0.0 for s in car0.history if not s["car_contact"])
