@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from simserver.adapters.config import ConfigError
+from simserver.core.contact import K_EVENTS
 from simserver.core.driver import drive
 from simserver.server.load_worker import opened
 from simserver.server.realtime import (
@@ -387,6 +388,12 @@ class ServerLoop:
         self.live_drivers: Any = None
         self.drivers: Any = None  # core.driver.Drivers of the world's cars, or None
         self._driver_ids: list[str] = []
+        # contact events (docs/model.md section 16): read from the world's ring after the
+        # step that wrote them, counted per car, published once each (docs/protocol.md 5.1)
+        self.publish_collision: Callable[[bytes], None] | None = None
+        self.contact_events_seen = 0  # the ring's count up to which events were read
+        self.contact_events_lost = 0  # overwritten in the ring before they were read
+        self.collisions_dropped = 0  # not publishable (a non-finite value, an id too long)
         self.loop_count = 0
         self.t0_ns = 0
         self._skipped_seen = 0
@@ -582,6 +589,8 @@ class ServerLoop:
                 sim.x[:] = x
                 sim.out[:] = out
         data = self.world.data
+        if data.contacts.count[K_EVENTS] != self.contact_events_seen:  # rare: a contact
+            self._contact_events(count)
         all_finite = bool(np.isfinite(data.x).all() and np.isfinite(data.out).all())
         diag = None
         pending = self.pending
@@ -602,6 +611,35 @@ class ServerLoop:
                 ports.publisher.publish_diagnostics(self._diagnostics(slot, *diag))
             if client or phase or index in pending:  # traffic: at its phase (10 ms)
                 self._serve_controls(index, slot, ports, now, catching_up)
+
+    def _contact_events(self, tick: int) -> None:
+        """The world's new contact events (``World.contact_events``, after the step that
+        wrote them, so the rows are the cars' of now): each counted in both cars'
+        diagnostics and published once on ``{prefix}/world/collision``; the events the
+        ring lost (more than ``core.contact.EVENT_RING`` in one step) counted. Runs only
+        in a tick whose step wrote an event; the put goes through a sender thread."""
+        events, total, lost = self.world.contact_events(self.contact_events_seen)
+        self.contact_events_seen = total
+        self.contact_events_lost += lost
+        by_id = {s.keys.vehicle: s for s, _ in self.slots}
+        for s, _ in self.slots:
+            s.counters["contact_events_lost"] = self.contact_events_lost
+        for e in events:
+            for car in (e["car_a"], e["car_b"]):
+                slot = by_id.get(car)
+                if slot is not None:
+                    slot.counters["contact_events"] += 1
+            if self.publish_collision is None:
+                continue
+            try:
+                payload = proto.encode_collision(
+                    seq=e["seq"], tick=tick, sim_time_s=e["time_s"], car_a=e["car_a"],
+                    car_b=e["car_b"], closing_speed_mps=e["closing_speed_mps"],
+                    x_m=e["x_m"], y_m=e["y_m"], lost=self.contact_events_lost)
+            except proto.ProtocolError:  # nothing non-finite leaves the server
+                self.collisions_dropped += 1
+                continue
+            self.publish_collision(payload)
 
     def _serve_controls(self, index: int, slot: VehicleSlot, ports: SlotPorts,
                         now: int, catching_up: bool = False) -> None:
