@@ -137,9 +137,15 @@ def runs(soak_seconds: float) -> dict[str, Callable[[], str]]:
 
 
 def compare(reference: dict[str, str], now: dict[str, str]) -> list[str]:
-    """The names whose digest differs from the reference's, or that it lacks."""
-    return [f"{name}: {'missing in the reference' if name not in reference else 'differs'}"
-            for name, value in now.items() if reference.get(name) != value]
+    """The names whose digest differs from the reference's (a run the reference lacks, a
+    scenario shipped after it, is not a difference: ``new_runs``)."""
+    return [f"{name}: differs" for name, value in now.items()
+            if name in reference and reference[name] != value]
+
+
+def new_runs(reference: dict[str, str], now: dict[str, str]) -> list[str]:
+    """The runs the reference has no digest for (nothing to compare them with)."""
+    return [name for name in now if name not in reference]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -163,10 +169,15 @@ def main(argv: list[str] | None = None) -> int:
         old = json.loads(args.write.read_text()) if args.write.exists() else {}
         args.write.write_text(json.dumps(old | now, indent=1, sort_keys=True) + "\n")
         return 0
-    bad = compare(json.loads(args.compare.read_text()), now)
+    reference = json.loads(args.compare.read_text())
+    bad = compare(reference, now)
     for line in bad:
         print(f"DIFFERS {line}")
-    print(f"{len(now) - len(bad)} of {len(now)} runs bit-identical to {args.compare}")
+    new = new_runs(reference, now)
+    for name in new:
+        print(f"NEW {name}: not in the reference, not compared")
+    print(f"{len(now) - len(new) - len(bad)} of {len(now) - len(new)} runs bit-identical to "
+          f"{args.compare} ({len(new)} new)")
     return 1 if bad else 0
 
 

@@ -10,7 +10,11 @@ section 2.2), so a field added to the state is recorded without a change here. A
 buffered in preallocated chunks and streamed as Parquet row groups (``--flush-rows``);
 Ctrl-C, SIGTERM, ``--duration`` or the server's liveliness token staying away for 3 s
 stop the recording after a last drain of what zenoh already delivered, and the files are
-completed (nothing received is lost; a SIGKILL loses the unfinished file).
+completed (nothing received is lost; a SIGKILL loses the unfinished file). Then the
+recording's stops, holds and restarts (per hold its creep and peak speed, per restart its
+rollback, times to 0.5 and 2 m/s and peak jerk: ``simserver.analysis.holds``, the figures
+of a headless summary's ``holds`` section) go to ``OUT/holds.json`` and one line per hold
+to the terminal.
 
 Frames
 ------
@@ -96,6 +100,8 @@ from clients.common import (
     connect,
     state_filter,
 )
+from simserver.analysis.holds import COLUMNS as HOLD_COLUMNS
+from simserver.analysis.holds import HOLD_MIN_S, HOLD_SPEED_MPS, holds_summary
 from simserver.wire import protocol as proto
 from simserver.wire.protocol import reference_plane_slopes, world_to_road
 
@@ -105,6 +111,7 @@ road_axes = proto.road_axes
 
 PROG = "simserver-recorder"
 HISTORY_FILE = "history.parquet"
+HOLDS_FILE = "holds.json"
 DIAGNOSTICS_FILE = "diagnostics.parquet"
 WHEELS = proto.WHEEL_NAMES
 DEFAULT_FLUSH_ROWS = 10_000
@@ -516,6 +523,41 @@ class Recorder:
         return reason
 
 
+def _mm(value: float | None) -> str:
+    return "-" if value is None else f"{1e3 * value:.4g} mm"
+
+
+def _s(value: float | None) -> str:
+    return "never" if value is None else f"{value:.2f} s"
+
+
+def holds_report(out_dir: Path) -> tuple[dict[str, Any], list[str]]:
+    """The recording's stops, holds and restarts (``simserver.analysis.holds``, as in a
+    headless run's summary.json), per segment (time restarts at each reset or load), read
+    back from the written ``history.parquet``; and one line per hold for the terminal."""
+    table = pq.read_table(out_dir / HISTORY_FILE, columns=[*HOLD_COLUMNS, "segment"])
+    cols = {name: table.column(name).to_numpy(zero_copy_only=False).astype(np.float64)
+            for name in table.column_names}
+    report: dict[str, Any] = {"segments": []}
+    lines = []
+    for segment in np.unique(cols["segment"]).astype(int).tolist():
+        rows = cols["segment"] == segment
+        section = holds_summary({name: cols[name][rows] for name in HOLD_COLUMNS})
+        report["segments"].append({"segment": segment, **section})
+        for h in section["holds"]:
+            w0, w1 = h["creep_window_s"]
+            line = (f"hold (segment {segment}) {h['start_s']:.2f}-{h['end_s']:.2f} s, "
+                    f"released by {h['released_by']}: creep {_mm(h['creep_m'])} over "
+                    f"{w0:.2f}-{w1:.2f} s, peak {1e3 * h['peak_speed_mps']:.3g} mm/s")
+            if h["rollback_m"] is not None:
+                jerk = h["peak_jerk_mps3"]
+                line += (f"; restart: rollback {_mm(h['rollback_m'])}, 0.5 m/s in "
+                         f"{_s(h['time_to_0p5_mps_s'])}, 2 m/s in {_s(h['time_to_2_mps_s'])}"
+                         + ("" if jerk is None else f", peak jerk {jerk:.3g} m/s^3"))
+            lines.append(line)
+    return report, lines
+
+
 def read_segments(path: str | Path) -> list[dict[str, Any]]:
     """The per-segment metadata of a recorder's Parquet file (``SEGMENTS_KEY``).
 
@@ -657,6 +699,17 @@ def _run(args: argparse.Namespace) -> int:
           f"diagnostics, {rec.bad_configs} bad get_config replies", flush=True)
     if rec.rows == 0:
         print(f"{PROG}: warning: no state was received", file=sys.stderr, flush=True)
+        return EXIT_OK
+    report, lines = holds_report(args.out)
+    try:
+        (args.out / HOLDS_FILE).write_text(json.dumps(report, indent=1) + "\n")
+    except OSError as exc:
+        raise ClientError(f"{args.out}: cannot write: {exc}", EXIT_FAILED) from None
+    holds = sum(len(seg["holds"]) for seg in report["segments"])
+    print(f"{PROG}: {holds} hold(s) (at rest below {1e3 * HOLD_SPEED_MPS:g} mm/s for "
+          f"{HOLD_MIN_S:g} s or longer), in {args.out / HOLDS_FILE}", flush=True)
+    for line in lines:
+        print(f"{PROG}: {line}", flush=True)
     return EXIT_OK
 
 

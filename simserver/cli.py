@@ -31,6 +31,7 @@ from simserver.sweep import cli as sweep_cli
 
 if TYPE_CHECKING:
     from simserver.sim.scenario import Scenario
+    from simserver.sim.scene import Scene
 
 DT_RANGE_S = (1e-5, 0.01)
 """Accepted ``--dt`` values (the same range as a scenario's ``dt_s``)."""
@@ -624,6 +625,37 @@ def _add_soak_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=None, metavar="FILE",
                         help="write the summary as JSON to FILE")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--cars", type=int, default=1, metavar="N",
+                        help="1 (default): the single-car soak; 4 or more: the multi-car "
+                             "soak (a contact pair, traffic on the built-in driver, random "
+                             "drives; simserver.sim.multisoak)")
+
+
+def _multi_soak(args: argparse.Namespace, scene: Scene) -> int:
+    """``simserver soak --cars N``: the multi-car soak, its summary and violations."""
+    import json
+
+    from tqdm import tqdm
+
+    from simserver.sim.multisoak import run_multi_soak
+
+    run_multi_soak(scene, args.cars, 0.01, seed=args.seed)  # compile before the clock
+    show = not args.quiet and sys.stderr.isatty()
+    with tqdm(total=args.duration, desc=f"soak {args.cars} cars", unit="sim s",
+              file=sys.stderr, disable=not show, leave=False) as bar:
+        report = run_multi_soak(scene, args.cars, args.duration, seed=args.seed,
+                                progress=lambda done, total: bar.update(done - bar.n))
+    summary = report.as_dict()
+    text = json.dumps(summary, indent=2, sort_keys=True)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n", encoding="utf-8")
+    brief = {k: v for k, v in summary.items() if k != "contact_events"}
+    print(json.dumps(brief, indent=2, sort_keys=True))
+    for v in report.violations:
+        print(f"violation: {v.invariant} at step {v.step} (t = {v.time_s:.3f} s): {v.detail}",
+              file=sys.stderr)
+    return 0 if report.ok else 1
 
 
 def soak_command(args: argparse.Namespace) -> int:
@@ -643,7 +675,11 @@ def soak_command(args: argparse.Namespace) -> int:
         from simserver.server.config import REPO_CONFIGS
 
         args.scene = REPO_CONFIGS / "scenes" / "flat_paper_sedan.yaml"
+    if args.cars != 1 and not 4 <= args.cars <= 64:
+        raise CliError(f"--cars: expected 1 or 4 to 64, got {args.cars}", exit_code=2)
     scene = load_scene(args.scene)
+    if args.cars > 1:
+        return _multi_soak(args, scene)
     run_soak(scene, 0.01, seed=args.seed)  # compile before the clock starts
     show = not args.quiet and sys.stderr.isatty()
     with tqdm(total=args.duration, desc="soak", unit="sim s", file=sys.stderr,

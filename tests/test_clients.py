@@ -19,6 +19,7 @@ import contextlib
 import dataclasses
 import fcntl
 import importlib.util
+import json
 import math
 import os
 import pty
@@ -41,7 +42,7 @@ from clients import player, recorder
 from clients.common import EXIT_NO_SERVER
 from clients.driver import AUTO_HOLD_REST_MPS
 from clients.profile import ProfileError
-from simserver.analysis.holds import CREEP_SETTLE_S
+from simserver.analysis.holds import CREEP_SETTLE_S, find_holds
 from simserver.testing import (
     CONFIGS,
     REPO,
@@ -194,7 +195,10 @@ def test_clients_import_only_the_protocol_and_the_zenoh_adapter():
                "simserver.adapters.validate",  # (core-free: tests/test_keyframes.py)
                # the driver's road line reads the road file the server names, with the
                # server's own reader and projection (file readers: no core, no server)
-               "simserver.adapters.opendrive", "simserver.adapters.road_position"}
+               "simserver.adapters.opendrive", "simserver.adapters.road_position",
+               # the recorder's hold report: the summary's own analysis of a history
+               # (numpy on columns; its one core import is layout's gear constants)
+               "simserver.analysis.holds"}
     users: dict[str, set[str]] = {}
     for path in sorted((REPO / "clients").glob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
@@ -562,7 +566,7 @@ def test_player_and_recorder_reproduce_the_headless_e2_stop(tmp_path):
     out = tmp_path / "rec"
     rec = OutputProcess(client_command("recorder", "--out", str(out), "--quiet",
                                        *server.client_args()), ready="recording",
-                        env=client_env())
+                        env=client_env(), new_session=True)
     try:
         assert rec.wait_ready(30.0), rec.text()
         assert "recording simserver/e2" in rec.ready_line, rec.text()
@@ -573,9 +577,12 @@ def test_player_and_recorder_reproduce_the_headless_e2_stop(tmp_path):
                               timeout=60)
         assert play.returncode == 0, play.stdout + play.stderr
         assert "loaded" in play.stdout and "done: " in play.stdout
-        # Ctrl-C: the recorder writes what it received and exits 0
-        assert rec.stop(signal.SIGINT, timeout_s=30.0) == 0, rec.text()
+        # Ctrl-C (to its whole process group, as a terminal sends it): the recorder
+        # writes what it received and its hold report, exits 0, and prints no traceback
+        rec.signal_group(signal.SIGINT)
+        assert rec.wait(30.0) == 0, rec.text()
         assert "stopped by SIGINT" in rec.text(), rec.text()
+        assert "Traceback" not in rec.text() and "KeyboardInterrupt" not in rec.text()
     finally:
         rec.kill()
         server.stop()
@@ -636,6 +643,19 @@ def test_player_and_recorder_reproduce_the_headless_e2_stop(tmp_path):
     assert live["world_x_m"][end] == pytest.approx(
         live["x_m"][end] / math.sqrt(1.0 + 0.05**2) + 0.05 * live["cg_above_road_m"][end]
         / math.sqrt(1.0 + 0.05**2), abs=1e-6)
+    # the recorder's hold report (issue 32): the stop on the slope is one hold, found as
+    # the headless summary finds it (analysis.holds): it starts at the headless hold's
+    # tick (the shift and the speed bound's few ms) and creeps the same sub-mm
+    report = json.loads((out / recorder.HOLDS_FILE).read_text())
+    live_holds = report["segments"][-1]["holds"]
+    head_holds = [h for h in find_holds(head) if h.start_s < duration]
+    assert len(live_holds) == len(head_holds) == 1, (live_holds, head_holds)
+    (lh,), (hh,) = live_holds, head_holds
+    assert lh["start_s"] - 1e-3 * shift == pytest.approx(hh.start_s, abs=0.05)
+    assert abs(lh["creep_m"]) < 1e-3 and abs(hh.creep_m) < 1e-3
+    total = sum(len(seg["holds"]) for seg in report["segments"])
+    assert f"{total} hold(s) (at rest below 1 mm/s" in rec_out, rec_out
+    assert f"hold (segment {report['segments'][-1]['segment']}) " in rec_out, rec_out
 
 
 def hold_until(drv: PtyProcess, key: bytes, watcher: Client, done, timeout_s: float

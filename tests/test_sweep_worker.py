@@ -28,10 +28,12 @@ from simserver.testing import CONFIGS
 
 E2 = CONFIGS / "scenarios" / "e2_stop_downslope_paper_damping.yaml"
 E3 = CONFIGS / "scenarios" / "e3_stop_from_turn.yaml"
+E5 = CONFIGS / "scenarios" / "e5_hold_restart_uphill.yaml"
 EVERY_METRIC = (Metric("stopping_distance", (("from_s", 0.7),)),
                 Metric("time_to_rest", (("from_s", 0.7),)),
                 Metric("creep", (("from_s", 2.0), ("to_s", 5.0))), Metric("yaw"),
-                Metric("resting_forces"), Metric("column", column="u_mps", stat="min"),
+                Metric("resting_forces"), Metric("holds"),
+                Metric("column", column="u_mps", stat="min"),
                 Metric("column", column="input_brake", stat="max"),
                 Metric("column", column="ax_mps2", stat="final"))
 
@@ -56,7 +58,33 @@ def test_each_metric_kind_names_the_columns_it_reads():
     assert {m.kind for m in EVERY_METRIC} == {*METRIC_KINDS, "column"}
     for metric in EVERY_METRIC:
         only = {name: cols[name] for name in metric.columns}
-        assert metric.evaluate(only) == metric.evaluate(cols), metric
+        # assert_equal: a figure that is NaN on both (no restart in E2) is the same figure
+        np.testing.assert_equal(metric.evaluate(only), metric.evaluate(cols), err_msg=str(metric))
+
+
+def test_the_holds_metric_is_the_summarys_holds_section():
+    """A sweep's ``holds`` metric reports the summary's holds (issue 32: the sweep report
+    has the hold and restart figures, from the one implementation): on E5 (a hold on the
+    10 % grade, then a restart) the count and the worst figures are those of
+    ``holds_summary`` of the same run, which ``run-scenario`` writes into summary.json."""
+    from simserver.analysis.holds import holds_summary
+
+    cols = result_columns(run_scenario(load_scenario(E5)))
+    section = holds_summary(cols)["holds"]
+    restarts = [h for h in section if h["rollback_m"] is not None]
+    assert section and restarts  # E5 holds and restarts
+    got = Metric("holds").evaluate(cols)
+    assert got["holds_found"] == len(section)
+    assert got["hold_creep_max_m"] == max(abs(h["creep_m"]) for h in section)
+    assert got["hold_peak_speed_max_mps"] == max(h["peak_speed_mps"] for h in section)
+    assert got["rollback_max_m"] == max(h["rollback_m"] for h in restarts)
+    assert got["time_to_2_mps_max_s"] == max(h["time_to_2_mps_s"] for h in restarts
+                                              if h["time_to_2_mps_s"] is not None)
+    assert got["restart_jerk_max_mps3"] == max(h["peak_jerk_mps3"] for h in restarts)
+    # and a run without a hold says so: E3 (a stop from a turn, released never) has one
+    # hold at most and no restart, so its restart figures are NaN, not 0
+    none = Metric("holds").evaluate(result_columns(run_scenario(load_scenario(E3))))
+    assert math.isnan(none["rollback_max_m"]) and math.isnan(none["time_to_2_mps_max_s"])
 
 
 def test_a_run_that_goes_non_finite_says_when_with_or_without_its_history(tmp_path,

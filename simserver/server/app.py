@@ -25,6 +25,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from simserver.ros2 import cli as ros2_cli
@@ -37,7 +38,7 @@ from simserver.server.logfile import renew_log_thread
 from simserver.server.loop import ServerLoop, SlotPorts
 from simserver.server.realtime import RealtimeScheduler, TickTrace, process_threads
 from simserver.server.slot import VehicleSlot
-from simserver.server.stats_text import stop_text
+from simserver.server.stats_text import start_text, stop_text
 from simserver.server.world_desk import WorldDesk
 from simserver.sim.scene import Scene, load_scene
 from simserver.sim.simulation import Simulation
@@ -65,12 +66,14 @@ COLD_COMPILE_S = (45, 90)
 
 
 class CompileProgress:
-    """Say so when compiling takes long (a cold numba cache), with the seconds so far.
+    """Say so when the kernels compile (a cold numba cache), with the seconds so far.
 
-    Silent when the kernels come from the cache (under ``quiet_s``); otherwise one line
-    ``simserver: compiling ... (first start only, about 45-90 s)``, one line every
-    ``every_s`` with the time so far, and one when done. A daemon thread prints them: the
-    compiling thread is busy.
+    Silent when the kernels come from the cache, however long that takes on a busy
+    machine (a cache load fires no ``numba:compile`` event; a start once said "compiling"
+    and "compiled in 1.7 s" loading from the cache); otherwise, once a compile has begun
+    and ``quiet_s`` passed, one line ``simserver: compiling ... (first start only, about
+    45-90 s)``, one line every ``every_s`` with the time so far, and one when done. A
+    daemon thread prints them: the compiling thread is busy.
     """
 
     def __init__(self, quiet_s: float = 1.0, every_s: float = 5.0,
@@ -80,6 +83,7 @@ class CompileProgress:
         self.out = out
         self.announced = False
         self._done = threading.Event()
+        self._compiling = threading.Event()  # a numba:compile event began
         self._t0 = 0.0
 
     def _print(self, text: str) -> None:
@@ -88,6 +92,9 @@ class CompileProgress:
     def _watch(self) -> None:
         if self._done.wait(self.quiet_s):
             return
+        while not self._compiling.wait(0.05):
+            if self._done.is_set():
+                return
         self.announced = True
         lo, hi = COLD_COMPILE_S
         self._print(f"simserver: compiling the vehicle kernels (first start only, about "
@@ -96,6 +103,19 @@ class CompileProgress:
             self._print(f"simserver: compiling ... {time.perf_counter() - self._t0:.0f} s")
 
     def __enter__(self) -> CompileProgress:
+        from numba.core import event
+
+        compiling = self._compiling
+
+        class _Seen(event.Listener):
+            def on_start(self, ev: event.Event) -> None:
+                compiling.set()
+
+            def on_end(self, ev: event.Event) -> None:
+                pass
+
+        self._listener = _Seen()
+        event.register("numba:compile", self._listener)
         self._t0 = time.perf_counter()
         self._thread = threading.Thread(target=self._watch, name="compile-progress",
                                         daemon=True)
@@ -103,10 +123,21 @@ class CompileProgress:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        from numba.core import event
+
+        event.unregister("numba:compile", self._listener)
         self._done.set()
         self._thread.join()
         if self.announced:
             self._print(f"simserver: compiled in {time.perf_counter() - self._t0:.1f} s")
+
+
+def _shown_path(path: Any) -> str:
+    """A scene file as a person finds it: relative to the working directory when under it."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd()))
+    except (TypeError, ValueError, OSError):
+        return str(path)
 
 
 def loopback_of(endpoint: str) -> str:
@@ -238,7 +269,11 @@ class SimServer:
                     f"connect {', '.join(effective_endpoints(zcfg, 'connect/endpoints'))}"
                 cars = "" if len(self.slots) == 1 else \
                     f", {len(self.slots)} cars: {', '.join(s.keys.vehicle for s in self.slots)}"
-                print(f"simserver: ready on {first.keys.base} ({where}){cars}", flush=True)
+                print(start_text(
+                    f"simserver: ready on {first.keys.base} ({where}){cars}",
+                    [(s.keys.base, s.sim.scene.vehicle.name, _shown_path(s.scene_path))
+                     for s in self.slots], cfg.period_s,
+                    loopback_of(listen[0]) if listen else None), flush=True)
                 self.viewer = self._start_viewer(listen)
                 ros2 = self._start_ros2(listen)
                 loop.run()

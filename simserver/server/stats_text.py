@@ -1,5 +1,7 @@
-"""The server's stop statistics as a person reads them: a few labelled lines (the JSON line
-of the same figures is printed on request, ``simserver serve --stats-json``).
+"""The server's start and stop as a person reads them: a few labelled lines. At start what
+is served, where, which car on which scene, at what rate, and how to drive and stop it;
+at stop the statistics (the JSON line of the same figures is printed on request,
+``simserver serve --stats-json``).
 
 ``ticks`` counts the ticks since the last reset or load (the tick restarts there, as the
 state's ``tick`` does); ``steps_total`` the physics steps since the server started: both
@@ -18,6 +20,33 @@ def _n(value: Any) -> str:
 def _us(value: float) -> str:
     value = float(value)
     return f"{value / 1e3:.1f} ms" if value >= 1e3 else f"{value:.2f} us"
+
+
+def start_text(ready: str, cars: list[tuple[str, str, str]], period_s: float,
+               connect: str | None) -> str:
+    """The start block: ``ready`` (the ``ready on ...`` line tools wait for) first, then
+    each car (its key base, vehicle name and scene file), the rate, and how to drive it
+    and how to stop.
+
+    Parameters
+    ----------
+    ready : str
+        The first line, as printed before this block existed.
+    cars : list of (str, str, str)
+        Each car's key base, vehicle name and scene file.
+    period_s : float
+        The tick period.
+    connect : str or None
+        An endpoint a client on this machine connects to (None: the server connects out).
+    """
+    lines = [ready]
+    for base, vehicle, scene in cars:
+        lines.append(f"  car       {base}: vehicle {vehicle}, scene {scene}")
+    lines.append(f"  rate      {1.0 / period_s:g} Hz (a tick every {1e3 * period_s:g} ms)")
+    if connect is not None:
+        lines.append(f"  drive     simserver-driver --connect {connect}   (another terminal)")
+    lines.append("  stop      Ctrl-C (prints the statistics)")
+    return "\n".join(lines)
 
 
 def stop_text(final: dict[str, Any]) -> str:

@@ -13,6 +13,10 @@ history column (docs/history_columns.md). Each metric gives one or more named nu
 | | | holds: creep_m < limit_m |
 | yaw | - | peak_yaw_rate_radps: max abs(r); yaw_change_rad: final - initial yaw |
 | resting_forces | - | final {fx,fy}_{front,rear}_n and fx_body_sum_n (the last row) |
+| holds | - | the summary's holds (``simserver.analysis.holds``), worst over the run: |
+| | | holds_found; hold_creep_max_m (largest abs creep over a hold's window), |
+| | | hold_peak_speed_max_mps; rollback_max_m, time_to_2_mps_max_s, |
+| | | restart_jerk_max_mps3 over the restarts (NaN without a hold or restart) |
 
 A stopping metric of a car that never comes to rest is NaN.
 """
@@ -27,6 +31,8 @@ from typing import Any
 import numpy as np
 
 from simserver.adapters.validate import ConfigError, check_keys, number
+from simserver.analysis.holds import COLUMNS as HOLD_COLUMNS
+from simserver.analysis.holds import find_holds
 
 REST_SPEED_MPS = 1e-3  # the same threshold as summary.json's rest section (adapters/history.py)
 STATS = ("min", "max", "final")
@@ -79,6 +85,25 @@ def resting_forces(cols: Mapping[str, np.ndarray]) -> dict[str, float]:
     return out
 
 
+def _worst(values: list[float | None]) -> float:
+    """The largest of the known values, NaN when none is."""
+    known = [v for v in values if v is not None]
+    return float(max(known)) if known else math.nan
+
+
+def holds(cols: Mapping[str, np.ndarray]) -> dict[str, float]:
+    """The run's holds and restarts (one implementation: ``analysis.holds``, as in
+    summary.json's ``holds`` section), one row of numbers: the count and the worst of each
+    figure over them."""
+    found = find_holds(cols)
+    return {"holds_found": float(len(found)),
+            "hold_creep_max_m": _worst([abs(h.creep_m) for h in found]),
+            "hold_peak_speed_max_mps": _worst([h.peak_speed_mps for h in found]),
+            "rollback_max_m": _worst([h.rollback_m for h in found]),
+            "time_to_2_mps_max_s": _worst([h.time_to_2_mps_s for h in found]),
+            "restart_jerk_max_mps3": _worst([h.peak_jerk_mps3 for h in found])}
+
+
 @dataclass(frozen=True)
 class MetricKind:
     function: Callable[..., dict[str, float]]
@@ -98,6 +123,7 @@ METRIC_KINDS: dict[str, MetricKind] = {
                         ("from_s", "to_s")),
     "yaw": MetricKind(yaw, (), ("yaw_rate_radps", "yaw_rad")),
     "resting_forces": MetricKind(resting_forces, (), (*_FORCES, "fx_body_sum_n")),
+    "holds": MetricKind(holds, (), HOLD_COLUMNS),
 }
 
 
@@ -113,6 +139,12 @@ METRIC_LABELS: dict[str, str] = {
     "fy_front_n": "resting lateral force, front axle",
     "fy_rear_n": "resting lateral force, rear axle",
     "fx_body_sum_n": "resting longitudinal force, whole car",
+    "holds_found": "holds found",
+    "hold_creep_max_m": "largest creep over a hold",
+    "hold_peak_speed_max_mps": "largest speed while held",
+    "rollback_max_m": "largest rollback at a restart",
+    "time_to_2_mps_max_s": "longest time to 2 m/s after a release",
+    "restart_jerk_max_mps3": "largest jerk at a restart",
     # a soak case's (sweep.worker.SOAK_METRICS)
     "violations": "invariants broken",
     "holds_checked": "holds judged",
