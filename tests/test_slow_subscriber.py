@@ -38,7 +38,7 @@ TICKS = 3000
 """Ticks over which the normal subscriber's states are counted (3 s of states)."""
 MIN_SHARE = 0.9
 """States of those ticks it must get: DROP may lose a few on a loaded loopback
-(docs/protocol.md section 5: 0-52 of 10 000 at 1 kHz), a stalled stream loses most."""
+(docs/protocol.md: up to 0.5 % of a 1 kHz stream), a stalled stream loses most."""
 FULL_BYTES = 65_536
 """Unsent bytes on the server's socket to the slow subscriber that show its link full
 (a subscriber that keeps up leaves none on loopback; a state is about 300 bytes)."""
