@@ -293,6 +293,19 @@ def test_cut_in_events_fire_in_storyboard_order(cut_in) -> None:  # noqa: ANN001
     assert cut_in.ended_by == "stop trigger"
 
 
+def test_every_element_changes_state_at_most_once_each_way() -> None:
+    """A storyboard element goes standby -> running -> complete once (an event may run
+    again up to its maximumExecutionCount): a finished story is not restarted every tick
+    (it was: straight_500m.xosc's trace had some 6000 story entries in 30 s)."""
+    from simserver.sim.xosc_run import play
+
+    run = play(XOSC / "straight_500m.xosc", duration_s=15.0)
+    stories = [(e["name"], e["to"]) for e in run.trace if e["kind"] == "story"]
+    assert stories and len(stories) == len(set(stories)), stories[:10]
+    assert all(e["to"] != "running" or e["from"] != "complete" for e in run.trace
+               if e["kind"] in ("story", "act")), "a finished story or act restarted"
+
+
 def test_cut_in_time_headway_fires_when_the_history_says(cut_in) -> None:  # noqa: ANN001
     """Each TimeHeadwayCondition (Ego to OverTaker, freespace, > 0.4 s and > 1.0 s) fires
     within 0.1 s of the first recorded instant at which the headway computed here from the

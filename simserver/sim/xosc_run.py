@@ -463,6 +463,8 @@ class Storyboard:
             e.transitions.clear()
         stop = self.trigger(self.sc.stop, now) if self.sc.stop else None
         for story in self.stories:
+            if story.state == COMPLETE:  # ends once: a finished story is not restarted
+                continue
             self.set_state(story, RUNNING, now)
             for act in story.children:
                 self._act(act, now)
