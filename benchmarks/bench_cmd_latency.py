@@ -163,23 +163,73 @@ class Load:
             role.stop()
 
 
+SERVER_ZENOH = """{{ mode: "peer", listen: {{ endpoints: ["{endpoint}"] }},
+  scouting: {{ multicast: {{ enabled: false }} }},
+  transport: {{ shared_memory: {{ enabled: false }},
+    unicast: {{ lowlatency: {lowlatency}, qos: {{ enabled: {qos} }} }},
+    link: {{ tx: {{ queue: {{ size: {{ data: {batches} }},
+      congestion_control: {{ block: {{ wait_before_close: {block_us} }},
+                            drop: {{ wait_before_drop: {drop_us} }} }} }} }} }} }} }}
+"""
+"""A server zenoh config as ``make_zenoh_config`` builds it, with the transport chosen:
+``lowlatency`` (the server's default: low-latency transport, QoS off) or ``normal``
+(zenoh's normal transport with QoS on: a transmit queue and task per link)."""
+
+SERVER_TRANSPORTS = ("default", "lowlatency", "normal")
+
+
+def server_zenoh_config(transport: str, endpoint: str) -> str:
+    """The JSON5 text of :data:`SERVER_ZENOH` for ``transport`` on ``endpoint``."""
+    from simserver.adapters import zenoh_io
+
+    low = transport == "lowlatency"
+    return SERVER_ZENOH.format(
+        endpoint=endpoint, lowlatency=str(low).lower(), qos=str(not low).lower(),
+        batches=zenoh_io.MISMATCHED_LINK_QUEUE_BATCHES,
+        block_us=zenoh_io.DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US,
+        drop_us=zenoh_io.STATE_DROP_WAIT_US)
+
+
+def server_process(transport: str, tmp: str) -> ServerProcess:
+    """``simserver serve`` with its own config (``default``) or a zenoh config file of
+    :func:`server_zenoh_config` (``lowlatency``, ``normal``)."""
+    if transport == "default":
+        return ServerProcess(scene=None, log_level="WARNING")
+    from simserver.testing import loopback_endpoint
+
+    endpoint = loopback_endpoint()
+    path = Path(tmp) / f"server_{transport}.json5"
+    path.write_text(server_zenoh_config(transport, endpoint), encoding="utf-8")
+    return ServerProcess(scene=None, log_level="WARNING", listen=[endpoint],
+                         extra_args=["--zenoh-config", str(path)])
+
+
 def run(seconds: float, rounds: int, subscribers: int, churn: float,
-        cmd_hz: float, slow: bool = True) -> dict[str, Any]:
+        cmd_hz: float, slow: bool = True,
+        server_transports: tuple[str, ...] = ("default",)) -> dict[str, Any]:
+    """Per round and server transport: each driver kind's baseline, then loaded."""
+    import tempfile
+
     out: dict[str, dict[str, list[dict[str, Any]]]] = {
-        k: {"baseline": [], "loaded": []} for k in KINDS}
+        f"{k}/{t}" if len(server_transports) > 1 else k: {"baseline": [], "loaded": []}
+        for t in server_transports for k in KINDS}
     load_avg = []
-    for r in range(rounds):
-        with ServerProcess(scene=None, log_level="WARNING") as server:
+    for r, transport in ((r, t) for r in range(rounds) for t in server_transports):
+        tmp = tempfile.TemporaryDirectory()
+        with tmp as tmp_dir, server_process(transport, tmp_dir) as server:
             for kind in KINDS:
-                out[kind]["baseline"].append(measure(kind, server.endpoint, seconds, cmd_hz))
-                print(f"round {r + 1} {kind} baseline: {out[kind]['baseline'][-1]}",
+                name = f"{kind}/{transport}" if len(server_transports) > 1 else kind
+                out[name]["baseline"].append(measure(kind, server.endpoint, seconds,
+                                                     cmd_hz))
+                print(f"round {r + 1} {name} baseline: {out[name]['baseline'][-1]}",
                       flush=True)
             load = Load(server.endpoint, subscribers, churn, slow)
             try:
                 for kind in KINDS:
-                    out[kind]["loaded"].append(measure(kind, server.endpoint, seconds,
+                    name = f"{kind}/{transport}" if len(server_transports) > 1 else kind
+                    out[name]["loaded"].append(measure(kind, server.endpoint, seconds,
                                                        cmd_hz))
-                    print(f"round {r + 1} {kind} loaded: {out[kind]['loaded'][-1]}",
+                    print(f"round {r + 1} {name} loaded: {out[name]['loaded'][-1]}",
                           flush=True)
                     load_avg.append(os.getloadavg()[0])
             finally:
@@ -194,8 +244,16 @@ def run(seconds: float, rounds: int, subscribers: int, churn: float,
                        if measured else float("nan") for q in ("p50", "p99", "max")}
                 for part in ("latency_us", "command_part_us", "state_part_us")}
             summary[kind][cond]["windows_without_states"] = len(runs) - len(measured)
+            # states received of those the window's ticks put out (1 kHz)
+            summary[kind][cond]["states_share"] = float(np.median(
+                [x["states"] / (seconds * 1000.0) for x in runs])) if runs else float("nan")
+        base = summary[kind]["baseline"]["latency_us"]["p99"]
+        loaded = summary[kind]["loaded"]["latency_us"]["p99"]
+        # the acceptance: loaded p99 at most 2 x the baseline's (nan: no state came)
+        summary[kind]["p99_ratio"] = loaded / base if base > 0 else float("nan")
     return {"seconds": seconds, "rounds": rounds, "subscribers": subscribers,
             "churn": churn, "slow_subscriber": slow, "cmd_hz": cmd_hz,
+            "server_transports": list(server_transports),
             "load_average": [min(load_avg), max(load_avg)] if load_avg else [],
             "summary": summary, "runs": out}
 
@@ -209,22 +267,40 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--cmd-hz", type=float, default=200.0)
     parser.add_argument("--no-slow", action="store_true",
                         help="without the subscriber that never reads")
+    parser.add_argument("--server-transport", choices=(*SERVER_TRANSPORTS, "both"),
+                        default="default",
+                        help="the server's zenoh transport: its own config (default: the "
+                        "low-latency transport), or through a config file the "
+                        "low-latency one or zenoh's normal one with QoS, or both in turn")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
+    transports = (("lowlatency", "normal") if args.server_transport == "both"
+                  else (args.server_transport,))
     r = run(args.seconds, args.rounds, args.subscribers, args.churn, args.cmd_hz,
-            not args.no_slow)
-    for kind, by in r["summary"].items():
-        for cond, parts in by.items():
-            lost = parts.pop("windows_without_states")
-            print(f"{kind:>15} {cond:>8}: " + "; ".join(
-                f"{part[:-3]} p50 {v['p50']:.0f} p99 {v['p99']:.0f} max {v['max']:.0f} us"
-                for part, v in parts.items())
-                + (f"; {lost} window(s) without a state" if lost else ""))
-    print(f"medians of {r['rounds']} rounds, {r['seconds']:g} s each; load average "
-          f"{r['load_average']}")
+            not args.no_slow, transports)
+    print_summary(r)
     if args.json is not None:
         args.json.write_text(json.dumps(r, indent=1) + "\n", encoding="utf-8")
     return r
+
+
+def print_summary(r: dict[str, Any]) -> None:
+    """One line per driver kind and condition, and the acceptance ratio per kind."""
+    for kind, by in r["summary"].items():
+        for cond, parts in by.items():
+            if cond == "p99_ratio":
+                continue
+            parts = dict(parts)
+            lost = parts.pop("windows_without_states")
+            share = parts.pop("states_share")
+            print(f"{kind:>26} {cond:>8}: states {100 * share:.0f} %; " + "; ".join(
+                f"{part[:-3]} p50 {v['p50']:.0f} p99 {v['p99']:.0f} max {v['max']:.0f} us"
+                for part, v in parts.items())
+                + (f"; {lost} window(s) without a state" if lost else ""))
+        print(f"{kind:>26} latency p99 loaded / baseline: {by['p99_ratio']:.2f} "
+              "(issue 35: at most 2)")
+    print(f"medians of {r['rounds']} rounds, {r['seconds']:g} s each; load average "
+          f"{r['load_average']}")
 
 
 if __name__ == "__main__":

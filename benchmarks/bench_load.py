@@ -6,6 +6,14 @@ Run from the repository root::
     python -m benchmarks.bench_load [--seconds 30] [--subscribers 20] [--churn 10]
     python -m benchmarks.bench_load --hostile [--rounds 3]
     python -m benchmarks.bench_load --pieces [--rounds 5]
+    python -m benchmarks.bench_load --latency [--seconds 8] [--rounds 2]
+
+``--latency`` (issue 35 item 2): command-to-state latency p99 of the project's client
+and of a client on zenoh's defaults, each without other clients (the baseline) and beside
+the subscribers, one that never reads and the joins, with the ratio loaded / baseline
+(``benchmarks.bench_cmd_latency``, which splits it by direction)::
+
+    python -m benchmarks.bench_load --latency --seconds 8 --rounds 1 [--server-transport both]
 
 ``--hostile`` (issue 13: the loop never stalls more than 2 ms while a ``load`` is prepared;
 issue 17: a ``reset`` with ``u_mps`` never makes a tick late): a driver at 1 kHz, a state
@@ -507,8 +515,29 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--pieces", action="store_true",
                         help="the per-tick work of loads and resets, in-process, instead")
     parser.add_argument("--rounds", type=int, default=None,
-                        help="with --hostile (default 3) or --pieces (default 5)")
+                        help="with --hostile (default 3), --pieces (default 5) or "
+                        "--latency (default 2)")
+    parser.add_argument("--latency", action="store_true",
+                        help="command-to-state latency of the project's client and of one "
+                        "on zenoh's defaults, without other clients and beside the "
+                        "subscribers, a slow one and the joins, instead "
+                        "(benchmarks.bench_cmd_latency; --seconds per window)")
+    parser.add_argument("--server-transport", default="default",
+                        choices=("default", "lowlatency", "normal", "both"),
+                        help="with --latency: the server's zenoh transport "
+                        "(benchmarks.bench_cmd_latency --server-transport)")
     args = parser.parse_args(argv)
+    if args.latency:
+        from benchmarks import bench_cmd_latency
+
+        transports = (("lowlatency", "normal") if args.server_transport == "both"
+                      else (args.server_transport,))
+        r = bench_cmd_latency.run(args.seconds, args.rounds or 2, args.subscribers,
+                                  args.churn, 200.0, True, transports)
+        bench_cmd_latency.print_summary(r)
+        print(f"medians of {r['rounds']} rounds, {r['seconds']:g} s each; load average "
+              f"{r['load_average']}")
+        return r
     if args.pieces:
         r = pieces(args.rounds or 5)
         print_pieces(r)

@@ -89,6 +89,7 @@ import pyarrow.parquet as pq
 from clients.common import (
     DEFAULT_CONNECT,
     EXIT_FAILED,
+    EXIT_NO_SERVER,
     EXIT_OK,
     ClientError,
     Connection,
@@ -609,6 +610,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="also save a Rerun recording: runs 'simserver view --sink "
                         "save:FILE' beside the recorder (needs the server's vehicle files "
                         "on this machine)")
+    parser.add_argument("--cars", metavar="all|ID,ID", default=None,
+                        help="record several cars of a multi-car server into one long-form "
+                        "table with a car_id column (the headless world history's form): "
+                        "'all' (the cars served at start, by liveliness) or a list of ids "
+                        "(default: only --vehicle-id, without car_id)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     add_connection_args(parser)
     return parser
@@ -661,13 +667,22 @@ def stop_rrd_viewer(proc: subprocess.Popen | None) -> None:
         proc.wait()
 
 
-def _run(args: argparse.Namespace) -> int:
+def _check_args(args: argparse.Namespace) -> None:
     if args.flush_rows < 1:
         raise ClientError(f"--flush-rows {args.flush_rows}: expected at least 1")
     if args.duration is not None and not args.duration > 0:
         raise ClientError(f"--duration {args.duration:g}: expected a positive number of s")
     if not args.road_poll > 0:
         raise ClientError(f"--road-poll {args.road_poll:g}: expected a positive number of s")
+
+
+def _run(args: argparse.Namespace) -> int:
+    _check_args(args)
+    if args.cars is not None:
+        if args.rrd is not None:
+            raise ClientError("--rrd with --cars: run 'simserver view --sink save:FILE' "
+                              "(it draws every car) beside the recorder")
+        return _run_cars(args)
     with StopFlag() as stop:
         conn = connect(args, PROG)
         try:
@@ -711,6 +726,160 @@ def _run(args: argparse.Namespace) -> int:
     for line in lines:
         print(f"{PROG}: {line}", flush=True)
     return EXIT_OK
+
+
+# ------------------------------------------------------------------------ several cars
+CARS_PARTS = ".cars"
+"""Under OUT: one folder per car while recording (a single car's two files), merged into
+OUT's long-form files when the recording ends, then removed."""
+
+
+def parse_cars(text: str) -> list[str] | None:
+    """``--cars``: None for ``all``, else the ids (each a valid vehicle id, no repeats).
+
+    Raises
+    ------
+    ClientError
+        An empty list, a repeated id or one that is no vehicle id.
+    """
+    if text.strip() == "all":
+        return None
+    ids = [c.strip() for c in text.split(",")]
+    for car in ids:
+        try:
+            proto.vehicle_keys(proto.DEFAULT_PREFIX, car)
+        except proto.ProtocolError as exc:
+            raise ClientError(f"--cars {text!r}: {car!r} is no vehicle id ({exc})") from None
+    if len(set(ids)) != len(ids):
+        raise ClientError(f"--cars {text!r}: a car is named twice")
+    return ids
+
+
+def discover(args: argparse.Namespace, prog: str = PROG) -> list[str]:
+    """The cars served under ``--prefix`` (their liveliness tokens, ``clients.world``),
+    waited for up to ``--wait`` seconds."""
+    from clients.world import discover_cars
+    from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
+
+    connect_to = args.connect
+    if connect_to is None and args.zenoh_config is None:
+        connect_to = [DEFAULT_CONNECT]
+    cfg = make_zenoh_config(listen=[] if args.zenoh_config is None else None,
+                            connect=connect_to, config_file=args.zenoh_config)
+    deadline = time.monotonic() + max(0.0, args.wait)
+    with ZenohEndpoint(cfg, prefix=args.prefix, vehicle=proto.DEFAULT_VEHICLE) as ep:
+        while True:
+            cars = discover_cars(ep, args.prefix, timeout_s=0.5)
+            if cars or time.monotonic() >= deadline:
+                break
+            time.sleep(0.2)
+    if not cars:
+        raise ClientError(f"--cars all: no car's liveliness token under {args.prefix}/*/alive "
+                          f"within {args.wait:g} s", EXIT_NO_SERVER)
+    return cars
+
+
+def merge_car_files(parts: dict[str, Path], out_dir: Path) -> None:
+    """Merge each car's ``history.parquet`` and ``diagnostics.parquet`` (folders
+    ``parts[id]``) into ``out_dir``'s in long form: ``car_id`` first
+    (``adapters.history.CAR_ID_COLUMN``), the cars' rows one car after the other in the
+    given order; the per-car segment metadata as ``{id: segments}`` under
+    :data:`SEGMENTS_KEY`."""
+    from simserver.adapters.history import CAR_ID_COLUMN
+
+    for name in (HISTORY_FILE, DIAGNOSTICS_FILE):
+        tables = {car: pq.read_table(folder / name) for car, folder in parts.items()}
+        first = next(iter(tables.values()))
+        meta = dict(first.schema.metadata or {})
+        # the segments are in each file's footer (added at its close), not its schema
+        meta[SEGMENTS_KEY.encode()] = json.dumps(
+            {car: read_segments(folder / name) for car, folder in parts.items()}).encode()
+        meta[b"simserver.recorder.keys"] = json.dumps(
+            {car: (t.schema.metadata or {}).get(b"simserver.recorder.keys", b"").decode()
+             for car, t in tables.items()}).encode()
+        field = pa.field(CAR_ID_COLUMN, pa.string(), nullable=False,
+                         metadata={"unit": "-", "description": "the car's id"})
+        merged = pa.concat_tables([
+            t.replace_schema_metadata(None).add_column(
+                0, field, pa.array([car] * t.num_rows, type=pa.string()))
+            for car, t in tables.items()]).replace_schema_metadata(meta)
+        pq.write_table(merged, out_dir / name, compression="zstd",
+                       use_dictionary=[CAR_ID_COLUMN])
+
+
+def _run_cars(args: argparse.Namespace) -> int:
+    """``--cars``: one connection and :class:`Recorder` per car, drained in one loop; a
+    car whose liveliness token goes away (removed from the world) stops being recorded,
+    the recording ends when every car has gone, or by a signal or ``--duration``."""
+    import shutil
+
+    ids = parse_cars(args.cars)
+    parts_dir = args.out / CARS_PARTS
+    with StopFlag() as stop:
+        cars = discover(args) if ids is None else ids
+        conns: dict[str, Connection] = {}
+        recs: dict[str, Recorder] = {}
+        try:
+            for car in cars:
+                conns[car] = connect(argparse.Namespace(**{**vars(args), "vehicle_id": car}),
+                                     PROG)
+                try:
+                    recs[car] = Recorder(conns[car], parts_dir / car, args.flush_rows,
+                                         args.keep_paused, args.road_poll)
+                except OSError as exc:
+                    raise ClientError(f"{args.out}: cannot write: {exc}", EXIT_FAILED) \
+                        from None
+            print(f"{PROG}: recording {', '.join(cars)} to {args.out}/{HISTORY_FILE} and "
+                  f"{DIAGNOSTICS_FILE} (Ctrl-C stops)", flush=True)
+            reason = _record_cars(recs, stop, args.duration, args.road_poll)
+        finally:
+            try:
+                for rec in recs.values():
+                    rec.close()
+                if len(recs) == len(cars):
+                    merge_car_files({c: parts_dir / c for c in cars}, args.out)
+                    shutil.rmtree(parts_dir)
+            except OSError as exc:
+                raise ClientError(f"{args.out}: cannot write: {exc}", EXIT_FAILED) from None
+            finally:
+                for conn in conns.values():
+                    conn.close()
+    rows = ", ".join(f"{c} {r.rows}" for c, r in recs.items())
+    print(f"{PROG}: {reason}: wrote state rows of {len(recs)} cars ({rows}); missed "
+          f"{sum(r.missed for r in recs.values())} states", flush=True)
+    return EXIT_OK
+
+
+def _record_cars(recs: dict[str, Recorder], stop: StopFlag, duration_s: float | None,
+                 road_poll_s: float) -> str:
+    """The loop of :meth:`Recorder.run` over several cars; returns why it ended."""
+    t0 = time.monotonic()
+    next_road = road_poll_s
+    active = dict(recs)
+    while True:
+        if stop.stopped:
+            reason = f"stopped by {stop.signal_name}"
+            break
+        t = time.monotonic() - t0
+        if duration_s is not None and t >= duration_s:
+            reason = f"--duration {duration_s:g} s reached"
+            break
+        got = sum(rec.drain() for rec in active.values())
+        for car in [c for c, rec in active.items() if rec.presence.gone()]:
+            del active[car]  # removed from the world: what it sent is kept
+        if not active:
+            reason = "every car's liveliness token disappeared"
+            break
+        if t >= next_road:
+            next_road = t + road_poll_s
+            for rec in active.values():
+                rec.refresh_road()
+        if not got:
+            time.sleep(0.002)
+    time.sleep(0.05)  # what zenoh has in flight still arrives
+    for rec in recs.values():
+        rec.drain()
+    return reason
 
 
 def main(argv: Sequence[str] | None = None) -> int:

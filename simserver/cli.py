@@ -716,7 +716,11 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
                         help="seconds to wait for the server's first get_config reply, "
                              "retrying with backoff (default 60: at idle priority on a busy "
                              "machine the viewer may get no CPU for seconds)")
-    parser.add_argument("--vehicle-id", default="car0")
+    parser.add_argument("--car", "--vehicle-id", dest="vehicle_id", default="car0",
+                        metavar="ID",
+                        help="the car followed: drawn in full, the camera and the "
+                             "driver's-eye view on it; every car of a multi-car world is "
+                             "drawn too (world/cars/ID, default car0)")
     parser.add_argument("--prefix", default="simserver")
     parser.add_argument("--fps", type=float, default=None,
                         help="frames drawn per simulated second (default 50; a save: "

@@ -84,8 +84,8 @@ def test_key_table_matches_keys():
 
 @pytest.mark.parametrize(
     ("fields", "dtype", "size"),
-    [(P.COMMAND_FIELDS, P.COMMAND_DTYPE, 32), (P.STATE_FIELDS, P.STATE_DTYPE, 296),
-     (P.DIAGNOSTICS_FIELDS, P.DIAGNOSTICS_DTYPE, 160)],
+    [(P.COMMAND_FIELDS, P.COMMAND_DTYPE, 32), (P.STATE_FIELDS, P.STATE_DTYPE, 304),
+     (P.DIAGNOSTICS_FIELDS, P.DIAGNOSTICS_DTYPE, 176)],
 )
 def test_layouts_packed_aligned_little_endian(fields, dtype, size):
     assert dtype.itemsize == size
@@ -268,7 +268,7 @@ def test_state_round_trip_and_record_path_agree():
     values["tick"] = 2**63 + 5
     values["flags"] = int(P.StateFlag.WATCHDOG | P.StateFlag.BRAKE_HOLD)
     payload = P.encode_state(**values)
-    assert len(payload) == P.STATE_SIZE == 296
+    assert len(payload) == P.STATE_SIZE == 304
     rec = P.decode_state(payload)
     for f in P.STATE_FIELDS:
         if f.name in values:
@@ -328,7 +328,7 @@ def test_diagnostics_round_trip():
     values = _random_values(P.DIAGNOSTICS_FIELDS, np.random.default_rng(4))
     values["cmd_received"] = 2**64 - 1
     payload = P.encode_diagnostics(**values)
-    assert len(payload) == P.DIAGNOSTICS_SIZE == 160
+    assert len(payload) == P.DIAGNOSTICS_SIZE == 176
     rec = P.decode_diagnostics(payload)
     assert int(rec["cmd_received"]) == 2**64 - 1
     assert rec["lateness_p99_us"] == np.float32(values["lateness_p99_us"])

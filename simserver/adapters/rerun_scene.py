@@ -42,6 +42,13 @@ Entity paths (constants below; ``RESULT_ENTITY_PATHS`` lists what ``log_result``
                                    the ground (``wheel_hub_offsets``)
     world/car/wheel_{w}/tire       a cylinder (static)
     world/car/wheel_{w}/spokes     spokes that make the spin visible, one red (static)
+    world/car/body/driver_eye      transform: the driver's eye in the body frame
+                                   (``driver_eye_offset``), the origin of the
+                                   driver's-eye view (static)
+    world/cars/{id}                live viewer of a multi-car world: transform, every
+                                   car's world pose (``adapters.rerun_fleet``)
+    world/cars/{id}/box            its body box labelled with its id (the followed car,
+                                   drawn in full under world/car, gets only the label)
     world/car/forces/{w}           arrows Fx, Fy (wheel heading frame) and Fz from the
                                    contact point, FORCE_SCALE_M_PER_N, coloured by the
                                    friction use (green 0 -> yellow 0.5 -> red >= 1)
@@ -64,9 +71,9 @@ and coloured by its static ``SeriesLines``: one entity per plot keeps the live l
 cheap (rerun-sdk 0.41 costs about the same per entity for 1 or 4 scalars). The road plane,
 positions and rotations follow ``core.road.road_axes`` and ``core.layout`` (ISO 8855).
 ``scene_blueprint()`` declares the layout: a 3D view whose eye follows the car (it
-tracks ``world/car/body/shell``) above the speed and yaw-rate plots, beside tabs of
-time-series views grouped as slips; forces per wheel; inputs; damping; server
-diagnostics; and the note.
+tracks ``world/car/body/shell``), with the driver's-eye view a tab beside it, above
+the speed and yaw-rate plots, beside tabs of time-series views grouped as slips; forces
+per wheel; inputs; damping; server diagnostics; and the note.
 """
 
 from __future__ import annotations
@@ -118,6 +125,11 @@ WHEELS = tuple(f"world/car/wheel_{w}" for w in L.WHEEL_NAMES)
 WHEEL_TIRES = tuple(f"{p}/tire" for p in WHEELS)
 WHEEL_SPOKES = tuple(f"{p}/spokes" for p in WHEELS)
 FORCES = tuple(f"world/car/forces/{w}" for w in L.WHEEL_NAMES)
+DRIVER_EYE = "world/car/body/driver_eye"
+"""The driver's eye in the body (``driver_eye_offset``): the origin of the driver's-eye
+view (``scene_blueprint``), so that view moves with the body."""
+CARS = "world/cars"
+"""Every car of a multi-car world, ``world/cars/{id}`` (``adapters.rerun_fleet``)."""
 
 PLOTS = "plots"
 PLOT_SPEED = "plots/speed"
@@ -239,6 +251,7 @@ DIAGNOSTIC_SERIES = {TICK_JITTER: ("tick jitter (us)", (200, 60, 60)),
 
 RESULT_ENTITY_PATHS: tuple[str, ...] = (
     WORLD, ORIGIN_AXES, ROAD_SURFACE, ROAD_GRID, ROAD_AXES, TRAIL, CAR, BODY, BODY_SHELL,
+    DRIVER_EYE,
     *WHEELS, *WHEEL_TIRES, *WHEEL_SPOKES, *FORCES, SCENE_INFO,
     *(g.path for g in PLOT_GROUPS),
 )
@@ -289,6 +302,23 @@ class CarGeometry:
         cabin_c = [lower_c[0] - 0.12 * (front + rear), 0.0, 0.5 * (belt + roof) - h]
         cabin_h = [0.5 * cab_len, half_w - 0.08, 0.5 * (roof - belt)]
         return np.array([lower_c, cabin_c]), np.array([lower_h, cabin_h])
+
+
+DRIVER_EYE_HEIGHT_M = 1.2
+"""The driver's eye above the road: between the styled body's beltline (0.95 m) and roof
+(1.42 m, ``CarGeometry.body_boxes``), about a sedan driver's seated eye height."""
+DRIVER_EYE_LEFT_M = 0.37
+"""The eye's offset to the left of the centre line (ISO 8855 y is left): a left-hand-drive
+seat, half a seat width plus the console's half width."""
+
+
+def driver_eye_offset(geometry: CarGeometry, vp: np.ndarray) -> np.ndarray:
+    """The driver's eye in the body frame (origin at the CG, x forward, z up): above the
+    middle of the styled cabin (``CarGeometry.body_boxes``), ``DRIVER_EYE_LEFT_M`` left of
+    the centre line, ``DRIVER_EYE_HEIGHT_M`` above the road. Styling, as the boxes are."""
+    centers, _ = geometry.body_boxes(vp)
+    return np.array([float(centers[1][0]), DRIVER_EYE_LEFT_M,
+                     DRIVER_EYE_HEIGHT_M - geometry.cg_height_m])
 
 
 # ----------------------------------------------------------------------- quaternions
@@ -772,6 +802,8 @@ def log_static_scene(
     rec.log(BODY_SHELL, rr.Boxes3D(centers=centers, half_sizes=half_sizes,
                                    colors=[[200, 205, 215, 255], [150, 170, 200, 255]],
                                    fill_mode="majorwireframe", radii=0.02), static=True)
+    rec.log(DRIVER_EYE, rr.Transform3D(translation=driver_eye_offset(geometry, vp)),
+            static=True)
     for i in range(L.N_WHEELS):
         radius = float(geometry.wheel_radius_m[i])
         rec.log(WHEEL_TIRES[i], rr.Cylinders3D(
@@ -884,6 +916,16 @@ def scene_blueprint(
     scene = rrb.Spatial3DView(name="car on the road", origin=WORLD, contents=f"{WORLD}/**",
                               eye_controls=eye, line_grid=rrb.LineGrid3D(visible=False),
                               background=[205, 215, 228])
+    # The driver's eye: a first-person eye at the origin of ``DRIVER_EYE`` looking along
+    # its x (forward), z up; the view's frame is that entity's, so the eye rides with the
+    # body (heave, pitch, roll) and everything else (road, other cars) is placed relative
+    # to it. The own body's boxes are left out: they would fill the view from inside.
+    driver = rrb.Spatial3DView(
+        name="driver's eye", origin=DRIVER_EYE,
+        contents=[f"+ {WORLD}/**", f"- {BODY_SHELL}", f"- {TRAIL}", f"- {CAR}/forces/**"],
+        eye_controls=rrb.EyeControls3D(kind=rrb.Eye3DKind.FirstPerson, position=[0.0, 0.0, 0.0],
+                                       look_target=[10.0, 0.0, 0.0], eye_up=[0.0, 0.0, 1.0]),
+        line_grid=rrb.LineGrid3D(visible=False), background=[170, 200, 235])
     speed_yaw = rrb.Vertical(plot("speed u, v", PLOT_SPEED),
                              plot("yaw rate", PLOT_YAW_RATE), name="speed & yaw")
     slips = rrb.Vertical(plot("k' (longitudinal slip)", PLOT_KAPPA),
@@ -901,7 +943,8 @@ def scene_blueprint(
     about = rrb.TextDocumentView(origin=SCENE_INFO, name="about")
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(scene, speed_yaw, row_shares=[3, 2]),
+            rrb.Vertical(rrb.Tabs(scene, driver, active_tab=0), speed_yaw,
+                         row_shares=[3, 2]),
             rrb.Tabs(slips, forces, inputs, damping, server, about, active_tab=0),
             column_shares=[3, 2],
         ),

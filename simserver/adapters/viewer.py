@@ -30,6 +30,13 @@ each frame (``rerun_scene.terrain_plane_under``), the terrain is drawn once and 
 wheels stand on it. Quantities the wire does not carry (friction use, the damping share
 of the forces) are drawn as missing.
 
+Several cars in one world (issue 30): the viewer follows one car (``--car``, default
+``car0``): it is drawn in full under ``world/car``, the blueprint's camera opens on it, and
+its driver's-eye view is the 3D view's second tab (``rerun_scene.scene_blueprint``). Every
+car the world message names (``{prefix}/world/state``) is drawn under
+``world/cars/{id}`` with its id as a label (``rerun_fleet.FleetLogger``), at each frame of
+the followed car, from the newest world message.
+
 One recording per segment: a reset or a ``load`` restarts the server's tick and
 ``sim_time``, so when the tick goes back the viewer ends the current recording and starts
 the next one (recording id ``{prefix}/{vehicle}``, then ``.../segment1``, ...), with the
@@ -242,6 +249,7 @@ class ViewerStats:
     states_dropped: int = 0
     frames_logged: int = 0
     diagnostics: int = 0
+    world_frames: int = 0
     cpu_priority: str = "normal"
 
 
@@ -384,6 +392,7 @@ def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
     stats = ViewerStats()
     if idle_priority:  # before the sessions: the threads they start inherit it
         stats.cpu_priority = lower_priority()
+    from simserver.adapters.rerun_fleet import FleetLogger
     from simserver.adapters.rerun_scene import RateGate
     from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
 
@@ -413,8 +422,11 @@ def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
         with ep:
             states = ep.declare_state_inbox(capacity=queue)
             diags = ep.declare_diag_inbox()
+            worlds = ep.declare_inbox(proto.world_keys(prefix).state, 16)
+            world: proto.WorldState | None = None
             config = wait_for_config(ep, where, wait_s, since=wait_start)
             scene = _SegmentScene(recordings.current, config, 0, vehicle_id)
+            fleet = FleetLogger(recordings.current, vehicle_id)
             state_every = int(config["server"]["state_every"])
             period_s = float(config["server"]["period_s"])
             last_tick: int | None = None
@@ -432,6 +444,12 @@ def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
                         reply = {}
                     if reply.get("ok"):
                         scene.follow_road(reply["config"])
+                for world_payload in reversed(worlds.drain_newest()):
+                    try:  # the newest that decodes; a bad one is skipped
+                        world = proto.decode_world(world_payload)
+                        break
+                    except proto.ProtocolError:
+                        continue
                 payloads = states.drain_newest()
                 for payload in payloads:
                     try:
@@ -446,6 +464,7 @@ def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
                         seg_config = wait_for_config(ep, where, wait_s)
                         scene = _SegmentScene(recordings.next(), seg_config,
                                               recordings.segment, vehicle_id)
+                        fleet = FleetLogger(recordings.current, vehicle_id)
                         frame_gate.reset()
                     elif last_tick is not None and tick > last_tick + state_every:
                         # the ring dropped the oldest: count what never arrived
@@ -458,6 +477,9 @@ def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
                                     scene.plane_under(rec))
                     if scene.logger.log_frame(time_s, x, out, inputs):
                         stats.frames_logged += 1
+                        if world is not None:  # every car, at the followed car's frame
+                            fleet.log(time_s, world)
+                            stats.world_frames += 1
                 for payload in diags.drain_newest():
                     if log_diagnostics_payload(recordings.current, payload, period_s,
                                                stats.states_dropped, last_tick,

@@ -42,6 +42,7 @@ from simserver.wire.protocol import (
     COMMAND_RING_SLOTS,
     DEFAULT_PREFIX,
     DEFAULT_VEHICLE,
+    ENCODING_COLLISION,
     ENCODING_COMMAND,
     ENCODING_CONTROL,
     ENCODING_DIAGNOSTICS,
@@ -600,6 +601,15 @@ class VehiclePublisher:
         else:
             self.diagnostics.put(payload)
 
+    def publish_on(self, publisher: zenoh.Publisher, payload: bytes) -> None:
+        """Put ``payload`` on another publisher of the server's (a world event: a
+        collision) through this vehicle's sender thread, in order with its states and
+        diagnostics; put by the caller when there is no thread."""
+        if self._queue is not None:
+            self._enqueue(publisher, payload)
+        else:
+            publisher.put(payload)
+
     def _put_state(self, payload: bytes) -> int:
         """Put one state; how long it took (ns)."""
         t0 = time.perf_counter_ns()
@@ -612,7 +622,8 @@ class VehiclePublisher:
             self.slow_publishes += 1
         return took
 
-    def _enqueue(self, is_state: bool, payload: bytes) -> None:
+    def _enqueue(self, is_state: bool | zenoh.Publisher, payload: bytes) -> None:
+        # is_state: True a state, False the diagnostics, else the publisher to put on
         queue = self._queue
         if len(queue) >= self.SENDER_QUEUE:
             queue.popleft()
@@ -660,15 +671,17 @@ class VehiclePublisher:
                     self._in_flight = False
                     return
                 try:
-                    if is_state:
+                    if is_state is True:
                         cpu0 = time.thread_time_ns()
                         self._put_state(payload)
                         took = time.thread_time_ns() - cpu0
                         self._judged += 1
                         if took > self.INLINE_PUT_NS // 2:
                             self._costly += 1
-                    else:
+                    elif is_state is False:
                         self.diagnostics.put(payload)
+                    else:
+                        is_state.put(payload)
                 except zenoh.ZError:
                     pass  # undeclared meanwhile (the session closing)
                 except Exception:  # never let the thread end: no state would go out again
@@ -937,6 +950,13 @@ class ZenohEndpoint:
         batched, DROP (the loop never waits for a reader, as for the diagnostics)."""
         key = world_keys(prefix or self.keys.prefix).state
         return self._publisher(key, ENCODING_WORLD, zenoh.Priority.DATA, False,
+                               zenoh.CongestionControl.DROP)
+
+    def declare_collision_publisher(self, prefix: str | None = None) -> zenoh.Publisher:
+        """Publisher on ``{prefix}/world/collision`` (one message per contact event):
+        DATA priority, batched, DROP (the loop never waits for a reader)."""
+        key = world_keys(prefix or self.keys.prefix).collision
+        return self._publisher(key, ENCODING_COLLISION, zenoh.Priority.DATA, False,
                                zenoh.CongestionControl.DROP)
 
     def declare_control_inbox(self, per_client: int = 16, keys: VehicleKeys | None = None,

@@ -6,4 +6,5 @@ with its arbitration and watchdog (``slot``; both tested in-process,
 (``realtime``) and its log files opened without following links and written off the tick
 (``logfile``); several cars in one world (issue 30): the ``cars:`` list and its checks
 (``cars_config``), the cars' world and the world message (``fleet``), cars added and
-removed while it runs (``world_desk``)."""
+removed while it runs (``world_desk``), cars driven by the built-in driver
+(``live_drivers``)."""

@@ -25,6 +25,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -145,6 +146,18 @@ def loopback_of(endpoint: str) -> str:
     return endpoint.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
 
 
+def _collision_sender(loop: ServerLoop, publisher: Any) -> Callable[[bytes], None]:
+    """Where the loop's collision events go: put by the sender thread (``state-tx``) of
+    the world's first car (the cars change while the world runs; each has one), never
+    in the tick (docs/protocol.md 5.1)."""
+
+    def send(payload: bytes) -> None:
+        if loop.slots:
+            loop.slots[0][1].publisher.publish_on(publisher, payload)
+
+    return send
+
+
 class SimServer:
     """The live server over zenoh: one vehicle slot, the loop, the viewer, the signals.
 
@@ -164,10 +177,12 @@ class SimServer:
             self.slots: list[VehicleSlot] = [car.slot for car in self.cars]
             for slot in self.slots:
                 slot.warm_up()
+            live_drivers = fleet.prepare_drivers(self.cars)  # and drive() compiled
         self.preparer = ProcessPreparer()
         trace = os.environ.get(TICK_TRACE_ENV)
         self.loop = ServerLoop(cfg, preparer=self.preparer,
                                trace=TickTrace(trace) if trace else None)
+        self.loop.live_drivers = live_drivers
         self.scheduler = RealtimeScheduler(cfg.realtime_settings(), log=log.log)
         self.viewer: subprocess.Popen | None = None
         self.viewer_command: str | None = None
@@ -247,6 +262,8 @@ class SimServer:
                 # the world's controls: cars added and removed while it runs
                 loop.world_message = fleet.world_message_for(self.cars, cfg)
                 loop.publish_world = ep.declare_world_publisher(cfg.prefix).put
+                loop.publish_collision = _collision_sender(
+                    loop, ep.declare_collision_publisher(cfg.prefix))
                 loop.world_desk = WorldDesk(
                     loop, cfg, ep.declare_control_inbox(keys=proto.world_keys(cfg.prefix),
                                                         validate=False),

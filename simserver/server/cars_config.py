@@ -11,12 +11,16 @@ scene's terrain and road (``simserver.sim.simulation.World``, docs/model.md sect
     cars:
       - id: car0                  # its keys: {prefix}/car0/...
         start: {road: "0", s: 270.0, lane: -1}       # or pose: {x_m, y_m, yaw_rad}
-        driven_by: client         # client (default) | keyframes
+        driven_by: client         # client (default) | keyframes | driver
       - id: lead
         vehicle: ../vehicles/paper_sedan/vehicle.yaml   # default: the scene's vehicle
         start: {road: "0", s: 290.0, lane: -1}
         driven_by: keyframes
         keyframes: ../scenarios/e3_stop_from_turn.yaml  # a scenario's inputs, in real time
+      - id: traffic
+        start: {road: "0", s: 250.0, lane: -1}
+        driven_by: driver         # the built-in driver (docs/model.md section 15)
+        driver: {path: {road: "0", lane: -1}, idm: {v0_mps: 15.0}}  # the headless block
 
 Each car's ``vehicle`` defaults to the scene's and its start to the scene's ``initial``
 (``pose`` replaces the scene's ``x_m``, ``y_m``, ``yaw_rad``; ``start`` gives them from a
@@ -70,13 +74,17 @@ if TYPE_CHECKING:
 WORLD_KEY = "world"
 """The key chunk of the world's own keys (``{prefix}/world/state``): no car may take it."""
 
-CAR_KEYS = ("id", "vehicle", "pose", "start", "driven_by", "keyframes")
+CAR_KEYS = ("id", "vehicle", "pose", "start", "driven_by", "keyframes", "driver")
 """The keys of one entry of ``cars:``."""
 
 DRIVEN_BY: dict[str, str] = {
     "client": "a client over zenoh ({prefix}/{id}/cmd), as a single car's server is driven",
     "keyframes": "a scenario's input keyframes (`keyframes:` FILE), played in real time "
                  "from the car's tick 0; commands sent to it are not applied",
+    "driver": "the built-in driver (`driver:` the headless scenarios' block: path or "
+              "OpenDRIVE lane, speed profile, IDM, stop point, go time; docs/model.md "
+              "section 15), every tick from the world's states; commands sent to it are "
+              "not applied",
 }
 """Who drives a car (``driven_by``), with what it means: one table for checks and docs."""
 
@@ -108,6 +116,7 @@ class CarSpec:
     start: dict[str, Any] | None = None  # road, s, lane on the scene's OpenDRIVE roads
     driven_by: str = "client"
     keyframes: Path | None = None
+    driver: dict[str, Any] | None = None  # the ``driver:`` block as written (driven_by driver)
 
 
 def parse_cars(path: Path, raw: Any, max_cars: int = DEFAULT_MAX_CARS) -> list[CarSpec]:
@@ -188,9 +197,18 @@ def _parse_car(path: Path, where: str, car_id: str, entry: dict[str, Any]) -> Ca
     elif entry.get("keyframes") is not None:
         raise ConfigError(f"{where}: key 'keyframes': only a car driven_by keyframes plays "
                           "them")
+    driver = entry.get("driver")
+    if driven_by == "driver":
+        if not isinstance(driver, dict):
+            raise ConfigError(f"{where}: key 'driver': a car driven by the driver needs a "
+                              "driver: block (path or lane, speed profile, idm, stop_s_m, "
+                              f"go_t_s), got {short_repr(driver)}")
+    elif driver is not None:
+        raise ConfigError(f"{where}: key 'driver': only a car driven_by driver takes a "
+                          "driver: block")
     return CarSpec(id=car_id, where=where, vehicle=vehicle, pose=pose,
                    start=None if start is None else dict(start), driven_by=driven_by,
-                   keyframes=keyframes)
+                   keyframes=keyframes, driver=None if driver is None else dict(driver))
 
 
 def _file(path: Path, where: str, key: str, value: Any) -> Path:
@@ -392,3 +410,15 @@ def new_car(car: CarSpec, scene: Scene, dt_s: float,
     check_clear(car, scenes[car.id], others)
     table = keyframe_table(car, dt_s) if car.driven_by == "keyframes" else None
     return scenes[car.id], table
+
+
+def driver_spec(car: CarSpec, scene: Scene) -> Any:
+    """A car ``driven_by: driver``'s ``driver:`` block validated against its scene (the
+    headless scenarios' parser, ``simserver.adapters.driver_config.parse_driver``: a path
+    off the road is an error); None for any other car. Read off the tick. ``ConfigError``
+    naming the file and the car."""
+    if car.driver is None:
+        return None
+    from simserver.adapters.driver_config import parse_driver
+
+    return parse_driver(car.where, car.driver, scene)

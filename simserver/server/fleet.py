@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from simserver.server.cars_config import CarSpec, car_scenes, keyframe_table
+from simserver.server.cars_config import CarSpec, car_scenes, driver_spec, keyframe_table
 from simserver.wire import protocol as proto
 
 if TYPE_CHECKING:
@@ -90,6 +90,7 @@ class ServedCar:
 
     spec: CarSpec | None
     slot: Any
+    driver: Any = None  # driven_by driver: its DriverSpec (simserver.server.live_drivers)
 
 
 def car_log_path(log_path: Path | None, car_id: str, several: bool) -> Path | None:
@@ -103,7 +104,8 @@ def car_log_path(log_path: Path | None, car_id: str, several: bool) -> Path | No
 def make_cars(cfg: Any, scene: Scene) -> list[ServedCar]:
     """The server's cars from its config: the one car ``vehicle_id`` on ``scene`` (no
     ``cars:``, as always), or every car of ``cars:`` in one world (:func:`car_scenes`,
-    :func:`build_world`; keyframed cars given their tables). Each slot has the server
+    :func:`build_world`; keyframed cars given their tables, driven cars their validated
+    ``driver:`` blocks). Each slot has the server
     config with its own ``vehicle_id`` and command log path. ``ConfigError`` naming the
     file and the car; nothing is built for a list that fails."""
     from simserver.server.slot import VehicleSlot
@@ -115,6 +117,8 @@ def make_cars(cfg: Any, scene: Scene) -> list[ServedCar]:
     scenes = car_scenes(cfg.cars, scene)
     tables = {car.id: keyframe_table(car, cfg.period_s) for car in cfg.cars
               if car.driven_by == "keyframes"}
+    drivers = {car.id: driver_spec(car, scenes[car.id]) for car in cfg.cars
+               if car.driven_by == "driver"}
     sims = build_world(scenes, cfg.period_s)
     several = len(cfg.cars) > 1
     served = []
@@ -124,8 +128,32 @@ def make_cars(cfg: Any, scene: Scene) -> list[ServedCar]:
         slot = VehicleSlot(car_cfg, sims[car.id])
         if car.id in tables:
             slot.drive_by_keyframes(tables[car.id])
-        served.append(ServedCar(car, slot))
+        if car.id in drivers:
+            slot.drive_by_driver()
+        served.append(ServedCar(car, slot, drivers.get(car.id)))
     return served
+
+
+def prepare_drivers(cars: list[ServedCar]) -> Any:
+    """The built-in driver's cars of the server (``simserver.server.live_drivers``), their
+    paths sampled (off the tick), and ``core.driver.drive`` compiled (or loaded from the
+    cache) by one call on copies of the world's arrays, so that the first tick does not
+    compile it."""
+    from simserver.core.driver import drive
+    from simserver.server.live_drivers import LiveDrivers
+
+    live = LiveDrivers()
+    for car in cars:
+        if car.driver is not None:
+            live.prepare(car.slot.keys.vehicle, car.driver, car.slot.sim.world.model.terrain)
+    if live:
+        world = cars[0].slot.sim.world
+        drivers = live.assemble(world)
+        data = world.data
+        scratch = data._replace(x=data.x.copy(), inputs=data.inputs.copy(),
+                                out=data.out.copy())
+        drive(world.model, scratch, drivers)  # reads x, writes inputs and drivers only
+    return live
 
 
 def world_message_for(cars: list[ServedCar], cfg: Any) -> WorldMessage:

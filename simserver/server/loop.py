@@ -44,6 +44,8 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from simserver.adapters.config import ConfigError
+from simserver.core.contact import K_EVENTS
+from simserver.core.driver import drive
 from simserver.server.load_worker import opened
 from simserver.server.realtime import (
     DEFAULT_SPIN_NS,
@@ -381,6 +383,17 @@ class ServerLoop:
         self.traffic_every = max(1, int(round(1.0 / (proto.TRAFFIC_STATE_HZ * cfg.period_s))))
         self.publish_world: Callable[[bytes], None] | None = None
         self.world_desk: Any = None  # the world's controls (simserver.server.world_desk)
+        # the built-in driver's cars (simserver.server.live_drivers): prepared off the
+        # tick, their arrays assembled when the world's cars change, driven each tick
+        self.live_drivers: Any = None
+        self.drivers: Any = None  # core.driver.Drivers of the world's cars, or None
+        self._driver_ids: list[str] = []
+        # contact events (docs/model.md section 16): read from the world's ring after the
+        # step that wrote them, counted per car, published once each (docs/protocol.md 5.1)
+        self.publish_collision: Callable[[bytes], None] | None = None
+        self.contact_events_seen = 0  # the ring's count up to which events were read
+        self.contact_events_lost = 0  # overwritten in the ring before they were read
+        self.collisions_dropped = 0  # not publishable (a non-finite value, an id too long)
         self.loop_count = 0
         self.t0_ns = 0
         self._skipped_seen = 0
@@ -400,6 +413,7 @@ class ServerLoop:
             s.shared_world = shared
         self.world = slot.sim.world if shared else None
         self._cars_changed()
+        self.assemble_drivers()
 
     def remove(self, slot: VehicleSlot) -> SlotPorts:
         """Stop serving ``slot`` (between ticks) and take its car out of the world
@@ -425,8 +439,23 @@ class ServerLoop:
             s.shared_world = shared
         if not shared:
             self.world = None
+        if self.live_drivers is not None:
+            self.live_drivers.forget(slot.keys.vehicle)
         self._cars_changed()
+        self.assemble_drivers()
         return ports
+
+    def assemble_drivers(self, fresh: bool = False) -> None:
+        """The driver arrays of the world's cars now (between ticks: after a car is added
+        or removed, each driven car's driver state carried over by id; ``fresh``: after a
+        reset, every driver starts anew). Nothing to drive: None."""
+        world, live = self.world, self.live_drivers
+        if world is None or not live:
+            self.drivers, self._driver_ids = None, []
+            return
+        self.drivers = live.assemble(world, None if fresh else self.drivers,
+                                     self._driver_ids)
+        self._driver_ids = list(world.ids)
 
     def _cars_changed(self) -> None:
         """The world message's cars after a car was added or removed."""
@@ -540,12 +569,16 @@ class ServerLoop:
         for index, (slot, ports) in enumerate(slots):
             if skipped:
                 slot.skipped_before = True
-            if slot.keyframes is None or (count + index) % traffic_every == 0:
+            if slot.driven_by == "client" or (count + index) % traffic_every == 0:
                 # a car no client drives applies no command: its inbox is drained (and
                 # counted) at its own phase only
                 payloads = ports.commands.drain_newest()
                 slot.take_commands(payloads, now, len(payloads) >= ports.commands.capacity)
             slot.apply_inputs(now)
+        drivers = self.drivers
+        if drivers is not None:  # the driven cars' inputs from the states now (model.md 15)
+            drive(self.world.model, self.world.data, drivers)
+        for slot, _ in slots:  # each car's inputs logged (the driver's too), ticks counted
             slot.stepping = slot.advance(step=False)
             stepped = stepped or slot.stepping
         if stepped:
@@ -556,6 +589,8 @@ class ServerLoop:
                 sim.x[:] = x
                 sim.out[:] = out
         data = self.world.data
+        if data.contacts.count[K_EVENTS] != self.contact_events_seen:  # rare: a contact
+            self._contact_events(count)
         all_finite = bool(np.isfinite(data.x).all() and np.isfinite(data.out).all())
         diag = None
         pending = self.pending
@@ -576,6 +611,35 @@ class ServerLoop:
                 ports.publisher.publish_diagnostics(self._diagnostics(slot, *diag))
             if client or phase or index in pending:  # traffic: at its phase (10 ms)
                 self._serve_controls(index, slot, ports, now, catching_up)
+
+    def _contact_events(self, tick: int) -> None:
+        """The world's new contact events (``World.contact_events``, after the step that
+        wrote them, so the rows are the cars' of now): each counted in both cars'
+        diagnostics and published once on ``{prefix}/world/collision``; the events the
+        ring lost (more than ``core.contact.EVENT_RING`` in one step) counted. Runs only
+        in a tick whose step wrote an event; the put goes through a sender thread."""
+        events, total, lost = self.world.contact_events(self.contact_events_seen)
+        self.contact_events_seen = total
+        self.contact_events_lost += lost
+        by_id = {s.keys.vehicle: s for s, _ in self.slots}
+        for s, _ in self.slots:
+            s.counters["contact_events_lost"] = self.contact_events_lost
+        for e in events:
+            for car in (e["car_a"], e["car_b"]):
+                slot = by_id.get(car)
+                if slot is not None:
+                    slot.counters["contact_events"] += 1
+            if self.publish_collision is None:
+                continue
+            try:
+                payload = proto.encode_collision(
+                    seq=e["seq"], tick=tick, sim_time_s=e["time_s"], car_a=e["car_a"],
+                    car_b=e["car_b"], closing_speed_mps=e["closing_speed_mps"],
+                    x_m=e["x_m"], y_m=e["y_m"], lost=self.contact_events_lost)
+            except proto.ProtocolError:  # nothing non-finite leaves the server
+                self.collisions_dropped += 1
+                continue
+            self.publish_collision(payload)
 
     def _serve_controls(self, index: int, slot: VehicleSlot, ports: SlotPorts,
                         now: int, catching_up: bool = False) -> None:

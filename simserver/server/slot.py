@@ -30,6 +30,7 @@ import numpy as np
 from simserver.adapters.opendrive import LaneStartError, lane_start
 from simserver.adapters.validate import ConfigError, confined_to, display_path, short_repr
 from simserver.core import layout as L
+from simserver.core.contact import CC_ACTIVE, CC_FORCE_X_N, CC_FORCE_Y_N
 from simserver.core.terrain import TERRAIN_KINDS, TERRAIN_PLANE
 from simserver.server.load_worker import release_later
 from simserver.server.logfile import RateLimitedLog
@@ -47,12 +48,13 @@ log = logging.getLogger("simserver.server")
 COUNTER_NAMES: tuple[str, ...] = ("cmd_received", "cmd_rejected", "cmd_clamped",
                                   "cmd_stale", "state_published", "watchdog_trips",
                                   "nonfinite_stops", "cmd_dropped", "ctl_received", "ctl_busy",
-                                  "publish_slow")
+                                  "publish_slow", "contact_events", "contact_events_lost")
 """The slot's cumulative counters, in the order of the ``stopped`` line."""
 
 COMPUTED_STATE_FIELDS: tuple[str, ...] = (
     "flags", "tick", "sim_time_s", "last_cmd_seq", "last_cmd_sender_time_ns", "cmd_age_s",
-    "brake_held", "ground_grade_pct", "ground_cross_slope_pct")
+    "brake_held", "ground_grade_pct", "ground_cross_slope_pct", "contact_force_n",
+    "car_contact")
 """The VehicleState fields ``fill_state`` computes itself (``source="server"`` in
 ``protocol.STATE_FIELDS``); every other field is copied by ``state_schema.fill_record``."""
 if set(COMPUTED_STATE_FIELDS) != set(SERVER_FIELDS):
@@ -86,6 +88,7 @@ class SimulationAPI(Protocol):
     def commit(self, prepared: PreparedStart) -> Any: ...
     def warm_up(self) -> None: ...
     def update_pose(self) -> np.ndarray: ...
+    def contact_output(self) -> np.ndarray: ...
 
 
 def ground_slopes_pct(sim: SimulationAPI, yaw_rad: float) -> tuple[float, float]:
@@ -265,6 +268,15 @@ class VehicleSlot:
         self.driven_by = "keyframes"
         self.watchdog.engaged = False
 
+    def drive_by_driver(self) -> None:
+        """The built-in driver drives this car (``driven_by: driver``,
+        ``simserver.server.live_drivers``): the loop's ``core.driver.drive`` writes its
+        inputs each tick before the world's step; commands are not applied (each counted in
+        ``cmd_rejected``; the world's ``get_config`` says who drives it) and the watchdog
+        does not act."""
+        self.driven_by = "driver"
+        self.watchdog.engaged = False
+
     @property
     def last_published(self) -> bytes | None:
         """The newest finite VehicleState published (None before the first)."""
@@ -275,7 +287,7 @@ class VehicleSlot:
                       buffer_full: bool = False) -> None:
         """Arbitrate the command payloads drained this tick (``buffer_full``: see
         :meth:`CommandArbiter.take`)."""
-        if self.keyframes is not None:  # a keyframed car takes no commands
+        if self.driven_by != "client":  # a keyframed or driven car takes no commands
             self.counters["cmd_received"] += len(payloads)
             self.counters["cmd_rejected"] += len(payloads)
             return
@@ -283,7 +295,10 @@ class VehicleSlot:
 
     def apply_inputs(self, now_ns: int) -> None:
         """Commanded inputs through the watchdog into the simulation's input vector (a
-        keyframed car: its table's row of this tick)."""
+        keyframed car: its table's row of this tick; a car of the built-in driver: nothing,
+        the loop's ``drive`` writes them)."""
+        if self.driven_by == "driver":
+            return
         if self.keyframes is not None:
             table = self.keyframes
             self.sim.inputs[:] = table[min(self.tick, len(table) - 1)]
@@ -339,7 +354,8 @@ class VehicleSlot:
         are finite: the world pose and the ground slopes."""
         rec = self.record
         return (bool(np.isfinite(self.sim.pose).all())
-                and math.isfinite(rec["ground_grade_pct"] + rec["ground_cross_slope_pct"]))
+                and math.isfinite(rec["ground_grade_pct"] + rec["ground_cross_slope_pct"]
+                                  + rec["contact_force_n"]))
 
     def _last_finite_state(self) -> bytes | None:
         """The newest finite state published, with the flags, tick, time and command fields
@@ -399,6 +415,11 @@ class VehicleSlot:
         rec["brake_held"] = held
         rec["ground_grade_pct"], rec["ground_cross_slope_pct"] = ground_slopes_pct(
             p, p.pose[L.POSE_YAW_RAD])
+        # the world's contact output of the car (docs/model.md section 16): an output of
+        # the step, not a state, so the core's state arrays stay as they are
+        cc = p.contact_output()
+        rec["contact_force_n"] = math.hypot(cc[CC_FORCE_X_N], cc[CC_FORCE_Y_N])
+        rec["car_contact"] = cc[CC_ACTIVE] > 0.5
         return rec.tobytes()
 
     def check_finite(self) -> bool:

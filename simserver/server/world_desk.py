@@ -173,6 +173,7 @@ class WorldDesk:
         for slot, start in zip(slots, staged, strict=True):
             if slot in current:  # not removed meanwhile
                 start.commit()
+        self.loop.assemble_drivers(fresh=True)  # the built-in drivers start anew too
         job["request"].reply(proto.reply_ok(cars=self._ids()))
 
     def _ctl_add_car(self, request: Any, args: dict[str, Any]) -> None:

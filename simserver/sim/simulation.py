@@ -307,6 +307,8 @@ class Simulation:
         self.world: World | None = None
         self._views: tuple[Model, Data] | None = None
         self._views_generation = -1
+        self._contact_view = np.zeros(N_CAR_CONTACT_OUT)
+        self._contact_key: tuple[int, int] = (-1, 0)
         self._first_data: Data = make_data()  # the data before the world exists
         self.pose = np.zeros(L.N_POSE)
         self._reference_axes = np.zeros((3, 3))  # update_pose's scratch: no allocation
@@ -320,6 +322,18 @@ class Simulation:
             self._views = world.car(self.car_id)
             self._views_generation = world.generation
         return self._views
+
+    def contact_output(self) -> np.ndarray:
+        """This car's contact output of the last step (``World.car_contact``: a view,
+        ``core.contact.CC_*``), looked up again only when the world's rows changed."""
+        world = self.world
+        if world is None:
+            raise RuntimeError("the simulation has no world before its first load")
+        car = world.data.contacts.car
+        if self._contact_key != (world.generation, id(car)):
+            self._contact_view = world.car_contact(self.car_id)
+            self._contact_key = (world.generation, id(car))
+        return self._contact_view
 
     @property
     def model(self) -> Model:

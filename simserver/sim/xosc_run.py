@@ -46,6 +46,7 @@ REFERENCE_CAR = REPO / "configs" / "vehicles" / "paper_sedan" / "vehicle.yaml"
 STORYBOARD_PERIOD_S = 0.01
 """The storyboard is evaluated every 10 ms of simulated time (10 world steps at 1 kHz)."""
 PATH_STEP_M = 0.5  # spacing of a car's path points along the road
+NEAR_SAMPLES = 20  # a car's projection walks from its last sample at most this far
 TERRAIN_CELL_M = 0.5
 EQUAL_TOLERANCE = 0.01  # ``equalTo``/``notEqualTo`` compare within this (the quantity's unit)
 STANDSTILL_MPS = 0.01  # a car slower than this stands still
@@ -92,25 +93,67 @@ class RoadFrame:
     x: np.ndarray
     y: np.ndarray
     hdg: np.ndarray
+    hdg_unwrapped: np.ndarray  # once here, not per call of xy (it was most of a tick)
 
     @classmethod
     def of(cls, road: Road) -> RoadFrame:
         s = np.linspace(0.0, road.length, max(2, int(road.length / PATH_STEP_M) + 1))
         x, y, h = road_points(road, s)
-        return cls(road, s, x, y, h)
+        return cls(road, s, x, y, h, np.unwrap(h))
 
     def st(self, x: float, y: float) -> tuple[float, float]:
         """Station and lateral offset (+ left) of a world point (nearest sample, then
         projected on its tangent)."""
-        k = int(np.argmin((self.x - x) ** 2 + (self.y - y) ** 2))
-        dx, dy = x - self.x[k], y - self.y[k]
-        c, s = math.cos(self.hdg[k]), math.sin(self.hdg[k])
-        return float(self.s[k] + dx * c + dy * s), float(-dx * s + dy * c)
+        s, t = self.st_many(np.array([x]), np.array([y]))
+        return s[0], t[0]
+
+    def st_many(self, x: np.ndarray, y: np.ndarray,
+                near: list[int] | None = None) -> tuple[list[float], list[float]]:
+        """:meth:`st` of several points in one pass over the samples (the same arithmetic
+        element by element, so the same bits). ``near``: each point's nearest sample of the
+        last call (updated in place): the search walks from there (:meth:`_descend`)."""
+        if near is None:
+            k = np.argmin((self.x[None, :] - x[:, None]) ** 2
+                          + (self.y[None, :] - y[:, None]) ** 2, axis=1).tolist()
+        else:
+            k = [self._descend(float(x[j]), float(y[j]), k0) for j, k0 in enumerate(near)]
+            near[:] = k
+        out_s, out_t = [], []
+        for j, kj in enumerate(k):
+            dx, dy = float(x[j]) - self._xs[kj], float(y[j]) - self._ys[kj]
+            c, s = self._cos[kj], self._sin[kj]
+            out_s.append(self._ss[kj] + dx * c + dy * s)
+            out_t.append(-dx * s + dy * c)
+        return out_s, out_t
+
+    def _descend(self, x: float, y: float, k: int) -> int:
+        """The nearest sample to (x, y), walking downhill in distance from sample ``k``
+        (the last tick's: a car moves less than a sample per tick, so a step or two); the
+        whole road is searched when ``k`` is unknown (-1) or the walk goes further than
+        ``NEAR_SAMPLES`` (the car jumped)."""
+        xs, ys = self._xs, self._ys
+        n = len(xs)
+        if k < 0:
+            return int(np.argmin((self.x - x) ** 2 + (self.y - y) ** 2))
+        d = (xs[k] - x) * (xs[k] - x) + (ys[k] - y) * (ys[k] - y)
+        k0 = k
+        for step in (1, -1):
+            while 0 <= k + step < n:
+                j = k + step
+                dj = (xs[j] - x) * (xs[j] - x) + (ys[j] - y) * (ys[j] - y)
+                if dj >= d:
+                    break
+                k, d = j, dj
+            if k != k0:
+                break
+        if abs(k - k0) > NEAR_SAMPLES:
+            return int(np.argmin((self.x - x) ** 2 + (self.y - y) ** 2))
+        return k
 
     def xy(self, s: np.ndarray | float, t: np.ndarray | float) -> tuple[Any, Any]:
         x = np.interp(s, self.s, self.x)
         y = np.interp(s, self.s, self.y)
-        h = np.interp(s, self.s, np.unwrap(self.hdg))
+        h = np.interp(s, self.s, self.hdg_unwrapped)
         return x - np.sin(h) * t, y + np.cos(h) * t
 
     def lane_t(self, s: float, lane: int) -> float:
@@ -135,6 +178,13 @@ class RoadFrame:
 
     _od: OpenDrive = field(default=None, repr=False)  # type: ignore[assignment]
 
+    def __post_init__(self) -> None:
+        # plain floats for the per-tick projection (Python float arithmetic on them is
+        # the same IEEE arithmetic as on numpy scalars, and faster)
+        self._xs, self._ys, self._ss = self.x.tolist(), self.y.tolist(), self.s.tolist()
+        self._cos = [math.cos(h) for h in self.hdg.tolist()]
+        self._sin = [math.sin(h) for h in self.hdg.tolist()]
+
 
 # ------------------------------------------------------------------------- cars
 @dataclass
@@ -154,6 +204,14 @@ class Car:
     speed_action: tuple | None = None  # (t0, v0, v1, T, shape, relative entity/None, ...)
     lateral_action: tuple | None = None  # (t0, T)
     stopping: bool = False  # a speed target of 0: held at a stop point
+    xy_now: tuple[Any, Any] | None = None  # frame.xy(s, t) of this tick, once (conditions)
+
+    def road_xy(self) -> tuple[Any, Any]:
+        """World x, y of the car's (s, t) on its road, computed once per storyboard tick
+        (several conditions ask for it)."""
+        if self.xy_now is None:
+            self.xy_now = self.frame.xy(self.s, self.t)
+        return self.xy_now
 
 
 def _place(pos: X.Position, cars: dict[str, Car], frames: dict[str, RoadFrame],
@@ -227,6 +285,8 @@ class XoscRun:
     ended_by: str
     wall_time_s: float
     bumpers_m: dict[str, tuple[float, float]]  # per car: CG to front and to rear bumper
+    physics_wall_s: float = 0.0  # of wall_time_s, in the compiled simulate_driven
+    cpu_time_s: float = 0.0  # the process's CPU time of the run loop
 
 
 class Storyboard:
@@ -323,8 +383,8 @@ class Storyboard:
             elif kind == "lateral":
                 val = abs(other.t - car.t)
             else:
-                xa, ya = car.frame.xy(car.s, car.t)
-                xb, yb = other.frame.xy(other.s, other.t)
+                xa, ya = car.road_xy()
+                xb, yb = other.road_xy()
                 val = float(math.hypot(xb - xa, yb - ya))
             return compare(v["rule"], val, v["value"]), val
         if c.kind == "RelativeSpeedCondition":
@@ -346,7 +406,7 @@ class Storyboard:
                 _, s, t, _ = _place(c.position, self.cars, {car.frame.road.id: car.frame},
                                     self.sc.path)
                 self._targets[key] = car.frame.xy(s, t)
-            xa, ya = car.frame.xy(car.s, car.t)
+            xa, ya = car.road_xy()
             xb, yb = self._targets[key]
             val = float(math.hypot(xb - xa, yb - ya))
             return val <= v["tolerance"], val
@@ -403,6 +463,8 @@ class Storyboard:
             e.transitions.clear()
         stop = self.trigger(self.sc.stop, now) if self.sc.stop else None
         for story in self.stories:
+            if story.state == COMPLETE:  # ends once: a finished story is not restarted
+                continue
             self.set_state(story, RUNNING, now)
             for act in story.children:
                 self._act(act, now)
@@ -660,7 +722,7 @@ def play(path: str | Path, duration_s: float = DEFAULT_DURATION_S,
         pos = tele[-1].position
         road, s, t, heading = _place(pos, cars, frames, path)
         frame = frames[road]
-        hdg = float(np.interp(s, frame.s, np.unwrap(frame.hdg)))
+        hdg = float(np.interp(s, frame.s, frame.hdg_unwrapped))
         if heading is None:
             lane = frame.lane_at(s, t)
             along = (lane < 0) == (frame.road.rule == "RHT")
@@ -690,7 +752,7 @@ def play(path: str | Path, duration_s: float = DEFAULT_DURATION_S,
     for name, car in cars.items():
         f = car.frame
         x, y = f.xy(car.s, car.t)
-        hdg = float(np.interp(car.s, f.s, np.unwrap(f.hdg))) + (0 if car.direction > 0
+        hdg = float(np.interp(car.s, f.s, f.hdg_unwrapped)) + (0 if car.direction > 0
                                                                   else math.pi)
         s_path = f.s if car.direction > 0 else f.s[::-1]
         px, py = f.xy(s_path, car.t)
@@ -730,12 +792,13 @@ def _own_paths(world: Any, ws: WorldScenario) -> D.Drivers:
                      pose=np.zeros((len(world.ids), 4)), axes=np.zeros((len(world.ids), 3, 3)))
 
 
-def _cg_xy(world: Any, drivers: D.Drivers, c: int, axes: np.ndarray) -> tuple[float, float]:
-    """World x, y of car ``c``'s CG now (the driver's own placement, ``core.driver``)."""
-    road = terrain_road(world.model.terrain)
+def _cg_xy(world: Any, drivers: D.Drivers, c: int, axes: np.ndarray,
+           road: np.ndarray, plane: bool) -> tuple[float, float]:
+    """World x, y of car ``c``'s CG now (the driver's own placement, ``core.driver``);
+    ``road``, ``plane``: the terrain's road row and whether it is the plane (per run)."""
     px, py, _, _ = D._horizontal_pose(  # noqa: SLF001 - the one placement of the driver
         world.data.x[c], drivers.params[c, D.DP_CG_HEIGHT_M], road[ROAD_GRADE_PCT],
-        road[ROAD_CROSS_SLOPE_PCT], world.model.terrain.kind == TERRAIN_PLANE, axes)
+        road[ROAD_CROSS_SLOPE_PCT], plane, axes)
     return float(px), float(py)
 
 
@@ -758,14 +821,28 @@ def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
     dstates = np.zeros((n_rec, len(ids), D.N_DRIVER_STATE))
     ended_by = "duration"
     axes = np.zeros((3, 3))
+    road = terrain_road(world.model.terrain)
+    plane = world.model.terrain.kind == TERRAIN_PLANE
+    by_frame: dict[int, tuple[RoadFrame, list[Car]]] = {}
+    for car in cars.values():  # the cars of one road are projected on it in one pass
+        by_frame.setdefault(id(car.frame), (car.frame, []))[1].append(car)
+    groups = [(f, members, [-1] * len(members)) for f, members in by_frame.values()]
     t0 = time.perf_counter()
+    cpu0 = time.process_time()
+    physics = 0.0
     row = 0
     prev_xy = {}
     for row in range(n_rec):
         now = row * every * dt
+        cg = {car.name: _cg_xy(world, drivers, car.index, axes, road, plane)
+              for car in cars.values()}
+        for frame, members, near in groups:
+            ss, ts = frame.st_many(np.array([cg[c.name][0] for c in members]),
+                                   np.array([cg[c.name][1] for c in members]), near)
+            for car, s_m, t_m in zip(members, ss, ts, strict=True):
+                car.s, car.t, car.xy_now = s_m, t_m, None
         for car in cars.values():
-            px, py = _cg_xy(world, drivers, car.index, axes)
-            car.s, car.t = car.frame.st(px, py)
+            px, py = cg[car.name]
             u = float(world.data.x[car.index, L.U_MPS])
             if row:
                 car.accel = (u - car.u) / (every * dt)
@@ -779,12 +856,15 @@ def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
         if board.tick(now) is not None:
             ended_by = "stop trigger"
             break
+        tp = time.perf_counter()
         D.simulate_driven(world.model, world.data, drivers, inputs, states[row:row + 1],
                           outputs[row:row + 1], applied[row:row + 1], dstates[row:row + 1],
                           every)
+        physics += time.perf_counter() - tp
     else:
         row = n_rec
     wall = time.perf_counter() - t0
+    cpu = time.process_time() - cpu0
     rows = row if ended_by == "stop trigger" else n_rec
     out = {}
     for c, cid in enumerate(ids):
@@ -798,4 +878,4 @@ def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
     bumpers = {cid: (float(drivers.params[c, D.DP_FRONT_M]),
                      float(drivers.params[c, D.DP_REAR_M])) for c, cid in enumerate(ids)}
     return XoscRun(sc, WorldResult(ws, out, wall), board.trace, rows * every * dt, ended_by,
-                   wall, bumpers)
+                   wall, bumpers, physics, cpu)

@@ -44,7 +44,7 @@ import numpy as np
 
 # ============================================================================ version
 
-PROTOCOL_VERSION: Final[int] = 3  # 3: see the history in docs/protocol.md section 6
+PROTOCOL_VERSION: Final[int] = 4  # 4: see the history in docs/protocol.md section 6
 """Carried in the first two bytes of every binary payload; bumped on any layout change."""
 
 DEFAULT_PREFIX: Final[str] = "simserver"
@@ -534,7 +534,14 @@ STATE_FIELDS: Final[tuple[FieldSpec, ...]] = (
     FieldSpec("engine_speed_radps", "<f4", 1, "rad/s", 0.0, None,
               "engine speed (automatic powertrain; 0 on the simple powertrain, which has "
               "no engine)", source="state:engine_speed_radps", history="engine_speed_radps"),
-    FieldSpec("reserved", "u1", 4, "-", 0, 0, "zero (pads the payload to 296 bytes)"),
+    FieldSpec("contact_force_n", "<f4", 1, "N", 0.0, None,
+              "magnitude of the contact force other cars' bodies put on this car over the "
+              "last step, in the ground plane (docs/model.md section 16; 0 when touching "
+              "none)", source="server"),
+    FieldSpec("car_contact", "u1", 1, "-", 0, 1,
+              "the car's body box overlapped another car's over the last step (0/1; "
+              "docs/model.md section 16)", source="server"),
+    FieldSpec("reserved", "u1", 7, "-", 0, 0, "zero (pads the payload to 304 bytes)"),
 )
 
 _WINDOW = "over the last window_ticks ticks"
@@ -588,6 +595,13 @@ DIAGNOSTICS_FIELDS: Final[tuple[FieldSpec, ...]] = (
               "state publications that took longer than a quarter period (a congested "
               "link; the publication never waits for a subscriber, and runs beside the "
               "tick), or were dropped when 256 were waiting to go out"),
+    FieldSpec("contact_events", "<u8", 1, "-", None, None,
+              "contact events this car took part in since start: a pair of cars whose "
+              "bodies start to touch (docs/model.md section 16), each also published on "
+              "`{prefix}/world/collision`"),
+    FieldSpec("contact_events_lost", "<u8", 1, "-", None, None,
+              "contact events of the whole world the server did not read (its ring of "
+              "64 overwritten between two ticks) and so did not count nor publish"),
 )
 
 _STRUCT_CODES = {"u1": "B", "i1": "b", "u2": "H", "u4": "I", "u8": "Q", "f4": "f", "f8": "d"}
@@ -620,8 +634,8 @@ STATE_SIZE: Final[int] = STATE_DTYPE.itemsize
 DIAGNOSTICS_SIZE: Final[int] = DIAGNOSTICS_DTYPE.itemsize
 
 assert _COMMAND_STRUCT.size == COMMAND_SIZE == 32
-assert _STATE_STRUCT.size == STATE_SIZE == 296
-assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 160
+assert _STATE_STRUCT.size == STATE_SIZE == 304
+assert _DIAGNOSTICS_STRUCT.size == DIAGNOSTICS_SIZE == 176
 
 
 # ============================================================================ state schema
@@ -1754,6 +1768,7 @@ gap to the car ahead), for which 100 Hz moves a car at 30 m/s by 0.3 m between m
 at a tenth of the publishing cost in the tick."""
 
 ENCODING_WORLD: Final[str] = "application/octet-stream;simserver.WorldState.v1"
+ENCODING_COLLISION: Final[str] = "application/octet-stream;simserver.Collision.v1"
 
 DRIVEN_BY_CODES: Final[tuple[str, ...]] = ("client", "keyframes", "driver")
 """``WorldState`` cars' ``driven_by`` code -> who drives the car (``simserver.server.fleet``)."""
@@ -1769,6 +1784,14 @@ WORLD_KEY_SPECS: Final[tuple[KeySpec, ...]] = (
         ENCODING_WORLD,
         "DATA, DROP, not express",
         f"`world_hz` of the server config (default {WORLD_HZ_DEFAULT:g} Hz); also with one car",
+    ),
+    KeySpec(
+        "collision",
+        "server -> clients (put)",
+        "Collision (binary): two cars' bodies started to touch",
+        ENCODING_COLLISION,
+        "DATA, DROP, not express",
+        "once per contact event (read from the world's ring after the step that made it)",
     ),
     *(
         KeySpec(f"ctl/{name}", "client -> server (get / queryable)",
@@ -1786,6 +1809,7 @@ class WorldKeys:
     prefix: str
     base: str  # "{prefix}/world"
     state: str  # the WorldState messages
+    collision: str  # the Collision messages
     alive_all: str  # "{prefix}/*/alive": every car's liveliness token (discovery)
     ctl: Mapping[str, str]  # world control name -> queryable key "{base}/ctl/{name}"
     ctl_wildcard: str  # "{base}/ctl/**"
@@ -1810,6 +1834,7 @@ def world_keys(prefix: str = DEFAULT_PREFIX) -> WorldKeys:
     validate_prefix(prefix)
     base = f"{prefix}/{WORLD_KEY}"
     return WorldKeys(prefix=prefix, base=base, state=f"{base}/state",
+                     collision=f"{base}/collision",
                      alive_all=f"{prefix}/*/alive",
                      ctl={name: f"{base}/ctl/{name}" for name in WORLD_CONTROL_NAMES},
                      ctl_wildcard=f"{base}/ctl/**")
@@ -1972,6 +1997,74 @@ class WorldBuffer:
         self.header["tick"] = tick
         self.header["uptime_s"] = uptime_s
         return self.buffer[:WORLD_HEADER_SIZE + self.n_cars * WORLD_CAR_SIZE].tobytes()
+
+
+COLLISION_FIELDS: Final[tuple[FieldSpec, ...]] = (
+    FieldSpec("version", "<u2", 1, "-", PROTOCOL_VERSION, PROTOCOL_VERSION,
+              "protocol version"),
+    FieldSpec("reserved", "<u2", 1, "-", 0, 0, "zero"),
+    FieldSpec("lost", "<u4", 1, "-", None, None,
+              "contact events the server did not read before this one, since it started "
+              "(the world's ring of 64 overwritten between two ticks; as "
+              "Diagnostics.contact_events_lost)"),
+    FieldSpec("seq", "<u8", 1, "-", 1, None,
+              "the event's number in the world, 1, 2, ... (a gap of lost events is "
+              "counted in `lost`; restarts at 1 when the world is rebuilt)"),
+    FieldSpec("tick", "<u8", 1, "-", None, None,
+              "the world's tick (as WorldState.tick) when the server read the event: the "
+              "tick of the step the bodies met"),
+    FieldSpec("sim_time_s", "<f8", 1, "s", 0.0, None,
+              "car_a's simulated time at the start of the step the bodies met (its "
+              "VehicleState.sim_time_s clock)"),
+    FieldSpec("closing_speed_mps", "<f8", 1, "m/s", 0.0, None,
+              "how fast the contact point closed along the contact normal as they met"),
+    FieldSpec("x_m", "<f8", 1, "m", None, None,
+              "the contact point: road plane axes on the plane terrain, the horizontal "
+              "world axes on a height map (docs/model.md section 16)"),
+    FieldSpec("y_m", "<f8", 1, "m", None, None, "the contact point, as x_m"),
+    FieldSpec("car_a", "u1", WORLD_ID_BYTES, "-", None, None,
+              "one car's vehicle id, UTF-8, padded with NUL bytes (as WorldState's `id`)"),
+    FieldSpec("car_b", "u1", WORLD_ID_BYTES, "-", None, None, "the other car's id"),
+)
+"""A contact event: two cars' bodies started to touch (``{prefix}/world/collision``)."""
+
+COLLISION_DTYPE: Final[np.dtype] = _make_dtype(COLLISION_FIELDS)
+COLLISION_SIZE: Final[int] = COLLISION_DTYPE.itemsize
+assert COLLISION_SIZE == 120  # 8-byte aligned
+
+
+def encode_collision(*, seq: int, tick: int, sim_time_s: float, car_a: str, car_b: str,
+                     closing_speed_mps: float, x_m: float, y_m: float,
+                     lost: int = 0) -> bytes:
+    """A Collision message (``ProtocolError`` naming the field for a non-finite value or
+    an id too long): nothing non-finite is published."""
+    rec = np.zeros((), dtype=COLLISION_DTYPE)
+    rec["version"] = PROTOCOL_VERSION
+    for name, value in (("sim_time_s", sim_time_s), ("closing_speed_mps", closing_speed_mps),
+                        ("x_m", x_m), ("y_m", y_m)):
+        if not math.isfinite(value):
+            raise ProtocolError(name, f"{value} is not finite")
+        rec[name] = value
+    rec["seq"], rec["tick"], rec["lost"] = seq, tick, min(int(lost), 0xFFFFFFFF)
+    rec["car_a"], rec["car_b"] = car_id_field(car_a), car_id_field(car_b)
+    return rec.tobytes()
+
+
+def decode_collision(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
+    """A Collision message as a dict (the ids as text); ``ProtocolError`` for a payload of
+    the wrong size or version."""
+    if len(payload) != COLLISION_SIZE:
+        raise ProtocolError("payload", f"Collision is {COLLISION_SIZE} bytes, got "
+                                       f"{len(payload)}")
+    rec = np.frombuffer(bytes(payload), dtype=COLLISION_DTYPE)[0]
+    if rec["version"] != PROTOCOL_VERSION:
+        raise ProtocolError("version", f"{int(rec['version'])} is not the supported version "
+                                       f"{PROTOCOL_VERSION}")
+    out: dict[str, Any] = {f.name: rec[f.name].item() for f in COLLISION_FIELDS
+                           if f.count == 1}
+    for name in ("car_a", "car_b"):
+        out[name] = bytes(rec[name]).rstrip(b"\0").decode()
+    return out
 
 
 @dataclass(frozen=True)
@@ -2186,6 +2279,7 @@ def constants_markdown() -> str:
             f"- default prefix `{DEFAULT_PREFIX}`, default vehicle id `{DEFAULT_VEHICLE}`",
             f"- WorldState: {WORLD_HEADER_SIZE} + {WORLD_CAR_SIZE} bytes per car; a car id "
             f"at most {WORLD_ID_BYTES} bytes; `{WORLD_KEY}` is no vehicle id",
+            f"- Collision: {COLLISION_SIZE} bytes",
         ]
     )
 
@@ -2202,6 +2296,7 @@ def doc_sections() -> dict[str, str]:
         "world_keys": world_keys_markdown(),
         "world_header": fields_markdown(WORLD_HEADER_FIELDS),
         "world_car": fields_markdown(WORLD_CAR_FIELDS),
+        "collision": fields_markdown(COLLISION_FIELDS),
         "world_controls": controls_markdown(WORLD_CONTROL_SPECS, f"{WORLD_KEY}/ctl"),
     }
 
