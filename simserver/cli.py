@@ -692,6 +692,7 @@ def soak_command(args: argparse.Namespace) -> int:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n", encoding="utf-8")
     print(text)
+    print(report.holds_digest(), file=sys.stderr)
     if report.holds_unjudged:
         print(f"note: holds_unjudged {report.holds_unjudged}: {report.UNJUDGED_MEANING}",
               file=sys.stderr)

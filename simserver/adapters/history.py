@@ -289,16 +289,43 @@ def result_columns(result: ScenarioResult) -> dict[str, np.ndarray]:
     dict of str to ndarray
         Keyed by the names of ``HISTORY_COLUMNS``, in that order.
     """
-    cols: dict[str, np.ndarray] = {"time_s": result.states[:, L.TIME_S]}
+    return rows_columns(result.states, result.outputs, result.inputs, poses=result.poses)
+
+
+def rows_columns(states: np.ndarray, outputs: np.ndarray, inputs: np.ndarray,
+                 time_s: np.ndarray | None = None,
+                 poses: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """History columns of recorded rows (the one mapping from rows to column names).
+
+    Parameters
+    ----------
+    states, outputs, inputs : ndarray
+        Rows ``(n, N_STATE)``, ``(n, N_OUT)``, ``(n, N_INPUT)`` as ``ScenarioResult`` holds
+        them (row ``k``: the state at its time, the forces at it, the inputs of its step).
+    time_s : ndarray, optional
+        Each row's time; defaults to the states' ``TIME_S`` (a caller that runs in chunks,
+        such as the soak, gives the absolute time of each row).
+    poses : ndarray, optional
+        ``(n, N_POSE)`` world poses; without them the ``world_*`` columns are left out
+        (they cost 3-7 us a row to make).
+
+    Returns
+    -------
+    dict of str to ndarray
+        Keyed by the names of ``HISTORY_COLUMNS``, in that order (``world_*`` only with
+        ``poses``).
+    """
+    cols: dict[str, np.ndarray] = {
+        "time_s": states[:, L.TIME_S] if time_s is None else time_s}
     for name, idx in STATE_COLUMNS:
-        cols[name] = result.states[:, idx]
+        cols[name] = states[:, idx]
     for idx, name in enumerate(L.OUTPUT_NAMES):
-        cols[name] = result.outputs[:, idx]
+        cols[name] = outputs[:, idx]
     for idx, name in enumerate(L.INPUT_NAMES):
-        cols[INPUT_PREFIX + name] = result.inputs[:, idx]
-    poses = result.poses
-    for name, slot in POSE_COLUMNS:
-        cols[name] = poses[:, slot]
+        cols[INPUT_PREFIX + name] = inputs[:, idx]
+    if poses is not None:
+        for name, slot in POSE_COLUMNS:
+            cols[name] = poses[:, slot]
     return {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in cols.items()}
 
 

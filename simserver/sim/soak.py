@@ -17,6 +17,13 @@ the CPU allows; after each chunk the recorded ticks are checked (``check_invaria
   (``at_rest_index``) but counted apart.
 
 The first violation of each kind is reported with its tick and simulated time.
+
+Every hold is also measured as a headless summary measures it (``holds``:
+``analysis.holds.find_holds``: its start and end, creep over its window, peak speed while
+held, and its restart's rollback, times to 0.5 and 2 m/s and peak jerk). A hold's rows
+are kept only while they are needed: the segment before a run of hold/park segments (the
+stop), the run, and the segment after it (the restart), only the columns the analysis
+reads, made by the history's own mapping (``adapters.history.rows_columns``).
 """
 
 from __future__ import annotations
@@ -28,6 +35,9 @@ from typing import Any
 
 import numpy as np
 
+from simserver.adapters.history import rows_columns
+from simserver.analysis.holds import COLUMNS as HOLD_COLUMNS
+from simserver.analysis.holds import find_holds
 from simserver.core import layout as L
 from simserver.core.chassis import static_wheel_load
 from simserver.sim.scene import Scene
@@ -143,6 +153,7 @@ class SoakReport:
     min_fz_n: float
     violations: list[Violation] = field(default_factory=list)
     unjudged_hold_times_s: list[float] = field(default_factory=list)
+    holds: list[dict[str, Any]] = field(default_factory=list)  # Hold.as_dict() per hold
 
     UNJUDGED_MEANING = (
         "hold or park segments not judged for creep: the car never came to rest (|u|, |v| "
@@ -150,6 +161,25 @@ class SoakReport:
         "settle, e.g. still sliding on a low-friction road when the segment ended; not a "
         "violation (the speed and load invariants still held every tick)")
     """What ``holds_unjudged`` counts (printed by ``simserver soak`` when it is not 0)."""
+
+    def holds_digest(self) -> str:
+        """One line: how many holds, the worst creep and the worst restart rollback."""
+        if not self.holds:
+            return "holds: none"
+        worst = max(self.holds, key=lambda h: abs(h["creep_m"]))
+        rolls = [h for h in self.holds
+                 if h["rollback_m"] is not None and "restart_cut_at_s" not in h]
+        cut = sum("restart_cut_at_s" in h for h in self.holds)
+        text = (f"holds: {len(self.holds)}, worst creep {worst['creep_m'] * 1e3:+.3f} mm "
+                f"(t = {worst['start_s']:.3f} s, window {worst['creep_window_s'][0]:.3f}-"
+                f"{worst['creep_window_s'][1]:.3f} s)")
+        if rolls:
+            back = max(rolls, key=lambda h: h["rollback_m"])
+            text += (f", worst rollback {back['rollback_m'] * 1e3:.3f} mm "
+                     f"(restart at t = {back['end_s']:.3f} s)")
+        if cut:
+            text += f", {cut} restart(s) not at 2 m/s by the next segment's end (not ranked)"
+        return text
 
     @property
     def ok(self) -> bool:
@@ -169,6 +199,7 @@ class SoakReport:
             "max_hold_creep_m": self.max_hold_creep_m, "max_speed_mps": self.max_speed_mps,
             "min_fz_n": self.min_fz_n, "ok": self.ok,
             "violations": [v.__dict__ for v in self.violations],
+            "holds": self.holds,
         }
 
 
@@ -215,6 +246,37 @@ def check_invariants(states: np.ndarray, outputs: np.ndarray, static_max_n: floa
            f"a normal load above {LOAD_LIMIT_X_STATIC} x static")
 
 
+def hold_columns(states: np.ndarray, outputs: np.ndarray, inputs: np.ndarray,
+                 first_step: int, dt_s: float) -> dict[str, np.ndarray]:
+    """The columns ``analysis.holds`` reads, of a segment's rows starting at step
+    ``first_step`` (row ``k``'s time is ``(first_step + k) * dt_s``)."""
+    time_s = (first_step + np.arange(states.shape[0])) * dt_s
+    cols = rows_columns(states, outputs, inputs, time_s=time_s)
+    return {name: cols[name] for name in HOLD_COLUMNS}
+
+
+def window_holds(window: list[dict[str, np.ndarray]], held_from_s: float,
+                 held_to_s: float) -> list[dict[str, Any]]:
+    """The holds of a window of segments' columns (``hold_columns``) that overlap the
+    hold/park segments ``[held_from_s, held_to_s)``, as ``Hold.as_dict()``.
+
+    A restart that does not reach 2 m/s in the gear's direction within the window (the
+    segment after the holds) is measured on the window's rows only: its dict says so with
+    ``restart_cut_at_s`` (the window's last row); its rollback is then a lower bound and
+    its times and jerk those of the rows kept (the whole drive may reach the speeds later).
+    """
+    cols = {name: np.concatenate([w[name] for w in window]) for name in HOLD_COLUMNS}
+    rows = []
+    for h in find_holds(cols):
+        if not (h.start_s < held_to_s and h.end_s >= held_from_s):
+            continue
+        row = h.as_dict()
+        if h.rollback_m is not None and h.time_to_2_mps_s is None:
+            row["restart_cut_at_s"] = float(cols["time_s"][-1])
+        rows.append(row)
+    return rows
+
+
 def run_soak(scene: Scene, duration_s: float, seed: int = 0, dt_s: float = 0.001,
              progress: Callable[[float, float], None] | None = None) -> SoakReport:
     """Drive ``scene``'s car for ``duration_s`` of simulated time; check every tick."""
@@ -228,6 +290,12 @@ def run_soak(scene: Scene, duration_s: float, seed: int = 0, dt_s: float = 0.001
     holds = 0
     unjudged_at: list[float] = []
     max_creep = 0.0
+    hold_rows: list[dict[str, Any]] = []
+    # the columns of the last segment (a stop, when hold segments follow) and, from a hold
+    # segment to the segment after the run of hold/park segments, the window measured
+    previous_cols: dict[str, np.ndarray] | None = None
+    window: list[dict[str, np.ndarray]] = []
+    held_from = held_to = 0
     max_speed = 0.0
     min_fz = np.inf
     t0 = time.perf_counter()
@@ -248,6 +316,18 @@ def run_soak(scene: Scene, duration_s: float, seed: int = 0, dt_s: float = 0.001
         check_invariants(states, outputs, static_max, step_no, dt_s, found)
         max_speed = max(max_speed, float(np.abs(states[:, L.U_MPS]).max()))
         min_fz = min(min_fz, float(outputs[:, L.O_FZ].min()))
+        cols = hold_columns(states, outputs, inputs, step_no, dt_s)
+        if seg.kind in (HOLD, PARK):
+            if not window:
+                window = [previous_cols] if previous_cols is not None else []
+                held_from = step_no
+            window.append(cols)
+            held_to = step_no + n
+        elif window:  # the restart: the window is complete
+            window.append(cols)
+            hold_rows += window_holds(window, held_from * dt_s, held_to * dt_s)
+            window = []
+        previous_cols = cols
         if seg.kind in (HOLD, PARK):
             rest = at_rest_index(states, dt_s)
             if rest is None:
@@ -265,8 +345,11 @@ def run_soak(scene: Scene, duration_s: float, seed: int = 0, dt_s: float = 0.001
         step_no += n
         if progress is not None:
             progress(min(step_no * dt_s, duration_s), duration_s)
+    if window:  # the run ended held
+        hold_rows += window_holds(window, held_from * dt_s, held_to * dt_s)
     return SoakReport(seed=seed, simulated_s=step_no * dt_s, steps=step_no,
                       wall_s=time.perf_counter() - t0, manoeuvres=counts, holds_checked=holds,
                       holds_unjudged=len(unjudged_at), unjudged_hold_times_s=unjudged_at,
                       max_hold_creep_m=max_creep, max_speed_mps=max_speed, min_fz_n=min_fz,
-                      violations=sorted(found.values(), key=lambda v: v.step))
+                      violations=sorted(found.values(), key=lambda v: v.step),
+                      holds=hold_rows)
