@@ -782,10 +782,10 @@ def discover(args: argparse.Namespace, prog: str = PROG) -> list[str]:
 def merge_car_files(parts: dict[str, Path], out_dir: Path) -> None:
     """Merge each car's ``history.parquet`` and ``diagnostics.parquet`` (folders
     ``parts[id]``) into ``out_dir``'s in long form: ``car_id`` first
-    (``adapters.history.CAR_ID_COLUMN``), the cars' rows one car after the other in the
+    (``protocol.WORLD_CAR_ID_COLUMN``, the history's), the cars' rows one car after the other in the
     given order; the per-car segment metadata as ``{id: segments}`` under
     :data:`SEGMENTS_KEY`."""
-    from simserver.adapters.history import CAR_ID_COLUMN
+    CAR_ID_COLUMN = proto.WORLD_CAR_ID_COLUMN  # noqa: N806 - the history's own name
 
     for name in (HISTORY_FILE, DIAGNOSTICS_FILE):
         tables = {car: pq.read_table(folder / name) for car, folder in parts.items()}

@@ -169,7 +169,8 @@ class RecorderUnderAttack:
 
 
 def _last_counts(text: str) -> dict[str, int]:
-    last = text.strip().splitlines()[-1]
+    # the recorder's last counters line (its holds lines and file names may follow it)
+    last = [line for line in text.strip().splitlines() if " bad payloads" in line][-1]
     return {w: int(last.split(f" {w}")[0].rsplit(" ", 1)[1])
             for w in ("bad payloads", "out of order", "bad get_config")}
 

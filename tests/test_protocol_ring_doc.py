@@ -16,7 +16,7 @@ from simserver.testing import REPO
 from simserver.wire import protocol as P
 
 DOC = REPO / "docs" / "protocol.md"
-SERVER_SOURCES = sorted((REPO / "simserver").glob("*.py"))
+SERVER_SOURCES = sorted((REPO / "simserver").rglob("*.py"))  # every room (the server/ one)
 
 
 def _command_inbox_capacities() -> list[tuple[str, str | None]]:

@@ -850,7 +850,7 @@ def test_run_ticks_until_stopped_and_reports_the_stopped_line_fields(rig):
                            "skipped_ticks", "late_ticks", "cmd_received", "cmd_rejected",
                            "cmd_clamped", "cmd_stale", "state_published", "watchdog_trips",
                           "nonfinite_stops", "cmd_dropped", "ctl_received", "ctl_busy",
-                          "publish_slow"]
+                          "publish_slow", "contact_events", "contact_events_lost"]
 
 
 def test_the_logic_needs_no_wall_clock(rig, monkeypatch):

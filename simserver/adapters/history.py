@@ -43,6 +43,7 @@ import numpy as np
 
 from simserver.analysis.holds import holds_summary
 from simserver.core import layout as L
+from simserver.wire.protocol import WORLD_CAR_ID_COLUMN
 
 if TYPE_CHECKING:  # scenario imports the compiled core; keep this module light to import
     import pyarrow as pa
@@ -407,7 +408,7 @@ def write_history(result: ScenarioResult, path: str | Path) -> Path:
     return path
 
 
-CAR_ID_COLUMN = "car_id"
+CAR_ID_COLUMN = WORLD_CAR_ID_COLUMN  # one name for the recorder and the runner
 """The first column of a history of several cars (``write_world_history``): the car's id."""
 
 

@@ -227,10 +227,12 @@ def as_user(user: pwd.struct_passwd, argv: list[str], cap: str | None = None) ->
          f"--bounding-set=-all,+{cap}"]
     drop = ["setpriv", f"--reuid={user.pw_uid}", f"--regid={user.pw_gid}", "--init-groups",
             *caps, "prlimit", "--rtprio=0", "--"]
-    prefix = Path(sys.prefix).resolve()
-    if not prefix.is_relative_to("/root"):
+    # a virtual environment elsewhere (CI's) still runs the interpreter it links to
+    under_root = [p for p in (Path(sys.prefix).resolve(), Path(sys.base_prefix).resolve(),
+                              Path(sys.executable).resolve()) if p.is_relative_to("/root")]
+    if not under_root:
         return [*drop, *argv]
-    top = Path("/root") / prefix.relative_to("/root").parts[0]
+    top = Path("/root") / under_root[0].relative_to("/root").parts[0]
     script = ('set -e; t=$(mktemp -d); mount --bind "$0" "$t"; '
               'mount -t tmpfs -o mode=755 tmpfs /root; mkdir -p "$0"; '
               'mount --bind "$t" "$0"; exec "$@"')

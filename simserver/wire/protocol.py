@@ -1761,6 +1761,9 @@ WORLD_ID_BYTES: Final[int] = 32
 with several cars accepts."""
 
 WORLD_HZ_DEFAULT: Final[float] = 100.0
+WORLD_CAR_ID_COLUMN: Final[str] = "car_id"
+"""The column naming the car in a table of several cars' rows (the headless world history,
+``adapters.history``; the recorder's ``--cars``)."""
 """Default rate of ``{prefix}/world/state`` (server config ``world_hz``). Not 1 kHz: a
 client that needs a car's every tick subscribes to that car's ``state`` (1 kHz, the full
 state); the world message is for seeing the traffic (a HUD, a viewer, a driver model's
