@@ -44,7 +44,12 @@ def test_stop_block_counts_ticks_since_the_reset_and_since_start_and_json_on_req
     assert "compiled in 0.0" not in text  # a start from the cache compiles nothing
 
     with ServerProcess() as server:  # the harness passes --stats-json
-        pass
+        # stop only after the clock ran: "ready" can come before the first tick
+        client = Client(server.endpoint)
+        try:
+            client.wait_state(lambda s: int(s["tick"]) > 0, 20.0, "the first tick")
+        finally:
+            client.close()
     final = server.final_stats()
     assert final is not None and final["steps_total"] >= final["ticks"] > 0
     assert "simserver: stopped after " in server.text()
