@@ -206,12 +206,34 @@ def line_of(path: Path, needle: str) -> int:
 def test_unsupported_condition_is_refused_with_file_line_element(tmp_path: Path) -> None:
     cond = ('<Condition name="c" delay="0" conditionEdge="rising"><ByEntityCondition>'
             '<TriggeringEntities triggeringEntitiesRule="any"><EntityRef entityRef="A"/>'
-            '</TriggeringEntities><EntityCondition>\n<CollisionCondition><EntityRef '
-            'entityRef="B"/></CollisionCondition></EntityCondition></ByEntityCondition>'
-            '</Condition>')
+            '</TriggeringEntities><EntityCondition>\n<OffroadCondition duration="1"/>'
+            '</EntityCondition></ByEntityCondition></Condition>')
     path = write(tmp_path, speed_event("1", cond))
-    expect_error(path, line_of(path, "<CollisionCondition>"), "CollisionCondition",
-                 "contact between cars")
+    expect_error(path, line_of(path, "<OffroadCondition"), "OffroadCondition",
+                 "condition outside the subset refused")
+
+
+def test_collision_condition_reads_its_target(tmp_path: Path) -> None:
+    """<CollisionCondition> with <EntityRef> or <ByType objectType>; another target, an
+    unknown entity or type, are errors naming the file, line and element."""
+    def cond(target: str) -> str:
+        return ('<Condition name="c" delay="0" conditionEdge="rising"><ByEntityCondition>'
+                '<TriggeringEntities triggeringEntitiesRule="any"><EntityRef entityRef="A"/>'
+                '</TriggeringEntities><EntityCondition><CollisionCondition>\n'
+                f'{target}</CollisionCondition></EntityCondition></ByEntityCondition>'
+                '</Condition>')
+    path = write(tmp_path, speed_event("1", cond('<EntityRef entityRef="B"/>')))
+    c = first_event(path).start[0][0]
+    assert (c.kind, c.values) == ("CollisionCondition", {"entityRef": "B"})
+    path = write(tmp_path, speed_event("1", cond('<ByType objectType="vehicle"/>')))
+    assert first_event(path).start[0][0].values == {"objectType": "vehicle"}
+    path = write(tmp_path, speed_event("1", cond('<EntityRef entityRef="Nobody"/>')))
+    expect_error(path, line_of(path, "Nobody"), "EntityRef", "unknown entity 'Nobody'")
+    path = write(tmp_path, speed_event("1", cond('<ByType objectType="truck"/>')))
+    expect_error(path, line_of(path, "truck"), "ByType", "'truck' is not one of")
+    path = write(tmp_path, speed_event("1", cond('<Position/>')))
+    expect_error(path, line_of(path, "<Position/>"), "Position",
+                 "collision target outside the subset refused")
 
 
 def test_unsupported_action_is_refused(tmp_path: Path) -> None:
@@ -639,3 +661,60 @@ def test_lane_offset_ends_at_the_offset(conditions_run) -> None:  # noqa: ANN001
     c = conditions_run.result.cars["C"]
     row = int(np.argmin(np.abs(c.time_s - (done + 1.0))))
     assert abs(c.states[row, L.Y_M] - 4.91) <= 0.2, c.states[row, L.Y_M]
+
+
+# ------------------------------------------------------------------ the Collision condition
+def test_collision_condition_fires_on_the_contact(tmp_path: Path) -> None:
+    """A at 20 m/s runs into B, standing in A's lane a hand-chosen bumper gap g ahead
+    (body boxes: CG to front axle + body front overhang of A, CG to rear axle + body rear
+    overhang of B, the contact's boxes, docs/model.md section 16). Whatever A's driver
+    does, it cannot stop: the tyres give at most about 10 m/s^2 (mu about 1), so the gap
+    closes between t1 = g / 20 (no braking) and t2, the root of 20 t - 5 t^2 = g (full
+    braking from the first instant). ``Collision`` A with B (EntityRef) and B with any
+    vehicle (ByType) each fire at the first 10 ms storyboard evaluation after the contact:
+    in [t1, t2 + 0.01]; A with C (far away, on the other side) never fires."""
+    from simserver.core import params as P
+    from simserver.sim.xosc_run import play
+
+    road = (REPO / "configs/openscenario/xodr/straight_500m.xodr").as_posix()
+    ents = "".join(f"""<ScenarioObject name="{n}"><CatalogReference catalogName="VehicleCatalog"
+        entryName="car_white"/></ScenarioObject>""" for n in "ABC")
+    ds = 7.0  # CG to CG
+
+    def place(name: str, pos: str, speed: float) -> str:
+        return (f'<Private entityRef="{name}"><PrivateAction><TeleportAction><Position>{pos}'
+                f'</Position></TeleportAction></PrivateAction><PrivateAction>{_speed(speed)}'
+                '</PrivateAction></Private>')
+
+    init = (place("A", '<LanePosition roadId="1" laneId="-1" offset="0" s="20"/>', 20.0)
+            + place("B", f'<LanePosition roadId="1" laneId="-1" offset="0" s="{20 + ds}"/>',
+                    0.0)
+            + place("C", '<RoadPosition roadId="1" s="400" t="5.5"><Orientation '
+                    'type="relative" h="3.14159265"/></RoadPosition>', 0.0))
+    stories = [
+        ("C", _speed(0.0), _by_entity("A", '<CollisionCondition><EntityRef entityRef="B"/>'
+                                           '</CollisionCondition>')),
+        ("C", _speed(0.0), _by_entity("B", '<CollisionCondition><ByType objectType='
+                                           '"vehicle"/></CollisionCondition>')),
+        ("C", _speed(0.0), _by_entity("A", '<CollisionCondition><EntityRef entityRef="C"/>'
+                                           '</CollisionCondition>')),
+    ]
+    body = "".join(_story(k, *s) for k, s in enumerate(stories))
+    path = write(tmp_path, body, entities=ents, road=f'<LogicFile filepath="{road}"/>')
+    path.write_text(path.read_text().replace("<Init><Actions/></Init>",
+                                             f"<Init><Actions>{init}</Actions></Init>"))
+    run = play(path, duration_s=1.0)
+    vp_a = run.result.cars["A"].scenario.scene.vehicle.vp
+    vp_b = run.result.cars["B"].scenario.scene.vehicle.vp
+    gap = ds - (vp_a[P.VP_CG_TO_FRONT_AXLE_M] + vp_a[P.VP_BODY_FRONT_OVERHANG_M]
+                + vp_b[P.VP_CG_TO_REAR_AXLE_M] + vp_b[P.VP_BODY_REAR_OVERHANG_M])
+    assert 1.0 < gap < 3.0, gap
+    t1 = gap / 20.0
+    t2 = (20.0 - math.sqrt(400.0 - 20.0 * gap)) / 10.0
+    fired = _fired(run)
+    assert "E2" not in fired, fired
+    for event in ("E0", "E1"):
+        assert t1 <= fired[event] <= t2 + 0.0101, (event, fired[event], t1, t2)
+    assert fired["E0"] == fired["E1"]
+    cause = next(e["cause"] for e in run.trace if e["name"] == "E0" and e["to"] == "running")
+    assert cause["c"]["A"] > 15.0  # the closing speed of the contact, m/s

@@ -18,8 +18,7 @@ Errors (:class:`XoscError`) are one line: ``file:line: <Element>: message``.
 - an element that would move a car or decide when something happens (an action,
   a condition, a position, an entity kind outside the subset) is *refused*: the file is
   not run (:class:`XoscError` naming the file, the line and the element), because playing
-  the rest would be a different scenario. ``CollisionCondition`` is refused for now
-  (contact between cars is not in the world yet).
+  the rest would be a different scenario.
 """
 
 from __future__ import annotations
@@ -440,7 +439,6 @@ IGNORED = {
 """Elements outside the subset that do not move a car: ignored with a warning."""
 
 REFUSED_NOTES = {
-    "CollisionCondition": "contact between cars is not in the world yet (issue 31)",
     "Pedestrian": "pedestrians are not modelled",
     "MiscObject": "objects are not modelled",
     "RoutingAction": "routes are not supported",
@@ -469,9 +467,13 @@ CONDITIONS = {
     "TraveledDistanceCondition": (True, ("value",), ()),
     "AccelerationCondition": (True, ("value",), ("rule", "direction")),
     "StandStillCondition": (True, ("duration",), ()),
+    "CollisionCondition": (True, (), ()),  # its target: <EntityRef> or <ByType>
 }
 """The conditions of the subset (docs/openscenario.md has what each measures)."""
 
+COLLISION_TYPES = ("vehicle", "pedestrian", "miscellaneous")
+"""``CollisionCondition``'s ``ByType objectType`` values (only vehicles are in the world: a
+collision with the others never happens)."""
 RULES = ("greaterThan", "lessThan", "equalTo", "greaterOrEqual", "lessOrEqual", "notEqualTo")
 EDGES = ("rising", "falling", "risingOrFalling", "none")
 SHAPES = ("step", "linear", "cubic", "sinusoidal")
@@ -777,6 +779,15 @@ class _Reader:
                 values["entityRef"] = self.entity_ref(tgt, p)
             else:
                 raise self.refuse(tgt, "time-to-collision target")
+        if inner.tag == "CollisionCondition":  # with one entity, or any of a type
+            tgt = inner.only_child()
+            if tgt.tag == "EntityRef":
+                values["entityRef"] = self.entity_ref(tgt, p)
+            elif tgt.tag == "ByType":
+                values["objectType"] = self.text(tgt, p, "objectType", None,
+                                                 COLLISION_TYPES)
+            else:
+                raise self.refuse(tgt, "collision target")
         if inner.tag == "ReachPositionCondition":
             position = self.position(inner.child("Position"), p)
         if inner.tag == "StoryboardElementStateCondition" and values["state"] not in STATES:

@@ -303,6 +303,7 @@ class Storyboard:
         self.stories = [self._tree("story", s, None) for s in sc.stories]
         self.action_elements: list[Element] = []
         self._targets: dict[tuple[int, str], tuple[float, float]] = {}
+        self.contacts: list[dict[str, Any]] = []  # contact events since the last tick
 
     def _tree(self, kind: str, obj: Any, parent: Element | None) -> Element:
         e = Element(kind, obj.name, obj, parent)
@@ -400,6 +401,8 @@ class Storyboard:
         if c.kind == "StandStillCondition":
             held = 0.0 if car.still_since is None else now - car.still_since
             return car.still_since is not None and held >= v["duration"], held
+        if c.kind == "CollisionCondition":
+            return self._collision(v, car)
         if c.kind == "ReachPositionCondition":
             key = (id(c), car.name)  # an absolute position is placed once
             if key not in self._targets or c.position.kind.startswith("Relative"):
@@ -411,6 +414,19 @@ class Storyboard:
             val = float(math.hypot(xb - xa, yb - ya))
             return val <= v["tolerance"], val
         raise X.XoscError(f"{self.sc.path}:{c.line}: <{c.kind}>: not evaluated")
+
+    def _collision(self, v: dict[str, Any], car: Car) -> tuple[bool, float]:
+        """True at the evaluation after a contact event (a pair of cars that starts to
+        touch, docs/model.md section 16) of ``car`` with the entity ``entityRef``, or with
+        any car for ``objectType="vehicle"`` (only cars are in the world); its value is
+        the event's closing speed (m/s; 0 with none). A pulse: the event is the contact's
+        start, so the condition is true once per contact (docs/openscenario.md)."""
+        ref = v.get("entityRef")
+        closing = [e["closing_speed_mps"] for e in self.contacts
+                   if car.name in (e["car_a"], e["car_b"])
+                   and (ref in (e["car_a"], e["car_b"]) if ref is not None
+                        else v.get("objectType") == "vehicle")]
+        return bool(closing), max(closing, default=0.0)
 
     def trigger(self, trig: X.Trigger, now: float) -> dict[str, Any] | None:
         """The cause (condition values) if the trigger fires now, else None. Every
@@ -802,6 +818,15 @@ def _cg_xy(world: Any, drivers: D.Drivers, c: int, axes: np.ndarray,
     return float(px), float(py)
 
 
+def _contacts_since(world: Any, seen: int) -> tuple[list[dict[str, Any]], int]:
+    """The world's contact events after the first ``seen`` and the new count (the ring's
+    lost events are gone either way: more than ``core.contact.EVENT_RING`` in 10 ms)."""
+    if world.contact_count() == seen:
+        return [], seen
+    events, total, _lost = world.contact_events(seen)
+    return events, total
+
+
 def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
     ids = list(ws.cars)
     starts = {cid: start_run(s, car_id=cid) for cid, s in ws.cars.items()}
@@ -832,6 +857,7 @@ def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
     physics = 0.0
     row = 0
     prev_xy = {}
+    seen = world.contact_count()
     for row in range(n_rec):
         now = row * every * dt
         cg = {car.name: _cg_xy(world, drivers, car.index, axes, road, plane)
@@ -853,6 +879,7 @@ def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
                 car.still_since = now if car.still_since is None else car.still_since
             else:
                 car.still_since = None
+        board.contacts, seen = _contacts_since(world, seen)
         if board.tick(now) is not None:
             ended_by = "stop trigger"
             break
