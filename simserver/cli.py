@@ -506,7 +506,15 @@ def _add_serve_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, default=None, metavar="FILE",
                         help="server YAML (default configs/server/default.yaml)")
     parser.add_argument("--scene", type=Path, default=None, metavar="FILE",
-                        help="scene YAML (vehicle, road, initial pose), overrides the config")
+                        help="scene YAML (vehicle, road, initial pose), overrides the config "
+                             "(an OpenSCENARIO .xosc: its ego's start)")
+    parser.add_argument("--scenario", type=Path, default=None, metavar="FILE.xosc",
+                        help="serve an OpenSCENARIO 1.x scenario live: every entity a car of "
+                             "the world under its storyboard (docs/openscenario.md)")
+    parser.add_argument("--ego-from", default="driver", choices=("driver", "zenoh"),
+                        help="with --scenario: who drives the ego (the entity named Ego, "
+                             "else the first): the built-in driver (default) or a client "
+                             "over zenoh (a person with the keyboard client)")
     parser.add_argument("--vehicle-id", default=None, help="vehicle id in the key expressions")
     parser.add_argument("--prefix", default=None, help="key-expression prefix")
     parser.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
@@ -565,6 +573,16 @@ def _serve(args: argparse.Namespace) -> int:
     from simserver.server.app import SimServer
     from simserver.server.config import DEFAULT_SERVER_CONFIG, load_server_config
 
+    scenario = None
+    if args.scenario is not None:
+        if args.scene is not None:
+            raise CliError("--scenario and --scene: give one (a scenario's road is its "
+                           "scene)", exit_code=2)
+        from simserver.server.scenario_live import ScenarioLive
+
+        scenario = ScenarioLive(args.scenario, args.ego_from)  # XoscError: file:line
+        args.scene = args.scenario
+        args.vehicle_id = args.vehicle_id or scenario.ego  # the viewer follows the ego
     cfg = load_server_config(
         args.config or DEFAULT_SERVER_CONFIG, scene=args.scene, vehicle_id=args.vehicle_id,
         prefix=args.prefix, listen=args.listen, connect=args.connect,
@@ -578,7 +596,7 @@ def _serve(args: argparse.Namespace) -> int:
     from simserver.server.app import DuplicateVehicleError
 
     try:
-        SimServer(cfg).run(stats_json=args.stats_json)
+        SimServer(cfg, scenario).run(stats_json=args.stats_json)
     except (ZenohConfigError, ZenohOpenError, DuplicateVehicleError, FrontError) as exc:
         raise CliError(str(exc), exit_code=2) from exc
     return 0

@@ -48,6 +48,8 @@ viewer (``rerun_sink.segment_sink``).
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import signal
 import sys
@@ -250,6 +252,7 @@ class ViewerStats:
     frames_logged: int = 0
     diagnostics: int = 0
     world_frames: int = 0
+    storyboard_lines: int = 0  # a served scenario's state changes logged
     cpu_priority: str = "normal"
 
 
@@ -353,6 +356,41 @@ def log_diagnostics_payload(rec_stream: Any, payload: bytes, period_s: float,
     return True
 
 
+STORYBOARD_ENTITY = "storyboard"
+"""Where a served scenario's storyboard state changes are logged (``TextLog`` entries on the
+``sim_time`` timeline: docs/openscenario.md, "Served live")."""
+
+
+def storyboard_text(entry: dict[str, Any]) -> str:
+    """One storyboard state change as a line of the viewer's log."""
+    if "note" in entry:
+        return f"{entry.get('kind', '')} {entry.get('name', '')}: {entry['note']}"
+    text = f"{entry['kind']} {entry['name']}: {entry['from']} -> {entry['to']}"
+    if entry.get("cause"):
+        text += " (" + json.dumps(entry["cause"], separators=(", ", ": ")) + ")"
+    return text
+
+
+def log_storyboard_payload(rec_stream: Any, payload: bytes) -> bool:
+    """Log one ``{prefix}/world/storyboard`` message (``protocol.ENCODING_STORYBOARD``) as
+    a ``TextLog`` entry at its simulated time; False when it does not decode."""
+    import rerun as rr
+
+    from simserver.adapters.rerun_scene import TIMELINE, time_ns
+
+    try:
+        entry = json.loads(bytes(payload))
+        text = storyboard_text(entry)
+        t_s = entry.get("t_s")
+    except (ValueError, KeyError, TypeError):
+        return False
+    if isinstance(t_s, (int, float)) and math.isfinite(t_s):
+        rec_stream.set_time(TIMELINE, duration=time_ns(float(t_s))[()])
+    level = rr.TextLogLevel.WARN if entry.get("note") else rr.TextLogLevel.INFO
+    rec_stream.log(STORYBOARD_ENTITY, rr.TextLog(text, level=level))
+    return True
+
+
 def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
                vehicle_id: str = "car0", fps: float = DEFAULT_FPS, queue: int = 2048,
                duration_s: float | None = None, config_file: Path | None = None,
@@ -423,6 +461,7 @@ def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
             states = ep.declare_state_inbox(capacity=queue)
             diags = ep.declare_diag_inbox()
             worlds = ep.declare_inbox(proto.world_keys(prefix).state, 16)
+            storyboard = ep.declare_inbox(proto.world_keys(prefix).storyboard, 1024)
             world: proto.WorldState | None = None
             config = wait_for_config(ep, where, wait_s, since=wait_start)
             scene = _SegmentScene(recordings.current, config, 0, vehicle_id)
@@ -480,6 +519,9 @@ def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
                         if world is not None:  # every car, at the followed car's frame
                             fleet.log(time_s, world)
                             stats.world_frames += 1
+                for payload in storyboard.drain_newest():  # a served scenario's
+                    if log_storyboard_payload(recordings.current, payload):
+                        stats.storyboard_lines += 1
                 for payload in diags.drain_newest():
                     if log_diagnostics_payload(recordings.current, payload, period_s,
                                                stats.states_dropped, last_tick,

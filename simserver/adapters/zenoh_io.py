@@ -47,6 +47,7 @@ from simserver.wire.protocol import (
     ENCODING_CONTROL,
     ENCODING_DIAGNOSTICS,
     ENCODING_STATE,
+    ENCODING_STORYBOARD,
     ENCODING_WORLD,
     STATE_DECIMATED_HZ,
     WORLD_CONTROL_SPECS,
@@ -958,6 +959,14 @@ class ZenohEndpoint:
         key = world_keys(prefix or self.keys.prefix).collision
         return self._publisher(key, ENCODING_COLLISION, zenoh.Priority.DATA, False,
                                zenoh.CongestionControl.DROP)
+
+    def declare_storyboard_publisher(self, prefix: str | None = None) -> zenoh.Publisher:
+        """Publisher on ``{prefix}/world/storyboard`` (a served scenario's storyboard state
+        changes, put by its worker thread, never the tick): DATA priority, BLOCK (each
+        line is one state change of the trace: none is dropped)."""
+        key = world_keys(prefix or self.keys.prefix).storyboard
+        return self._publisher(key, ENCODING_STORYBOARD, zenoh.Priority.DATA, False,
+                               zenoh.CongestionControl.BLOCK)
 
     def declare_control_inbox(self, per_client: int = 16, keys: VehicleKeys | None = None,
                               validate: bool = True) -> ControlInbox:

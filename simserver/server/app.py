@@ -168,12 +168,15 @@ class SimServer:
     viewer and the vehicle's liveliness once a second.
     """
 
-    def __init__(self, cfg: ServerConfig) -> None:
+    def __init__(self, cfg: ServerConfig, scenario: Any = None) -> None:
         self.cfg = cfg
+        # an OpenSCENARIO scenario served live (simserver.server.scenario_live), or None
+        self.scenario = scenario
         with CompileProgress():
             # one car, or the cars of cfg.cars in one world (checked: ConfigError naming
-            # the file and the car before anything runs)
-            self.cars = fleet.make_cars(cfg, load_scene(cfg.scene))
+            # the file and the car before anything runs), or the scenario's entities
+            self.cars = (scenario.make_cars(cfg) if scenario is not None
+                         else fleet.make_cars(cfg, load_scene(cfg.scene)))
             self.slots: list[VehicleSlot] = [car.slot for car in self.cars]
             for slot in self.slots:
                 slot.warm_up()
@@ -183,6 +186,8 @@ class SimServer:
         self.loop = ServerLoop(cfg, preparer=self.preparer,
                                trace=TickTrace(trace) if trace else None)
         self.loop.live_drivers = live_drivers
+        if scenario is not None:
+            scenario.attach(self.loop)
         self.scheduler = RealtimeScheduler(cfg.realtime_settings(), log=log.log)
         self.viewer: subprocess.Popen | None = None
         self.viewer_command: str | None = None
@@ -264,6 +269,9 @@ class SimServer:
                 loop.publish_world = ep.declare_world_publisher(cfg.prefix).put
                 loop.publish_collision = _collision_sender(
                     loop, ep.declare_collision_publisher(cfg.prefix))
+                if self.scenario is not None:  # its Collision conditions see the events
+                    loop.publish_collision = self.scenario.watch_collisions(
+                        loop.publish_collision)
                 loop.world_desk = WorldDesk(
                     loop, cfg, ep.declare_control_inbox(keys=proto.world_keys(cfg.prefix),
                                                         validate=False),
@@ -293,8 +301,12 @@ class SimServer:
                     loopback_of(listen[0]) if listen else None), flush=True)
                 self.viewer = self._start_viewer(listen)
                 ros2 = self._start_ros2(listen)
+                if self.scenario is not None:  # its storyboard, in its own thread
+                    self.scenario.start(ep.declare_storyboard_publisher(cfg.prefix).put)
                 loop.run()
         finally:
+            if self.scenario is not None:
+                self.scenario.stop()
             for s, h in previous.items():
                 signal.signal(s, h)
             if fronts is not None:

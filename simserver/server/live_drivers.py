@@ -42,6 +42,9 @@ class LiveDrivers:
     def __init__(self) -> None:
         self.specs: dict[str, Any] = {}  # id -> adapters.driver_config.DriverSpec
         self.rows: dict[str, np.ndarray] = {}  # id -> its path's PATH_* rows
+        # each car a path of its own even when two are equal (a served OpenSCENARIO
+        # scenario rewrites one car's path for a lane change: simserver.server.scenario_live)
+        self.own_paths = False
 
     def __bool__(self) -> bool:
         return bool(self.specs)
@@ -80,9 +83,9 @@ class LiveDrivers:
             index = 0
             if spec is not None:
                 rows = self.rows[cid]
-                index = next((k for k, p in enumerate(paths) if p is rows
-                              or (p.shape == rows.shape and np.array_equal(p, rows))),
-                             len(paths))
+                index = len(paths) if self.own_paths else next(
+                    (k for k, p in enumerate(paths) if p is rows
+                     or (p.shape == rows.shape and np.array_equal(p, rows))), len(paths))
                 if index == len(paths):
                     paths.append(rows)
                 if old is not None and cid in before:

@@ -375,6 +375,9 @@ class ServerLoop:
         self.slots: list[tuple[VehicleSlot, SlotPorts]] = []
         self.pending: dict[int, PendingJob] = {}  # by slot index
         self.every_second: list[Callable[[], None]] = []
+        # run once a tick after the step, between two ticks; each must cost microseconds
+        # (simserver.server.scenario_live applies its worker's driver targets here)
+        self.tick_hooks: list[Callable[[], None]] = []
         self.running = False
         # several cars: the world they share, stepped once a tick for all (add()), and the
         # world message (simserver.server.fleet.WorldMessage) with where it goes
@@ -513,6 +516,8 @@ class ServerLoop:
             self._tick_slots(now, skipped, catching_up, publish_state, diag_tick)
         if self.world_desk is not None:  # cars added and removed between two ticks
             self.world_desk.tick(now)
+        for hook in self.tick_hooks:  # e.g. a served scenario's posted driver targets
+            hook()
         message = self.world_message
         if message is not None and message.due(count):
             self.publish_world(message.payload([s.last_published for s, _ in self.slots],

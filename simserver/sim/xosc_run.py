@@ -676,7 +676,8 @@ class Storyboard:
                      kind: str) -> None:
         """The car's path ahead becomes the lateral profile ``t0 -> t1`` of ``kind`` over
         ``duration``, from time to station at the car's speed now."""
-        first, rows = self.drivers.path_rows[car.index]
+        # the car's own path (its parameter DP_PATH: a live world's path k is not car k)
+        first, rows = self.drivers.path_rows[int(self.drivers.params[car.index, D.DP_PATH])]
         seg = self.drivers.paths[first:first + rows]
         s_road = car.frame.s if car.direction > 0 else car.frame.s[::-1]
         ahead = car.direction * (s_road - car.s)
@@ -720,6 +721,38 @@ def _vehicle_block(v: X.Vehicle, path: Path) -> dict[str, Any]:
 def play(path: str | Path, duration_s: float = DEFAULT_DURATION_S,
          dt_s: float = 0.001) -> XoscRun:
     """Read and play an ``.xosc`` headless (module docstring)."""
+    return _run(*setup(path, duration_s, dt_s))
+
+
+def ego_name(sc: X.Scenario) -> str:
+    """The scenario's ego: the entity named ``Ego`` (any case) if there is one, else the
+    first entity of ``<Entities>`` (docs/openscenario.md: the live ego)."""
+    names = list(sc.entities)
+    return next((n for n in names if n.lower() == "ego"), names[0])
+
+
+def xosc_scene(path: str | Path, vehicle_path: str | Path | None = None) -> Any:
+    """An ``.xosc`` as a scene (``simserver.sim.scene.load_scene``: wherever a scene file
+    is accepted, ``ctl/load`` included): the ego's car (:func:`ego_name`) at its start on
+    the scenario's road (the terrain), at its initial speed; the other entities and the
+    storyboard are not in a scene (``serve --scenario`` serves them)."""
+    import dataclasses
+
+    from simserver.adapters.config import load_vehicle
+
+    sc, _, ws = setup(path, 1.0, 0.001)
+    scene = ws.cars[ego_name(sc)].scene
+    if vehicle_path is not None:
+        scene = dataclasses.replace(scene, vehicle=load_vehicle(
+            Path(vehicle_path), scene.model_options, options_source=str(path)))
+    return scene
+
+
+def setup(path: str | Path, duration_s: float = DEFAULT_DURATION_S, dt_s: float = 0.001
+          ) -> tuple[X.Scenario, dict[str, Car], WorldScenario]:
+    """Read an ``.xosc`` and make its world's scenario: the reader's scenario, each
+    entity's :class:`Car` (placed on its road, its initial speed) and the world scenario of
+    the cars (each the reference sedan with its own path and tracking IDM)."""
     path = Path(path)
     sc = X.load_openscenario(path)
     if sc.road_file is None:
@@ -787,7 +820,7 @@ def play(path: str | Path, duration_s: float = DEFAULT_DURATION_S,
             "duration_s": duration_s, "dt_s": dt_s,
             "record_every": max(1, int(round(STORYBOARD_PERIOD_S / dt_s))), "cars": data_cars}
     ws = load_world_scenario(path, data)
-    return _run(sc, ws, cars)
+    return sc, cars, ws
 
 
 def _own_paths(world: Any, ws: WorldScenario) -> D.Drivers:
@@ -827,6 +860,43 @@ def _contacts_since(world: Any, seen: int) -> tuple[list[dict[str, Any]], int]:
     return events, total
 
 
+def frame_groups(cars: dict[str, Car]) -> list[tuple[RoadFrame, list[Car], list[int]]]:
+    """The cars by road (each road's cars projected on it in one pass), with each car's
+    nearest sample (-1: unknown yet)."""
+    by_frame: dict[int, tuple[RoadFrame, list[Car]]] = {}
+    for car in cars.values():
+        by_frame.setdefault(id(car.frame), (car.frame, []))[1].append(car)
+    return [(f, members, [-1] * len(members)) for f, members in by_frame.values()]
+
+
+def measure(cars: dict[str, Car], groups: list[tuple[RoadFrame, list[Car], list[int]]],
+            world: Any, drivers: D.Drivers, axes: np.ndarray, road: np.ndarray,
+            plane: bool, now: float, since_s: float,
+            prev_xy: dict[str, tuple[float, float]]) -> None:
+    """Each car's measures for the storyboard at ``now`` from ``world.data.x`` (its CG
+    projected on its road for ``s`` and ``t``, its speed; its acceleration and travelled
+    distance over the ``since_s`` since the last measure, 0: the first)."""
+    cg = {car.name: _cg_xy(world, drivers, car.index, axes, road, plane)
+          for car in cars.values()}
+    for frame, members, near in groups:
+        ss, ts = frame.st_many(np.array([cg[c.name][0] for c in members]),
+                               np.array([cg[c.name][1] for c in members]), near)
+        for car, s_m, t_m in zip(members, ss, ts, strict=True):
+            car.s, car.t, car.xy_now = s_m, t_m, None
+    for car in cars.values():
+        px, py = cg[car.name]
+        u = float(world.data.x[car.index, L.U_MPS])
+        if since_s > 0.0 and car.name in prev_xy:
+            car.accel = (u - car.u) / since_s
+            car.travelled += math.hypot(px - prev_xy[car.name][0], py - prev_xy[car.name][1])
+        prev_xy[car.name] = (px, py)
+        car.u = u
+        if abs(u) < STANDSTILL_MPS:
+            car.still_since = now if car.still_since is None else car.still_since
+        else:
+            car.still_since = None
+
+
 def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
     ids = list(ws.cars)
     starts = {cid: start_run(s, car_id=cid) for cid, s in ws.cars.items()}
@@ -848,10 +918,7 @@ def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
     axes = np.zeros((3, 3))
     road = terrain_road(world.model.terrain)
     plane = world.model.terrain.kind == TERRAIN_PLANE
-    by_frame: dict[int, tuple[RoadFrame, list[Car]]] = {}
-    for car in cars.values():  # the cars of one road are projected on it in one pass
-        by_frame.setdefault(id(car.frame), (car.frame, []))[1].append(car)
-    groups = [(f, members, [-1] * len(members)) for f, members in by_frame.values()]
+    groups = frame_groups(cars)
     t0 = time.perf_counter()
     cpu0 = time.process_time()
     physics = 0.0
@@ -860,25 +927,8 @@ def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
     seen = world.contact_count()
     for row in range(n_rec):
         now = row * every * dt
-        cg = {car.name: _cg_xy(world, drivers, car.index, axes, road, plane)
-              for car in cars.values()}
-        for frame, members, near in groups:
-            ss, ts = frame.st_many(np.array([cg[c.name][0] for c in members]),
-                                   np.array([cg[c.name][1] for c in members]), near)
-            for car, s_m, t_m in zip(members, ss, ts, strict=True):
-                car.s, car.t, car.xy_now = s_m, t_m, None
-        for car in cars.values():
-            px, py = cg[car.name]
-            u = float(world.data.x[car.index, L.U_MPS])
-            if row:
-                car.accel = (u - car.u) / (every * dt)
-                car.travelled += math.hypot(px - prev_xy[car.name][0], py - prev_xy[car.name][1])
-            prev_xy[car.name] = (px, py)
-            car.u = u
-            if abs(u) < STANDSTILL_MPS:
-                car.still_since = now if car.still_since is None else car.still_since
-            else:
-                car.still_since = None
+        measure(cars, groups, world, drivers, axes, road, plane, now,
+                every * dt if row else 0.0, prev_xy)
         board.contacts, seen = _contacts_since(world, seen)
         if board.tick(now) is not None:
             ended_by = "stop trigger"

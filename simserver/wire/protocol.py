@@ -1772,6 +1772,10 @@ at a tenth of the publishing cost in the tick."""
 
 ENCODING_WORLD: Final[str] = "application/octet-stream;simserver.WorldState.v1"
 ENCODING_COLLISION: Final[str] = "application/octet-stream;simserver.Collision.v1"
+ENCODING_STORYBOARD: Final[str] = "application/json;simserver.Storyboard.v1"
+"""A storyboard element's state change of a served OpenSCENARIO scenario (one JSON object:
+``t_s``, ``kind``, ``name``, ``from``, ``to`` and, when a trigger caused it, ``cause``:
+the storyboard trace line of docs/openscenario.md)."""
 
 DRIVEN_BY_CODES: Final[tuple[str, ...]] = ("client", "keyframes", "driver")
 """``WorldState`` cars' ``driven_by`` code -> who drives the car (``simserver.server.fleet``)."""
@@ -1796,6 +1800,15 @@ WORLD_KEY_SPECS: Final[tuple[KeySpec, ...]] = (
         "DATA, DROP, not express",
         "once per contact event (read from the world's ring after the step that made it)",
     ),
+    KeySpec(
+        "storyboard",
+        "server -> clients (put)",
+        "Storyboard (JSON): a storyboard element's state change (`serve --scenario`, "
+        "docs/openscenario.md)",
+        ENCODING_STORYBOARD,
+        "DATA, BLOCK, reliable",
+        "once per state change (the scenario's worker thread, never the tick)",
+    ),
     *(
         KeySpec(f"ctl/{name}", "client -> server (get / queryable)",
                 f"JSON request `{name}` -> JSON reply", ENCODING_CONTROL, "default",
@@ -1813,6 +1826,7 @@ class WorldKeys:
     base: str  # "{prefix}/world"
     state: str  # the WorldState messages
     collision: str  # the Collision messages
+    storyboard: str  # a served scenario's storyboard state changes (JSON)
     alive_all: str  # "{prefix}/*/alive": every car's liveliness token (discovery)
     ctl: Mapping[str, str]  # world control name -> queryable key "{base}/ctl/{name}"
     ctl_wildcard: str  # "{base}/ctl/**"
@@ -1837,7 +1851,7 @@ def world_keys(prefix: str = DEFAULT_PREFIX) -> WorldKeys:
     validate_prefix(prefix)
     base = f"{prefix}/{WORLD_KEY}"
     return WorldKeys(prefix=prefix, base=base, state=f"{base}/state",
-                     collision=f"{base}/collision",
+                     collision=f"{base}/collision", storyboard=f"{base}/storyboard",
                      alive_all=f"{prefix}/*/alive",
                      ctl={name: f"{base}/ctl/{name}" for name in WORLD_CONTROL_NAMES},
                      ctl_wildcard=f"{base}/ctl/**")
