@@ -65,8 +65,14 @@ def test_each_shipped_xosc_runs_live(xosc: Path) -> None:
             assert reply["ok"], reply
             assert [c["id"] for c in reply["cars"]] == list(sc.entities)
             assert {c["driven_by"] for c in reply["cars"]} == {"driver"}
-            wait_until(lambda: trace.fired(), lambda f: len(f) >= 1, timeout_s=120.0,
-                       what=f"an event of {xosc.name} firing live")
+            try:
+                wait_until(lambda: trace.fired(), lambda f: len(f) >= 1, timeout_s=120.0,
+                           what=f"an event of {xosc.name} firing live")
+            except TimeoutError:
+                state = client.poll()
+                raise AssertionError((trace.lines, None if state is None else
+                                      float(state["sim_time_s"]),
+                                      server.text()[-2000:])) from None
             kinds = {(e["kind"], e["to"]) for e in trace.lines}
             assert ("story", "running") in kinds and ("act", "running") in kinds, trace.lines
             first = min(e["t_s"] for e in trace.fired().values())
@@ -88,12 +94,20 @@ def test_person_drives_the_cut_in_ego_and_the_trigger_fires_on_it() -> None:
     person's car: its published cause is Ego's headway, and the same headway computed
     independently from the two cars' published states (the person's car's speed, the
     bumper-to-bumper gap) crosses 0.4 s at the firing time, within 0.1 s."""
+    from simserver.adapters.driver_config import pack_params
     from simserver.core import driver as D
     from simserver.sim.xosc_run import setup
 
     _, _, ws = setup(CUT_IN)
-    bumpers = (ws.cars["Ego"].driver.params[D.DP_FRONT_M]
-               + ws.cars["OverTaker"].driver.params[D.DP_REAR_M])
+
+    def packed(cid: str) -> np.ndarray:  # the driver's parameters as the server packs them
+        car = ws.cars[cid]
+        return pack_params(car.driver, car.scene.vehicle.vp, car.scene.vehicle.tp, 0)
+
+    # CG to front bumper of the ego, CG to rear bumper of the overtaker (the entities'
+    # bounding boxes: docs/openscenario.md)
+    bumpers = packed("Ego")[D.DP_FRONT_M] + packed("OverTaker")[D.DP_REAR_M]
+    assert 4.0 < bumpers < 6.0, bumpers
     with serve(CUT_IN, "--ego-from", "zenoh") as server:
         ego = Client(server, keep_history=True)
         other = Client(server, vehicle_id="OverTaker", keep_history=True)

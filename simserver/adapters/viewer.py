@@ -115,7 +115,12 @@ def scene_terrain(scene_file: Path) -> tuple[Any, dict[str, Any] | None]:
 
     key = (str(scene_file), scene_file.stat().st_mtime_ns)
     if key not in _TERRAINS:
-        spec = terrain_spec(scene_file, read_yaml(scene_file).get("terrain"))
+        if scene_file.suffix == ".xosc":  # an OpenSCENARIO file: its road (its ego's scene)
+            from simserver.sim.scene import load_scene
+
+            spec = load_scene(scene_file).terrain_spec
+        else:
+            spec = terrain_spec(scene_file, read_yaml(scene_file).get("terrain"))
         _TERRAINS.clear()
         _TERRAINS[key] = (terrain_from_spec(spec), spec)
     return _TERRAINS[key]

@@ -1523,7 +1523,8 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
             "An error's `field` is the argument whose files are at fault.",
             (
                 ArgSpec("vehicle", "path", False, "", None, None, "vehicle YAML path"),
-                ArgSpec("scene", "path", False, "", None, None, "scene YAML path"),
+                ArgSpec("scene", "path", False, "", None, None,
+                        "scene YAML (or OpenSCENARIO .xosc) path"),
             ),
             at_least_one=True,
             reply='"vehicle": string, "scene": string (the active paths, relative to the '
@@ -1597,8 +1598,9 @@ def _check_arg(spec: ArgSpec, value: Any, path: str) -> Any:
             value.encode("utf-8")
         except UnicodeEncodeError:
             raise ProtocolError(path, "is not valid Unicode (a lone surrogate)") from None
-        if not value.endswith((".yaml", ".yml")):
-            raise ProtocolError(path, f"{value!r} is not a .yaml/.yml file")
+        suffixes = _path_suffixes(spec)
+        if not value.endswith(suffixes):
+            raise ProtocolError(path, f"{value!r} is not a {'/'.join(suffixes)} file")
         return value
     if spec.kind == "name":
         if not isinstance(value, str) or not value:
@@ -1633,6 +1635,15 @@ def _check_object(
     if at_least_one and not out:
         raise ProtocolError(where, f"give at least one of: {', '.join(known)}")
     return out
+
+
+SCENE_SUFFIXES: Final[tuple[str, ...]] = (".yaml", ".yml", ".xosc")
+"""A ``scene`` argument's file kinds: a scene or scenario YAML, or an OpenSCENARIO file (its
+ego's start: docs/openscenario.md); any other ``path`` argument is a YAML file."""
+
+
+def _path_suffixes(spec: ArgSpec) -> tuple[str, ...]:
+    return SCENE_SUFFIXES if spec.name == "scene" else (".yaml", ".yml")
 
 
 def validate_control(name: str, payload: bytes | bytearray | memoryview | None,
@@ -2251,7 +2262,7 @@ def _arg_rows(args: Sequence[ArgSpec], prefix: str = "") -> list[str]:
         if a.kind in ("number", "integer"):
             rng = f"[{_num(a.lo)}, {_num(a.hi)}]"
         elif a.kind == "path":
-            rng = f"string ending .yaml/.yml, at most {_MAX_PATH} chars"
+            rng = f"string ending {'/'.join(_path_suffixes(a))}, at most {_MAX_PATH} chars"
         elif a.kind == "name":
             rng = f"string, at most {_MAX_NAME} printable chars"
         else:
