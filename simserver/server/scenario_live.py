@@ -204,23 +204,31 @@ class ScenarioLive:
 
     # ------------------------------------------------------------------ the worker
     def start(self, publish: Callable[[bytes], None] | None = None) -> None:
-        """Start the worker; each trace line goes to ``publish`` (a zenoh put)."""
+        """Start the worker; each trace line goes to ``publish`` (a zenoh put). The first
+        evaluation runs here, before the loop's first tick, at simulated time 0 (as the
+        headless player's: a ``rising`` edge of ``SimulationTime > 0`` needs the look at 0)."""
         self._publish = publish
         self._thread = threading.Thread(target=self._work, name="storyboard", daemon=True)
-        self._thread.start()
+        self._work(first=True)
+        if self.failed is None:
+            self._thread.start()
 
     def stop(self) -> None:
         self._stop.set()
-        if self._thread is not None:
+        if self._thread is not None and self._thread.is_alive():
             self._thread.join(timeout=5.0)
 
     def _fresh_board(self, drivers: D.Drivers) -> tuple[LiveStoryboard, dict[str, XR.Car]]:
         cars = {n: dataclasses.replace(c) for n, c in self._start_cars.items()}
         return LiveStoryboard(self.sc, cars, drivers, self.human), cars
 
-    def _work(self) -> None:
+    def _work(self, first: bool = False) -> None:
         try:
-            self._evaluate_forever()
+            if first:
+                self._look()
+                return
+            while not self._stop.wait(POLL_S):
+                self._look()
         except Exception as exc:  # a bug must not stop the server: said once, loudly
             self.failed = f"{type(exc).__name__}: {exc}"
             log.error("the storyboard of %s stopped: %s", self.path, self.failed,
@@ -228,54 +236,59 @@ class ScenarioLive:
             self._emit({"t_s": None, "kind": "storyboard", "name": "error",
                         "note": f"the storyboard stopped: {self.failed}"})
 
-    def _evaluate_forever(self) -> None:
+    _board: Any = None
+    _cars: Any = None
+    _groups: Any = None
+    _next_t = 0.0
+    _last_t = -math.inf
+    _ended = False
+
+    def _look(self) -> None:
+        """One look at the world: the storyboard evaluated if a ``STORYBOARD_PERIOD_S``
+        boundary of simulated time has passed since the last evaluation (or afresh, when
+        the time went back: a reset)."""
         period = XR.STORYBOARD_PERIOD_S
-        board = cars = groups = None
-        next_t = 0.0
-        last_t = -math.inf
-        prev_xy: dict[str, tuple[float, float]] = {}
-        axes = np.zeros((3, 3))
-        stopped = False
-        while not self._stop.wait(POLL_S):
-            loop = self.loop
-            world, drivers = loop.world, loop.drivers
-            if world is None or drivers is None:
-                continue
-            x = world.data.x.copy()  # one tick's rows (module docstring)
-            now = float(x[0, L.TIME_S])
-            if now < last_t - 1e-9 or board is None:  # the start, or a reset: afresh
-                board, cars = self._fresh_board(drivers)
-                groups = XR.frame_groups(cars)
-                prev_xy = {}
-                next_t = now
-                last_t = -math.inf
-                stopped = False
-                self._contacts.clear()
-            if now + 1e-9 < next_t:
-                continue
-            next_t = (math.floor(now / period + 1e-6) + 1) * period
-            ids = list(world.ids)
-            here = {n: c for n, c in cars.items() if n in ids}
-            for name, car in here.items():
-                car.index = ids.index(name)
-            view = SimpleNamespace(data=SimpleNamespace(x=x))
-            road = terrain_road(world.model.terrain)
-            plane = world.model.terrain.kind == TERRAIN_PLANE
-            XR.measure(here, [(f, [c for c in m if c.name in here], near) for f, m, near
-                              in groups], view, drivers, axes, road, plane, now,
-                       0.0 if last_t == -math.inf else now - last_t, prev_xy)
-            last_t = now
-            board.contacts = self._drain_contacts()
-            state = drivers.state.copy()
-            paths = drivers.paths.copy()
-            board.drivers = drivers._replace(state=state.copy(), paths=paths.copy())
-            n_trace = len(board.trace)
-            if not stopped and board.tick(now) is not None:
-                stopped = True  # the storyboard ended; the cars drive on
-            self.evaluations += 1
-            self._post(drivers, state, paths, board.drivers)
-            for entry in board.trace[n_trace:]:
-                self._emit(entry)
+        loop = self.loop
+        world, drivers = loop.world, loop.drivers
+        if world is None or drivers is None:
+            return
+        x = world.data.x.copy()  # one tick's rows (module docstring)
+        now = float(x[0, L.TIME_S])
+        if self._board is None or now < self._last_t - 1e-9:  # the start, or a reset
+            self._board, self._cars = self._fresh_board(drivers)
+            self._groups = XR.frame_groups(self._cars)
+            self._prev_xy: dict[str, tuple[float, float]] = {}
+            self._axes = np.zeros((3, 3))
+            self._next_t = now
+            self._last_t = -math.inf
+            self._ended = False
+            self._contacts.clear()
+        if now + 1e-9 < self._next_t:
+            return
+        self._next_t = (math.floor(now / period + 1e-6) + 1) * period
+        board, cars = self._board, self._cars
+        ids = list(world.ids)
+        here = {n: c for n, c in cars.items() if n in ids}
+        for name, car in here.items():
+            car.index = ids.index(name)
+        view = SimpleNamespace(data=SimpleNamespace(x=x))
+        XR.measure(here, [(f, [c for c in m if c.name in here], near)
+                          for f, m, near in self._groups],
+                   view, drivers, self._axes, terrain_road(world.model.terrain),
+                   world.model.terrain.kind == TERRAIN_PLANE, now,
+                   0.0 if self._last_t == -math.inf else now - self._last_t, self._prev_xy)
+        self._last_t = now
+        board.contacts = self._drain_contacts()
+        state = drivers.state.copy()
+        paths = drivers.paths.copy()
+        board.drivers = drivers._replace(state=state.copy(), paths=paths.copy())
+        n_trace = len(board.trace)
+        if not self._ended and board.tick(now) is not None:
+            self._ended = True  # the storyboard ended; the cars drive on
+        self.evaluations += 1
+        self._post(drivers, state, paths, board.drivers)
+        for entry in board.trace[n_trace:]:
+            self._emit(entry)
 
     def _drain_contacts(self) -> list[dict[str, Any]]:
         events = []
