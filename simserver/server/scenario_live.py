@@ -125,6 +125,10 @@ class ScenarioLive:
         self.sc, cars, self.ws = XR.setup(self.path)
         for line in self.sc.ignored:
             log.warning("%s", line)
+        if len(cars) < 2:  # the live loop drives the cars of a world of several only
+            raise ConfigError(f"{self.path}: <Entities>: serve --scenario needs at least two "
+                              f"entities, this file has {len(cars)} (run-scenario plays "
+                              "it headless)")
         self.ego = XR.ego_name(self.sc)
         self.human = {self.ego} if ego_from == "zenoh" else set()
         self._start_cars = {n: dataclasses.replace(c) for n, c in cars.items()}

@@ -721,7 +721,8 @@ def _vehicle_block(v: X.Vehicle, path: Path) -> dict[str, Any]:
 def play(path: str | Path, duration_s: float = DEFAULT_DURATION_S,
          dt_s: float = 0.001) -> XoscRun:
     """Read and play an ``.xosc`` headless (module docstring)."""
-    return _run(*setup(path, duration_s, dt_s))
+    sc, cars, ws = setup(path, duration_s, dt_s)
+    return _run(sc, ws, cars)
 
 
 def ego_name(sc: X.Scenario) -> str:
