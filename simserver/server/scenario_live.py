@@ -191,8 +191,20 @@ class ScenarioLive:
         return both
 
     # ------------------------------------------------------------------ the tick's part
+    _tick_t = -math.inf
+    _restart: Any = None
+
     def apply_posted(self) -> None:
-        """The worker's posted driver targets, written between two ticks (a few writes)."""
+        """The worker's posted driver targets, written between two ticks (a few writes);
+        and, when the world's time went back (a ``reset`` committed in this tick), a copy
+        of its start rows for the worker: the restarted storyboard's first look is at the
+        start, time 0, whenever the worker gets to it."""
+        world = self.loop.world
+        if world is not None:
+            t = world.data.x[0, L.TIME_S]
+            if t < self._tick_t:
+                self._restart = world.data.x.copy()
+            self._tick_t = t
         posted = self._posted
         if not posted:
             return
@@ -256,9 +268,12 @@ class ScenarioLive:
         world, drivers = loop.world, loop.drivers
         if world is None or drivers is None:
             return
-        x = world.data.x.copy()  # one tick's rows (module docstring)
+        x, self._restart = self._restart, None
+        restart = x is not None
+        if x is None:
+            x = world.data.x.copy()  # one tick's rows (module docstring)
         now = float(x[0, L.TIME_S])
-        if self._board is None or now < self._last_t - 1e-9:  # the start, or a reset
+        if self._board is None or restart or now < self._last_t - 1e-9:  # start, reset
             self._board, self._cars = self._fresh_board(drivers)
             self._groups = XR.frame_groups(self._cars)
             self._prev_xy: dict[str, tuple[float, float]] = {}
