@@ -161,6 +161,9 @@ class ScenarioLive:
             car_cfg = dataclasses.replace(cfg, vehicle_id=cid, command_log=fleet.car_log_path(
                 cfg.command_log, cid, several))
             slot = VehicleSlot(car_cfg, sims[cid])
+            u_mps = float(s.scene.initial.get("u_mps", 0.0))
+            if u_mps > 0.0:  # a world reset restarts the scenario: each car at its speed
+                slot.world_reset_args = {"u_mps": u_mps}
             driven = cid not in self.human
             if driven:
                 slot.drive_by_driver()

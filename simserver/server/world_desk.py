@@ -163,7 +163,8 @@ class WorldDesk:
             return
         if len(staged) < len(slots):
             try:
-                staged.append(slots[len(staged)].begin_reset({}))
+                slot = slots[len(staged)]  # a served scenario's car restarts at its speed
+                staged.append(slot.begin_reset(getattr(slot, "world_reset_args", {})))
             except Exception as exc:  # noqa: BLE001 - answered; nothing was changed
                 self._resetting = None
                 job["request"].reply(proto.reply_error(f"reset: {exc}", "reset"))
