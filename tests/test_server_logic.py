@@ -581,7 +581,7 @@ def test_a_load_that_fails_changes_nothing(flat_scene, tmp_path):
         ({"scene": "scenes/no_such_scene.yaml"}, "scene", "no such file"),
         ({"vehicle": "vehicles/none.yml"}, "vehicle", "no such file"),
         ({"scene": str(bad)}, "scene", "scene: bad_scene.yaml: missing key 'vehicle'"),
-        ({"scene": "scenes/flat.txt"}, "scene", "not a .yaml/.yml file"),
+        ({"scene": "scenes/flat.txt"}, "scene", "not a .yaml/.yml/.xosc file"),
         ({}, "request", "give at least one of"),
     ]
     for args, field, text in cases:
