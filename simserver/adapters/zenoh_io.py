@@ -845,6 +845,20 @@ class ZenohEndpoint:
             raise ZenohOpenError(f"cannot open the zenoh session: {text}") from None
         # sent with control requests: the server queues them per client (ControlInbox)
         self._client_id = str(self.session.zid()).encode()
+        self._owns_session = True
+
+    def for_vehicle(self, vehicle: str) -> ZenohEndpoint:
+        """An endpoint of another car's keys on this one's session (a process serving
+        several cars, as the ROS 2 adapter of a multi-car server: one session, not one a
+        car). Closing it undeclares its own entities only; the session stays this one's."""
+        view = object.__new__(type(self))
+        view.keys = vehicle_keys(self.keys.prefix, vehicle)
+        view._closeables = []
+        view.config = self.config
+        view.session = self.session
+        view._client_id = self._client_id
+        view._owns_session = False
+        return view
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -870,7 +884,7 @@ class ZenohEndpoint:
                     obj.undeclare()
             except zenoh.ZError:
                 pass
-        if not self.session.is_closed():
+        if self._owns_session and not self.session.is_closed():
             self.session.close()
 
     def _keep(self, obj: Any) -> Any:

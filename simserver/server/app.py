@@ -453,7 +453,7 @@ class SimServer:
                         "(run 'simserver ros2 --connect ENDPOINT' yourself)")
             return None
         args = ros2_cli.adapter_command(loopback_of(listen[0]), cfg.prefix, cfg.vehicle_id,
-                                        cfg.ros2)
+                                        cfg.ros2, several_cars=len(cfg.cars or ()) > 1)
         log.info("ROS 2 adapter: %s", " ".join(args[2:]))
         adapter = AdapterSupervisor(args)
         adapter.start()
