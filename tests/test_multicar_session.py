@@ -45,7 +45,7 @@ DOMAIN = 13
 CARS = ("car0", "car1", "traffic")
 CONFIG = """scene: {scene}
 viewer: off
-max_cars: 3
+max_cars: 4
 world_hz: 100
 command_log: {log}
 ros2: {{router: "{router}", domain_id: {domain}, normal_priority: true}}
@@ -70,6 +70,13 @@ CAR1 = ("name: beside\nduration_s: 9.0\ninputs:\n"
         "  - {t: 0.0, gear: D, throttle: 0.25, brake: 0.0, steer: 0.0}\n"
         "  - {t: 8.0, throttle: 0.25, brake: 0.0, steer: 0.05}\n"
         "  - {t: 8.1, throttle: 0.0, brake: 0.5, steer: 0.05}\n")
+
+
+def nodes(session: zenoh.Session) -> list[str]:
+    """The ROS graph's node tokens of the test's domain (rmw_zenoh's liveliness)."""
+    replies = session.liveliness().get(f"@ros2_lv/{DOMAIN}/**", timeout=1.0)
+    return [str(r.ok.key_expr) for r in replies if r.ok is not None
+            and "/NN/" in str(r.ok.key_expr)]
 
 
 def _player(server: ServerProcess, car: str, scenario: Path) -> OutputProcess:
@@ -132,6 +139,20 @@ def test_three_cars_recorded_live_replay_bit_for_bit_with_ros2_and_rerun(tmp_pat
                 wait_until(lambda: {k.split("/")[1] for k in ros_samples
                                     if "/odom/" in k}, lambda cars: cars >= set(CARS),
                            timeout_s=30, what="each car's odometry")
+                # a car added while the world runs gets its node, a car removed loses it
+                added = ep.request_world("add_car", {"id": "car2", "pose": {
+                    "x_m": -30.0, "y_m": 0.0, "yaw_rad": 0.0}}, timeout_s=120)
+                assert added["ok"], added
+                try:  # the adapter reads the world's cars every 2 s
+                    wait_until(lambda: [k for k in ros_samples if k.startswith(
+                        f"{DOMAIN}/car2/odom/")], timeout_s=60, what="car2's odometry")
+                except TimeoutError as exc:
+                    raise AssertionError(server.text()[-3000:]) from exc
+                assert ep.request_world("remove_car", {"id": "car1"})["ok"]
+                wait_until(lambda: [t for t in nodes(ros_node) if "simserver_car1" in t],
+                           lambda left: not left, timeout_s=30,
+                           what="car1's node withdrawn from the ROS graph")
+                assert any("simserver_car2" in t for t in nodes(ros_node))
                 assert viewer.alive(), viewer.text()
                 assert viewer.stop(timeout_s=60.0) == 0, viewer.text()
             finally:
@@ -150,16 +171,17 @@ def test_three_cars_recorded_live_replay_bit_for_bit_with_ros2_and_rerun(tmp_pat
 
     # the replay of the three logs in one world: every car's final state bit for bit,
     # and the contact events the server published
-    replay = replay_world([tmp_path / f"run.{car}.jsonl" for car in CARS])
-    for car in CARS:
+    logs = [tmp_path / f"run.{car}.jsonl" for car in (*CARS, "car2")]
+    replay = replay_world(logs)
+    for car in (*CARS, "car2"):
         assert replay.cars[car].final_state_matches, car
     assert replay.contact_events == max(c["seq"] for c in collisions)
+    assert replay.cars["car1"].left_at is not None and replay.cars["car2"].joined_at > 0
     assert replay.cars["traffic"].final_state[0] > 12.0  # driven up the road, pushed
-    cli = OutputProcess([sys.executable, "-m", "simserver", "replay",
-                         *(str(tmp_path / f"run.{car}.jsonl") for car in CARS)])
+    cli = OutputProcess([sys.executable, "-m", "simserver", "replay", *map(str, logs)])
     with cli:
         assert cli.wait(120) == 0, cli.text()
-    assert cli.text().count("identical to the live run's") == 3, cli.text()
+    assert cli.text().count("identical to the live run's") == 4, cli.text()
 
     # the recording: every car under world/cars/<id>, car0 followed (drawn in full)
     entities = _entities(rrd)
@@ -190,6 +212,6 @@ def test_three_cars_recorded_live_replay_bit_for_bit_with_ros2_and_rerun(tmp_pat
               f"{ts.hash_rihs01('tf2_msgs/msg/TFMessage')}")
     children = {t.child_frame_id for p in ros_samples[tf_key]
                 for t in ts.deserialize_cdr(p, "tf2_msgs/msg/TFMessage").transforms}
-    assert children == {f"{car}/base_link" for car in CARS}
+    assert children == {f"{car}/base_link" for car in (*CARS, "car2")}
     # no topic outside a car's namespace but /tf (and no /clock: wall stamps)
-    assert {k.split("/")[1] for k in ros_samples} == {*CARS, "tf"}
+    assert {k.split("/")[1] for k in ros_samples} == {*CARS, "car2", "tf"}
