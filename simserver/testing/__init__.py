@@ -666,7 +666,10 @@ class Client:
         behind the warm-up; the worker's status. A server without a worker (loads inline)
         is ready at once."""
         def status() -> dict[str, Any] | None:
-            return self.ep.request("get_config", timeout_s=5.0)["config"]["load_worker"]
+            try:
+                return self.ep.request("get_config", timeout_s=5.0)["config"]["load_worker"]
+            except TimeoutError as exc:  # a server starved of CPU: ask again
+                return {"ready": False, "progress": str(exc)}
 
         return wait_until(status, lambda s: s is None or s["ready"], timeout_s=timeout_s,
                           what="the server's load worker to finish its warm-up",
