@@ -764,8 +764,10 @@ class SocketBacklog:
     transport as it does for a dead peer; the client may connect again). A reader that
     keeps up leaves no unsent bytes on loopback (the kernel takes them into its receive
     window whether or not the program reads), and on a network link the bytes in flight
-    go down with every acknowledgement; only a reader slower than the stream, or stopped,
-    keeps them from going down for a quarter of a second. Zenoh's normal transport closes
+    go down with every acknowledgement; only a reader slower than the stream, or stopped
+    (its whole receive window unread, then a second more), keeps them from going down
+    for a second. A second, not less: a client starved of the CPU for a moment (a
+    viewer at ``SCHED_IDLE`` on a busy machine) keeps its link. Zenoh's normal transport closes
     a link its BLOCK messages wait on for ``block/wait_before_close`` the same way
     (:data:`DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US`).
     """
@@ -774,10 +776,10 @@ class SocketBacklog:
     WEDGE_MIN_BYTES = 16_384
     """Unsent bytes from which a link counts as backed up (55 states of 296 bytes: on
     loopback, past the reader's whole receive window)."""
-    WEDGE_S = 0.25
+    WEDGE_S = 1.0
     """How long a link's unsent bytes may stay backed up without going down before it is
-    closed (a quarter of a second of states, about 90 kB more on loopback: far from the
-    3.9 MB at which the puts would wait)."""
+    closed (a second of states, about 360 kB more on loopback: far from the 3.9 MB at
+    which the puts would wait, 11 s after the reader stopped)."""
 
     def __init__(self, close_wedged: bool = False) -> None:
         self._fds: list[int] = []
