@@ -13,9 +13,10 @@ On the server's default transport (zenoh's low-latency one) a put writes to each
 subscriber's socket in turn, so once the slow link is full every put waits on it and the
 others' states stop (before the fix, 2 runs: the link filled within 11 s; once it was
 full the normal subscriber got 1 of the next 3000 ticks' states in one run, the server's
-sender queue dropping the rest, and all of them in the other, the link never closed). The server now closes a link whose unsent bytes stay backed up for a
-second (``zenoh_io.SocketBacklog``: wedged links), long before it is full,
-and says so in its log. The same runs against zenoh's normal transport with QoS on
+sender queue dropping the rest, and all of them in the other, the link never closed).
+The server now closes a link whose unsent bytes stay backed up for a second
+(``zenoh_io.SocketBacklog``: wedged links), long before it is full, and says so in its
+log. The same runs against zenoh's normal transport with QoS on
 (``benchmarks.bench_cmd_latency.server_zenoh_config``: a transmit queue per link).
 """
 
