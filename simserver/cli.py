@@ -604,9 +604,13 @@ def _serve(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------ replay
 def _add_replay_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("log", type=Path, help="command log written by 'simserver serve'")
+    parser.add_argument("log", type=Path, nargs="+",
+                        help="command log written by 'simserver serve'; several: the logs "
+                             "of every car of a multi-car server (run.<id>.jsonl), "
+                             "replayed together in one world")
     parser.add_argument("--out", type=Path, default=None, metavar="FILE",
-                        help="write the replayed states to FILE (.npz: states, outputs)")
+                        help="write the replayed states to FILE (.npz: states, outputs; "
+                             "several logs: states_<id> for each car)")
 
 
 def replay_command(args: argparse.Namespace) -> int:
@@ -615,7 +619,9 @@ def replay_command(args: argparse.Namespace) -> int:
 
     from simserver.server.command_log import replay_command_log
 
-    rep = replay_command_log(args.log)
+    if len(args.log) > 1:
+        return _replay_world(args)
+    rep = replay_command_log(args.log[0])
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(args.out, states=rep.states, outputs=rep.outputs)
@@ -631,6 +637,33 @@ def replay_command(args: argparse.Namespace) -> int:
     print(f"replayed {rep.steps} steps: final state "
           f"{'identical to' if same else 'DIFFERS from'} the live run's, bit for bit")
     return 0 if same else 1
+
+
+def _replay_world(args: argparse.Namespace) -> int:
+    """``simserver replay A.jsonl B.jsonl ...``: every car of a multi-car session in one
+    world (``simserver.server.world_replay``); one line a car, exit 1 if one differs."""
+    import numpy as np
+
+    from simserver.server.world_replay import replay_world
+
+    rep = replay_world(args.log, record=args.out is not None)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(args.out, **{f"states_{cid}": np.array(car.states)
+                                         for cid, car in rep.cars.items()})
+    print(f"replayed {rep.steps} world steps of {len(rep.cars)} cars in one world "
+          f"({rep.contact_events} contact events)")
+    for cid, car in rep.cars.items():
+        where = f"joined at world step {car.joined_at}" + (
+            f", left at {car.left_at}" if car.left_at is not None else "")
+        if car.cut is not None or car.logged_final_state is None:
+            why = f"its log was cut: {car.cut}" if car.cut else "its log has no end line"
+            print(f"  {cid}: {car.steps} steps ({where}; {why}, nothing to compare)")
+        else:
+            same = car.final_state_matches
+            print(f"  {cid}: {car.steps} steps ({where}): final state "
+                  f"{'identical to' if same else 'DIFFERS from'} the live run's, bit for bit")
+    return 0 if all(c.final_state_matches is not False for c in rep.cars.values()) else 1
 
 
 # ------------------------------------------------------------------------ soak
@@ -873,7 +906,9 @@ SUBCOMMANDS: dict[str, Subcommand] = {
         run=replay_command,
         description="Re-run the applied inputs and controls of a 'simserver serve "
                     "--command-log' file with the same compiled step and compare the final "
-                    "state with the live run's (exit 1 if it differs).",
+                    "state with the live run's (exit 1 if it differs). Given the logs of "
+                    "every car of a multi-car server (run.<id>.jsonl), steps them together "
+                    "in one world, contacts included (docs/protocol.md).",
     ),
     "soak": Subcommand(
         help="headless soak: seeded random driving with invariants checked every tick",

@@ -125,3 +125,52 @@ def readme_server() -> Iterator[ServerProcess]:
     finally:
         code = server.stop(signal.SIGINT)
     assert code == 0 and server.final_stats() is not None, server.text()
+
+
+# ------------------------------------------------------------------ CPU time per test
+# On this shared 2-core machine a test's wall time says more about the other users than
+# about the test (a server start took 15 s of wall for 1 s of CPU at load 15), so the
+# suite's cost is compared in CPU seconds (issue 33 item 3): ``--cpu-report N`` prints the
+# N tests that used the most CPU, this process's and its reaped children's (servers,
+# clients and CLIs a test starts and stops; a module fixture's server is counted on the
+# test whose setup or teardown started or stopped it).
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--cpu-report", type=int, default=0, metavar="N",
+                     help="print the N tests that used the most CPU (this process and "
+                          "the subprocesses it reaped), and the total")
+
+
+def _cpu_s() -> float:
+    import resource
+
+    total = 0.0
+    for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN):
+        r = resource.getrusage(who)
+        total += r.ru_utime + r.ru_stime
+    return total
+
+
+_CPU_BY_TEST: dict[str, float] = {}
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    if not item.config.getoption("cpu_report"):
+        yield
+        return
+    start = _cpu_s()
+    yield
+    _CPU_BY_TEST[item.nodeid] = _cpu_s() - start
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter,
+                            config: pytest.Config) -> None:
+    n = config.getoption("cpu_report")
+    if not n or not _CPU_BY_TEST:
+        return
+    tr = terminalreporter
+    tr.write_sep("=", f"most CPU: {n} tests (this process and reaped subprocesses)")
+    for nodeid, cpu in sorted(_CPU_BY_TEST.items(), key=lambda kv: -kv[1])[:n]:
+        tr.write_line(f"{cpu:8.2f} s  {nodeid}")
+    tr.write_line(f"{sum(_CPU_BY_TEST.values()):8.2f} s  CPU of all {len(_CPU_BY_TEST)} tests")

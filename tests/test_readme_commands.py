@@ -227,11 +227,29 @@ def test_player_as_written(readme_server):
     assert played and max(float(s["brake"]) for s in played) > 0.1, out
 
 
-def test_soak_as_written(tmp_path):
-    """One simulated hour of seeded random driving, as the README quotes it."""
-    proc = subprocess.run(as_written("simserver soak --duration 3600 --seed 11"),
-                          cwd=tmp_path, capture_output=True, text=True, timeout=600)
+SOAK_AS_WRITTEN = "simserver soak --duration 3600 --seed 11"
+SOAK_SHORT_S = 360
+"""The default suite's soak: the README's line with a tenth of its simulated hour (the same
+seed, so the same drive's first six minutes; the hour is 3.6 M steps, some 40 s of CPU,
+the suite's longest single command); ``-m slow`` / ``SIMSERVER_SLOW=1`` runs it as written
+(issue 33 item 3)."""
+
+
+@pytest.mark.slow  # selected by -m slow, where it runs as written; by default the short form
+def test_soak_as_written(tmp_path, request):
+    """One simulated hour of seeded random driving, as the README quotes it (the long
+    form; the default suite runs its first six simulated minutes, ``SOAK_SHORT_S``)."""
+    from tests.conftest import slow_enabled
+
+    assert SOAK_AS_WRITTEN in README
+    command, duration_s = SOAK_AS_WRITTEN, 3600.0
+    if not slow_enabled(request.config.getoption("markexpr")):
+        command = command.replace("--duration 3600", f"--duration {SOAK_SHORT_S}")
+        duration_s = float(SOAK_SHORT_S)
+    proc = subprocess.run(as_written(command), cwd=tmp_path, capture_output=True, text=True,
+                          timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr  # exit 1 on any violation
     summary = json.loads(proc.stdout)
     print(f"\nsoak: {summary}")
     assert summary["violations"] == []
+    assert summary["simulated_s"] >= duration_s, summary  # it ends on a finished manoeuvre

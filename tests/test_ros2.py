@@ -363,6 +363,8 @@ def test_docs_tables_are_generated_from_the_code() -> None:
     (["--namespace", "/1bad"], "namespace"),
     (["--topic", "speed=/x"], "topic"),
     (["--rate", "0"], "rate_hz"),
+    (["--cars", "car0,car-1"], "car 'car-1'"),
+    (["--cars", "a,,b"], "cars"),
 ])
 def test_bad_options_are_refused_naming_the_option(flags, field, capsys) -> None:
     from simserver.cli import main
@@ -389,6 +391,25 @@ def test_serve_settings_are_checked_naming_the_key(settings, key) -> None:
     with pytest.raises(ValueError, match=f"server.yaml: ros2.*{key}"):
         adapter_command("tcp/127.0.0.1:7447", "simserver", "car0", settings,
                         source="server.yaml: ros2")
+
+
+def test_several_cars_each_under_its_namespace_one_car_unchanged() -> None:
+    """A server of several cars: each car a node of its own under ``{namespace}/<id>``
+    with ``<id>/base_link``, the world frame shared (docs/ros2.md, "Several cars"); a
+    server of one car keeps the single car's names."""
+    from simserver.ros2.adapter import Ros2Options, car_options
+    from simserver.ros2.cli import adapter_command
+
+    car = car_options(Ros2Options(cars="all").check(), "traffic")
+    assert (car.vehicle_id, car.namespace, car.node_name) == ("traffic", "/traffic",
+                                                              "simserver_traffic")
+    assert (car.odom_frame, car.base_frame, car.cars) == ("odom", "traffic/base_link", None)
+    under = car_options(Ros2Options(namespace="/sim", node_name="sim").check(), "b")
+    assert (under.namespace, under.node_name) == ("/sim/b", "sim_b")
+    several = adapter_command("tcp/127.0.0.1:7447", "simserver", "car0", {},
+                              several_cars=True)
+    assert several[-2:] == ["--cars", "all"]
+    assert "--cars" not in adapter_command("tcp/127.0.0.1:7447", "simserver", "car0", {})
 
 
 def test_published_topics_as_rmw_zenoh_writes_them(adapter, ros_node, watcher) -> None:

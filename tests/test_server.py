@@ -100,6 +100,7 @@ def test_reset_pause_step_resume(served):
 def test_bad_control_arguments_change_nothing(served):
     _, client = served
     road = client.ep.request("get_config")["config"]["road"]
+    client.wait_load_worker()  # the loads below are answered by it, not queued behind it
     for name, payload in [
         ("set_road", b'{"grade_pct": 500}'), ("set_road", b'{"grade_pct": NaN}'),
         ("set_road", b'{"bogus": 1}'), ("set_road", b"not json"), ("step", b'{"n": 0}'),
@@ -263,6 +264,7 @@ def test_load_another_scene_and_vehicle():
     server = ServerProcess(vehicle_id="car_load")
     client = Client(server)
     try:
+        client.wait_load_worker()  # the first load is not queued behind its warm-up
         reply = client.ep.request(
             "load", {"scene": str(CONFIGS / "scenes" / "hill_10pct_paper_sedan.yaml"),
                      "vehicle": str(CONFIGS / "vehicles" / "mf_hatchback" / "vehicle.yaml")})

@@ -454,8 +454,10 @@ def test_get_config_reports_the_active_configuration(rig):
     reply = rig.control("get_config")
     assert reply["ok"] is True and reply["protocol_version"] == proto.PROTOCOL_VERSION
     config = reply["config"]
-    assert set(config) == {"server", "vehicle", "scene", "road", "keys", "ros2"}
+    assert set(config) == {"server", "vehicle", "scene", "road", "keys", "ros2", "load_worker"}
     assert config["ros2"] is None  # no ROS 2 adapter (tests/test_ros2.py: one that runs)
+    assert config["load_worker"] is None  # loads run inline here (tests/test_server.py: a
+    # live server's worker)
     assert config["server"]["watchdog_s"] == 0.2 and config["server"]["period_s"] == 0.001
     # paths relative to the config folder holding them: no absolute server path is shown
     assert config["scene"]["path"] == "scenes/flat_paper_sedan.yaml"

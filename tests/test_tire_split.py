@@ -75,8 +75,6 @@ from simserver.core.tire_layout import (
     OUT_MY,
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
-    TIRE_DISPATCH_JIT_OPTIONS,
-    TIRE_JIT_OPTIONS,
     TP_MIRRORED,
     TP_MODEL_BASE,
 )
@@ -407,18 +405,23 @@ def test_jit_equals_py_func(name: str) -> None:
 
 
 def _main_function_ir(fn: nb.core.registry.CPUDispatcher, *calls: tuple) -> str:
-    """LLVM IR of ``fn`` (recompiled uncached, so that it can be inspected) without the
-    Python wrappers, after calling it with each argument tuple of ``calls``: they must all
-    share one compiled specialisation, so that this IR is the code every one of them ran.
-    Recompiled with the options of the real function (the step's dispatchers run without
-    reference counting)."""
-    options = TIRE_DISPATCH_JIT_OPTIONS if fn in (tire.tire_prepare, tire.tire_evaluate) else (
-        TIRE_JIT_OPTIONS)
-    copy = nb.njit(**dict(options, cache=False))(fn.py_func)
+    """LLVM IR of ``fn``'s own compiled code (the specialisation the step and the tests
+    run, from numba's cache or compiled now) without the Python wrappers, after calling it
+    with each argument tuple of ``calls``: they must all dispatch to one specialisation,
+    so that this IR is the code every one of them ran.
+
+    The IR is the library's module for linking (``_get_module_for_linking``: the final,
+    optimised module, NRT pruning done, that numba stores in its cache beside the object
+    code so that other functions can inline it); ``inspect_llvm`` has nothing for a
+    specialisation loaded from the cache, and recompiling a copy uncached to get it cost
+    minutes of CPU a run (issue 33)."""
     for args in calls:
-        copy(*args)
-    assert len(copy.signatures) == 1, (fn.__name__, copy.signatures)
-    module = copy.inspect_llvm(copy.signatures[0])
+        fn(*args)
+    sigs = {tuple(fn.typeof_pyval(a) for a in args) for args in calls}
+    assert len(sigs) == 1, (fn.__name__, sigs)
+    (sig,) = sigs
+    assert sig in fn.overloads, (fn.__name__, sig, fn.signatures)
+    module = str(fn.overloads[sig].library._get_module_for_linking())
     bodies = [b for b in re.split(r"\n(?=define )", module) if b.startswith("define")]
     names = [re.search(r'@"?([\w.$]+)', b.splitlines()[0]).group(1) for b in bodies]
     (body,) = [

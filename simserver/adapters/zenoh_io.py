@@ -27,6 +27,7 @@ import logging
 import os
 import re
 import select
+import socket
 import termios
 import threading
 import time
@@ -554,6 +555,16 @@ class VehiclePublisher:
             self._thread = threading.Thread(target=self._send_loop, name="state-tx",
                                             daemon=True)
             self._thread.start()
+        self._watch: SocketBacklog | None = None
+        self._watcher: threading.Thread | None = None
+        self._watch_stop = threading.Event()
+        if self._adaptive:
+            # its own thread: a put that waits on a full socket holds state-tx, and the
+            # watch is what unblocks it (SocketBacklog: wedged links)
+            self._watch = SocketBacklog(close_wedged=True)
+            self._watcher = threading.Thread(target=self._watch_loop, name="state-watch",
+                                             daemon=True)
+            self._watcher.start()
 
     def mode(self) -> str:
         """``"inline"`` (the caller puts the states) or ``"thread"`` (``state-tx`` does)."""
@@ -639,27 +650,11 @@ class VehiclePublisher:
         queue = self._queue
         poller = select.poll()
         poller.register(self._wake, select.POLLIN)
-        watch = SocketBacklog() if self._adaptive else None
         reported = last = 0
-        next_watch = 0.0
-        was = self.mode()
-        timeout_ms = int(self.WATCH_S * 1000) if watch is not None else -1
         while True:
-            if poller.poll(timeout_ms):
+            if poller.poll(-1):
                 os.eventfd_read(self._wake)
             now = time.monotonic()
-            if watch is not None and now >= next_watch:
-                next_watch = now + self.WATCH_S
-                seen = watch.largest(now)  # twice in a row: a client's first burst passes
-                self._backlogged = min(seen, self._backlog) > self.BACKLOG_BYTES
-                self._backlog = seen
-                if self._backlogged:
-                    self._judged = self._costly = 0
-                mode = self.mode()
-                if mode != was:  # not in the tick; at most a few times a minute
-                    was = mode
-                    if self._thread is not None:  # not close() turning the caller off
-                        self._log_mode(mode)
             if self.dropped != reported and now - last > 1.0:
                 reported, last = self.dropped, now  # not in the tick; 1/s
                 log.warning("state-tx: %d publications dropped so far: the sender was %d "
@@ -695,6 +690,31 @@ class VehiclePublisher:
                     self._inline_ok = True
                 self._judged = self._costly = 0
 
+    def _watch_loop(self) -> None:
+        """The ``state-watch`` thread: every :data:`WATCH_S` the sockets' backlog (puts
+        to the thread while one lasts) and the wedged links closed
+        (:class:`SocketBacklog`); the mode changes logged. Not ``state-tx``: a put that
+        finds a full socket holds that thread until the link is closed."""
+        watch = self._watch
+        was = self.mode()
+        while not self._watch_stop.wait(self.WATCH_S):
+            seen = watch.largest(time.monotonic())
+            # twice in a row: a client's first burst passes
+            self._backlogged = min(seen, self._backlog) > self.BACKLOG_BYTES
+            self._backlog = seen
+            if self._backlogged:
+                self._judged = self._costly = 0
+            mode = self.mode()
+            if mode != was:  # not in the tick; at most a few times a minute
+                was = mode
+                if self._thread is not None:  # not close() turning the caller off
+                    self._log_mode(mode)
+
+    @property
+    def links_closed(self) -> int:
+        """Links closed because their reader stopped reading (:class:`SocketBacklog`)."""
+        return len(self._watch.closed) if self._watch is not None else 0
+
     def _log_mode(self, mode: str) -> None:
         # DEBUG, not INFO: an idle server with no client switched a few times a minute
         # (132 INFO lines in 55 minutes, issue 32); the stop statistics count the
@@ -712,6 +732,10 @@ class VehiclePublisher:
         """Stop the sender thread after what is queued (idempotent); the publishers are
         undeclared with their session."""
         thread, self._thread = self._thread, None
+        watcher, self._watcher = self._watcher, None
+        if watcher is not None:
+            self._watch_stop.set()
+            watcher.join(timeout=1.0)
         if thread is not None:
             self._inline = self._inline_ok = False
             self._queue.append((False, None))
@@ -721,16 +745,50 @@ class VehiclePublisher:
 
 
 class SocketBacklog:
-    """The largest count of unsent bytes (``SIOCOUTQ``) over this process's sockets.
+    """The largest count of unsent bytes (``SIOCOUTQ``) over this process's sockets; and,
+    with ``close_wedged``, the links it closes because their reader stopped reading.
 
     The socket list (``/proc/self/fd``) is read again once a second; a descriptor closed
-    or reused meanwhile is skipped (``ioctl`` fails on anything but a socket or tty)."""
+    or reused meanwhile is skipped (``ioctl`` fails on anything but a socket or tty).
+
+    **Wedged links** (issue 35 item 2, docs/reliability.md "Command-to-state latency under
+    many viewers"). On zenoh's low-latency transport a put writes to every subscriber's
+    socket in turn from the putting thread, with no congestion control: once one
+    subscriber's socket is full (a reader that stopped reading: on loopback its unsent
+    bytes grow 360 kB/s to the 3.9 MB send buffer, 11 s, then every put waits on it) every
+    other subscriber waits as long, and so do zenoh's own threads writing declarations to
+    that link (10 joins a second: their replies too). So a link of a listener of this
+    process (a client or peer that connected to it: its local port is one this process
+    listens on) whose unsent bytes stay at or above :data:`WEDGE_MIN_BYTES` without once
+    going down for :data:`WEDGE_S` is shut down (``shutdown(2)`` on the socket: zenoh's
+    blocked write fails, its reader sees the end, and zenoh closes that session's
+    transport as it does for a dead peer; the client may connect again). A reader that
+    keeps up leaves no unsent bytes on loopback (the kernel takes them into its receive
+    window whether or not the program reads), and on a network link the bytes in flight
+    go down with every acknowledgement; only a reader slower than the stream, or stopped
+    (its whole receive window unread, then a second more), keeps them from going down
+    for a second. A second, not less: a client starved of the CPU for a moment (a
+    viewer at ``SCHED_IDLE`` on a busy machine) keeps its link. Zenoh's normal transport closes
+    a link its BLOCK messages wait on for ``block/wait_before_close`` the same way
+    (:data:`DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US`).
+    """
 
     RESCAN_S = 1.0
+    WEDGE_MIN_BYTES = 16_384
+    """Unsent bytes from which a link counts as backed up (55 states of 296 bytes: on
+    loopback, past the reader's whole receive window)."""
+    WEDGE_S = 1.0
+    """How long a link's unsent bytes may stay backed up without going down before it is
+    closed (a second of states, about 360 kB more on loopback: far from the 3.9 MB at
+    which the puts would wait, 11 s after the reader stopped)."""
 
-    def __init__(self) -> None:
+    def __init__(self, close_wedged: bool = False) -> None:
         self._fds: list[int] = []
+        self._links: dict[int, str] = {}  # fd -> its /proc target, for listener links
         self._scanned = -1e9
+        self.close_wedged = close_wedged
+        self._backed: dict[int, tuple[float, int]] = {}  # fd -> (backed up since, last)
+        self.closed: list[str] = []  # what each closed link was (peer address, why)
 
     def _scan(self) -> None:
         try:
@@ -738,6 +796,29 @@ class SocketBacklog:
         except OSError:
             files = {}
         self._fds = [fd for fd, target in files.items() if target.startswith("socket:")]
+        if self.close_wedged:
+            self._links = self._listener_links(files)
+            self._backed = {fd: v for fd, v in self._backed.items() if fd in self._links}
+
+    def _listener_links(self, files: dict[int, str]) -> dict[int, str]:
+        """The connected TCP sockets whose local port one of this process's listening
+        sockets has: the links of clients and peers that connected to it."""
+        listening: set[int] = set()
+        conns: list[tuple[int, int]] = []
+        for fd in self._fds:
+            try:
+                with socket.socket(fileno=os.dup(fd)) as sock:
+                    if sock.type != socket.SOCK_STREAM or sock.family not in (
+                            socket.AF_INET, socket.AF_INET6):
+                        continue
+                    port = sock.getsockname()[1]
+                    if sock.getsockopt(socket.SOL_SOCKET, socket.SO_ACCEPTCONN):
+                        listening.add(port)
+                    else:
+                        conns.append((fd, port))
+            except OSError:
+                continue  # closed meanwhile, or not a socket any more
+        return {fd: files[fd] for fd, port in conns if port in listening}
 
     def largest(self, now: float) -> int:
         if now - self._scanned >= self.RESCAN_S:
@@ -753,7 +834,41 @@ class SocketBacklog:
             n = int.from_bytes(buf, "little", signed=True)
             if n > out:
                 out = n
+            if fd in self._links:
+                self._judge(fd, n, now)
         return out
+
+    def _judge(self, fd: int, unsent: int, now: float) -> None:
+        """Track a link's backlog; shut it down once wedged (:data:`WEDGE_S`)."""
+        if unsent < self.WEDGE_MIN_BYTES:
+            self._backed.pop(fd, None)
+            return
+        since, last = self._backed.get(fd, (now, unsent))
+        if unsent < last:
+            since = now  # it went down: the reader reads
+        self._backed[fd] = (since, unsent)
+        if now - since >= self.WEDGE_S:
+            self._shut(fd, unsent, now - since)
+
+    def _shut(self, fd: int, unsent: int, for_s: float) -> None:
+        target = self._links.pop(fd, None)
+        self._backed.pop(fd, None)
+        try:
+            if os.readlink(f"/proc/self/fd/{fd}") != target:
+                return  # closed and reused since the scan: not the link judged
+            with socket.socket(fileno=os.dup(fd)) as sock:
+                try:
+                    host, port = sock.getpeername()[:2]
+                    peer = f"{host}:{port}"
+                except OSError:
+                    peer = "?"
+                sock.shutdown(socket.SHUT_RDWR)  # the link, not only this duplicate
+        except OSError:
+            return  # closed meanwhile
+        why = (f"link from {peer} closed: {unsent} bytes unsent, not going down for "
+               f"{1e3 * for_s:.0f} ms (a subscriber that stopped reading)")
+        self.closed.append(why)
+        log.warning("state-watch: %s", why)
 
 
 class AliveWatch:
@@ -846,6 +961,20 @@ class ZenohEndpoint:
             raise ZenohOpenError(f"cannot open the zenoh session: {text}") from None
         # sent with control requests: the server queues them per client (ControlInbox)
         self._client_id = str(self.session.zid()).encode()
+        self._owns_session = True
+
+    def for_vehicle(self, vehicle: str) -> ZenohEndpoint:
+        """An endpoint of another car's keys on this one's session (a process serving
+        several cars, as the ROS 2 adapter of a multi-car server: one session, not one a
+        car). Closing it undeclares its own entities only; the session stays this one's."""
+        view = object.__new__(type(self))
+        view.keys = vehicle_keys(self.keys.prefix, vehicle)
+        view._closeables = []
+        view.config = self.config
+        view.session = self.session
+        view._client_id = self._client_id
+        view._owns_session = False
+        return view
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -871,7 +1000,7 @@ class ZenohEndpoint:
                     obj.undeclare()
             except zenoh.ZError:
                 pass
-        if not self.session.is_closed():
+        if self._owns_session and not self.session.is_closed():
             self.session.close()
 
     def _keep(self, obj: Any) -> Any:

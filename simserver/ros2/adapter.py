@@ -35,6 +35,7 @@ rmw_zenoh's liveliness tokens (``simserver.ros2.wire``), so ``ros2 node list`` s
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -93,6 +94,10 @@ class Ros2Options:
     stamp: str = "wall"
     duration_s: float | None = None
     idle_priority: bool = False  # SCHED_IDLE for its Python thread (--idle-priority)
+    # several cars of one server (--cars): None (the one car vehicle_id), "all" (every car
+    # of the server's world, followed as cars are added and removed) or "id,id,...": each
+    # car a node of its own under {namespace}/{id} (car_options)
+    cars: str | None = None
 
     def check(self) -> Ros2Options:
         """Validate; :class:`simserver.ros2.wire.Ros2WireError` names the bad option."""
@@ -115,7 +120,39 @@ class Ros2Options:
                 raise wire.Ros2WireError(
                     f"topic: {option!r} is not one of {', '.join(wire.TOPIC_BY_OPTION)}")
             wire.fully_qualified_name(self.namespace, name)
+        if self.cars is not None and self.cars != "all":
+            ids = [c.strip() for c in self.cars.split(",")]
+            if not all(ids) or len(set(ids)) != len(ids):
+                raise wire.Ros2WireError(f"cars: {self.cars!r} is not 'all' or a list of "
+                                         "car ids, each once (a,b,c)")
+            for car_id in ids:
+                car_options(self, car_id)
         return self
+
+    def car_ids(self) -> list[str] | None:
+        """The cars named by ``cars`` (None: ``all``, or a single-car adapter)."""
+        if self.cars is None or self.cars == "all":
+            return None
+        return [c.strip() for c in self.cars.split(",")]
+
+
+def car_options(opts: Ros2Options, car_id: str) -> Ros2Options:
+    """The options of one car of a multi-car adapter (docs/ros2.md, "Several cars"): its
+    node ``simserver_<id>`` (or ``<node_name>_<id>``) in the namespace ``{namespace}/<id>``,
+    so that its relative topics are ``/<id>/odom``, ``/<id>/cmd_vel``, ...; its body frame
+    ``<id>/base_link`` in ``/tf`` (shared by every car), the world frame ``odom`` the same
+    for all (the cars share the world). ``Ros2WireError`` naming the car for an id that is
+    not a ROS name token."""
+    base = opts.namespace.rstrip("/")
+    try:
+        namespace = wire.validate_namespace(f"{base}/{car_id}")
+    except wire.Ros2WireError as exc:
+        raise wire.Ros2WireError(f"car {car_id!r}: its id is not a ROS name token, so it "
+                                 f"cannot be a namespace ({exc})") from None
+    node = wire.node_name_for(car_id) if opts.node_name in (
+        None, wire.node_name_for(opts.vehicle_id)) else f"{opts.node_name}_{car_id}"
+    return dataclasses.replace(opts, vehicle_id=car_id, namespace=namespace, node_name=node,
+                               base_frame=f"{car_id}/{opts.base_frame}", cars=None).check()
 
 
 @dataclass
@@ -265,7 +302,7 @@ class RosNode:
 def _vehicle_from_config(config: dict[str, Any]) -> tuple[VehicleLimits, float, str]:
     """Controller limits, gravity and a change marker from a ``get_config`` reply."""
     from simserver.adapters.config import load_vehicle
-    from simserver.adapters.viewer import local_config_file
+    from simserver.adapters.config_paths import local_config_file
 
     vehicle_path = local_config_file(config["vehicle"]["path"])  # shown relative to configs/
     model = config["scene"].get("model") or {}
@@ -313,7 +350,7 @@ class Ros2Adapter:
     """
 
     def __init__(self, opts: Ros2Options, ep: Any, stats: Ros2Stats,
-                 ros_session: zenoh.Session | None = None) -> None:
+                 ros_session: zenoh.Session | None = None, clock: bool = True) -> None:
         self.opts = opts
         self.ep = ep
         self.stats = stats
@@ -334,8 +371,8 @@ class Ros2Adapter:
         self.pubs: dict[str, RosPublisher] = {}
         self.subs: dict[str, RosSubscription] = {}
         for t in wire.TOPICS:
-            if t.sim_time_only and opts.stamp != "sim":
-                continue
+            if t.sim_time_only and (opts.stamp != "sim" or not clock):
+                continue  # /clock: with sim stamps, once a process (its first car)
             fq = wire.fully_qualified_name(opts.namespace, opts.topics.get(t.option, t.name))
             if t.direction == wire.PUBLISH:
                 self.pubs[t.option] = self.node.publisher(fq, t.ros_type, t.qos)
@@ -452,6 +489,85 @@ class Ros2Adapter:
         self.node.close()
 
 
+class FleetRos2:
+    """The ROS 2 side of a multi-car server (``--cars``): one :class:`Ros2Adapter` a car,
+    each on a view of the one zenoh session (``ZenohEndpoint.for_vehicle``), run in turn
+    each period. With ``cars: all`` the world's cars are read from the world's
+    ``get_config`` every :data:`CONFIG_POLL_S`: a car added gets its node, a car removed
+    loses it (its tokens withdrawn from the ROS graph)."""
+
+    def __init__(self, opts: Ros2Options, ep: Any, ros_session: zenoh.Session | None) -> None:
+        self.opts = opts
+        self.ep = ep
+        self.ros_session = ros_session
+        self.cars: dict[str, tuple[Ros2Adapter, Any]] = {}
+        self.stats: dict[str, Ros2Stats] = {}
+        self.skipped: set[str] = set()
+        self.last_poll = time.monotonic()
+        ids = opts.car_ids()
+        self.follow = ids is None
+        self.sync(ids if ids is not None else self.world_ids(timeout_s=5.0))
+
+    def world_ids(self, timeout_s: float) -> list[str]:
+        reply = self.ep.request_world("get_config", timeout_s=timeout_s)
+        if not reply.get("ok"):
+            raise RuntimeError(f"the world's get_config failed: {reply}")
+        return [car["id"] for car in reply["cars"]]
+
+    def sync(self, ids: list[str]) -> None:
+        """Nodes for ``ids``: new ones made, gone ones closed."""
+        for car_id in [c for c in self.cars if c not in ids]:
+            adapter, view = self.cars.pop(car_id)
+            adapter.close()
+            view.close()
+            log.info("car %s left the world: its node is withdrawn", car_id)
+        for car_id in ids:
+            if car_id in self.cars or car_id in self.skipped:
+                continue
+            try:
+                opts = car_options(self.opts, car_id)
+            except wire.Ros2WireError as exc:
+                if not self.follow:
+                    raise
+                self.skipped.add(car_id)
+                log.warning("%s: no ROS node for it", exc)
+                continue
+            view = self.ep.for_vehicle(car_id)
+            stats = self.stats.setdefault(car_id, Ros2Stats())
+            try:
+                adapter = Ros2Adapter(opts, view, stats, self.ros_session,
+                                      clock=not any("clock" in a.pubs
+                                                     for a, _ in self.cars.values()))
+            except Exception:
+                view.close()
+                raise
+            self.cars[car_id] = (adapter, view)
+            print(f"simserver ros2: {adapter.describe()}", flush=True)
+
+    def period(self, now: float) -> None:
+        if self.follow and now - self.last_poll >= CONFIG_POLL_S:
+            self.last_poll = now
+            try:
+                self.sync(self.world_ids(timeout_s=1.0))
+            except (TimeoutError, RuntimeError):
+                pass  # the next poll
+        for adapter, _ in list(self.cars.values()):
+            adapter.period(now)
+
+    def total(self, into: Ros2Stats) -> None:
+        """Every car's statistics summed into ``into``."""
+        for stats in self.stats.values():
+            for f in dataclasses.fields(Ros2Stats):
+                if f.type in ("int", int):
+                    setattr(into, f.name, getattr(into, f.name) + getattr(stats, f.name))
+
+    def close(self) -> None:
+        for adapter, view in self.cars.values():
+            adapter.close()
+            view.close()
+        self.cars.clear()
+
+
 def open_ros_session(router: str) -> zenoh.Session:
     """A zenoh client session of the rmw_zenohd router at ``router``.
 
@@ -522,11 +638,14 @@ def run_ros2(options: Ros2Options) -> Ros2Stats:
         with ZenohEndpoint(cfg, prefix=opts.prefix, vehicle=opts.vehicle_id) as ep:
             if opts.ros_router is not None:
                 ros_session = open_ros_session(opts.ros_router)
-            adapter = Ros2Adapter(opts, ep, stats, ros_session)
+            if opts.cars is None:
+                adapter: Any = Ros2Adapter(opts, ep, stats, ros_session)
+                print(f"simserver ros2: {adapter.describe()}", flush=True)
+            else:  # several cars: a node each (docs/ros2.md, "Several cars")
+                adapter = FleetRos2(opts, ep, ros_session)
             if opts.idle_priority:  # after the sessions: zenoh's threads keep theirs
                 stats.cpu_priority = idle_python_thread()
             try:
-                print(f"simserver ros2: {adapter.describe()}", flush=True)
                 period = 1.0 / opts.rate_hz
                 t_start = next_t = time.monotonic()
                 while running[0]:
@@ -545,6 +664,8 @@ def run_ros2(options: Ros2Options) -> Ros2Stats:
                         next_t += period * missed
             finally:
                 adapter.close()
+                if isinstance(adapter, FleetRos2):
+                    adapter.total(stats)
     finally:
         if ros_session is not None:
             ros_session.close()

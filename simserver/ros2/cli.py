@@ -30,6 +30,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
                         help="a zenoh JSON5 config instead of --connect")
     parser.add_argument("--vehicle-id", default="car0")
+    parser.add_argument("--cars", default=None, metavar="all|ID,ID",
+                        help="several cars of one server, each a node of its own under "
+                             "NAMESPACE/ID (/ID/odom, ID/base_link in /tf): 'all' (every "
+                             "car of the server's world, followed as cars are added and "
+                             "removed) or a list of ids; 'serve' passes 'all' for a "
+                             "server of several cars")
     parser.add_argument("--prefix", default="simserver")
     parser.add_argument("--domain-id", type=int, default=None,
                         help="ROS_DOMAIN_ID (default: the environment's, else 0)")
@@ -89,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
         vehicle_id=args.vehicle_id, domain_id=domain_id, namespace=args.namespace,
         node_name=args.node_name, rate_hz=args.rate, command_timeout_s=args.command_timeout,
         topics=topics, odom_frame=args.odom_frame, base_frame=args.base_frame,
-        stamp=args.stamp, duration_s=args.duration, idle_priority=args.idle_priority)
+        stamp=args.stamp, duration_s=args.duration, idle_priority=args.idle_priority,
+        cars=args.cars)
     try:
         stats = run_ros2(options)
     except Ros2WireError as exc:
@@ -118,7 +125,8 @@ SERVE_SETTINGS: dict[str, tuple[str, type]] = {
 
 
 def adapter_command(endpoint: str, prefix: str, vehicle_id: str,
-                    settings: dict | None = None, source: str = "ros2") -> list[str]:
+                    settings: dict | None = None, source: str = "ros2",
+                    several_cars: bool = False) -> list[str]:
     """The command line with which ``serve`` starts the adapter beside itself.
 
     Parameters
@@ -133,6 +141,10 @@ def adapter_command(endpoint: str, prefix: str, vehicle_id: str,
         and ``normal_priority``); values are checked again by the adapter itself.
     source : str
         Where ``settings`` came from, for the error message (``"server.yaml: ros2"``).
+    several_cars : bool
+        The server serves several cars (``cars:`` with more than one): ``--cars all``,
+        each car under its own namespace (docs/ros2.md, "Several cars"). A server of one
+        car keeps the single car's names.
 
     Raises
     ------
@@ -143,6 +155,8 @@ def adapter_command(endpoint: str, prefix: str, vehicle_id: str,
 
     args = [sys.executable, "-m", "simserver", "ros2", "--connect", endpoint,
             "--prefix", prefix, "--vehicle-id", vehicle_id]
+    if several_cars:
+        args += ["--cars", "all"]
     for key, value in (settings or {}).items():
         if key == "topics":
             if not isinstance(value, dict):

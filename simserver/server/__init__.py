@@ -7,5 +7,6 @@ with its arbitration and watchdog (``slot``; both tested in-process,
 (``logfile``); several cars in one world (issue 30): the ``cars:`` list and its checks
 (``cars_config``), the cars' world and the world message (``fleet``), cars added and
 removed while it runs (``world_desk``), cars driven by the built-in driver
-(``live_drivers``); an OpenSCENARIO scenario served live, its storyboard on a worker
-thread (``scenario_live``, issue 31)."""
+(``live_drivers``), a session of several cars replayed in one world from every car's
+command log (``world_replay``); an OpenSCENARIO scenario served live, its storyboard on a
+worker thread (``scenario_live``, issue 31)."""

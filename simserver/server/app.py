@@ -233,7 +233,11 @@ class SimServer:
                                  config_file=cfg.zenoh_config, mode=cfg.mode)
         listen = effective_endpoints(zcfg)
         fn, job_args = self.slots[0].load_job({})  # the load worker: imports, one scene
-        self.preparer.warm(fn, *job_args)
+        warming = self.preparer.warm(fn, *job_args)
+        progress = self.preparer.progress
+        for slot in self.slots:  # a client can wait for it (tests: a first load's reply)
+            slot.load_worker_status = lambda: {"ready": warming.done(),
+                                               "progress": progress.message()}
         loop = self.loop
         loop.running = True  # before the handlers: a signal from now on ends the loop
         previous = {s: signal.signal(s, self.stop) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -465,7 +469,7 @@ class SimServer:
                         "(run 'simserver ros2 --connect ENDPOINT' yourself)")
             return None
         args = ros2_cli.adapter_command(loopback_of(listen[0]), cfg.prefix, cfg.vehicle_id,
-                                        cfg.ros2)
+                                        cfg.ros2, several_cars=len(cfg.cars or ()) > 1)
         log.info("ROS 2 adapter: %s", " ".join(args[2:]))
         adapter = AdapterSupervisor(args)
         adapter.start()

@@ -34,7 +34,12 @@ class CommandLog:
     Lines: a header (scene, vehicle, step); ``{"step": n, "inputs": [steer, throttle,
     brake, parking_brake, gear]}`` whenever the applied inputs change (before physics step
     ``n``); ``{"step": n, "reset": pose|null}``, ``{"step": n, "set_road": {...}}``,
-    ``{"step": n, "load": {"scene": ..., "vehicle": ...}}``; and at a clean shutdown
+    ``{"step": n, "load": {"scene": ..., "vehicle": ...}}``; a car of a world of several
+    cars also ``{"step": n, "world": {"event": "join"|"resume"|"leave", "step": W, ...}}``
+    (its step ``n`` is the world's step ``W``: where it joined, with ``car`` and the
+    world's ``cars`` in order; where it steps again after being held alone; where it
+    left: ``simserver.server.world_replay``, which a replay of this log alone ignores);
+    and at a clean shutdown
     ``{"end": n, "state": [hex floats]}``, the full final state, for checking a replay.
     A log that could not be written to its end (a full disk, an I/O error) ends instead
     with ``{"end": n, "cut": reason}``: every line before it is whole and the replay of its
@@ -180,9 +185,10 @@ def _check_log_entry(where: str, entry: Any, last_step: int) -> int:
                 raise ConfigError(f"{where}: key 'state[{k}]': not a hex float: "
                                   f"{short_repr(v)}") from None
         return end
-    kinds = [k for k in ("inputs", "reset", "set_road", "load") if k in entry]
+    kinds = [k for k in ("inputs", "reset", "set_road", "load", "world") if k in entry]
     if len(kinds) != 1:
-        raise ConfigError(f"{where}: expected one of inputs, reset, set_road, load, end")
+        raise ConfigError(f"{where}: expected one of inputs, reset, set_road, load, world, "
+                          "end")
     kind = kinds[0]
     check_keys(where, entry, ("step", kind), required=("step", kind))
     step = entry["step"]
@@ -208,6 +214,8 @@ def _check_log_entry(where: str, entry: Any, last_step: int) -> int:
             _log_numbers(where, "reset", value, spec)
     elif kind == "set_road":
         _log_numbers(where, "set_road", value, _control_ranges("set_road"))
+    elif kind == "world":
+        _check_world_line(where, value)
     else:
         if not isinstance(value, dict) or set(value) != {"scene", "vehicle"} or \
                 not isinstance(value["scene"], str) or \
@@ -215,6 +223,35 @@ def _check_log_entry(where: str, entry: Any, last_step: int) -> int:
             raise ConfigError(f"{where}: key 'load': expected {{\"scene\": path, "
                               "\"vehicle\": path or null}")
     return step
+
+
+WORLD_EVENTS = ("join", "resume", "leave")
+"""The events of a ``world`` line (a car of a world of several; ``CommandLog``)."""
+
+
+def _check_world_line(where: str, value: Any) -> None:
+    """A ``world`` line's value: ``{"event": join|resume|leave, "step": world step}``,
+    a join's with ``"car"`` (this car's id) and ``"cars"`` (the world's ids in order)."""
+    if not isinstance(value, dict) or value.get("event") not in WORLD_EVENTS:
+        raise ConfigError(f"{where}: key 'world.event': expected one of "
+                          f"{', '.join(WORLD_EVENTS)}")
+    join = value["event"] == "join"
+    keys = ("event", "step", "car", "cars") if join else ("event", "step")
+    check_keys(f"{where} (world)", value, keys, required=keys)
+    step = value["step"]
+    if isinstance(step, bool) or not isinstance(step, int) or \
+            not 0 <= step <= MAX_REPLAY_STEPS:
+        raise ConfigError(f"{where}: key 'world.step': expected an integer step in "
+                          f"[0, {MAX_REPLAY_STEPS}], got {short_repr(step)}")
+    if join:
+        cars = value["cars"]
+        if not isinstance(cars, list) or not cars or \
+                not all(isinstance(c, str) for c in cars) or len(set(cars)) != len(cars):
+            raise ConfigError(f"{where}: key 'world.cars': expected the world's car ids, "
+                              f"each once, got {short_repr(cars)}")
+        if value["car"] not in cars:
+            raise ConfigError(f"{where}: key 'world.car': {short_repr(value['car'])} is not "
+                              "one of the world's cars ('world.cars')")
 
 
 def read_command_log(path: str | Path) -> list[dict[str, Any]]:

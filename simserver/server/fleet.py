@@ -191,12 +191,19 @@ def join_world(slot_cfg: Any, scene: Scene, table: np.ndarray | None, world: Any
 
 def log_start(slot: Any, car: CarSpec) -> None:
     """The first lines of a car's command log (after its header, which names the world's
-    scene): a ``load`` of the scene with the car's vehicle and a ``reset`` to the car's
-    start pose, so that ``simserver replay`` starts the car where the live world did (every
-    car starts at rest, so the reset gives the very start state)."""
+    scene): the ``world`` line of its joining (the world's step and its cars, in order:
+    ``simserver replay`` of every car's log steps them together,
+    ``simserver.server.world_replay``), a ``load`` of the scene with the car's vehicle and
+    a ``reset`` to the car's start pose, so that ``simserver replay`` of this log alone
+    starts the car where the live world did (every car starts at rest, so the reset gives
+    the very start state)."""
     log = slot.command_log
     if log is None:
         return
+    world = slot.sim.world  # where the car joined: the world's step and its cars' order
+    log.write({"step": slot.steps_total, "world": {
+        "event": "join", "step": world.steps, "car": slot.keys.vehicle,
+        "cars": list(world.ids)}})
     initial = slot.sim.scene.initial
     log.write({"step": slot.steps_total, "load": {
         "scene": str(slot.scene_path),

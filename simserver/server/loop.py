@@ -390,6 +390,7 @@ class ServerLoop:
         # tick, their arrays assembled when the world's cars change, driven each tick
         self.live_drivers: Any = None
         self.drivers: Any = None  # core.driver.Drivers of the world's cars, or None
+        self._held: set[VehicleSlot] = set()  # cars held through the last world step
         self._driver_ids: list[str] = []
         # contact events (docs/model.md section 16): read from the world's ring after the
         # step that wrote them, counted per car, published once each (docs/protocol.md 5.1)
@@ -587,12 +588,14 @@ class ServerLoop:
             slot.stepping = slot.advance(step=False)
             stepped = stepped or slot.stepping
         if stepped:
-            held = [(s.sim, s.sim.x.copy(), s.sim.out.copy()) for s, _ in slots
+            held = [(s, s.sim.x.copy(), s.sim.out.copy()) for s, _ in slots
                     if not s.stepping]
             self.world.step()
-            for sim, x, out in held:
-                sim.x[:] = x
-                sim.out[:] = out
+            for s, x, out in held:
+                s.sim.x[:] = x
+                s.sim.out[:] = out
+            if held or self._held:  # rare: a car paused alone (a fault stop)
+                self._note_held([s for s, _, _ in held])
         data = self.world.data
         if data.contacts.count[K_EVENTS] != self.contact_events_seen:  # rare: a contact
             self._contact_events(count)
@@ -616,6 +619,19 @@ class ServerLoop:
                 ports.publisher.publish_diagnostics(self._diagnostics(slot, *diag))
             if client or phase or index in pending:  # traffic: at its phase (10 ms)
                 self._serve_controls(index, slot, ports, now, catching_up)
+
+    def _note_held(self, held: list[VehicleSlot]) -> None:
+        """Cars held through a world step (their rows put back) and cars stepping again
+        after a hold: a car's steps then lag the world's, so its command log says at
+        which world step its steps go on (a ``world`` line, event ``resume``:
+        ``simserver.server.world_replay``). Off the common path: only while a car is held."""
+        world_step = self.world.steps - 1  # the step just taken
+        serving = {id(s) for s, _ in self.slots}
+        for slot in self._held.difference(held):
+            if slot.stepping and id(slot) in serving and slot.command_log is not None:
+                slot.command_log.write({"step": slot.steps_total - 1, "world": {
+                    "event": "resume", "step": world_step}})
+        self._held = set(held)
 
     def _contact_events(self, tick: int) -> None:
         """The world's new contact events (``World.contact_events``, after the step that

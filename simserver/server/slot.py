@@ -235,6 +235,9 @@ class VehicleSlot:
         self.command_log = command_log
         # the ROS 2 adapter's supervisor's status (get_config's "ros2"), set by the server
         self.ros2_status: Callable[[], dict[str, Any]] | None = None
+        # the load worker's readiness (get_config's "load_worker"), set by the server when
+        # it starts the worker's warm-up; None where loads run inline (no worker)
+        self.load_worker_status: Callable[[], dict[str, Any]] | None = None
         self.counters = dict.fromkeys(COUNTER_NAMES, 0)
         self.arbiter = CommandArbiter(self.counters, sim.inputs)
         self.watchdog = Watchdog(cfg.watchdog_s, cfg.watchdog_brake)
@@ -642,6 +645,8 @@ class VehicleSlot:
             "keys": {"cmd": keys.cmd, "state": keys.state, "diag": keys.diag,
                      "alive": keys.alive},
             "ros2": None if self.ros2_status is None else self.ros2_status(),
+            "load_worker": None if self.load_worker_status is None else (
+                self.load_worker_status()),
         }}
 
     def _shown(self, path: Path) -> str:

@@ -260,6 +260,9 @@ class WorldDesk:
             raise proto.ProtocolError("id", f"{car_id!r} is the world's last car")
         self._busy("remove_car")
         slot.final_state = slot.sim.x.copy()  # its rows leave the world with it
+        if slot.command_log is not None:  # where it left: a world replay takes it out there
+            slot.command_log.write({"step": slot.steps_total, "world": {
+                "event": "leave", "step": slot.sim.world.steps}})
         ports = self.loop.remove(slot)
         self._threads.submit(self.close_ports, slot, ports)
         log.info("car %s removed from the world (%d cars)", car_id, len(self.loop.slots))

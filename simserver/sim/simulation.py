@@ -173,6 +173,10 @@ class World:
                                 derived=np.zeros((0, N_DERIVED)))
         self.data: WorldData = stack_data([])
         self.generation = 0
+        # steps taken (:meth:`step`, ``Simulation.step``): the world's clock, which a multi-car
+        # command log names so that a replay steps every car at its world step
+        # (``simserver.server.command_log.replay_world``)
+        self.steps = 0
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -259,6 +263,7 @@ class World:
     def step(self) -> None:
         """One fixed step of every car (``core.world.step``)."""
         world_step(self.model, self.data)
+        self.steps += 1
 
     def run(self, inputs_per_step: np.ndarray, states: np.ndarray, outputs: np.ndarray,
             record_every: int = 1, contacts: np.ndarray | None = None) -> None:
@@ -518,7 +523,9 @@ class Simulation:
     def step(self) -> None:
         """One fixed step of the world (this car's, and any other car's) with the current
         inputs (``core.world.step``)."""
-        world_step(self.world.model, self.world.data)
+        world = self.world
+        world_step(world.model, world.data)
+        world.steps += 1
 
     def run(self, inputs_per_step: np.ndarray, states: np.ndarray, outputs: np.ndarray,
             record_every: int = 1) -> None:

@@ -659,6 +659,22 @@ class Client:
         """The first diagnostics published after this call."""
         return self.wait_diagnostics(lambda d: True, timeout_s, "a diagnostics message")
 
+    def wait_load_worker(self, timeout_s: float = 120.0) -> dict[str, Any]:
+        """Wait until the server's load worker has finished its warm-up (``get_config``'s
+        ``load_worker``: imports and one scene read, seconds on a busy machine), so that a
+        ``load`` asked next is answered within its 2 s query timeout instead of waiting
+        behind the warm-up; the worker's status. A server without a worker (loads inline)
+        is ready at once."""
+        def status() -> dict[str, Any] | None:
+            try:
+                return self.ep.request("get_config", timeout_s=5.0)["config"]["load_worker"]
+            except TimeoutError as exc:  # a server starved of CPU: ask again
+                return {"ready": False, "progress": str(exc)}
+
+        return wait_until(status, lambda s: s is None or s["ready"], timeout_s=timeout_s,
+                          what="the server's load worker to finish its warm-up",
+                          interval_s=0.05)
+
     def wait_diagnostics(self, predicate: Callable[[np.void], bool], timeout_s: float = 10.0,
                          what: str = "diagnostics") -> np.void:
         """The first diagnostics published from now on satisfying ``predicate`` (a counter
