@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -42,9 +42,23 @@ from simserver.core.powertrain import overall_ratio
 from simserver.core.terrain import TERRAIN_PLANE, Terrain, surface_at
 from simserver.core.tire_layout import TP_RADIUS_M
 
-if TYPE_CHECKING:
-    from simserver.sim.scene import Scene
-    from simserver.sim.simulation import World
+
+class Scene(Protocol):
+    """What a driver's path is checked against: the scene's terrain and its OpenDRIVE
+    roads, if any (``simserver.sim.scene.Scene`` has both; named structurally so this
+    adapter does not import the simulation layer above it)."""
+
+    terrain: Terrain
+    roads: Any
+
+
+class World(Protocol):
+    """The world the drivers are built for (``simserver.sim.simulation.World``): its car
+    ids in order, its static model and its mutable data."""
+
+    ids: list[str]
+    model: Any
+    data: Any
 
 PATH_POINTS_KEYS = ("points",)
 PATH_LANE_KEYS = ("road", "lane", "s_from_m", "s_to_m", "step_m")
