@@ -714,6 +714,7 @@ def play(path: str | Path, duration_s: float = DEFAULT_DURATION_S,
         f._od = od
     cars: dict[str, Car] = {}
     speeds: dict[str, X.Action] = {}
+    wrong_way: dict[str, bool] = {}
     for k, (name, ent) in enumerate(sc.entities.items()):
         tele = [a for a in sc.init[name] if a.kind == "TeleportAction"]
         if not tele:
@@ -736,6 +737,10 @@ def play(path: str | Path, duration_s: float = DEFAULT_DURATION_S,
         else:
             direction = 1.0 if math.cos(heading - hdg) >= 0 else -1.0
         cars[name] = Car(name, k, ent.vehicle, frame, direction, s=s, t=t)
+        # a car set against its lane's direction of travel overtakes in the oncoming lane:
+        # it does not stop for the cars coming its way (docs/openscenario.md)
+        lane_along = (frame.lane_at(s, t) < 0) == (frame.road.rule == "RHT")
+        wrong_way[name] = lane_along != (direction > 0)
         sp = [a for a in sc.init[name] if a.kind == "SpeedAction"]
         if sp:
             speeds[name] = sp[-1]
@@ -764,6 +769,7 @@ def play(path: str | Path, duration_s: float = DEFAULT_DURATION_S,
             "driver": {"path": {"points": np.column_stack([px, py]).tolist()},
                        "idm": {"v0_mps": max(car.u, 0.1), "a_mps2": TRACKING_IDM_A_MPS2,
                                "delta": TRACKING_IDM_DELTA},
+                       **({"oncoming_stop": 0.0} if wrong_way[name] else {}),
                        **_vehicle_block(car.vehicle, path)}})
     data = {"name": path.stem, "description": sc.description,
             "terrain": {"kind": "opendrive", "file": str(sc.road_file),
