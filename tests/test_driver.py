@@ -19,7 +19,7 @@ import sys
 import numpy as np
 import pytest
 
-from simserver.adapters.config import ConfigError, read_yaml
+from simserver.adapters.config import ConfigError, load_vehicle, read_yaml
 from simserver.adapters.history import CAR_ID_COLUMN, read_history
 from simserver.adapters.opendrive import lane_start, load_opendrive
 from simserver.core import driver as D
@@ -360,3 +360,53 @@ def test_run_scenario_runs_the_hill_queue_closed_loop(tmp_path):
     drv = summary["cars"]["traffic"]["driver"]
     assert 1.0 <= drv["gap_min_m"] <= 1.02 and drv["held_s"] > 3.0
     assert "driver" not in summary["cars"]["driven"]
+
+
+
+# ---------------------------------------------------------------- who is a leader
+def _first_drive(tmp_path, other: dict, driver: dict | None = None) -> np.ndarray:
+    """The driven car's driver state after the first ``drive`` of a world where it runs
+    at 10 m/s along +x from x = 0 and ``other`` (a car the driver does not drive) is
+    ahead in its lane."""
+    path = {"points": [[-50.0, 0.0], [2000.0, 0.0]]}
+    data = {"name": "leader", "duration_s": 0.002, "record_every": 1, "cars": [
+        {"vehicle": str(VEHICLE), "id": "driven",
+         "initial": {"x_m": 0.0, "u_mps": 10.0, "relaxed": 1},
+         "driver": {"path": path, "idm": {"v0_mps": 10.0}, **(driver or {})}},
+        {"vehicle": str(VEHICLE), "id": "other", "initial": {"relaxed": 1, **other},
+         "inputs": [{"t": 0.0, "throttle": 0.0, "brake": 0.0, "gear": "N"}]},
+    ]}
+    result = run_world_scenario(load_world_scenario(tmp_path / "leader.yaml", data))
+    return result.cars["driven"].driver_states[0]
+
+
+def test_an_oncoming_or_crossing_car_in_the_lane_is_an_obstacle_at_rest(tmp_path):
+    """docs/model.md section 15: a car ahead in the lane is followed at its speed only when
+    it heads along the path (within 30 degrees of its tangent). An oncoming car (heading
+    back at 10 m/s) and a crossing one (60 degrees off, at 10 m/s) are obstacles at rest:
+    the driver asks for exactly what it asks for behind a car standing with its facing
+    bumper at the same place (an oncoming car is measured to its front bumper). With
+    ``oncoming_stop: 0`` (a car overtaking in the oncoming lane) the oncoming car is no
+    obstacle at all, while a car going its way still is."""
+    vp = load_vehicle(VEHICLE).vp
+    front, rear = vp[VP_CG_TO_FRONT_AXLE_M] + OVERHANG_M, vp[VP_CG_TO_REAR_AXLE_M] + OVERHANG_M
+    bumper_x = 40.0  # the facing bumper of the car ahead, on the path's axis
+    standing = _first_drive(tmp_path, {"x_m": bumper_x + rear, "yaw_rad": 0.0, "u_mps": 0.0})
+    assert standing[D.DS_LEADER] == 1.0
+    assert standing[D.DS_ACCEL_CMD_MPS2] < -0.5  # it brakes for it: 40 m at 10 m/s
+    oncoming = _first_drive(tmp_path, {"x_m": bumper_x + front, "yaw_rad": math.pi,
+                                       "u_mps": 10.0})
+    crossing = _first_drive(tmp_path, {"x_m": bumper_x + rear, "yaw_rad": math.radians(60.0),
+                                       "u_mps": 10.0})
+    for seen in (oncoming, crossing):
+        assert seen[D.DS_LEADER] == 1.0
+        assert seen[D.DS_GAP_M] == pytest.approx(standing[D.DS_GAP_M], abs=1e-6)
+        assert seen[D.DS_ACCEL_CMD_MPS2] == pytest.approx(standing[D.DS_ACCEL_CMD_MPS2],
+                                                          abs=1e-6)
+    passing = _first_drive(tmp_path, {"x_m": bumper_x + front, "yaw_rad": math.pi,
+                                      "u_mps": 10.0}, {"oncoming_stop": 0.0})
+    assert passing[D.DS_LEADER] == -1.0 and passing[D.DS_GAP_M] == math.inf
+    ahead = _first_drive(tmp_path, {"x_m": bumper_x + rear, "yaw_rad": 0.0, "u_mps": 0.0},
+                         {"oncoming_stop": 0.0})
+    assert ahead[D.DS_LEADER] == 1.0
+    assert ahead[D.DS_ACCEL_CMD_MPS2] == standing[D.DS_ACCEL_CMD_MPS2]

@@ -216,6 +216,45 @@ def test_each_cars_command_log_replays_bit_for_bit(flat_scene, tmp_path):
         assert replay.final_state[L.X_M] != 0.0
 
 
+def test_one_clock_a_car_reset_or_loaded_or_added_keeps_the_worlds_time(flat_scene,
+                                                                         tmp_path):
+    """The world has one clock (docs/protocol.md section 5.1): a car's own reset (at rest
+    or at speed) or load keeps the world's time in its state (before, its TIME_S restarted
+    at 0 while the other cars' went on), a car joining takes it, and the replay of the
+    car's log alone restarts its clock where the live one stood (the log's reset names it)."""
+    rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "b", "pose": {"x_m": 15.0, "y_m": 0.0}}],
+                   tmp_path)
+    a, b = rig.slots["a"].sim, rig.slots["b"].sim
+    rig.run(200)
+    assert rig.control("b", "reset")["ok"]
+    assert b.x[L.TIME_S] == a.x[L.TIME_S] > 0.19
+    rig.run(50)
+    req = LocalRequest("reset", json.dumps({"u_mps": 5.0}).encode())
+    rig.ports["b"].controls.pending.append(req)
+    for _ in range(100):  # the start at speed settles between ticks, then is swapped in
+        rig.run()
+        if req.body is not None:
+            break
+    assert req.answer["ok"]
+    assert b.x[L.U_MPS] > 4.0 and b.x[L.TIME_S] == a.x[L.TIME_S]
+    assert rig.control("b", "load", {"vehicle": str(HATCH)})["ok"]
+    rig.run(5)
+    assert b.x[L.TIME_S] == a.x[L.TIME_S]
+    spec, = cars_config.parse_cars(Path(FLAT), [{"id": "c", "pose": {"x_m": 60.0,
+                                                                      "y_m": 0.0}}])
+    scene, table = cars_config.new_car(spec, flat_scene, 0.001,
+                                       fleet.poses_now(list(rig.slots.values())))
+    slot = fleet.join_world(dataclasses.replace(rig.cfg, vehicle_id="c"), scene, table,
+                            rig.loop.world)
+    assert slot.sim.x[L.TIME_S] == a.x[L.TIME_S]
+    rig.run(10)
+    slot_b = rig.slots["b"]
+    slot_b.command_log.close(slot_b.steps_total, b.x)
+    replay = replay_command_log(tmp_path / "b.jsonl")
+    assert replay.final_state_matches
+    assert replay.final_state[L.TIME_S] == b.x[L.TIME_S]
+
+
 def test_a_car_added_and_one_removed_while_the_world_runs(flat_scene):
     rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "b", "pose": {"x_m": 15.0, "y_m": 0.0}}])
     rig.loop.world_message = fleet.WorldMessage(["a", "b"], ["client", "client"], every=10,

@@ -83,17 +83,31 @@ def test_discovery_the_world_message_and_a_single_car_client(two_cars):
     assert set(line["world"]) == {"car0", "car1"}
 
 
-@pytest.mark.parametrize(("cars", "error"), [
-    ("[{id: a}, {id: a, pose: {x_m: 30, y_m: 0}}]", "cars[1] (a): key 'id'"),
-    ("[{id: a}, {id: b, pose: {x_m: 2, y_m: 0}}]", "cars[1] (b): its start"),
-    ("[{id: a}, {id: b, pose: {x_m: 30, y_m: 0}}, {id: c, pose: {x_m: 60, y_m: 0}}]",
+ON_ROAD = "{road: '1', s: 20, lane: -1}"
+
+
+@pytest.mark.parametrize(("scene", "cars", "error"), [
+    ("flat_paper_sedan", "[{id: a}, {id: a, pose: {x_m: 30, y_m: 0}}]",
+     "cars[1] (a): key 'id'"),
+    ("flat_paper_sedan", "[{id: a}, {id: b, pose: {x_m: 2, y_m: 0}}]",
+     "cars[1] (b): its start"),
+    ("flat_paper_sedan",
+     "[{id: a}, {id: b, pose: {x_m: 30, y_m: 0}}, {id: c, pose: {x_m: 60, y_m: 0}}]",
      "key 'cars': 3 cars, more than max_cars (2)"),
+    # a car off the road, and a driver's path that leaves it (the one car of its list)
+    ("curves_elevation_paper_sedan", f"[{{id: a, start: {ON_ROAD}}}, "
+     "{id: b, pose: {x_m: 0, y_m: 500}}]", "cars[1] (b): the start (0.00, 500.00) m is "
+     "off the road"),
+    ("curves_elevation_paper_sedan", f"[{{id: a, start: {ON_ROAD}, driven_by: driver, "
+     "driver: {path: {points: [[0, 0], [50, 0], [50, 80]]}}}]",
+     "cars[0] (a): key 'driver.path'"),
 ])
-def test_a_bad_cars_list_stops_the_server_naming_the_file_and_the_car(tmp_path, cars, error):
+def test_a_bad_cars_list_stops_the_server_naming_the_file_and_the_car(tmp_path, scene, cars,
+                                                                      error):
     from simserver.testing import free_port
 
     config = tmp_path / "server.yaml"
-    config.write_text(f"scene: {REPO / 'configs' / 'scenes' / 'flat_paper_sedan.yaml'}\n"
+    config.write_text(f"scene: {REPO / 'configs' / 'scenes' / (scene + '.yaml')}\n"
                       f"max_cars: 2\ncars: {cars}\n")
     with OutputProcess([sys.executable, "-m", "simserver", "serve", "--config", str(config),
                         "--listen", f"tcp/127.0.0.1:{free_port()}", "--viewer", "off"]) as p:
@@ -157,3 +171,24 @@ def test_the_keyboard_driver_shows_the_car_ahead(two_cars):
     line = screen[screen.rindex("traffic ahead car1 "):].splitlines()[0]
     distance = float(line.split("traffic ahead car1 ")[1].split(" m")[0])
     assert 15.0 < distance < 60.0 and "behind -" in line, line
+
+
+def test_a_single_car_list_driven_by_the_driver_drives(tmp_path):
+    """A server config whose ``cars:`` list has one car, driven by the built-in driver:
+    the driver drives it (before, the tick stepped a lone car without calling the driver,
+    and the car, refusing commands, stood still at its start forever)."""
+    from simserver.adapters.zenoh_io import ZenohEndpoint
+
+    config = tmp_path / "server.yaml"
+    config.write_text(f"scene: {REPO / 'configs' / 'scenes' / 'flat_paper_sedan.yaml'}\n"
+                      "cars:\n  - id: solo\n    driven_by: driver\n    driver:\n"
+                      "      path: {points: [[-50.0, 0.0], [2000.0, 0.0]]}\n"
+                      "      idm: {v0_mps: 5.0}\n")
+    with ServerProcess(config=config, scene=None) as server, \
+            ZenohEndpoint(client_config(server.endpoint)) as ep:
+        watch = cw.WorldWatch(ep, "simserver")
+        world = wait_until(watch.poll, lambda w: w is not None and
+                           w.car("solo")["u_mps"] > 1.0, timeout_s=60)
+        assert world.ids == ("solo",)
+        assert world.car("solo")["x_m"] > 0.1
+        assert proto.DRIVEN_BY_CODES[int(world.car("solo")["driven_by"])] == "driver"

@@ -315,6 +315,38 @@ def test_cut_in_events_fire_in_storyboard_order(cut_in) -> None:  # noqa: ANN001
     assert cut_in.ended_by == "stop trigger"
 
 
+def test_crest_lane_change_plays_as_written_without_contact() -> None:
+    """esmini's lane_change_crest.xosc as shipped: Target2 overtakes Target1 in the Ego's
+    lane over the 13 % crest; the Ego stops short for the oncoming car (docs/model.md
+    section 15) instead of following it, so Target2 gets ahead of Target1 (the 0.25 s
+    headway), changes back in the 2 s cubic, and the Ego drives on to s = 350 m, the stop
+    trigger. Before the driver's oncoming rule the two cars stopped nose to nose and the
+    run ran out its duration with the lane change never started."""
+    from simserver.sim.xosc_run import play
+
+    run = play(XOSC / "lane_change_crest.xosc", duration_s=40.0)
+    assert run.ended_by == "stop trigger"
+    order = [(e["kind"], e["name"], e["to"]) for e in run.trace
+             if e["kind"] in ("event", "action", "storyboard")]
+    assert order == [("event", "LaneChangeEvent", "running"),
+                     ("action", "LaneChangeAction", "running"),
+                     ("action", "LaneChangeAction", "complete"),
+                     ("event", "LaneChangeEvent", "complete"),
+                     ("storyboard", "stop", "complete")], order
+    t = {(e["name"], e["to"]): e["t_s"] for e in run.trace}
+    # the cubic runs its 2 s; the trigger's headway is past 0.25 s when it fires
+    assert t["LaneChangeAction", "complete"] - t["LaneChangeAction", "running"] == \
+        pytest.approx(2.0, abs=0.011)
+    fired = next(e for e in run.trace if e["name"] == "LaneChangeEvent")
+    assert fired["cause"]["CutInStartCondition"]["Target1"] > 0.25
+    stop = next(e for e in run.trace if e["kind"] == "storyboard")
+    assert stop["cause"]["StopTrigger"]["Ego"] <= 1.0  # within the tolerance of s = 350
+    # the file intends a near miss, not a crash: no two bodies touched
+    assert run.result.contact_events == [] and run.result.contact_events_lost == 0
+    for result in run.result.cars.values():
+        assert np.isfinite(result.states).all()
+
+
 def test_every_element_changes_state_at_most_once_each_way() -> None:
     """A storyboard element goes standby -> running -> complete once (an event may run
     again up to its maximumExecutionCount): a finished story is not restarted every tick

@@ -111,6 +111,11 @@ CONTROL = ParamTable("driver", "the driver's path following, pedals and hold", (
           "from this station of the CG on, both pedals are released (the car coasts; "
           "ISO 3888-2's throttle released at the entry gate, docs/manoeuvres.md section 7)",
           default=1e7, slot=29),
+    Param("oncoming_stop", "-", 0.0, 1.0,
+          "1: a car ahead in the lane heading against the path (more than 90 degrees off "
+          "its tangent) is a stopped obstacle: the driver stops s0 before it; 0: such cars "
+          "are not obstacles (a car overtaking in the oncoming lane, docs/model.md "
+          "section 15)", default=1.0, slot=30),
     # derived: packed from the vehicle and the scenario, never read from a file
     Param("enabled", "-", None, None, "1: the driver drives the car; 0: an obstacle only",
           slot=19),
@@ -161,6 +166,7 @@ DP_STEER_PER_RAD = 26  # 1/rad, driver
 DP_MASS_KG = 27  # kg, driver
 DP_WHEEL_RADIUS_M = 28  # m, driver
 DP_COAST_FROM_S_M = 29  # m, driver
+DP_ONCOMING_STOP = 30  # -, driver
 # --- end of generated slot constants
 N_DRIVER_PARAM = slot_count(DRIVER_PARAMS)
 
@@ -211,6 +217,12 @@ LAUNCH_FORCE_MARGIN = 1.05  # the brake is released when drive force > margin x 
 SPEED_REF_BAND_MPS = 0.5  # anti-windup: the reference speed stays this close to the speed
 INTEGRAL_MAX_MPS2 = 3.0
 GAP_MIN_M = 0.01  # the IDM's gap is floored here (the interaction term's division)
+# A car ahead in the lane is a leader (followed at its speed along the path) only when its
+# heading is within this angle of the path's tangent at its projection; any other car in
+# the lane is an obstacle at rest (docs/model.md section 15): a crossing car or an oncoming
+# one (heading more than 90 degrees off, ignored with oncoming_stop 0).
+LEADER_HEADING_MAX_RAD = np.deg2rad(30.0)
+LEADER_HEADING_MIN_COS = float(np.cos(LEADER_HEADING_MAX_RAD))
 INF = np.inf
 
 
@@ -410,10 +422,21 @@ def _drive_car(world: WorldModel, data: WorldData, drv: Drivers, c: int) -> None
         other = drv.proj[j, p]
         if abs(other[PROJ_LAT_M]) > half or other[PROJ_S_M] <= s_cg:
             continue
-        g = other[PROJ_S_M] - drv.params[j, DP_REAR_M] - front
+        # its heading against the path's tangent where it is (docs/model.md section 15)
+        r = first + int(other[PROJ_SEG])
+        ex = drv.paths[r + 1, PATH_X_M] - drv.paths[r, PATH_X_M]
+        ey = drv.paths[r + 1, PATH_Y_M] - drv.paths[r, PATH_Y_M]
+        cos_h = (drv.pose[j, 2] * ex + drv.pose[j, 3] * ey) / max(np.sqrt(ex * ex + ey * ey),
+                                                                   1e-12)
+        if cos_h < 0.0 and dp[DP_ONCOMING_STOP] < 0.5:
+            continue  # oncoming, and this driver is told to pass it (overtaking)
+        # the bumper it faces: its rear when it goes our way, its front when oncoming
+        g = other[PROJ_S_M] - (drv.params[j, DP_REAR_M] if cos_h >= 0.0
+                               else drv.params[j, DP_FRONT_M]) - front
         if g < gap:
             gap = g
-            v_lead = other[PROJ_V_MPS]
+            # a leader is followed at its speed; a crossing or oncoming car is at rest
+            v_lead = other[PROJ_V_MPS] if cos_h >= LEADER_HEADING_MIN_COS else 0.0
             leader = j
     # ---- desired speed: the command, else the path's profile at the car
     seg = int(me[PROJ_SEG])

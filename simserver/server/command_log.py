@@ -211,6 +211,8 @@ def _check_log_entry(where: str, entry: Any, last_step: int) -> int:
             spec = {k: INITIAL_RANGES[k] for k in ("x_m", "y_m", "yaw_rad")}
             if isinstance(value, dict) and "u_mps" in value:  # a reset at speed (issue 17)
                 spec["u_mps"] = _control_ranges("reset")["u_mps"]
+            if isinstance(value, dict) and "time_s" in value:  # the world's clock it kept
+                spec["time_s"] = (0.0, MAX_REPLAY_STEPS * 1.0)
             _log_numbers(where, "reset", value, spec)
     elif kind == "set_road":
         _log_numbers(where, "set_road", value, _control_ranges("set_road"))
@@ -330,7 +332,10 @@ def replay_command_log(path: str | Path, progress: Any = None) -> Replay:
                 physics.inputs[:] = e["inputs"]
             elif "reset" in e:
                 pose = None if e["reset"] is None else dict(e["reset"])
+                clock = None if pose is None else pose.pop("time_s", None)
                 physics.reset(pose, None if pose is None else pose.pop("u_mps", None))
+                if clock is not None:  # a car of a shared world kept the world's time
+                    physics.x[L.TIME_S] = clock
             elif "set_road" in e:
                 physics.set_road(**e["set_road"])
             elif "load" in e:

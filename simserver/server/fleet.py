@@ -209,4 +209,5 @@ def log_start(slot: Any, car: CarSpec) -> None:
         "scene": str(slot.scene_path),
         "vehicle": None if car.vehicle is None else str(car.vehicle)}})
     log.write({"step": slot.steps_total,
-               "reset": {k: float(initial[k]) for k in ("x_m", "y_m", "yaw_rad")}})
+               "reset": slot.logged_start({k: float(initial[k])
+                                           for k in ("x_m", "y_m", "yaw_rad")})})

@@ -415,7 +415,7 @@ class ServerLoop:
         shared = len(self.slots) > 1 and len(worlds) == 1  # else each slot its own world
         for s, _ in self.slots:
             s.shared_world = shared
-        self.world = slot.sim.world if shared else None
+        self.world = slot.sim.world if shared or self._driven_alone() else None
         self._cars_changed()
         self.assemble_drivers()
 
@@ -441,13 +441,18 @@ class ServerLoop:
         shared = len(self.slots) > 1 and self.world is not None
         for s, _ in self.slots:
             s.shared_world = shared
-        if not shared:
+        if not shared and not self._driven_alone():
             self.world = None
         if self.live_drivers is not None:
             self.live_drivers.forget(slot.keys.vehicle)
         self._cars_changed()
         self.assemble_drivers()
         return ports
+
+    def _driven_alone(self) -> bool:
+        """One car, driven by the built-in driver (a ``cars:`` list of one): the tick
+        steps its world as the world's (``drive`` writes its inputs first)."""
+        return len(self.slots) == 1 and self.slots[0][0].driven_by == "driver"
 
     def assemble_drivers(self, fresh: bool = False) -> None:
         """The driver arrays of the world's cars now (between ticks: after a car is added

@@ -462,7 +462,15 @@ class VehicleSlot:
         self.steps_to_run = 0
         self._stopped = True
         self.state_finite = bool(np.isfinite(p.x).all())
-        self._log({"step": self.steps_total, "reset": pose})
+        self._log({"step": self.steps_total, "reset": self.logged_start(pose)})
+
+    def logged_start(self, pose: dict[str, float] | None) -> dict[str, float] | None:
+        """A reset's value in the command log: the pose, and in a shared world the world's
+        time the car kept (one clock, ``Simulation.commit``): the replay, a car alone,
+        restarts its clock there."""
+        if pose is None or not self.shared_world:
+            return pose
+        return {**pose, "time_s": float(self.sim.x[L.TIME_S])}
 
     def warm_up(self) -> None:
         """Compile every kernel the tick uses (simulation and state record) before the clock."""
@@ -516,7 +524,7 @@ class VehicleSlot:
             start = pose if pose is not None else p.scene.initial
             start_pose = {key: float(start[key]) for key in ("x_m", "y_m", "yaw_rad")}
             logged = pose if u_mps is None else {**start_pose, "u_mps": float(u_mps)}
-            self._log({"step": self.steps_total, "reset": logged})
+            self._log({"step": self.steps_total, "reset": self.logged_start(logged)})
             reply = {"tick": 0, "pose": start_pose}
             if u_mps is not None:
                 reply["u_mps"] = float(p.x[L.U_MPS])
@@ -623,7 +631,7 @@ class VehicleSlot:
                 else str(vehicle_path)}})
             if start is not None:  # a replay loads the scene's start, then goes to the car's
                 self._log({"step": self.steps_total, "set_road": dict(self.sim.road)})
-                self._log({"step": self.steps_total, "reset": start})
+                self._log({"step": self.steps_total, "reset": self.logged_start(start)})
             return {"vehicle": self._shown(self.sim.scene.vehicle.path),
                     "scene": self._shown(scene_path)}
 

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from simserver.adapters.validate import ConfigError, confined_to
+from simserver.core.layout import TIME_S
 from simserver.server import cars_config, fleet
 from simserver.server.load_worker import opened
 from simserver.wire import protocol as proto
@@ -171,6 +172,8 @@ class WorldDesk:
             return
         self._resetting = None
         current = [s for s, _ in self.loop.slots]
+        # the world's one clock restarts at 0 (each car's commit keeps the world's time)
+        current[0].sim.world.data.x[:, TIME_S] = 0.0
         for slot, start in zip(slots, staged, strict=True):
             if slot in current:  # not removed meanwhile
                 start.commit()

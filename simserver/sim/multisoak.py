@@ -361,8 +361,6 @@ def run_multi_soak(scene: Scene, n_cars: int, duration_s: float, seed: int = 0,
             sims[0].reset({"x_m": x0, "y_m": PAIR_LANE_Y_M, "yaw_rad": 0.0})
             sims[1].reset({"x_m": x0 - car_len - PAIR_GAP_M, "y_m": PAIR_LANE_Y_M,
                            "yaw_rad": 0.0}, u_mps=PAIR_SPEED_MPS)
-            # a reset starts the car's clock at 0: keep the world's (events carry it)
-            world.data.x[0:2, L.TIME_S] = now_s
         if traffic and now_s >= lead_stop_until and rng.random() < 0.5:
             lead = traffic[0]  # stop-and-go at the head of the queue
             station = float(drivers.state[lead, D.DS_STATION_M])

@@ -20,6 +20,7 @@ benchmarks and the tests all use it, so they run the very same arithmetic.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -409,6 +410,9 @@ class Simulation:
             old.remove_car(self.car_id)
         self.world = world
         self._views_generation = -1
+        others = [c for c in world.ids if c != self.car_id]
+        if others:  # one clock: a car joining a running world takes the world's time
+            self.data.x[L.TIME_S] = world.data.x[world.index(others[0]), L.TIME_S]
 
     @property
     def vp(self) -> np.ndarray:
@@ -512,7 +516,14 @@ class Simulation:
                 self.world.set_terrain(new.terrain)
             self.scene = prepared.scene
         data = self.data
+        # one clock per world (docs/protocol.md section 5.1): a car that shares its world
+        # with others keeps the world's time through its reset or load (its events and
+        # states carry the world's time); a car alone restarts it at 0, as always
+        clock = float(data.x[L.TIME_S]) if self.world is not None and \
+            len(self.world) > 1 else None
         data.x[:] = prepared.data.x
+        if clock is not None and math.isfinite(clock):
+            data.x[L.TIME_S] = clock
         for live, ready in zip(data.ws, prepared.data.ws, strict=True):  # see _prepare
             live[...] = ready
         if prepared.settled:  # the forces of the last settling step, as before

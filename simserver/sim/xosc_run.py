@@ -764,6 +764,7 @@ def setup(path: str | Path, duration_s: float = DEFAULT_DURATION_S, dt_s: float 
         f._od = od
     cars: dict[str, Car] = {}
     speeds: dict[str, X.Action] = {}
+    wrong_way: dict[str, bool] = {}
     for k, (name, ent) in enumerate(sc.entities.items()):
         tele = [a for a in sc.init[name] if a.kind == "TeleportAction"]
         if not tele:
@@ -786,6 +787,10 @@ def setup(path: str | Path, duration_s: float = DEFAULT_DURATION_S, dt_s: float 
         else:
             direction = 1.0 if math.cos(heading - hdg) >= 0 else -1.0
         cars[name] = Car(name, k, ent.vehicle, frame, direction, s=s, t=t)
+        # a car set against its lane's direction of travel overtakes in the oncoming lane:
+        # it does not stop for the cars coming its way (docs/openscenario.md)
+        lane_along = (frame.lane_at(s, t) < 0) == (frame.road.rule == "RHT")
+        wrong_way[name] = lane_along != (direction > 0)
         sp = [a for a in sc.init[name] if a.kind == "SpeedAction"]
         if sp:
             speeds[name] = sp[-1]
@@ -814,6 +819,7 @@ def setup(path: str | Path, duration_s: float = DEFAULT_DURATION_S, dt_s: float 
             "driver": {"path": {"points": np.column_stack([px, py]).tolist()},
                        "idm": {"v0_mps": max(car.u, 0.1), "a_mps2": TRACKING_IDM_A_MPS2,
                                "delta": TRACKING_IDM_DELTA},
+                       **({"oncoming_stop": 0.0} if wrong_way[name] else {}),
                        **_vehicle_block(car.vehicle, path)}})
     data = {"name": path.stem, "description": sc.description,
             "terrain": {"kind": "opendrive", "file": str(sc.road_file),
@@ -955,5 +961,9 @@ def _run(sc: X.Scenario, ws: WorldScenario, cars: dict[str, Car]) -> XoscRun:
             driver_states=np.ascontiguousarray(dstates[:rows, c]))
     bumpers = {cid: (float(drivers.params[c, D.DP_FRONT_M]),
                      float(drivers.params[c, D.DP_REAR_M])) for c, cid in enumerate(ids)}
-    return XoscRun(sc, WorldResult(ws, out, wall), board.trace, rows * every * dt, ended_by,
+    # the contacts of the run (core.contact's ring; a run of the shipped files has none)
+    events, _, lost = world.contact_events(0)
+    return XoscRun(sc, WorldResult(ws, out, wall, contact_events=events,
+                                   contact_events_lost=lost),
+                   board.trace, rows * every * dt, ended_by,
                    wall, bumpers, physics, cpu)

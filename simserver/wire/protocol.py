@@ -1910,7 +1910,9 @@ WORLD_CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
         ControlSpec(
             "reset",
             "Every car back to its start, at rest, all in the same tick (each car's own "
-            "`reset` without arguments: its tick restarts at 0, its log has the line). The "
+            "`reset` without arguments: its tick restarts at 0, its log has the line), and "
+            "the world's one clock (every state's `time_s`) back to 0; a car's own `reset` "
+            "or `load` keeps the world's time. The "
             "cars' start states are made one car a tick beside the running world, then "
             "swapped in together; answered then (within about one tick per car).",
             reply='"cars": [ids]',
