@@ -715,7 +715,7 @@ def soak_command(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from simserver.sim.scene import load_scene
+    from simserver.sim.scene_files import load_scene
     from simserver.sim.soak import run_soak
 
     if not (math.isfinite(args.duration) and 0.0 < args.duration <= 1e7):

@@ -100,7 +100,7 @@ def scene_terrain(scene_file: Path) -> tuple[Any, dict[str, Any] | None]:
     key = (str(scene_file), scene_file.stat().st_mtime_ns)
     if key not in _TERRAINS:
         if scene_file.suffix == ".xosc":  # an OpenSCENARIO file: its road (its ego's scene)
-            from simserver.sim.scene import load_scene
+            from simserver.sim.scene_files import load_scene
 
             spec = load_scene(scene_file).terrain_spec
         else:

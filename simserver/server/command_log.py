@@ -18,7 +18,8 @@ from simserver.adapters.validate import ConfigError, check_keys, number, short_r
 from simserver.core import layout as L
 from simserver.server.config import SERVER_KEYS
 from simserver.server.logfile import LogWriter, open_log_file
-from simserver.sim.scene import INITIAL_RANGES, Scene, load_scene
+from simserver.sim.scene import INITIAL_RANGES, Scene
+from simserver.sim.scene_files import load_scene
 from simserver.sim.simulation import Simulation
 from simserver.wire import protocol as proto
 

@@ -34,7 +34,8 @@ from simserver.core.contact import CC_ACTIVE, CC_FORCE_X_N, CC_FORCE_Y_N
 from simserver.core.terrain import TERRAIN_KINDS, TERRAIN_PLANE
 from simserver.server.load_worker import release_later
 from simserver.server.logfile import RateLimitedLog
-from simserver.sim.scene import Scene, load_scene
+from simserver.sim.scene import Scene
+from simserver.sim.scene_files import load_scene
 from simserver.wire import protocol as proto
 from simserver.wire.state_schema import SERVER_FIELDS, fill_record
 

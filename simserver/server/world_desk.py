@@ -47,7 +47,7 @@ def prepare_added_car(car_id: str, vehicle: str | None, pose: dict[str, float] |
     vehicle path))`` or ``("error", field, message)`` (errors as data: they cross a process
     boundary)."""
     from simserver.server.slot import redacted, resolve_config_path
-    from simserver.sim.scene import load_scene
+    from simserver.sim.scene_files import load_scene
 
     try:
         vehicle_path = None if vehicle is None else resolve_config_path(

@@ -44,7 +44,8 @@ import numpy as np
 
 from simserver.adapters.validate import ConfigError
 from simserver.server.command_log import read_command_log
-from simserver.sim.scene import Scene, load_scene
+from simserver.sim.scene import Scene
+from simserver.sim.scene_files import load_scene
 from simserver.sim.simulation import Simulation, World
 
 

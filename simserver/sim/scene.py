@@ -143,14 +143,10 @@ def load_scene(path: str | Path, vehicle_path: str | Path | None = None) -> Scen
     """Load a scene file: ``vehicle``, ``road``, ``initial`` and ``model`` as in a scenario.
 
     A scenario file is also a scene (its start): its timing and inputs are ignored here,
-    so the live server can start from any headless scenario; an OpenSCENARIO ``.xosc`` is
-    its ego's start (``simserver.sim.xosc_run.xosc_scene``).
+    so the live server can start from any headless scenario. This reads YAML; any scene
+    file, an OpenSCENARIO ``.xosc`` included, is read by ``simserver.sim.scene_files``.
     """
     path = Path(path)
-    if path.suffix.lower() == ".xosc":  # OpenSCENARIO: its ego's start (docs/openscenario.md)
-        from simserver.sim.xosc_run import xosc_scene
-
-        return xosc_scene(path, vehicle_path)
     data = read_yaml(path)
     check_keys(path, data, ("name", "description", *SCENE_KEYS, *SCENARIO_ONLY_KEYS),
                required=("vehicle",))
