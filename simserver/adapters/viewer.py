@@ -70,6 +70,11 @@ DEFAULT_FPS = 50.0
 """Frames the viewer draws per simulated second (``simserver view --fps``, the server's
 ``viewer_fps``): what a ``save:`` recording grows with (docs/clients.md section 5b)."""
 
+WEB_FPS = 5.0
+"""Frames per simulated second when the view serves Rerun's web viewer (``--web-port``)
+and ``--fps`` is not given: a browser without a GPU draws a few frames a second, and every
+frame sent costs its page's thread (docs/clients.md section 5c)."""
+
 DEFAULT_WAIT_S = 60.0
 """How long ``simserver view`` waits for its server's first ``get_config`` reply
 (``--wait``). On a busy machine the viewer runs at idle priority (``lower_priority``) and
@@ -555,13 +560,16 @@ class _Recordings:
         """serve: the first stream owns the gRPC server every segment goes to."""
 
     def _open(self, segment: int) -> Any:
-        from simserver.adapters.rerun_sink import open_recording, segment_sink
+        from simserver.adapters.rerun_sink import WEB_FLUSH_TICK_S, open_recording, segment_sink
 
         mode, target = segment_sink(self.mode, self.target, segment)
+        # every segment that reaches the web viewer is flushed at its pace
+        web = self.mode == "serve" and self.web_port is not None
         return open_recording(mode, target, application_id="simserver",
                               recording_id=segment_recording_id(self.base_id, segment),
                               web_port=self.web_port if segment == 0 else None,
-                              check_listener=self.check_listener)
+                              check_listener=self.check_listener,
+                              flush_tick_s=WEB_FLUSH_TICK_S if web else None)
 
     @staticmethod
     def _end(rec_stream: Any) -> None:
