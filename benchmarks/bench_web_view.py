@@ -54,9 +54,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--every", type=float, default=20.0)
     parser.add_argument("--hogs", type=int, default=0)
     parser.add_argument("--before", action="store_true")
+    parser.add_argument("--normal-priority", action="store_true",
+                        help="run the view at normal CPU priority (default: idle)")
     args = parser.parse_args(argv)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     extra: list[str] = []
+    if args.normal_priority:
+        extra.append("--normal-priority")
     if args.before:
         extra = ["--fps", "50"]
         env["RERUN_FLUSH_TICK_SECS"] = "0.2"
@@ -94,6 +98,8 @@ def main(argv: list[str] | None = None) -> dict:
                         shot = None
             finally:
                 viewer.stop()
+                stats = [ln for ln in viewer.text().splitlines() if ln.startswith("viewer:")]
+                print(stats[-1] if stats else viewer.text()[-400:], flush=True)
     finally:
         for hog in hogs:
             hog.kill()

@@ -334,8 +334,11 @@ def open_recording(
         rec.save(path, default_blueprint=default_blueprint)
         say(f"rerun: recording to {path}")
     elif mode == "serve":
+        # a browser opened late starts from the present, not from a replay of every
+        # chunk since the start (it takes them in slowly: WEB_FLUSH_TICK_S)
         sink = rr.GrpcServerSink(bind_ip=host, port=port,
-                                 server_memory_limit=server_memory_limit)
+                                 server_memory_limit=server_memory_limit,
+                                 newest_first=web_port is not None)
         rec.set_sinks(sink, default_blueprint=default_blueprint)
         grpc_url = sink.uri
         if web_port is not None:
