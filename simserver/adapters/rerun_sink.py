@@ -17,7 +17,8 @@ one) with Rerun's ``log_time`` timeline switched off, or None for ``off``. The m
     a free port: it always binds all interfaces in rerun-sdk 0.41 and serves only the
     viewer's HTML and wasm); both run until the process exits (there is no call to stop
     them); pass ``web_port=None`` to skip them. A stream that feeds the web viewer is
-    flushed every ``WEB_FLUSH_TICK_S`` (fewer, larger chunks for a slow browser). From
+    flushed every ``WEB_FLUSH_TICK_S`` (fewer, larger chunks for a slow browser), and its
+    gRPC server sends newest first (a late browser starts from live). From
     another machine, tunnel both ports (``ssh -L 9090:127.0.0.1:9090 -L
     9876:127.0.0.1:9876``). Returns at once; a late viewer gets what is buffered
     (``server_memory_limit``); ``rec.disconnect()`` stops the gRPC server.
