@@ -736,7 +736,8 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
                              "a viewer that is gone: logging then buffers in this process)")
     parser.add_argument("--normal-priority", action="store_true",
                         help="keep normal CPU priority (default: idle priority, so the view "
-                             "only uses CPU time a server on the same machine does not want)")
+                             "only uses CPU time a server on the same machine does not want; "
+                             "nice 10 with --web-port, docs/clients.md section 5c)")
 
 
 def view_command(args: argparse.Namespace) -> int:

@@ -27,6 +27,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
+from simserver.adapters.viewer import WEB_NICE
 from simserver.testing import OutputProcess, ServerProcess, free_port, wait_until
 from simserver.testing.browser import (
     Browser,
@@ -104,6 +105,8 @@ def draws_the_car(server: ServerProcess, tmp: Path) -> tuple[bool, str]:
         code = viewer.stop(timeout_s=60.0)
     assert "Traceback" not in viewer.text(), viewer.text()
     assert code == 0, viewer.text()
+    # not SCHED_IDLE: an idle view beside two CPU hogs got no CPU (viewer.WEB_NICE)
+    assert f"CPU priority nice {WEB_NICE}" in viewer.text(), viewer.text()[-300:]
     return drawn, (f"{time.monotonic() - t0:.0f} s, page holds {seen}; viewer: "
                    f"{viewer.text()[-600:]}")
 
