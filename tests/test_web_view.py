@@ -27,6 +27,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
+from simserver.adapters.rerun_scene import BODY_SHELL, WHEEL_TIRES
 from simserver.adapters.viewer import WEB_NICE
 from simserver.testing import OutputProcess, ServerProcess, free_port, wait_until
 from simserver.testing.browser import (
@@ -42,6 +43,8 @@ pytestmark = [pytest.mark.timeout(3600),
                                  reason="needs Debian's chromium (apt-get install chromium)")]
 
 CAR_ENTITY = "/world/car"
+CAR_PARTS = {"/" + BODY_SHELL, *("/" + t for t in WHEEL_TIRES)}
+"""The car's body and tires (``rerun_scene``): what is drawn of it."""
 DRAW_TIMEOUT_S = 240.0
 """How long one start may take to draw the car in the page (server up; a starved 2-core
 machine: the page's wasm alone takes 10-35 s to compile there)."""
@@ -89,7 +92,9 @@ def draws_the_car(server: ServerProcess, tmp: Path) -> tuple[bool, str]:
                     return False
                 paths, newest = recording_extent(rrd, CAR_ENTITY)
                 seen.update(entities=len(paths), newest_sim_time_s=newest)
-                return newest is not None and any(p.startswith(CAR_ENTITY) for p in paths)
+                # the car's frames and its drawn parts: with newest first the static
+                # body and wheels may come after the first frames
+                return newest is not None and CAR_PARTS <= paths
 
             try:
                 wait_until(car_frames, timeout_s=DRAW_TIMEOUT_S, interval_s=2.0,
