@@ -774,8 +774,9 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
                              "drawn too (world/cars/ID, default car0)")
     parser.add_argument("--prefix", default="simserver")
     parser.add_argument("--fps", type=float, default=None,
-                        help="frames drawn per simulated second (default 50; a save: "
-                             "recording grows with it, docs/clients.md section 5b)")
+                        help="frames drawn per simulated second (default 50, 5 with "
+                             "--web-port; a save: recording grows with it, docs/clients.md "
+                             "section 5b)")
     parser.add_argument("--web-port", type=int, default=None, metavar="PORT",
                         help="serve: also host Rerun's web viewer on PORT (rerun-sdk 0.41 "
                              "binds it to all interfaces; off by default)")
@@ -786,13 +787,20 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
                              "a viewer that is gone: logging then buffers in this process)")
     parser.add_argument("--normal-priority", action="store_true",
                         help="keep normal CPU priority (default: idle priority, so the view "
-                             "only uses CPU time a server on the same machine does not want)")
+                             "only uses CPU time a server on the same machine does not want; "
+                             "nice 10 with --web-port, docs/clients.md section 5c)")
 
 
 def view_command(args: argparse.Namespace) -> int:
     """``simserver view``: the live Rerun scene of a running server (its own process)."""
     from simserver.adapters.rerun_sink import RerunSinkError
-    from simserver.adapters.viewer import DEFAULT_FPS, DEFAULT_WAIT_S, ServerWaitError, run_viewer
+    from simserver.adapters.viewer import (
+        DEFAULT_FPS,
+        DEFAULT_WAIT_S,
+        WEB_FPS,
+        ServerWaitError,
+        run_viewer,
+    )
     from simserver.adapters.zenoh_io import ZenohConfigError
 
     # a --zenoh-config keeps its own endpoints (a TLS client's server name) unless
@@ -802,7 +810,9 @@ def view_command(args: argparse.Namespace) -> int:
     if not wait_s >= 0:
         raise CliError(f"--wait {args.wait:g}: expected a number of seconds >= 0",
                        exit_code=2)
-    fps = DEFAULT_FPS if args.fps is None else args.fps
+    fps = args.fps
+    if fps is None:  # a web viewer gets fewer frames (docs/clients.md section 5c)
+        fps = WEB_FPS if args.web_port is not None else DEFAULT_FPS
     if not 0.1 <= fps <= 1000.0:
         raise CliError(f"--fps {args.fps:g}: expected frames per simulated second from 0.1 "
                        "to 1000", exit_code=2)

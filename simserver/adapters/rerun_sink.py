@@ -11,13 +11,17 @@ one) with Rerun's ``log_time`` timeline switched off, or None for ``off``. The m
     A gRPC server in this process plus the web viewer; ``target`` is ``[HOST:]PORT`` of
     the gRPC server (default ``127.0.0.1:9876``). The URL to open is printed. The gRPC
     server binds to 127.0.0.1 unless another host is given (``0.0.0.0`` to let other
-    machines connect). The web viewer (``rr.serve_web_viewer``, port ``web_port``,
-    default 9090) serves only the viewer's HTML and wasm and always binds all
-    interfaces in rerun-sdk 0.41, and runs until the process exits (there is no call to
-    stop it); pass ``web_port=None`` to skip it. From another machine, tunnel both ports
-    (``ssh -L 9090:127.0.0.1:9090 -L 9876:127.0.0.1:9876``). Returns at once; a late
-    viewer gets what is buffered (``server_memory_limit``); ``rec.disconnect()`` stops the
-    gRPC server.
+    machines connect). The web viewer (port ``web_port``, default 9090) is served
+    offline on the gRPC server's host (``web_viewer_host``: no telemetry, no update
+    check, no web fonts) in front of Rerun's own web server (``rr.serve_web_viewer``, on
+    a free port: it always binds all interfaces in rerun-sdk 0.41 and serves only the
+    viewer's HTML and wasm); both run until the process exits (there is no call to stop
+    them); pass ``web_port=None`` to skip them. A stream that feeds the web viewer is
+    flushed every ``WEB_FLUSH_TICK_S`` (fewer, larger chunks for a slow browser), and its
+    gRPC server sends newest first (a late browser starts from live). From
+    another machine, tunnel both ports (``ssh -L 9090:127.0.0.1:9090 -L
+    9876:127.0.0.1:9876``). Returns at once; a late viewer gets what is buffered
+    (``server_memory_limit``); ``rec.disconnect()`` stops the gRPC server.
 ``connect``
     Stream to a running viewer's gRPC URL (``target``, default
     ``rerun+http://127.0.0.1:9876/proxy``; start one with ``rerun``). Checked first with a
@@ -65,6 +69,14 @@ CONNECT_CHECK_TIMEOUT_S = 0.5
 
 DEFAULT_SERVER_MEMORY_LIMIT = "512MiB"
 """What ``serve`` buffers for late viewers (the oldest data is dropped beyond it)."""
+
+WEB_FLUSH_TICK_S = 2.0
+"""How often a stream that feeds the web viewer sends what it logged (``serve`` with a
+``web_port``; Rerun's default is 0.2 s). Rerun sends a chunk per entity and flush (some 46
+entities), and the web viewer takes them in on the page's thread, which on this GPU-less
+2-core machine also draws every frame in software (SwiftShader): with Rerun's flush the
+browser fell further behind live the longer it ran; with this one it catches up
+(docs/clients.md section 5c). Live data reaches the browser up to this much later."""
 
 
 class RerunSinkError(ValueError):
@@ -198,6 +210,22 @@ def segment_sink(mode: str, target: str | None, segment: int) -> tuple[str, str 
     return "connect", f"rerun+http://127.0.0.1:{port}/proxy"
 
 
+def _serve_web_viewer(host: str, web_port: int, grpc_url: str) -> None:
+    """Rerun's web viewer for ``grpc_url`` at ``host:web_port``, offline
+    (``web_viewer_host``: no telemetry, no update check, no web fonts): Rerun's own web
+    server on a free port, the offline host in front of it."""
+    from simserver.adapters.web_viewer_host import WebHostError, serve_offline
+
+    with socket.socket() as s:  # a free port for Rerun's own web server
+        s.bind(("127.0.0.1", 0))
+        rerun_port = s.getsockname()[1]
+    rr.serve_web_viewer(web_port=rerun_port, open_browser=False, connect_to=grpc_url)
+    try:
+        serve_offline(host, web_port, rerun_port, grpc_url)
+    except (OSError, WebHostError) as exc:
+        raise RerunSinkError(f"rerun serve: the web viewer on {host}:{web_port}: {exc}") from exc
+
+
 def open_recording(
     mode: str,
     target: str | os.PathLike[str] | None = None,
@@ -209,6 +237,7 @@ def open_recording(
     server_memory_limit: str = DEFAULT_SERVER_MEMORY_LIMIT,
     check_listener: bool = True,
     announce: Callable[[str], None] | None = _stderr,
+    flush_tick_s: float | None = None,
 ) -> rr.RecordingStream | None:
     """Open a recording stream on the sink ``mode``.
 
@@ -233,6 +262,10 @@ def open_recording(
         ``connect``: refuse at once if nothing accepts a TCP connection at the URL.
     announce : callable, optional
         Called with one line saying where the data goes (default: print to stderr).
+    flush_tick_s : float, optional
+        How often the stream sends what was logged (Rerun's default 0.2 s); None: Rerun's
+        default, or ``WEB_FLUSH_TICK_S`` for ``serve`` with a ``web_port``; Rerun's
+        ``RERUN_FLUSH_TICK_SECS`` in the environment wins over both.
 
     Returns
     -------
@@ -275,7 +308,7 @@ def open_recording(
         host, port = _split_host_port(mode, target_text, DEFAULT_SERVE_HOST, DEFAULT_GRPC_PORT)
         _check_port_free(mode, host, port)
         if web_port is not None:
-            _check_port_free(mode, "0.0.0.0", web_port)
+            _check_port_free(mode, host, web_port)
     elif mode == "connect":
         url = target_text or DEFAULT_CONNECT_URL
         if check_listener:
@@ -290,19 +323,29 @@ def open_recording(
             raise RerunSinkError("rerun spawn: no `rerun` viewer executable on PATH or beside "
                                  f"{sys.executable}")
 
-    rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()))
+    if flush_tick_s is None and mode == "serve" and web_port is not None:
+        flush_tick_s = WEB_FLUSH_TICK_S
+    if os.environ.get("RERUN_FLUSH_TICK_SECS"):  # Rerun's own setting, when given, wins
+        flush_tick_s = None
+    batcher = None if flush_tick_s is None else rr.ChunkBatcherConfig(flush_tick=flush_tick_s)
+    rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()),
+                             batcher_config=batcher)
     rec.set_log_time_enabled(False)
     if mode == "save":
         rec.save(path, default_blueprint=default_blueprint)
         say(f"rerun: recording to {path}")
     elif mode == "serve":
+        # a browser opened late starts from the present, not from a replay of every
+        # chunk since the start (it takes them in slowly: WEB_FLUSH_TICK_S)
         sink = rr.GrpcServerSink(bind_ip=host, port=port,
-                                 server_memory_limit=server_memory_limit)
+                                 server_memory_limit=server_memory_limit,
+                                 newest_first=web_port is not None)
         rec.set_sinks(sink, default_blueprint=default_blueprint)
         grpc_url = sink.uri
         if web_port is not None:
-            rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=grpc_url)
-            say(f"rerun: serving; open {web_viewer_url(grpc_url, web_port)} "
+            web_host = host if host not in ("0.0.0.0", "::", "") else DEFAULT_SERVE_HOST
+            _serve_web_viewer(host, web_port, grpc_url)
+            say(f"rerun: serving; open {web_viewer_url(grpc_url, web_port, web_host)} "
                 f"(or `rerun {grpc_url}`)")
         else:
             say(f"rerun: serving; open with `rerun {grpc_url}`")

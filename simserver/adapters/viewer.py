@@ -73,6 +73,11 @@ DEFAULT_FPS = 50.0
 """Frames the viewer draws per simulated second (``simserver view --fps``, the server's
 ``viewer_fps``): what a ``save:`` recording grows with (docs/clients.md section 5b)."""
 
+WEB_FPS = 5.0
+"""Frames per simulated second when the view serves Rerun's web viewer (``--web-port``)
+and ``--fps`` is not given: a browser without a GPU draws a few frames a second, and every
+frame sent costs its page's thread (docs/clients.md section 5c)."""
+
 DEFAULT_WAIT_S = 60.0
 """How long ``simserver view`` waits for its server's first ``get_config`` reply
 (``--wait``). On a busy machine the viewer runs at idle priority (``lower_priority``) and
@@ -273,8 +278,18 @@ def rows_from_state(rec: np.ndarray, axes: np.ndarray, cg_height_m: float,
     out[L.O_TAN_ALPHA] = rec["tan_alpha_lag"]
 
 
-def lower_priority() -> str:
-    """Put this process's threads, and every thread they start, at idle CPU priority.
+WEB_NICE = 10
+"""The view's CPU priority when it serves Rerun's web viewer (``--web-port``): a ``nice``
+level instead of ``SCHED_IDLE``. An idle thread runs only when a core has nothing else to
+do, and beside two CPU-bound processes on 2 cores that is never: such a view used 1 s of
+CPU in 6 minutes and its page stayed empty (``tests/test_web_view.py``, slow form). At
+nice 10 it gets about a tenth of a busy core's share; a real-time server
+(``SCHED_FIFO``) still pre-empts it, and a normal one meets it at a tenth of its weight."""
+
+
+def lower_priority(nice: int | None = None) -> str:
+    """Put this process's threads, and every thread they start, at idle CPU priority
+    (or, given ``nice``, at that ``nice`` level of the normal policy).
 
     Linux ``SCHED_IDLE``: the threads run only when a core has nothing else to do, so the
     1 kHz server never waits for the viewer to be descheduled. The policy is per thread
@@ -282,6 +297,19 @@ def lower_priority() -> str:
     thread of ``/proc/self/task``; threads started later inherit it. Elsewhere the lowest
     ``nice``. Returns what was applied (for the log), or why nothing was.
     """
+    if nice is not None:  # per thread on Linux, inherited by the threads they start
+        try:
+            for tid in os.listdir("/proc/self/task"):
+                try:
+                    os.setpriority(os.PRIO_PROCESS, int(tid), nice)
+                except ProcessLookupError:
+                    pass
+        except (AttributeError, OSError):
+            try:
+                os.nice(nice)
+            except (AttributeError, OSError) as exc:
+                return f"normal (could not lower: {exc})"
+        return f"nice {nice}"
     try:
         for tid in os.listdir("/proc/self/task"):
             try:
@@ -411,14 +439,16 @@ def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
         ``connect``: refuse at once when nothing listens at the URL.
     idle_priority : bool
         Run at idle CPU priority (``lower_priority``), the default: on the server's
-        machine the view must only use CPU time the physics does not want.
+        machine the view must only use CPU time the physics does not want. With a
+        ``web_port``, at ``WEB_NICE`` instead.
     wait_s : float
         How long to wait for the server's first ``get_config`` reply, and for a client-mode
         session to open (``wait_for_config``), before ``ServerWaitError``.
     """
     stats = ViewerStats()
     if idle_priority:  # before the sessions: the threads they start inherit it
-        stats.cpu_priority = lower_priority()
+        # a web view feeds a person's browser: a nice level, not idle (WEB_NICE)
+        stats.cpu_priority = lower_priority(WEB_NICE if web_port is not None else None)
     from simserver.adapters.rerun_fleet import FleetLogger
     from simserver.adapters.rerun_scene import RateGate
     from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config
@@ -586,13 +616,16 @@ class _Recordings:
         """serve: the first stream owns the gRPC server every segment goes to."""
 
     def _open(self, segment: int) -> Any:
-        from simserver.adapters.rerun_sink import open_recording, segment_sink
+        from simserver.adapters.rerun_sink import WEB_FLUSH_TICK_S, open_recording, segment_sink
 
         mode, target = segment_sink(self.mode, self.target, segment)
+        # every segment that reaches the web viewer is flushed at its pace
+        web = self.mode == "serve" and self.web_port is not None
         return open_recording(mode, target, application_id="simserver",
                               recording_id=segment_recording_id(self.base_id, segment),
                               web_port=self.web_port if segment == 0 else None,
-                              check_listener=self.check_listener)
+                              check_listener=self.check_listener,
+                              flush_tick_s=WEB_FLUSH_TICK_S if web else None)
 
     @staticmethod
     def _end(rec_stream: Any) -> None:
