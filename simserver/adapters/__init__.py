@@ -7,4 +7,4 @@ reader, docs/openscenario.md), the value checks every reader shares
 world in one table with a ``car_id`` column; ``plots``), zenoh sessions with safe
 defaults (``zenoh_io``, ``tls_front``), Rerun (``rerun_scene``, ``rerun_sink``,
 ``rerun_terrain``) and the live viewer (``viewer``: a separate process drawing the
-published states in Rerun)."""
+published states in Rerun; ``web_viewer_host``: its web page served offline)."""

@@ -7,5 +7,6 @@ several on one terrain (``scenario``) with their keyframed inputs (``keyframes``
 and sampled without the core, also for the player; or driven closed loop by the built-in
 driver, ``core.driver``, or held at a speed for the constant-speed manoeuvres,
 ``speed_hold``), OpenSCENARIO files played with physical cars (``xosc_run``,
-docs/openscenario.md), any scene file by its kind, YAML or ``.xosc`` (``scene_files``), the seeded soak (``soak``) and its multi-car form (``multisoak``: a
-bumping pair, traffic on the built-in driver, random drives, in one world)."""
+docs/openscenario.md), any scene file by its kind, YAML or ``.xosc`` (``scene_files``),
+the seeded soak (``soak``) and its multi-car form (``multisoak``: a bumping pair, traffic
+on the built-in driver, random drives, in one world)."""
