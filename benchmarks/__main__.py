@@ -837,9 +837,13 @@ def render(report: Report, sections: list[str]) -> str:
         "scheduled as the tick thread and beside the same hogs, 10 s just before and after "
         "the server (`--floor-seconds`): the VM's own lateness in the same minutes.",
         "- Start-up: launch of `python -m simserver serve --viewer off` to its `ready` line "
-        "(kernels compiled or loaded, zenoh open, before the first tick). Cold: "
-        "`NUMBA_CACHE_DIR` an empty directory (Python bytecode already compiled); warm: the "
-        "same directory again. Headless commands: `python -m simserver run-scenario` (E2, "
+        "(kernels compiled or loaded, zenoh open, before the first tick), and the server's "
+        "CPU seconds at that line (`/proc/PID/stat`; on a shared machine the steadier "
+        "figure). Cold: `NUMBA_CACHE_DIR` and `SIMSERVER_CACHE_DIR` an empty directory "
+        "(Python bytecode already compiled); warm: the same directory again (the image's "
+        "start: every kernel from the cache). Where a cold compile goes: "
+        "`python -m benchmarks.bench_compile --warm 0 --by-function 25`. Headless commands: "
+        "`python -m simserver run-scenario` (E2, "
         "with and without `--no-plots`) and `tire-curves` from launch to exit with that warm "
         "cache (one unmeasured run first), interleaved, median of the repeats.",
         "- Test suite: the README's test command, each run with `NUMBA_CACHE_DIR` an empty "

@@ -86,7 +86,7 @@ class SimulationAPI(Protocol):
                       u_mps: float | None = None) -> PreparedStart: ...
     def prepare_load(self, scene: Scene) -> PreparedStart: ...
     def commit(self, prepared: PreparedStart) -> Any: ...
-    def warm_up(self) -> None: ...
+    def warm_up(self, live: bool = False) -> None: ...
     def update_pose(self) -> np.ndarray: ...
     def contact_output(self) -> np.ndarray: ...
 
@@ -462,8 +462,9 @@ class VehicleSlot:
         self._log({"step": self.steps_total, "reset": pose})
 
     def warm_up(self) -> None:
-        """Compile every kernel the tick uses (simulation and state record) before the clock."""
-        self.sim.warm_up()
+        """Compile every kernel the tick uses (simulation and state record) before the clock
+        (the live server's: not the headless loop, ``Simulation.warm_up_calls``)."""
+        self.sim.warm_up(live=True)
         self.fill_state(0, False)
 
     # ------------------------------------------------------------------ controls
@@ -610,7 +611,7 @@ class VehicleSlot:
             if replaced is not None:  # its grids are freed off the tick (a munmap: ms)
                 release_later(replaced)
                 del replaced
-            self.sim.warm_up()  # microseconds: a dispatch of each kernel on a copy
+            self.sim.warm_up(live=True)  # microseconds: a dispatch of each kernel on a copy
             self.scene_path = scene_path
             self.tick = 0
             self.fault = False
