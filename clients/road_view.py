@@ -13,24 +13,11 @@ source, and the client computes them at the screen's rate, never in the server's
 from __future__ import annotations
 
 import threading
-from pathlib import Path
 from typing import Any
 
+from simserver.adapters.config_paths import local_config_file
+
 OPENDRIVE = "opendrive"
-CONFIG_FOLDERS = (Path(__file__).resolve().parents[1] / "configs",)
-"""Where a path ``get_config`` shows is looked up (the server shows its paths relative to
-its config folders; by default this installation's ``configs/``, as the viewer does)."""
-
-
-def local_file(shown: str) -> Path:
-    """The local file of a path as ``get_config`` shows it."""
-    path = Path(shown)
-    if path.is_absolute():
-        return path
-    for folder in CONFIG_FOLDERS:
-        if (folder / path).is_file():
-            return folder / path
-    return Path.cwd() / path
 
 
 class RoadView:
@@ -67,7 +54,7 @@ class RoadView:
             from simserver.adapters.road_position import RoadLocator
             from simserver.adapters.validate import read_yaml
 
-            scene_file = local_file(shown)
+            scene_file = local_config_file(shown)
             terrain = read_yaml(scene_file).get("terrain") or {}
             locator = RoadLocator(load_opendrive(scene_file.parent / str(terrain["file"])))
             status = ""

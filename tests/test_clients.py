@@ -196,6 +196,7 @@ def test_clients_import_only_the_protocol_and_the_zenoh_adapter():
                # the driver's road line reads the road file the server names, with the
                # server's own reader and projection (file readers: no core, no server)
                "simserver.adapters.opendrive", "simserver.adapters.road_position",
+               "simserver.adapters.config_paths",  # where a shown path lives (pathlib only)
                # the recorder's hold report: the summary's own analysis of a history
                # (numpy on columns; its one core import is layout's gear constants)
                "simserver.analysis.holds"}
@@ -219,7 +220,8 @@ def test_clients_import_only_the_protocol_and_the_zenoh_adapter():
                     users.setdefault(name, set()).add(path.name)
     assert users["simserver.sim.keyframes"] == {"player.py"}
     assert users["simserver.adapters.opendrive"] == {"road_view.py"}
-    for module in ("opendrive", "road_position"):  # the road readers stay core-free
+    # the road readers and the path lookup stay core-free
+    for module in ("opendrive", "road_position", "config_paths"):
         text = (REPO / "simserver" / "adapters" / f"{module}.py").read_text()
         assert not re.search(r"^\s*(from|import) simserver\.(core|server|sim)\b", text, re.M), \
             module

@@ -58,6 +58,7 @@ from typing import Any
 
 import numpy as np
 
+from simserver.adapters.config_paths import local_config_file
 from simserver.core import layout as L
 from simserver.core.params import VP_CG_HEIGHT_M
 from simserver.core.road import road_axes
@@ -82,23 +83,6 @@ RETRY_MAX_S = 4.0
 QUERY_TIMEOUT_MAX_S = 5.0
 """A single ``get_config`` attempt waits at most this long (the attempts' timeouts grow
 with the backoff: a starved viewer gets a longer window each time)."""
-
-
-CONFIG_FOLDERS = (Path(__file__).resolve().parents[2] / "configs",)
-"""Where the viewer looks for the vehicle file ``get_config`` names: the server shows its
-paths relative to its config folders (never absolute, ``docs/security.md``), by default
-this installation's ``configs/``."""
-
-
-def local_config_file(shown: str) -> Path:
-    """The local file of a path as ``get_config`` shows it (relative to a config folder)."""
-    path = Path(shown)
-    if path.is_absolute():
-        return path
-    for folder in CONFIG_FOLDERS:
-        if (folder / path).is_file():
-            return folder / path
-    return Path.cwd() / path
 
 
 _TERRAINS: dict[tuple[str, int], tuple[Any, Any]] = {}

@@ -265,7 +265,7 @@ class RosNode:
 def _vehicle_from_config(config: dict[str, Any]) -> tuple[VehicleLimits, float, str]:
     """Controller limits, gravity and a change marker from a ``get_config`` reply."""
     from simserver.adapters.config import load_vehicle
-    from simserver.adapters.viewer import local_config_file
+    from simserver.adapters.config_paths import local_config_file
 
     vehicle_path = local_config_file(config["vehicle"]["path"])  # shown relative to configs/
     model = config["scene"].get("model") or {}
