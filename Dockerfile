@@ -31,8 +31,9 @@
 # The health check subscribes to the states on tcp/127.0.0.1:7447 inside the container;
 # if you move the port, set SIMSERVER_HEALTH_CONNECT (docker/healthcheck.py).
 #
-# Compile cache: /var/cache/simserver/numba, filled at build time and writable by the
-# server's user (numba must be able to write there even to read it). With --read-only, mount
+# Compile cache: /var/cache/simserver/numba (SIMSERVER_CACHE_DIR, the setting a server, sweep
+# workers and several checkouts share: README "Compile cache"), filled at build time and
+# writable by the server's user (numba must be able to write there even to read it). With --read-only, mount
 # a named volume there (`-v simserver-numba:/var/cache/simserver/numba`: Docker fills it from
 # the image, so it stays warm); a tmpfs works but starts cold.
 #
@@ -62,13 +63,13 @@ LABEL org.opencontainers.image.title="simserver" \
       org.opencontainers.image.description="Real-time driving-simulator server: lagged-slip tires (SAE 950311), numba physics at 1 kHz, zenoh I/O" \
       org.opencontainers.image.licenses="Apache-2.0"
 
-# NUMBA_CACHE_DIR: the install is owned by root and read-only for the server's user, so
-# numba's cache needs a writable place of its own (without it: "cannot cache function
+# SIMSERVER_CACHE_DIR: the install is owned by root and read-only for the server's user, so
+# the kernels' cache needs a writable place of its own (without it: "cannot cache function
 # ...: no locator available"). The warm-up below fills it.
 ENV PATH=/opt/simserver/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
-    NUMBA_CACHE_DIR=/var/cache/simserver/numba \
+    SIMSERVER_CACHE_DIR=/var/cache/simserver/numba \
     MPLCONFIGDIR=/tmp/matplotlib
 
 RUN groupadd --system --gid 10001 simserver \
@@ -85,7 +86,7 @@ USER 10001:10001
 WORKDIR /home/simserver
 
 # Compile every kernel (headless soak, serve, tire curves, view paths; paper_sedan's brush
-# tires and mf_hatchback's MF 6.1) into NUMBA_CACHE_DIR, then prove a fresh process finds
+# tires and mf_hatchback's MF 6.1) into SIMSERVER_CACHE_DIR, then prove a fresh process finds
 # them all there. numba keys the cache on the CPU model: on another CPU the first start
 # compiles again (15-30 s on 2 vCPUs) unless the image sets NUMBA_CPU_NAME=generic.
 RUN python /usr/local/lib/simserver/warmup.py --configs /etc/simserver \

@@ -3,7 +3,7 @@
 The container image runs this at build time (``Dockerfile``) and ``tests/test_dockerfile.py``
 runs the very same command in a fresh virtual environment::
 
-    NUMBA_CACHE_DIR=/var/cache/simserver/numba \\
+    SIMSERVER_CACHE_DIR=/var/cache/simserver/numba \\
         python docker/warmup.py --configs /etc/simserver [--expect-cached]
 
 For each scene (default: ``scenes/flat_paper_sedan.yaml`` and ``scenes/flat_mf_hatchback.yaml``
@@ -176,7 +176,11 @@ def main(argv: list[str] | None = None) -> int:
     import simserver
 
     package = str(Path(simserver.__file__).parent)
-    cache_dir = os.environ.get("NUMBA_CACHE_DIR") or "(next to the sources)"
+    from simserver.core import CACHE_DIR_ENV, shared_cache_dir
+
+    shared = os.environ.get(CACHE_DIR_ENV)
+    cache_dir = (str(shared_cache_dir(shared)) if shared
+                 else os.environ.get("NUMBA_CACHE_DIR") or "(next to the sources)")
     print(f"warm-up: {len(scenes)} scenes in {wall_s:.1f} s; {k.dispatchers} kernels, "
           f"{k.cache_hits} specialisations loaded from the cache, {k.cache_misses} compiled "
           f"(simserver {package}, numba {numba.__version__}, cache {cache_dir}, "

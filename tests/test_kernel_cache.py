@@ -57,3 +57,74 @@ def test_a_cache_made_after_the_stamp_is_kept(tmp_path, monkeypatch):
     kernel = elsewhere / "steering.f-1.py311.nbi"
     kernel.write_bytes(b"compiled after the stamp")
     assert not drop_stale_kernel_caches(pkg) and kernel.exists()
+
+
+# ------------------------------------------------------- one cache for several checkouts
+_CHILD = """
+import json, numpy as np, simserver
+from simserver.core import layout as L
+from simserver.core.pose import world_pose
+world_pose(np.zeros(L.N_STATE), np.eye(3), 0.5, np.zeros(7))
+s = world_pose.stats
+print(json.dumps({"package": simserver.__file__, "hits": sum(s.cache_hits.values()),
+                  "misses": sum(s.cache_misses.values())}))
+"""
+
+
+def _checkout(dest):
+    """A copy of this tree's package at ``dest`` (no compiled caches), as a second clone."""
+    import shutil
+    from pathlib import Path
+
+    import simserver
+
+    src = Path(simserver.__file__).parent
+    shutil.copytree(src, dest / "simserver",
+                    ignore=shutil.ignore_patterns("__pycache__", "*.nbi", "*.nbc"))
+    return dest
+
+
+def _run_in(checkout, env_extra):
+    """``_CHILD`` run with ``checkout`` first on the path: which package it imported and
+    ``world_pose``'s cache hits and misses."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")
+           and k != "SIMSERVER_CACHE_DIR"}
+    # the checkout before anything else (the noeditable shim, if any, stays behind it)
+    env["PYTHONPATH"] = os.pathsep.join([str(checkout), *[
+        p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep)
+        if p and not (Path(p) / "simserver").is_dir()]])
+    env.update(env_extra)
+    proc = subprocess.run([sys.executable, "-c", _CHILD], env=env, cwd=checkout,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert Path(result["package"]).parent.parent == checkout, result
+    return result
+
+
+from pathlib import Path  # noqa: E402
+
+
+def test_two_checkouts_share_one_cache(tmp_path):
+    """Two clones of the same sources at different paths, one ``SIMSERVER_CACHE_DIR``: the
+    first compiles, the second loads what the first compiled (with numba's own
+    ``NUMBA_CACHE_DIR``, which keys a cache by the sources' absolute path, the second
+    compiled again). A clone whose core sources differ (another commit) compiles into a
+    directory of its own and leaves the first one's kernels in place."""
+    a, b, c = (_checkout(tmp_path / n) for n in "abc")
+    shared = {"SIMSERVER_CACHE_DIR": str(tmp_path / "cache")}
+    first = _run_in(a, shared)
+    assert first["misses"] >= 1 and first["hits"] == 0
+    second = _run_in(b, shared)
+    assert second["misses"] == 0 and second["hits"] >= 1
+    assert not list((b / "simserver").rglob("*.nbi")), "cached beside the sources"
+    with open(c / "simserver" / "core" / "road.py", "a") as f:
+        f.write("\n# another commit\n")
+    assert _run_in(c, shared)["misses"] >= 1
+    assert len(list((tmp_path / "cache").glob("simserver-*"))) == 2
+    assert _run_in(b, shared)["misses"] == 0

@@ -87,7 +87,7 @@ class SimulationAPI(Protocol):
                       u_mps: float | None = None) -> PreparedStart: ...
     def prepare_load(self, scene: Scene) -> PreparedStart: ...
     def commit(self, prepared: PreparedStart) -> Any: ...
-    def warm_up(self) -> None: ...
+    def warm_up(self, live: bool = False) -> None: ...
     def update_pose(self) -> np.ndarray: ...
     def contact_output(self) -> np.ndarray: ...
 
@@ -474,8 +474,9 @@ class VehicleSlot:
         return {**pose, "time_s": float(self.sim.x[L.TIME_S])}
 
     def warm_up(self) -> None:
-        """Compile every kernel the tick uses (simulation and state record) before the clock."""
-        self.sim.warm_up()
+        """Compile every kernel the tick uses (simulation and state record) before the clock
+        (the live server's: not the headless loop, ``Simulation.warm_up_calls``)."""
+        self.sim.warm_up(live=True)
         self.fill_state(0, False)
 
     # ------------------------------------------------------------------ controls
@@ -622,7 +623,7 @@ class VehicleSlot:
             if replaced is not None:  # its grids are freed off the tick (a munmap: ms)
                 release_later(replaced)
                 del replaced
-            self.sim.warm_up()  # microseconds: a dispatch of each kernel on a copy
+            self.sim.warm_up(live=True)  # microseconds: a dispatch of each kernel on a copy
             self.scene_path = scene_path
             self.tick = 0
             self.fault = False

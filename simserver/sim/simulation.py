@@ -563,30 +563,37 @@ class Simulation:
                 self.model.vp[VP_CG_HEIGHT_M], self._reference_axes, self.pose)
         return self.pose
 
-    def warm_up(self) -> None:
-        """Compile (or load from cache) every kernel the server uses, before the clock starts;
-        the state is left as it was."""
-        for _name, call in self.warm_up_calls():
+    def warm_up(self, live: bool = False) -> None:
+        """Compile (or load from cache) every kernel the runners use, before the clock starts;
+        the state is left as it was. ``live``: only the live server's (no headless loop,
+        see :meth:`warm_up_calls`)."""
+        for _name, call in self.warm_up_calls(live):
             call()
 
-    def warm_up_calls(self) -> list[tuple[str, Callable[[], object]]]:
+    def warm_up_calls(self, live: bool = False) -> list[tuple[str, Callable[[], object]]]:
         """The compiled entry points :meth:`warm_up` calls, by name, in order (each compiles
         or loads its kernel on its first call; ``benchmarks.bench_compile`` times them one by
-        one). They run on a copy of the state."""
+        one). They run on a copy of the state. ``live``: without ``simulate``, the headless
+        loop (``core.world.simulate``: scenarios, soak, sweep runs), which the live server
+        never runs: it steps tick by tick (``step``). Its compile (2.7 s of CPU of 78, the
+        car step being compiled already: ``python -m benchmarks.bench_compile``) was paid by
+        every cold server start for nothing."""
         world = self.world.model
         wd = self.world.data
         saved_world = WorldData(x=wd.x.copy(), inputs=wd.inputs.copy(), out=wd.out.copy(),
                                 ws=wd.ws, contacts=Contacts(*(a.copy() for a in wd.contacts)))
         model, saved = car_views(world, saved_world, self.world.index(self.car_id))
         n = len(self.world)
+        headless = [] if live else [
+            ("simulate", lambda: world_simulate(world, saved_world, np.zeros((1, n, L.N_INPUT)),
+                                                np.zeros((1, n, L.N_STATE)),
+                                                np.zeros((1, n, L.N_OUT)), 1,
+                                                np.zeros((1, n, N_CAR_CONTACT_OUT))))]
         return [
             ("step", lambda: world_step(world, saved_world)),
             ("world_pose", lambda: world_pose(self.data.x, self.axes,
                                               model.vp[VP_CG_HEIGHT_M], self.pose)),
-            ("simulate", lambda: world_simulate(world, saved_world, np.zeros((1, n, L.N_INPUT)),
-                                                np.zeros((1, n, L.N_STATE)),
-                                                np.zeros((1, n, L.N_OUT)), 1,
-                                                np.zeros((1, n, N_CAR_CONTACT_OUT)))),
+            *headless,
             ("start_powertrain", lambda: start_powertrain(model, saved)),
             ("settle_at_velocity", lambda: settle_at_velocity(model, saved, 1,
                                                               np.zeros(BODY_SLOTS))),

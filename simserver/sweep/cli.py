@@ -30,7 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--numba-cache", type=Path, default=None, metavar="DIR",
                         help="NUMBA_CACHE_DIR of the LocalCluster's workers (shared: a "
                              "machine compiles once; the workers of --scheduler take theirs "
-                             "from their own environment)")
+                             "from their own environment; SIMSERVER_CACHE_DIR in the "
+                             "environment, shared by checkouts and the server, takes "
+                             "precedence)")
     parser.add_argument("--config-dir", action="append", type=Path, default=None,
                         metavar="DIR", dest="config_dirs",
                         help="a folder the sweep's files (base scenarios, what they name, "

@@ -4,8 +4,11 @@ The engine is Dask's: an embedded ``LocalCluster`` (one single-threaded worker p
 per core, forked from this process, see ``FORK_WORKERS``) by default, or an existing
 scheduler (``tcp://HOST:8786``). Every worker warms
 its compiled kernels once when it joins (``worker.WarmUp``, a worker plugin); workers
-that share ``NUMBA_CACHE_DIR`` (``--numba-cache``; the default is numba's own cache next
-to the sources) load what one of them compiled. Cases go out in batches, several runs per
+that share a cache load what one of them compiled: ``SIMSERVER_CACHE_DIR`` (``core``'s
+shared cache, keyed by the sources and not by their path: the LocalCluster's workers
+inherit it from this process, remote workers take it from their own environment, and
+checkouts at other paths share it) or ``NUMBA_CACHE_DIR`` (``--numba-cache``; the default
+is numba's own cache next to the sources). Cases go out in batches, several runs per
 task, so a task lasts well over Dask's 100 ms guidance. A task whose worker dies is run
 again elsewhere by the scheduler (and ``retries`` covers a task that raised), so no run
 is lost. The results table (``results.parquet``, one row per run) is rewritten atomically
