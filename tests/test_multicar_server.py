@@ -192,3 +192,83 @@ def test_a_single_car_list_driven_by_the_driver_drives(tmp_path):
         assert world.ids == ("solo",)
         assert world.car("solo")["x_m"] > 0.1
         assert proto.DRIVEN_BY_CODES[int(world.car("solo")["driven_by"])] == "driver"
+
+
+CURVES_XODR = REPO / "configs" / "roads" / "curves_elevation.xodr"
+
+
+def test_a_car_added_with_the_built_in_driver_drives_its_lane_and_bad_ones_change_nothing():
+    """``add_car`` with ``driven_by: driver`` and a driver block (issue 30 item 1): the car
+    joins the running world and the built-in driver drives it: its speed rises toward the
+    block's target and it follows its lane into the curve. An add whose driver path leaves
+    the road, or whose start is off the road, is refused with an error naming the car and
+    the argument, and the world goes on as it was (its one car, no new token)."""
+    import numpy as np
+
+    from simserver.adapters.opendrive import lane_start, load_opendrive
+    from simserver.adapters.zenoh_io import ZenohEndpoint
+
+    od = load_opendrive(CURVES_XODR)
+    # the lane's centre (road 1, lane -1) every 0.25 m: straight to s = 50, a spiral to
+    # s = 100, then an arc of radius 143 m (curvature 0.007 1/m) to s = 324
+    centre = np.array([lane_start(od, "1", s, -1)[:2] for s in np.arange(0.0, 320.0, 0.25)])
+    x0, y0, yaw0 = lane_start(od, "1", 60.0, -1)  # 40 m ahead of car0 (s = 20) on its lane
+    pose = {"x_m": x0, "y_m": y0, "yaw_rad": yaw0}
+    v0_mps = 8.0
+    driver = {"path": {"road": "1", "lane": -1}, "idm": {"v0_mps": v0_mps}}
+    with ServerProcess(scene="curves_elevation_paper_sedan") as server, \
+            ZenohEndpoint(client_config(server.endpoint)) as ep:
+        cars = cw.CarsWatch(ep, "simserver")
+        wait_until(cars.poll, lambda c: c == {"car0"}, timeout_s=10)
+        watch = cw.WorldWatch(ep, "simserver")
+        before = wait_until(watch.poll, timeout_s=10)
+        # a driver path that leaves the road (it turns off at x = 50 m across the arc's
+        # inside), from a start on the road; the load worker may still warm up
+        bad = ep.request_world("add_car", {
+            "id": "bot", "pose": pose, "driven_by": "driver",
+            "driver": {"path": {"points": [[0, 0], [50, 0], [50, 80]]}}}, timeout_s=120)
+        assert not bad["ok"] and bad["field"] == "driver.path", bad
+        assert bad["error"].startswith("add_car (bot): key 'driver.path': point 2 (50, 80) "
+                                       "leaves the road"), bad
+        # a start off the road, with a good driver block
+        bad = ep.request_world("add_car", {
+            "id": "bot", "pose": {"x_m": 0.0, "y_m": 500.0, "yaw_rad": 0.0},
+            "driven_by": "driver", "driver": driver}, timeout_s=60)
+        assert not bad["ok"] and bad["field"] == "pose", bad
+        assert bad["error"].startswith("add_car (bot): the start (0.00, 500.00) m is off the "
+                                       "road"), bad
+        # nothing changed: the world's one car, served on (its ticks go on), no new token
+        assert ep.request_world("get_config")["cars"] == [{"id": "car0",
+                                                           "driven_by": "client"}]
+        after = wait_until(watch.poll, lambda w: w.tick > before.tick + 100, timeout_s=10)
+        assert after.ids == ("car0",) and cars.poll() == {"car0"}
+        # the good one joins, driven by the driver
+        reply = ep.request_world("add_car", {"id": "bot", "pose": pose, "driven_by": "driver",
+                                             "driver": driver}, timeout_s=60)
+        assert reply == {"ok": True, "car": "bot", "cars": ["car0", "bot"]}, reply
+        assert ep.request_world("get_config")["cars"] == [
+            {"id": "car0", "driven_by": "client"}, {"id": "bot", "driven_by": "driver"}]
+        wait_until(cars.poll, lambda c: c == {"car0", "bot"}, timeout_s=10)
+        seen: list[tuple[float, float, float]] = []
+
+        def drive_on() -> list[tuple[float, float, float]]:
+            world = watch.poll()
+            if world is not None and "bot" in world.ids:
+                car = world.car("bot")
+                seen.append((float(car["x_m"]), float(car["y_m"]), float(car["u_mps"])))
+                assert proto.DRIVEN_BY_CODES[int(car["driven_by"])] == "driver"
+            return seen
+
+        # until it is 60 m on (s = 120: 20 m into the arc) at 90 % of its target speed
+        wait_until(drive_on, lambda s: bool(s) and np.hypot(s[-1][0] - x0, s[-1][1] - y0)
+                   > 60.0 and s[-1][2] > 0.9 * v0_mps, timeout_s=90,
+                   what="the added car driving on at its target speed")
+    track = np.array(seen)
+    # toward the target, not past it: IDM's approach is from below (model.md section 15),
+    # 3 % for the speed controller's overshoot
+    assert track[:, 2].max() < 1.03 * v0_mps, track[:, 2].max()
+    # on its lane: every position within 0.5 m of the lane's centre (the driver's
+    # acceptance is 0.3 m RMS at 15 m/s; a car driving straight on would be 4 m off by
+    # s = 120 on this arc)
+    lateral = np.sqrt(((track[:, None, :2] - centre[None, :, :]) ** 2).sum(-1)).min(axis=1)
+    assert lateral.max() < 0.5, lateral.max()

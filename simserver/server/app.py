@@ -181,7 +181,8 @@ class SimServer:
             self.slots: list[VehicleSlot] = [car.slot for car in self.cars]
             for slot in self.slots:
                 slot.warm_up()
-            live_drivers = fleet.prepare_drivers(self.cars)  # and drive() compiled
+            # and drive() compiled (also for a driven car add_car may bring)
+            live_drivers = fleet.prepare_drivers(self.cars, cfg.max_cars)
         self.preparer = ProcessPreparer()
         trace = os.environ.get(TICK_TRACE_ENV)
         self.loop = ServerLoop(cfg, preparer=self.preparer,

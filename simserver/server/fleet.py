@@ -134,11 +134,15 @@ def make_cars(cfg: Any, scene: Scene) -> list[ServedCar]:
     return served
 
 
-def prepare_drivers(cars: list[ServedCar]) -> Any:
+def prepare_drivers(cars: list[ServedCar], max_cars: int = 1) -> Any:
     """The built-in driver's cars of the server (``simserver.server.live_drivers``), their
     paths sampled (off the tick), and ``core.driver.drive`` compiled (or loaded from the
     cache) by one call on copies of the world's arrays, so that the first tick does not
-    compile it."""
+    compile it: when a car is driven, and also when none is but ``max_cars`` lets a driven
+    car be added while the world runs (``add_car``; else the first tick after that add
+    would compile it: tens of seconds cold). The call on a world of undriven cars (one
+    placeholder path) has the types of every later call: one compiled signature."""
+    from simserver.adapters.driver_config import build_drivers
     from simserver.core.driver import drive
     from simserver.server.live_drivers import LiveDrivers
 
@@ -146,9 +150,9 @@ def prepare_drivers(cars: list[ServedCar]) -> Any:
     for car in cars:
         if car.driver is not None:
             live.prepare(car.slot.keys.vehicle, car.driver, car.slot.sim.world.model.terrain)
-    if live:
+    if live or max_cars > 1:
         world = cars[0].slot.sim.world
-        drivers = live.assemble(world)
+        drivers = live.assemble(world) if live else build_drivers(world, {})
         data = world.data
         scratch = data._replace(x=data.x.copy(), inputs=data.inputs.copy(),
                                 out=data.out.copy())
@@ -177,7 +181,9 @@ def poses_now(slots: list[Any]) -> dict[str, tuple[dict[str, float], np.ndarray]
 
 def join_world(slot_cfg: Any, scene: Scene, table: np.ndarray | None, world: Any) -> Any:
     """A new car's slot, its car made alone and moved into the running ``world``
-    (between ticks: tens to hundreds of microseconds, nothing recompiled)."""
+    (between ticks: tens to hundreds of microseconds, nothing recompiled). A car driven
+    by the built-in driver is made a client's here; the caller hands its driver to the
+    loop's ``live_drivers`` and calls ``slot.drive_by_driver()``."""
     from simserver.server.slot import VehicleSlot
     from simserver.sim.simulation import Simulation
 

@@ -9,7 +9,10 @@ What the tick must not do is read files or sample roads, so that work is split:
 
 - :meth:`LiveDrivers.prepare` (off the tick: the server's start): a driven car's
   ``driver:`` block parsed against its scene (``cars_config.driver_spec``) and its path's
-  rows sampled over the terrain (``driver_config.path_rows``), kept by car id.
+  rows sampled over the terrain (:func:`sample_path`), kept by car id. A car added while
+  the world runs (``world_desk``, ``add_car`` with ``driven_by: driver``) has its block
+  parsed and its path sampled in the load worker (``world_desk.prepare_added_car``), and
+  the desk hands both over between two ticks (:meth:`LiveDrivers.take`).
 - :meth:`LiveDrivers.assemble` (between two ticks, when the world's cars change: the
   start, a car added or removed, a reset): the ``core.driver.Drivers`` arrays of the
   world's car axis from what was prepared, each car's parameters packed (microseconds
@@ -36,6 +39,14 @@ from simserver.core import driver as D
 from simserver.core import layout as L
 
 
+def sample_path(spec: Any, terrain: Any) -> np.ndarray:
+    """A driven car's path rows (``PATH_*``) over ``terrain`` (off the tick: the server's
+    start, or the load worker for a car added while the world runs)."""
+    from simserver.adapters.driver_config import path_rows
+
+    return path_rows(spec.path_xy, terrain, spec.speed_profile, spec.params[D.DP_IDM_V0_MPS])
+
+
 class LiveDrivers:
     """The driven cars of a live world: what each needs, prepared off the tick."""
 
@@ -52,11 +63,14 @@ class LiveDrivers:
     def prepare(self, car_id: str, spec: Any, terrain: Any) -> None:
         """Keep a driven car's validated ``driver:`` block and sample its path over
         ``terrain`` (off the tick)."""
-        from simserver.adapters.driver_config import path_rows
+        self.take(car_id, spec, sample_path(spec, terrain))
 
+    def take(self, car_id: str, spec: Any, rows: np.ndarray) -> None:
+        """Keep a driven car's validated block and its path's rows, sampled already (the
+        load worker's, for a car added while the world runs): microseconds, between
+        ticks; the car drives once the world's drivers are assembled with it."""
         self.specs[car_id] = spec
-        self.rows[car_id] = path_rows(spec.path_xy, terrain, spec.speed_profile,
-                                      spec.params[D.DP_IDM_V0_MPS])
+        self.rows[car_id] = rows
 
     def forget(self, car_id: str) -> None:
         self.specs.pop(car_id, None)

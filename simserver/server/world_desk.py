@@ -4,12 +4,18 @@
 docs/protocol.md section 5.1). The loop calls :meth:`WorldDesk.tick` once a tick; nothing
 slow runs there:
 
-- ``add_car``: checked in the tick (the id, the count), its files read by the load worker
-  (the vehicle file, the world's scene for its defaults and roads; a start clear of where
-  the other cars are now: ``simserver.server.cars_config.new_car``), its transport made in
+- ``add_car``: checked in the tick (the id, the count, ``driven_by`` with its ``driver``
+  block), its files read by the load worker
+  (the vehicle file, the world's scene for its defaults and roads; a start on the road and
+  clear of where the other cars are now: ``simserver.server.cars_config.new_car``; a
+  driven car's ``driver`` block parsed as a ``cars:`` entry's, its path on the road, and
+  the path sampled: ``cars_config.driver_spec``, ``live_drivers.sample_path``), its
+  transport made in
   a thread of the desk (``make_ports``: the zenoh subscriber, publishers, queryable and liveliness
   token, milliseconds), then the car made alone and moved into the world between two
-  ticks (``fleet.join_world``) and served from the next tick; answered then.
+  ticks (``fleet.join_world``; a driven car's driver handed to the loop's
+  ``live_drivers`` and the drivers reassembled, the others' driver states kept) and
+  served from the next tick; answered then.
 - ``remove_car``: the car taken out between two ticks (``ServerLoop.remove``), its
   transport closed in the desk's thread.
 - ``reset``: every car back to its start together: the start states made one car a tick
@@ -25,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import re
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -42,10 +49,14 @@ log = logging.getLogger("simserver.server")
 def prepare_added_car(car_id: str, vehicle: str | None, pose: dict[str, float] | None,
                       scene_path: Path, config_dirs: tuple[Path, ...], cwd: str,
                       config_folder: Path, dt_s: float,
-                      others: dict[str, Any]) -> tuple[str, Any]:
+                      others: dict[str, Any],
+                      driver: dict[str, Any] | None = None) -> tuple[str, Any]:
     """Read and check a car to add (run in the load worker): ``("ok", (scene, table,
-    vehicle path))`` or ``("error", field, message)`` (errors as data: they cross a process
-    boundary)."""
+    vehicle path, driven))`` or ``("error", field, message)`` (errors as data: they cross
+    a process boundary). ``driver``: the ``driver`` block of a car ``driven_by: driver``
+    (as JSON gave it); ``driven`` is then its ``DriverSpec`` and its path's rows sampled
+    over the scene's terrain, else None."""
+    from simserver.server.live_drivers import sample_path
     from simserver.server.slot import redacted, resolve_config_path
     from simserver.sim.scene_files import load_scene
 
@@ -55,7 +66,8 @@ def prepare_added_car(car_id: str, vehicle: str | None, pose: dict[str, float] |
     except proto.ProtocolError as exc:
         return "error", exc.field, redacted(str(exc), config_dirs, cwd)
     spec = cars_config.CarSpec(id=car_id, where=f"add_car ({car_id})", vehicle=vehicle_path,
-                         pose=pose)
+                               pose=pose, driven_by="client" if driver is None else "driver",
+                               driver=driver)
     with confined_to(config_dirs):
         try:
             scene, table = cars_config.new_car(spec, load_scene(scene_path), dt_s, others)
@@ -64,7 +76,24 @@ def prepare_added_car(car_id: str, vehicle: str | None, pose: dict[str, float] |
             field = "vehicle" if "key 'vehicle'" in message else \
                 "id" if "key 'id'" in message else "pose"
             return "error", field, message
-    return "ok", (scene, table, vehicle_path)
+        driven = None
+        if driver is not None:
+            try:  # the headless scenarios' parser: a path off the road is refused
+                block = cars_config.driver_spec(spec, scene)
+            except ConfigError as exc:
+                message = redacted(str(exc), config_dirs, cwd)
+                return "error", driver_field(message), message
+            driven = (block, sample_path(block, scene.terrain))
+    return "ok", (scene, table, vehicle_path, driven)
+
+
+def driver_field(message: str) -> str:
+    """The argument a ``driver`` block's error is about: the key it names
+    (``driver.path``, ``driver.idm.T_s``), the part of the block whose keys are wrong
+    (``(driver.path): missing key 'road'``), or the block."""
+    key = re.search(r"key '(driver(?:\.[^']*)?)'", message)
+    part = re.search(r"\((driver(?:\.[^)]*)?)\):", message)
+    return key.group(1) if key else part.group(1) if part else "driver"
 
 
 @dataclasses.dataclass
@@ -72,7 +101,7 @@ class _Adding:
     request: Any
     car_id: str
     job: Future | None = None
-    prepared: tuple[Any, Any, Path | None] | None = None
+    prepared: tuple[Any, Any, Path | None, Any] | None = None
     ports: Future | None = None
 
 
@@ -196,11 +225,20 @@ class WorldDesk:
         if len(self.loop.slots) >= self.cfg.max_cars:
             raise proto.ProtocolError("id", f"the world has {len(self.loop.slots)} cars, "
                                       f"max_cars ({self.cfg.max_cars})")
+        driver = args.get("driver")
+        if args["driven_by"] == "driver" and driver is None:
+            raise proto.ProtocolError("driver", f"add_car ({car_id}): a car driven by the "
+                                      "driver needs a driver block (path or lane, speed "
+                                      "profile, idm, stop_s_m, go_t_s)")
+        if args["driven_by"] != "driver" and driver is not None:
+            raise proto.ProtocolError("driver", f"add_car ({car_id}): only a car driven_by "
+                                      "driver takes a driver block")
         cfg = self.cfg
         others = fleet.poses_now([s for s, _ in self.loop.slots])
         job = self.loop.preparer.submit(
             prepare_added_car, car_id, args.get("vehicle"), args.get("pose"), cfg.scene,
-            tuple(cfg.config_dirs), os.getcwd(), cfg.path.parent, cfg.period_s, others)
+            tuple(cfg.config_dirs), os.getcwd(), cfg.path.parent, cfg.period_s, others,
+            driver)
         self._adding = _Adding(request, car_id, job=job)
         self._advance(self._adding)  # an inline preparer (tests) is done already
         return None
@@ -233,10 +271,17 @@ class WorldDesk:
             self._fail(adding, "add_car", f"add_car: its transport could not be made "
                                           f"({type(exc).__name__}: {exc}); nothing changed")
             return
-        scene, table, _vehicle = adding.prepared
+        scene, table, _vehicle, driven = adding.prepared
         world = self.loop.slots[0][0].sim.world
         slot = fleet.join_world(self._slot_cfg(adding.car_id), scene, table, world)
-        slot.warm_up()  # microseconds: every kernel is compiled already
+        if driven is not None:  # its driver, prepared by the worker: loop.add assembles
+            if self.loop.live_drivers is None:  # the world's drivers with it
+                from simserver.server.live_drivers import LiveDrivers
+
+                self.loop.live_drivers = LiveDrivers()
+            self.loop.live_drivers.take(adding.car_id, *driven)
+            slot.drive_by_driver()
+        slot.warm_up()  # microseconds: every kernel (drive() too) is compiled already
         self.loop.add(slot, ports)
         if self.on_added is not None:
             self.on_added(slot)

@@ -1383,8 +1383,10 @@ class ArgSpec:
         JSON key.
     kind : str
         ``"number"`` (int or float, finite), ``"integer"``, ``"path"`` (a YAML file path
-        string), ``"name"`` (a short printable string: an id) or ``"object"`` (with
-        ``children``).
+        string), ``"name"`` (a short printable string: an id), ``"choice"`` (one of
+        ``choices``), ``"object"`` (with ``children``) or ``"block"`` (a JSON object
+        whose members the server checks with the parser of the config block it stands
+        for, as that block's YAML: a car's ``driver:``; here only its form, an object).
     required : bool
         Must be present.
     unit : str
@@ -1395,6 +1397,8 @@ class ArgSpec:
         Meaning.
     children : tuple of ArgSpec
         Members of an object (all required unless marked otherwise).
+    choices : tuple of str
+        The values a ``"choice"`` may take.
     """
 
     name: str
@@ -1405,6 +1409,7 @@ class ArgSpec:
     hi: float | None
     description: str
     children: tuple[ArgSpec, ...] = ()
+    choices: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -1608,8 +1613,17 @@ def _check_arg(spec: ArgSpec, value: Any, path: str) -> Any:
         if len(value) > _MAX_NAME or not value.isprintable():
             raise ProtocolError(path, f"must be at most {_MAX_NAME} printable characters")
         return value
+    if spec.kind == "choice":
+        if not isinstance(value, str) or value not in spec.choices:
+            raise ProtocolError(path, f"must be one of {', '.join(spec.choices)}, got "
+                                      f"{_printable(repr(value), _MAX_NAME)}")
+        return value
     if spec.kind == "object":
         return _check_object(spec.children, value, path, at_least_one=False)
+    if spec.kind == "block":  # its members: the server's parser of that block
+        if not isinstance(value, dict):
+            raise ProtocolError(path, f"must be a JSON object, got {type(value).__name__}")
+        return value
     raise AssertionError(spec.kind)  # pragma: no cover
 
 
@@ -1791,6 +1805,10 @@ the storyboard trace line of docs/openscenario.md)."""
 DRIVEN_BY_CODES: Final[tuple[str, ...]] = ("client", "keyframes", "driver")
 """``WorldState`` cars' ``driven_by`` code -> who drives the car (``simserver.server.fleet``)."""
 
+ADD_CAR_DRIVEN_BY: Final[tuple[str, ...]] = ("client", "driver")
+"""Who may drive a car added by ``add_car`` (of :data:`DRIVEN_BY_CODES`; keyframed cars come
+from the server config's ``cars:`` only)."""
+
 WORLD_CONTROL_NAMES: Final[tuple[str, ...]] = ("add_car", "remove_car", "reset", "get_config")
 """The world's controls (:data:`WORLD_CONTROL_SPECS`)."""
 
@@ -1881,14 +1899,17 @@ WORLD_CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
     for spec in (
         ControlSpec(
             "add_car",
-            "Add a car to the running world, driven by a client: its keys "
-            "`{prefix}/{id}/...` with their own command inbox, watchdog, liveliness token "
-            "and controls, as a car of the server config's `cars:` list. Its files are read "
-            "off the tick (the load worker) and it joins between two ticks; answered when "
-            "it is served (its liveliness token declared). Errors name the argument: an id "
-            "taken, a start overlapping a car where that car is now or off the road, more "
-            "cars than `max_cars`, a vehicle file outside the config directories; nothing "
-            "changes then.",
+            "Add a car to the running world, driven by a client or by the built-in driver "
+            "(`driven_by`): its keys `{prefix}/{id}/...` with their own command inbox, "
+            "watchdog, liveliness token and controls, as a car of the server config's "
+            "`cars:` list. Its files are read and its `driver` block checked and its path "
+            "sampled off the tick (the load worker); it joins between two ticks (a driven "
+            "car's driver with it, the other drivers' states kept); answered when it is "
+            "served (its liveliness token declared). Errors name the car and the argument "
+            "(`driver.path`, `driver.idm.T_s`, ...): an id taken, a start overlapping a car "
+            "where that car is now or off the road, a driver path that leaves the road, "
+            "more cars than `max_cars`, a vehicle file outside the config directories; "
+            "nothing changes then.",
             (
                 ArgSpec("id", "name", True, "", None, None,
                         f"the car's id: one key chunk, at most {WORLD_ID_BYTES} characters, "
@@ -1896,8 +1917,18 @@ WORLD_CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
                 ArgSpec("vehicle", "path", False, "", None, None,
                         "vehicle YAML (default the world scene's), as `load`'s"),
                 _WORLD_POSE,
+                ArgSpec("driven_by", "choice", False, "", None, None,
+                        "who drives it (default `client`): a client over zenoh, or the "
+                        "built-in driver (docs/model.md section 15), which then needs "
+                        "`driver`", choices=ADD_CAR_DRIVEN_BY),
+                ArgSpec("driver", "block", False, "", None, None,
+                        "with `driven_by: driver` only: the built-in driver's block, as a "
+                        "`cars:` entry's `driver:` (path or OpenDRIVE lane, speed profile, "
+                        "idm, stop_s_m, go_t_s; docs/configuration.md, `driver:` of a "
+                        "scenario's car)"),
             ),
             reply='"car": id, "cars": [ids]',
+            defaults={"driven_by": "client"},
         ),
         ControlSpec(
             "remove_car",
@@ -2267,6 +2298,10 @@ def _arg_rows(args: Sequence[ArgSpec], prefix: str = "") -> list[str]:
             rng = f"string ending {'/'.join(_path_suffixes(a))}, at most {_MAX_PATH} chars"
         elif a.kind == "name":
             rng = f"string, at most {_MAX_NAME} printable chars"
+        elif a.kind == "choice":
+            rng = "one of " + ", ".join(f"`{c}`" for c in a.choices)
+        elif a.kind == "block":
+            rng = "object (checked by the server, as the YAML block)"
         else:
             rng = "object"
         req = "required" if a.required else "optional"
