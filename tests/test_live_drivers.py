@@ -82,3 +82,51 @@ def test_drivers_reassembled_keep_each_driven_cars_state_by_id(tmp_path):
     live.forget("t1")
     live.forget("t2")
     assert live.assemble(world) is None
+
+
+WARM_SCRIPT = """
+import json
+import sys
+from simserver.core.driver import drive
+from simserver.server import fleet
+from simserver.server.cars_config import car_scenes, driver_spec, parse_cars
+from simserver.server.config import load_server_config
+from simserver.server.live_drivers import LiveDrivers
+from simserver.sim.scene_files import load_scene
+
+cfg = load_server_config(sys.argv[1])
+scene = load_scene(cfg.scene)
+fleet.prepare_drivers(fleet.make_cars(cfg, scene), cfg.max_cars)
+warm = len(drive.signatures)
+# the world a driven car added while running makes: two cars, one driven
+cars = parse_cars(cfg.path, [{"id": "car0"}, {"id": "bot", "pose": {"x_m": 30.0, "y_m": 0.0},
+                              "driven_by": "driver", "driver": json.loads(sys.argv[2])}])
+scenes = car_scenes(cars, scene)
+world = fleet.build_world(scenes, cfg.period_s)["car0"].world
+live = LiveDrivers()
+live.prepare("bot", driver_spec(cars[1], scenes["bot"]), world.model.terrain)
+drive(world.model, world.data, live.assemble(world))
+print("signatures", warm, len(drive.signatures))
+"""
+
+
+@pytest.mark.parametrize(("max_cars", "warm"), [(1, 0), (2, 1)])
+def test_drive_is_compiled_at_the_start_when_a_driven_car_may_be_added(tmp_path, max_cars,
+                                                                       warm):
+    """A server of client cars compiles (or loads from the cache) ``core.driver.drive`` as
+    it starts when ``max_cars`` lets ``add_car`` bring a driven car, so the first tick after
+    that add does not compile it: the call then has the start's signature (one compiled
+    signature after both). With ``max_cars: 1`` no car can be added: nothing compiled. A
+    fresh process, so that no other test has called ``drive`` before."""
+    import json
+    import subprocess
+    import sys
+
+    config = tmp_path / "server.yaml"
+    config.write_text(f"scene: {SCENE}\nmax_cars: {max_cars}\ncars: [{{id: car0}}]\n")
+    out = subprocess.run([sys.executable, "-c", WARM_SCRIPT, str(config),
+                          json.dumps(DRIVER)], capture_output=True,
+                         text=True, timeout=600, check=False, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    line = next(x for x in out.stdout.splitlines() if x.startswith("signatures"))
+    assert line.split()[1:] == [str(warm), "1"], line

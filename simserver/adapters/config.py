@@ -476,7 +476,10 @@ def _driver_section() -> list[str]:
     lines = ["", "## `driver:` of a scenario's car", "",
              "The built-in driver (docs/model.md section 15) drives the car through its steer, "
              "throttle, brake, parking brake and gear: a car of `cars:` (or a single car's "
-             "scenario) with a `driver:` needs no `inputs`. Required: `path`, either "
+             "scenario) with a `driver:` needs no `inputs`; a car added to a running world "
+             "by `add_car` takes the same block as JSON (`\"driver\"`, with "
+             "`\"driven_by\": \"driver\"`; docs/protocol.md section 5.1). Required: "
+             "`path`, either "
              "`{points: [[x, y], ...]}` (a polyline in world x, y, m; 2 or more points) or "
              "`{road, lane}` (a lane of the scene's OpenDRIVE terrain, optional `s_from_m`, "
              "`s_to_m` along the road's reference line and `step_m`, the samples' spacing, "
