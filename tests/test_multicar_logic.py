@@ -337,6 +337,25 @@ def test_world_controls_add_and_remove_cars_between_ticks(flat_scene):
         assert ask("add_car", {"id": "b"})["field"] == "id"
         nofile = ask("add_car", {"id": "c", "vehicle": "no_such_vehicle.yaml"})
         assert nofile["field"] == "vehicle" and "no such file" in nofile["error"]
+        # a driver block: with driven_by driver only, and checked as a cars: entry's,
+        # the error naming the car and the block's key
+        at = {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}
+        block = {"path": {"points": [[0.0, 0.0], [500.0, 0.0]]}}
+        missing = ask("add_car", {"id": "c", "pose": at, "driven_by": "driver"})
+        assert missing["field"] == "driver" and missing["error"].startswith(
+            "driver: car 'c' is driven by the driver and needs a driver block"), missing
+        stray = ask("add_car", {"id": "c", "pose": at, "driver": block})
+        assert stray["field"] == "driver" and "only a car driven_by driver" in stray["error"]
+        for driver, field, error in (
+                ({**block, "idm": {"T_s": -1.0}}, "driver.idm.T_s",
+                 "add_car (c): key 'driver.idm.T_s': -1 is outside"),
+                ({**block, "bogus": 1}, "driver", "add_car (c) (driver): unknown key 'bogus'"),
+                ({"path": {"road": "1"}}, "driver.path",
+                 "add_car (c) (driver.path): missing key 'lane'")):
+            bad = ask("add_car", {"id": "c", "pose": at, "driven_by": "driver",
+                                  "driver": driver})
+            assert bad["field"] == field and bad["error"].startswith(error), bad
+        assert ask("add_car", {"id": "c", "driven_by": "robot"})["field"] == "driven_by"
         assert rig.loop.world.ids == ["a", "b"] and made == []  # nothing changed
         ok = ask("add_car", {"id": "c", "vehicle": str(HATCH),
                              "pose": {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}})

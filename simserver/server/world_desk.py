@@ -227,12 +227,13 @@ class WorldDesk:
                                       f"max_cars ({self.cfg.max_cars})")
         driver = args.get("driver")
         if args["driven_by"] == "driver" and driver is None:
-            raise proto.ProtocolError("driver", f"add_car ({car_id}): a car driven by the "
-                                      "driver needs a driver block (path or lane, speed "
+            raise proto.ProtocolError("driver", f"car {car_id!r} is driven by the driver "
+                                      "and needs a driver block (path or lane, speed "
                                       "profile, idm, stop_s_m, go_t_s)")
         if args["driven_by"] != "driver" and driver is not None:
-            raise proto.ProtocolError("driver", f"add_car ({car_id}): only a car driven_by "
-                                      "driver takes a driver block")
+            raise proto.ProtocolError("driver", f"car {car_id!r} is driven_by "
+                                      f"{args['driven_by']}; only a car driven_by driver "
+                                      "takes a driver block")
         cfg = self.cfg
         others = fleet.poses_now([s for s, _ in self.loop.slots])
         job = self.loop.preparer.submit(
