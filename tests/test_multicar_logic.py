@@ -356,6 +356,12 @@ def test_world_controls_add_and_remove_cars_between_ticks(flat_scene):
                                   "driver": driver})
             assert bad["field"] == field and bad["error"].startswith(error), bad
         assert ask("add_car", {"id": "c", "driven_by": "robot"})["field"] == "driven_by"
+        lane = {"road": "1", "s": 10.0, "lane": -1}
+        both = ask("add_car", {"id": "c", "pose": at, "start": lane})
+        assert both["field"] == "start" and "pose or start, not both" in both["error"]
+        flat = ask("add_car", {"id": "c", "start": lane})  # a start by lane: OpenDRIVE only
+        assert flat["field"] == "start" and flat["error"].startswith(
+            "add_car (c): key 'start': a start by road, s and lane needs an OpenDRIVE"), flat
         assert rig.loop.world.ids == ["a", "b"] and made == []  # nothing changed
         ok = ask("add_car", {"id": "c", "vehicle": str(HATCH),
                              "pose": {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}})

@@ -237,14 +237,22 @@ def test_a_car_added_with_the_built_in_driver_drives_its_lane_and_bad_ones_chang
         assert not bad["ok"] and bad["field"] == "pose", bad
         assert bad["error"].startswith("add_car (bot): the start (0.00, 500.00) m is off the "
                                        "road"), bad
+        bad = ep.request_world("add_car", {  # past the road's end (1154 m)
+            "id": "bot", "start": {"road": "1", "s": 5000.0, "lane": -1},
+            "driven_by": "driver", "driver": driver}, timeout_s=60)
+        assert not bad["ok"] and bad["field"] == "start.s", bad
+        assert bad["error"].startswith("add_car (bot): key 'start.s': s = 5000.0 m is off "
+                                       "road 1"), bad
         # nothing changed: the world's one car, served on (its ticks go on), no new token
         assert ep.request_world("get_config")["cars"] == [{"id": "car0",
                                                            "driven_by": "client"}]
         after = wait_until(watch.poll, lambda w: w.tick > before.tick + 100, timeout_s=10)
         assert after.ids == ("car0",) and cars.poll() == {"car0"}
-        # the good one joins, driven by the driver
-        reply = ep.request_world("add_car", {"id": "bot", "pose": pose, "driven_by": "driver",
-                                             "driver": driver}, timeout_s=60)
+        # the good one joins, driven by the driver, started by road, s and lane (the
+        # place of `pose` above)
+        reply = ep.request_world("add_car", {"id": "bot", "start": {
+            "road": "1", "s": 60.0, "lane": -1}, "driven_by": "driver", "driver": driver},
+            timeout_s=60)
         assert reply == {"ok": True, "car": "bot", "cars": ["car0", "bot"]}, reply
         assert ep.request_world("get_config")["cars"] == [
             {"id": "car0", "driven_by": "client"}, {"id": "bot", "driven_by": "driver"}]

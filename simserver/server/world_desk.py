@@ -50,12 +50,14 @@ def prepare_added_car(car_id: str, vehicle: str | None, pose: dict[str, float] |
                       scene_path: Path, config_dirs: tuple[Path, ...], cwd: str,
                       config_folder: Path, dt_s: float,
                       others: dict[str, Any],
-                      driver: dict[str, Any] | None = None) -> tuple[str, Any]:
+                      driver: dict[str, Any] | None = None,
+                      start: dict[str, Any] | None = None) -> tuple[str, Any]:
     """Read and check a car to add (run in the load worker): ``("ok", (scene, table,
     vehicle path, driven))`` or ``("error", field, message)`` (errors as data: they cross
     a process boundary). ``driver``: the ``driver`` block of a car ``driven_by: driver``
     (as JSON gave it); ``driven`` is then its ``DriverSpec`` and its path's rows sampled
-    over the scene's terrain, else None."""
+    over the scene's terrain, else None. ``start``: road, s and lane instead of
+    ``pose``."""
     from simserver.server.live_drivers import sample_path
     from simserver.server.slot import redacted, resolve_config_path
     from simserver.sim.scene_files import load_scene
@@ -66,15 +68,16 @@ def prepare_added_car(car_id: str, vehicle: str | None, pose: dict[str, float] |
     except proto.ProtocolError as exc:
         return "error", exc.field, redacted(str(exc), config_dirs, cwd)
     spec = cars_config.CarSpec(id=car_id, where=f"add_car ({car_id})", vehicle=vehicle_path,
-                               pose=pose, driven_by="client" if driver is None else "driver",
+                               pose=pose, start=start,
+                               driven_by="client" if driver is None else "driver",
                                driver=driver)
     with confined_to(config_dirs):
         try:
             scene, table = cars_config.new_car(spec, load_scene(scene_path), dt_s, others)
         except ConfigError as exc:
             message = redacted(str(exc), config_dirs, cwd)
-            field = "vehicle" if "key 'vehicle'" in message else \
-                "id" if "key 'id'" in message else "pose"
+            key = re.search(r"key '((?:vehicle|id|start)\b[^']*)'", message)
+            field = key.group(1) if key else "start" if start is not None else "pose"
             return "error", field, message
         driven = None
         if driver is not None:
@@ -225,6 +228,8 @@ class WorldDesk:
         if len(self.loop.slots) >= self.cfg.max_cars:
             raise proto.ProtocolError("id", f"the world has {len(self.loop.slots)} cars, "
                                       f"max_cars ({self.cfg.max_cars})")
+        if "pose" in args and "start" in args:
+            raise proto.ProtocolError("start", "give pose or start, not both")
         driver = args.get("driver")
         if args["driven_by"] == "driver" and driver is None:
             raise proto.ProtocolError("driver", f"car {car_id!r} is driven by the driver "
@@ -239,7 +244,7 @@ class WorldDesk:
         job = self.loop.preparer.submit(
             prepare_added_car, car_id, args.get("vehicle"), args.get("pose"), cfg.scene,
             tuple(cfg.config_dirs), os.getcwd(), cfg.path.parent, cfg.period_s, others,
-            driver)
+            driver, args.get("start"))
         self._adding = _Adding(request, car_id, job=job)
         self._advance(self._adding)  # an inline preparer (tests) is done already
         return None

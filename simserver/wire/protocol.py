@@ -1424,6 +1424,15 @@ class ControlSpec:
     defaults: Mapping[str, Any] = field(default_factory=dict)
 
 
+LANE_ARGS: Final[tuple[ArgSpec, ...]] = (
+    ArgSpec("road", "name", True, "", None, None, "road id, as written in the .xodr file"),
+    ArgSpec("s", "number", True, "m", 0.0, 1e6, "distance along the road's reference line"),
+    ArgSpec("lane", "integer", True, "", -1000, 1000,
+            "lane id: negative right of the reference line, positive left, not 0"),
+)
+"""A place by road, s and lane of an OpenDRIVE terrain (a car's ``reset`` ``lane``, the
+world's ``add_car`` ``start``)."""
+
 _MAX_PATH = 1024
 _MAX_NAME = 100
 YAW_BOUND_RAD: Final[float] = 6.28319
@@ -1465,16 +1474,7 @@ CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
                         )),
                 ArgSpec("lane", "object", False, "", None, None,
                         "start by road, s and lane on an OpenDRIVE terrain, at rest (the "
-                        "`start:` keys of a scene, docs/configuration.md)",
-                        (
-                            ArgSpec("road", "name", True, "", None, None,
-                                    "road id, as written in the .xodr file"),
-                            ArgSpec("s", "number", True, "m", 0.0, 1e6,
-                                    "distance along the road's reference line"),
-                            ArgSpec("lane", "integer", True, "", -1000, 1000,
-                                    "lane id: negative right of the reference line, "
-                                    "positive left, not 0"),
-                        )),
+                        "`start:` keys of a scene, docs/configuration.md)", LANE_ARGS),
                 ArgSpec("u_mps", "number", False, "m/s", -30.0, 80.0,
                         "initial speed along the heading (negative: reversing)"),
             ),
@@ -1906,8 +1906,9 @@ WORLD_CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
             "sampled off the tick (the load worker); it joins between two ticks (a driven "
             "car's driver with it, the other drivers' states kept); answered when it is "
             "served (its liveliness token declared). Errors name the car and the argument "
-            "(`driver.path`, `driver.idm.T_s`, ...): an id taken, a start overlapping a car "
-            "where that car is now or off the road, a driver path that leaves the road, "
+            "(`start.s`, `driver.path`, `driver.idm.T_s`, ...): an id taken, a start "
+            "overlapping a car where that car is now or off the road, a driver path that "
+            "leaves the road, "
             "more cars than `max_cars`, a vehicle file outside the config directories; "
             "nothing changes then.",
             (
@@ -1917,6 +1918,10 @@ WORLD_CONTROL_SPECS: Final[Mapping[str, ControlSpec]] = {
                 ArgSpec("vehicle", "path", False, "", None, None,
                         "vehicle YAML (default the world scene's), as `load`'s"),
                 _WORLD_POSE,
+                ArgSpec("start", "object", False, "", None, None,
+                        "its start at rest by road, s and lane of the world's OpenDRIVE "
+                        "terrain (a `cars:` entry's `start:`), instead of `pose`",
+                        LANE_ARGS),
                 ArgSpec("driven_by", "choice", False, "", None, None,
                         "who drives it (default `client`): a client over zenoh, or the "
                         "built-in driver (docs/model.md section 15), which then needs "
