@@ -84,8 +84,11 @@ def test_frame_bytes_are_each_cars_own_fill(tmp_path, scene):
         world.step()
         if k % 7:
             continue
-        frame.fill(world)
-        for c, slot in enumerate(slots):
+        rows = np.arange(len(slots), dtype=np.int64)[k % 2::2] if k % 3 else \
+            np.arange(len(slots), dtype=np.int64)  # some cars publish, or all
+        frame.fill(world, rows)
+        for c in rows:
+            slot = slots[c]
             view = slot.record
             got = slot.fill_state(1_000_000 * k, k % 3 == 0, frame.poses[c])
             slot.record = own[c]  # the car's own record, filled field by field
@@ -96,7 +99,7 @@ def test_frame_bytes_are_each_cars_own_fill(tmp_path, scene):
                 if np.frombuffer(got, proto.STATE_DTYPE)[name].tobytes()
                 != np.frombuffer(want, proto.STATE_DTYPE)[name].tobytes()])
             compared += 1
-    assert compared == 3 * len(range(0, 1500, 7))
+    assert compared > 2 * len(range(0, 1500, 7))
     speeds = np.frombuffer(got, proto.STATE_DTYPE)["u_mps"]
     assert speeds[0] > 1.0  # the last car moved: the comparison saw a driven world
 

@@ -78,7 +78,8 @@ def world_pose(x: np.ndarray, axes: np.ndarray, cg_height_m: float, pose: np.nda
 
 @nb.njit(cache=True)
 def world_poses(x: np.ndarray, vp: np.ndarray, cg_height_slot: int, on_plane: bool,
-                axes: np.ndarray, scratch_axes: np.ndarray, poses: np.ndarray) -> None:
+                axes: np.ndarray, scratch_axes: np.ndarray, rows: np.ndarray,
+                poses: np.ndarray) -> None:
     """The world pose of every car of a world (``x``: float64[n_cars, N_STATE], ``vp``:
     float64[n_cars, N_VEHICLE_PARAM], its CG height at ``cg_height_slot``) into ``poses``
     (float64[n_cars, N_POSE]), by the one rule of the published pose
@@ -86,8 +87,9 @@ def world_poses(x: np.ndarray, vp: np.ndarray, cg_height_slot: int, on_plane: bo
     plane ``axes``; on another terrain from the reference plane fitted under the wheels
     in the step before (its slopes and height are states, docs/model.md section 11;
     ``scratch_axes`` float64[3, 3] takes its axes). One call for the live server's
-    whole world a tick instead of one per car (``simserver.server.state_frame``)."""
-    for c in range(x.shape[0]):
+    whole world a tick instead of one per car (``simserver.server.state_frame``). Only
+    the cars ``rows`` (int64) are posed: those that publish this tick."""
+    for c in rows:
         if on_plane:
             world_pose(x[c], axes, vp[c, cg_height_slot], poses[c])
         else:

@@ -389,6 +389,7 @@ class ServerLoop:
         self.state_frame: StateFrame | None = None
         self._message_noted: Any = None  # the world message the published states are noted in
         self._plan: list = [()]  # what each car does at each tick of the cycle (_make_plan)
+        self._plan_rows: list[np.ndarray] = [np.zeros(0, dtype=np.int64)]
         self._input_slots: list[VehicleSlot] = []
         # the built-in driver's cars (simserver.server.live_drivers): prepared off the
         # tick, their arrays assembled when the world's cars change, driven each tick
@@ -592,10 +593,10 @@ class ServerLoop:
         What costs per car is spread so that no tick carries it for every car at once,
         and what can be done for every car at once is (issue 30: 32 cars in the 1 ms
         budget): the states are checked for finite values once for the whole world (a car
-        is looked at alone only when something is not finite); the copied fields of every
-        car's state record are filled together by a fixed number of numpy calls
-        (:class:`simserver.server.state_frame.StateFrame`; a car's own fields are then
-        written only for the cars that publish); a car not driven by a client (keyframes,
+        is looked at alone only when something is not finite); the copied fields of the state
+        records of the cars that publish this tick are filled together by a fixed number
+        of numpy calls (:class:`simserver.server.state_frame.StateFrame`), then each of
+        those cars writes its own fields; a car not driven by a client (keyframes,
         the built-in driver) publishes its state at :attr:`traffic_every` ticks, car ``k``
         at its own phase (its clients want the traffic, not its every tick: the world
         message carries every car), and its command inbox and control requests are looked
@@ -643,8 +644,8 @@ class ServerLoop:
         frame = self.state_frame
         poses = None
         noted = self._message_noted  # the world message, noting each new state
-        if publish_state and frame is not None:  # every car's copied fields in one go
-            frame.fill(self.world)
+        if publish_state and frame is not None:  # the publishing cars' fields in one go
+            frame.fill(self.world, self._plan_rows[count % len(self._plan_rows)])
             poses = frame.poses
         for index, slot, ports, diag_due, commands, serve in plan:
             if all_finite:
@@ -687,6 +688,8 @@ class ServerLoop:
                                     client or phase))
             plan.append(tuple(entries))
         self._plan = plan
+        self._plan_rows = [np.array([e[0] for e in entries if e[4]], dtype=np.int64)
+                           for entries in plan]  # the cars that publish: the frame's rows
         self._input_slots = [slot for slot, _ in self.slots if slot.driven_by != "driver"]
 
     def _with_pending(self, plan: tuple, pending: dict[int, PendingJob]) -> list:

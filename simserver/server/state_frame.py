@@ -7,16 +7,17 @@ held wheels, ground slopes, contact). Filling the copies field by field in Pytho
 about 25 us a car (some 60 numpy scalar assignments), so a tick that published five cars
 of 32 spent most of its budget there (``benchmarks.bench_multicar``). :class:`StateFrame`
 holds one record per car of the world, in the world's car order, and fills the copied
-fields of all of them with a fixed number of numpy calls, whatever the number of cars:
+fields of the cars that publish this tick (the loop's plan: the clients' cars and the
+traffic at its phase) with a fixed number of numpy calls, whatever their number:
 
-1. the world poses of every car by one compiled call (``core.pose.world_poses``, the rule
+1. their world poses by one compiled call (``core.pose.world_poses``, the rule
    of ``simserver.sim.simulation.pose_of``);
-2. the world's state, outputs, inputs and poses side by side in one float64 table (four
-   copies);
+2. their rows of the world's state, outputs, inputs and poses side by side in one
+   float64 table (four gathers);
 3. per destination type of the record (float64, float32, uint8, int8): one gather of
-   that type's source columns (``numpy.take``), one cast (numpy's casts, as the field by
-   field assignment uses) and one scatter of the cast bytes into the records' bytes at
-   the fields' offsets (precomputed once, on import, from the state table).
+   that type's source columns (``numpy.take``) and one scatter into the records seen as
+   that type (every field is aligned to its size), cast as numpy casts a field's
+   assignment; the places are precomputed once, on import, from the state table.
 
 The bytes are those of ``state_schema.fill_record`` (``tests/test_state_frame.py``
 compares them for every car on the flat and on a terrain). Each slot's ``record`` is a
@@ -51,6 +52,7 @@ class Group(NamedTuple):
     dtype: np.dtype
     columns: np.ndarray  # int64[k]
     byte_index: np.ndarray  # int64[k * itemsize]: record bytes, in the columns' order
+    index: np.ndarray  # int64[k]: the values' places in a record seen as this type
 
 
 def _groups() -> tuple[Group, ...]:
@@ -70,8 +72,14 @@ def _groups() -> tuple[Group, ...]:
             columns.append(col)
             start = offset + j * base.itemsize
             index.extend(range(start, start + base.itemsize))
-    return tuple(Group(t, np.array(c, dtype=np.int64), np.array(i, dtype=np.int64))
-                 for t, (c, i) in by_type.items())
+    groups = []
+    for t, (c, i) in by_type.items():
+        first_bytes = np.array(i[::t.itemsize], dtype=np.int64)
+        if np.any(first_bytes % t.itemsize) or proto.STATE_SIZE % t.itemsize:
+            raise ImportError(f"state table: a {t} field is not aligned to its size")
+        groups.append(Group(t, np.array(c, dtype=np.int64), np.array(i, dtype=np.int64),
+                            first_bytes // t.itemsize))
+    return tuple(groups)
 
 
 GROUPS = _groups()
@@ -96,28 +104,29 @@ class StateFrame:
         self.poses = np.zeros((n, L.N_POSE))
         self.source = np.zeros((n, N_SOURCE))
         self.values = [np.zeros((n, len(g.columns))) for g in GROUPS]
-        self.typed = [np.zeros((n, len(g.columns)), dtype=g.dtype) for g in GROUPS]
+        self.typed = [self.raw.view(g.dtype) for g in GROUPS]  # the records as each type
         for k, slot in enumerate(slots):
             self.records[k] = slot.record
             slot.record = self.records[k:k + 1].reshape(())  # a 0-d view of row k
         self.records["version"] = proto.PROTOCOL_VERSION
 
-    def fill(self, world: Any) -> None:
-        """Every car's copied fields (``state_schema.FILL``) from ``world``'s rows now, and
-        every car's world pose into :attr:`poses`."""
+    def fill(self, world: Any, rows: np.ndarray) -> None:
+        """The copied fields (``state_schema.FILL``) of the cars ``rows`` (int64, the
+        world's order: those that publish this tick) from ``world``'s rows now, and their
+        world poses into :attr:`poses`."""
         data, model = world.data, world.model
         if data.x.shape[0] != self.n:
             raise RuntimeError(f"state frame of {self.n} cars for a world of "
                                f"{data.x.shape[0]}: bind it when the cars change")
         poses = self.poses
         world_poses(data.x, model.vp, VP_CG_HEIGHT_M, model.terrain.kind == TERRAIN_PLANE,
-                    world.axes, self.scratch_axes, poses)
-        source = self.source
+                    world.axes, self.scratch_axes, rows, poses)
+        source = self.source[:len(rows)]
         for name, array in zip(ARRAYS, (data.x, data.out, data.inputs, poses), strict=True):
             first = _FIRST[name]
-            source[:, first:first + _WIDTHS[name]] = array
-        raw = self.raw
+            np.take(array, rows, axis=0, out=source[:, first:first + _WIDTHS[name]])
+        column = rows[:, None]
         for group, values, typed in zip(GROUPS, self.values, self.typed, strict=True):
+            values = values[:len(rows)]
             np.take(source, group.columns, axis=1, out=values)
-            np.copyto(typed, values, casting="unsafe")
-            raw[:, group.byte_index] = typed.view(np.uint8)
+            typed[column, group.index] = values  # numpy's cast, as a field's assignment
