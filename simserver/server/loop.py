@@ -492,6 +492,9 @@ class ServerLoop:
         if self.state_frame is None:
             self.state_frame = StateFrame()
         self.state_frame.bind(slots)
+        # its kernel compiled or loaded from the cache here, between ticks, not in the
+        # first tick that publishes (the copied fields are written again before use)
+        self.state_frame.fill(world, np.arange(len(slots), dtype=np.int64))
 
     def start(self) -> None:
         """Start the clock: tick 0 is due now.
