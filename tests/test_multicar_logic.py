@@ -247,6 +247,7 @@ def test_one_clock_a_car_reset_or_loaded_or_added_keeps_the_worlds_time(flat_sce
     slot = fleet.join_world(dataclasses.replace(rig.cfg, vehicle_id="c"), scene, table,
                             rig.loop.world)
     assert slot.sim.x[L.TIME_S] == a.x[L.TIME_S]
+    rig.loop.world.remove_car("c")  # joined the world only, not the loop's cars
     rig.run(10)
     slot_b = rig.slots["b"]
     slot_b.command_log.close(slot_b.steps_total, b.x)

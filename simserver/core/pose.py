@@ -21,11 +21,15 @@ from simserver.core.layout import (
     POSE_Y_M,
     POSE_YAW_RAD,
     POSE_Z_M,
+    REF_CROSS_SLOPE_PCT,
+    REF_GRADE_PCT,
+    REF_HEIGHT_M,
     ROLL_RAD,
     X_M,
     Y_M,
     YAW_RAD,
 )
+from simserver.core.road import road_frame
 
 
 @nb.njit(cache=True)
@@ -70,6 +74,28 @@ def world_pose(x: np.ndarray, axes: np.ndarray, cg_height_m: float, pose: np.nda
     pose[POSE_YAW_RAD] = psi + diff
     pose[POSE_PITCH_RAD] = np.arcsin(min(1.0, max(-1.0, -wx2)))
     pose[POSE_ROLL_RAD] = np.arctan2(wy2, wz2)
+
+
+@nb.njit(cache=True)
+def world_poses(x: np.ndarray, vp: np.ndarray, cg_height_slot: int, on_plane: bool,
+                axes: np.ndarray, scratch_axes: np.ndarray, rows: np.ndarray,
+                poses: np.ndarray) -> None:
+    """The world pose of every car of a world (``x``: float64[n_cars, N_STATE], ``vp``:
+    float64[n_cars, N_VEHICLE_PARAM], its CG height at ``cg_height_slot``) into ``poses``
+    (float64[n_cars, N_POSE]), by the one rule of the published pose
+    (``simserver.sim.simulation.pose_of``, car by car): on the plane terrain from the road
+    plane ``axes``; on another terrain from the reference plane fitted under the wheels
+    in the step before (its slopes and height are states, docs/model.md section 11;
+    ``scratch_axes`` float64[3, 3] takes its axes). One call for the live server's
+    whole world a tick instead of one per car (``simserver.server.state_frame``). Only
+    the cars ``rows`` (int64) are posed: those that publish this tick."""
+    for c in rows:
+        if on_plane:
+            world_pose(x[c], axes, vp[c, cg_height_slot], poses[c])
+        else:
+            road_frame(x[c, REF_GRADE_PCT], x[c, REF_CROSS_SLOPE_PCT], scratch_axes)
+            world_pose(x[c], scratch_axes, vp[c, cg_height_slot], poses[c])
+            poses[c, POSE_Z_M] += x[c, REF_HEIGHT_M]
 
 
 @nb.njit(cache=True)

@@ -308,6 +308,18 @@ def read_command_log(path: str | Path) -> list[dict[str, Any]]:
     return entries
 
 
+def apply_logged_reset(sim: Simulation, value: dict[str, Any] | None) -> None:
+    """A ``reset`` line of a command log applied to its car: the scene's start (None) or
+    the logged pose, at rest or at ``u_mps``; in a shared world the line also names the
+    world's time the car kept (``time_s``, one clock: ``VehicleSlot.logged_start``), which
+    a world reset makes 0 for every car. Used by the replay of a car alone and of a world."""
+    pose = None if value is None else dict(value)
+    clock = None if pose is None else pose.pop("time_s", None)
+    sim.reset(pose, None if pose is None else pose.pop("u_mps", None))
+    if clock is not None:
+        sim.x[L.TIME_S] = clock
+
+
 def replay_command_log(path: str | Path, progress: Any = None) -> Replay:
     """Re-run a command log headless with the same compiled step as the server."""
     entries = read_command_log(path)
@@ -332,11 +344,7 @@ def replay_command_log(path: str | Path, progress: Any = None) -> Replay:
             if "inputs" in e:
                 physics.inputs[:] = e["inputs"]
             elif "reset" in e:
-                pose = None if e["reset"] is None else dict(e["reset"])
-                clock = None if pose is None else pose.pop("time_s", None)
-                physics.reset(pose, None if pose is None else pose.pop("u_mps", None))
-                if clock is not None:  # a car of a shared world kept the world's time
-                    physics.x[L.TIME_S] = clock
+                apply_logged_reset(physics, e["reset"])
             elif "set_road" in e:
                 physics.set_road(**e["set_road"])
             elif "load" in e:

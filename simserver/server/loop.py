@@ -35,6 +35,7 @@ from __future__ import annotations
 import functools
 import gc
 import logging
+import math
 import time
 from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future
@@ -56,6 +57,7 @@ from simserver.server.realtime import (
     TickTrace,
 )
 from simserver.server.slot import StagedStart, VehicleSlot, unwrap_prepared
+from simserver.server.state_frame import StateFrame
 from simserver.wire import protocol as proto
 
 if TYPE_CHECKING:
@@ -386,6 +388,12 @@ class ServerLoop:
         self.traffic_every = max(1, int(round(1.0 / (proto.TRAFFIC_STATE_HZ * cfg.period_s))))
         self.publish_world: Callable[[bytes], None] | None = None
         self.world_desk: Any = None  # the world's controls (simserver.server.world_desk)
+        # every car's state record, its copies of the world's rows filled in one go a tick
+        self.state_frame: StateFrame | None = None
+        self._message_noted: Any = None  # the world message the published states are noted in
+        self._plan: list = [()]  # what each car does at each tick of the cycle (_make_plan)
+        self._plan_rows: list[np.ndarray] = [np.zeros(0, dtype=np.int64)]
+        self._input_slots: list[VehicleSlot] = []
         # the built-in driver's cars (simserver.server.live_drivers): prepared off the
         # tick, their arrays assembled when the world's cars change, driven each tick
         self.live_drivers: Any = None
@@ -467,11 +475,35 @@ class ServerLoop:
         self._driver_ids = list(world.ids)
 
     def _cars_changed(self) -> None:
-        """The world message's cars after a car was added or removed."""
+        """The state frame's and the world message's cars after a car was added or
+        removed."""
+        self._bind_frame()
+        self._make_plan()
+        self._message_noted = None  # its rows are the cars' of now: filled anew when due
         message = self.world_message
         if message is not None:
             message.set_cars([s.keys.vehicle for s, _ in self.slots],
                              [s.driven_by for s, _ in self.slots])
+
+    def _bind_frame(self) -> None:
+        """The state records of the world's cars filled in one go a tick
+        (``simserver.server.state_frame``), when the loop's cars are the world's in its
+        order (they are: a car joins and leaves both together); else each car fills its
+        own, as a single car does."""
+        world = self.world
+        slots = [s for s, _ in self.slots]
+        if world is None or [s.keys.vehicle for s in slots] != list(world.ids):
+            if self.state_frame is not None:  # each record its own again (a copy)
+                for slot in slots:
+                    slot.record = slot.record.copy()
+            self.state_frame = None
+            return
+        if self.state_frame is None:
+            self.state_frame = StateFrame()
+        self.state_frame.bind(slots)
+        # its kernel compiled or loaded from the cache here, between ticks, not in the
+        # first tick that publishes (the copied fields are written again before use)
+        self.state_frame.fill(world, np.arange(len(slots), dtype=np.int64))
 
     def start(self) -> None:
         """Start the clock: tick 0 is due now.
@@ -526,8 +558,13 @@ class ServerLoop:
             hook()
         message = self.world_message
         if message is not None and message.due(count):
-            self.publish_world(message.payload([s.last_published for s, _ in self.slots],
-                                               count, (now - self.t0_ns) / NS_PER_S))
+            uptime_s = (now - self.t0_ns) / NS_PER_S
+            if self._message_noted is message:  # every car's newest state noted as published
+                self.publish_world(message.payload_noted(count, uptime_s))
+            else:  # a new message, or the cars changed: every car's newest state once
+                self.publish_world(message.payload(
+                    [s.last_published for s, _ in self.slots], count, uptime_s))
+                self._message_noted = message
         if count % self.second_every == self.second_every // 2:  # between diagnostics
             for job in self.every_second:
                 job()
@@ -551,6 +588,9 @@ class ServerLoop:
                 payload = slot.state_payload(now, catching_up)
                 if payload is not None:  # None: no finite state to publish yet
                     ports.publisher.publish_state(payload)
+                    noted = self._message_noted
+                    if noted is not None and slot.last_published is payload:
+                        noted.note(index, payload)
             if diag_tick:  # after the state: the window's percentiles never delay it
                 diag = diag or self._diagnostics_source()
                 self._port_counters(index, slot, ports)
@@ -564,31 +604,37 @@ class ServerLoop:
         car's checks, state, diagnostics and controls. A car paused alone (a fault stop)
         keeps its state through the world's step (its rows are put back after it).
 
-        What costs per car is spread so that no tick carries it for every car at once
-        (the tick's budget is 1 ms, a car's state about 20-30 us of Python): the states
-        are checked for finite values once for the whole world (a car is looked at alone
-        only when something is not finite); a car not driven by a client (keyframes, the
-        built-in driver) publishes its state at :attr:`traffic_every` ticks, car ``k`` at
-        its own phase (its clients want the traffic, not its every tick: the world message
-        carries every car), and its command inbox and control requests are looked at then
-        too (a control to it is answered within 10 ms); car ``k``'s diagnostics go out at
-        its own phase of the diagnostics period."""
+        What costs per car is spread so that no tick carries it for every car at once,
+        and what can be done for every car at once is (issue 30: 32 cars in the 1 ms
+        budget): the states are checked for finite values once for the whole world (a car
+        is looked at alone only when something is not finite); the copied fields of the state
+        records of the cars that publish this tick are filled together by a fixed number
+        of numpy calls (:class:`simserver.server.state_frame.StateFrame`), then each of
+        those cars writes its own fields; a car not driven by a client (keyframes,
+        the built-in driver) publishes its state at :attr:`traffic_every` ticks, car ``k``
+        at its own phase (its clients want the traffic, not its every tick: the world
+        message carries every car), and its command inbox and control requests are looked
+        at then too (a control to it is answered within 10 ms); car ``k``'s diagnostics go
+        out at its own phase of the diagnostics period. Which cars have something to do at
+        which tick is planned when the cars change (:meth:`_make_plan`), so the tick's
+        Python passes over those cars only, apart from each car's ``advance`` (its tick
+        count, its command log)."""
         slots = self.slots
         count = self.loop_count
-        traffic_every = self.traffic_every
-        stepped = False
-        for index, (slot, ports) in enumerate(slots):
-            if skipped:
+        plan = self._plan[count % len(self._plan)]
+        if skipped:
+            for slot, _ in slots:
                 slot.skipped_before = True
-            if slot.driven_by == "client" or (count + index) % traffic_every == 0:
-                # a car no client drives applies no command: its inbox is drained (and
-                # counted) at its own phase only
+        for _, slot, ports, _, commands, _ in plan:
+            if commands:  # a client's car every tick, another at its own phase only
                 payloads = ports.commands.drain_newest()
                 slot.take_commands(payloads, now, len(payloads) >= ports.commands.capacity)
+        for slot in self._input_slots:  # clients (watchdog) and keyframes: not the driver's
             slot.apply_inputs(now)
         drivers = self.drivers
         if drivers is not None:  # the driven cars' inputs from the states now (model.md 15)
             drive(self.world.model, self.world.data, drivers)
+        stepped = False
         for slot, _ in slots:  # each car's inputs logged (the driver's too), ticks counted
             slot.stepping = slot.advance(step=False)
             stepped = stepped or slot.stepping
@@ -605,24 +651,34 @@ class ServerLoop:
         if data.contacts.count[K_EVENTS] != self.contact_events_seen:  # rare: a contact
             self._contact_events(count)
         all_finite = bool(np.isfinite(data.x).all() and np.isfinite(data.out).all())
+        if not all_finite:  # each car looked at alone (a non-finite one is stopped: reset)
+            for slot, _ in slots:
+                slot.check_finite()  # before publishing: nothing non-finite leaves
         diag = None
         pending = self.pending
-        for index, (slot, ports) in enumerate(slots):
+        if pending:  # a job's car is served every tick until it is answered
+            plan = self._with_pending(plan, pending)
+        frame = self.state_frame
+        poses = None
+        noted = self._message_noted  # the world message, noting each new state
+        if publish_state and frame is not None:  # the publishing cars' fields in one go
+            frame.fill(self.world, self._plan_rows[count % len(self._plan_rows)])
+            poses = frame.poses
+        for index, slot, ports, diag_due, commands, serve in plan:
             if all_finite:
                 slot.state_finite = True  # check_finite's verdict, without its own look
-            else:
-                slot.check_finite()  # before publishing: nothing non-finite leaves
-            client = slot.driven_by == "client"
-            phase = (count + index) % traffic_every == 0
-            if publish_state and (client or phase):
-                payload = slot.state_payload(now, catching_up)
+            if publish_state and commands:  # a client's car, or another at its phase
+                payload = slot.state_payload(now, catching_up,
+                                             None if poses is None else poses[index])
                 if payload is not None:
                     ports.publisher.publish_state(payload)
-            if (count + index) % self.diag_every == 0:
+                    if noted is not None and slot.last_published is payload:
+                        noted.note(index, payload)
+            if diag_due:
                 diag = diag or self._diagnostics_source()
                 self._port_counters(index, slot, ports)
                 ports.publisher.publish_diagnostics(self._diagnostics(slot, *diag))
-            if client or phase or index in pending:  # traffic: at its phase (10 ms)
+            if serve:  # traffic: at its phase (10 ms)
                 self._serve_controls(index, slot, ports, now, catching_up)
 
     def _note_held(self, held: list[VehicleSlot]) -> None:
@@ -637,6 +693,48 @@ class ServerLoop:
                 slot.command_log.write({"step": slot.steps_total - 1, "world": {
                     "event": "resume", "step": world_step}})
         self._held = set(held)
+
+    def _make_plan(self) -> None:
+        """What each car does at each tick of the world's cycle (when the cars change):
+        ``_plan[tick % cycle]`` lists, in the cars' order, the cars with something to do
+        at that tick: ``(index, slot, ports, diagnostics due, commands and state due,
+        controls served)``. A client's car has its commands, state and controls every
+        tick; another (keyframes, the built-in driver) at its phase of
+        :attr:`traffic_every`; car ``k``'s diagnostics at its phase of the diagnostics
+        period. So a tick's Python passes over the cars that publish, not over every car
+        of the world (``benchmarks.bench_multicar``: 32 cars)."""
+        every, diag_every = self.traffic_every, self.diag_every
+        cycle = every * diag_every // math.gcd(every, diag_every)
+        cars = [(index, slot, ports, slot.driven_by == "client")
+                for index, (slot, ports) in enumerate(self.slots)]
+        plan = []
+        for tick in range(cycle):
+            entries = []
+            for index, slot, ports, client in cars:
+                phase = (tick + index) % every == 0
+                diag_due = (tick + index) % diag_every == 0
+                if client or phase or diag_due:
+                    entries.append((index, slot, ports, diag_due, client or phase,
+                                    client or phase))
+            plan.append(tuple(entries))
+        self._plan = plan
+        self._plan_rows = [np.array([e[0] for e in entries if e[4]], dtype=np.int64)
+                           for entries in plan]  # the cars that publish: the frame's rows
+        self._input_slots = [slot for slot, _ in self.slots if slot.driven_by != "driver"]
+
+    def _with_pending(self, plan: tuple, pending: dict[int, PendingJob]) -> list:
+        """``plan`` with the cars of pending jobs served too (their controls only)."""
+        have = {entry[0] for entry in plan}
+        extra = [(index, self.slots[index][0], self.slots[index][1], False, False, True)
+                 for index in pending if index not in have]
+        out = list(plan)
+        for entry in extra:
+            out.append(entry)
+        for k, entry in enumerate(out):
+            if entry[0] in pending and not entry[5]:
+                out[k] = entry[:5] + (True,)
+        out.sort(key=lambda entry: entry[0])
+        return out
 
     def _contact_events(self, tick: int) -> None:
         """The world's new contact events (``World.contact_events``, after the step that

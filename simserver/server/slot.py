@@ -334,14 +334,16 @@ class VehicleSlot:
             self.steps_to_run -= 1
         return True
 
-    def state_payload(self, now_ns: int, catching_up: bool) -> bytes | None:
+    def state_payload(self, now_ns: int, catching_up: bool,
+                      pose: np.ndarray | None = None) -> bytes | None:
         """The VehicleState of this tick (docs/protocol.md 2.2), counted as published.
 
         Never a non-finite one: a state whose simulation (``check_finite``) or world pose
         and ground slopes are not finite is replaced by the newest finite state published,
         with this tick's flags (``FAULT`` among them), tick and command fields; None (no
-        state to publish) if there was none yet (docs/reliability.md)."""
-        payload = self.fill_state(now_ns, catching_up)
+        state to publish) if there was none yet (docs/reliability.md). ``pose``: see
+        :meth:`fill_state`."""
+        payload = self.fill_state(now_ns, catching_up, pose)
         if not (self.state_finite and self._pose_finite()):
             if self.state_finite:  # the pose went bad under a finite state: stop the car
                 self._stop("non-finite world pose")
@@ -374,11 +376,19 @@ class VehicleSlot:
         out["flags"] = int(rec["flags"]) | proto.StateFlag.FAULT
         return out.tobytes()
 
-    def fill_state(self, now_ns: int, catching_up: bool) -> bytes:
-        """Write the state record from the simulation and return its bytes."""
+    def fill_state(self, now_ns: int, catching_up: bool,
+                   pose: np.ndarray | None = None) -> bytes:
+        """Write the state record from the simulation and return its bytes.
+
+        ``pose``: the car's world pose of this tick, its record's copied fields already
+        filled (``simserver.server.state_frame.StateFrame``, the whole world's in one go:
+        ``record`` is a view of its row); only this slot's own fields are written then."""
         p = self.sim
         x, out, rec = p.x, p.out, self.record
-        p.update_pose()  # world axes; on a terrain from the reference plane of the step
+        if pose is None:
+            p.update_pose()  # world axes; on a terrain from the reference plane of the step
+        else:
+            p.pose[:] = pose
         flags = 0
         if self.watchdog.engaged:
             flags |= proto.StateFlag.WATCHDOG
@@ -409,7 +419,8 @@ class VehicleSlot:
         arbiter = self.arbiter
         # the fields copied from the simulation come from the state table (state_schema);
         # these are this slot's own (state_schema.SERVER_FIELDS, checked on import)
-        fill_record(rec, x, out, inputs, p.pose)
+        if pose is None:
+            fill_record(rec, x, out, inputs, p.pose)
         rec["flags"] = flags
         rec["tick"] = self.tick
         rec["sim_time_s"] = self.tick * p.dt_s

@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from simserver.adapters.validate import ConfigError
-from simserver.server.command_log import read_command_log
+from simserver.server.command_log import apply_logged_reset, read_command_log
 from simserver.sim.scene import Scene
 from simserver.sim.scene_files import load_scene
 from simserver.sim.simulation import Simulation, World
@@ -196,8 +196,7 @@ def _apply(car: _Car, e: dict[str, Any], scenes: dict[tuple[str, str | None], Sc
     if "inputs" in e:
         sim.inputs[:] = e["inputs"]
     elif "reset" in e:
-        pose = None if e["reset"] is None else dict(e["reset"])
-        sim.reset(pose, None if pose is None else pose.pop("u_mps", None))
+        apply_logged_reset(sim, e["reset"])
     elif "set_road" in e:
         sim.set_road(**e["set_road"])
     elif "load" in e:
