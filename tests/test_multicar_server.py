@@ -197,12 +197,14 @@ def test_a_single_car_list_driven_by_the_driver_drives(tmp_path):
 CURVES_XODR = REPO / "configs" / "roads" / "curves_elevation.xodr"
 
 
-def test_a_car_added_with_the_built_in_driver_drives_its_lane_and_bad_ones_change_nothing():
+def test_a_car_added_with_the_built_in_driver_drives_its_lane_and_bad_ones_change_nothing(
+        tmp_path):
     """``add_car`` with ``driven_by: driver`` and a driver block (issue 30 item 1): the car
     joins the running world and the built-in driver drives it: its speed rises toward the
     block's target and it follows its lane into the curve. An add whose driver path leaves
     the road, or whose start is off the road, is refused with an error naming the car and
-    the argument, and the world goes on as it was (its one car, no new token)."""
+    the argument, and the world goes on as it was (its one car, no new token). The added
+    car's command log replays it alone to its final state (the driver's inputs logged)."""
     import numpy as np
 
     from simserver.adapters.opendrive import lane_start, load_opendrive
@@ -216,7 +218,8 @@ def test_a_car_added_with_the_built_in_driver_drives_its_lane_and_bad_ones_chang
     pose = {"x_m": x0, "y_m": y0, "yaw_rad": yaw0}
     v0_mps = 8.0
     driver = {"path": {"road": "1", "lane": -1}, "idm": {"v0_mps": v0_mps}}
-    with ServerProcess(scene="curves_elevation_paper_sedan") as server, \
+    with ServerProcess(scene="curves_elevation_paper_sedan",
+                       command_log=tmp_path / "run.jsonl") as server, \
             ZenohEndpoint(client_config(server.endpoint)) as ep:
         cars = cw.CarsWatch(ep, "simserver")
         wait_until(cars.poll, lambda c: c == {"car0"}, timeout_s=10)
@@ -271,6 +274,10 @@ def test_a_car_added_with_the_built_in_driver_drives_its_lane_and_bad_ones_chang
         wait_until(drive_on, lambda s: bool(s) and np.hypot(s[-1][0] - x0, s[-1][1] - y0)
                    > 60.0 and s[-1][2] > 0.9 * v0_mps, timeout_s=90,
                    what="the added car driving on at its target speed")
+    assert server.returncode == 0, server.text()
+    from simserver.server.command_log import replay_command_log
+
+    assert replay_command_log(tmp_path / "run.bot.jsonl").final_state_matches
     track = np.array(seen)
     # toward the target, not past it: IDM's approach is from below (model.md section 15),
     # 3 % for the speed controller's overshoot
