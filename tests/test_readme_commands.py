@@ -84,6 +84,9 @@ NOT_RUN_HERE = {
     "simserver serve --command-log run.jsonl": "a second server on the default port: "
                                                "test_server.py logs and replays a run",
     "simserver replay run.jsonl": "the same",
+    "simserver replay run.*.jsonl": "a placeholder for a multi-car server's logs: "
+                                    "test_multicar_session.py replays a live 4-car session "
+                                    "with that command",
     "simserver view": "the main command already runs the view on its default port",
     "simserver view --sink serve --web-port 9090": "Rerun binds the web viewer to every "
                                                    "interface; tests listen on loopback only",
