@@ -22,6 +22,7 @@ never committed.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import secrets
@@ -1018,9 +1019,11 @@ def test_a_get_config_flood_is_rate_limited_per_session_and_spares_the_driver(ac
 HIJACKED = json.dumps({"ok": True, "tick": 0, "hijacked": True}).encode()
 
 
-def _reset_replies(impostor: Client, victim: Client, queries: int) -> list[dict]:
+def _reset_replies(impostor: Client, victim: Client, seconds: float) -> list[dict]:
     """The replies the victim's ``ctl/reset`` queries get while the impostor serves that
-    key: up to ``queries`` queries, stopping at the first reply of the impostor.
+    key: a query every 20 ms for ``seconds`` (the declaration travels meanwhile, or is
+    denied; a count of queries was not a time: on a busy machine 50 quick queries ended
+    before the declaration arrived), stopping at the first reply of the impostor.
 
     The victim asks every queryable (``QueryTarget.ALL``): with the default target zenoh
     picks one, on this topology the server's, which is routing, not protection."""
@@ -1031,13 +1034,16 @@ def _reset_replies(impostor: Client, victim: Client, queries: int) -> list[dict]
 
     queryable = impostor.ep.session.declare_queryable(key, answer, complete=True)
     bodies: list[dict] = []
+
+    def ask() -> bool:
+        replies = victim.ep.session.get(key, target=zenoh.QueryTarget.ALL, timeout=1.0)
+        bodies.extend(json.loads(r.ok.payload.to_bytes()) for r in replies
+                      if r.ok is not None)
+        return any(b.get("hijacked") for b in bodies)
+
     try:
-        for _ in range(queries):  # the declaration travels meanwhile (or is denied)
-            replies = victim.ep.session.get(key, target=zenoh.QueryTarget.ALL, timeout=1.0)
-            bodies += [json.loads(r.ok.payload.to_bytes()) for r in replies
-                       if r.ok is not None]
-            if any(b.get("hijacked") for b in bodies):
-                break
+        with contextlib.suppress(TimeoutError):  # no hijack within the time: the answer
+            wait_until(ask, timeout_s=seconds, interval_s=0.02, what="the impostor's reply")
     finally:
         queryable.undeclare()
     return bodies
@@ -1049,7 +1055,7 @@ def test_on_the_loopback_default_a_local_process_can_answer_the_controls():
     with ServerProcess(listen=[loopback_endpoint()]) as server, \
             Client(server, mode="peer") as impostor, Client(server) as victim:
         victim.wait_controls()
-        bodies = _reset_replies(impostor, victim, queries=50)
+        bodies = _reset_replies(impostor, victim, seconds=10.0)
     assert any(b.get("hijacked") for b in bodies), bodies
 
 
@@ -1060,5 +1066,5 @@ def test_the_secured_config_lets_nobody_but_the_server_answer_the_controls(acl_s
     with Client(endpoint, zenoh_config=configs["driver"], mode="peer") as impostor, \
             Client(endpoint, zenoh_config=configs["driver"]) as victim:
         victim.wait_controls()
-        bodies = _reset_replies(impostor, victim, queries=10)
+        bodies = _reset_replies(impostor, victim, seconds=2.0)
     assert len(bodies) >= 10 and not any(b.get("hijacked") for b in bodies), bodies
