@@ -682,6 +682,17 @@ def _add_soak_arguments(parser: argparse.ArgumentParser) -> None:
                              "drives; simserver.sim.multisoak)")
 
 
+def _write_soak_summary(out: Path | None, summary: dict) -> str:
+    """A soak's summary as indented JSON, written to ``--out`` when given; the text."""
+    import json
+
+    text = json.dumps(summary, indent=2, sort_keys=True)
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text + "\n", encoding="utf-8")
+    return text
+
+
 def _multi_soak(args: argparse.Namespace, scene: Scene) -> int:
     """``simserver soak --cars N``: the multi-car soak, its summary and violations."""
     import json
@@ -697,10 +708,7 @@ def _multi_soak(args: argparse.Namespace, scene: Scene) -> int:
         report = run_multi_soak(scene, args.cars, args.duration, seed=args.seed,
                                 progress=lambda done, total: bar.update(done - bar.n))
     summary = report.as_dict()
-    text = json.dumps(summary, indent=2, sort_keys=True)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n", encoding="utf-8")
+    _write_soak_summary(args.out, summary)
     brief = {k: v for k, v in summary.items() if k != "contact_events"}
     print(json.dumps(brief, indent=2, sort_keys=True))
     for v in report.violations:
@@ -711,7 +719,6 @@ def _multi_soak(args: argparse.Namespace, scene: Scene) -> int:
 
 def soak_command(args: argparse.Namespace) -> int:
     """``simserver soak``: seeded random driving, invariants checked every tick."""
-    import json
 
     from tqdm import tqdm
 
@@ -738,10 +745,7 @@ def soak_command(args: argparse.Namespace) -> int:
         report = run_soak(scene, args.duration, seed=args.seed,
                           progress=lambda done, total: bar.update(done - bar.n))
     summary = report.as_dict()
-    text = json.dumps(summary, indent=2, sort_keys=True)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n", encoding="utf-8")
+    text = _write_soak_summary(args.out, summary)
     print(text)
     print(report.holds_digest(), file=sys.stderr)
     if report.holds_unjudged:
