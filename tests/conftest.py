@@ -39,8 +39,20 @@ def slow_enabled(markexpr: str | None) -> bool:
     They run with ``SIMSERVER_SLOW=1`` in the environment or when pytest's ``-m``
     expression selects ``slow`` (``-m slow``); the default suite runs their short forms.
     """
+    return os.environ.get("SIMSERVER_SLOW") == "1" or _selects_slow(markexpr)
+
+
+def _selects_slow(markexpr: str | None) -> bool:
     expr = markexpr or ""
-    return os.environ.get("SIMSERVER_SLOW") == "1" or ("slow" in expr and "not slow" not in expr)
+    return "slow" in expr and "not slow" not in expr
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """``-m slow`` sets ``SIMSERVER_SLOW=1`` before the test modules are imported, so a size
+    chosen at import (``slow_enabled(None)``: hypothesis' example counts, a module's soak
+    length) is the long one under ``-m slow`` too, not only under ``SIMSERVER_SLOW=1``."""
+    if _selects_slow(config.getoption("markexpr")):
+        os.environ["SIMSERVER_SLOW"] = "1"
 
 
 @pytest.fixture(scope="session")

@@ -1,6 +1,8 @@
 """Hostile input: fuzzing the command decoder and every control, in process and live.
 
-In process (hypothesis), more than 10 000 payloads in total:
+In process (hypothesis), more than 10 000 payloads in total in the long form (``-m slow`` or
+``SIMSERVER_SLOW=1``), a fifth of each generator's count in the default suite (the same
+generators and checks, and every explicit ``@example``):
 
 - ``decode_command`` on random bytes, on structured commands with hostile field values
   (every float class, boundary values, unknown gears, flags, versions, reserved bits),
@@ -49,17 +51,25 @@ from simserver.wire.protocol import (
     decode_command,
     validate_control,
 )
+from tests.conftest import slow_enabled
 
 pytestmark = pytest.mark.timeout(600)
 
 PAYLOADS_TRIED: Counter[str] = Counter()
 """Payloads fed to the decoders by each test of this module (printed at its end)."""
 
-IN_PROCESS_EXAMPLES = {
+IN_PROCESS_EXAMPLES_LONG = {
     "command_random_bytes": 2000, "command_structured": 2500, "command_mutated": 2000,
     "control_random_bytes": 1000, "control_random_json": 1500, "control_structured": 1200,
     "control_mutated": 1000,
 }
+"""Generated examples per in-process test in the long form (docs/reliability.md quotes
+their total)."""
+SHORT_FORM_DIVISOR = 5
+"""The default suite runs a fifth of each count (the issue 33 suite budget; the in-process
+fuzzing was a minute of CPU); ``-m slow`` / ``SIMSERVER_SLOW=1`` runs them all."""
+IN_PROCESS_EXAMPLES = (IN_PROCESS_EXAMPLES_LONG if slow_enabled(None) else
+                       {k: n // SHORT_FORM_DIVISOR for k, n in IN_PROCESS_EXAMPLES_LONG.items()})
 LIVE_COMMANDS = 7000
 LIVE_QUERIES = 3000
 
@@ -286,6 +296,7 @@ edits = st.lists(st.tuples(st.integers(0, 5), st.integers(0, 1 << 16), st.intege
 # ============================================================================ in process: commands
 
 
+@pytest.mark.slow  # the long form: every count of IN_PROCESS_EXAMPLES_LONG
 @settings(max_examples=IN_PROCESS_EXAMPLES["command_random_bytes"], **FUZZ_SETTINGS)
 @given(st.one_of(st.binary(max_size=80), st.binary(min_size=COMMAND_SIZE,
                                                    max_size=COMMAND_SIZE)))
@@ -294,6 +305,7 @@ def test_decode_command_random_bytes(payload):
     check_command(payload)
 
 
+@pytest.mark.slow  # the long form: every count of IN_PROCESS_EXAMPLES_LONG
 @settings(max_examples=IN_PROCESS_EXAMPLES["command_structured"], **FUZZ_SETTINGS)
 @given(structured_commands)
 @example(command_bytes(steer=1.0 + 5e-4))  # clamped
@@ -305,6 +317,7 @@ def test_decode_command_structured(payload):
     check_command(payload)
 
 
+@pytest.mark.slow  # the long form: every count of IN_PROCESS_EXAMPLES_LONG
 @settings(max_examples=IN_PROCESS_EXAMPLES["command_mutated"], **FUZZ_SETTINGS)
 @given(valid_commands, edits)
 def test_decode_command_mutated_valid_commands(payload, changes):
@@ -331,6 +344,7 @@ control_names = st.one_of(st.sampled_from(CONTROL_NAMES),
                           st.sampled_from(["", "Reset", "reset/", "*", "shutdown"]))
 
 
+@pytest.mark.slow  # the long form: every count of IN_PROCESS_EXAMPLES_LONG
 @settings(max_examples=IN_PROCESS_EXAMPLES["control_random_bytes"], **FUZZ_SETTINGS)
 @given(control_names, st.binary(max_size=200))
 def test_validate_control_random_bytes(name, payload):
@@ -342,6 +356,7 @@ def test_validate_control_random_bytes(name, payload):
     check_control(name, payload)
 
 
+@pytest.mark.slow  # the long form: every count of IN_PROCESS_EXAMPLES_LONG
 @settings(max_examples=IN_PROCESS_EXAMPLES["control_random_json"], **FUZZ_SETTINGS)
 @given(st.sampled_from(CONTROL_NAMES), json_values)
 @example("set_road", {"grade_pct": 10**400})  # an integer too large for a float
@@ -352,6 +367,7 @@ def test_validate_control_random_json(name, obj):
     check_control(name, json.dumps(obj).encode())
 
 
+@pytest.mark.slow  # the long form: every count of IN_PROCESS_EXAMPLES_LONG
 @settings(max_examples=IN_PROCESS_EXAMPLES["control_structured"], **FUZZ_SETTINGS)
 @given(st.sampled_from(CONTROL_NAMES).flatmap(
     lambda n: st.tuples(st.just(n), request_for(n))))
@@ -376,6 +392,7 @@ def _valid_request(name: str, rnd: random.Random) -> dict[str, Any]:
     return {}
 
 
+@pytest.mark.slow  # the long form: every count of IN_PROCESS_EXAMPLES_LONG
 @settings(max_examples=IN_PROCESS_EXAMPLES["control_mutated"], **FUZZ_SETTINGS)
 @given(st.sampled_from(CONTROL_NAMES), st.integers(0, 2**32), edits)
 def test_validate_control_mutated_valid_requests(name, seed, changes):
