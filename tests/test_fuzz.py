@@ -67,7 +67,7 @@ IN_PROCESS_EXAMPLES_LONG = {
 their total)."""
 SHORT_FORM_DIVISOR = 5
 """The default suite runs a fifth of each count (the issue 33 suite budget; the in-process
-fuzzing was a minute of CPU); ``-m slow`` / ``SIMSERVER_SLOW=1`` runs them all."""
+fuzzing took 45 s of CPU, a fifth 7.6 s); ``-m slow`` / ``SIMSERVER_SLOW=1`` runs them all."""
 IN_PROCESS_EXAMPLES = (IN_PROCESS_EXAMPLES_LONG if slow_enabled(None) else
                        {k: n // SHORT_FORM_DIVISOR for k, n in IN_PROCESS_EXAMPLES_LONG.items()})
 LIVE_COMMANDS = 7000
