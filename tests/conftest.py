@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from simserver.testing import CONFIGS, REPO, ServerProcess, free_port
+from simserver.testing import CONFIGS, REPO, OutputProcess, ServerProcess, free_port
 
 SAMPLE_TIR = CONFIGS / "tires" / "data" / "mf61_225_50R17_sample.tir"
 """The MF 6.1 sample property file, as shipped with the repository (the one the
@@ -137,6 +137,26 @@ def readme_server() -> Iterator[ServerProcess]:
     finally:
         code = server.stop(signal.SIGINT)
     assert code == 0 and server.final_stats() is not None, server.text()
+
+
+TWO_CARS = CONFIGS / "server" / "two_cars.yaml"
+"""The shipped two-car server config: car0 at x = 0, car1 at x = 25 m on the flat, both
+driven by clients."""
+
+
+@pytest.fixture(scope="module")
+def two_cars() -> Iterator[ServerProcess]:
+    """A real server process on ``TWO_CARS`` (its own free loopback port), one per test
+    module: a module that drives the cars does not move another module's parked ones."""
+    with ServerProcess(config=TWO_CARS, scene=None) as server:
+        yield server
+
+
+def player(server: ServerProcess, car: str, scenario: Path) -> OutputProcess:
+    """A ``clients.player`` process playing ``scenario`` (a keyframed inputs YAML) on
+    ``car`` of ``server`` at 200 Hz, as a person's client would drive it."""
+    return OutputProcess([sys.executable, "-m", "clients.player", str(scenario),
+                          "--connect", server.endpoint, "--vehicle-id", car, "--rate", "200"])
 
 
 # ------------------------------------------------------------------ CPU time per test

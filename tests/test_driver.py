@@ -24,6 +24,7 @@ from simserver.adapters.history import CAR_ID_COLUMN, read_history
 from simserver.adapters.opendrive import lane_start, load_opendrive
 from simserver.core import driver as D
 from simserver.core import layout as L
+from simserver.core import params as P
 from simserver.core.param_table import slot_constants_source
 from simserver.core.params import VP_CG_HEIGHT_M, VP_CG_TO_FRONT_AXLE_M, VP_CG_TO_REAR_AXLE_M
 from simserver.core.pose import world_pose
@@ -410,3 +411,35 @@ def test_an_oncoming_or_crossing_car_in_the_lane_is_an_obstacle_at_rest(tmp_path
                          {"oncoming_stop": 0.0})
     assert ahead[D.DS_LEADER] == 1.0
     assert ahead[D.DS_ACCEL_CMD_MPS2] == standing[D.DS_ACCEL_CMD_MPS2]
+
+
+def test_the_gap_is_measured_between_the_cars_contact_boxes(tmp_path):
+    """The driver's bumpers are the cars' contact boxes (the vehicle's ``body_*``
+    overhangs, docs/model.md section 16) unless its block gives others: behind a hatchback
+    (body 0.58 m behind its rear axle) the gap the driver keeps is the gap between the two
+    boxes, the one the contact stage sees, so a queue's s0 is s0 of air. Before, every car
+    was taken to have the sedan's 0.85 m overhangs: 0.27 m of the gap behind a hatchback
+    was its body that is not there."""
+    hatch = REPO / "configs" / "vehicles" / "mf_hatchback" / "vehicle.yaml"
+    path = {"points": [[-50.0, 0.0], [2000.0, 0.0]]}
+    lead_x_m = 40.0
+    data = {"name": "boxes", "duration_s": 0.002, "record_every": 1, "cars": [
+        {"vehicle": str(VEHICLE), "id": "driven",
+         "initial": {"x_m": 0.0, "u_mps": 10.0, "relaxed": 1},
+         "driver": {"path": path, "idm": {"v0_mps": 10.0}}},
+        {"vehicle": str(hatch), "id": "other", "initial": {"x_m": lead_x_m, "relaxed": 1},
+         "inputs": [{"t": 0.0, "throttle": 0.0, "brake": 0.0, "gear": "N"}]},
+    ]}
+    result = run_world_scenario(load_world_scenario(tmp_path / "boxes.yaml", data))
+    seen = result.cars["driven"].driver_states[0]
+    mine = result.cars["driven"].scenario.scene.vehicle.vp
+    theirs = result.cars["other"].scenario.scene.vehicle.vp
+    assert theirs[P.VP_BODY_REAR_OVERHANG_M] == 0.58  # the premise: not the sedan's
+    boxes_gap_m = ((result.cars["other"].states[0, L.X_M] - theirs[VP_CG_TO_REAR_AXLE_M]
+                    - theirs[P.VP_BODY_REAR_OVERHANG_M])
+                   - (result.cars["driven"].states[0, L.X_M] + mine[VP_CG_TO_FRONT_AXLE_M]
+                      + mine[P.VP_BODY_FRONT_OVERHANG_M]))
+    assert seen[D.DS_LEADER] == 1.0
+    # within one step's travel (1 cm at 10 m/s: the driver's state and the row may be a
+    # step apart), far inside the 0.27 m a sedan's overhang would put there
+    assert seen[D.DS_GAP_M] == pytest.approx(boxes_gap_m, abs=0.011)

@@ -14,6 +14,7 @@ import pytest
 
 from simserver.adapters.config import ConfigError
 from simserver.adapters.opendrive import lane_start, road_extent
+from simserver.core import params as P
 from simserver.server import cars_config, fleet
 from simserver.sim.scene import load_scene
 
@@ -236,3 +237,41 @@ def test_keyframe_table_samples_the_file_and_names_the_car(tmp_path):
                                           "keyframes": str(bad)}])
     with pytest.raises(ConfigError, match=r"cars\[0\] \(k\): key 'keyframes'.*bad.yaml"):
         cars_config.keyframe_table(car, 0.001)
+
+
+@pytest.mark.parametrize(("gap_m", "touch"), [(0.1, False), (1e-3, False), (-1e-3, True)])
+def test_the_start_check_and_the_contact_agree_on_the_body(tmp_path, flat, gap_m, touch):
+    """The start check's box is the contact stage's (the vehicle's ``body_*``
+    parameters): two hatchbacks (body 0.80 m ahead of the front axle, 0.58 m behind the
+    rear one) ``gap_m`` apart bumper to bumper are refused exactly when the contact stage
+    finds them touching. Before, the check used the sedan's 0.85 m overhangs for every
+    car: it refused hatchbacks 10 cm apart, and would pass a longer body into a start
+    already in contact."""
+    from simserver.core import layout as L
+    from simserver.core.contact import N_CAR_CONTACT, POLY_MAX, pair_contact
+    from simserver.core.contact import footprint as contact_footprint
+
+    hatch = cars_config.car_scenes(cars_config.parse_cars(_cfg(tmp_path), [
+        {"id": "a", "vehicle": str(HATCH)}]), flat)["a"]
+    vp = hatch.vehicle.vp
+    length_m = float(vp[P.VP_CG_TO_FRONT_AXLE_M] + vp[P.VP_BODY_FRONT_OVERHANG_M]
+                     + vp[P.VP_CG_TO_REAR_AXLE_M] + vp[P.VP_BODY_REAR_OVERHANG_M])
+    dx_m = length_m + gap_m
+    boxes = []
+    for x_m in (0.0, dx_m):  # the contact stage's view of the two cars at rest
+        x = np.zeros(L.N_STATE)
+        x[L.X_M] = x_m
+        cc = np.zeros(N_CAR_CONTACT)
+        contact_footprint(vp, x, np.zeros((3, 3)), True, cc)
+        boxes.append(cc)
+    depth = pair_contact(vp, vp, *boxes, np.zeros((2, POLY_MAX, 2)), 0.001, np.zeros(8), 0.0)
+    assert (depth > 0.0) == touch
+    cars = cars_config.parse_cars(_cfg(tmp_path), [
+        {"id": "a", "vehicle": str(HATCH), "pose": {"x_m": 0.0, "y_m": 0.0}},
+        {"id": "b", "vehicle": str(HATCH), "pose": {"x_m": dx_m, "y_m": 0.0}}])
+    if touch:
+        with pytest.raises(ConfigError, match=r"\(b\): its start .* overlaps the start of "
+                                              "car 'a'"):
+            cars_config.car_scenes(cars, flat)
+    else:
+        cars_config.car_scenes(cars, flat)

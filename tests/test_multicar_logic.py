@@ -393,3 +393,62 @@ def test_world_controls_add_and_remove_cars_between_ticks(flat_scene):
     finally:
         desk.close()
     assert closed == ["b"]
+
+
+
+@pytest.mark.parametrize(("scene_name", "where"), [
+    ("hill_15pct_paper_sedan", {"pose": {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}}),
+    ("curves_elevation_paper_sedan", {"start": {"road": "1", "s": 60.0, "lane": -1}}),
+    ("flat_mf_hatchback", {"pose": {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}}),
+], ids=["hill", "opendrive_lane", "other_vehicle"])
+def test_a_car_added_after_a_live_load_is_made_on_the_loaded_scene(flat_scene, scene_name,
+                                                                    where):
+    """A world of one car that loaded another scene while running (its own ``load``), then
+    ``add_car``: the new car is made on the world's scene now, the loaded one, as a car of
+    that scene alone at the same place would be, bit for bit: its road, its OpenDRIVE
+    lanes for a start by lane, its vehicle as the default, and its command log naming it.
+    Before, the new car was made on the server config's scene: the flat road's scene on
+    the 15 % grade, a start by lane refused ("needs an OpenDRIVE" terrain), the paper sedan
+    where the world's scene drives the hatchback."""
+    from simserver.server.world_desk import WorldDesk
+
+    loaded = Path(FLAT).parent / f"{scene_name}.yaml"
+    rig = WorldRig(flat_scene, [{"id": "a"}])
+    rig.loop.world_message = fleet.WorldMessage(["a"], ["client"], every=10, capacity=2)
+    controls = ListControls()
+
+    def make_ports(cfg):
+        ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
+        rig.ports[cfg.vehicle_id] = ports
+        return ports
+
+    desk = WorldDesk(rig.loop, rig.cfg, controls, make_ports, lambda slot, ports: None)
+    rig.loop.world_desk = desk
+
+    def answer(req, ticks=3000):
+        for _ in range(ticks):
+            rig.loop.tick()
+            if req.body is not None:
+                return req.answer
+        raise AssertionError(f"{req.name} not answered")
+
+    try:
+        load = LocalRequest("load", json.dumps({"scene": str(loaded)}).encode())
+        rig.ports["a"].controls.pending.append(load)
+        assert answer(load)["ok"], load.answer
+        add = LocalRequest("add_car", json.dumps({"id": "c", **where}).encode())
+        controls.pending.append(add)
+        assert answer(add) == {"ok": True, "car": "c", "cars": ["a", "c"]}, add.answer
+        slot = next(s for s, _ in rig.loop.slots if s.keys.vehicle == "c")
+        scene = load_scene(loaded)
+        spec, = cars_config.parse_cars(loaded, [{"id": "c", **where}])
+        alone, _ = cars_config.new_car(spec, scene, rig.cfg.period_s, {})
+        expected = Simulation(alone, rig.cfg.period_s, car_id="c").x
+        got = slot.sim.x.copy()
+        got[L.TIME_S] = expected[L.TIME_S]  # it took the world's clock (one clock)
+        assert np.array_equal(got, expected), np.flatnonzero(got != expected)
+        assert slot.sim.scene.road == scene.road
+        assert slot.sim.scene.vehicle.name == scene.vehicle.name
+        assert slot.scene_path == loaded  # what its log's header and load line name
+    finally:
+        desk.close()

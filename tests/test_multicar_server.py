@@ -14,29 +14,18 @@ import pytest
 from clients import world as cw
 from simserver.testing import Client, OutputProcess, ServerProcess, client_config, wait_until
 from simserver.wire import protocol as proto
+from tests.conftest import TWO_CARS, player
 
 pytestmark = pytest.mark.timeout(300)
 
 REPO = Path(__file__).resolve().parents[1]
-TWO_CARS = REPO / "configs" / "server" / "two_cars.yaml"
-
-
-@pytest.fixture(scope="module")
-def two_cars():
-    with ServerProcess(config=TWO_CARS, scene=None) as server:
-        yield server
-
-
-def _player(server: ServerProcess, car: str, scenario: Path) -> OutputProcess:
-    return OutputProcess([sys.executable, "-m", "clients.player", str(scenario),
-                          "--connect", server.endpoint, "--vehicle-id", car, "--rate", "200"])
 
 
 def test_two_clients_drive_two_cars_and_each_sees_the_other(two_cars, tmp_path):
     scenario = tmp_path / "creep.yaml"
     scenario.write_text("name: creep\nduration_s: 3.5\ninputs:\n"
                         "  - {t: 0.0, gear: D, throttle: 0.25, brake: 0.0}\n")
-    p0, p1 = _player(two_cars, "car0", scenario), _player(two_cars, "car1", scenario)
+    p0, p1 = player(two_cars, "car0", scenario), player(two_cars, "car1", scenario)
     with p0, p1:
         assert p0.wait(60) == 0, p0.text()
         assert p1.wait(60) == 0, p1.text()

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import os
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -37,6 +36,7 @@ from simserver.testing import (
     wait_until,
 )
 from simserver.wire import protocol as proto
+from tests.conftest import player
 
 pytestmark = pytest.mark.timeout(400)
 
@@ -77,11 +77,6 @@ def nodes(session: zenoh.Session) -> list[str]:
     replies = session.liveliness().get(f"@ros2_lv/{DOMAIN}/**", timeout=1.0)
     return [str(r.ok.key_expr) for r in replies if r.ok is not None
             and "/NN/" in str(r.ok.key_expr)]
-
-
-def _player(server: ServerProcess, car: str, scenario: Path) -> OutputProcess:
-    return OutputProcess([sys.executable, "-m", "clients.player", str(scenario),
-                          "--connect", server.endpoint, "--vehicle-id", car, "--rate", "200"])
 
 
 def test_three_cars_recorded_live_replay_bit_for_bit_with_ros2_and_rerun(tmp_path):
@@ -127,8 +122,8 @@ def test_three_cars_recorded_live_replay_bit_for_bit_with_ros2_and_rerun(tmp_pat
                            or not viewer.alive(), timeout_s=120.0,
                            what="the viewer to draw the world", interval_s=0.05)
                 assert viewer.alive(), viewer.text()
-                p0 = _player(server, "car0", tmp_path / "car0.yaml")
-                p1 = _player(server, "car1", tmp_path / "car1.yaml")
+                p0 = player(server, "car0", tmp_path / "car0.yaml")
+                p1 = player(server, "car1", tmp_path / "car1.yaml")
                 with p0, p1:
                     assert p0.wait(120) == 0, p0.text()
                     assert p1.wait(120) == 0, p1.text()

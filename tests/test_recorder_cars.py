@@ -21,15 +21,6 @@ from simserver.testing import OutputProcess, ServerProcess, client_command, clie
 
 pytestmark = pytest.mark.timeout(300)
 
-REPO = Path(__file__).resolve().parents[1]
-TWO_CARS = REPO / "configs" / "server" / "two_cars.yaml"
-
-
-@pytest.fixture(scope="module")
-def two_cars():
-    with ServerProcess(config=TWO_CARS, scene=None) as server:
-        yield server
-
 
 def _record(server: ServerProcess, out: Path, cars: str) -> str:
     proc = OutputProcess(client_command("recorder", "--out", str(out), "--cars", cars,

@@ -276,6 +276,12 @@ def pack_params(spec: DriverSpec | None, vp: np.ndarray, tp: np.ndarray, path_in
         dp[D.DP_THROTTLE_ACCEL_MPS2] = throttle
     if np.isnan(dp[D.DP_BRAKE_DECEL_MPS2]):
         dp[D.DP_BRAKE_DECEL_MPS2] = brake
+    # the bumpers the gaps are measured to: the car's contact box unless given (a gap of
+    # s0 is then s0 between the boxes the contact stage pushes with, section 16)
+    if np.isnan(dp[D.DP_FRONT_OVERHANG_M]):
+        dp[D.DP_FRONT_OVERHANG_M] = vp[P.VP_BODY_FRONT_OVERHANG_M]
+    if np.isnan(dp[D.DP_REAR_OVERHANG_M]):
+        dp[D.DP_REAR_OVERHANG_M] = vp[P.VP_BODY_REAR_OVERHANG_M]
     a, b = vp[P.VP_CG_TO_FRONT_AXLE_M], vp[P.VP_CG_TO_REAR_AXLE_M]
     dp[D.DP_ENABLED] = 0.0 if spec is None else 1.0
     dp[D.DP_PATH] = path_index

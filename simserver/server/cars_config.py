@@ -36,7 +36,8 @@ by a bad list; each error names the file and the car (``cars[k] (id)``):
   (:func:`on_lane`), on a height map inside the grid (beyond it the ground is the edge's,
   extended flat: no road);
 - two start poses whose body footprints overlap (:func:`footprint`, :func:`overlap`):
-  oriented rectangles in the horizontal plane, by the separating axis theorem.
+  oriented rectangles in the horizontal plane (the contact stage's boxes, from the
+  vehicle's ``body_*`` parameters), by the separating axis theorem.
 """
 
 from __future__ import annotations
@@ -52,10 +53,11 @@ import numpy as np
 from simserver.adapters.config import ConfigError, check_keys, load_vehicle, number
 from simserver.adapters.validate import integer, referenced_file, short_repr
 from simserver.core.params import (
+    VP_BODY_FRONT_OVERHANG_M,
+    VP_BODY_REAR_OVERHANG_M,
+    VP_BODY_WIDTH_M,
     VP_CG_TO_FRONT_AXLE_M,
     VP_CG_TO_REAR_AXLE_M,
-    VP_TRACK_FRONT_M,
-    VP_TRACK_REAR_M,
 )
 from simserver.core.terrain import (
     GRID_DX_M,
@@ -94,12 +96,6 @@ MAX_CARS_RANGE = (1, 256)
 
 POSE_KEYS = ("x_m", "y_m", "yaw_rad")
 
-BODY_OVERHANG_M = 0.85
-"""The body's length beyond each axle, and (``BODY_SIDE_M``) its width beyond half the
-track: the footprint the overlap check uses, the viewer's body (``adapters.rerun_scene``
-``CarGeometry.body_boxes``, styling numbers of a mid-size sedan). Until the vehicle files
-carry body dimensions (the contact issue), both read these."""
-BODY_SIDE_M = 0.1
 
 LANE_SAMPLE_M = 0.5
 """Spacing of the reference-line samples :func:`on_lane` projects a point onto."""
@@ -319,11 +315,12 @@ def on_lane(od: OpenDrive, x_m: float, y_m: float, step_m: float = LANE_SAMPLE_M
 
 
 def footprint(vp: np.ndarray) -> tuple[float, float, float]:
-    """The body's footprint: ``(front_m, rear_m, half_width_m)`` from the CG (module
-    constants ``BODY_*``)."""
-    return (float(vp[VP_CG_TO_FRONT_AXLE_M]) + BODY_OVERHANG_M,
-            float(vp[VP_CG_TO_REAR_AXLE_M]) + BODY_OVERHANG_M,
-            0.5 * max(float(vp[VP_TRACK_FRONT_M]), float(vp[VP_TRACK_REAR_M])) + BODY_SIDE_M)
+    """The body's footprint: ``(front_m, rear_m, half_width_m)`` from the CG, the box the
+    contact stage pushes with (the vehicle's ``body_*`` parameters, ``core.contact``,
+    docs/model.md section 16): a start that overlaps is one the contact would push apart."""
+    return (float(vp[VP_CG_TO_FRONT_AXLE_M] + vp[VP_BODY_FRONT_OVERHANG_M]),
+            float(vp[VP_CG_TO_REAR_AXLE_M] + vp[VP_BODY_REAR_OVERHANG_M]),
+            0.5 * float(vp[VP_BODY_WIDTH_M]))
 
 
 def _corners(pose: dict[str, float], box: tuple[float, float, float]) -> np.ndarray:

@@ -6,7 +6,8 @@ slow runs there:
 
 - ``add_car``: checked in the tick (the id, the count, ``driven_by`` with its ``driver``
   block), its files read by the load worker
-  (the vehicle file, the world's scene for its defaults and roads; a start on the road and
+  (the vehicle file, the world's scene for its defaults and roads: the scene its cars
+  stand on now, which a world of one car may have loaded while running; a start on the road and
   clear of where the other cars are now: ``simserver.server.cars_config.new_car``; a
   driven car's ``driver`` block parsed as a ``cars:`` entry's, its path on the road, and
   the path sampled: ``cars_config.driver_spec``, ``live_drivers.sample_path``), its
@@ -242,7 +243,7 @@ class WorldDesk:
         cfg = self.cfg
         others = fleet.poses_now([s for s, _ in self.loop.slots])
         job = self.loop.preparer.submit(
-            prepare_added_car, car_id, args.get("vehicle"), args.get("pose"), cfg.scene,
+            prepare_added_car, car_id, args.get("vehicle"), args.get("pose"), self._scene(),
             tuple(cfg.config_dirs), os.getcwd(), cfg.path.parent, cfg.period_s, others,
             driver, args.get("start"))
         self._adding = _Adding(request, car_id, job=job)
@@ -299,10 +300,17 @@ class WorldDesk:
         self._adding = None
         adding.request.reply(proto.reply_error(message, field=field))
 
+    def _scene(self) -> Path:
+        """The world's scene now: the one its cars stand on (a world of one car may have
+        loaded another than the server config's while running; a car of several loads
+        another vehicle only, on the world's scene)."""
+        return self.loop.slots[0][0].scene_path
+
     def _slot_cfg(self, car_id: str) -> Any:
-        cfg = self.cfg
-        return dataclasses.replace(cfg, vehicle_id=car_id, command_log=fleet.car_log_path(
-            cfg.command_log, car_id, True))
+        cfg = self.cfg  # the world's scene: the new car's log names it, its replay loads it
+        return dataclasses.replace(cfg, vehicle_id=car_id, scene=self._scene(),
+                                   command_log=fleet.car_log_path(cfg.command_log, car_id,
+                                                                  True))
 
     def _ctl_remove_car(self, request: Any, args: dict[str, Any]) -> dict[str, Any]:
         car_id = args["id"]
