@@ -534,9 +534,7 @@ def main(argv: list[str] | None = None) -> dict:
                       else (args.server_transport,))
         r = bench_cmd_latency.run(args.seconds, args.rounds or 2, args.subscribers,
                                   args.churn, 200.0, True, transports)
-        bench_cmd_latency.print_summary(r)
-        print(f"medians of {r['rounds']} rounds, {r['seconds']:g} s each; load average "
-              f"{r['load_average']}")
+        bench_cmd_latency.print_summary(r)  # its last line: the rounds and load average
         return r
     if args.pieces:
         r = pieces(args.rounds or 5)

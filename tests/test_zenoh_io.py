@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import subprocess
 import sys
 import textwrap
@@ -22,7 +23,9 @@ import zenoh
 
 from simserver.adapters.zenoh_io import (
     DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US,
+    LINK_SNDBUF_BYTES,
     MISMATCHED_LINK_QUEUE_BATCHES,
+    SocketBacklog,
     ZenohConfigError,
     ZenohEndpoint,
     ZenohOpenError,
@@ -113,12 +116,79 @@ def test_default_config_is_loopback_only():
     assert _json(cfg, "transport/unicast/qos/enabled") is False
     # a peer on zenoh's normal transport gets one queue of this many batches (issue 13)
     assert _json(cfg, "transport/link/tx/queue/size/data") == MISMATCHED_LINK_QUEUE_BATCHES
+    # room for SocketBacklog to close a link that falls behind before a put waits on it
+    assert _json(cfg, "transport/link/tcp/so_sndbuf") == LINK_SNDBUF_BYTES
+    assert LINK_SNDBUF_BYTES > SocketBacklog.WEDGE_MAX_BYTES
     assert config_warnings(cfg) == []
     # zenoh's own defaults are what config_warnings warns about.
     assert len(config_warnings(zenoh.Config())) == 3
     client_cfg = make_zenoh_config(connect="tcp/127.0.0.1:7447", mode="client")
     assert _json(client_cfg, "listen/endpoints") == []
     assert _json(client_cfg, "connect/endpoints") == ["tcp/127.0.0.1:7447"]
+
+
+def _fill(sock: socket.socket, nbytes: int) -> None:
+    """Write ``nbytes`` more into a non-blocking socket whose reader does not read."""
+    chunk = bytes(1 << 16)
+    left = nbytes
+    while left > 0:
+        left -= sock.send(chunk[:left])
+
+
+def _unsent(sock: socket.socket) -> int:
+    import fcntl
+    import termios
+
+    buf = bytearray(4)
+    fcntl.ioctl(sock.fileno(), termios.TIOCOUTQ, buf)
+    return int.from_bytes(buf, "little", signed=True)
+
+
+def test_a_link_seconds_behind_is_closed_though_its_reader_reads_now_and_then():
+    """Issue 35 item 2: a subscriber's reader starved on a busy machine reads a little now
+    and then, so its unsent bytes go down and the one-second rule never fires, while they
+    grow towards the size at which the server's puts wait on its socket. At
+    ``WEDGE_MAX_BYTES`` the link is closed whether or not they went down; below it, a
+    reader that reads keeps its link."""
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        reader = socket.socket()
+        reader.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 16)
+        reader.connect(listener.getsockname())
+        link, _ = listener.accept()  # the server's side of a subscriber's link
+        with reader, link:
+            link.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, LINK_SNDBUF_BYTES)
+            link.setblocking(False)
+            watch = SocketBacklog(close_wedged=True)
+            t = 1000.0
+            _fill(link, SocketBacklog.WEDGE_MAX_BYTES // 2)
+            watch.largest(t)
+
+            def read_a_little() -> None:  # enough to open the reader's window again
+                before = _unsent(link)
+
+                def take() -> int:
+                    reader.recv(1 << 14)
+                    return _unsent(link)
+
+                wait_until(take, lambda n: n < before, what="the unsent bytes going down",
+                           interval_s=0.001)
+
+            for _ in range(4):  # the reader takes a little, then falls behind again
+                read_a_little()
+                t += 0.5
+                watch.largest(t)
+            assert watch.closed == [], "a link below the cap whose reader reads was closed"
+            _fill(link, SocketBacklog.WEDGE_MAX_BYTES)
+            read_a_little()  # it went down just before the look: still seconds behind
+            t += 0.01
+            watch.largest(t)
+            assert len(watch.closed) == 1 and "seconds behind" in watch.closed[0]
+            reader.setblocking(True)
+            reader.settimeout(10.0)
+            with pytest.raises(OSError):  # the link's end: reset, or its end after the data
+                while reader.recv(1 << 20):
+                    pass
+                raise ConnectionResetError("the link ended")
 
 
 def test_config_file_used_as_is_and_overridden_only_when_asked(tmp_path):

@@ -98,6 +98,20 @@ their stream"). An express state takes a whole batch, so with 2 batches and the 
 :data:`STATE_DROP_WAIT_US` a TX task held off for 2 ms was enough; 16 batches absorb a
 16 ms hold. Links on the low-latency transport have no queue and ignore this."""
 
+LINK_SNDBUF_BYTES = 4 << 20
+"""The TCP send buffer asked for each link (``transport/link/tcp/so_sndbuf``; the kernel
+doubles it, capped by ``net.core.wmem_max``).
+
+On the low-latency transport a state put writes every subscriber's socket in turn from
+one thread, and a write to a full socket waits (issue 35 item 2). With the kernel's
+autotuned buffer a link blocked at 0.35-0.8 MB unsent: on a busy machine (load 23) the
+readers of 20 subscribers in one process fell behind for a second at a time, each such
+link held the sender, the sender's queue dropped 13 000-19 000 states in 20 s for every
+subscriber and the driver saw 0.5-1.5 s without a state. A 4 MiB buffer leaves
+:class:`SocketBacklog` the time to close a link that falls behind
+(:data:`SocketBacklog.WEDGE_MAX_BYTES`) before any put waits on it; memory is taken only
+for bytes unsent."""
+
 _RUST_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
 
 
@@ -160,8 +174,9 @@ def make_zenoh_config(
         Without a file: ``mode``, the endpoints above, multicast scouting off, shared
         memory off, zenoh's low-latency transport (QoS off), the BLOCK wait bounded to
         :data:`DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US`, the DROP wait to
-        :data:`STATE_DROP_WAIT_US`, and :data:`MISMATCHED_LINK_QUEUE_BATCHES` transmit
-        batches for a peer on zenoh's normal transport.
+        :data:`STATE_DROP_WAIT_US`, :data:`MISMATCHED_LINK_QUEUE_BATCHES` transmit
+        batches for a peer on zenoh's normal transport, and TCP send buffers of
+        :data:`LINK_SNDBUF_BYTES`.
 
     Raises
     ------
@@ -211,6 +226,7 @@ def make_zenoh_config(
     )
     _insert(cfg, "transport/link/tx/queue/congestion_control/drop/wait_before_drop",
             STATE_DROP_WAIT_US, origin)
+    _insert(cfg, "transport/link/tcp/so_sndbuf", LINK_SNDBUF_BYTES, origin)
     return cfg
 
 
@@ -768,7 +784,12 @@ class SocketBacklog:
     go down with every acknowledgement; only a reader slower than the stream, or stopped
     (its whole receive window unread, then a second more), keeps them from going down
     for a second. A second, not less: a client starved of the CPU for a moment (a
-    viewer at ``SCHED_IDLE`` on a busy machine) keeps its link. Zenoh's normal transport closes
+    viewer at ``SCHED_IDLE`` on a busy machine) keeps its link. A link whose reader reads
+    now and then but falls ever further behind (a process starved on a busy machine: its
+    unsent bytes go down a little, then grow again) is closed once they reach
+    :data:`WEDGE_MAX_BYTES`, whether or not they went down: a reader seconds behind a live
+    stream, closed before its socket is full (:data:`LINK_SNDBUF_BYTES`), so no put waits
+    on it. Zenoh's normal transport closes
     a link its BLOCK messages wait on for ``block/wait_before_close`` the same way
     (:data:`DEFAULT_BLOCK_WAIT_BEFORE_CLOSE_US`).
     """
@@ -781,6 +802,12 @@ class SocketBacklog:
     """How long a link's unsent bytes may stay backed up without going down before it is
     closed (a second of states, about 360 kB more on loopback: far from the 3.9 MB at
     which the puts would wait, 11 s after the reader stopped)."""
+
+    WEDGE_MAX_BYTES = 1 << 20
+    """Unsent bytes at which a link is closed at once (3.5 s of states of 296 bytes at
+    1 kHz; on a network link far above the bytes in flight: 300 kB/s x 100 ms round trip
+    is 30 kB). Below :data:`LINK_SNDBUF_BYTES`, so the puts never wait on it; the kernel's
+    own autotuned buffer blocked writes at 0.35-0.8 MB here."""
 
     def __init__(self, close_wedged: bool = False) -> None:
         self._fds: list[int] = []
@@ -847,7 +874,7 @@ class SocketBacklog:
         if unsent < last:
             since = now  # it went down: the reader reads
         self._backed[fd] = (since, unsent)
-        if now - since >= self.WEDGE_S:
+        if now - since >= self.WEDGE_S or unsent >= self.WEDGE_MAX_BYTES:
             self._shut(fd, unsent, now - since)
 
     def _shut(self, fd: int, unsent: int, for_s: float) -> None:
@@ -865,8 +892,10 @@ class SocketBacklog:
                 sock.shutdown(socket.SHUT_RDWR)  # the link, not only this duplicate
         except OSError:
             return  # closed meanwhile
-        why = (f"link from {peer} closed: {unsent} bytes unsent, not going down for "
-               f"{1e3 * for_s:.0f} ms (a subscriber that stopped reading)")
+        why = (f"link from {peer} closed: {unsent} bytes unsent, " + (
+            f"not going down for {1e3 * for_s:.0f} ms (a subscriber that stopped reading)"
+            if unsent < self.WEDGE_MAX_BYTES else
+            f"at least {self.WEDGE_MAX_BYTES} (a subscriber seconds behind the stream)"))
         self.closed.append(why)
         log.warning("state-watch: %s", why)
 
