@@ -28,12 +28,12 @@ from urllib.parse import urlsplit
 import pytest
 
 from simserver.adapters.rerun_scene import BODY_SHELL, WHEEL_TIRES
-from simserver.adapters.viewer import WEB_NICE
+from simserver.adapters.viewer import VIEW_NICE
 from simserver.testing import OutputProcess, ServerProcess, free_port, wait_until
 from simserver.testing.browser import (
     Browser,
+    car_in_page,
     chromium_path,
-    recording_extent,
     web_viewer_recording,
 )
 from tests.conftest import slow_enabled
@@ -76,32 +76,34 @@ def start_view(server: ServerProcess, tmp: Path) -> tuple[OutputProcess, str]:
 
 def draws_the_car(server: ServerProcess, tmp: Path) -> tuple[bool, str]:
     """One start: the view, a fresh browser on its page, and whether the page's viewer
-    came to hold frames of the car on ``sim_time`` within ``DRAW_TIMEOUT_S``; with what
-    happened, for the failure message. Also checks that the page reached nothing off
-    this machine."""
-    viewer, url = start_view(server, tmp)
+    came to hold the car drawn (``car_in_page``: its body and tires with geometry, its
+    pose at two or more instants of ``sim_time``) within ``DRAW_TIMEOUT_S``; with the
+    start's timings and what the page held, for the report. Also checks that the page
+    reached nothing off this machine."""
     t0 = time.monotonic()
+    viewer, url = start_view(server, tmp)
+    served_s = time.monotonic() - t0
     rrd = tmp / "page.rrd"
     seen: dict[str, object] = {}
     try:
         with Browser(*WINDOW) as browser:
             browser.goto(url)
 
-            def car_frames() -> bool:
+            def car_drawn() -> bool:
                 if not viewer.alive() or not web_viewer_recording(browser, rrd):
                     return False
-                paths, newest = recording_extent(rrd, CAR_ENTITY)
-                seen.update(entities=len(paths), newest_sim_time_s=newest)
-                # the car's frames and its drawn parts: with newest first the static
-                # body and wheels may come after the first frames
-                return newest is not None and CAR_PARTS <= paths
+                car = car_in_page(rrd, CAR_ENTITY, CAR_PARTS)
+                seen.update(entities=car.entities, parts=len(car.parts_with_geometry),
+                            frames=len(car.pose_times_s))
+                return car.drawn(CAR_PARTS)
 
             try:
-                wait_until(car_frames, timeout_s=DRAW_TIMEOUT_S, interval_s=2.0,
-                           what="the web viewer to hold frames of the car")
+                wait_until(car_drawn, timeout_s=DRAW_TIMEOUT_S, interval_s=2.0,
+                           what="the web viewer to draw the car")
                 drawn = True
             except TimeoutError:
                 drawn = False
+            drawn_s = time.monotonic() - t0
             reached = [u for u in browser.requests if off_machine(u)
                        and browser.blocked.get(u) != "csp"]
             assert not reached, f"the page reached beyond this machine: {reached}"
@@ -110,10 +112,74 @@ def draws_the_car(server: ServerProcess, tmp: Path) -> tuple[bool, str]:
         code = viewer.stop(timeout_s=60.0)
     assert "Traceback" not in viewer.text(), viewer.text()
     assert code == 0, viewer.text()
-    # not SCHED_IDLE: an idle view beside two CPU hogs got no CPU (viewer.WEB_NICE)
-    assert f"CPU priority nice {WEB_NICE}" in viewer.text(), viewer.text()[-300:]
-    return drawn, (f"{time.monotonic() - t0:.0f} s, page holds {seen}; viewer: "
+    # not SCHED_IDLE: an idle view beside two CPU hogs got no CPU (viewer.VIEW_NICE)
+    assert f"CPU priority nice {VIEW_NICE}" in viewer.text(), viewer.text()[-300:]
+    return drawn, (f"page served {served_s:.0f} s, car {'drawn' if drawn else 'NOT drawn'}"
+                   f" {drawn_s:.0f} s after the start; the page held {seen}; viewer: "
                    f"{viewer.text()[-600:]}")
+
+
+def test_the_check_fails_for_a_blank_page_and_a_recording_without_the_car(tmp_path):
+    """Negative controls of ``car_in_page``: it must say "not drawn" for a page with no
+    viewer, and for the project's web viewer page fed a recording that has the road and
+    plots on ``sim_time`` (which the page is seen to hold) but no car; the same page fed
+    the car's body, tires and two poses says "drawn"."""
+    import rerun as rr
+
+    from simserver.adapters.rerun_sink import open_recording
+
+    rrd = tmp_path / "page.rrd"
+    with Browser(*WINDOW) as browser:  # about:blank: no viewer, no recording
+        assert not web_viewer_recording(browser, rrd)
+    web_port = free_port()
+    said: list[str] = []
+    rec = open_recording("serve", f"127.0.0.1:{free_port()}", web_port=web_port,
+                         announce=said.append, flush_tick_s=0.2)
+    assert rec is not None
+    rec.log("world/road/surface", rr.Boxes3D(half_sizes=[[50.0, 5.0, 0.01]]), static=True)
+    for k in range(20):
+        rec.set_time("sim_time", duration=0.1 * k)
+        rec.log("plots/speed", rr.Scalars(float(k)))
+    rec.flush()
+    url = said[-1].split("open ", 1)[1].split(" ", 1)[0]  # as `simserver view` prints it
+    with Browser(*WINDOW) as browser:
+        browser.goto(url)
+
+        def holds_the_road() -> bool:
+            return (web_viewer_recording(browser, rrd)
+                    and "/world/road/surface" in car_in_page(rrd, CAR_ENTITY,
+                                                             ["/world/road/surface"])
+                    .parts_with_geometry)
+
+        wait_until(holds_the_road, timeout_s=DRAW_TIMEOUT_S, interval_s=2.0,
+                   what="the page to hold the recording without the car")
+        car = car_in_page(rrd, CAR_ENTITY, CAR_PARTS)
+        assert not car.drawn(CAR_PARTS), car
+        assert car.parts_with_geometry == set() and not car.pose_times_s
+        # the positive control on the same page: the car's parts, then its pose twice
+        rec.log(BODY_SHELL, rr.Boxes3D(half_sizes=[[2.0, 0.9, 0.6]]), static=True)
+        for tire in WHEEL_TIRES:
+            rec.log(tire, rr.Cylinders3D(lengths=[0.2], radii=[0.3]), static=True)
+        rec.set_time("sim_time", duration=2.0)
+        rec.log(CAR_ENTITY[1:], rr.Transform3D(translation=[0.0, 0.0, 0.0]))
+        rec.flush()
+
+        def posed_once() -> bool:
+            return (web_viewer_recording(browser, rrd)
+                    and len(car_in_page(rrd, CAR_ENTITY, CAR_PARTS).pose_times_s) == 1)
+
+        wait_until(posed_once, timeout_s=DRAW_TIMEOUT_S, interval_s=2.0,
+                   what="the page to hold the car posed once")
+        car = car_in_page(rrd, CAR_ENTITY, CAR_PARTS)
+        assert car.parts_with_geometry == CAR_PARTS and not car.drawn(CAR_PARTS), car
+        rec.set_time("sim_time", duration=2.1)
+        rec.log(CAR_ENTITY[1:], rr.Transform3D(translation=[1.0, 0.0, 0.0]))
+        rec.flush()
+        wait_until(lambda: web_viewer_recording(browser, rrd)
+                   and car_in_page(rrd, CAR_ENTITY, CAR_PARTS).drawn(CAR_PARTS),
+                   timeout_s=DRAW_TIMEOUT_S, interval_s=2.0,
+                   what="the page to hold the car drawn")
+    rec.disconnect()
 
 
 @pytest.mark.parametrize("starts, hogs", [
@@ -129,8 +195,8 @@ def test_the_web_viewer_draws_the_car_every_start(request, starts, hogs):
         with ServerProcess() as server, tempfile.TemporaryDirectory() as tmp:
             for k in range(starts):
                 results.append(draws_the_car(server, Path(tmp)))
-                print(f"start {k + 1}: {'drew the car' if results[-1][0] else 'NOT drawn'}"
-                      f" ({results[-1][1][:120]})", flush=True)
+                print(f"start {k + 1}: {results[-1][1].split('; viewer:')[0]}",
+                      flush=True)
     finally:
         for hog in hog_procs:
             hog.kill()
