@@ -214,6 +214,8 @@ def test_the_web_viewer_draws_the_car_every_start(request, starts, hogs):
             for k in range(starts):
                 results.append(draws_the_car(server, Path(tmp)))
                 print(f"start {k + 1}: {results[-1][2]}", flush=True)
+                for problem in results[-1][1]:
+                    print(f"  problem: {problem[:300]}", flush=True)
     finally:
         for hog in hog_procs:
             hog.kill()
