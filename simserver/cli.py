@@ -769,7 +769,7 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
                              "own endpoints are used unless --connect is given")
     parser.add_argument("--wait", type=float, default=None, metavar="S",
                         help="seconds to wait for the server's first get_config reply, "
-                             "retrying with backoff (default 60: at idle priority on a busy "
+                             "retrying with backoff (default 60: at a lowered priority on a busy "
                              "machine the viewer may get no CPU for seconds)")
     parser.add_argument("--car", "--vehicle-id", dest="vehicle_id", default="car0",
                         metavar="ID",
@@ -789,10 +789,14 @@ def _add_view_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-listener-check", action="store_true",
                         help="connect: do not first check that the viewer listens (to test "
                              "a viewer that is gone: logging then buffers in this process)")
-    parser.add_argument("--normal-priority", action="store_true",
-                        help="keep normal CPU priority (default: idle priority, so the view "
-                             "only uses CPU time a server on the same machine does not want; "
-                             "nice 10 with --web-port, docs/clients.md section 5c)")
+    priority = parser.add_mutually_exclusive_group()
+    priority.add_argument("--normal-priority", action="store_true",
+                          help="keep normal CPU priority (default: nice 10, which a "
+                               "real-time server pre-empts; docs/clients.md section 5c)")
+    priority.add_argument("--idle-priority", action="store_true",
+                          help="idle CPU priority (SCHED_IDLE): only CPU time nothing else "
+                               "wants, so beside CPU-bound processes the view may draw "
+                               "nothing (serve --viewer starts its view so)")
 
 
 def view_command(args: argparse.Namespace) -> int:
@@ -824,7 +828,9 @@ def view_command(args: argparse.Namespace) -> int:
         stats = run_viewer(args.sink, connect, args.prefix, args.vehicle_id, fps,
                            duration_s=args.duration, config_file=args.zenoh_config,
                            web_port=args.web_port, check_listener=not args.no_listener_check,
-                           idle_priority=not args.normal_priority, wait_s=wait_s)
+                           priority=("normal" if args.normal_priority else
+                                     "idle" if args.idle_priority else "nice"),
+                           wait_s=wait_s)
     except RerunSinkError as exc:
         raise CliError(str(exc), exit_code=2) from exc
     except ZenohConfigError as exc:

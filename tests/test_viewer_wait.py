@@ -145,3 +145,39 @@ def test_the_help_states_the_default_wait():
     (wait,) = [a for a in sub.choices["view"]._actions if "--wait" in a.option_strings]
     assert wait.default is None  # None: the viewer's DEFAULT_WAIT_S
     assert f"(default {DEFAULT_WAIT_S:g}:" in wait.help
+
+
+def _thread_priorities(pid: int) -> set[tuple[int, int]]:
+    """(scheduling policy, nice) of every thread of process ``pid``."""
+    out = set()
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            out.add((os.sched_getscheduler(int(tid)),
+                     os.getpriority(os.PRIO_PROCESS, int(tid))))
+        except ProcessLookupError:  # the thread ended meanwhile
+            pass
+    return out
+
+
+@pytest.mark.parametrize(("flag", "expected"), [
+    pytest.param(None, {(os.SCHED_OTHER, 10)}, id="default-nice-10"),
+    pytest.param("--idle-priority", {(os.SCHED_IDLE, 0)}, id="idle"),
+])
+def test_the_view_runs_at_nice_10_by_default_not_idle(tmp_path, flag, expected):
+    """A view started by hand runs at ``viewer.VIEW_NICE``, every thread of it (zenoh's
+    and Rerun's included): at ``SCHED_IDLE`` (the default before) a view beside two
+    CPU-bound processes on 2 cores got 1 s of CPU in 6 minutes and drew nothing."""
+    from simserver.adapters.viewer import VIEW_NICE
+
+    assert VIEW_NICE == 10
+    endpoint = f"tcp/127.0.0.1:{free_port()}"  # nothing listens: the view keeps waiting
+    viewer = OutputProcess(view_argv(f"save:{tmp_path / 'none.rrd'}", endpoint,
+                                     "--wait", "120", *([flag] if flag else [])),
+                           env=viewer_env(tmp_path))
+    try:
+        # its zenoh session is open (and its threads started) once it says it waits
+        viewer.wait_for_line("no reply to get_config yet", timeout_s=120.0)
+        assert len(os.listdir(f"/proc/{viewer.pid}/task")) > 1
+        assert _thread_priorities(viewer.pid) == expected, viewer.text()
+    finally:
+        viewer.kill()

@@ -16,10 +16,12 @@ tick lateness p99 about tenfold):
   the ``fps`` states per simulated second that become frames go through the Python-heavy
   path (road pose, rows, spin, batching). The wheels' spin angles are then integrated at
   the frame rate, which is what the picture shows;
-- it puts all its threads at idle scheduling priority (``SCHED_IDLE`` on Linux, else the
-  lowest ``nice``) before it opens its zenoh session and its recording, whose threads
-  inherit it; so they and Rerun's run only on CPU time the server does not want
-  (``lower_priority``).
+- it lowers the CPU priority of all its threads before it opens its zenoh session and its
+  recording, whose threads inherit it (``lower_priority``): ``simserver view`` runs at
+  ``nice`` ``VIEW_NICE`` (a real-time server pre-empts it, a normal one meets it at a
+  tenth of its weight, and it still gets CPU beside CPU-bound processes); the view that
+  ``simserver serve --viewer`` starts on the server's own machine runs at idle priority
+  (``SCHED_IDLE``: only CPU time nothing else wants, ``--idle-priority``).
 
 The wire state carries the world pose; the scene is drawn in the road's frame, so the road
 (from the ``get_config`` control, re-read once a second to follow ``set_road``) turns the
@@ -80,8 +82,8 @@ frame sent costs its page's thread (docs/clients.md section 5c)."""
 
 DEFAULT_WAIT_S = 60.0
 """How long ``simserver view`` waits for its server's first ``get_config`` reply
-(``--wait``). On a busy machine the viewer runs at idle priority (``lower_priority``) and
-may get no CPU for seconds while the server answers in milliseconds (issue 35): a single
+(``--wait``). On a busy machine the viewer runs at a lowered priority (``lower_priority``)
+and may get no CPU for seconds while the server answers in milliseconds (issue 35): a single
 short query made the viewer exit; it now retries for this long."""
 
 RETRY_FIRST_S = 0.5
@@ -278,13 +280,19 @@ def rows_from_state(rec: np.ndarray, axes: np.ndarray, cg_height_m: float,
     out[L.O_TAN_ALPHA] = rec["tan_alpha_lag"]
 
 
-WEB_NICE = 10
-"""The view's CPU priority when it serves Rerun's web viewer (``--web-port``): a ``nice``
-level instead of ``SCHED_IDLE``. An idle thread runs only when a core has nothing else to
-do, and beside two CPU-bound processes on 2 cores that is never: such a view used 1 s of
-CPU in 6 minutes and its page stayed empty (``tests/test_web_view.py``, slow form). At
-nice 10 it gets about a tenth of a busy core's share; a real-time server
-(``SCHED_FIFO``) still pre-empts it, and a normal one meets it at a tenth of its weight."""
+VIEW_NICE = 10
+"""``simserver view``'s CPU priority by default: a ``nice`` level of the normal policy,
+not ``SCHED_IDLE``. An idle thread runs only when a core has nothing else to do, and
+beside two CPU-bound processes on 2 cores that is never: such a view used 1 s of CPU in
+6 minutes and its web page stayed empty (``tests/test_web_view.py``, slow form), and a
+view the user started by hand showed nothing. At nice 10 it gets about a tenth of a busy
+core's share; a real-time server (``SCHED_FIFO``) still pre-empts it, and a normal one
+meets it at a tenth of its weight."""
+
+PRIORITIES = ("nice", "idle", "normal")
+"""``run_viewer``'s CPU priorities: ``nice`` (``VIEW_NICE``, the default), ``idle``
+(``SCHED_IDLE``: the view ``serve --viewer`` starts beside its physics), ``normal``
+(unchanged)."""
 
 
 def lower_priority(nice: int | None = None) -> str:
@@ -412,7 +420,7 @@ def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
                vehicle_id: str = "car0", fps: float = DEFAULT_FPS, queue: int = 2048,
                duration_s: float | None = None, config_file: Path | None = None,
                web_port: int | None = None, check_listener: bool = True,
-               idle_priority: bool = True, wait_s: float = DEFAULT_WAIT_S) -> ViewerStats:
+               priority: str = "nice", wait_s: float = DEFAULT_WAIT_S) -> ViewerStats:
     """Subscribe to a server and log its scene to ``sink`` until SIGINT/SIGTERM.
 
     Parameters
@@ -437,18 +445,20 @@ def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
         0.41 binds it to all interfaces, and the server's defaults stay on loopback.
     check_listener : bool
         ``connect``: refuse at once when nothing listens at the URL.
-    idle_priority : bool
-        Run at idle CPU priority (``lower_priority``), the default: on the server's
-        machine the view must only use CPU time the physics does not want. With a
-        ``web_port``, at ``WEB_NICE`` instead.
+    priority : str
+        One of ``PRIORITIES``: ``nice`` (``VIEW_NICE``, the default: the view keeps
+        drawing beside CPU-bound processes, a real-time server pre-empts it), ``idle``
+        (``SCHED_IDLE``: only CPU time nothing else wants; ``serve --viewer``'s view),
+        ``normal``.
     wait_s : float
         How long to wait for the server's first ``get_config`` reply, and for a client-mode
         session to open (``wait_for_config``), before ``ServerWaitError``.
     """
     stats = ViewerStats()
-    if idle_priority:  # before the sessions: the threads they start inherit it
-        # a web view feeds a person's browser: a nice level, not idle (WEB_NICE)
-        stats.cpu_priority = lower_priority(WEB_NICE if web_port is not None else None)
+    if priority not in PRIORITIES:
+        raise ValueError(f"priority {priority!r}: expected one of {', '.join(PRIORITIES)}")
+    if priority != "normal":  # before the sessions: the threads they start inherit it
+        stats.cpu_priority = lower_priority(VIEW_NICE if priority == "nice" else None)
     from simserver.adapters.rerun_fleet import FleetLogger
     from simserver.adapters.rerun_scene import RateGate
     from simserver.adapters.zenoh_io import ZenohEndpoint, make_zenoh_config

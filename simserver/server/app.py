@@ -457,7 +457,9 @@ class SimServer:
                 "--vehicle-id", cfg.vehicle_id, "--fps", f"{cfg.viewer_fps:g}"]
         self.viewer_command = "simserver " + " ".join(args[3:])
         log.info("live viewer: %s", self.viewer_command)
-        return subprocess.Popen(args)
+        # beside the physics on this machine: only CPU time nothing else wants (a view
+        # started by hand runs at viewer.VIEW_NICE)
+        return subprocess.Popen([*args, "--idle-priority"])
 
     def _start_ros2(self, listen: list[str]) -> AdapterSupervisor | None:
         """Start ``simserver ros2`` in its own process when configured, like the viewer;

@@ -23,7 +23,8 @@ import subprocess
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 from typing import Any
 
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome")
@@ -286,3 +287,59 @@ def recording_extent(path: str | os.PathLike[str], entity_prefix: str,
         if times:
             newest_ns = max(times) if newest_ns is None else max(newest_ns, *times)
     return paths, None if newest_ns is None else newest_ns * 1e-9
+
+
+GEOMETRY_FIELDS = ("half_sizes", "lengths", "vertex_positions", "strips")
+"""The component fields that give an entity something to draw (``Boxes3D:half_sizes``,
+``Cylinders3D:lengths``, ``Mesh3D:vertex_positions``, ``LineStrips3D:strips``): an entity
+path alone, or a ``Clear``, draws nothing."""
+
+
+@dataclass
+class PageCar:
+    """What a page's viewer holds of a car (``car_in_page``)."""
+
+    parts_with_geometry: set[str] = field(default_factory=set)
+    """The car's parts that hold geometry in the page."""
+    pose_times_s: set[float] = field(default_factory=set)
+    """The ``sim_time`` stamps (s) at which the car's own pose (its transform) is held."""
+    entities: int = 0
+    """How many entity paths the page holds in all."""
+
+    def drawn(self, parts: Iterable[str]) -> bool:
+        """The car counts as drawn: every one of ``parts`` has geometry, and the car has
+        been placed at two or more instants of ``sim_time`` (it is shown moving on that
+        timeline, not a single frame of a stalled start)."""
+        return set(parts) <= self.parts_with_geometry and len(self.pose_times_s) >= 2
+
+
+def car_in_page(path: str | os.PathLike[str], car_entity: str, parts: Iterable[str],
+                timeline: str = "sim_time") -> PageCar:
+    """What the ``.rrd`` a page's viewer saved (``web_viewer_recording``) holds of the car
+    at ``car_entity``: which of ``parts`` carry geometry (``GEOMETRY_FIELDS``, a non-empty
+    value) and at which ``timeline`` instants the car's own transform is logged."""
+    from rerun.chunk import RrdReader
+
+    wanted = set(parts)
+    found = PageCar()
+    try:
+        chunks = RrdReader(path).stream()
+    except ValueError:  # "No recording store found": nothing of the recording yet
+        return found
+    paths: set[str] = set()
+    for chunk in chunks:
+        paths.add(chunk.entity_path)
+        batch = chunk.to_record_batch()
+        names = batch.schema.names
+        if chunk.entity_path in wanted:
+            for name in names:
+                if name.rsplit(":", 1)[-1] in GEOMETRY_FIELDS and any(
+                        v for v in batch.column(name).to_pylist()):
+                    found.parts_with_geometry.add(chunk.entity_path)
+        if chunk.entity_path == car_entity and timeline in names and any(
+                n.startswith("Transform3D:") for n in names):
+            found.pose_times_s.update(t * 1e-9 for t in
+                                      batch.column(timeline).cast("int64").to_pylist()
+                                      if t is not None)
+    found.entities = len(paths)
+    return found
