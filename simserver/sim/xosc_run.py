@@ -304,6 +304,10 @@ class Storyboard:
         self.action_elements: list[Element] = []
         self._targets: dict[tuple[int, str], tuple[float, float]] = {}
         self.contacts: list[dict[str, Any]] = []  # contact events since the last tick
+        # each condition's last measured values (the trace's cause); this storyboard's own
+        # (a class-level dict was shared by every storyboard of the process, the live
+        # worker's and a headless run's alike, and kept every condition ever evaluated)
+        self._last_values: dict[int, Any] = {}
 
     def _tree(self, kind: str, obj: Any, parent: Element | None) -> Element:
         e = Element(kind, obj.name, obj, parent)
@@ -442,8 +446,6 @@ class Storyboard:
             if all_ok and fired is None:
                 fired = cause
         return fired
-
-    _last_values: dict[int, Any] = {}
 
     def _edge(self, c: X.Condition, now: float) -> bool:
         st = self.cond.setdefault(id(c), CondState())
