@@ -17,21 +17,14 @@ computed by hand"; docs/openscenario.md).
 
 from __future__ import annotations
 
-import json
 import math
-import os
-import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from simserver.adapters.openscenario import XoscError, load_openscenario
-
+from simserver.adapters.openscenario import load_openscenario
 from tests.test_openscenario import (
-    _at_time,
     _by_entity,
     _speed,
     _story,
@@ -136,3 +129,217 @@ def test_select_triggering_entities_true_is_refused(tmp_path: Path) -> None:
     path = write(tmp_path, body)
     expect_error(path, line_of(path, "selectTriggeringEntities"), "Actors",
                  "selectTriggeringEntities 'true' outside the subset refused")
+
+
+# ------------------------------------------------------------------ played: the storyboard
+def _car(name: str) -> str:
+    return (f'<ScenarioObject name="{name}"><CatalogReference catalogName="VehicleCatalog" '
+            'entryName="car_white"/></ScenarioObject>')
+
+
+def _place(name: str, pos: str, speed: float) -> str:
+    return (f'<Private entityRef="{name}"><PrivateAction><TeleportAction><Position>{pos}'
+            f'</Position></TeleportAction></PrivateAction><PrivateAction>{_speed(speed)}'
+            '</PrivateAction></Private>')
+
+
+def _cond(edge: str, inner: str, delay: float = 0.0, name: str = "c") -> str:
+    return (f'<Condition name="{name}" delay="{delay}" conditionEdge="{edge}">'
+            f'<ByValueCondition>{inner}</ByValueCondition></Condition>')
+
+
+def _time(rule: str, value: float) -> str:
+    return f'<SimulationTimeCondition value="{value}" rule="{rule}"/>'
+
+
+def _play(tmp: Path, body: str, cars: str, init: str, duration_s: float):  # noqa: ANN202
+    from simserver.sim.xosc_run import play
+
+    path = write(tmp, body, entities=cars, road=f'<LogicFile filepath="{ROAD}"/>')
+    path.write_text(path.read_text().replace("<Init><Actions/></Init>",
+                                             f"<Init><Actions>{init}</Actions></Init>"))
+    return play(path, duration_s=duration_s)
+
+
+def _changes(run, name: str) -> list[tuple[str, str, float]]:  # noqa: ANN001
+    return [(e["from"], e["to"], e["t_s"]) for e in run.trace if e["name"] == name]
+
+
+def _same(changes: list[tuple[str, str, float]], expected: list[tuple[str, str, float]],
+          tol_s: float) -> bool:
+    return len(changes) == len(expected) and all(
+        (a, b) == (x, y) and abs(t - u) <= tol_s
+        for (a, b, t), (x, y, u) in zip(changes, expected, strict=True))
+
+
+def _started(run, name: str) -> list[float]:  # noqa: ANN001
+    return [t for _, to, t in _changes(run, name) if to == "running"]
+
+
+# The probe events' action: a car standing far away told to stand (changes nothing)
+PROBE = _speed(0.0)
+PRIORITY_MANEUVER = """
+    <Story name="SP"><Act name="ActP">
+      <ManeuverGroup name="GP" maximumExecutionCount="1">
+        <Actors selectTriggeringEntities="false"><EntityRef entityRef="B"/></Actors>
+        <Maneuver name="MP">
+          <Event name="Ea" priority="overwrite"><Action name="aa"><PrivateAction>{a}
+            </PrivateAction></Action><StartTrigger><ConditionGroup>{ca}</ConditionGroup>
+            </StartTrigger></Event>
+          <Event name="Eb" priority="overwrite"><Action name="ab"><PrivateAction>{b}
+            </PrivateAction></Action><StartTrigger><ConditionGroup>{cb}</ConditionGroup>
+            </StartTrigger></Event>
+          <Event name="Ec" priority="skip"><Action name="ac"><PrivateAction>{c}
+            </PrivateAction></Action><StartTrigger><ConditionGroup>{cc}</ConditionGroup>
+            </StartTrigger></Event>
+          <Event name="Ed" priority="parallel"><Action name="ad"><PrivateAction>{d}
+            </PrivateAction></Action><StartTrigger><ConditionGroup>{cd}</ConditionGroup>
+            </StartTrigger></Event>
+        </Maneuver>
+      </ManeuverGroup>
+      <StartTrigger><ConditionGroup>{go}</ConditionGroup></StartTrigger>
+    </Act></Story>"""
+
+
+@pytest.fixture(scope="module")
+def logic_run(tmp_path_factory):  # noqa: ANN001, ANN201 - an XoscRun
+    """Four cars on straight_500m.xodr, apart: A (lane -1, s = 20 m, 20 m/s), B (t =
+    -5.5 m, s = 150 m, 20 m/s), C (t = +5.5 m, s = 200 m, turned along +s, 10 m/s), D
+    standing in lane 1 at s = 480 m (the probes' actor; in no other car's lane, out of
+    every car's reach in the 10 s: no driver reacts to another). The storyboard is evaluated
+    every 10 ms at t = k * 0.01 s, so a SimulationTime threshold of 2.005 s is first
+    passed at 2.01 s (hand-computed times in the tests)."""
+    cars = "".join(_car(n) for n in "ABCD")
+    init = (_place("A", '<LanePosition roadId="1" laneId="-1" offset="0" s="20"/>', 20.0)
+            + _place("B", '<RoadPosition roadId="1" s="150" t="-5.5"/>', 20.0)
+            + _place("C", '<RoadPosition roadId="1" s="200" t="5.5"><Orientation '
+                     'type="relative" h="3.14159265"/></RoadPosition>', 10.0)
+            + _place("D", '<LanePosition roadId="1" laneId="1" offset="0" s="480"/>', 0.0))
+    hold_2s = _speed(20.0, "linear", "time", 2.0)  # A's 20 m/s again, over 2 s
+    stories = [
+        ("A", hold_2s, _cond("rising", _time("greaterThan", 2.005), delay=1.5)),  # E0
+        ("D", PROBE, _cond("falling", _time("lessThan", 2.005))),  # E1
+        ("D", PROBE, _cond("none", _time("greaterThan", 2.005), delay=1.0)),  # E2
+        ("D", PROBE, _cond("none", _time("greaterThan", 5.005)) + _cond("none", _time(
+            "lessThan", 1.0)) + "</ConditionGroup><ConditionGroup>" + _cond(
+            "none", _time("greaterThan", 2.005)) + _cond("none", _time(
+                "greaterThan", 3.005))),  # E3: (t > 5 and t < 1) or (t > 2 and t > 3)
+        ("D", PROBE, _state_cond("event", "E0", "startTransition")),  # E4
+        ("D", PROBE, _state_cond("event", "E0", "completeState")),  # E5
+        ("D", PROBE, _state_cond("action", "a0", "endTransition")),  # E6
+        # C: 10 -> 20 m/s at 2 m/s^2 from 0.5 s, back to 10 m/s when that is done
+        ("C", _speed(20.0, "linear", "rate", 2.0), _cond("rising", _time(
+            "greaterThan", 0.505))),  # E7
+        ("C", _speed(10.0, "linear", "rate", 2.0), _state_cond("event", "E7",
+                                                              "completeState")),  # E8
+        ("D", PROBE, _by_entity("C", '<SpeedCondition value="15" rule="greaterThan"/>')
+         .replace('conditionEdge="rising"', 'conditionEdge="risingOrFalling"')),  # E9
+    ]
+    body = "".join(_story(k, *s) for k, s in enumerate(stories))
+    body = body.replace('<Event name="E9" priority="overwrite">',
+                        '<Event name="E9" priority="overwrite" maximumExecutionCount="2">')
+    body += PRIORITY_MANEUVER.format(
+        a=_speed(15.0, "linear", "time", 4.0), ca=_cond("rising", _time("greaterThan", 1.005)),
+        b=_speed(20.0, "linear", "time", 3.0), cb=_cond("rising", _time("greaterThan", 2.005)),
+        c=_speed(20.0), cc=_cond("none", _time("greaterThan", 2.505)),
+        d=('<LateralAction><LaneOffsetAction continuous="false"><LaneOffsetActionDynamics '
+           'maxLateralAcc="1.0" dynamicsShape="cubic"/><LaneOffsetTarget>'
+           '<AbsoluteTargetLaneOffset value="0.5"/></LaneOffsetTarget></LaneOffsetAction>'
+           '</LateralAction>'),
+        cd=_cond("rising", _time("greaterThan", 3.005)),
+        go=_cond("none", _time("greaterOrEqual", 0.0)))
+    return _play(tmp_path_factory.mktemp("logic"), body, cars, init, 10.0)
+
+
+def test_condition_edges_and_delays(logic_run) -> None:  # noqa: ANN001
+    """t > 2.005 s is first true at 2.01 s: rising with a 1.5 s delay fires at 3.51 s;
+    t < 2.005 s falling fires at 2.01 s; none with a 1.0 s delay at 3.01 s (the
+    condition must have been true 1.0 s before); each once."""
+    for event, t in (("E0", 3.51), ("E1", 2.01), ("E2", 3.01)):
+        fired = _started(logic_run, event)
+        assert len(fired) == 1 and abs(fired[0] - t) <= 1e-6, (event, fired, t)
+
+
+def test_or_over_and_groups(logic_run) -> None:  # noqa: ANN001
+    """(t > 5.005 AND t < 1.0) OR (t > 2.005 AND t > 3.005): the first group is never
+    true; the second from 3.01 s. The cause names the values of the group that fired."""
+    assert _started(logic_run, "E3") == pytest.approx([3.01], abs=1e-6)
+
+
+def test_storyboard_element_state_condition(logic_run) -> None:  # noqa: ANN001
+    """E0 starts at 3.51 s and its action (linear over time, 2 s) ends at 5.51 s:
+    startTransition of E0 fires at 3.51 s (the same evaluation: E4's story is after
+    E0's), completeState of E0 and endTransition of its action a0 at 5.51 s."""
+    assert _same(_changes(logic_run, "a0"),
+                 [("standby", "running", 3.51), ("running", "complete", 5.51)], 0.0101), \
+        _changes(logic_run, "a0")
+    for event, t in (("E4", 3.51), ("E5", 5.51), ("E6", 5.51)):
+        fired = _started(logic_run, event)
+        assert len(fired) == 1 and abs(fired[0] - t) <= 0.0101, (event, fired, t)
+    done = next(t for _, to, t in _changes(logic_run, "a0") if to == "complete")
+    assert _started(logic_run, "E5")[0] == done
+
+
+def test_rising_or_falling_runs_an_event_twice(logic_run) -> None:  # noqa: ANN001
+    """C speeds up 10 -> 20 m/s and back: SpeedCondition u_C > 15 m/s with
+    risingOrFalling and maximumExecutionCount 2 fires at the first storyboard tick at
+    which C's recorded speed is above 15 m/s and again at the first after it at which it
+    is not (within one 10 ms tick); by hand, each ramp passes 15 m/s |15 - v| / 2 s after it
+    starts from the car's speed v (+ the tracking lag)."""
+    from simserver.core import layout as L
+
+    c = logic_run.result.cars["C"]
+    above = c.states[:, L.U_MPS] > 15.0
+    k_up = int(np.argmax(above))
+    k_down = k_up + int(np.argmax(~above[k_up:]))
+    assert above[k_up] and not above[k_down]
+    fired = _started(logic_run, "E9")
+    assert len(fired) == 2, _changes(logic_run, "E9")
+    for t_f, k in zip(fired, (k_up, k_down), strict=True):
+        assert abs(t_f - c.time_s[k]) <= 0.0101, (t_f, c.time_s[k])
+    # the commanded ramp starts from C's speed at 0.51 s (v0, a little under 10 m/s: the
+    # standard's current speed) and passes 15 m/s at 0.51 + (15 - v0) / 2 s; the car
+    # follows it (the IDM's lag and the drive-line's response, under 1 s of the ramp)
+    from simserver.core import driver as D
+
+    v0 = c.states[int(np.argmin(np.abs(c.time_s - 0.51))), L.U_MPS]
+    assert abs(v0 - 10.0) < 0.5, v0
+    t_cmd = 0.51 + (15.0 - v0) / 2.0
+    k_cmd = int(np.argmax(c.driver_states[:, D.DS_TARGET_SPEED_MPS] > 15.0))
+    assert abs(c.time_s[k_cmd] - t_cmd) <= 0.0101, (c.time_s[k_cmd], t_cmd)
+    assert t_cmd <= fired[0] <= t_cmd + 1.0, (fired, t_cmd)
+    start_down = _started(logic_run, "E8")[0]
+    t_up_done = 0.51 + (20.0 - v0) / 2.0  # E7's ramp ends: E8 (its completeState) starts
+    assert abs(start_down - t_up_done) <= 0.0101, (start_down, t_up_done)
+    v1 = c.states[int(np.argmin(np.abs(c.time_s - start_down))), L.U_MPS]
+    t_cmd_down = start_down + (v1 - 15.0) / 2.0  # the ramp down from C's speed then
+    assert t_cmd_down <= fired[1] <= t_cmd_down + 1.0, (fired, t_cmd_down)
+
+
+def test_event_priorities(logic_run) -> None:  # noqa: ANN001
+    """One maneuver: Ea (overwrite) runs from 1.01 s; Eb (overwrite) from 2.01 s ends it
+    (complete, 'overwritten by' Eb); Ed (parallel) starts at 3.01 s beside Eb, which runs
+    on to the end of its 3 s action at 5.01 s; Ec (skip), true from 2.51 s, is not
+    started while another event of its maneuver runs: not when Eb ends at 5.01 s, since
+    Ed still runs: B (at t = -5.5 m, nearest lane -2, centre -3.07 - 0.84 = -3.91 m) is
+    moved to 0.5 m left of that centre, |(-3.91 + 0.5) - t_B| = 2.09 m in a cubic of at
+    most 1 m/s^2 lateral: sqrt(6 * 2.09 / 1) = 3.54 s, to 6.55 s; Ec is evaluated
+    before Ed in the maneuver, so it starts at the next evaluation, 10 ms later."""
+    from simserver.core import layout as L
+
+    run = logic_run
+    assert _same(_changes(run, "Ea"),
+                 [("standby", "running", 1.01), ("running", "complete", 2.01)], 1e-6), \
+        _changes(run, "Ea")
+    ended = next(e for e in run.trace if e["name"] == "Ea" and e["to"] == "complete")
+    assert ended["cause"] == {"overwritten by": "Eb"}
+    assert _same(_changes(run, "Eb"),
+                 [("standby", "running", 2.01), ("running", "complete", 5.01)], 0.0101), \
+        _changes(run, "Eb")
+    assert _started(run, "Ed") == pytest.approx([3.01], abs=1e-6)
+    b = run.result.cars["B"]
+    t_b = b.states[int(np.argmin(np.abs(b.time_s - 3.01))), L.Y_M]  # the road is along x
+    ed_done = next(t for _, to, t in _changes(run, "Ed") if to == "complete")
+    assert abs(ed_done - (3.01 + math.sqrt(6.0 * abs(-3.41 - t_b)))) <= 0.0101, (ed_done, t_b)
+    assert ed_done > 5.01 + 1.0
+    assert _started(run, "Ec") == pytest.approx([ed_done + TICK_S], abs=1e-6)
