@@ -17,7 +17,11 @@ computed by hand"; docs/openscenario.md).
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -489,3 +493,63 @@ def test_acceleration_and_standstill_conditions(tmp_path: Path) -> None:
     assert 4.5 <= t[k_still] <= 6.5, t[k_still]  # 1 + 20 / 5 s, plus the lag and the hold
     fired = _started(run, "E2")
     assert len(fired) == 1 and abs(fired[0] - (t[k_still] + 1.5)) <= 0.0101, (fired, t[k_still])
+
+
+# ------------------------------------------------------------------ the runner
+def test_run_scenario_writes_the_storyboard_trace(tmp_path: Path) -> None:
+    """``simserver run-scenario cut-in_simple.xosc --out DIR`` (docs/openscenario.md's
+    command, a real subprocess): history (a car_id column, both entities), summary (ended
+    by the stop trigger), cars.png and storyboard_trace.jsonl, one JSON object a line:
+    every element's changes standby -> running -> complete in time order, the cut-in's
+    events with the time-headway values that fired them (above their thresholds 0.4 s and
+    1.0 s), the same trace as the player's in-process. A malformed file exits 2 with the
+    reader's one line (file:line: <Element>) and writes nothing."""
+    from simserver.adapters.history import CAR_ID_COLUMN, read_history
+    from simserver.sim.xosc_run import play
+
+    cut_in = REPO / "configs/openscenario/xosc/cut-in_simple.xosc"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get(
+        "PYTHONPATH", "")]))
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "simserver", "run-scenario", str(cut_in),
+                           "--out", str(out), "--quiet"], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert "warning: cut-in_simple.xosc: <SceneGraphFile> ignored" in proc.stderr
+    trace = [json.loads(line) for line in
+             (out / "storyboard_trace.jsonl").read_text().splitlines()]
+    assert trace == json.loads(json.dumps(play(cut_in, duration_s=60.0).trace))
+    assert [e["t_s"] for e in trace] == sorted(e["t_s"] for e in trace)
+    for e in trace:
+        assert set(e) <= {"t_s", "kind", "name", "from", "to", "cause"}, e
+    seen: dict[tuple[str, str], list[str]] = {}
+    for e in trace:
+        seen.setdefault((e["kind"], e["name"]), []).append(f'{e["from"]}>{e["to"]}')
+    for key in (("event", "CutInEvent"), ("event", "BrakeEvent"),
+                ("action", "CutInAction"), ("maneuver", "CutInManeuver")):
+        assert seen[key] == ["standby>running", "running>complete"], (key, seen.get(key))
+    for name, cond, limit in (("CutInEvent", "CutInStartCondition", 0.4),
+                              ("BrakeEvent", "BrakeCondition", 1.0)):
+        e = next(e for e in trace if e["name"] == name and e["to"] == "running")
+        assert e["cause"][cond]["Ego"] > limit, e
+    assert trace[-1]["kind"] == "storyboard" and trace[-1]["to"] == "complete"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ended_by"] == "stop trigger"
+    assert summary["end_time_s"] == pytest.approx(trace[-1]["t_s"], abs=0.0101)
+    cols = read_history(out / "history.parquet")
+    assert sorted(set(cols[CAR_ID_COLUMN])) == ["Ego", "OverTaker"]
+    assert (out / "cars.png").stat().st_size > 10_000
+
+    bad = tmp_path / "bad.xosc"
+    bad.write_text(cut_in.read_text().replace(
+        '"../xosc/Catalogs/Vehicles"', f'"{cut_in.parent}/Catalogs/Vehicles"').replace(
+        '"../xodr/straight_500m.xodr"', '"../xodr/nowhere.xodr"'))
+    line = line_of(bad, "nowhere.xodr")
+    proc = subprocess.run([sys.executable, "-m", "simserver", "run-scenario", str(bad),
+                           "--out", str(tmp_path / "bad_out"), "--quiet"], cwd=REPO,
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert lines[-1].startswith(f"error: {bad}:{line}: <LogicFile>: "), lines
+    assert "does not exist" in lines[-1]
+    assert not (tmp_path / "bad_out").exists()

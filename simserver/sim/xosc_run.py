@@ -491,6 +491,11 @@ class Storyboard:
         for car in self.cars.values():
             self._command(car, now)
         if stop is not None:
+            # the storyboard's stop ends every element with it (running or standby ->
+            # complete, the standard's stopTransition/skipTransition), each in the trace
+            for story in self.stories:
+                if story.state != COMPLETE:
+                    self._end_all(story, now)
             self.trace.append({"t_s": round(now, 6), "kind": "storyboard", "name": "stop",
                                "from": RUNNING, "to": COMPLETE, "cause": stop})
             return "stop trigger"
