@@ -229,30 +229,51 @@ def test_storyboard_on_the_viewer_timeline(tmp_path: Path) -> None:
 def test_ctl_load_takes_a_xosc_and_refuses_a_malformed_one(tmp_path: Path) -> None:
     """``ctl/load`` with a ``.xosc`` scene loads its ego's start (the cut-in's: x = 50 m on
     lane -1 at 20 m/s); a malformed one (an unknown entity reference) is answered with the
-    reader's error naming file, line and element, and the car runs on untouched."""
-    bad = tmp_path / "bad.xosc"
+    reader's error naming file, line and element, and the car runs on untouched; so is each
+    of the acceptance's malformed files (an unknown entity reference, a bad parameter
+    expression, a missing catalog entry, a missing road file)."""
     text = CUT_IN.read_text().replace('"../xosc/Catalogs/Vehicles"', f'"{XOSC}/xosc/Catalogs/'
                                       'Vehicles"').replace('"../xodr/straight_500m.xodr"',
                                                            f'"{XOSC}/xodr/straight_500m.xodr"')
-    bad.write_text(text.replace('<RelativeRoadPosition entityRef="Ego"',
-                                '<RelativeRoadPosition entityRef="Nobody"', 1))
-    line = next(k for k, row in enumerate(bad.read_text().splitlines(), 1) if "Nobody" in row)
+    # the acceptance's four malformed files: (file, the changed text, its element, message)
+    malformed = []
+    for name, old, new, element, message in (
+            ("bad", '<RelativeRoadPosition entityRef="Ego"',
+             '<RelativeRoadPosition entityRef="Nobody"', "RelativeRoadPosition",
+             "unknown entity 'Nobody'"),
+            ("bad_expr", 'value="25"', 'value="${25 / (1 - 1)}"', "AbsoluteTargetSpeed",
+             "division by zero"),
+            ("bad_catalog", 'entryName="$TargetVehicle"', 'entryName="hovercraft"',
+             "CatalogReference", "has no entry 'hovercraft'"),
+            ("bad_road", f'"{XOSC}/xodr/straight_500m.xodr"', '"nowhere.xodr"', "LogicFile",
+             "does not exist")):
+        path = tmp_path / f"{name}.xosc"
+        assert old in text, old
+        path.write_text(text.replace(old, new, 1))
+        line = next(k for k, row in enumerate(path.read_text().splitlines(), 1) if new in row)
+        malformed.append((path, f"{path.name}:{line}: <{element}>: ", message))
     config = tmp_path / "server.yaml"
     config.write_text(f"scene: {CONFIGS / 'scenes' / 'flat_paper_sedan.yaml'}\n"
-                      f"config_dirs: [{CONFIGS}, {tmp_path}]\nviewer: 'off'\n")
-    with ServerProcess(config=config, scene=None, extra_args=["--realtime", "off"]) as server:
+                      f"config_dirs: [{CONFIGS}, {tmp_path}]\nviewer: 'off'\n"
+                      "load_stall_s: 60\n")  # a loaded machine reads slowly
+    with ServerProcess(config=config, scene=None, extra_args=["--realtime", "off"],
+                       ready_timeout_s=300.0) as server:
         client = Client(server)
         try:
             client.wait_controls()
             before = client.request("get_config", timeout_s=10.0)["config"]["scene"]["path"]
-            reply = client.request("load", {"scene": str(bad)}, timeout_s=120.0)
-            assert reply["ok"] is False and reply["field"] == "scene", reply
-            assert f"bad.xosc:{line}: <RelativeRoadPosition>: " in reply["error"], reply
-            assert "unknown entity 'Nobody'" in reply["error"], reply
-            tick = client.fresh_state()["tick"]
-            assert client.fresh_state()["tick"] > tick  # still running
-            after = client.request("get_config", timeout_s=10.0)["config"]["scene"]["path"]
-            assert after == before
+            for bad, where, message in malformed:
+                x_before = float(client.fresh_state()["x_m"])
+                reply = client.request("load", {"scene": str(bad)}, timeout_s=120.0)
+                assert reply["ok"] is False and reply["field"] == "scene", (bad.name, reply)
+                assert where in reply["error"] and message in reply["error"], reply
+                assert "\n" not in reply["error"]
+                tick = client.fresh_state()["tick"]
+                state = client.fresh_state()
+                assert state["tick"] > tick  # still running
+                assert abs(float(state["x_m"]) - x_before) < 1.0  # the car was not moved
+                after = client.request("get_config", timeout_s=10.0)["config"]["scene"]["path"]
+                assert after == before
             reply = client.request("load", {"scene": str(CUT_IN)}, timeout_s=120.0)
             assert reply["ok"] is True, reply
             state = client.fresh_state(timeout_s=10.0)

@@ -479,6 +479,15 @@ EDGES = ("rising", "falling", "risingOrFalling", "none")
 SHAPES = ("step", "linear", "cubic", "sinusoidal")
 DIMENSIONS = ("time", "rate", "distance")
 PRIORITIES = ("overwrite", "override", "skip", "parallel")
+ELEMENT_TYPES = ("story", "act", "maneuverGroup", "maneuver", "event", "action")
+"""``StoryboardElementStateCondition``'s ``storyboardElementType`` values."""
+DISTANCE_TYPES = ("longitudinal", "lateral", "cartesianDistance", "euclidianDistance")
+"""``relativeDistanceType`` values (1.0's ``cartesianDistance`` is 1.1's euclidian one)."""
+COORDINATE_SYSTEMS = ("entity", "lane", "road")
+"""``coordinateSystem`` values measured (along the road: on the roads of the subset the
+three agree within a car's heading error); ``trajectory`` is refused."""
+BOOLEANS = {"true": "true", "1": "true", "false": "false", "0": "false"}
+"""xsd:boolean's four spellings, normalised to ``true``/``false``."""
 STATES = ("startTransition", "endTransition", "stopTransition", "skipTransition",
           "completeState", "runningState", "standbyState")
 POSITIONS = {
@@ -498,6 +507,9 @@ class _Reader:
         self.catalog_dirs: dict[str, list[Path]] = {}
         self.catalog_cache: dict[Path, Node] = {}
         self.entity_names: set[str] = set()
+        # (condition, element type, name) of every StoryboardElementStateCondition: the
+        # names are checked once the whole storyboard is read (a reference may point ahead)
+        self.element_refs: list[tuple[Node, str, str]] = []
 
     # -------------------------------------------------------------- helpers
     def ignore(self, node: Node) -> None:
@@ -534,6 +546,14 @@ class _Reader:
         if choices is not None and v not in choices:
             raise node.fail(f"attribute {key!r}: {v!r} is not one of {', '.join(choices)}")
         return v
+
+    def flag(self, node: Node, p: Params, key: str, default: str = "false") -> str:
+        """A boolean attribute as ``"true"`` or ``"false"`` (xsd:boolean: also 1 and 0);
+        anything else is an error, not a silent false."""
+        v = self.text(node, p, key, default)
+        if v not in BOOLEANS:
+            raise node.fail(f"attribute {key!r}: {v!r} is not a boolean (true, false, 1, 0)")
+        return BOOLEANS[v]
 
     def entity_ref(self, node: Node, p: Params, key: str = "entityRef") -> str:
         name = self.text(node, p, key)
@@ -682,7 +702,7 @@ class _Reader:
                           "value": self.num(tgt, p, "value"),
                           "valueType": self.text(tgt, p, "speedTargetValueType", "delta",
                                                  ("delta", "factor")),
-                          "continuous": self.text(tgt, p, "continuous", "false") == "true"}
+                          "continuous": self.flag(tgt, p, "continuous") == "true"}
             else:
                 raise self.refuse(tgt, "speed target")
             return Action("SpeedAction", name, sa.line, actors, dyn, target)
@@ -712,7 +732,7 @@ class _Reader:
                               "value": self.num(tgt, p, "value")}
                 else:
                     raise self.refuse(tgt, "lane offset target")
-                target["continuous"] = self.text(la, p, "continuous", "false") == "true"
+                target["continuous"] = self.flag(la, p, "continuous") == "true"
                 return Action("LaneOffsetAction", name, la.line, actors, dyn, target)
             raise self.refuse(la, "action")
         raise self.refuse(kind, "action")
@@ -763,7 +783,9 @@ class _Reader:
         for k in texts:
             if k in inner.attrs:
                 values[k] = (self.entity_ref(inner, p) if k == "entityRef"
+                             else self.flag(inner, p, k) if k in ("freespace", "alongRoute")
                              else self.text(inner, p, k))
+        self._check_measure(inner, values)
         if "rule" in texts and "rule" not in values:
             raise inner.fail("missing attribute 'rule'")
         if values.get("rule") is not None and values["rule"] not in RULES:
@@ -790,11 +812,40 @@ class _Reader:
                 raise self.refuse(tgt, "collision target")
         if inner.tag == "ReachPositionCondition":
             position = self.position(inner.child("Position"), p)
-        if inner.tag == "StoryboardElementStateCondition" and values["state"] not in STATES:
-            raise inner.fail(f"attribute 'state': {values['state']!r} is not one of "
-                             f"{', '.join(STATES)}")
+        if inner.tag == "StoryboardElementStateCondition":
+            for key, allowed in (("state", STATES), ("storyboardElementType", ELEMENT_TYPES)):
+                if values.get(key) not in allowed:
+                    raise inner.fail(f"attribute {key!r}: {values.get(key)!r} is not one of "
+                                     f"{', '.join(allowed)}")
+            self.element_refs.append((inner, values["storyboardElementType"],
+                                      values["storyboardElementRef"]))
         return Condition(name, inner.tag, inner.line, delay, edge, values, triggering, rule,
                          position)
+
+    def _check_measure(self, inner: Node, values: dict[str, Any]) -> None:
+        """The distance a condition measures, within what the player measures: an unknown
+        ``relativeDistanceType`` or ``coordinateSystem`` is an error (a typo would else
+        measure another distance), one outside the subset is refused (docs/openscenario.md:
+        the longitudinal distance along the road for headway and time to collision;
+        freespace only longitudinally)."""
+        kind = values.get("relativeDistanceType")
+        if kind is not None and kind not in DISTANCE_TYPES:
+            raise inner.fail(f"attribute 'relativeDistanceType': {kind!r} is not one of "
+                             f"{', '.join(DISTANCE_TYPES)}")
+        system = values.get("coordinateSystem")
+        if system is not None and system not in COORDINATE_SYSTEMS + ("trajectory",):
+            raise inner.fail(f"attribute 'coordinateSystem': {system!r} is not one of "
+                             f"{', '.join(COORDINATE_SYSTEMS + ('trajectory',))}")
+        if system == "trajectory":
+            raise inner.fail("coordinateSystem 'trajectory' outside the subset refused: "
+                             "trajectories are not supported")
+        if kind not in (None, "longitudinal") and inner.tag in ("TimeHeadwayCondition",
+                                                               "TimeToCollisionCondition"):
+            raise inner.fail(f"relativeDistanceType {kind!r} outside the subset refused: "
+                             "headway and time to collision are measured longitudinally")
+        if kind not in (None, "longitudinal") and values.get("freespace") == "true":
+            raise inner.fail(f"freespace distance {kind!r} outside the subset refused: "
+                             "freespace is measured longitudinally (bumper to bumper)")
 
     # -------------------------------------------------------------- the storyboard
     def max_exec(self, node: Node, p: Params) -> int:
@@ -803,13 +854,29 @@ class _Reader:
             raise node.fail("attribute 'maximumExecutionCount' must be a whole number >= 1")
         return int(v)
 
+    def only_known_children(self, node: Node, known: tuple[str, ...]) -> None:
+        """A storyboard element's children are those of the schema the subset reads; any
+        other child is refused by name and line (a misspelt ``<Maneuvr>`` would else be
+        dropped silently, and the scenario played without it)."""
+        for c in node.children:
+            if c.tag not in known:
+                raise self.refuse(c)
+
     def story(self, node: Node, p: Params) -> Story:
+        self.only_known_children(node, ("ParameterDeclarations", "Act"))
         p = p.declare(node.child("ParameterDeclarations", required=False))
         acts = []
         for a in node.all("Act"):
+            self.only_known_children(a, ("ManeuverGroup", "StartTrigger", "StopTrigger"))
             groups = []
             for g in a.all("ManeuverGroup"):
+                self.only_known_children(g, ("Actors", "Maneuver", "CatalogReference"))
                 actors_node = g.child("Actors")
+                if self.flag(actors_node, p, "selectTriggeringEntities") == "true":
+                    raise actors_node.fail("selectTriggeringEntities 'true' outside the "
+                                           "subset refused: the actors are the entities "
+                                           "named in <Actors>")
+                self.only_known_children(actors_node, ("EntityRef",))
                 actors = tuple(self.entity_ref(e, p) for e in actors_node.all("EntityRef"))
                 maneuvers = []
                 for m in g.children:
@@ -817,9 +884,11 @@ class _Reader:
                         raise self.refuse(m, "maneuver catalog reference")
                     if m.tag != "Maneuver":
                         continue
+                    self.only_known_children(m, ("ParameterDeclarations", "Event"))
                     mp = p.declare(m.child("ParameterDeclarations", required=False))
                     events = []
                     for e in m.all("Event"):
+                        self.only_known_children(e, ("Action", "StartTrigger"))
                         actions = []
                         for act in e.all("Action"):
                             inner = act.only_child()
@@ -932,6 +1001,11 @@ class _Reader:
                 raise self.refuse(c)
         stop = self.trigger(board.child("StopTrigger", required=False), p)
         self._check_unique_names(stories)
+        known = {(kind, name) for kind, name, _ in storyboard_elements(stories)}
+        for cond, kind, name in self.element_refs:
+            if (kind, name) not in known:
+                raise cond.fail(f"attribute 'storyboardElementRef': no {kind} named "
+                                f"{name!r} in the storyboard")
         ignored = tuple(
             f"{self.path.name}: <{tag}> ignored, {len(at)} x (at "
             f"{', '.join(f'{pp.name}:{n}' for pp, n in at[:10])}"

@@ -304,6 +304,10 @@ class Storyboard:
         self.action_elements: list[Element] = []
         self._targets: dict[tuple[int, str], tuple[float, float]] = {}
         self.contacts: list[dict[str, Any]] = []  # contact events since the last tick
+        # each condition's last measured values (the trace's cause); this storyboard's own
+        # (a class-level dict was shared by every storyboard of the process, the live
+        # worker's and a headless run's alike, and kept every condition ever evaluated)
+        self._last_values: dict[int, Any] = {}
 
     def _tree(self, kind: str, obj: Any, parent: Element | None) -> Element:
         e = Element(kind, obj.name, obj, parent)
@@ -443,8 +447,6 @@ class Storyboard:
                 fired = cause
         return fired
 
-    _last_values: dict[int, Any] = {}
-
     def _edge(self, c: X.Condition, now: float) -> bool:
         st = self.cond.setdefault(id(c), CondState())
         raw, val = self.condition_value(c, now)
@@ -489,6 +491,11 @@ class Storyboard:
         for car in self.cars.values():
             self._command(car, now)
         if stop is not None:
+            # the storyboard's stop ends every element with it (running or standby ->
+            # complete, the standard's stopTransition/skipTransition), each in the trace
+            for story in self.stories:
+                if story.state != COMPLETE:
+                    self._end_all(story, now)
             self.trace.append({"t_s": round(now, 6), "kind": "storyboard", "name": "stop",
                                "from": RUNNING, "to": COMPLETE, "cause": stop})
             return "stop trigger"
