@@ -19,6 +19,13 @@ driver program) that sends commands at ``--cmd-hz``, each at a random instant of
 command (arrivals stamped in zenoh's receiving thread). The tick figures are the server's:
 its ticks more than 1 ms late over the whole run (its ``stopped`` line) and the median
 over its 4096-tick diagnostics windows of their p99 lateness (read by ``car0``'s client).
+Each latency is split where it waits: the server's tick deadlines are ``t0 + tick *
+period`` on the machine's monotonic clock, which the client shares, so the arrival less
+``tick * period`` less its minimum over the run is the time after the tick's deadline
+above the fastest (server work, transport, the client's scheduling: ``after the tick's
+deadline``), and the rest is the command's way to the tick that applied it
+(``before_tick``: its transport and the wait for that tick, at most a period when the
+command reaches the server in time; in the ``--json`` lines).
 
 The counts of ``--cars`` run beside ``--hogs`` CPU-bound processes, those of
 ``--quiet-cars`` without; the defaults are the acceptance's: 8 cars (2 client processes,
@@ -104,6 +111,8 @@ def client_main(args: argparse.Namespace) -> None:
     client_rt.apply()
     print("READY", flush=True)
     latencies: list[float] = []
+    after_tick: list[int] = []
+    sent_at: list[int] = []
     sent: dict[int, int] = {}
     diags: list[np.void] = []
     seq = 0
@@ -128,9 +137,18 @@ def client_main(args: argparse.Namespace) -> None:
                 next_at = slot + rng.uniform(0.0, TICK_S)
             while arrivals:
                 t_rx, payload = arrivals.popleft()
-                s = int(proto.decode_state(payload)["last_cmd_seq"])
+                state = proto.decode_state(payload)
+                s = int(state["last_cmd_seq"])
                 if s in sent:
-                    latencies.append((t_rx - sent.pop(s)) / 1e3)
+                    t_sent = sent.pop(s)
+                    latencies.append((t_rx - t_sent) / 1e3)
+                    # the arrival less the tick's number of periods: the server's tick
+                    # deadlines are t0 + tick * period on the same monotonic clock, so
+                    # this less its minimum is the time from the tick's deadline to the
+                    # arrival above the fastest seen (server work, transport, this
+                    # process's scheduling), apart from the wait for the tick
+                    after_tick.append(t_rx - int(state["tick"]) * int(TICK_S * 1e9))
+                    sent_at.append(t_sent - int(state["tick"]) * int(TICK_S * 1e9))
             if args.diagnostics:
                 diags.extend(proto.decode_diagnostics(p) for p in client.diag.drain_newest())
             time.sleep(0.0005)
@@ -146,6 +164,13 @@ def client_main(args: argparse.Namespace) -> None:
     result = {"car": args.vehicle_id, "commands": seq, "acknowledged": int(lat.size),
               "latency_p50_us": float(np.percentile(lat, 50)) if lat.size else None,
               "latency_p99_us": float(np.percentile(lat, 99)) if lat.size else None}
+    if after_tick:  # the part of the latency after the tick's deadline, above its fastest
+        after = (np.array(after_tick) - min(after_tick)) / 1e3
+        before = (min(after_tick) - np.array(sent_at)) / 1e3
+        result |= {"after_tick_p50_us": float(np.percentile(after, 50)),
+                   "before_tick_p50_us": float(np.percentile(before, 50)),
+                   "before_tick_p99_us": float(np.percentile(before, 99)),
+                   "after_tick_p99_us": float(np.percentile(after, 99))}
     if args.diagnostics:
         result |= {"lateness_p99_us": float(np.median([w["lateness_p99_us"] for w in windows]))
                    if windows else None,
@@ -202,6 +227,9 @@ def run_once(n_cars: int, seconds: float, cmd_hz: float, folder: Path) -> dict[s
         car = r["car"]
         out |= {f"{car}_latency_p50_us": r["latency_p50_us"],
                 f"{car}_latency_p99_us": r["latency_p99_us"],
+                **{f"{car}_{k}": r[k] for k in ("after_tick_p50_us", "after_tick_p99_us",
+                                                 "before_tick_p50_us", "before_tick_p99_us")
+                   if k in r},
                 f"{car}_commands_acknowledged": r["acknowledged"]}
     return out
 
@@ -215,7 +243,9 @@ def line(res: dict[str, Any]) -> str:
     n = res["cars"]
     lat = "; ".join(
         f"{c} command-to-state p50 {_fmt(res[f'{c}_latency_p50_us'])} us, p99 "
-        f"{_fmt(res[f'{c}_latency_p99_us'])} us ({res[f'{c}_commands_acknowledged']} commands)"
+        f"{_fmt(res[f'{c}_latency_p99_us'])} us (after the tick's deadline p99 "
+        f"{_fmt(res.get(f'{c}_after_tick_p99_us'))} us above the fastest; "
+        f"{res[f'{c}_commands_acknowledged']} commands)"
         for c in DRIVEN[:min(n, 2)])
     return (f"round {res['round']}: {n:2d} cars, {res['hogs']} hogs, {res['ticks']} ticks: "
             f"{100 * res['late_fraction']:.2f} % > 1 ms late, lateness p99 "

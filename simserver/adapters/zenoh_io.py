@@ -473,8 +473,12 @@ class VehiclePublisher:
     With ``decimated`` (the ``state/100hz`` publisher) every ``decimate_every``-th state is
     put there too (:data:`simserver.wire.protocol.STATE_DECIMATED_HZ`).
 
-    With ``sender_thread`` the puts run in a thread of their own (``state-tx``), not in
-    the caller's: :meth:`publish_state` only queues the payload (a few microseconds). On
+    With ``sender_thread`` the puts run in a sender thread (``state-tx``), not in the
+    caller's: :meth:`publish_state` only queues the payload (a few microseconds). The
+    vehicle publishers of one endpoint share that thread and one ``state-watch``
+    (:class:`SenderThread`): a server of 32 cars ran 64 such threads, each woken every
+    20 ms to scan the same sockets of the process and each wanting the GIL at real-time
+    priority (issue 30: 40 000 wake-ups a second, 16 % of ticks late). On
     the low-latency transport zenoh writes a put to every subscriber's socket in the
     calling thread, about 8 us of CPU per subscriber (20 subscribers: 166 us p50, with
     waits on the links' locks up to 4 ms p99 on a busy machine, ``benchmarks.bench_load``'s
@@ -539,7 +543,8 @@ class VehiclePublisher:
                  slow_ns: int = 250_000, decimated: zenoh.Publisher | None = None,
                  decimate_every: int = 1, sender_thread: bool = False,
                  inline_while_cheap: bool = False,
-                 inline_again_puts: int = INLINE_AGAIN_PUTS) -> None:
+                 inline_again_puts: int = INLINE_AGAIN_PUTS,
+                 sender: SenderThread | None = None) -> None:
         self.state = state
         self.diagnostics = diagnostics
         self.slow_ns = slow_ns
@@ -550,12 +555,15 @@ class VehiclePublisher:
         self.dropped = 0  # by the sender thread's full queue (also in slow_publishes)
         self.handoffs = 0  # inline -> thread switches
         self.inline_puts = 0  # states put by the caller while a thread exists
-        self._queue: deque[tuple[bool, bytes]] | None = None
-        self._thread: threading.Thread | None = None
+        self._queue: deque[tuple[bool | zenoh.Publisher, bytes]] | None = None
+        # queued, not yet put: enqueued - dropped (both the caller's) - sent (the thread's)
+        self._enqueued = self._sent = 0
+        self._sender: SenderThread | None = None
+        self._own_sender = False  # made for this publisher alone (closed with it)
+        self._closing = False
         self._inline = False  # the caller puts states itself (only with inline_while_cheap)
         self._inline_ok = False  # set by the thread: cheap long enough, go inline
-        self._in_flight = False  # the thread holds a publication it has not put yet
-        self._backlog = 0  # the largest socket backlog last seen by the thread (bytes)
+        self._backlog = 0  # the largest socket backlog last seen by the watch (bytes)
         self._backlogged = False  # ... above BACKLOG_BYTES
         self._adaptive = sender_thread and inline_while_cheap
         self.inline_again_puts = inline_again_puts
@@ -564,27 +572,24 @@ class VehiclePublisher:
         self._inline_since = 0.0
         self._last_slow_ns = 0
         self._slow_at = -self.INLINE_SLOW_WITHIN - 1  # inline_puts at the last slow one
+        self._logged_mode = "thread"
         if sender_thread:
             self._queue = deque()
-            self._wake = os.eventfd(0)
             self._inline = self._adaptive  # nobody subscribes yet: puts are cheap
-            self._thread = threading.Thread(target=self._send_loop, name="state-tx",
-                                            daemon=True)
-            self._thread.start()
-        self._watch: SocketBacklog | None = None
-        self._watcher: threading.Thread | None = None
-        self._watch_stop = threading.Event()
-        if self._adaptive:
-            # its own thread: a put that waits on a full socket holds state-tx, and the
-            # watch is what unblocks it (SocketBacklog: wedged links)
-            self._watch = SocketBacklog(close_wedged=True)
-            self._watcher = threading.Thread(target=self._watch_loop, name="state-watch",
-                                             daemon=True)
-            self._watcher.start()
+            self._logged_mode = self.mode()
+            if sender is None:
+                sender, self._own_sender = SenderThread(), True
+            self._sender = sender
+            sender.register(self)
 
     def mode(self) -> str:
         """``"inline"`` (the caller puts the states) or ``"thread"`` (``state-tx`` does)."""
         return "inline" if self._queue is None or self._inline else "thread"
+
+    def _pending(self) -> int:
+        """Publications queued and not put yet (read by the caller; the thread's count may
+        be a moment old: then one more goes through the thread, in order)."""
+        return self._enqueued - self.dropped - self._sent
 
     def publish_state(self, payload: bytes) -> None:
         """Put one VehicleState (and every ``decimate_every``-th on the decimated key)."""
@@ -592,7 +597,7 @@ class VehiclePublisher:
         if queue is None:
             self._put_state(payload)
             return
-        if not self._inline and self._inline_ok and not queue and not self._in_flight:
+        if not self._inline and self._inline_ok and not self._pending():
             # nothing left in the thread (one producer: this caller): order is kept
             self._inline, self._inline_ok = True, False
             self._inline_since = time.monotonic()
@@ -654,82 +659,66 @@ class VehiclePublisher:
         # is_state: True a state, False the diagnostics, else the publisher to put on
         queue = self._queue
         if len(queue) >= self.SENDER_QUEUE:
-            queue.popleft()
-            self.slow_publishes += 1
-            self.dropped += 1
+            try:
+                queue.popleft()
+                self.slow_publishes += 1
+                self.dropped += 1
+            except IndexError:  # the thread took it meanwhile
+                pass
         queue.append((is_state, payload))
-        os.eventfd_write(self._wake, 1)
+        self._enqueued += 1
+        self._sender.wake()
 
-    def _send_loop(self) -> None:
-        """The ``state-tx`` thread: put what is queued, in order; wait (GIL released);
-        watch the sockets' backlog; tell the caller when it may put inline again."""
+    def _send_queued(self) -> None:
+        """Put what is queued, in order (in the sender thread); judge the puts' cost."""
         queue = self._queue
-        poller = select.poll()
-        poller.register(self._wake, select.POLLIN)
-        reported = last = 0
         while True:
-            if poller.poll(-1):
-                os.eventfd_read(self._wake)
-            now = time.monotonic()
-            if self.dropped != reported and now - last > 1.0:
-                reported, last = self.dropped, now  # not in the tick; 1/s
-                log.warning("state-tx: %d publications dropped so far: the sender was %d "
-                            "behind (a link or this thread stalled)", self.dropped,
-                            self.SENDER_QUEUE)
-            while queue:
-                self._in_flight = True  # before taking it: the caller sees one or the other
+            try:
                 is_state, payload = queue.popleft()
-                if payload is None:
-                    self._in_flight = False
-                    return
-                try:
-                    if is_state is True:
-                        cpu0 = time.thread_time_ns()
-                        self._put_state(payload)
-                        took = time.thread_time_ns() - cpu0
-                        self._judged += 1
-                        if took > self.INLINE_PUT_NS // 2:
-                            self._costly += 1
-                    elif is_state is False:
-                        self.diagnostics.put(payload)
-                    else:
-                        is_state.put(payload)
-                except zenoh.ZError:
-                    pass  # undeclared meanwhile (the session closing)
-                except Exception:  # never let the thread end: no state would go out again
-                    log.exception("state-tx: a publication failed")
-                finally:
-                    self._in_flight = False
-            if self._adaptive and self._judged >= self._again_puts:
-                if (not self._inline
-                        and self._costly <= self.INLINE_AGAIN_COSTLY_SHARE * self._judged):
-                    self._inline_ok = True
-                self._judged = self._costly = 0
+            except IndexError:
+                break
+            try:
+                if is_state is True:
+                    cpu0 = time.thread_time_ns()
+                    self._put_state(payload)
+                    took = time.thread_time_ns() - cpu0
+                    self._judged += 1
+                    if took > self.INLINE_PUT_NS // 2:
+                        self._costly += 1
+                elif is_state is False:
+                    self.diagnostics.put(payload)
+                else:
+                    is_state.put(payload)
+            except zenoh.ZError:
+                pass  # undeclared meanwhile (the session closing)
+            except Exception:  # never let the thread end: no state would go out again
+                log.exception("state-tx: a publication failed")
+            finally:
+                self._sent += 1
+        if self._adaptive and self._judged >= self._again_puts:
+            if (not self._inline
+                    and self._costly <= self.INLINE_AGAIN_COSTLY_SHARE * self._judged):
+                self._inline_ok = True
+            self._judged = self._costly = 0
 
-    def _watch_loop(self) -> None:
-        """The ``state-watch`` thread: every :data:`WATCH_S` the sockets' backlog (puts
-        to the thread while one lasts) and the wedged links closed
-        (:class:`SocketBacklog`); the mode changes logged. Not ``state-tx``: a put that
-        finds a full socket holds that thread until the link is closed."""
-        watch = self._watch
-        was = self.mode()
-        while not self._watch_stop.wait(self.WATCH_S):
-            seen = watch.largest(time.monotonic())
-            # twice in a row: a client's first burst passes
-            self._backlogged = min(seen, self._backlog) > self.BACKLOG_BYTES
-            self._backlog = seen
-            if self._backlogged:
-                self._judged = self._costly = 0
-            mode = self.mode()
-            if mode != was:  # not in the tick; at most a few times a minute
-                was = mode
-                if self._thread is not None:  # not close() turning the caller off
-                    self._log_mode(mode)
+    def _note_backlog(self, seen: int) -> None:
+        """The watch's look at the sockets (in ``state-watch``): twice in a row above
+        :data:`BACKLOG_BYTES` (a client's first burst passes) keeps the puts in the
+        thread while it lasts; a change of mode logged."""
+        self._backlogged = min(seen, self._backlog) > self.BACKLOG_BYTES
+        self._backlog = seen
+        if self._backlogged:
+            self._judged = self._costly = 0
+        mode = self.mode()
+        if mode != self._logged_mode and not self._closing:  # not close() turning the
+            self._logged_mode = mode                          # caller off
+            self._log_mode(mode)
 
     @property
     def links_closed(self) -> int:
         """Links closed because their reader stopped reading (:class:`SocketBacklog`)."""
-        return len(self._watch.closed) if self._watch is not None else 0
+        sender = self._sender
+        return 0 if sender is None else len(sender.links_closed())
 
     def _log_mode(self, mode: str) -> None:
         # DEBUG, not INFO: an idle server with no client switched a few times a minute
@@ -744,18 +733,121 @@ class VehiclePublisher:
             log.debug("state-tx: states put in the tick again (puts cheap over the last %d)",
                       self._again_puts)
 
+    def close(self, timeout_s: float = 1.0) -> None:
+        """Send what is queued (up to ``timeout_s``) and leave the sender thread
+        (idempotent; a sender of its own is stopped); the publishers are undeclared with
+        their session."""
+        sender, self._sender = self._sender, None
+        if sender is None:
+            return
+        self._closing = True
+        self._inline = self._inline_ok = False
+        sender.wake()
+        t_end = time.monotonic() + timeout_s
+        while self._pending() > 0 and sender.alive() and time.monotonic() < t_end:
+            time.sleep(0.001)
+        sender.unregister(self)
+        if self._own_sender:
+            sender.close()
+
+
+class SenderThread:
+    """The ``state-tx`` thread shared by the vehicle publishers of one endpoint (a
+    server's cars), and, once a publisher that puts inline while cheap joins, the
+    ``state-watch`` thread that looks at the process's sockets for all of them.
+
+    One thread puts every car's queued publications, each car's in order: a wake-up
+    drains every car's queue (a tick's states in one go), not one thread a car woken for
+    each. The sockets are the process's, so one look at them (:class:`SocketBacklog`)
+    serves every car; each car's publisher then judges its own mode
+    (``VehiclePublisher._note_backlog``). A put that waits on a full socket would hold
+    the other cars' queued states too; the watch closes such a wedged link within
+    ``SocketBacklog.WEDGE_S``, long before a socket fills (docs/reliability.md).
+    """
+
+    WATCH_S = VehiclePublisher.WATCH_S
+
+    def __init__(self) -> None:
+        self._publishers: tuple[VehiclePublisher, ...] = ()  # replaced, never mutated
+        self._lock = threading.Lock()
+        self._wake = os.eventfd(0)
+        self._stopping = False
+        self._thread: threading.Thread | None = threading.Thread(
+            target=self._send_loop, name="state-tx", daemon=True)
+        self._thread.start()
+        self._watch: SocketBacklog | None = None
+        self._watcher: threading.Thread | None = None
+        self._watch_stop = threading.Event()
+
+    def register(self, pub: VehiclePublisher) -> None:
+        with self._lock:
+            self._publishers = (*self._publishers, pub)
+            if pub._adaptive and self._watcher is None:
+                # its own thread: a put that waits on a full socket holds state-tx, and
+                # the watch is what unblocks it (SocketBacklog: wedged links)
+                self._watch = SocketBacklog(close_wedged=True)
+                self._watcher = threading.Thread(target=self._watch_loop,
+                                                 name="state-watch", daemon=True)
+                self._watcher.start()
+
+    def unregister(self, pub: VehiclePublisher) -> None:
+        with self._lock:
+            self._publishers = tuple(p for p in self._publishers if p is not pub)
+
+    def wake(self) -> None:
+        os.eventfd_write(self._wake, 1)
+
+    def alive(self) -> bool:
+        thread = self._thread
+        return thread is not None and thread.is_alive()
+
+    def links_closed(self) -> list[str]:
+        """What each link the watch closed was (``SocketBacklog.closed``)."""
+        return [] if self._watch is None else self._watch.closed
+
+    def _send_loop(self) -> None:
+        """Put what every publisher queued, each in order; wait (GIL released)."""
+        poller = select.poll()
+        poller.register(self._wake, select.POLLIN)
+        reported = last = 0
+        while True:
+            if poller.poll(-1):
+                os.eventfd_read(self._wake)
+            for pub in self._publishers:
+                if pub._queue:
+                    pub._send_queued()
+            if self._stopping:
+                return
+            dropped = sum(p.dropped for p in self._publishers)
+            now = time.monotonic()
+            if dropped != reported and now - last > 1.0:
+                reported, last = dropped, now  # not in the tick; 1/s
+                log.warning("state-tx: %d publications dropped so far: the sender was %d "
+                            "behind (a link or this thread stalled)", dropped,
+                            VehiclePublisher.SENDER_QUEUE)
+
+    def _watch_loop(self) -> None:
+        """The ``state-watch`` thread: every :data:`WATCH_S` the sockets' backlog, told to
+        every publisher (puts to the thread while one lasts), and the wedged links closed
+        (:class:`SocketBacklog`). Not ``state-tx``: a put that finds a full socket holds
+        that thread until the link is closed."""
+        watch = self._watch
+        while not self._watch_stop.wait(self.WATCH_S):
+            seen = watch.largest(time.monotonic())
+            for pub in self._publishers:
+                if pub._adaptive:
+                    pub._note_backlog(seen)
+
     def close(self) -> None:
-        """Stop the sender thread after what is queued (idempotent); the publishers are
-        undeclared with their session."""
-        thread, self._thread = self._thread, None
+        """Stop both threads after what is queued (idempotent)."""
         watcher, self._watcher = self._watcher, None
         if watcher is not None:
             self._watch_stop.set()
             watcher.join(timeout=1.0)
+        thread, self._thread = self._thread, None
         if thread is not None:
-            self._inline = self._inline_ok = False
-            self._queue.append((False, None))
-            os.eventfd_write(self._wake, 1)
+            self._stopping = True
+            self.wake()
             thread.join(timeout=1.0)
             os.close(self._wake)
 
@@ -991,6 +1083,7 @@ class ZenohEndpoint:
         # sent with control requests: the server queues them per client (ControlInbox)
         self._client_id = str(self.session.zid()).encode()
         self._owns_session = True
+        self._sender: SenderThread | None = None  # the vehicle publishers' (shared)
 
     def for_vehicle(self, vehicle: str) -> ZenohEndpoint:
         """An endpoint of another car's keys on this one's session (a process serving
@@ -1003,6 +1096,7 @@ class ZenohEndpoint:
         view.session = self.session
         view._client_id = self._client_id
         view._owns_session = False
+        view._sender = None
         return view
 
     # ---------------------------------------------------------------- lifecycle
@@ -1102,7 +1196,15 @@ class ZenohEndpoint:
                                       zenoh.Priority.REAL_TIME, False,
                                       zenoh.CongestionControl.DROP),
             decimate_every=round(states_per_s / STATE_DECIMATED_HZ),
-            sender_thread=sender_thread, inline_while_cheap=inline_while_cheap))
+            sender_thread=sender_thread, inline_while_cheap=inline_while_cheap,
+            sender=self._shared_sender() if sender_thread else None))
+
+    def _shared_sender(self) -> SenderThread:
+        """The sender thread of this endpoint's vehicle publishers (one for all its cars:
+        :class:`SenderThread`), made with the first; closed after them (kept before them)."""
+        if self._sender is None:
+            self._sender = self._keep(SenderThread())
+        return self._sender
 
     def declare_world_publisher(self, prefix: str | None = None) -> zenoh.Publisher:
         """Publisher on the world message ``{prefix}/world/state``: DATA priority,
