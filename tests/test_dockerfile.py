@@ -22,11 +22,11 @@ Two kinds of checks:
   nothing and leave the image's ``SIMSERVER_CACHE_DIR`` as the warm-up wrote it (every kernel
   loaded from there, none compiled and cached anew), answer the image's ``HEALTHCHECK`` and
   stop cleanly on SIGTERM. How fast that start is (issue 33: under 2 s) is a benchmark
-  figure, ``python -m benchmarks.bench_image``, which builds the environment the same way. About 3 minutes on CI's 2-vCPU
-  machine (``pip install .`` 40 s, the cold warm-up 40-80 s): the long form, run with
-  ``-m slow`` or ``SIMSERVER_SLOW=1``. The default suite runs its short form,
-  ``test_image_install_steps_short_form``: the same emulation with ``PIP_NO_DEPS=1`` and
-  without the warm-up and the server start.
+  figure, ``python -m benchmarks.bench_image``, which builds the environment the same way.
+  About 3 minutes on CI's 2-vCPU machine (``pip install .`` 40 s, the cold warm-up 40-80
+  s): the long form, run with ``-m slow`` or ``SIMSERVER_SLOW=1``. The default suite runs
+  its short form, ``test_image_install_steps_short_form``: the same emulation with
+  ``PIP_NO_DEPS=1`` and without the warm-up and the server start.
 """
 
 from __future__ import annotations
