@@ -5,6 +5,9 @@ Run from the repository root::
     python -m benchmarks                      # the full runs (about 30 minutes)
     python -m benchmarks --quick              # short runs: a smoke test, not figures
     python -m benchmarks --only startup --only memory
+    python -m benchmarks --only step --only startup --only suite   # issue 33's figures,
+                                                  # beside the step cost (about 10 minutes)
+    python -m benchmarks --only suite --run-suite 3   # the test suite run now, 3 times
 
 In order:
 
@@ -41,9 +44,17 @@ In order:
    of the warm repeats;
 7. memory of a headless run: peak RSS (``ru_maxrss`` from ``wait4``) of the README's
    ``simserver run-scenario`` example, which also reports its real-time factor;
-8. ``suite``: the README's test command (``python -m pytest -q``), each run from an empty
-   numba cache (a fresh clone's cold compile included), median of three (not in
-   ``--quick``).
+8. ``image``: ``benchmarks.bench_image``: the container image's environment built as
+   ``tests/test_dockerfile.py`` builds it (the Dockerfile's own steps: ``pip install .`` in a
+   fresh venv, the warm-up pre-compiling every kernel into its ``SIMSERVER_CACHE_DIR``), then
+   its ``ENTRYPOINT`` + ``CMD`` started to ``ready`` as many times as the cold start-ups, the
+   median; a start that compiles is an error (not in ``--quick``: the build takes minutes);
+9. ``suite``: the README's test command (``python -m pytest -q``). By default the row reads
+   the last three recorded runs of that command (every run of the whole default suite
+   records its wall and CPU time and whether the kernel cache was empty at its start,
+   ``tests/suite_record.py``), so the row costs nothing and says when and at which commit
+   each run was; with ``--run-suite N`` it runs the command N times now, each from an empty
+   kernel cache (a fresh clone's cold compile included), and reports their median.
 
 Then it prints a markdown table (figure, value, the target the issues set, the command that
 reproduces it) with the machine's description, and writes it to ``--out`` (default
@@ -56,6 +67,7 @@ disagree (``tests/test_readme.py`` checks it). ``--json FILE`` keeps every raw r
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as dt
 import json
 import os
@@ -89,7 +101,7 @@ HEADLESS_SCENARIO = "configs/scenarios/e2_stop_downslope_paper_damping.yaml"
 """The README's headless example, run for the headless memory figure."""
 
 SECTIONS = ("step", "commonroad", "server", "busy", "load", "hostile", "viewer", "ros2",
-            "tls_front", "startup", "memory", "suite")
+            "tls_front", "startup", "memory", "image", "suite")
 """Benchmarks in the order they run (``--only`` takes these names)."""
 
 
@@ -109,12 +121,13 @@ class Settings:
     startup_cold: int
     startup_warm: int
     suite_runs: int
+    """Runs of the README's test command now (``--run-suite N``); 0: read the record."""
 
 
 FULL = Settings(step_args=(), commonroad_args=(), server_seconds=60.0, busy_runs=3,
                 load_seconds=30.0, viewer_seconds=60.0, viewer_rounds=2, hostile_rounds=3,
                 ros2_args=("--seconds", "12", "--rounds", "8"),
-                startup_cold=3, startup_warm=5, suite_runs=3)
+                startup_cold=3, startup_warm=5, suite_runs=0)
 QUICK = Settings(step_args=("--seconds", "5", "--repeats", "5"),
                  commonroad_args=("--rounds", "1", "--seconds", "2", "--steps", "300"),
                  server_seconds=8.0,
@@ -469,6 +482,39 @@ def suite_time(runs: int) -> dict[str, Any]:
             "argv": argv}
 
 
+SUITE_RECORDED = 3
+"""How many of the last recorded runs of the README's test command the suite row reads."""
+
+
+def recorded_suite_runs(n: int = SUITE_RECORDED) -> dict[str, Any]:
+    """The last ``n`` recorded runs of the README's test command (``tests/suite_record.py``:
+    every such run appends its wall and CPU time), with their median wall time."""
+    from tests import suite_record
+
+    runs = suite_record.read()[-n:]
+    return {"runs": runs, "record": str(suite_record.RECORD),
+            "median_s": statistics.median(r["wall_s"] for r in runs) if runs else None}
+
+
+def suite_record_row(r: dict[str, Any]) -> Row:
+    """The suite row from the recorded runs (``recorded_suite_runs``)."""
+    figure = "the README's test command (recorded runs"
+    cmd = "python -m pytest -q (recorded); python -m benchmarks --only suite"
+    runs = r["runs"]
+    if not runs:
+        return Row(figure + ")", "no recorded run: run the README's test command, or "
+                   "`python -m benchmarks --only suite --run-suite 3`", cmd, "<= 300 s")
+    return Row(f"{figure}, median of the last {len(runs)})", f"{r['median_s']:.0f} s (runs: "
+               + ", ".join(f"{x['wall_s']:.0f} s" + (" cold" if x["cold"] else " warm")
+                           + ("" if x["exitstatus"] == 0 else f" exit {x['exitstatus']}")
+                           + f" at {x['commit']}, {x['date']}, load "
+                           f"{x['loadavg_1min_start']:.1f}-{x['loadavg_1min_end']:.1f}"
+                           for x in runs)
+               + f"; CPU {statistics.median(x['cpu_s'] for x in runs):.0f} s; "
+               + ", ".join(f"{v} {k}" for k, v in runs[-1]["counts"].items()) + ")",
+               cmd, "<= 300 s")
+
+
 # --------------------------------------------------------------------- headless
 def headless_run() -> dict[str, Any]:
     """Peak RSS and real-time factor of the README's ``run-scenario`` example."""
@@ -765,23 +811,40 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
             rows.append(Row("headless run-scenario real-time factor (E2, 10 s simulated)",
                             f"{h['real_time_factor']:,.0f} x",
                             f"simserver run-scenario {HEADLESS_SCENARIO} --out out/e2"))
+    if "image" in sections:
+        print("== the container image's start", flush=True)
+        if quick:
+            print("not in a --quick run (building the image's environment takes minutes): "
+                  "python -m benchmarks --only image", flush=True)
+        else:
+            from benchmarks import bench_image
+
+            raw["image"] = r = bench_image.main(["--starts", str(settings.startup_cold)])
+            rows.append(Row(f"start-up to ready from the container image's environment, its "
+                            f"pre-compiled cache (median of {len(r['ready_s'])})",
+                            f"{r['ready_median_s']:.2f} s ({r['cpu_median_s']:.2f} s CPU; "
+                            "runs: " + ", ".join(f"{x:.2f}" for x in r["ready_s"])
+                            + f"; environment built in {r['build_s']:.0f} s)",
+                            "python -m benchmarks.bench_image", "< 2 s"))
+
     if "suite" in sections:
         print("== the test suite", flush=True)
-        if settings.suite_runs == 0:
-            print("not in a --quick run (it takes minutes): python -m benchmarks --only suite",
-                  flush=True)
-        else:
+        if settings.suite_runs:
             raw["suite"] = r = suite_time(settings.suite_runs)
             runs = r["runs"]
             rows.append(Row(f"the README's test command, cold numba cache (median of "
-                            f"{len(runs)})", f"{r['median_s']:.0f} s (runs: "
+                            f"{len(runs)}, run now)", f"{r['median_s']:.0f} s (runs: "
                             + ", ".join(f"{x['wall_s']:.0f} s" + ("" if x["returncode"] == 0
                                         else f" exit {x['returncode']}") for x in runs)
                             + f"; CPU {statistics.median(x['cpu_s'] for x in runs):.0f} s"
                             + f"; {runs[-1]['closing']}; load average "
                             + ", ".join(f"{x['loadavg_1min_start']:.1f}-"
                                         f"{x['loadavg_1min_end']:.1f}" for x in runs) + ")",
-                            "python -m benchmarks --only suite", "<= 300 s"))
+                            f"python -m benchmarks --only suite --run-suite {len(runs)}",
+                            "<= 300 s"))
+        else:
+            raw["suite"] = r = recorded_suite_runs()
+            rows.append(suite_record_row(r))
     report.machine["load average at end"] = " / ".join(
         f"{x:.2f}" for x in os.getloadavg()) + " (1/5/15 min)"
     return report
@@ -860,8 +923,18 @@ def render(report: Report, sections: list[str]) -> str:
         "`python -m simserver run-scenario` (E2, "
         "with and without `--no-plots`) and `tire-curves` from launch to exit with that warm "
         "cache (one unmeasured run first), interleaved, median of the repeats.",
-        "- Test suite: the README's test command, each run with `NUMBA_CACHE_DIR` an empty "
+        "- Test suite: the README's test command. The row reads the last three recorded "
+        "runs of it (each run of the whole default suite appends its wall and CPU time, "
+        "whether the kernel cache was empty at its start, the commit and the load: "
+        "`tests/suite_record.py`); `--run-suite N` runs it N times in the benchmark's own "
+        "run instead, each with `NUMBA_CACHE_DIR` and `SIMSERVER_CACHE_DIR` an empty "
         "directory (the cold compile a fresh clone pays is included).",
+        "- Container image: `python -m benchmarks.bench_image` builds the image's "
+        "environment without a container engine (the Dockerfile's own COPY, ENV, WORKDIR and "
+        "RUN steps below a scratch root, as `tests/test_dockerfile.py` does: `pip install .` "
+        "in a fresh venv, the warm-up pre-compiling every kernel into the image's "
+        "`SIMSERVER_CACHE_DIR`) and times its ENTRYPOINT + CMD to `ready`; a start that "
+        "compiles or writes to the cache is an error.",
         "- Memory: peak resident set (`VmHWM`, sampled once a second from "
         "`/proc/PID/status`) of the server during the server run, and `ru_maxrss` of the "
         "headless run.",
@@ -929,9 +1002,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="with --only: put this run's rows into the README's table and "
                              f"{DEFAULT_OUT.relative_to(REPO)} (same figure replaced, new "
                              "ones appended), keeping the other rows")
+    parser.add_argument("--run-suite", type=int, default=0, metavar="N",
+                        help="run the README's test command N times now, each from an empty "
+                             "kernel cache (default: the suite row reads the last recorded "
+                             "runs of that command, tests/suite_record.py)")
     args = parser.parse_args(argv)
     sections = [s for s in SECTIONS if args.only is None or s in args.only]
-    settings = QUICK if args.quick else FULL
+    settings = dataclasses.replace(QUICK if args.quick else FULL, suite_runs=args.run_suite)
     t0 = time.monotonic()
     report = run_all(settings, sections, args.quick)
     text = render(report, sections)

@@ -206,3 +206,11 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter,
     for nodeid, cpu in sorted(_CPU_BY_TEST.items(), key=lambda kv: -kv[1])[:n]:
         tr.write_line(f"{cpu:8.2f} s  {nodeid}")
     tr.write_line(f"{sum(_CPU_BY_TEST.values()):8.2f} s  CPU of all {len(_CPU_BY_TEST)} tests")
+
+
+
+# ------------------------------------------------------- the record of the suite's time
+# A run of the README's test command (the whole default suite) is recorded with its wall
+# and CPU time: `python -m benchmarks --only suite` reports the recorded runs instead of
+# running the suite again (issue 33 item 4). The hooks are tests/suite_record.py's.
+from tests.suite_record import pytest_configure, pytest_sessionfinish  # noqa: E402,F401

@@ -1,0 +1,121 @@
+"""The record of the README's test command: how long each run of the whole default suite
+took, kept so that ``python -m benchmarks`` can report the suite's time without running it.
+
+``tests/conftest.py`` appends one entry when a session was the README's command
+(``python -m pytest -q``: the ``testpaths`` default, no ``-k``, ``-m``, ``--deselect``,
+``-x``, ``--lf`` or ``--sw``, ``SIMSERVER_SLOW`` unset) and ran to its end: the wall and CPU
+seconds from pytest's start to its end (this process and its reaped subprocesses), the
+outcome counts, the exit status, whether the kernel cache held any compiled kernel at the
+start (``cold``: a fresh clone's compile was paid in the run), the load average, the
+commit and the date. ``RECORD`` (below ``.pytest_cache/``, ignored by git) keeps the last
+``KEEP`` entries; ``python -m benchmarks --only suite`` reads them (``--run-suite N`` runs
+the command N times instead). The hooks below are ``tests/conftest.py``'s (imported there);
+``-p tests.suite_record`` loads them into another pytest run (its test does).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+RECORD = Path(os.environ.get("SIMSERVER_SUITE_RECORD")
+              or REPO / ".pytest_cache" / "simserver" / "suite_runs.json")
+"""The recorded runs, oldest first (a JSON list of ``entry`` dicts); ``SIMSERVER_SUITE_RECORD``
+moves it (the test of this module does)."""
+KEEP = 10
+
+
+def is_readme_command(config: Any) -> bool:
+    """Whether the pytest session of ``config`` is the README's whole default suite."""
+    import pytest
+
+    opt = config.option
+    return (config.args_source == pytest.Config.ArgsSource.TESTPATHS
+            and not opt.keyword and not opt.markexpr and not getattr(opt, "deselect", None)
+            and not opt.maxfail and not getattr(opt, "lf", False)
+            and not getattr(opt, "stepwise", False)
+            and os.environ.get("SIMSERVER_SLOW") != "1")
+
+
+def kernel_cache_files() -> int:
+    """How many compiled-kernel indexes (``*.nbi``) simserver's kernels have where this
+    process would load them: ``SIMSERVER_CACHE_DIR`` if set, else the package's
+    ``__pycache__`` directories (and ``NUMBA_CACHE_DIR`` if set)."""
+    from simserver.core import CACHE_DIR_ENV
+
+    roots = [os.environ.get(CACHE_DIR_ENV)] if os.environ.get(CACHE_DIR_ENV) else [
+        REPO / "simserver", os.environ.get("NUMBA_CACHE_DIR")]
+    return sum(1 for root in roots if root for _ in Path(root).rglob("*.nbi"))
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, timeout=10,
+                              capture_output=True, text=True).stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def entry(wall_s: float, cpu_s: float, exitstatus: int, counts: dict[str, int],
+          cached_kernels_at_start: int, load_start: float) -> dict[str, Any]:
+    """One record: the run's figures and where they come from."""
+    return {"wall_s": round(wall_s, 1), "cpu_s": round(cpu_s, 1), "exitstatus": exitstatus,
+            "counts": counts, "cold": cached_kernels_at_start == 0,
+            "loadavg_1min_start": round(load_start, 2),
+            "loadavg_1min_end": round(os.getloadavg()[0], 2), "commit": _commit(),
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+
+
+def append(record: dict[str, Any], path: Path = RECORD) -> None:
+    """Add ``record`` to the file at ``path``, keeping the last ``KEEP``."""
+    runs = read(path)[-(KEEP - 1):] + [record]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(runs, indent=1) + "\n", encoding="utf-8")
+    tmp.replace(path)
+
+
+_START: dict[str, float] = {}
+
+
+def _cpu_s() -> float:
+    """CPU seconds of this process and its reaped children."""
+    import resource
+
+    return sum(r.ru_utime + r.ru_stime for r in (resource.getrusage(resource.RUSAGE_SELF),
+                                                 resource.getrusage(resource.RUSAGE_CHILDREN)))
+
+
+def pytest_configure(config: Any) -> None:
+    """Start the clocks when the session is the README's command."""
+    if is_readme_command(config):
+        _START.update(wall=time.perf_counter(), cpu=_cpu_s(), load=os.getloadavg()[0],
+                      kernels=kernel_cache_files())
+
+
+def pytest_sessionfinish(session: Any, exitstatus: int) -> None:
+    """Record the README's command's run unless it was interrupted."""
+    import pytest
+
+    if not _START or exitstatus == pytest.ExitCode.INTERRUPTED:
+        return
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    counts = {k: len(v) for k, v in getattr(reporter, "stats", {}).items()
+              if k in ("passed", "failed", "error", "skipped", "xfailed", "xpassed")}
+    append(entry(time.perf_counter() - _START["wall"], _cpu_s() - _START["cpu"],
+                 int(exitstatus), counts, int(_START["kernels"]), _START["load"]))
+
+
+def read(path: Path = RECORD) -> list[dict[str, Any]]:
+    """The recorded runs, oldest first ([] if none or unreadable)."""
+    try:
+        runs = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return []
+    return [r for r in runs if isinstance(r, dict) and "wall_s" in r] if isinstance(
+        runs, list) else []
