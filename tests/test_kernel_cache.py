@@ -4,6 +4,8 @@ otherwise load old kernels computing with the old slots."""
 
 from __future__ import annotations
 
+import pytest
+
 from simserver.core import SOURCES_STAMP, drop_stale_kernel_caches, kernel_cache_dirs
 
 
@@ -135,3 +137,74 @@ def test_two_checkouts_share_one_cache(tmp_path):
     assert _run_in(c, shared)["misses"] >= 1
     assert len(list((tmp_path / "cache").glob("simserver-*"))) == 2
     assert _run_in(b, shared)["misses"] == 0
+
+
+# ------------------------------------------------ the server's helper compiles (issue 33)
+_HELPER_CHILD = """
+import json, sys
+from numba.core import event
+compiled = []
+class Seen(event.Listener):
+    def on_start(self, ev):
+        f = ev.data["dispatcher"].py_func
+        compiled.append(f"{f.__module__}.{f.__qualname__}")
+    def on_end(self, ev):
+        pass
+event.register("numba:compile", Seen())
+from simserver.sim.simulation import HELPER_KERNELS, Simulation, warm_up_in_helper
+from simserver.sim.scene_files import load_scene
+scene, role = sys.argv[1], sys.argv[2]
+if role == "helper":
+    warm_up_in_helper(scene, 0.001)
+    print(json.dumps(compiled))
+else:  # the server's warm-up of the same names, after Simulation() compiled its own
+    sim = Simulation(load_scene(scene), 0.001)
+    before = len(compiled)
+    for name, call in sim.warm_up_calls(live=True):
+        if name in HELPER_KERNELS:
+            call()
+    print(json.dumps(compiled[before:]))
+"""
+
+
+def test_the_helper_kernels_are_live_warm_up_entry_points():
+    """The names the server's load worker compiles as it starts (``HELPER_KERNELS``) are
+    entry points of the live warm-up (a renamed one would silently leave the server to
+    compile it on its own core), and none of them is the step."""
+    from simserver.sim.scene_files import load_scene
+    from simserver.sim.simulation import HELPER_KERNELS, Simulation
+
+    root = Path(__file__).resolve().parent.parent
+    sim = Simulation(load_scene(root / "configs" / "scenes" / "flat_paper_sedan.yaml"), 0.001)
+    names = [name for name, _ in sim.warm_up_calls(live=True)]
+    assert set(HELPER_KERNELS) <= set(names), (HELPER_KERNELS, names)
+    assert "step" not in HELPER_KERNELS
+
+
+@pytest.mark.slow
+def test_the_helper_compiles_no_step_and_the_server_finds_its_kernels(tmp_path):
+    """From an empty cache, ``warm_up_in_helper`` (the load worker's first job, run while
+    the server compiles the step) compiles no car or world step (else it would repeat the
+    server's longest compile on the other core), and the server's own warm-up of the same
+    entry points then compiles nothing: the helper's signatures are the server's."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parent.parent
+    scene = str(root / "configs" / "scenes" / "flat_paper_sedan.yaml")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    env["SIMSERVER_CACHE_DIR"] = str(tmp_path / "cache")
+
+    def run(role):
+        proc = subprocess.run([sys.executable, "-c", _HELPER_CHILD, scene, role], env=env,
+                              cwd=root, capture_output=True, text=True, timeout=900)
+        assert proc.returncode == 0, proc.stderr
+        return json.loads(proc.stdout.strip().splitlines()[-1])
+
+    helper = run("helper")
+    assert "simserver.core.chassis.follow_terrain" in helper, helper  # place_on_terrain's
+    steps = [f for f in helper if f.endswith((".integrator.step", ".world.step"))]
+    assert not steps, helper
+    assert run("server") == []

@@ -48,7 +48,6 @@ from simserver.core.chassis import (
     hub_velocity,
     record_contacts,
     record_outputs,
-    vehicle_rates,
     wheel_camber,
     wheel_inertia,
     wheel_position,
@@ -293,8 +292,17 @@ def freeze_decay_rates(model: Model, data: Data) -> None:
 
 
 @nb.njit(cache=True, inline="always")
-def lawson_rk4(model: Model, data: Data) -> None:
-    """Stage 5: exponential (Lawson) RK4 from ``k1`` (already evaluated at the start).
+def rates_and_rk4(model: Model, data: Data) -> None:
+    """Stages 3-5: ``k1`` at the start state (its loads are stage 2's), the outputs and
+    contacts recorded from it, the brakes resolved on it and the decay rates frozen
+    (stages 3 and 4), then the exponential (Lawson) RK4 (stage 5).
+
+    The four derivative evaluations are one loop over the stages with one inlined copy of
+    ``forces_and_rates`` (``k1`` at ``x``, then ``k2``, ``k3``, ``k4`` at the stage states,
+    after their ``corner_loads``): each inlined copy of it was typed, lowered and
+    optimised again, the bulk of a cold compile of the step (``python -m
+    benchmarks.bench_compile --by-function``). The same operations in the same order as
+    four copies: the same bits.
 
     The stage states 2, 3 and 4 take turns in one row (``RK_Y``): each is read for the
     last time, slot by slot, just before the next one overwrites that slot, and the
@@ -308,36 +316,41 @@ def lawson_rk4(model: Model, data: Data) -> None:
     y = rk[RK_Y]
     k1, k2, k3, k4 = rk[RK_K1], rk[RK_K2], rk[RK_K3], rk[RK_K4]
     decay, e_half = rk[RK_DECAY], rk[RK_E_HALF]
-    _copy_discrete(x, y)
-    # k2, k3, k4 in a loop: one inlined copy of vehicle_rates instead of three (the cold
-    # compile of the step grew with every copy, numba's type inference most); the stage
-    # derivatives' rows RK_K1 .. RK_K4 are consecutive (core.model).
     # Only the slip slots (DECAYING0 ..) decay; below them the decay is 0 and its factor
     # exp(0) = 1, so their lines are Lawson's with the factors 1 and the terms 0 taken
     # out: plain RK4, the same values (x * 1.0 is x; k + 0.0 * y is k but for the sign of
-    # a zero k).
-    y_prev = x
-    for stage in range(3):
-        k_prev, k = rk[RK_K1 + stage], rk[RK_K2 + stage]
-        for j in range(DECAYING0, N_INTEGRATED):
-            k_prev[j] += decay[j] * y_prev[j]
-        if stage == 0:  # y2
-            for j in range(DECAYING0):
-                y[j] = x[j] + 0.5 * h * k_prev[j]
+    # a zero k). The stage derivatives' rows RK_K1 .. RK_K4 are consecutive (core.model).
+    state = x
+    for stage in range(4):
+        if stage > 0:
+            k_prev = rk[RK_K1 + stage - 1]
             for j in range(DECAYING0, N_INTEGRATED):
-                y[j] = e_half[j] * (x[j] + 0.5 * h * k_prev[j])
-        elif stage == 1:  # y3
-            for j in range(DECAYING0):
-                y[j] = x[j] + 0.5 * h * k_prev[j]
-            for j in range(DECAYING0, N_INTEGRATED):
-                y[j] = e_half[j] * x[j] + 0.5 * h * k_prev[j]
-        else:  # y4
-            for j in range(DECAYING0):
-                y[j] = x[j] + h * k_prev[j]
-            for j in range(DECAYING0, N_INTEGRATED):
-                y[j] = e_half[j] * e_half[j] * x[j] + h * e_half[j] * k_prev[j]
-        vehicle_rates(model, ws, y, k)
-        y_prev = y
+                k_prev[j] += decay[j] * state[j]
+            if stage == 1:  # y2
+                for j in range(DECAYING0):
+                    y[j] = x[j] + 0.5 * h * k_prev[j]
+                for j in range(DECAYING0, N_INTEGRATED):
+                    y[j] = e_half[j] * (x[j] + 0.5 * h * k_prev[j])
+            elif stage == 2:  # y3
+                for j in range(DECAYING0):
+                    y[j] = x[j] + 0.5 * h * k_prev[j]
+                for j in range(DECAYING0, N_INTEGRATED):
+                    y[j] = e_half[j] * x[j] + 0.5 * h * k_prev[j]
+            else:  # y4
+                for j in range(DECAYING0):
+                    y[j] = x[j] + h * k_prev[j]
+                for j in range(DECAYING0, N_INTEGRATED):
+                    y[j] = e_half[j] * e_half[j] * x[j] + h * e_half[j] * k_prev[j]
+            state = y
+            corner_loads(model, ws, y)  # k1's loads are prepare_tires'
+        # 3. forces and rates at the start (stage 0), then at the stage states
+        forces_and_rates(model, ws, state, rk[RK_K1 + stage])
+        if stage == 0:
+            record_outputs(ws, data.out)
+            record_contacts(ws, x)
+            resolve_brakes(model, data)  # 4. static-friction brakes
+            freeze_decay_rates(model, data)
+            _copy_discrete(x, y)
     for i in range(N_WHEELS):
         rk[RK_SPIN0, OMEGA0 + i] = x[OMEGA0 + i]  # for the zero-crossing test
     for j in range(DECAYING0):
@@ -431,20 +444,16 @@ def step(model: Model, data: Data) -> None:
     The stages, in order: 1 ``freeze_inputs`` and ``follow_terrain``, 2 ``prepare_tires``,
     3 ``vehicle_rates`` at the start state (``forces_and_rates``: its loads are stage 2's),
     ``record_outputs`` and ``record_contacts``, 4 ``resolve_brakes``, 5
-    ``freeze_decay_rates`` and ``lawson_rk4``, 6 ``catch_stopped_wheels``, 7
-    ``update_discrete_states``, 8 ``steering_system`` (the steering-wheel torque from the
-    forces of stage 3: an output, fed back into nothing).
+    ``freeze_decay_rates`` and the Lawson RK4 (3-5: ``rates_and_rk4``), 6
+    ``catch_stopped_wheels``, 7 ``update_discrete_states``, 8 ``steering_system`` (the
+    steering-wheel torque from the forces of stage 3: an output, fed back into nothing).
     """
     freeze_inputs(model, data)  # 1. inputs held over the step
     follow_terrain(model, data.ws, data.x)  # 1b. the reference plane, contact frames
     prepare_tires(model, data)  # 2. tire coefficients at the mid-step load
-    # 3. forces at the start (its loads are those prepare_tires just computed)
-    forces_and_rates(model, data.ws, data.x, data.ws.rk[RK_K1])
-    record_outputs(data.ws, data.out)
-    record_contacts(data.ws, data.x)
-    resolve_brakes(model, data)  # 4. static-friction brakes
-    freeze_decay_rates(model, data)
-    lawson_rk4(model, data)  # 5. the exponential RK4
+    # 3. forces at the start (its loads are those prepare_tires just computed), 4. the
+    # static-friction brakes, 5. the exponential RK4
+    rates_and_rk4(model, data)
     catch_stopped_wheels(data)  # 6. brakes catch a wheel crossing zero spin
     update_discrete_states(model, data)  # 7. slip projection, damping latch
     steering_system(model, data)  # 8. the steering-wheel torque (core.steering)

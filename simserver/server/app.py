@@ -43,7 +43,7 @@ from simserver.server.stats_text import start_text, stop_text
 from simserver.server.world_desk import WorldDesk
 from simserver.sim.scene import Scene
 from simserver.sim.scene_files import load_scene
-from simserver.sim.simulation import Simulation
+from simserver.sim.simulation import Simulation, warm_up_in_helper
 from simserver.wire import protocol as proto
 
 log = logging.getLogger("simserver.server")
@@ -173,17 +173,28 @@ class SimServer:
         self.cfg = cfg
         # an OpenSCENARIO scenario served live (simserver.server.scenario_live), or None
         self.scenario = scenario
-        with CompileProgress():
-            # one car, or the cars of cfg.cars in one world (checked: ConfigError naming
-            # the file and the car before anything runs), or the scenario's entities
-            self.cars = (scenario.make_cars(cfg) if scenario is not None
-                         else fleet.make_cars(cfg, load_scene(cfg.scene)))
-            self.slots: list[VehicleSlot] = [car.slot for car in self.cars]
-            for slot in self.slots:
-                slot.warm_up()
-            # and drive() compiled (also for a driven car add_car may bring)
-            live_drivers = fleet.prepare_drivers(self.cars, cfg.max_cars)
         self.preparer = ProcessPreparer()
+        if scenario is None:
+            # the load worker starts now and compiles the warm-up's kernels that call no
+            # step into the cache, beside this process's compile of the step (a cold
+            # cache: two cores at work; a warm one: a few loads from the cache); this
+            # process's warm-up then finds them there (sim.simulation.warm_up_in_helper)
+            self.preparer.warm(warm_up_in_helper, str(cfg.scene), cfg.period_s)
+        try:
+            with CompileProgress():
+                # one car, or the cars of cfg.cars in one world (checked: ConfigError
+                # naming the file and the car before anything runs), or the scenario's
+                # entities
+                self.cars = (scenario.make_cars(cfg) if scenario is not None
+                             else fleet.make_cars(cfg, load_scene(cfg.scene)))
+                self.slots: list[VehicleSlot] = [car.slot for car in self.cars]
+                for slot in self.slots:
+                    slot.warm_up()
+                # and drive() compiled (also for a driven car add_car may bring)
+                live_drivers = fleet.prepare_drivers(self.cars, cfg.max_cars)
+        except BaseException:  # a bad config: no worker outlives the refusal
+            self.preparer.close()
+            raise
         trace = os.environ.get(TICK_TRACE_ENV)
         self.loop = ServerLoop(cfg, preparer=self.preparer,
                                trace=TickTrace(trace) if trace else None)
