@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from simserver.testing import CONFIGS, REPO, OutputProcess, ServerProcess, free_port
+from tests import suite_record
 
 SAMPLE_TIR = CONFIGS / "tires" / "data" / "mf61_225_50R17_sample.tir"
 """The MF 6.1 sample property file, as shipped with the repository (the one the
@@ -53,6 +54,7 @@ def pytest_configure(config: pytest.Config) -> None:
     length) is the long one under ``-m slow`` too, not only under ``SIMSERVER_SLOW=1``."""
     if _selects_slow(config.getoption("markexpr")):
         os.environ["SIMSERVER_SLOW"] = "1"
+    suite_record.pytest_configure(config)  # the suite's clocks (end of this file)
 
 
 @pytest.fixture(scope="session")
@@ -212,5 +214,6 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter,
 # ------------------------------------------------------- the record of the suite's time
 # A run of the README's test command (the whole default suite) is recorded with its wall
 # and CPU time: `python -m benchmarks --only suite` reports the recorded runs instead of
-# running the suite again (issue 33 item 4). The hooks are tests/suite_record.py's.
-from tests.suite_record import pytest_configure, pytest_sessionfinish  # noqa: E402,F401
+# running the suite again (issue 33 item 4). The hooks are tests/suite_record.py's
+# (its pytest_configure is called from this file's).
+from tests.suite_record import pytest_sessionfinish  # noqa: E402,F401
