@@ -138,3 +138,15 @@ def test_a_bad_xosc_parameter_is_refused_before_any_run(tmp_path: Path, params: 
     assert str(err.value).startswith(str(path)), err.value
     assert message in str(err.value), err.value
     assert "\n" not in str(err.value)
+
+
+def test_the_shipped_xosc_sweep_reads_as_six_cases() -> None:
+    """configs/sweeps/hill_queue_xosc.yaml: Speed x Gap, 3 x 2 cases of the hill queue, each
+    with its own run id (read only; ``simserver sweep`` runs it in about 10 s)."""
+    from simserver.testing import CONFIGS
+
+    sweep = load_sweep(CONFIGS / "sweeps" / "hill_queue_xosc.yaml")
+    assert sweep.parameters == ("parameters.Speed", "parameters.Gap")
+    assert [c.resolved["parameters"] for c in sweep.cases] == [
+        {"Speed": s, "Gap": g} for s in (8.0, 10.0, 12.0) for g in (25.0, 30.0)]
+    assert len({c.run_id for c in sweep.cases}) == 6
