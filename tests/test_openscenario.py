@@ -750,3 +750,31 @@ def test_collision_condition_fires_on_the_contact(tmp_path: Path) -> None:
     assert fired["E0"] == fired["E1"]
     cause = next(e["cause"] for e in run.trace if e["name"] == "E0" and e["to"] == "running")
     assert cause["c"]["A"] > 15.0  # the closing speed of the contact, m/s
+
+
+def test_parameters_given_from_outside_replace_the_declared_values(tmp_path: Path) -> None:
+    """As esmini's ``--param``: ``V`` given as 40 before any expression is evaluated, so
+    ``T = ${$V / 8}`` follows it (5, not the declared 2.5) and so does the event's target
+    ``${$V / 2 - 1}`` (19); a name not declared, or a value of the wrong type, is an error
+    naming the file and the declarations' line."""
+    from simserver.adapters.openscenario import XoscError
+
+    params = ('<ParameterDeclaration name="V" parameterType="double" value="20"/>'
+              '<ParameterDeclaration name="T" parameterType="double" value="${$V / 8}"/>'
+              '<ParameterDeclaration name="N" parameterType="unsignedInt" value="1"/>')
+    path = write(tmp_path, speed_event("${$V / 2 - 1}", TIME_COND), params)
+    sc = load_openscenario(path, {"V": 40, "N": 3})
+    assert sc.parameters == {"V": 40.0, "T": 5.0, "N": 3.0}
+    assert sc.parameter_types == {"V": "double", "T": "double", "N": "unsignedInt"}
+    assert sc.stories[0].acts[0].groups[0].maneuvers[0].events[0].actions[0].target == \
+        {"kind": "absolute", "value": 19.0}
+    line = line_of(path, "<ParameterDeclarations>")
+    for given, text in [({"W": 1.0}, "no parameter 'W' is declared to override"),
+                        ({"V": "fast"}, "parameter 'V': override: expected a finite number"),
+                        ({"N": -1}, "parameter 'N': override: expected a non-negative integer")]:
+        with pytest.raises(XoscError, match=f"^{path}:") as err:
+            load_openscenario(path, given)
+        assert text in str(err.value), err.value
+    with pytest.raises(XoscError) as err:
+        load_openscenario(path, {"W": 1.0})
+    assert str(err.value).startswith(f"{path}:{line}: <ParameterDeclarations>:"), err.value

@@ -222,6 +222,35 @@ def evaluate(text: str, params: dict[str, Any]) -> float:
     return value
 
 
+NUMBER_TYPES = ("double", "integer", "unsignedInt", "unsignedShort")
+"""The ``parameterType`` values that hold a number."""
+
+
+def override_text(kind: str, value: Any) -> str:
+    """A value given for a declared parameter of type ``kind`` from outside the file (a
+    sweep, esmini's ``--param NAME=VALUE``) as the declaration's ``value`` text; a value of
+    the wrong type is a ``ValueError`` saying what was expected. A number for a number
+    type (integral for an integer type, not negative for an unsigned one), true or false
+    for a boolean, a string for any other type (a string is not a number: a sweep's
+    ``"10"`` is refused for a double)."""
+    if kind in NUMBER_TYPES:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not math.isfinite(value):
+            raise ValueError(f"expected a finite number (parameterType {kind}), got "
+                             f"{value!r}")
+        if kind != "double" and (value != int(value) or (kind != "integer" and value < 0)):
+            raise ValueError(f"expected {'an' if kind == 'integer' else 'a non-negative'} "
+                             f"integer (parameterType {kind}), got {value!r}")
+        return repr(float(value)) if kind == "double" else str(int(value))
+    if kind == "boolean":
+        if not isinstance(value, bool):
+            raise ValueError(f"expected true or false (parameterType boolean), got {value!r}")
+        return "true" if value else "false"
+    if not isinstance(value, str):
+        raise ValueError(f"expected a string (parameterType {kind}), got {value!r}")
+    return value
+
+
 class Params:
     """Parameter scopes: the file's, then a story's, a catalog entry's, ... (inner first)."""
 
@@ -229,6 +258,7 @@ class Params:
                  outer: Params | None = None) -> None:
         self.values = dict(values or {})
         self.outer = outer
+        self.types: dict[str, str] = {}  # parameterType by name, of this scope's declarations
 
     def flat(self) -> dict[str, Any]:
         out = self.outer.flat() if self.outer is not None else {}
@@ -253,9 +283,11 @@ class Params:
             raise node.fail(f"attribute {key!r}: unknown parameter {raw!r}")
         return str(flat[name])
 
-    def declare(self, decls: Node | None) -> Params:
+    def declare(self, decls: Node | None, overrides: dict[str, Any] | None = None) -> Params:
         """A new inner scope from a ``<ParameterDeclarations>`` (values may refer to the
-        parameters declared before them)."""
+        parameters declared before them); ``overrides`` (name -> value, as esmini's
+        ``--param``) replace declared values before anything refers to them
+        (:func:`override_text`). Each parameter's type is kept in :attr:`types`."""
         scope = Params({}, self)
         if decls is None:
             return scope
@@ -266,8 +298,15 @@ class Params:
             if not name:
                 raise d.fail("missing attribute 'name'")
             kind = d.attrs.get("parameterType", "string")
-            raw = scope.resolve(d, "value", d.attrs.get("value", ""))
-            if kind in ("double", "integer", "unsignedInt", "unsignedShort"):
+            scope.types[name] = kind
+            if overrides is not None and name in overrides:
+                try:
+                    raw = override_text(kind, overrides[name])
+                except ValueError as exc:
+                    raise d.fail(f"parameter {name!r}: override: {exc}") from None
+            else:
+                raw = scope.resolve(d, "value", d.attrs.get("value", ""))
+            if kind in NUMBER_TYPES:
                 try:
                     scope.values[name] = float(raw)
                 except ValueError:
@@ -421,6 +460,7 @@ class Scenario:
     stop: Trigger
     parameters: dict[str, Any]
     ignored: tuple[str, ...] = ()
+    parameter_types: dict[str, str] = field(default_factory=dict)  # the file's, by name
 
 
 # ----------------------------------------------------------------------- what is read
@@ -501,8 +541,9 @@ POSITIONS = {
 
 
 class _Reader:
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, overrides: dict[str, Any] | None = None) -> None:
         self.path = path
+        self.overrides = overrides
         self.ignored: dict[str, list[tuple[Path, int]]] = {}
         self.catalog_dirs: dict[str, list[Path]] = {}
         self.catalog_cache: dict[Path, Node] = {}
@@ -931,7 +972,13 @@ class _Reader:
         for c in root.children:
             if c.tag not in known:
                 raise self.refuse(c)
-        p = Params().declare(root.child("ParameterDeclarations", required=False))
+        decls = root.child("ParameterDeclarations", required=False)
+        p = Params().declare(decls, self.overrides)
+        unknown = sorted(set(self.overrides or ()) - set(p.values))
+        if unknown:
+            raise (decls or root).fail(
+                f"no parameter {unknown[0]!r} is declared to override (declared: "
+                f"{', '.join(p.values) or 'none'})")
         locs = root.child("CatalogLocations", required=False)
         for loc in (locs.children if locs is not None else []):
             if loc.tag != "VehicleCatalog":
@@ -1013,7 +1060,7 @@ class _Reader:
             f"{IGNORED.get(tag, 'not in the subset; it does not move a car')}"
             for tag, at in self.ignored.items())
         return Scenario(self.path, header.attrs.get("description", ""), rev, road_file,
-                        entities, init, stories, stop, p.flat(), ignored)
+                        entities, init, stories, stop, p.flat(), ignored, dict(p.types))
 
     def _check_unique_names(self, stories: list[Story]) -> None:
         """Storyboard element names are what state conditions refer to: each must be
@@ -1046,6 +1093,9 @@ def storyboard_elements(stories: list[Story]) -> list[tuple[str, str, int]]:
     return out
 
 
-def load_openscenario(path: str | Path) -> Scenario:
-    """Read an OpenSCENARIO 1.x file of the subset (errors: :class:`XoscError`)."""
-    return _Reader(Path(path)).read()
+def load_openscenario(path: str | Path, parameters: dict[str, Any] | None = None) -> Scenario:
+    """Read an OpenSCENARIO 1.x file of the subset (errors: :class:`XoscError`).
+    ``parameters``: values for some of the file's own ``<ParameterDeclarations>`` (by
+    name, :func:`override_text`), set before any expression is evaluated, as esmini's
+    ``--param``; a name the file does not declare is an error."""
+    return _Reader(Path(path), parameters).read()

@@ -726,9 +726,10 @@ def _vehicle_block(v: X.Vehicle, path: Path) -> dict[str, Any]:
 
 
 def play(path: str | Path, duration_s: float = DEFAULT_DURATION_S,
-         dt_s: float = 0.001) -> XoscRun:
-    """Read and play an ``.xosc`` headless (module docstring)."""
-    sc, cars, ws = setup(path, duration_s, dt_s)
+         dt_s: float = 0.001, parameters: dict[str, Any] | None = None) -> XoscRun:
+    """Read and play an ``.xosc`` headless (module docstring); ``parameters``: values for
+    the file's own declared parameters (``openscenario.load_openscenario``)."""
+    sc, cars, ws = setup(path, duration_s, dt_s, parameters)
     return _run(sc, ws, cars)
 
 
@@ -739,16 +740,18 @@ def ego_name(sc: X.Scenario) -> str:
     return next((n for n in names if n.lower() == "ego"), names[0])
 
 
-def xosc_scene(path: str | Path, vehicle_path: str | Path | None = None) -> Any:
+def xosc_scene(path: str | Path, vehicle_path: str | Path | None = None,
+               parameters: dict[str, Any] | None = None) -> Any:
     """An ``.xosc`` as a scene (``simserver.sim.scene.load_scene``: wherever a scene file
     is accepted, ``ctl/load`` included): the ego's car (:func:`ego_name`) at its start on
     the scenario's road (the terrain), at its initial speed; the other entities and the
-    storyboard are not in a scene (``serve --scenario`` serves them)."""
+    storyboard are not in a scene (``serve --scenario`` serves them). ``parameters``: as
+    :func:`play`'s."""
     import dataclasses
 
     from simserver.adapters.config import load_vehicle
 
-    sc, _, ws = setup(path, 1.0, 0.001)
+    sc, _, ws = setup(path, 1.0, 0.001, parameters)
     scene = ws.cars[ego_name(sc)].scene
     if vehicle_path is not None:
         scene = dataclasses.replace(scene, vehicle=load_vehicle(
@@ -756,13 +759,14 @@ def xosc_scene(path: str | Path, vehicle_path: str | Path | None = None) -> Any:
     return scene
 
 
-def setup(path: str | Path, duration_s: float = DEFAULT_DURATION_S, dt_s: float = 0.001
+def setup(path: str | Path, duration_s: float = DEFAULT_DURATION_S, dt_s: float = 0.001,
+          parameters: dict[str, Any] | None = None
           ) -> tuple[X.Scenario, dict[str, Car], WorldScenario]:
     """Read an ``.xosc`` and make its world's scenario: the reader's scenario, each
     entity's :class:`Car` (placed on its road, its initial speed) and the world scenario of
     the cars (each the reference sedan with its own path and tracking IDM)."""
     path = Path(path)
-    sc = X.load_openscenario(path)
+    sc = X.load_openscenario(path, parameters)
     if sc.road_file is None:
         raise X.XoscError(f"{path}: <RoadNetwork>: a <LogicFile> (OpenDRIVE road) is needed")
     od = load_opendrive(sc.road_file)

@@ -26,6 +26,25 @@ Its metrics are the soak's own (``worker.SOAK_METRICS``); the seed is the parame
 Paths are relative to the sweep file; parameters are dotted paths into a run's resolved
 configuration (``simserver.sweep.resolved``). Every base scenario is run with every
 parameter set; with no ``grid``/``cases``/``random`` each base scenario runs once.
+
+A base may be an OpenSCENARIO ``.xosc`` (docs/openscenario.md). Its resolved
+configuration is ``{openscenario: {file, road_file}, duration_s, dt_s, parameters}``
+(``resolve_xosc``): the file's own ``<ParameterDeclarations>`` are varied as
+``parameters.<Name>`` (set before the file's expressions are evaluated, as esmini's
+``--param``; the others keep their declared values), ``duration_s`` (default
+``xosc_run.DEFAULT_DURATION_S``; the stop trigger may end a run sooner) and ``dt_s`` as
+for YAML. ``kind: scenario`` plays the file headless as ``run-scenario`` does and
+computes the metrics from the *ego's* history (``xosc_run.ego_name``: the entity named
+``Ego``, else the first); a run is ``non_finite`` if any car is. ``kind: soak`` soaks its
+scene (the ego's start, ``xosc_run.xosc_scene``), as ``simserver soak --scene`` does::
+
+    scenarios: [../openscenario/simserver/hill_queue_15pct.xosc]
+    grid: {parameters.Speed: [8, 10, 12], parameters.Headway: [1.0, 1.5]}
+    metrics: [time_to_rest, {column: u_mps, stat: max}]
+
+An undeclared parameter name or a value of the wrong type for its ``parameterType``
+(``openscenario.override_text``), and any other path an ``.xosc``'s configuration does
+not have, is an error naming the sweep file and the parameter, before any run.
 """
 
 from __future__ import annotations
@@ -40,6 +59,7 @@ from typing import Any
 import numpy as np
 
 from simserver.adapters.history import HISTORY_COLUMNS
+from simserver.adapters.openscenario import load_openscenario
 from simserver.adapters.validate import (
     ConfigError,
     check_keys,
@@ -50,6 +70,7 @@ from simserver.adapters.validate import (
     short_repr,
 )
 from simserver.sim.scenario import resolve_scenario
+from simserver.sim.scene_files import OPENSCENARIO_SUFFIX
 from simserver.sweep.metrics import Metric, parse_metrics
 from simserver.sweep.resolved import file_digest, run_id, with_overrides
 
@@ -217,6 +238,43 @@ def _file_overrides(origin: str, sets: list[dict[str, Any]], base_dir: Path,
             params[key] = seen
 
 
+def resolve_xosc(base: Path, sc: Any) -> dict[str, Any]:
+    """An ``.xosc`` base's resolved configuration (module docstring; ``sc``: the file
+    read, ``openscenario.Scenario``), its files by absolute path (a run's hash covers their
+    contents, ``resolved.run_id``; the vehicle catalogs are not hashed)."""
+    from simserver.sim.xosc_run import DEFAULT_DURATION_S
+
+    files = {"file": str(base)}
+    if sc.road_file is not None:  # without one, each run says so (xosc_run.setup)
+        files["road_file"] = str(sc.road_file)
+    return {"openscenario": files, "duration_s": DEFAULT_DURATION_S, "dt_s": 0.001,
+            "parameters": {}}
+
+
+def check_xosc_parameters(origin: str, base: Path, sc: Any,
+                          sets: list[dict[str, Any]]) -> None:
+    """Every ``parameters.<Name>`` of ``sets`` is one of the file's declared parameters
+    and of its type (``openscenario.override_text``): else ``ConfigError`` naming
+    ``origin`` and the parameter. Each distinct value is checked once."""
+    from simserver.adapters.openscenario import override_text
+
+    checked: set[tuple[str, str]] = set()
+    for params in sets:
+        for key, value in params.items():
+            name = key.removeprefix("parameters.")
+            if name == key or (key, repr(value)) in checked:
+                continue
+            if name not in sc.parameter_types:
+                raise ConfigError(f"{origin}: parameter {key!r}: {base.name} declares no "
+                                  f"parameter {name!r} (it declares: "
+                                  f"{', '.join(sc.parameter_types) or 'none'})")
+            try:
+                override_text(sc.parameter_types[name], value)
+            except ValueError as exc:
+                raise ConfigError(f"{origin}: parameter {key!r}: {exc}") from None
+            checked.add((key, repr(value)))
+
+
 def load_sweep(path: str | Path, config_dirs: Sequence[Path | str] | None = None) -> Sweep:
     """Read and validate a sweep file and expand it into resolved cases.
 
@@ -285,10 +343,17 @@ def _load_sweep(path: Path, data: dict[str, Any], roots: tuple[Path, ...]) -> Sw
         raise ConfigError(f"{origin}: key 'histories': expected true or false")
     cases: list[Case] = []
     for base in bases:
+        xosc = base.suffix.lower() == OPENSCENARIO_SUFFIX
         try:
-            resolved_base = resolve_scenario(base)
+            if xosc:
+                sc = load_openscenario(base)
+                resolved_base = resolve_xosc(base, sc)
+            else:
+                resolved_base = resolve_scenario(base)
         except ConfigError as exc:
             raise ConfigError(f"{origin}: key 'scenarios': {exc}") from None
+        if xosc:
+            check_xosc_parameters(origin, base, sc, sets)
         if soak is not None:
             resolved_base["soak"] = dict(soak)
         for params in sets:
@@ -297,6 +362,8 @@ def _load_sweep(path: Path, data: dict[str, Any], roots: tuple[Path, ...]) -> Sw
             try:
                 resolved = with_overrides(resolved_base, params, where, path.parent)
             except ConfigError as exc:
+                if xosc:  # its configuration's paths are known: a typo, not a case
+                    raise
                 key = {"base": str(base), "params": params}
                 cases.append(Case(index, str(base), params, None, run_id(key), str(exc)))
                 continue

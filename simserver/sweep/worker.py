@@ -176,15 +176,26 @@ def run_for_metrics(scenario: Any, names: Iterable[str]) -> MetricRun:
                      final_finite=bool(np.isfinite(sim.x).all()), wall_time_s=wall)
 
 
+def case_scene(base: str | Path, resolved: dict[str, Any]) -> Any:
+    """A case's scene: its resolved YAML configuration's, or an ``.xosc`` base's (the ego's
+    start with the case's parameters, ``xosc_run.xosc_scene``: sweep.spec)."""
+    if "openscenario" in resolved:
+        from simserver.sim.xosc_run import xosc_scene
+
+        return xosc_scene(base, parameters=resolved["parameters"])
+    from simserver.sim.scene import parse_scene
+
+    return parse_scene(Path(base), resolved)
+
+
 def warm_up(resolved: dict[str, Any], label: str) -> float:
     """Load (or compile) the compiled kernels on a case's scene (``Simulation.warm_up``).
     Returns the seconds; a scene that does not load warms nothing (its runs say why)."""
-    from simserver.sim.scene import parse_scene
     from simserver.sim.simulation import Simulation
 
     t0 = time.perf_counter()
     try:
-        scene = parse_scene(Path(label), resolved)
+        scene = case_scene(label, resolved)
     except ConfigError:
         return 0.0
     Simulation(scene, float(resolved.get("dt_s", 0.001))).warm_up()
@@ -226,6 +237,10 @@ def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -
                 run_soak_case(case, row)
                 row["wall_time_s"] = time.perf_counter() - t0
                 return row
+            if "openscenario" in case.resolved:
+                run_xosc_case(case, metrics, history_dir, row)
+                row["wall_time_s"] = time.perf_counter() - t0
+                return row
             scenario = load_scenario(case.base, case.resolved)
             row["scenario"] = scenario.name
             if scenario.n_steps < 1:
@@ -241,10 +256,7 @@ def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -
                 result = run_scenario(scenario)
                 row["sim_wall_time_s"] = result.wall_time_s
                 row["metrics"] = evaluate(metrics, HistoryColumns(result))
-                bad = ~(np.isfinite(result.states).all(axis=1)
-                        & np.isfinite(result.outputs).all(axis=1))
-                t_bad = float(result.time_s[np.argmax(bad)]) if bad.any() else None
-                finite = t_bad is None and bool(np.isfinite(result.final_state).all())
+                t_bad, finite = non_finite(result)
                 write_history(result, Path(history_dir) / f"{case.run_id}.parquet")
             if not finite:
                 t_bad = scenario.duration_s if t_bad is None else t_bad
@@ -260,13 +272,47 @@ def run_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None) -
     return row
 
 
+def non_finite(result: Any) -> tuple[float | None, bool]:
+    """A ``ScenarioResult``'s first recorded time with a NaN or inf (None: none) and
+    whether it stayed finite to its final state."""
+    bad = ~(np.isfinite(result.states).all(axis=1) & np.isfinite(result.outputs).all(axis=1))
+    t_bad = float(result.time_s[np.argmax(bad)]) if bad.any() else None
+    return t_bad, t_bad is None and bool(np.isfinite(result.final_state).all())
+
+
+def run_xosc_case(case: Case, metrics: tuple[Metric, ...], history_dir: str | None,
+                  row: dict[str, Any]) -> None:
+    """An ``.xosc`` case: played headless as ``simserver run-scenario FILE.xosc`` plays it
+    (``xosc_run.play``) with the case's parameters; the metrics are the ego's
+    (``xosc_run.ego_name``), the run is non-finite if any car is; its history is the
+    world's (a ``car_id`` column, ``write_world_history``)."""
+    from simserver.adapters.history import write_world_history
+    from simserver.sim.xosc_run import ego_name, play
+
+    r = case.resolved
+    run = play(case.base, duration_s=float(r["duration_s"]), dt_s=float(r["dt_s"]),
+               parameters=r["parameters"])
+    ego = ego_name(run.scenario)
+    row["scenario"] = f"{Path(case.base).stem} (ego {ego})"
+    row["sim_wall_time_s"] = run.wall_time_s
+    row["metrics"] = evaluate(metrics, HistoryColumns(run.result.cars[ego]))
+    if history_dir is not None:
+        write_world_history(run.result.cars, Path(history_dir) / f"{case.run_id}.parquet")
+    for cid, result in run.result.cars.items():
+        t_bad, finite = non_finite(result)
+        if not finite:
+            t_bad = run.end_time_s if t_bad is None else t_bad
+            row.update(status=NON_FINITE, error=f"car {cid!r} went non-finite (NaN or inf) "
+                                                f"at t = {t_bad:g} s")
+            return
+
+
 def run_soak_case(case: Case, row: dict[str, Any]) -> None:
     """A soak case: ``run_soak`` on the case's scene, as ``simserver soak`` runs it."""
-    from simserver.sim.scene import parse_scene
     from simserver.sim.soak import run_soak
 
     soak = case.resolved["soak"]
-    scene = parse_scene(Path(case.base), case.resolved)
+    scene = case_scene(case.base, case.resolved)
     row["scenario"] = str(case.resolved.get("name", ""))
     report = run_soak(scene, float(soak["duration_s"]), seed=int(soak["seed"]),
                       dt_s=float(case.resolved.get("dt_s", 0.001)))
