@@ -55,7 +55,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--hogs", type=int, default=0)
     parser.add_argument("--before", action="store_true")
     parser.add_argument("--normal-priority", action="store_true",
-                        help="run the view at normal CPU priority (default: idle)")
+                        help="run the view at normal CPU priority (default: the view's "
+                             "own, nice 10)")
     args = parser.parse_args(argv)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     extra: list[str] = []
