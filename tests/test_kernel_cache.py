@@ -151,7 +151,8 @@ class Seen(event.Listener):
     def on_end(self, ev):
         pass
 event.register("numba:compile", Seen())
-from simserver.sim.simulation import HELPER_KERNELS, Simulation, warm_up_in_helper
+from simserver.sim.scene_files import warm_up_in_helper
+from simserver.sim.simulation import HELPER_KERNELS, Simulation
 from simserver.sim.scene_files import load_scene
 scene, role = sys.argv[1], sys.argv[2]
 if role == "helper":

@@ -97,6 +97,7 @@ NOT_RUN_HERE = {
     "python -m benchmarks": "minutes long, run by hand; test_readme.py checks the README's "
                             "table is its report",
     "python -m benchmarks.bench_step": "the same",
+    "python -m benchmarks --only step --only startup --only suite": "the same",
     "python -m benchmarks.bench_server": "the same",
     "python -m benchmarks.bench_clock": "the same",
     "python -m benchmarks.bench_sweep": "the same",

@@ -42,8 +42,8 @@ from simserver.server.slot import VehicleSlot
 from simserver.server.stats_text import start_text, stop_text
 from simserver.server.world_desk import WorldDesk
 from simserver.sim.scene import Scene
-from simserver.sim.scene_files import load_scene
-from simserver.sim.simulation import Simulation, warm_up_in_helper
+from simserver.sim.scene_files import load_scene, warm_up_in_helper
+from simserver.sim.simulation import Simulation
 from simserver.wire import protocol as proto
 
 log = logging.getLogger("simserver.server")

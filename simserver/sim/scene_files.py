@@ -22,3 +22,24 @@ def load_scene(path: str | Path, vehicle_path: str | Path | None = None) -> Scen
 
         return xosc_scene(path, vehicle_path)
     return load_yaml_scene(path, vehicle_path)
+
+
+def warm_up_in_helper(scene_path: str, dt_s: float,
+                      names: tuple[str, ...] | None = None) -> None:
+    """Compile (or load) the warm-up entry points ``names`` of a car of the scene at
+    ``scene_path``, in the calling process: the server's load worker runs it as it starts
+    (``simserver.server.app.SimServer``), so that on a cold cache these kernels compile on
+    the second core, side by side with the server's compile of the step, and the server
+    loads them from the cache (about 11 s of CPU of a cold start on one core less,
+    ``python -m benchmarks.bench_compile --by-function``). The arrays' types are those of
+    any car of any world (``World``), so the server's calls find the same signatures.
+    ``names``: default ``simulation.HELPER_KERNELS``. Here, above both the scene and the
+    scenario layers, as ``load_scene`` is (the simulation module is imported when called:
+    reading a scene file compiles nothing)."""
+    from simserver.sim.simulation import HELPER_KERNELS, Simulation
+
+    names = HELPER_KERNELS if names is None else names
+    sim = Simulation(load_scene(scene_path), dt_s)
+    for name, call in sim.warm_up_calls(live=True):
+        if name in names:
+            call()

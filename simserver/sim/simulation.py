@@ -301,24 +301,8 @@ class World:
 HELPER_KERNELS = ("world_pose", "start_powertrain", "place_on_terrain")
 """The live warm-up's entry points (:meth:`Simulation.warm_up_calls`) that call no car step:
 a helper process compiles them into the kernel cache while the server compiles the step,
-the server's own warm-up then loads them from the cache (``warm_up_in_helper``)."""
-
-
-def warm_up_in_helper(scene_path: str, dt_s: float,
-                      names: tuple[str, ...] = HELPER_KERNELS) -> None:
-    """Compile (or load) the warm-up entry points ``names`` of a car of the scene at
-    ``scene_path``, in the calling process: the server's load worker runs it as it starts
-    (``simserver.server.app.SimServer``), so that on a cold cache these kernels compile on
-    the second core, side by side with the server's compile of the step, and the server
-    loads them from the cache (about 11 s of CPU of a cold start on one core less,
-    ``python -m benchmarks.bench_compile --by-function``). The arrays' types are those of
-    any car of any world (``World``), so the server's calls find the same signatures."""
-    from simserver.sim.scene_files import load_scene
-
-    sim = Simulation(load_scene(scene_path), dt_s)
-    for name, call in sim.warm_up_calls(live=True):
-        if name in names:
-            call()
+the server's own warm-up then loads them from the cache
+(``simserver.sim.scene_files.warm_up_in_helper``)."""
 
 
 class Simulation:
