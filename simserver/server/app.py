@@ -178,7 +178,7 @@ class SimServer:
             # the load worker starts now and compiles the warm-up's kernels that call no
             # step into the cache, beside this process's compile of the step (a cold
             # cache: two cores at work; a warm one: a few loads from the cache); this
-            # process's warm-up then finds them there (sim.simulation.warm_up_in_helper)
+            # process's warm-up then finds them there (sim.scene_files.warm_up_in_helper)
             self.preparer.warm(warm_up_in_helper, str(cfg.scene), cfg.period_s)
         try:
             with CompileProgress():
