@@ -283,6 +283,13 @@ def test_a_car_added_and_one_removed_while_the_world_runs(flat_scene):
     rig.loop.add(slot, ports)
     rig.slots["c"], rig.ports["c"] = slot, ports
     assert rig.loop.world.ids == ["a", "b", "c"]
+    # before its first state is published, the world message has the new car at its start
+    # (not at zero: a client would draw it at the origin), the others where they are
+    first = proto.decode_world(rig.loop.world_message.payload([None] * 3, 0, 0.0))
+    assert first.ids == ("a", "b", "c")
+    assert first.car("c")["x_m"] == pytest.approx(40.0, abs=0.05)
+    assert first.car("b")["x_m"] == pytest.approx(15.0, abs=0.05)
+    assert first.car("a")["x_m"] == pytest.approx(float(rig.slots["a"].sim.x[L.X_M]), abs=0.05)
     for _ in range(100):
         rig.send("a", throttle=0.5, gear=proto.Gear.D)
         rig.send("c", throttle=0.9, gear=proto.Gear.D)

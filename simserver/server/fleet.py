@@ -60,7 +60,13 @@ class WorldMessage:
         """The cars, in order (when the world changes; between ticks)."""
         self.buffer.set_cars(ids, driven_by)
         self.states[:] = 0
-        self.have = np.zeros(len(ids), dtype=bool)
+
+    def seed(self, records: np.ndarray) -> None:
+        """Every car's values from ``records`` (VehicleState records in the cars' order,
+        their copied fields filled from the world now: ``StateFrame.records``), until each
+        car's first published state replaces them: a car just added is in the message at
+        its start pose, not at zero, from the first message that lists it."""
+        self.states[:len(records)] = records
 
     def due(self, tick: int) -> bool:
         return tick % self.every == 0

@@ -484,6 +484,8 @@ class ServerLoop:
         if message is not None:
             message.set_cars([s.keys.vehicle for s, _ in self.slots],
                              [s.driven_by for s, _ in self.slots])
+            if self.state_frame is not None:  # filled from the world by _bind_frame
+                message.seed(self.state_frame.records)
 
     def _bind_frame(self) -> None:
         """The state records of the world's cars filled in one go a tick
