@@ -202,7 +202,9 @@ def join_world(slot_cfg: Any, scene: Scene, table: np.ndarray | None, world: Any
     from simserver.server.slot import VehicleSlot
     from simserver.sim.simulation import Simulation
 
-    sim = Simulation(scene, slot_cfg.period_s, car_id=slot_cfg.vehicle_id)
+    # made with the world's tire models: its kernels are those of the world's step
+    sim = Simulation(scene, slot_cfg.period_s, car_id=slot_cfg.vehicle_id,
+                     tire_models=world.tire_models)
     sim.move_to(world)
     slot = VehicleSlot(slot_cfg, sim)
     if table is not None:
