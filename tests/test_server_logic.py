@@ -26,6 +26,7 @@ from simserver.server.config import load_server_config as _load_server_config
 from simserver.server.loop import CONTROLS, ServerLoop, SlotPorts
 from simserver.server.slot import VehicleSlot
 from simserver.sim.scene import Scene, load_scene
+from simserver.testing import wait_until
 from simserver.wire import protocol as proto
 
 pytestmark = pytest.mark.timeout(120)
@@ -560,18 +561,22 @@ def test_load_is_prepared_off_the_tick_and_applied_between_two_ticks(flat_scene)
 
 
 class CompilesInTicks:
-    """Counts numba compiles (``numba:compile`` events) that begin inside ``loop.tick``."""
+    """Counts numba compiles (``numba:compile`` events) that begin inside ``loop.tick``, on
+    the tick's thread (a helper thread's compile meanwhile is not the tick's)."""
 
     def __init__(self, loop: ServerLoop) -> None:
+        import threading
+
         from numba.core import event
 
         self.in_tick = False
         self.count = 0
         outer = self
+        tick_thread = threading.get_ident()
 
         class _Listener(event.Listener):
             def on_start(self, ev):
-                outer.count += outer.in_tick
+                outer.count += outer.in_tick and threading.get_ident() == tick_thread
 
             def on_end(self, ev):
                 pass
@@ -595,12 +600,14 @@ class CompilesInTicks:
         event.unregister("numba:compile", self._listener)
 
 
+@pytest.mark.timeout(600)  # compiles the step for MF 6.1 alone and for both models
 def test_a_load_of_a_tire_model_the_step_lacks_compiles_off_the_tick(flat_scene):
     """Issue 33: the server's step is compiled with the tire models of its scene only (the
     brush tire of flat_paper_sedan: no MF 6.1 code). A load of an MF 6.1 scene compiles
-    the step for both in the load worker, the server then loads it from the cache in a
-    thread while the tick runs on: no compile ever starts inside a tick, and the car runs
-    on the MF 6.1 tires after the load (bit for bit as a step of MF 6.1 alone)."""
+    the step for both in the load worker (a real one: another process), the server then
+    loads it from the cache in a thread while the tick runs on: no compile ever starts
+    inside a tick, and the car runs on the MF 6.1 tires after the load (bit for bit as a
+    step of MF 6.1 alone)."""
     from simserver.core.tire_layout import TIRE_MODEL_MF61, TIRE_MODEL_SIMPLE
     from simserver.sim.simulation import Simulation
     from simserver.tires.registry import tire_models_of
@@ -608,18 +615,17 @@ def test_a_load_of_a_tire_model_the_step_lacks_compiles_off_the_tick(flat_scene)
     rig = Rig(flat_scene)
     assert rig.slot.sim.world.tire_models == {TIRE_MODEL_SIMPLE}
     assert rig.slot.sim.model.tires.builtin == (True, None)  # MF 6.1 not compiled in
-    held = rig.loop.preparer = HeldPreparer()
+    from simserver.server.load_worker import ProcessPreparer
+
+    worker = rig.loop.preparer = ProcessPreparer()
     compiles = CompilesInTicks(rig.loop)
     try:
         rig.run(5)
         req = LocalRequest("load", json.dumps({"scene": str(MF_SCENE)}).encode())
         rig.controls.pending.append(req)
         rig.run()
-        assert req.body is None and len(held.jobs) == 1
-        held.finish()  # the worker's part: reads the scene, compiles the step for both
-        from simserver.testing import wait_until
-
-        wait_until(lambda: rig.run() is not None and req.answer is not None, timeout_s=120,
+        assert req.body is None  # handed to the worker, which compiles the step for both
+        wait_until(lambda: rig.run() is not None and req.body is not None, timeout_s=300,
                    what="the load of the MF 6.1 scene answered")
         assert req.answer["ok"] is True, req.answer
         assert rig.slot.sim.world.tire_models == {TIRE_MODEL_SIMPLE, TIRE_MODEL_MF61}
@@ -629,6 +635,7 @@ def test_a_load_of_a_tire_model_the_step_lacks_compiles_off_the_tick(flat_scene)
         assert compiles.count == 0, f"{compiles.count} compiles began inside a tick"
     finally:
         compiles.close()
+        worker.close()
     assert float(rig.slot.sim.x[L.U_MPS]) > 0.1  # it drove on the MF 6.1 tires
     assert np.isfinite(rig.slot.sim.x).all()
     # a step compiled with both models runs an MF 6.1 car bit for bit as one of MF 6.1 only
