@@ -35,9 +35,10 @@ by a bad list; each error names the file and the car (``cars[k] (id)``):
 - a start off the road: on an OpenDRIVE terrain the car's CG must be on a lane of a road
   (:func:`on_lane`), on a height map inside the grid (beyond it the ground is the edge's,
   extended flat: no road);
-- two start poses whose body footprints overlap (:func:`footprint`, :func:`overlap`):
-  oriented rectangles in the horizontal plane (the contact stage's boxes, from the
-  vehicle's ``body_*`` parameters), by the separating axis theorem.
+- two start poses whose body footprints overlap (``simserver.sim.scene.
+  check_starts_apart``, a headless world's check too, on ``core.contact.body_box`` and
+  ``bodies_overlap``): oriented rectangles in the horizontal plane (the contact stage's
+  boxes, from the vehicle's ``body_*`` parameters), by the separating axis theorem.
 """
 
 from __future__ import annotations
@@ -52,13 +53,7 @@ import numpy as np
 
 from simserver.adapters.config import ConfigError, check_keys, load_vehicle, number
 from simserver.adapters.validate import integer, referenced_file, short_repr
-from simserver.core.params import (
-    VP_BODY_FRONT_OVERHANG_M,
-    VP_BODY_REAR_OVERHANG_M,
-    VP_BODY_WIDTH_M,
-    VP_CG_TO_FRONT_AXLE_M,
-    VP_CG_TO_REAR_AXLE_M,
-)
+from simserver.core.contact import bodies_overlap, body_box
 from simserver.core.terrain import (
     GRID_DX_M,
     GRID_DY_M,
@@ -66,6 +61,11 @@ from simserver.core.terrain import (
     GRID_Y0_M,
     TERRAIN_HEIGHTMAP,
     TERRAIN_OPENDRIVE,
+)
+from simserver.sim.scene import (  # max_cars: a headless world's limit too (one source)
+    DEFAULT_MAX_CARS,
+    MAX_CARS_RANGE,
+    check_car_count,
 )
 from simserver.wire import protocol as proto
 
@@ -89,10 +89,6 @@ DRIVEN_BY: dict[str, str] = {
               "not applied",
 }
 """Who drives a car (``driven_by``), with what it means: one table for checks and docs."""
-
-DEFAULT_MAX_CARS = 32
-MAX_CARS_RANGE = (1, 256)
-"""``max_cars``: the default and the range it may be set in."""
 
 POSE_KEYS = ("x_m", "y_m", "yaw_rad")
 
@@ -121,9 +117,7 @@ def parse_cars(path: Path, raw: Any, max_cars: int = DEFAULT_MAX_CARS) -> list[C
     entry's keys and values. Files are resolved (relative to ``path``) but not read."""
     if not isinstance(raw, list) or not raw:
         raise ConfigError(f"{path}: key 'cars': expected a non-empty list of cars")
-    if len(raw) > max_cars:
-        raise ConfigError(f"{path}: key 'cars': {len(raw)} cars, more than max_cars "
-                          f"({max_cars})")
+    check_car_count(path, len(raw), max_cars)
     cars: list[CarSpec] = []
     seen: dict[str, int] = {}
     for k, entry in enumerate(raw):
@@ -314,47 +308,13 @@ def on_lane(od: OpenDrive, x_m: float, y_m: float, step_m: float = LANE_SAMPLE_M
     return False
 
 
-def footprint(vp: np.ndarray) -> tuple[float, float, float]:
-    """The body's footprint: ``(front_m, rear_m, half_width_m)`` from the CG, the box the
-    contact stage pushes with (the vehicle's ``body_*`` parameters, ``core.contact``,
-    docs/model.md section 16): a start that overlaps is one the contact would push apart."""
-    return (float(vp[VP_CG_TO_FRONT_AXLE_M] + vp[VP_BODY_FRONT_OVERHANG_M]),
-            float(vp[VP_CG_TO_REAR_AXLE_M] + vp[VP_BODY_REAR_OVERHANG_M]),
-            0.5 * float(vp[VP_BODY_WIDTH_M]))
-
-
-def _corners(pose: dict[str, float], box: tuple[float, float, float]) -> np.ndarray:
-    front, rear, half = box
-    c, s = math.cos(pose["yaw_rad"]), math.sin(pose["yaw_rad"])
-    local = np.array([[front, half], [front, -half], [-rear, -half], [-rear, half]])
-    return np.column_stack((pose["x_m"] + c * local[:, 0] - s * local[:, 1],
-                            pose["y_m"] + s * local[:, 0] + c * local[:, 1]))
-
-
-def overlap(pose_a: dict[str, float], box_a: tuple[float, float, float],
-            pose_b: dict[str, float], box_b: tuple[float, float, float]) -> bool:
-    """Whether two footprints (``footprint``) at two poses overlap (touching is not):
-    the separating axis theorem on the rectangles' four edge normals."""
-    a, b = _corners(pose_a, box_a), _corners(pose_b, box_b)
-    for yaw in (pose_a["yaw_rad"], pose_b["yaw_rad"]):
-        for axis in ((math.cos(yaw), math.sin(yaw)), (-math.sin(yaw), math.cos(yaw))):
-            pa, pb = a @ axis, b @ axis
-            if pa.max() <= pb.min() or pb.max() <= pa.min():
-                return False
-    return True
-
-
 def check_apart(cars: list[CarSpec], scenes: dict[str, Scene]) -> None:
-    """No two cars' start footprints overlap; else ``ConfigError`` naming both."""
-    boxes = {car.id: footprint(scenes[car.id].vehicle.vp) for car in cars}
-    for i, a in enumerate(cars):
-        for b in cars[:i]:
-            pa, pb = scenes[a.id].initial, scenes[b.id].initial
-            if overlap(pa, boxes[a.id], pb, boxes[b.id]):
-                raise ConfigError(
-                    f"{a.where}: its start ({pa['x_m']:.2f}, {pa['y_m']:.2f}) m overlaps the "
-                    f"start of car {b.id!r} ({pb['x_m']:.2f}, {pb['y_m']:.2f}) m (bodies "
-                    f"{sum(boxes[a.id][:2]):.2f} x {2 * boxes[a.id][2]:.2f} m): move one")
+    """No two cars' start footprints overlap; else ``ConfigError`` naming both
+    (``simserver.sim.scene.check_starts_apart``, a headless world's check too)."""
+    from simserver.sim.scene import check_starts_apart
+
+    check_starts_apart([(car.where, car.id, scenes[car.id].initial,
+                         scenes[car.id].vehicle.vp) for car in cars])
 
 
 MAX_KEYFRAME_STEPS = 3_600_000
@@ -389,9 +349,9 @@ def check_clear(car: CarSpec, scene: Scene, others: dict[str, tuple[dict[str, fl
     ``ConfigError`` naming the car and the one in the way."""
     if car.id in others:
         raise ConfigError(f"{car.where}: key 'id': the world has a car {car.id!r} already")
-    box = footprint(scene.vehicle.vp)
+    box = body_box(scene.vehicle.vp)
     for other_id, (pose, vp) in others.items():
-        if overlap(scene.initial, box, pose, footprint(vp)):
+        if bodies_overlap(scene.initial, box, pose, body_box(vp)):
             raise ConfigError(f"{car.where}: its start ({scene.initial['x_m']:.2f}, "
                               f"{scene.initial['y_m']:.2f}) m overlaps car {other_id!r} where "
                               f"it is now ({pose['x_m']:.2f}, {pose['y_m']:.2f}) m")

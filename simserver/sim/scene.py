@@ -34,6 +34,7 @@ from simserver.adapters.validate import (
     referenced_file,
     short_repr,
 )
+from simserver.core.contact import bodies_overlap, body_box
 from simserver.core.terrain import TERRAIN_OPENDRIVE, Terrain, plane_terrain
 
 ROAD_RANGES = {"grade_pct": (-100.0, 100.0), "cross_slope_pct": (-100.0, 100.0),
@@ -137,6 +138,40 @@ def start_by_lane(path: Path | str, key: str, raw: Any, roads: OpenDrive | None
 
 SCENARIO_ONLY_KEYS = ("duration_s", "dt_s", "record_every", "inputs", "driver", "analysis",
                       "speed_hold")
+
+
+# ------------------------------------------------------------- several cars on one scene
+DEFAULT_MAX_CARS = 32
+MAX_CARS_RANGE = (1, 256)
+"""``max_cars`` of a world of several cars (the live server's config, a headless scenario
+with ``cars:``): the default and the range it may be set in. More cars than it is an
+error naming the file."""
+
+
+def check_car_count(path: Path | str, n_cars: int, max_cars: int) -> None:
+    """At most ``max_cars`` cars; else ``ConfigError`` naming the file and ``cars``."""
+    if n_cars > max_cars:
+        raise ConfigError(f"{path}: key 'cars': {n_cars} cars, more than max_cars "
+                          f"({max_cars})")
+
+
+def check_starts_apart(cars: list[tuple[str, str, dict[str, float], Any]]) -> None:
+    """No two cars' start poses put their bodies in each other: ``cars`` lists, in the
+    file's order, each car's ``where`` (the prefix of its errors, ``FILE: cars[k] (id)``),
+    id, start pose (``x_m``, ``y_m``, ``yaw_rad``) and vehicle parameters; the boxes are
+    the contact stage's (``core.contact.body_box``, ``bodies_overlap``). ``ConfigError``
+    naming the later car and the earlier one it overlaps. The live server's ``cars:``
+    (``simserver.server.cars_config``) and a headless world (``simserver.sim.scenario.
+    load_world_scenario``) are checked by this one function."""
+    boxes = [body_box(vp) for _, _, _, vp in cars]
+    for i, (where, _, pa, _) in enumerate(cars):
+        for j in range(i):
+            other, pb = cars[j][1], cars[j][2]
+            if bodies_overlap(pa, boxes[i], pb, boxes[j]):
+                raise ConfigError(
+                    f"{where}: its start ({pa['x_m']:.2f}, {pa['y_m']:.2f}) m overlaps the "
+                    f"start of car {other!r} ({pb['x_m']:.2f}, {pb['y_m']:.2f}) m (bodies "
+                    f"{sum(boxes[i][:2]):.2f} x {2 * boxes[i][2]:.2f} m): move one")
 
 
 def load_scene(path: str | Path, vehicle_path: str | Path | None = None) -> Scene:
