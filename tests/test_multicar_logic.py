@@ -407,13 +407,18 @@ def test_world_controls_add_and_remove_cars_between_ticks(flat_scene):
     ("hill_15pct_paper_sedan", {"pose": {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}}),
     ("curves_elevation_paper_sedan", {"start": {"road": "1", "s": 60.0, "lane": -1}}),
     ("flat_mf_hatchback", {"pose": {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}}),
-], ids=["hill", "opendrive_lane", "other_vehicle"])
+    ("curves_elevation_paper_sedan", {"start": {"road": "1", "s": 60.0, "lane": -1},
+                                      "driven_by": "driver",
+                                      "driver": {"path": {"road": "1", "lane": -1},
+                                                 "idm": {"v0_mps": 10.0}}}),
+], ids=["hill", "opendrive_lane", "other_vehicle", "driver_on_a_lane"])
 def test_a_car_added_after_a_live_load_is_made_on_the_loaded_scene(flat_scene, scene_name,
                                                                     where):
     """A world of one car that loaded another scene while running (its own ``load``), then
     ``add_car``: the new car is made on the world's scene now, the loaded one, as a car of
     that scene alone at the same place would be, bit for bit: its road, its OpenDRIVE
-    lanes for a start by lane, its vehicle as the default, and its command log naming it.
+    lanes for a start by lane and for a driver's lane path (sampled on its terrain), its
+    vehicle as the default, and its command log naming it.
     Before, the new car was made on the server config's scene: the flat road's scene on
     the 15 % grade, a start by lane refused ("needs an OpenDRIVE" terrain), the paper sedan
     where the world's scene drives the hatchback."""
@@ -457,5 +462,70 @@ def test_a_car_added_after_a_live_load_is_made_on_the_loaded_scene(flat_scene, s
         assert slot.sim.scene.road == scene.road
         assert slot.sim.scene.vehicle.name == scene.vehicle.name
         assert slot.scene_path == loaded  # what its log's header and load line name
+        if "driver" in where:  # its lane path: the loaded scene's road, sampled on its
+            from simserver.server.live_drivers import sample_path  # terrain
+
+            assert slot.driven_by == "driver"
+            block = cars_config.driver_spec(spec, scene)
+            assert np.array_equal(rig.loop.live_drivers.rows["c"],
+                                  sample_path(block, scene.terrain))
     finally:
         desk.close()
+
+
+def test_a_car_added_after_a_live_set_road_replays_on_the_worlds_road(flat_scene, tmp_path):
+    """A live ``set_road`` changes the road under every car; a car added afterwards
+    (``add_car``) stands on the world's road, so its command log names that road after
+    its start (``fleet.log_start``): the replay of its log alone, and the world's replay
+    of every log, give its live bits. Before, its log named only the scene (its file's
+    road, 0 %): its replay alone drove up a flat road the live car climbed at 8 %."""
+    from simserver.server.world_desk import WorldDesk
+    from simserver.server.world_replay import replay_world
+
+    rig = WorldRig(flat_scene, [{"id": "a"}], tmp_path)
+    rig.loop.world_message = fleet.WorldMessage(["a"], ["client"], every=10, capacity=2)
+    controls = ListControls()
+
+    def make_ports(cfg):
+        ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
+        rig.ports[cfg.vehicle_id] = ports
+        return ports
+
+    def added(slot):  # as the server's (SimServer._added): its log, then its start lines
+        slot.command_log = CommandLog(tmp_path / f"{slot.keys.vehicle}.jsonl", {
+            "scene": str(slot.scene_path), "dt_s": rig.cfg.period_s, "step": 0})
+        fleet.log_start(slot, cars_config.CarSpec(id=slot.keys.vehicle, where="",
+                                                  vehicle=slot.sim.scene.vehicle.path))
+
+    desk = WorldDesk(rig.loop, rig.cfg, controls, make_ports, lambda slot, ports: None,
+                     on_added=added)
+    rig.loop.world_desk = desk
+    try:
+        rig.run(50)
+        assert rig.control("a", "set_road", {"grade_pct": 8.0})["road"]["grade_pct"] == 8.0
+        rig.run(50)
+        add = LocalRequest("add_car", json.dumps({"id": "c", "pose": {
+            "x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}}).encode())
+        controls.pending.append(add)
+        for _ in range(3000):
+            rig.loop.tick()
+            if add.body is not None:
+                break
+        assert add.answer == {"ok": True, "car": "c", "cars": ["a", "c"]}, add.answer
+        c = next(s for s, _ in rig.loop.slots if s.keys.vehicle == "c")
+        assert c.sim.road["grade_pct"] == 8.0  # the world's road, live
+        for k in range(400):
+            rig.send("a", brake=0.8, gear=proto.Gear.D)
+            rig.ports["c"].commands.pending.append(proto.encode_command(
+                seq=k + 1, throttle=0.7, gear=proto.Gear.D))
+            rig.run()
+        assert c.sim.x[L.X_M] > 40.2
+    finally:
+        desk.close()
+    for slot, _ in rig.loop.slots:
+        slot.command_log.close(slot.steps_total, slot.sim.x.copy())
+    alone = replay_command_log(tmp_path / "c.jsonl")
+    assert alone.steps == c.steps_total
+    assert alone.final_state_matches, (alone.final_state[L.X_M], c.sim.x[L.X_M])
+    world = replay_world([tmp_path / "a.jsonl", tmp_path / "c.jsonl"])
+    assert world.all_match
