@@ -173,20 +173,69 @@ def test_world_controls_act_on_every_car_and_a_car_loads_its_vehicle_only(flat_s
     assert rig.slots["a"].sim.scene.vehicle.path != HATCH.resolve()
 
 
+def _keyframed_inputs(t_s: float) -> list[float]:
+    """The inputs the table of ``test_a_keyframed_car_plays_its_table_and_ignores_commands``
+    gives at time ``t_s``, written out from the keyframe rule (``simserver.sim.keyframes``):
+    steer, throttle and brake linear between the keyframes naming them, their first value
+    before the first, their last after the last; the parking brake and the gear switch at
+    a keyframe's time, their defaults (0, D) before their first keyframe."""
+    ramp = np.interp  # the linear rule: holds the end values outside the keyframes
+    steer = ramp(t_s, [0.0, 0.1, 0.2], [0.0, 0.2, -0.1])
+    throttle = ramp(t_s, [0.1, 0.2], [0.0, 1.0])
+    brake = ramp(t_s, [0.0, 0.1], [0.6, 0.0])
+    parking = 1.0 if 0.05 <= t_s < 0.25 else 0.0
+    gear = proto.Gear.N if t_s < 0.05 else proto.Gear.D
+    return [steer, throttle, brake, parking, float(gear)]
+
+
 def test_a_keyframed_car_plays_its_table_and_ignores_commands(flat_scene, tmp_path):
+    """A car ``driven_by: keyframes`` applies its file's inputs at every tick of the
+    table, as the keyframe rule samples them (``_keyframed_inputs``): each keyframe's
+    values at its time, the ramps between, the switches, and after the table's end
+    (``duration_s``) its last row; the commands sent to it are counted, not applied.
+    Checked on the inputs of every step (the car's input vector after each tick: the
+    row applied over it) and on the published states (the inputs of the step that led
+    to each); before, only the end values were."""
     frames = tmp_path / "go.yaml"
-    frames.write_text("name: go\nduration_s: 0.2\ninputs:\n  - {t: 0.0, gear: D, throttle: 0.0}"
-                      "\n  - {t: 0.1, throttle: 1.0}\n")
+    frames.write_text("name: go\nduration_s: 0.3\ninputs:\n"
+                      "  - {t: 0.0, gear: N, brake: 0.6, steer: 0.0}\n"
+                      "  - {t: 0.05, gear: D, parking_brake: 1}\n"
+                      "  - {t: 0.1, throttle: 0.0, brake: 0.0, steer: 0.2}\n"
+                      "  - {t: 0.2, throttle: 1.0, steer: -0.1}\n"
+                      "  - {t: 0.25, parking_brake: 0}\n")
     rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "kf", "driven_by": "keyframes",
                                              "keyframes": str(frames),
                                              "pose": {"x_m": 15.0, "y_m": 0.0}}])
-    for _ in range(400):
-        rig.send("kf", brake=1.0, gear=proto.Gear.R)  # not applied
+    kf = rig.slots["kf"]
+    dt = rig.cfg.period_s
+    applied = []
+    for _ in range(700):
+        rig.send("kf", brake=1.0, steer=-1.0, gear=proto.Gear.R)  # not applied
         rig.run()
+        applied.append(kf.sim.inputs.copy())
+    times = np.arange(700) * dt  # the step k starts at k dt (tick k)
+    expected = np.array([_keyframed_inputs(t) for t in times])
+    # every step: each keyframe's values at its time (t = 0, 50, 100, 200, 250 ms, where a
+    # switch takes its new value), the ramps between (to rounding), the last row after
+    # the table's end at 300 ms
+    assert np.allclose(np.array(applied), expected, rtol=0.0, atol=1e-12), np.flatnonzero(
+        np.abs(np.array(applied) - expected).max(axis=1) > 1e-12)[:5]
+    for k, row in ((0, [0.0, 0.0, 0.6, 0.0, proto.Gear.N]), (50, [0.1, 0.0, 0.3, 1.0, 3.0]),
+                   (100, [0.2, 0.0, 0.0, 1.0, 3.0]), (150, [0.05, 0.5, 0.0, 1.0, 3.0]),
+                   (200, [-0.1, 1.0, 0.0, 1.0, 3.0]), (249, [-0.1, 1.0, 0.0, 1.0, 3.0]),
+                   (250, [-0.1, 1.0, 0.0, 0.0, 3.0]), (699, [-0.1, 1.0, 0.0, 0.0, 3.0])):
+        assert np.allclose(applied[k], row, rtol=0.0, atol=1e-12), (k, applied[k])
+    # what a client sees: the state of tick n carries the inputs of the step n - 1 to n
+    states = rig.ports["kf"].publisher.states
+    assert len(states) == 70
+    for st in states:
+        want = expected[int(st["tick"]) - 1]
+        got = [st["steer"], st["throttle"], st["brake"], st["parking_brake"], st["gear"]]
+        assert np.allclose(got, want, rtol=0.0, atol=1e-6), (int(st["tick"]), got, want)
     s = rig.state("kf")
     assert s["throttle"] == 1.0 and s["gear"] == proto.Gear.D and s["brake"] == 0.0
     assert not s["flags"] & WATCHDOG and s["u_mps"] > 0.5
-    assert rig.slots["kf"].counters["cmd_rejected"] == 400
+    assert kf.counters["cmd_rejected"] == 700
     w = proto.decode_world(rig.world_payloads[-1])
     assert proto.DRIVEN_BY_CODES[int(w.car("kf")["driven_by"])] == "keyframes"
 
