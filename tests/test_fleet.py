@@ -17,7 +17,7 @@ from simserver.adapters.opendrive import lane_start, road_extent
 from simserver.core import params as P
 from simserver.core.contact import bodies_overlap, body_box
 from simserver.server import cars_config, fleet
-from simserver.sim.scene import load_scene
+from simserver.sim.scene import load_scene, on_lane
 
 REPO = Path(__file__).resolve().parents[1]
 FLAT = REPO / "configs" / "scenes" / "flat_paper_sedan.yaml"
@@ -179,9 +179,9 @@ def test_off_the_road_on_opendrive(tmp_path, crest):
     # half a metre beyond the outermost right lane's edge, beside lane -1's start
     rx, ry, hdg = road.reference(100.0)
     off_x, off_y = rx + math.sin(hdg) * (-right + 0.5), ry - math.cos(hdg) * (-right + 0.5)
-    assert not cars_config.on_lane(crest.roads, off_x, off_y)
+    assert not on_lane(crest.roads, off_x, off_y)
     inside = -right - 0.1
-    assert cars_config.on_lane(crest.roads, rx + math.sin(hdg) * inside,
+    assert on_lane(crest.roads, rx + math.sin(hdg) * inside,
                                ry - math.cos(hdg) * inside)
     off = cars_config.parse_cars(path, [{"id": "a"}, {"id": "ditch", "pose": {
         "x_m": off_x, "y_m": off_y, "yaw_rad": hdg}}])

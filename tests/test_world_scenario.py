@@ -145,6 +145,45 @@ def test_more_cars_than_max_cars_and_an_id_twice_are_refused():
         load_world_scenario(HILL, {**data, "cars": cars})
 
 
+def test_a_start_off_the_road_is_refused_naming_the_file_and_the_car():
+    """A headless world's starts are checked as the live server's (``simserver.sim.scene.
+    check_on_road``): on an OpenDRIVE terrain on a lane, on a height map on its grid.
+    Before, a car half a metre beyond the road's edge, or off the map, ran."""
+    import math
+
+    from simserver.adapters.opendrive import load_opendrive, road_extent
+
+    lane = REPO / "configs" / "scenarios" / "driver_lane_follow_curves.yaml"
+    data = dict(read_yaml(lane))
+    road = load_opendrive(REPO / "configs" / "roads" / "curves_elevation.xodr").roads[0]
+    right, _ = road_extent(road, 100.0)
+    rx, ry, hdg = road.reference(100.0)
+    keyed = {"vehicle": data["cars"][0]["vehicle"],
+             "inputs": [{"t": 0.0, "brake": 0.5, "gear": "D"}]}
+
+    def beside(offset_m: float) -> dict:  # a car beside the road's right edge at s 100 m
+        t_m = -right + offset_m
+        return {"id": "ditch", **keyed, "initial": {
+            "x_m": rx + math.sin(hdg) * t_m, "y_m": ry - math.cos(hdg) * t_m,
+            "yaw_rad": hdg}}
+
+    load_world_scenario(lane, {**data, "cars": [data["cars"][0], beside(-0.1)]})  # on it
+    with pytest.raises(ConfigError) as err:
+        load_world_scenario(lane, {**data, "cars": [data["cars"][0], beside(0.5)]})
+    assert str(err.value).startswith(f"{lane}: cars[1] (ditch): the start ("), err.value
+    assert "is off the road: not on a lane of curves_elevation.xodr" in str(err.value)
+    hills = REPO / "configs" / "scenarios" / "terrain_hills_heightmap.yaml"
+    one = {k: v for k, v in read_yaml(hills).items() if k not in ("vehicle", "initial",
+                                                                 "inputs")}
+    on_map = {"id": "a", **keyed, "vehicle": "../vehicles/paper_sedan/vehicle.yaml",
+              "initial": {"x_m": 55.0, "y_m": 0.0}}
+    off_map = {**on_map, "id": "b", "initial": {"x_m": 55.0, "y_m": -50.0}}
+    load_world_scenario(hills, {**one, "cars": [on_map]})
+    with pytest.raises(ConfigError, match=rf"^{hills}: cars\[1\] \(b\): the start "
+                                          r"\(55.00, -50.00\) m is off the height map"):
+        load_world_scenario(hills, {**one, "cars": [on_map, off_map]})
+
+
 def test_an_openscenario_file_with_overlapping_entities_is_refused(tmp_path):
     """The OpenSCENARIO player builds its world through the same loader: entities placed
     into each other are refused, naming the .xosc file."""

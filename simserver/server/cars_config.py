@@ -32,9 +32,9 @@ by a bad list; each error names the file and the car (``cars[k] (id)``):
   :data:`simserver.wire.protocol.WORLD_ID_BYTES` (the world message's id field), or the reserved
   id :data:`WORLD_KEY` (the world's own keys, ``{prefix}/world/...``);
 - more cars than ``max_cars``;
-- a start off the road: on an OpenDRIVE terrain the car's CG must be on a lane of a road
-  (:func:`on_lane`), on a height map inside the grid (beyond it the ground is the edge's,
-  extended flat: no road);
+- a start off the road: on an OpenDRIVE terrain the car's CG must be on a lane of a road,
+  on a height map inside the grid (beyond it the ground is the edge's, extended flat: no
+  road) (``simserver.sim.scene.check_on_road``, a headless world's check too);
 - two start poses whose body footprints overlap (``simserver.sim.scene.
   check_starts_apart``, a headless world's check too, on ``core.contact.body_box`` and
   ``bodies_overlap``): oriented rectangles in the horizontal plane (the contact stage's
@@ -44,7 +44,6 @@ by a bad list; each error names the file and the car (``cars[k] (id)``):
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -54,23 +53,15 @@ import numpy as np
 from simserver.adapters.config import ConfigError, check_keys, load_vehicle, number
 from simserver.adapters.validate import integer, referenced_file, short_repr
 from simserver.core.contact import bodies_overlap, body_box
-from simserver.core.terrain import (
-    GRID_DX_M,
-    GRID_DY_M,
-    GRID_X0_M,
-    GRID_Y0_M,
-    TERRAIN_HEIGHTMAP,
-    TERRAIN_OPENDRIVE,
-)
 from simserver.sim.scene import (  # max_cars: a headless world's limit too (one source)
     DEFAULT_MAX_CARS,
     MAX_CARS_RANGE,
     check_car_count,
+    check_on_road,
 )
 from simserver.wire import protocol as proto
 
 if TYPE_CHECKING:
-    from simserver.adapters.opendrive import OpenDrive, Road
     from simserver.sim.scene import Scene
 
 WORLD_KEY = "world"
@@ -91,10 +82,6 @@ DRIVEN_BY: dict[str, str] = {
 """Who drives a car (``driven_by``), with what it means: one table for checks and docs."""
 
 POSE_KEYS = ("x_m", "y_m", "yaw_rad")
-
-
-LANE_SAMPLE_M = 0.5
-"""Spacing of the reference-line samples :func:`on_lane` projects a point onto."""
 
 
 @dataclass(frozen=True)
@@ -245,67 +232,6 @@ def car_scenes(cars: list[CarSpec], scene: Scene) -> dict[str, Scene]:
         scenes[car.id] = one
     check_apart(cars, scenes)
     return scenes
-
-
-def check_on_road(where: str, scene: Scene) -> None:
-    """The scene's start is on its road (module docstring); else ``ConfigError``."""
-    x, y = scene.initial["x_m"], scene.initial["y_m"]
-    terrain = scene.terrain
-    if terrain.kind == TERRAIN_OPENDRIVE and scene.roads is not None:
-        if not on_lane(scene.roads, x, y):
-            raise ConfigError(f"{where}: the start ({x:.2f}, {y:.2f}) m is off the road: not "
-                              f"on a lane of {scene.roads.path.name}")
-    elif terrain.kind == TERRAIN_HEIGHTMAP:
-        g = terrain.grid
-        ny, nx = terrain.heights.shape
-        x0, y0 = g[GRID_X0_M], g[GRID_Y0_M]
-        x1, y1 = x0 + (nx - 1) * g[GRID_DX_M], y0 + (ny - 1) * g[GRID_DY_M]
-        if not (x0 <= x <= x1 and y0 <= y <= y1):
-            raise ConfigError(f"{where}: the start ({x:.2f}, {y:.2f}) m is off the height "
-                              f"map ({x0:g} .. {x1:g}, {y0:g} .. {y1:g}) m")
-
-
-def _reference_samples(road: Road, step_m: float) -> tuple[np.ndarray, ...]:
-    """``(s, x, y, heading)`` of the reference line every ``step_m`` (and at its end)."""
-    from simserver.adapters.opendrive import GeometryArray
-
-    s = np.append(np.arange(0.0, road.length, step_m), road.length)
-    geos = road.geometries
-    starts = geos.starts if isinstance(geos, GeometryArray) else np.array(
-        [g.s for g in geos])
-    which = np.clip(np.searchsorted(starts, s + 1e-9, side="right") - 1, 0, len(geos) - 1)
-    x, y, h = (np.empty_like(s) for _ in range(3))
-    for k in np.unique(which):
-        sel = which == k
-        geo = geos[int(k)]
-        x[sel], y[sel], h[sel] = geo.points(np.clip(s[sel] - geo.s, 0.0, geo.length))
-    return s, x, y, h
-
-
-def on_lane(od: OpenDrive, x_m: float, y_m: float, step_m: float = LANE_SAMPLE_M) -> bool:
-    """Whether the point ``(x_m, y_m)`` is on a lane of a road of ``od``: its projection on
-    some road's reference line (the nearest of samples every ``step_m``, refined along the
-    local heading) falls within the road's length, and its lateral offset within the
-    road's lanes there (``road_extents``; superelevation ignored: a lateral error of
-    ``t (1 - cos roll)``, 2 mm for 4 m at 4 %)."""
-    from simserver.adapters.opendrive import road_extents
-
-    for road in od.roads:
-        if road.length <= 0.0:
-            continue
-        s, x, y, h = _reference_samples(road, step_m)
-        dx, dy = x_m - x, y_m - y
-        n = int(np.argmin(dx * dx + dy * dy))
-        c, sn = math.cos(h[n]), math.sin(h[n])
-        along = dx[n] * c + dy[n] * sn
-        s_here = s[n] + along
-        if not -1e-6 <= s_here <= road.length + 1e-6 or abs(along) > step_m:
-            continue
-        t = -dx[n] * sn + dy[n] * c
-        right, left = road_extents(road, np.array([min(max(s_here, 0.0), road.length)]))
-        if right[0] - 1e-6 <= t <= left[0] + 1e-6:
-            return True
-    return False
 
 
 def check_apart(cars: list[CarSpec], scenes: dict[str, Scene]) -> None:

@@ -39,8 +39,10 @@ its numbers do not depend on the other cars nor on their order in the file. The 
 checked as the live server's ``cars:``, each error naming the file and the car
 (``cars[k] (id)``): each id once, at most ``max_cars`` cars (a world key; default 256,
 the most of ``simserver.sim.scene.MAX_CARS_RANGE``: a headless run has no tick to keep,
-where the live server's default is 32), no two starts whose bodies overlap
-(``simserver.sim.scene.check_starts_apart``).
+where the live server's default is 32), each start on the road
+(``simserver.sim.scene.check_on_road``: on a lane of an OpenDRIVE terrain, on a height
+map's grid), no two starts whose bodies overlap (``simserver.sim.scene.
+check_starts_apart``).
 
 The channels are ``steer``, ``throttle``, ``brake``, ``parking_brake`` (0/1 or true/false)
 and ``gear`` (P, R, N, D); how each is sampled between, before and after the keyframes that
@@ -74,6 +76,7 @@ from simserver.sim.scene import (
     START_POSE_KEYS,
     Scene,
     check_car_count,
+    check_on_road,
     check_starts_apart,
     parse_scene,
 )
@@ -378,9 +381,10 @@ def load_world_scenario(path: str | Path, data: dict[str, Any] | None = None) ->
     """Load and validate a scenario with ``cars:`` (errors name the file, the car and the
     key). Each car's scenario is validated as a single car's (``load_scenario``); the
     world's checks are the live server's ``cars:`` (``simserver.server.cars_config``): at
-    most ``max_cars`` cars (default the most of ``scene.MAX_CARS_RANGE``), each id once, and no two
-    start poses whose bodies overlap (``scene.check_starts_apart``: a start the contact
-    would push apart on the first step)."""
+    most ``max_cars`` cars (default the most of ``scene.MAX_CARS_RANGE``), each id once,
+    each start on the road (``scene.check_on_road``) and no two start poses whose bodies
+    overlap (``scene.check_starts_apart``: a start the contact would push apart on the
+    first step)."""
     path = Path(path)
     data = read_yaml(path) if data is None else data
     check_keys(path, data, WORLD_KEYS, required=("name", "duration_s", "cars"))
@@ -414,6 +418,8 @@ def load_world_scenario(path: str | Path, data: dict[str, Any] | None = None) ->
             cars[car_id] = load_scenario(path, one)
         except ConfigError as exc:
             raise ConfigError(f"car {car_id!r} (cars[{k}]): {exc}") from None
+    for cid, sc in cars.items():
+        check_on_road(where[cid], sc.scene)
     check_starts_apart([(where[cid], cid, sc.scene.initial, sc.scene.vehicle.vp)
                         for cid, sc in cars.items()])
     return WorldScenario(name=str(data["name"]), path=path,
