@@ -19,6 +19,7 @@ import sys
 import numpy as np
 import pytest
 
+from benchmarks.hill_queue_rollback import figures_line, hill_queue_figures, run_hill_queue
 from simserver.adapters.config import ConfigError, load_vehicle, read_yaml
 from simserver.adapters.history import CAR_ID_COLUMN, read_history
 from simserver.adapters.opendrive import lane_start, load_opendrive
@@ -197,6 +198,11 @@ def test_hill_queue_stops_1_m_behind_holds_and_follows_at_2_s(hill):
     # it started from rest on the grade (a launch from its own hold): no rollback either
     start = t < 2.0
     assert x[0] - x[start].min() < 1e-3
+    # the figures docs/model.md section 15 quotes (python -m benchmarks.hill_queue_rollback)
+    figures = hill_queue_figures(hill)
+    print("\n" + figures_line("lagged", figures))
+    assert figures["driven_rollback_m"] == xd[off][0] - xd[off].min()
+    assert figures["gap_min_m"] == gap.min()
 
 
 def test_hill_queue_with_kinematic_slip_creeps_and_rolls_back():
@@ -204,21 +210,15 @@ def test_hill_queue_with_kinematic_slip_creeps_and_rolls_back():
     the grade (about 53 mm over the 3 s before the drive-off, 0.35 m over 20 s) and roll
     back at the drive-off (about 11 mm the driven car, 23 mm the traffic car): the rollback
     the paper warns about, which the lagged slip states do not show (the test above). The
-    driver keeps its queue gap all the same (both cars creep alike)."""
-    data = copy.deepcopy(read_yaml(HILL))
-    for car in data["cars"]:
-        car["model"] = {"slip_model": "kinematic"}
-    result = run_world_scenario(load_world_scenario(HILL, data))
-    driven, traffic = result.cars["driven"], result.cars["traffic"]
-    t = driven.time_s
-    held = (t >= 22.0) & (t < 25.0)
-    off = t >= 25.0
-    for car in (driven, traffic):
-        x = car.states[:, L.X_M]
-        assert np.ptp(x[held]) > 0.02, np.ptp(x[held])
-        assert x[off][0] - x[off].min() > 0.005
-    gap = bumper_gap(driven, traffic, traffic.scenario.scene.vehicle.vp)
-    assert gap.min() >= 0.99
+    driver keeps its queue gap all the same (both cars creep alike). The figures are
+    ``benchmarks.hill_queue_rollback``'s (the same windows: the hold 22 to 25 s, the
+    rollback from 25 s), printed with ``-s``."""
+    figures = hill_queue_figures(run_hill_queue("kinematic"))
+    print("\n" + figures_line("kinematic", figures))  # docs/model.md section 15 quotes it
+    for car in ("driven", "traffic"):
+        assert figures[f"{car}_creep_m"] > 0.02, figures
+        assert figures[f"{car}_rollback_m"] > 0.005, figures
+    assert figures["gap_min_m"] >= 0.99
 
 
 def test_stop_point_hold_with_the_parking_brake_and_go_on_15pct(tmp_path):

@@ -15,8 +15,9 @@ import pytest
 from simserver.adapters.config import ConfigError
 from simserver.adapters.opendrive import lane_start, road_extent
 from simserver.core import params as P
+from simserver.core.contact import bodies_overlap, body_box
 from simserver.server import cars_config, fleet
-from simserver.sim.scene import load_scene
+from simserver.sim.scene import load_scene, on_lane
 
 REPO = Path(__file__).resolve().parents[1]
 FLAT = REPO / "configs" / "scenes" / "flat_paper_sedan.yaml"
@@ -101,7 +102,7 @@ def test_entry_errors_name_the_car(tmp_path):
 
 def test_overlapping_starts_name_both_cars(tmp_path, flat):
     path = _cfg(tmp_path)
-    box = cars_config.footprint(flat.vehicle.vp)
+    box = body_box(flat.vehicle.vp)
     length = box[0] + box[1]
     apart = cars_config.parse_cars(path, [{"id": "a", "pose": {"x_m": 0, "y_m": 0}},
                                     {"id": "b", "pose": {"x_m": length + 0.01, "y_m": 0}}])
@@ -130,8 +131,8 @@ def test_two_cars_on_the_scene_start_overlap(tmp_path, flat):
 
 
 def test_separating_axis_against_a_grid_of_points(flat):
-    """overlap() agrees with a brute-force test (a dense grid of points of one rectangle
-    inside the other) for rotated pairs."""
+    """bodies_overlap() (core.contact) agrees with a brute-force test (a dense grid of
+    points of one rectangle inside the other) for rotated pairs."""
     box = (2.0, 1.5, 0.9)
     rng = __import__("numpy").random.default_rng(3)
     for _ in range(200):
@@ -141,7 +142,7 @@ def test_separating_axis_against_a_grid_of_points(flat):
         brute = _brute_overlap(a, b, box)
         if brute is None:
             continue  # within the grid's resolution of touching
-        assert cars_config.overlap(a, box, b, box) == brute
+        assert bodies_overlap(a, box, b, box) == brute
 
 
 def _brute_overlap(a, b, box, n=60):
@@ -178,9 +179,9 @@ def test_off_the_road_on_opendrive(tmp_path, crest):
     # half a metre beyond the outermost right lane's edge, beside lane -1's start
     rx, ry, hdg = road.reference(100.0)
     off_x, off_y = rx + math.sin(hdg) * (-right + 0.5), ry - math.cos(hdg) * (-right + 0.5)
-    assert not cars_config.on_lane(crest.roads, off_x, off_y)
+    assert not on_lane(crest.roads, off_x, off_y)
     inside = -right - 0.1
-    assert cars_config.on_lane(crest.roads, rx + math.sin(hdg) * inside,
+    assert on_lane(crest.roads, rx + math.sin(hdg) * inside,
                                ry - math.cos(hdg) * inside)
     off = cars_config.parse_cars(path, [{"id": "a"}, {"id": "ditch", "pose": {
         "x_m": off_x, "y_m": off_y, "yaw_rad": hdg}}])

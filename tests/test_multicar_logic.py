@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from test_server_logic import (
     FLAT,
+    MS,
     PAUSED,
     WATCHDOG,
     FakeClock,
@@ -173,20 +174,69 @@ def test_world_controls_act_on_every_car_and_a_car_loads_its_vehicle_only(flat_s
     assert rig.slots["a"].sim.scene.vehicle.path != HATCH.resolve()
 
 
+def _keyframed_inputs(t_s: float) -> list[float]:
+    """The inputs the table of ``test_a_keyframed_car_plays_its_table_and_ignores_commands``
+    gives at time ``t_s``, written out from the keyframe rule (``simserver.sim.keyframes``):
+    steer, throttle and brake linear between the keyframes naming them, their first value
+    before the first, their last after the last; the parking brake and the gear switch at
+    a keyframe's time, their defaults (0, D) before their first keyframe."""
+    ramp = np.interp  # the linear rule: holds the end values outside the keyframes
+    steer = ramp(t_s, [0.0, 0.1, 0.2], [0.0, 0.2, -0.1])
+    throttle = ramp(t_s, [0.1, 0.2], [0.0, 1.0])
+    brake = ramp(t_s, [0.0, 0.1], [0.6, 0.0])
+    parking = 1.0 if 0.05 <= t_s < 0.25 else 0.0
+    gear = proto.Gear.N if t_s < 0.05 else proto.Gear.D
+    return [steer, throttle, brake, parking, float(gear)]
+
+
 def test_a_keyframed_car_plays_its_table_and_ignores_commands(flat_scene, tmp_path):
+    """A car ``driven_by: keyframes`` applies its file's inputs at every tick of the
+    table, as the keyframe rule samples them (``_keyframed_inputs``): each keyframe's
+    values at its time, the ramps between, the switches, and after the table's end
+    (``duration_s``) its last row; the commands sent to it are counted, not applied.
+    Checked on the inputs of every step (the car's input vector after each tick: the
+    row applied over it) and on the published states (the inputs of the step that led
+    to each); before, only the end values were."""
     frames = tmp_path / "go.yaml"
-    frames.write_text("name: go\nduration_s: 0.2\ninputs:\n  - {t: 0.0, gear: D, throttle: 0.0}"
-                      "\n  - {t: 0.1, throttle: 1.0}\n")
+    frames.write_text("name: go\nduration_s: 0.3\ninputs:\n"
+                      "  - {t: 0.0, gear: N, brake: 0.6, steer: 0.0}\n"
+                      "  - {t: 0.05, gear: D, parking_brake: 1}\n"
+                      "  - {t: 0.1, throttle: 0.0, brake: 0.0, steer: 0.2}\n"
+                      "  - {t: 0.2, throttle: 1.0, steer: -0.1}\n"
+                      "  - {t: 0.25, parking_brake: 0}\n")
     rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "kf", "driven_by": "keyframes",
                                              "keyframes": str(frames),
                                              "pose": {"x_m": 15.0, "y_m": 0.0}}])
-    for _ in range(400):
-        rig.send("kf", brake=1.0, gear=proto.Gear.R)  # not applied
+    kf = rig.slots["kf"]
+    dt = rig.cfg.period_s
+    applied = []
+    for _ in range(700):
+        rig.send("kf", brake=1.0, steer=-1.0, gear=proto.Gear.R)  # not applied
         rig.run()
+        applied.append(kf.sim.inputs.copy())
+    times = np.arange(700) * dt  # the step k starts at k dt (tick k)
+    expected = np.array([_keyframed_inputs(t) for t in times])
+    # every step: each keyframe's values at its time (t = 0, 50, 100, 200, 250 ms, where a
+    # switch takes its new value), the ramps between (to rounding), the last row after
+    # the table's end at 300 ms
+    assert np.allclose(np.array(applied), expected, rtol=0.0, atol=1e-12), np.flatnonzero(
+        np.abs(np.array(applied) - expected).max(axis=1) > 1e-12)[:5]
+    for k, row in ((0, [0.0, 0.0, 0.6, 0.0, proto.Gear.N]), (50, [0.1, 0.0, 0.3, 1.0, 3.0]),
+                   (100, [0.2, 0.0, 0.0, 1.0, 3.0]), (150, [0.05, 0.5, 0.0, 1.0, 3.0]),
+                   (200, [-0.1, 1.0, 0.0, 1.0, 3.0]), (249, [-0.1, 1.0, 0.0, 1.0, 3.0]),
+                   (250, [-0.1, 1.0, 0.0, 0.0, 3.0]), (699, [-0.1, 1.0, 0.0, 0.0, 3.0])):
+        assert np.allclose(applied[k], row, rtol=0.0, atol=1e-12), (k, applied[k])
+    # what a client sees: the state of tick n carries the inputs of the step n - 1 to n
+    states = rig.ports["kf"].publisher.states
+    assert len(states) == 70
+    for st in states:
+        want = expected[int(st["tick"]) - 1]
+        got = [st["steer"], st["throttle"], st["brake"], st["parking_brake"], st["gear"]]
+        assert np.allclose(got, want, rtol=0.0, atol=1e-6), (int(st["tick"]), got, want)
     s = rig.state("kf")
     assert s["throttle"] == 1.0 and s["gear"] == proto.Gear.D and s["brake"] == 0.0
     assert not s["flags"] & WATCHDOG and s["u_mps"] > 0.5
-    assert rig.slots["kf"].counters["cmd_rejected"] == 400
+    assert kf.counters["cmd_rejected"] == 700
     w = proto.decode_world(rig.world_payloads[-1])
     assert proto.DRIVEN_BY_CODES[int(w.car("kf")["driven_by"])] == "keyframes"
 
@@ -407,13 +457,18 @@ def test_world_controls_add_and_remove_cars_between_ticks(flat_scene):
     ("hill_15pct_paper_sedan", {"pose": {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}}),
     ("curves_elevation_paper_sedan", {"start": {"road": "1", "s": 60.0, "lane": -1}}),
     ("flat_mf_hatchback", {"pose": {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}}),
-], ids=["hill", "opendrive_lane", "other_vehicle"])
+    ("curves_elevation_paper_sedan", {"start": {"road": "1", "s": 60.0, "lane": -1},
+                                      "driven_by": "driver",
+                                      "driver": {"path": {"road": "1", "lane": -1},
+                                                 "idm": {"v0_mps": 10.0}}}),
+], ids=["hill", "opendrive_lane", "other_vehicle", "driver_on_a_lane"])
 def test_a_car_added_after_a_live_load_is_made_on_the_loaded_scene(flat_scene, scene_name,
                                                                     where):
     """A world of one car that loaded another scene while running (its own ``load``), then
     ``add_car``: the new car is made on the world's scene now, the loaded one, as a car of
     that scene alone at the same place would be, bit for bit: its road, its OpenDRIVE
-    lanes for a start by lane, its vehicle as the default, and its command log naming it.
+    lanes for a start by lane and for a driver's lane path (sampled on its terrain), its
+    vehicle as the default, and its command log naming it.
     Before, the new car was made on the server config's scene: the flat road's scene on
     the 15 % grade, a start by lane refused ("needs an OpenDRIVE" terrain), the paper sedan
     where the world's scene drives the hatchback."""
@@ -457,5 +512,109 @@ def test_a_car_added_after_a_live_load_is_made_on_the_loaded_scene(flat_scene, s
         assert slot.sim.scene.road == scene.road
         assert slot.sim.scene.vehicle.name == scene.vehicle.name
         assert slot.scene_path == loaded  # what its log's header and load line name
+        if "driver" in where:  # its lane path: the loaded scene's road, sampled on its
+            from simserver.server.live_drivers import sample_path  # terrain
+
+            assert slot.driven_by == "driver"
+            block = cars_config.driver_spec(spec, scene)
+            assert np.array_equal(rig.loop.live_drivers.rows["c"],
+                                  sample_path(block, scene.terrain))
     finally:
         desk.close()
+
+
+def test_a_car_added_after_a_live_set_road_replays_on_the_worlds_road(flat_scene, tmp_path):
+    """A live ``set_road`` changes the road under every car; a car added afterwards
+    (``add_car``) stands on the world's road, so its command log names that road after
+    its start (``fleet.log_start``): the replay of its log alone, and the world's replay
+    of every log, give its live bits. Before, its log named only the scene (its file's
+    road, 0 %): its replay alone drove up a flat road the live car climbed at 8 %."""
+    from simserver.server.world_desk import WorldDesk
+    from simserver.server.world_replay import replay_world
+
+    rig = WorldRig(flat_scene, [{"id": "a"}], tmp_path)
+    rig.loop.world_message = fleet.WorldMessage(["a"], ["client"], every=10, capacity=2)
+    controls = ListControls()
+
+    def make_ports(cfg):
+        ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
+        rig.ports[cfg.vehicle_id] = ports
+        return ports
+
+    def added(slot):  # as the server's (SimServer._added): its log, then its start lines
+        slot.command_log = CommandLog(tmp_path / f"{slot.keys.vehicle}.jsonl", {
+            "scene": str(slot.scene_path), "dt_s": rig.cfg.period_s, "step": 0})
+        fleet.log_start(slot, cars_config.CarSpec(id=slot.keys.vehicle, where="",
+                                                  vehicle=slot.sim.scene.vehicle.path))
+
+    desk = WorldDesk(rig.loop, rig.cfg, controls, make_ports, lambda slot, ports: None,
+                     on_added=added)
+    rig.loop.world_desk = desk
+    try:
+        rig.run(50)
+        assert rig.control("a", "set_road", {"grade_pct": 8.0})["road"]["grade_pct"] == 8.0
+        rig.run(50)
+        add = LocalRequest("add_car", json.dumps({"id": "c", "pose": {
+            "x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}}).encode())
+        controls.pending.append(add)
+        for _ in range(3000):
+            rig.loop.tick()
+            if add.body is not None:
+                break
+        assert add.answer == {"ok": True, "car": "c", "cars": ["a", "c"]}, add.answer
+        c = next(s for s, _ in rig.loop.slots if s.keys.vehicle == "c")
+        assert c.sim.road["grade_pct"] == 8.0  # the world's road, live
+        for k in range(400):
+            rig.send("a", brake=0.8, gear=proto.Gear.D)
+            rig.ports["c"].commands.pending.append(proto.encode_command(
+                seq=k + 1, throttle=0.7, gear=proto.Gear.D))
+            rig.run()
+        assert c.sim.x[L.X_M] > 40.2
+    finally:
+        desk.close()
+    for slot, _ in rig.loop.slots:
+        slot.command_log.close(slot.steps_total, slot.sim.x.copy())
+    alone = replay_command_log(tmp_path / "c.jsonl")
+    assert alone.steps == c.steps_total
+    assert alone.final_state_matches, (alone.final_state[L.X_M], c.sim.x[L.X_M])
+    world = replay_world([tmp_path / "a.jsonl", tmp_path / "c.jsonl"])
+    assert world.all_match
+
+
+def test_catch_up_ticks_shed_the_traffics_states_and_put_off_the_world_message(flat_scene,
+                                                                              tmp_path):
+    """After a stall the loop runs its ticks back to back until it is on its deadlines
+    again (catch-up). Those ticks publish a client's car's state as ever, shed the
+    traffic's states of their phase (the world message carries every car), and put the
+    world message off to the first tick back on its deadline, which sends it with every
+    car's newest state: the back-to-back ticks cost little more than the world's step."""
+    frames = tmp_path / "go.yaml"
+    frames.write_text("name: go\nduration_s: 1.0\ninputs:\n  - {t: 0.0, gear: D, throttle: 0.2}\n")
+    rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "kf", "driven_by": "keyframes",
+                                             "keyframes": str(frames),
+                                             "pose": {"x_m": 15.0, "y_m": 0.0}}])
+    for _ in range(100):
+        rig.send("a", throttle=0.3, gear=proto.Gear.D)
+        rig.run()
+    assert not rig.loop.pacer.catching_up
+    counts = {car: len(rig.ports[car].publisher.states) for car in ("a", "kf")}
+    worlds = len(rig.world_payloads)
+    rig.clock.t += 25 * MS  # a stall of 25 ms: 25 deadlines pass
+    behind = []
+    while True:
+        rig.run()
+        if not rig.loop.pacer.catching_up:
+            break
+        behind.append(rig.loop.loop_count - 1)
+    assert len(behind) >= 20  # 25 deadlines caught up (a tick costs ~1 us of fake time)
+    # every catch-up tick published the client's car's state; none of the traffic's,
+    # though its 100 Hz phase came twice; no world message, though it was due twice
+    assert len(rig.ports["a"].publisher.states) - counts["a"] == len(behind) + 1
+    assert len(rig.ports["kf"].publisher.states) == counts["kf"]
+    assert len(rig.world_payloads) == worlds + 1  # sent by the first tick on time
+    last = proto.decode_world(rig.world_payloads[-1])
+    assert last.tick == rig.loop.loop_count - 1
+    assert float(last.car("a")["x_m"]) == pytest.approx(float(rig.state("a")["x_m"]))
+    # back on its deadlines, the traffic publishes at its phase again
+    rig.run(rig.loop.traffic_every)
+    assert len(rig.ports["kf"].publisher.states) == counts["kf"] + 1

@@ -204,7 +204,10 @@ def test_storyboard_on_the_viewer_timeline(tmp_path: Path) -> None:
             wait_until(lambda: trace.fired(), lambda f: "CutInEvent" in f, timeout_s=180.0,
                        what="the cut-in firing")
             t_f = trace.fired()["CutInEvent"]["t_s"]
-            time.sleep(3.0)  # the viewer's loop drains its inbox every few ms
+            # logged to the recording by the viewer (it prints each line it logged)
+            wait_until(lambda: "".join(viewer.output), lambda text: "storyboard t = "
+                       in text and "event CutInEvent: standby -> running" in text,
+                       timeout_s=60.0, what="the viewer's line of the cut-in")
         finally:
             client.close()
             if viewer is not None:

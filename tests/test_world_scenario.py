@@ -8,6 +8,8 @@ bit, and the order of the cars in the file changes nothing.
 from __future__ import annotations
 
 import os
+import re
+import shutil
 import subprocess
 import sys
 
@@ -90,6 +92,114 @@ def test_a_car_with_a_bad_key_is_named(tmp_path):
         load_world_scenario(HILL, data)
     with pytest.raises(ConfigError, match=r"key 'cars': expected a non-empty list"):
         load_world_scenario(HILL, {**data, "cars": []})
+
+
+def test_overlapping_starts_are_refused_naming_the_file_and_both_cars():
+    """A headless world refuses what the live server's ``cars:`` refuses (issue 30, Bad
+    input): two starts whose bodies overlap (the contact stage's boxes, one check:
+    ``simserver.sim.scene.check_starts_apart``), the error naming the file and both cars
+    in the server's words. Before, a headless world of overlapping cars ran: the contact
+    threw them apart on the first step."""
+    from simserver.core.contact import body_box
+    from simserver.server import cars_config
+
+    data = dict(read_yaml(HILL))
+    data["cars"] = [dict(c) for c in data["cars"]]
+    vp = load_world_scenario(HILL).first.scene.vehicle.vp
+    front_m, rear_m, half_m = body_box(vp)
+    for x_m, overlaps in ((front_m + rear_m + 0.01, False), (front_m + rear_m - 0.01, True)):
+        data["cars"][1]["initial"] = {"x_m": data["cars"][0]["initial"]["x_m"] - x_m}
+        if not overlaps:  # bumper to bumper, 1 cm apart: fine
+            load_world_scenario(HILL, data)
+            continue
+        with pytest.raises(ConfigError) as err:
+            load_world_scenario(HILL, data)
+        assert str(err.value).startswith(f"{HILL}: cars[1] (follower): its start "), err.value
+        assert "overlaps the start of car 'lead'" in str(err.value)
+        # the live server's words for the same two cars (its where: FILE: cars[k] (id))
+        specs = cars_config.parse_cars(HILL, [
+            {"id": "lead", "pose": {"x_m": 20.82, "y_m": 0.0}},
+            {"id": "follower", "pose": {"x_m": 20.82 - x_m, "y_m": 0.0}}])
+        scene = load_world_scenario(HILL, {**data, "cars": data["cars"][:1]}).first.scene
+        with pytest.raises(ConfigError) as live:
+            cars_config.car_scenes(specs, scene)
+        assert str(live.value) == str(err.value)
+    # side by side, one turned: the rectangles meet at a corner only
+    data["cars"][1]["initial"] = {"x_m": 20.82, "y_m": 2 * half_m + 0.05, "yaw_rad": 0.3}
+    with pytest.raises(ConfigError, match=r"cars\[1\] \(follower\): its start .* overlaps"):
+        load_world_scenario(HILL, data)
+
+
+def test_more_cars_than_max_cars_and_an_id_twice_are_refused():
+    data = dict(read_yaml(HILL))
+    cars = [dict(data["cars"][0], id=f"car{k}", initial={"x_m": 10.0 * k}) for k in range(3)]
+    assert len(load_world_scenario(HILL, {**data, "cars": cars}).cars) == 3
+    with pytest.raises(ConfigError, match=rf"^{HILL}: key 'cars': 3 cars, more than "
+                                          r"max_cars \(2\)$"):
+        load_world_scenario(HILL, {**data, "max_cars": 2, "cars": cars})
+    with pytest.raises(ConfigError, match=rf"^{HILL}: key 'max_cars'"):
+        load_world_scenario(HILL, {**data, "max_cars": 0, "cars": cars})
+    cars[2]["id"] = "car0"
+    with pytest.raises(ConfigError, match=r"key 'cars\[2\]\.id': 'car0' is given twice \(the "
+                                          r"id of cars\[0\] \(car0\) too\)"):
+        load_world_scenario(HILL, {**data, "cars": cars})
+
+
+def test_a_start_off_the_road_is_refused_naming_the_file_and_the_car():
+    """A headless world's starts are checked as the live server's (``simserver.sim.scene.
+    check_on_road``): on an OpenDRIVE terrain on a lane, on a height map on its grid.
+    Before, a car half a metre beyond the road's edge, or off the map, ran."""
+    import math
+
+    from simserver.adapters.opendrive import load_opendrive, road_extent
+
+    lane = REPO / "configs" / "scenarios" / "driver_lane_follow_curves.yaml"
+    data = dict(read_yaml(lane))
+    road = load_opendrive(REPO / "configs" / "roads" / "curves_elevation.xodr").roads[0]
+    right, _ = road_extent(road, 100.0)
+    rx, ry, hdg = road.reference(100.0)
+    keyed = {"vehicle": data["cars"][0]["vehicle"],
+             "inputs": [{"t": 0.0, "brake": 0.5, "gear": "D"}]}
+
+    def beside(offset_m: float) -> dict:  # a car beside the road's right edge at s 100 m
+        t_m = -right + offset_m
+        return {"id": "ditch", **keyed, "initial": {
+            "x_m": rx + math.sin(hdg) * t_m, "y_m": ry - math.cos(hdg) * t_m,
+            "yaw_rad": hdg}}
+
+    load_world_scenario(lane, {**data, "cars": [data["cars"][0], beside(-0.1)]})  # on it
+    with pytest.raises(ConfigError) as err:
+        load_world_scenario(lane, {**data, "cars": [data["cars"][0], beside(0.5)]})
+    assert str(err.value).startswith(f"{lane}: cars[1] (ditch): the start ("), err.value
+    assert "is off the road: not on a lane of curves_elevation.xodr" in str(err.value)
+    hills = REPO / "configs" / "scenarios" / "terrain_hills_heightmap.yaml"
+    one = {k: v for k, v in read_yaml(hills).items() if k not in ("vehicle", "initial",
+                                                                 "inputs")}
+    on_map = {"id": "a", **keyed, "vehicle": "../vehicles/paper_sedan/vehicle.yaml",
+              "initial": {"x_m": 55.0, "y_m": 0.0}}
+    off_map = {**on_map, "id": "b", "initial": {"x_m": 55.0, "y_m": -50.0}}
+    load_world_scenario(hills, {**one, "cars": [on_map]})
+    with pytest.raises(ConfigError, match=rf"^{hills}: cars\[1\] \(b\): the start "
+                                          r"\(55.00, -50.00\) m is off the height map"):
+        load_world_scenario(hills, {**one, "cars": [on_map, off_map]})
+
+
+def test_an_openscenario_file_with_overlapping_entities_is_refused(tmp_path):
+    """The OpenSCENARIO player builds its world through the same loader: entities placed
+    into each other are refused, naming the .xosc file."""
+    from simserver.sim.xosc_run import setup
+
+    src = REPO / "configs" / "openscenario" / "simserver" / "hill_queue_15pct.xosc"
+    setup(src, 1.0)  # as shipped: 3 cars apart
+    text = src.read_text()
+    lane_s = re.compile(r'(<LanePosition [^>]*\bs=")[^"]*(")')
+    assert len(lane_s.findall(text)) == 3
+    shutil.copytree(src.parents[1], tmp_path / "openscenario")  # its catalogs and road
+    bad = tmp_path / "openscenario" / "simserver" / src.name
+    bad.write_text(lane_s.sub(r"\g<1>20\g<2>", text))  # every car at s = 20 m of one lane
+    with pytest.raises(ConfigError, match=rf"^{bad}: cars\[1\] \(\w+\): its start .* overlaps "
+                                          r"the start of car"):
+        setup(bad, 1.0)
 
 
 def test_run_scenario_writes_one_history_and_plots_every_car(tmp_path):

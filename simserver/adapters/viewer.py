@@ -396,9 +396,10 @@ def storyboard_text(entry: dict[str, Any]) -> str:
     return text
 
 
-def log_storyboard_payload(rec_stream: Any, payload: bytes) -> bool:
+def log_storyboard_payload(rec_stream: Any, payload: bytes) -> str | None:
     """Log one ``{prefix}/world/storyboard`` message (``protocol.ENCODING_STORYBOARD``) as
-    a ``TextLog`` entry at its simulated time; False when it does not decode."""
+    a ``TextLog`` entry at its simulated time; its line (with the time), or None when it
+    does not decode."""
     import rerun as rr
 
     from simserver.adapters.rerun_scene import TIMELINE, time_ns
@@ -408,12 +409,13 @@ def log_storyboard_payload(rec_stream: Any, payload: bytes) -> bool:
         text = storyboard_text(entry)
         t_s = entry.get("t_s")
     except (ValueError, KeyError, TypeError):
-        return False
-    if isinstance(t_s, (int, float)) and math.isfinite(t_s):
+        return None
+    timed = isinstance(t_s, (int, float)) and math.isfinite(t_s)
+    if timed:
         rec_stream.set_time(TIMELINE, duration=time_ns(float(t_s))[()])
     level = rr.TextLogLevel.WARN if entry.get("note") else rr.TextLogLevel.INFO
     rec_stream.log(STORYBOARD_ENTITY, rr.TextLog(text, level=level))
-    return True
+    return f"t = {float(t_s):.3f} s: {text}" if timed else text
 
 
 def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
@@ -549,8 +551,11 @@ def run_viewer(sink: str, connect: list[str] | None, prefix: str = "simserver",
                             fleet.log(time_s, world)
                             stats.world_frames += 1
                 for payload in storyboard.drain_newest():  # a served scenario's
-                    if log_storyboard_payload(recordings.current, payload):
+                    line = log_storyboard_payload(recordings.current, payload)
+                    if line is not None:  # in the terminal too: a handful a scenario
                         stats.storyboard_lines += 1
+                        print(f"simserver view: storyboard {line}", file=sys.stderr,
+                              flush=True)
                 for payload in diags.drain_newest():
                     if log_diagnostics_payload(recordings.current, payload, period_s,
                                                stats.states_dropped, last_tick,

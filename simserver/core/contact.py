@@ -184,6 +184,39 @@ def _box(vp: np.ndarray) -> tuple[float, float, float]:
     return 0.5 * (front - rear), 0.5 * (front + rear), 0.5 * vp[VP_BODY_WIDTH_M]
 
 
+def body_box(vp: np.ndarray) -> tuple[float, float, float]:
+    """The body's box as lengths from the CG, ``(front_m, rear_m, half_width_m)``: the
+    very box the contact stage pushes with (``_box``, from the vehicle's ``body_*``
+    parameters). Python side: the checks of the cars' start poses (a headless world,
+    ``simserver.sim.scene.check_starts_apart``, and the live server's, ``simserver.server.
+    cars_config``) refuse a start this box overlaps another's at, one the contact would
+    push apart on the first step."""
+    offset, half_l, half_w = _box.py_func(vp)
+    return float(offset + half_l), float(half_l - offset), float(half_w)
+
+
+def _box_corners(pose: dict[str, float], box: tuple[float, float, float]) -> np.ndarray:
+    front, rear, half = box
+    c, s = np.cos(pose["yaw_rad"]), np.sin(pose["yaw_rad"])
+    local = np.array([[front, half], [front, -half], [-rear, -half], [-rear, half]])
+    return np.column_stack((pose["x_m"] + c * local[:, 0] - s * local[:, 1],
+                            pose["y_m"] + s * local[:, 0] + c * local[:, 1]))
+
+
+def bodies_overlap(pose_a: dict[str, float], box_a: tuple[float, float, float],
+                   pose_b: dict[str, float], box_b: tuple[float, float, float]) -> bool:
+    """Whether two body boxes (``body_box``) at two poses (``x_m``, ``y_m``, ``yaw_rad``)
+    overlap (touching is not): the separating axis theorem on the rectangles' four edge
+    normals, as the narrow phase of ``pair_contact``. Python side, off the step."""
+    a, b = _box_corners(pose_a, box_a), _box_corners(pose_b, box_b)
+    for yaw in (pose_a["yaw_rad"], pose_b["yaw_rad"]):
+        for axis in ((np.cos(yaw), np.sin(yaw)), (-np.sin(yaw), np.cos(yaw))):
+            pa, pb = a @ axis, b @ axis
+            if pa.max() <= pb.min() or pb.max() <= pa.min():
+                return False
+    return True
+
+
 @nb.njit(cache=True)
 def footprint(vp: np.ndarray, x: np.ndarray, axes: np.ndarray, plane: bool,
               cc: np.ndarray) -> None:

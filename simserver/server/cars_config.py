@@ -32,18 +32,18 @@ by a bad list; each error names the file and the car (``cars[k] (id)``):
   :data:`simserver.wire.protocol.WORLD_ID_BYTES` (the world message's id field), or the reserved
   id :data:`WORLD_KEY` (the world's own keys, ``{prefix}/world/...``);
 - more cars than ``max_cars``;
-- a start off the road: on an OpenDRIVE terrain the car's CG must be on a lane of a road
-  (:func:`on_lane`), on a height map inside the grid (beyond it the ground is the edge's,
-  extended flat: no road);
-- two start poses whose body footprints overlap (:func:`footprint`, :func:`overlap`):
-  oriented rectangles in the horizontal plane (the contact stage's boxes, from the
-  vehicle's ``body_*`` parameters), by the separating axis theorem.
+- a start off the road: on an OpenDRIVE terrain the car's CG must be on a lane of a road,
+  on a height map inside the grid (beyond it the ground is the edge's, extended flat: no
+  road) (``simserver.sim.scene.check_on_road``, a headless world's check too);
+- two start poses whose body footprints overlap (``simserver.sim.scene.
+  check_starts_apart``, a headless world's check too, on ``core.contact.body_box`` and
+  ``bodies_overlap``): oriented rectangles in the horizontal plane (the contact stage's
+  boxes, from the vehicle's ``body_*`` parameters), by the separating axis theorem.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -52,25 +52,16 @@ import numpy as np
 
 from simserver.adapters.config import ConfigError, check_keys, load_vehicle, number
 from simserver.adapters.validate import integer, referenced_file, short_repr
-from simserver.core.params import (
-    VP_BODY_FRONT_OVERHANG_M,
-    VP_BODY_REAR_OVERHANG_M,
-    VP_BODY_WIDTH_M,
-    VP_CG_TO_FRONT_AXLE_M,
-    VP_CG_TO_REAR_AXLE_M,
-)
-from simserver.core.terrain import (
-    GRID_DX_M,
-    GRID_DY_M,
-    GRID_X0_M,
-    GRID_Y0_M,
-    TERRAIN_HEIGHTMAP,
-    TERRAIN_OPENDRIVE,
+from simserver.core.contact import bodies_overlap, body_box
+from simserver.sim.scene import (  # max_cars: a headless world's limit too (one source)
+    DEFAULT_MAX_CARS,
+    MAX_CARS_RANGE,
+    check_car_count,
+    check_on_road,
 )
 from simserver.wire import protocol as proto
 
 if TYPE_CHECKING:
-    from simserver.adapters.opendrive import OpenDrive, Road
     from simserver.sim.scene import Scene
 
 WORLD_KEY = "world"
@@ -90,15 +81,7 @@ DRIVEN_BY: dict[str, str] = {
 }
 """Who drives a car (``driven_by``), with what it means: one table for checks and docs."""
 
-DEFAULT_MAX_CARS = 32
-MAX_CARS_RANGE = (1, 256)
-"""``max_cars``: the default and the range it may be set in."""
-
 POSE_KEYS = ("x_m", "y_m", "yaw_rad")
-
-
-LANE_SAMPLE_M = 0.5
-"""Spacing of the reference-line samples :func:`on_lane` projects a point onto."""
 
 
 @dataclass(frozen=True)
@@ -121,9 +104,7 @@ def parse_cars(path: Path, raw: Any, max_cars: int = DEFAULT_MAX_CARS) -> list[C
     entry's keys and values. Files are resolved (relative to ``path``) but not read."""
     if not isinstance(raw, list) or not raw:
         raise ConfigError(f"{path}: key 'cars': expected a non-empty list of cars")
-    if len(raw) > max_cars:
-        raise ConfigError(f"{path}: key 'cars': {len(raw)} cars, more than max_cars "
-                          f"({max_cars})")
+    check_car_count(path, len(raw), max_cars)
     cars: list[CarSpec] = []
     seen: dict[str, int] = {}
     for k, entry in enumerate(raw):
@@ -253,108 +234,13 @@ def car_scenes(cars: list[CarSpec], scene: Scene) -> dict[str, Scene]:
     return scenes
 
 
-def check_on_road(where: str, scene: Scene) -> None:
-    """The scene's start is on its road (module docstring); else ``ConfigError``."""
-    x, y = scene.initial["x_m"], scene.initial["y_m"]
-    terrain = scene.terrain
-    if terrain.kind == TERRAIN_OPENDRIVE and scene.roads is not None:
-        if not on_lane(scene.roads, x, y):
-            raise ConfigError(f"{where}: the start ({x:.2f}, {y:.2f}) m is off the road: not "
-                              f"on a lane of {scene.roads.path.name}")
-    elif terrain.kind == TERRAIN_HEIGHTMAP:
-        g = terrain.grid
-        ny, nx = terrain.heights.shape
-        x0, y0 = g[GRID_X0_M], g[GRID_Y0_M]
-        x1, y1 = x0 + (nx - 1) * g[GRID_DX_M], y0 + (ny - 1) * g[GRID_DY_M]
-        if not (x0 <= x <= x1 and y0 <= y <= y1):
-            raise ConfigError(f"{where}: the start ({x:.2f}, {y:.2f}) m is off the height "
-                              f"map ({x0:g} .. {x1:g}, {y0:g} .. {y1:g}) m")
-
-
-def _reference_samples(road: Road, step_m: float) -> tuple[np.ndarray, ...]:
-    """``(s, x, y, heading)`` of the reference line every ``step_m`` (and at its end)."""
-    from simserver.adapters.opendrive import GeometryArray
-
-    s = np.append(np.arange(0.0, road.length, step_m), road.length)
-    geos = road.geometries
-    starts = geos.starts if isinstance(geos, GeometryArray) else np.array(
-        [g.s for g in geos])
-    which = np.clip(np.searchsorted(starts, s + 1e-9, side="right") - 1, 0, len(geos) - 1)
-    x, y, h = (np.empty_like(s) for _ in range(3))
-    for k in np.unique(which):
-        sel = which == k
-        geo = geos[int(k)]
-        x[sel], y[sel], h[sel] = geo.points(np.clip(s[sel] - geo.s, 0.0, geo.length))
-    return s, x, y, h
-
-
-def on_lane(od: OpenDrive, x_m: float, y_m: float, step_m: float = LANE_SAMPLE_M) -> bool:
-    """Whether the point ``(x_m, y_m)`` is on a lane of a road of ``od``: its projection on
-    some road's reference line (the nearest of samples every ``step_m``, refined along the
-    local heading) falls within the road's length, and its lateral offset within the
-    road's lanes there (``road_extents``; superelevation ignored: a lateral error of
-    ``t (1 - cos roll)``, 2 mm for 4 m at 4 %)."""
-    from simserver.adapters.opendrive import road_extents
-
-    for road in od.roads:
-        if road.length <= 0.0:
-            continue
-        s, x, y, h = _reference_samples(road, step_m)
-        dx, dy = x_m - x, y_m - y
-        n = int(np.argmin(dx * dx + dy * dy))
-        c, sn = math.cos(h[n]), math.sin(h[n])
-        along = dx[n] * c + dy[n] * sn
-        s_here = s[n] + along
-        if not -1e-6 <= s_here <= road.length + 1e-6 or abs(along) > step_m:
-            continue
-        t = -dx[n] * sn + dy[n] * c
-        right, left = road_extents(road, np.array([min(max(s_here, 0.0), road.length)]))
-        if right[0] - 1e-6 <= t <= left[0] + 1e-6:
-            return True
-    return False
-
-
-def footprint(vp: np.ndarray) -> tuple[float, float, float]:
-    """The body's footprint: ``(front_m, rear_m, half_width_m)`` from the CG, the box the
-    contact stage pushes with (the vehicle's ``body_*`` parameters, ``core.contact``,
-    docs/model.md section 16): a start that overlaps is one the contact would push apart."""
-    return (float(vp[VP_CG_TO_FRONT_AXLE_M] + vp[VP_BODY_FRONT_OVERHANG_M]),
-            float(vp[VP_CG_TO_REAR_AXLE_M] + vp[VP_BODY_REAR_OVERHANG_M]),
-            0.5 * float(vp[VP_BODY_WIDTH_M]))
-
-
-def _corners(pose: dict[str, float], box: tuple[float, float, float]) -> np.ndarray:
-    front, rear, half = box
-    c, s = math.cos(pose["yaw_rad"]), math.sin(pose["yaw_rad"])
-    local = np.array([[front, half], [front, -half], [-rear, -half], [-rear, half]])
-    return np.column_stack((pose["x_m"] + c * local[:, 0] - s * local[:, 1],
-                            pose["y_m"] + s * local[:, 0] + c * local[:, 1]))
-
-
-def overlap(pose_a: dict[str, float], box_a: tuple[float, float, float],
-            pose_b: dict[str, float], box_b: tuple[float, float, float]) -> bool:
-    """Whether two footprints (``footprint``) at two poses overlap (touching is not):
-    the separating axis theorem on the rectangles' four edge normals."""
-    a, b = _corners(pose_a, box_a), _corners(pose_b, box_b)
-    for yaw in (pose_a["yaw_rad"], pose_b["yaw_rad"]):
-        for axis in ((math.cos(yaw), math.sin(yaw)), (-math.sin(yaw), math.cos(yaw))):
-            pa, pb = a @ axis, b @ axis
-            if pa.max() <= pb.min() or pb.max() <= pa.min():
-                return False
-    return True
-
-
 def check_apart(cars: list[CarSpec], scenes: dict[str, Scene]) -> None:
-    """No two cars' start footprints overlap; else ``ConfigError`` naming both."""
-    boxes = {car.id: footprint(scenes[car.id].vehicle.vp) for car in cars}
-    for i, a in enumerate(cars):
-        for b in cars[:i]:
-            pa, pb = scenes[a.id].initial, scenes[b.id].initial
-            if overlap(pa, boxes[a.id], pb, boxes[b.id]):
-                raise ConfigError(
-                    f"{a.where}: its start ({pa['x_m']:.2f}, {pa['y_m']:.2f}) m overlaps the "
-                    f"start of car {b.id!r} ({pb['x_m']:.2f}, {pb['y_m']:.2f}) m (bodies "
-                    f"{sum(boxes[a.id][:2]):.2f} x {2 * boxes[a.id][2]:.2f} m): move one")
+    """No two cars' start footprints overlap; else ``ConfigError`` naming both
+    (``simserver.sim.scene.check_starts_apart``, a headless world's check too)."""
+    from simserver.sim.scene import check_starts_apart
+
+    check_starts_apart([(car.where, car.id, scenes[car.id].initial,
+                         scenes[car.id].vehicle.vp) for car in cars])
 
 
 MAX_KEYFRAME_STEPS = 3_600_000
@@ -389,9 +275,9 @@ def check_clear(car: CarSpec, scene: Scene, others: dict[str, tuple[dict[str, fl
     ``ConfigError`` naming the car and the one in the way."""
     if car.id in others:
         raise ConfigError(f"{car.where}: key 'id': the world has a car {car.id!r} already")
-    box = footprint(scene.vehicle.vp)
+    box = body_box(scene.vehicle.vp)
     for other_id, (pose, vp) in others.items():
-        if overlap(scene.initial, box, pose, footprint(vp)):
+        if bodies_overlap(scene.initial, box, pose, body_box(vp)):
             raise ConfigError(f"{car.where}: its start ({scene.initial['x_m']:.2f}, "
                               f"{scene.initial['y_m']:.2f}) m overlaps car {other_id!r} where "
                               f"it is now ({pose['x_m']:.2f}, {pose['y_m']:.2f}) m")

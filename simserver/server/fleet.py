@@ -219,7 +219,8 @@ def log_start(slot: Any, car: CarSpec) -> None:
     ``simserver.server.world_replay``), a ``load`` of the scene with the car's vehicle and
     a ``reset`` to the car's start pose, so that ``simserver replay`` of this log alone
     starts the car where the live world did (every car starts at rest, so the reset gives
-    the very start state)."""
+    the very start state); then, for a car added after a live ``set_road``, a
+    ``set_road`` to the world's road (the load line gives the scene's)."""
     log = slot.command_log
     if log is None:
         return
@@ -234,3 +235,6 @@ def log_start(slot: Any, car: CarSpec) -> None:
     log.write({"step": slot.steps_total,
                "reset": slot.logged_start({k: float(initial[k])
                                            for k in ("x_m", "y_m", "yaw_rad")})})
+    road = dict(slot.sim.road)  # the world's now: a live set_road may have changed it
+    if road != {k: float(slot.sim.scene.road[k]) for k in road}:  # from the scene's
+        log.write({"step": slot.steps_total, "set_road": road})

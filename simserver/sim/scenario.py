@@ -26,8 +26,8 @@ Scenario YAML (paths relative to the scenario file)::
 
 Several cars on one terrain (``cars:``; docs/model.md section 14): the world's keys
 (``name``, ``description``, ``road``, ``terrain``, ``duration_s``, ``dt_s``,
-``record_every``) at the top, and per car an ``id``, its ``vehicle``, start (``initial``
-or ``start``), ``model`` options and ``inputs``, as a single car's::
+``record_every``, ``max_cars``) at the top, and per car an ``id``, its ``vehicle``, start
+(``initial`` or ``start``), ``model`` options and ``inputs``, as a single car's::
 
     cars:
       - {id: lead, vehicle: ../vehicles/paper_sedan/vehicle.yaml, initial: {x_m: 20.0},
@@ -35,7 +35,14 @@ or ``start``), ``model`` options and ``inputs``, as a single car's::
       - {id: follower, vehicle: ..., inputs: [...]}
 
 Each car is run as the car alone would be (``load_world_scenario``, ``run_world_scenario``):
-its numbers do not depend on the other cars nor on their order in the file.
+its numbers do not depend on the other cars nor on their order in the file. The list is
+checked as the live server's ``cars:``, each error naming the file and the car
+(``cars[k] (id)``): each id once, at most ``max_cars`` cars (a world key; default 256,
+the most of ``simserver.sim.scene.MAX_CARS_RANGE``: a headless run has no tick to keep,
+where the live server's default is 32), each start on the road
+(``simserver.sim.scene.check_on_road``: on a lane of an OpenDRIVE terrain, on a height
+map's grid), no two starts whose bodies overlap (``simserver.sim.scene.
+check_starts_apart``).
 
 The channels are ``steer``, ``throttle``, ``brake``, ``parking_brake`` (0/1 or true/false)
 and ``gear`` (P, R, N, D); how each is sampled between, before and after the keyframes that
@@ -63,10 +70,14 @@ from simserver.core.driver import N_DRIVER_STATE, simulate_driven
 from simserver.sim.keyframes import input_table, read_keyframe_file
 from simserver.sim.scene import (
     INITIAL_RANGES,
+    MAX_CARS_RANGE,
     SCENARIO_ONLY_KEYS,
     SCENE_KEYS,
     START_POSE_KEYS,
     Scene,
+    check_car_count,
+    check_on_road,
+    check_starts_apart,
     parse_scene,
 )
 from simserver.sim.simulation import Simulation, world_poses
@@ -302,7 +313,7 @@ def run_scenario(
 
 # ------------------------------------------------------------------- several cars, one world
 WORLD_KEYS = ("name", "description", "road", "terrain", "duration_s", "dt_s", "record_every",
-              "analysis", "cars")
+              "analysis", "max_cars", "cars")
 """The keys of a scenario with ``cars:``: the world's (shared by every car) and the list."""
 CAR_KEYS = ("id", "vehicle", "initial", "start", "model", "inputs", "driver")
 """The keys of one car of ``cars:``: what a single car's scenario gives for its car."""
@@ -368,15 +379,27 @@ def is_world_scenario(data: dict[str, Any]) -> bool:
 
 def load_world_scenario(path: str | Path, data: dict[str, Any] | None = None) -> WorldScenario:
     """Load and validate a scenario with ``cars:`` (errors name the file, the car and the
-    key). Each car's scenario is validated as a single car's (``load_scenario``)."""
+    key). Each car's scenario is validated as a single car's (``load_scenario``); the
+    world's checks are the live server's ``cars:`` (``simserver.server.cars_config``): at
+    most ``max_cars`` cars (default the most of ``scene.MAX_CARS_RANGE``), each id once,
+    each start on the road (``scene.check_on_road``) and no two start poses whose bodies
+    overlap (``scene.check_starts_apart``: a start the contact would push apart on the
+    first step)."""
     path = Path(path)
     data = read_yaml(path) if data is None else data
     check_keys(path, data, WORLD_KEYS, required=("name", "duration_s", "cars"))
     raw = data["cars"]
     if not isinstance(raw, list) or not raw:
         raise ConfigError(f"{path}: key 'cars': expected a non-empty list of cars")
+    # no tick to keep headless: by default as many cars as any world may hold (a file
+    # meant for the live server too sets the server's max_cars)
+    max_cars = integer(path, "max_cars", data.get("max_cars", MAX_CARS_RANGE[1]),
+                       *MAX_CARS_RANGE)
+    check_car_count(path, len(raw), max_cars)
     cars: dict[str, Scenario] = {}
-    shared = {key: data[key] for key in WORLD_KEYS if key in data and key != "cars"}
+    where: dict[str, str] = {}
+    shared = {key: data[key] for key in WORLD_KEYS if key in data
+              and key not in ("cars", "max_cars")}
     for k, car in enumerate(raw):
         if not isinstance(car, dict):
             raise ConfigError(f"{path}: key 'cars[{k}]': expected a mapping")
@@ -386,12 +409,19 @@ def load_world_scenario(path: str | Path, data: dict[str, Any] | None = None) ->
         if not isinstance(car_id, str) or not car_id:
             raise ConfigError(f"{path}: key 'cars[{k}].id': expected a non-empty string")
         if car_id in cars:
-            raise ConfigError(f"{path}: key 'cars[{k}].id': {car_id!r} is given twice")
+            raise ConfigError(f"{path}: key 'cars[{k}].id': {car_id!r} is given twice "
+                              f"(the id of {where[car_id].removeprefix(f'{path}: ')} too); "
+                              "each car needs its own")
+        where[car_id] = f"{path}: cars[{k}] ({car_id})"
         one = shared | {key: car[key] for key in CAR_KEYS if key in car and key != "id"}
         try:
             cars[car_id] = load_scenario(path, one)
         except ConfigError as exc:
             raise ConfigError(f"car {car_id!r} (cars[{k}]): {exc}") from None
+    for cid, sc in cars.items():
+        check_on_road(where[cid], sc.scene)
+    check_starts_apart([(where[cid], cid, sc.scene.initial, sc.scene.vehicle.vp)
+                        for cid, sc in cars.items()])
     return WorldScenario(name=str(data["name"]), path=path,
                          description=str(data.get("description", "")), cars=cars)
 
