@@ -216,4 +216,4 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter,
 # and CPU time: `python -m benchmarks --only suite` reports the recorded runs instead of
 # running the suite again (issue 33 item 4). The hooks are tests/suite_record.py's
 # (its pytest_configure is called from this file's).
-from tests.suite_record import pytest_sessionfinish  # noqa: E402,F401
+from tests.suite_record import pytest_runtest_logreport, pytest_sessionfinish  # noqa: E402,F401
