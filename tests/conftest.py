@@ -162,7 +162,7 @@ def player(server: ServerProcess, car: str, scenario: Path) -> OutputProcess:
 
 
 # ----------------------------------------------- a module's fixture ends with its last user
-# A server costs about 0.4 of a core while it runs, idle or not (its 1 kHz loop steps and
+# A server costs a quarter to 0.4 of a core while it runs, idle or not (its 1 kHz loop steps and
 # publishes every tick): a module-scoped server kept until the end of its module runs beside
 # every later test of the module and its servers, on a 2-core machine. So a module-scoped
 # fixture is finished (its teardown run, with its checks) right after the teardown of the

@@ -868,7 +868,7 @@ def test_keyboard_driver_shows_road_lane_s_and_edge_on_an_opendrive_road():
 
 
 # ------------------------------------------- on one flat server, the module's last tests
-# (a server costs about 0.4 of a core while it runs, idle or not: its tests come last so
+# (a server costs a quarter of a core or more while it runs, idle or not: its tests come last so
 # that it is stopped as soon as they are done, not kept running through the others)
 
 @pytest.fixture(scope="module")
