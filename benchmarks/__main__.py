@@ -852,6 +852,7 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
         last = suite_record.read()[-1:]
         if last:
             raw["suite"]["slowest_of_last_run"] = last[0].get("slowest")
+            raw["suite"]["most_cpu_of_last_run"] = last[0].get("most_cpu")
             print("the last recorded run of the README's test command (python -m "
                   "tests.suite_record prints every recorded run):\n"
                   + suite_record.describe(last[0]), flush=True)

@@ -8,7 +8,10 @@ seconds from pytest's start to its end (this process and its reaped subprocesses
 outcome counts, the exit status, whether the kernel cache held any compiled kernel at the
 start (``cold``: a fresh clone's compile was paid in the run), the load average, the
 commit, the date, and the ``SLOWEST`` slowest tests (``slowest``: ``[nodeid, seconds]``, a
-test's setup + call + teardown, slowest first). ``RECORD`` (below ``.pytest_cache/``,
+test's setup + call + teardown, slowest first) and the ``SLOWEST`` that used the most CPU
+(``most_cpu``, the same form: this process and its reaped subprocesses, from the end of one
+test's teardown to the end of the next's; on a shared machine the steadier figure).
+``RECORD`` (below ``.pytest_cache/``,
 ignored by git) keeps the last ``KEEP`` entries; ``python -m benchmarks --only suite`` reads
 them (``--run-suite N`` runs the command N times instead) and prints the last run's slowest
 tests; ``python -m tests.suite_record [FILE]`` prints every recorded run with its slowest
@@ -76,15 +79,17 @@ def slowest(durations: dict[str, float], n: int = SLOWEST) -> list[list[Any]]:
 
 def entry(wall_s: float, cpu_s: float, exitstatus: int, counts: dict[str, int],
           cached_kernels_at_start: int, load_start: float,
-          durations: dict[str, float] | None = None) -> dict[str, Any]:
+          durations: dict[str, float] | None = None,
+          cpu: dict[str, float] | None = None) -> dict[str, Any]:
     """One record: the run's figures and where they come from; ``durations`` (nodeid ->
-    setup + call + teardown seconds) gives its ``slowest``."""
+    setup + call + teardown seconds) gives its ``slowest``, ``cpu`` (nodeid -> CPU seconds)
+    its ``most_cpu``."""
     return {"wall_s": round(wall_s, 1), "cpu_s": round(cpu_s, 1), "exitstatus": exitstatus,
             "counts": counts, "cold": cached_kernels_at_start == 0,
             "loadavg_1min_start": round(load_start, 2),
             "loadavg_1min_end": round(os.getloadavg()[0], 2), "commit": _commit(),
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-            "slowest": slowest(durations or {})}
+            "slowest": slowest(durations or {}), "most_cpu": slowest(cpu or {})}
 
 
 def append(record: dict[str, Any], path: Path = RECORD) -> None:
@@ -100,6 +105,9 @@ _START: dict[str, float] = {}
 _DURATIONS: dict[str, float] = {}
 """Seconds per test of the recorded session so far: setup + call + teardown (a module or
 session fixture's set-up counts on the test that started it, as in ``--durations``)."""
+_CPU: dict[str, float] = {}
+"""CPU seconds per test of the recorded session so far (``_cpu_s`` at the end of each
+test's teardown, less its value at the end of the previous one)."""
 
 
 def _cpu_s() -> float:
@@ -121,6 +129,10 @@ def pytest_runtest_logreport(report: Any) -> None:
     """Add each phase (setup, call, teardown) of a test to its time."""
     if _START:
         _DURATIONS[report.nodeid] = _DURATIONS.get(report.nodeid, 0.0) + report.duration
+        if report.when == "teardown":
+            now = _cpu_s()
+            _CPU[report.nodeid] = now - _START.get("cpu_mark", _START["cpu"])
+            _START["cpu_mark"] = now
 
 
 def pytest_sessionfinish(session: Any, exitstatus: int) -> None:
@@ -133,7 +145,8 @@ def pytest_sessionfinish(session: Any, exitstatus: int) -> None:
     counts = {k: len(v) for k, v in getattr(reporter, "stats", {}).items()
               if k in ("passed", "failed", "error", "skipped", "xfailed", "xpassed")}
     append(entry(time.perf_counter() - _START["wall"], _cpu_s() - _START["cpu"],
-                 int(exitstatus), counts, int(_START["kernels"]), _START["load"], _DURATIONS))
+                 int(exitstatus), counts, int(_START["kernels"]), _START["load"], _DURATIONS,
+                 _CPU))
 
 
 def read(path: Path = RECORD) -> list[dict[str, Any]]:
@@ -156,9 +169,15 @@ def describe(run: dict[str, Any]) -> str:
     top = run.get("slowest")
     if not top:
         return head + "\n  (no per-test durations in this entry: recorded before they were kept)"
-    return head + f"\n  slowest {len(top)} tests (setup + call + teardown), "  \
+    text = head + f"\n  slowest {len(top)} tests (setup + call + teardown), "  \
         f"{sum(s for _, s in top):.0f} s together:\n" + "\n".join(
             f"  {seconds:8.2f} s  {nodeid}" for nodeid, seconds in top)
+    cpu = run.get("most_cpu")
+    if cpu:
+        text += f"\n  most CPU: {len(cpu)} tests (subprocesses included), "  \
+            f"{sum(s for _, s in cpu):.0f} s together:\n" + "\n".join(
+                f"  {seconds:8.2f} s  {nodeid}" for nodeid, seconds in cpu)
+    return text
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -41,6 +41,9 @@ def test_whole_default_suite_is_recorded_and_a_selection_is_not(tmp_path: Path) 
                                                               "t/test_a.py::test_two"]
     seconds = [s for _, s in run["slowest"]]
     assert seconds == sorted(seconds, reverse=True) and all(s >= 0 for s in seconds)
+    assert sorted(nodeid for nodeid, _ in run["most_cpu"]) == ["t/test_a.py::test_one",
+                                                               "t/test_a.py::test_two"]
+    assert all(s >= 0 for _, s in run["most_cpu"])
 
     for selection in (["-k", "one"], ["t/test_a.py"], ["-x"], ["-m", "not slow"]):
         proc = _pytest(tmp_path, record, *selection)
@@ -65,12 +68,16 @@ def test_slowest_keeps_the_longest_tests_and_the_printout_lists_them(tmp_path: P
     assert top[0] == ["t/test_x.py::test_39", 39.0] and top[-1] == ["t/test_x.py::test_10", 10.0]
 
     record = tmp_path / "record.json"
-    suite_record.append(suite_record.entry(12.0, 10.0, 0, {"passed": 40}, 5, 1.0, durations),
-                        record)
+    cpu = {f"t/test_x.py::test_{i}": 0.5 * i for i in range(40)}
+    suite_record.append(suite_record.entry(12.0, 10.0, 0, {"passed": 40}, 5, 1.0, durations,
+                                           cpu), record)
     proc = subprocess.run([sys.executable, "-m", "tests.suite_record", str(record)], cwd=REPO,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.splitlines()
     assert "12 s wall" in lines[0] and "slowest 30 tests" in lines[1], proc.stdout
     assert lines[2].split() == ["39.00", "s", "t/test_x.py::test_39"], lines[2]
-    assert len(lines) == 32 and "test_10" in lines[-1], proc.stdout
+    assert "test_10" in lines[31], proc.stdout
+    assert "most CPU: 30 tests" in lines[32] and lines[33].split() == [
+        "19.50", "s", "t/test_x.py::test_39"], proc.stdout
+    assert len(lines) == 63 and "test_10" in lines[-1], proc.stdout
