@@ -845,6 +845,17 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
         else:
             raw["suite"] = r = recorded_suite_runs()
             rows.append(suite_record_row(r))
+        # the slowest tests of the last recorded run (a --run-suite run records itself too):
+        # where the suite's time goes, before and after a change (issue 33 item 3)
+        from tests import suite_record
+
+        last = suite_record.read()[-1:]
+        if last:
+            raw["suite"]["slowest_of_last_run"] = last[0].get("slowest")
+            raw["suite"]["most_cpu_of_last_run"] = last[0].get("most_cpu")
+            print("the last recorded run of the README's test command (python -m "
+                  "tests.suite_record prints every recorded run):\n"
+                  + suite_record.describe(last[0]), flush=True)
     report.machine["load average at end"] = " / ".join(
         f"{x:.2f}" for x in os.getloadavg()) + " (1/5/15 min)"
     return report

@@ -7,10 +7,16 @@ took, kept so that ``python -m benchmarks`` can report the suite's time without 
 seconds from pytest's start to its end (this process and its reaped subprocesses), the
 outcome counts, the exit status, whether the kernel cache held any compiled kernel at the
 start (``cold``: a fresh clone's compile was paid in the run), the load average, the
-commit and the date. ``RECORD`` (below ``.pytest_cache/``, ignored by git) keeps the last
-``KEEP`` entries; ``python -m benchmarks --only suite`` reads them (``--run-suite N`` runs
-the command N times instead). The hooks below are ``tests/conftest.py``'s (imported there);
-``-p tests.suite_record`` loads them into another pytest run (its test does).
+commit, the date, and the ``SLOWEST`` slowest tests (``slowest``: ``[nodeid, seconds]``, a
+test's setup + call + teardown, slowest first) and the ``SLOWEST`` that used the most CPU
+(``most_cpu``, the same form: this process and its reaped subprocesses, from the end of one
+test's teardown to the end of the next's; on a shared machine the steadier figure).
+``RECORD`` (below ``.pytest_cache/``,
+ignored by git) keeps the last ``KEEP`` entries; ``python -m benchmarks --only suite`` reads
+them (``--run-suite N`` runs the command N times instead) and prints the last run's slowest
+tests; ``python -m tests.suite_record [FILE]`` prints every recorded run with its slowest
+tests. The hooks below are ``tests/conftest.py``'s (imported there); ``-p tests.suite_record``
+loads them into another pytest run (its test does).
 """
 
 from __future__ import annotations
@@ -28,6 +34,9 @@ RECORD = Path(os.environ.get("SIMSERVER_SUITE_RECORD")
 """The recorded runs, oldest first (a JSON list of ``entry`` dicts); ``SIMSERVER_SUITE_RECORD``
 moves it (the test of this module does)."""
 KEEP = 10
+SLOWEST = 30
+"""How many of a run's slowest tests its entry keeps (issue 33: the slowest 30 before and
+after)."""
 
 
 def is_readme_command(config: Any) -> bool:
@@ -61,14 +70,26 @@ def _commit() -> str:
         return "unknown"
 
 
+def slowest(durations: dict[str, float], n: int = SLOWEST) -> list[list[Any]]:
+    """The ``n`` longest of ``durations`` (nodeid -> seconds) as ``[nodeid, seconds]``,
+    slowest first."""
+    top = sorted(durations.items(), key=lambda kv: (-kv[1], kv[0]))[:n]
+    return [[nodeid, round(seconds, 2)] for nodeid, seconds in top]
+
+
 def entry(wall_s: float, cpu_s: float, exitstatus: int, counts: dict[str, int],
-          cached_kernels_at_start: int, load_start: float) -> dict[str, Any]:
-    """One record: the run's figures and where they come from."""
+          cached_kernels_at_start: int, load_start: float,
+          durations: dict[str, float] | None = None,
+          cpu: dict[str, float] | None = None) -> dict[str, Any]:
+    """One record: the run's figures and where they come from; ``durations`` (nodeid ->
+    setup + call + teardown seconds) gives its ``slowest``, ``cpu`` (nodeid -> CPU seconds)
+    its ``most_cpu``."""
     return {"wall_s": round(wall_s, 1), "cpu_s": round(cpu_s, 1), "exitstatus": exitstatus,
             "counts": counts, "cold": cached_kernels_at_start == 0,
             "loadavg_1min_start": round(load_start, 2),
             "loadavg_1min_end": round(os.getloadavg()[0], 2), "commit": _commit(),
-            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "slowest": slowest(durations or {}), "most_cpu": slowest(cpu or {})}
 
 
 def append(record: dict[str, Any], path: Path = RECORD) -> None:
@@ -81,6 +102,12 @@ def append(record: dict[str, Any], path: Path = RECORD) -> None:
 
 
 _START: dict[str, float] = {}
+_DURATIONS: dict[str, float] = {}
+"""Seconds per test of the recorded session so far: setup + call + teardown (a module or
+session fixture's set-up counts on the test that started it, as in ``--durations``)."""
+_CPU: dict[str, float] = {}
+"""CPU seconds per test of the recorded session so far (``_cpu_s`` at the end of each
+test's teardown, less its value at the end of the previous one)."""
 
 
 def _cpu_s() -> float:
@@ -98,6 +125,16 @@ def pytest_configure(config: Any) -> None:
                       kernels=kernel_cache_files())
 
 
+def pytest_runtest_logreport(report: Any) -> None:
+    """Add each phase (setup, call, teardown) of a test to its time."""
+    if _START:
+        _DURATIONS[report.nodeid] = _DURATIONS.get(report.nodeid, 0.0) + report.duration
+        if report.when == "teardown":
+            now = _cpu_s()
+            _CPU[report.nodeid] = now - _START.get("cpu_mark", _START["cpu"])
+            _START["cpu_mark"] = now
+
+
 def pytest_sessionfinish(session: Any, exitstatus: int) -> None:
     """Record the README's command's run unless it was interrupted."""
     import pytest
@@ -108,7 +145,8 @@ def pytest_sessionfinish(session: Any, exitstatus: int) -> None:
     counts = {k: len(v) for k, v in getattr(reporter, "stats", {}).items()
               if k in ("passed", "failed", "error", "skipped", "xfailed", "xpassed")}
     append(entry(time.perf_counter() - _START["wall"], _cpu_s() - _START["cpu"],
-                 int(exitstatus), counts, int(_START["kernels"]), _START["load"]))
+                 int(exitstatus), counts, int(_START["kernels"]), _START["load"], _DURATIONS,
+                 _CPU))
 
 
 def read(path: Path = RECORD) -> list[dict[str, Any]]:
@@ -119,3 +157,46 @@ def read(path: Path = RECORD) -> list[dict[str, Any]]:
         return []
     return [r for r in runs if isinstance(r, dict) and "wall_s" in r] if isinstance(
         runs, list) else []
+
+
+def describe(run: dict[str, Any]) -> str:
+    """One recorded run, its figures on one line then its slowest tests (one a line)."""
+    head = (f"{run['date']} at {run.get('commit', '?')}: {run['wall_s']:.0f} s wall, "
+            f"{run['cpu_s']:.0f} s CPU, exit {run['exitstatus']}, "
+            + ("cold" if run.get("cold") else "warm") + " kernel cache, load "
+            f"{run.get('loadavg_1min_start', 0):.1f}-{run.get('loadavg_1min_end', 0):.1f}; "
+            + ", ".join(f"{v} {k}" for k, v in run.get("counts", {}).items()))
+    top = run.get("slowest")
+    if not top:
+        return head + "\n  (no per-test durations in this entry: recorded before they were kept)"
+    text = head + f"\n  slowest {len(top)} tests (setup + call + teardown), "  \
+        f"{sum(s for _, s in top):.0f} s together:\n" + "\n".join(
+            f"  {seconds:8.2f} s  {nodeid}" for nodeid, seconds in top)
+    cpu = run.get("most_cpu")
+    if cpu:
+        text += f"\n  most CPU: {len(cpu)} tests (subprocesses included), "  \
+            f"{sum(s for _, s in cpu):.0f} s together:\n" + "\n".join(
+                f"  {seconds:8.2f} s  {nodeid}" for nodeid, seconds in cpu)
+    return text
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m tests.suite_record",
+                                     description="print the recorded runs of the README's "
+                                                 "test command with their slowest tests")
+    parser.add_argument("record", nargs="?", type=Path, default=RECORD,
+                        help=f"the record to read (default {RECORD})")
+    parser.add_argument("--last", type=int, default=0, metavar="N",
+                        help="only the last N runs")
+    args = parser.parse_args(argv)
+    runs = read(args.record)
+    if not runs:
+        raise SystemExit(f"{args.record}: no recorded run of the README's test command")
+    for run in runs[-args.last:] if args.last else runs:
+        print(describe(run))
+
+
+if __name__ == "__main__":
+    main()

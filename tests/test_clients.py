@@ -517,13 +517,6 @@ def test_every_client_without_a_server_exits_3_quickly_with_a_clear_message(tmp_
 # ============================================================================ end to end
 
 
-@pytest.fixture(scope="module")
-def flat_server():
-    server = ServerProcess(vehicle_id="drv")
-    yield server
-    server.stop()
-
-
 def test_player_and_recorder_reproduce_the_headless_e2_stop(tmp_path):
     """E2 live (player) and recorded (recorder) against the headless run of the same file.
 
@@ -669,145 +662,6 @@ def hold_until(drv: PtyProcess, key: bytes, watcher: Client, done, timeout_s: fl
         drv.hold(key, 0.1)
         state = watcher.newest()
     return state
-
-
-def test_keyboard_driver_in_a_pseudo_terminal(flat_server):
-    """Keys typed into a terminal; the car's response seen by an independent client.
-
-    Each step holds its key (a press, then repeats every 30 ms, as a terminal sends
-    them) until the car responds, with generous time limits for a loaded machine
-    (about 2 s, 1 s, 0.5 s each when it is idle).
-    """
-    watcher = Client(flat_server, state_capacity=1 << 15, keep_history=True)
-    drv = PtyProcess(client_command("driver", "--rate", "200", *flat_server.client_args()))
-    try:
-        drv.wait_for("connected to simserver/drv", 20)
-        drv.wait_for("health", 10)  # the status block is drawn
-        start = watcher.newest()
-        t0 = time.monotonic()
-        fast = hold_until(drv, b"w", watcher,  # throttle, then 2 s more of it
-                          lambda s: float(s["u_mps"]) > float(start["u_mps"]) + 1.0, 10.0)
-        drv.hold(b"w", 1.0)
-        fast = watcher.newest()
-        t_throttle = time.monotonic() - t0
-        slow = hold_until(drv, b"\x1b[B", watcher,  # brake with the down arrow
-                          lambda s: abs(float(s["u_mps"])) < 0.05, 10.0)
-        drv.send(b"2")  # gear R
-        drv.send(b"h")  # parking brake on
-        geared = watcher.wait_state(lambda s: int(s["gear"]) == proto.Gear.R
-                                    and int(s["parking_brake"]) == 1, 5.0, "gear R, park on")
-        steered = hold_until(drv, b"\x1b[D", watcher,  # steer left while standing
-                             lambda s: float(s["steer"]) > 0.3, 5.0)
-        centred = watcher.wait_state(lambda s: float(s["steer"]) == 0.0, 5.0,
-                                     "the wheel centred")  # let go
-        screen = drv.text()
-        drv.send(b"q")
-        assert drv.wait(15) == 0, drv.text()
-    finally:
-        drv.close()
-        watcher.poll()
-        states = watcher.history
-        watcher.close()
-    print(f"\nkeyboard: u {float(start['u_mps']):.2f} -> {float(fast['u_mps']):.2f} (after "
-          f"{t_throttle:.1f} s of w) -> {float(slow['u_mps']):.3f} m/s, gear "
-          f"{int(geared['gear'])}, steer {float(steered['steer']):.2f} -> "
-          f"{float(centred['steer']):.2f}")
-    assert float(fast["u_mps"]) > float(start["u_mps"]) + 1.0  # speed rises
-    assert abs(float(slow["u_mps"])) < 0.05  # then falls to a stop
-    assert max(float(s["throttle"]) for s in states) > 0.5  # the pedals ramped up
-    assert max(float(s["brake"]) for s in states) > 0.5
-    assert int(geared["gear"]) == proto.Gear.R and int(geared["parking_brake"]) == 1
-    assert float(steered["steer"]) > 0.3  # left is +
-    assert float(centred["steer"]) == 0.0  # and it centres by itself once released
-    driving = [s for s in states if int(s["last_cmd_seq"]) > 0]
-    held = sum(bool(int(s["flags"]) & proto.StateFlag.WATCHDOG) for s in driving)
-    assert driving and held < 0.05 * len(driving)  # commands kept coming at 200 Hz
-    assert "gear R" in screen and "park ON" in screen and "tick late p99" in screen
-    assert "grade " in screen and "wheels on ground all 4" in screen  # the flat road
-
-
-@pytest.mark.skipif(not HAVE_PYGAME, reason="pygame (the 'joystick' extra) is not installed")
-def test_joystick_driver_on_sdls_virtual_joystick(flat_server, tmp_path):
-    """pygame -> SDL virtual joystick -> profile mapping -> commands -> the car."""
-    script = write(tmp_path, "script.yaml", """\
-kind: joystick_script
-end_s: 4.6
-frames:
-  - {t: 0.0, axes: {0: 0.0, 1: 1.0, 2: 1.0, 3: 1.0}}
-  - {t: 0.2, axes: {2: -1.0}}
-  - {t: 2.2, axes: {0: -0.5, 2: 1.0, 3: -0.6}}
-  - {t: 4.0, buttons: {5: 1}}
-  - {t: 4.2, buttons: {5: 0}}
-""")
-    watcher = Client(flat_server, state_capacity=1 << 15, keep_history=True)
-    flat = watcher.ep.request("reset")
-    assert flat["ok"]
-    proc = subprocess.run(
-        client_command("driver", "--virtual-joystick", str(script), "--profile",
-                       str(CONFIGS / "clients" / "wheel.yaml"), *flat_server.client_args()),
-        cwd=REPO, env=client_env(), stdin=subprocess.DEVNULL, capture_output=True, text=True,
-        timeout=60)
-    watcher.poll()
-    states = watcher.history
-    watcher.close()
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert "joystick 'Virtual Wheel' (wheel)" in proc.stdout
-    mine = [s for s in states if int(s["last_cmd_seq"]) > 0]
-    u = np.array([float(s["u_mps"]) for s in mine])
-    peak = int(np.argmax(u))
-    print(f"\njoystick: peak u {u[peak]:.2f} m/s, final {u[-1]:.3f} m/s, steer "
-          f"{float(mine[-1]['steer']):.4f}, gear {int(mine[-1]['gear'])}")
-    assert u[peak] > 2.0 and u[-1] < 0.5 * u[peak]  # full throttle, then the brake
-    assert max(float(s["throttle"]) for s in mine) == pytest.approx(1.0, abs=1e-3)
-    wheel = js.load_joystick_profile(CONFIGS / "clients" / "wheel.yaml")
-    expected_brake = js.pedal_value(wheel.brake, -0.6)
-    # the pedal's own value while the car still rolls (once stopped with the brake on, the
-    # driver's auto hold applies the full brake: test_gamepad_auto_hold_on_a_10pct_hill)
-    stopped = peak + int(np.argmax(np.abs(u[peak:]) < AUTO_HOLD_REST_MPS))
-    braking = [s for s in mine[peak:stopped] if float(s["brake"]) > 0.0]
-    assert float(braking[-1]["brake"]) == pytest.approx(expected_brake, abs=1e-3)
-    assert float(mine[-1]["steer"]) == pytest.approx(0.5, abs=1e-3)  # wheel left -> +
-    assert int(mine[-1]["gear"]) == proto.Gear.N  # left paddle: D -> N
-
-
-def test_recorder_row_groups_rrd_and_a_clean_sigterm(flat_server, tmp_path):
-    """Streamed row groups, the --rrd viewer beside it, and SIGTERM losing nothing."""
-    import pyarrow.parquet as pq
-    from rerun.chunk import RrdReader
-
-    from simserver.adapters.history import read_history
-
-    out = tmp_path / "rec"
-    proc = OutputProcess(client_command("recorder", "--out", str(out), "--rrd",
-                                        str(out / "run.rrd"), "--flush-rows", "500",
-                                        "--quiet", *flat_server.client_args()),
-                         env=client_env())
-    try:
-        assert proc.wait_ready(30.0), proc.text()
-        assert "run.rrd" in proc.ready_line, proc.text()
-        with Client(flat_server) as watcher:  # 2 s of states to record
-            start = int(watcher.fresh_state()["tick"])
-            watcher.wait_state(lambda s: int(s["tick"]) >= start + 2000, 60.0, "2000 ticks")
-        # and the viewer has drawn frames (given 30 s on a loaded machine)
-        with contextlib.suppress(TimeoutError):
-            wait_until(lambda: (out / "run.rrd").stat().st_size >= 200_000, timeout_s=30,
-                       what="frames in the .rrd", interval_s=0.1)
-        assert proc.stop(timeout_s=60.0) == 0, proc.text()
-    finally:
-        proc.kill()
-    stdout = proc.text()
-    assert "stopped by SIGTERM" in stdout
-    rows = int(stdout.split("wrote ")[1].split(" state rows")[0])
-    history = read_history(out)
-    assert history["tick"].size == rows > 1500  # every row received is in the file
-    assert np.all(np.diff(history["tick"]) >= 1)
-    assert reported_missed(stdout) == file_gaps(history)
-    assert pq.ParquetFile(out / "history.parquet").num_row_groups == math.ceil(rows / 500)
-    meta = pq.read_schema(out / "history.parquet").metadata
-    assert b"road-plane frame" in meta[b"simserver.recorder.frame"]
-    reader = RrdReader(out / "run.rrd")
-    assert [r.application_id for r in reader.recordings()] == ["simserver"]
-    assert "/world/car" in {str(c.entity_path) for c in reader.stream()}
 
 
 SETTLE_S = CREEP_SETTLE_S
@@ -1011,3 +865,153 @@ def test_keyboard_driver_shows_road_lane_s_and_edge_on_an_opendrive_road():
         drv.close()
         watcher.close()
         server.stop()
+
+
+# ------------------------------------------- on one flat server, the module's last tests
+# (a server costs a quarter of a core or more while it runs, idle or not: its tests come last so
+# that it is stopped as soon as they are done, not kept running through the others)
+
+@pytest.fixture(scope="module")
+def flat_server():
+    server = ServerProcess(vehicle_id="drv")
+    yield server
+    server.stop()
+
+
+def test_keyboard_driver_in_a_pseudo_terminal(flat_server):
+    """Keys typed into a terminal; the car's response seen by an independent client.
+
+    Each step holds its key (a press, then repeats every 30 ms, as a terminal sends
+    them) until the car responds, with generous time limits for a loaded machine
+    (about 2 s, 1 s, 0.5 s each when it is idle).
+    """
+    watcher = Client(flat_server, state_capacity=1 << 15, keep_history=True)
+    drv = PtyProcess(client_command("driver", "--rate", "200", *flat_server.client_args()))
+    try:
+        drv.wait_for("connected to simserver/drv", 20)
+        drv.wait_for("health", 10)  # the status block is drawn
+        start = watcher.newest()
+        t0 = time.monotonic()
+        fast = hold_until(drv, b"w", watcher,  # throttle, then 2 s more of it
+                          lambda s: float(s["u_mps"]) > float(start["u_mps"]) + 1.0, 10.0)
+        drv.hold(b"w", 1.0)
+        fast = watcher.newest()
+        t_throttle = time.monotonic() - t0
+        slow = hold_until(drv, b"\x1b[B", watcher,  # brake with the down arrow
+                          lambda s: abs(float(s["u_mps"])) < 0.05, 10.0)
+        drv.send(b"2")  # gear R
+        drv.send(b"h")  # parking brake on
+        geared = watcher.wait_state(lambda s: int(s["gear"]) == proto.Gear.R
+                                    and int(s["parking_brake"]) == 1, 5.0, "gear R, park on")
+        steered = hold_until(drv, b"\x1b[D", watcher,  # steer left while standing
+                             lambda s: float(s["steer"]) > 0.3, 5.0)
+        centred = watcher.wait_state(lambda s: float(s["steer"]) == 0.0, 5.0,
+                                     "the wheel centred")  # let go
+        screen = drv.text()
+        drv.send(b"q")
+        assert drv.wait(15) == 0, drv.text()
+    finally:
+        drv.close()
+        watcher.poll()
+        states = watcher.history
+        watcher.close()
+    print(f"\nkeyboard: u {float(start['u_mps']):.2f} -> {float(fast['u_mps']):.2f} (after "
+          f"{t_throttle:.1f} s of w) -> {float(slow['u_mps']):.3f} m/s, gear "
+          f"{int(geared['gear'])}, steer {float(steered['steer']):.2f} -> "
+          f"{float(centred['steer']):.2f}")
+    assert float(fast["u_mps"]) > float(start["u_mps"]) + 1.0  # speed rises
+    assert abs(float(slow["u_mps"])) < 0.05  # then falls to a stop
+    assert max(float(s["throttle"]) for s in states) > 0.5  # the pedals ramped up
+    assert max(float(s["brake"]) for s in states) > 0.5
+    assert int(geared["gear"]) == proto.Gear.R and int(geared["parking_brake"]) == 1
+    assert float(steered["steer"]) > 0.3  # left is +
+    assert float(centred["steer"]) == 0.0  # and it centres by itself once released
+    driving = [s for s in states if int(s["last_cmd_seq"]) > 0]
+    held = sum(bool(int(s["flags"]) & proto.StateFlag.WATCHDOG) for s in driving)
+    assert driving and held < 0.05 * len(driving)  # commands kept coming at 200 Hz
+    assert "gear R" in screen and "park ON" in screen and "tick late p99" in screen
+    assert "grade " in screen and "wheels on ground all 4" in screen  # the flat road
+
+
+@pytest.mark.skipif(not HAVE_PYGAME, reason="pygame (the 'joystick' extra) is not installed")
+def test_joystick_driver_on_sdls_virtual_joystick(flat_server, tmp_path):
+    """pygame -> SDL virtual joystick -> profile mapping -> commands -> the car."""
+    script = write(tmp_path, "script.yaml", """\
+kind: joystick_script
+end_s: 4.6
+frames:
+  - {t: 0.0, axes: {0: 0.0, 1: 1.0, 2: 1.0, 3: 1.0}}
+  - {t: 0.2, axes: {2: -1.0}}
+  - {t: 2.2, axes: {0: -0.5, 2: 1.0, 3: -0.6}}
+  - {t: 4.0, buttons: {5: 1}}
+  - {t: 4.2, buttons: {5: 0}}
+""")
+    watcher = Client(flat_server, state_capacity=1 << 15, keep_history=True)
+    flat = watcher.ep.request("reset")
+    assert flat["ok"]
+    proc = subprocess.run(
+        client_command("driver", "--virtual-joystick", str(script), "--profile",
+                       str(CONFIGS / "clients" / "wheel.yaml"), *flat_server.client_args()),
+        cwd=REPO, env=client_env(), stdin=subprocess.DEVNULL, capture_output=True, text=True,
+        timeout=60)
+    watcher.poll()
+    states = watcher.history
+    watcher.close()
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "joystick 'Virtual Wheel' (wheel)" in proc.stdout
+    mine = [s for s in states if int(s["last_cmd_seq"]) > 0]
+    u = np.array([float(s["u_mps"]) for s in mine])
+    peak = int(np.argmax(u))
+    print(f"\njoystick: peak u {u[peak]:.2f} m/s, final {u[-1]:.3f} m/s, steer "
+          f"{float(mine[-1]['steer']):.4f}, gear {int(mine[-1]['gear'])}")
+    assert u[peak] > 2.0 and u[-1] < 0.5 * u[peak]  # full throttle, then the brake
+    assert max(float(s["throttle"]) for s in mine) == pytest.approx(1.0, abs=1e-3)
+    wheel = js.load_joystick_profile(CONFIGS / "clients" / "wheel.yaml")
+    expected_brake = js.pedal_value(wheel.brake, -0.6)
+    # the pedal's own value while the car still rolls (once stopped with the brake on, the
+    # driver's auto hold applies the full brake: test_gamepad_auto_hold_on_a_10pct_hill)
+    stopped = peak + int(np.argmax(np.abs(u[peak:]) < AUTO_HOLD_REST_MPS))
+    braking = [s for s in mine[peak:stopped] if float(s["brake"]) > 0.0]
+    assert float(braking[-1]["brake"]) == pytest.approx(expected_brake, abs=1e-3)
+    assert float(mine[-1]["steer"]) == pytest.approx(0.5, abs=1e-3)  # wheel left -> +
+    assert int(mine[-1]["gear"]) == proto.Gear.N  # left paddle: D -> N
+
+
+def test_recorder_row_groups_rrd_and_a_clean_sigterm(flat_server, tmp_path):
+    """Streamed row groups, the --rrd viewer beside it, and SIGTERM losing nothing."""
+    import pyarrow.parquet as pq
+    from rerun.chunk import RrdReader
+
+    from simserver.adapters.history import read_history
+
+    out = tmp_path / "rec"
+    proc = OutputProcess(client_command("recorder", "--out", str(out), "--rrd",
+                                        str(out / "run.rrd"), "--flush-rows", "500",
+                                        "--quiet", *flat_server.client_args()),
+                         env=client_env())
+    try:
+        assert proc.wait_ready(30.0), proc.text()
+        assert "run.rrd" in proc.ready_line, proc.text()
+        with Client(flat_server) as watcher:  # 2 s of states to record
+            start = int(watcher.fresh_state()["tick"])
+            watcher.wait_state(lambda s: int(s["tick"]) >= start + 2000, 60.0, "2000 ticks")
+        # and the viewer has drawn frames (given 30 s on a loaded machine)
+        with contextlib.suppress(TimeoutError):
+            wait_until(lambda: (out / "run.rrd").stat().st_size >= 200_000, timeout_s=30,
+                       what="frames in the .rrd", interval_s=0.1)
+        assert proc.stop(timeout_s=60.0) == 0, proc.text()
+    finally:
+        proc.kill()
+    stdout = proc.text()
+    assert "stopped by SIGTERM" in stdout
+    rows = int(stdout.split("wrote ")[1].split(" state rows")[0])
+    history = read_history(out)
+    assert history["tick"].size == rows > 1500  # every row received is in the file
+    assert np.all(np.diff(history["tick"]) >= 1)
+    assert reported_missed(stdout) == file_gaps(history)
+    assert pq.ParquetFile(out / "history.parquet").num_row_groups == math.ceil(rows / 500)
+    meta = pq.read_schema(out / "history.parquet").metadata
+    assert b"road-plane frame" in meta[b"simserver.recorder.frame"]
+    reader = RrdReader(out / "run.rrd")
+    assert [r.application_id for r in reader.recordings()] == ["simserver"]
+    assert "/world/car" in {str(c.entity_path) for c in reader.stream()}

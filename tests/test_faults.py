@@ -311,82 +311,6 @@ def test_frozen_subscriber_long_enough_to_fill_the_socket_buffers(slot):
     assert r["during"]["state_published"] == r["during"]["tick"] > 10000
 
 
-# ============================================================================ process faults
-
-
-def test_vanishing_viewer_leaves_the_server_unaffected(tmp_path):
-    rrd = tmp_path / "view.rrd"
-    with ServerProcess(viewer=f"save:{rrd}") as server, Client(server) as probe:
-        end = time.monotonic() + 60
-        viewers: list[int] = []
-        while time.monotonic() < end and not (viewers and rrd.exists()
-                                               and rrd.stat().st_size > 0):
-            viewers = server.viewer_pids()  # not the load worker
-            probe.drive(0.2, throttle=0.2)
-        assert viewers and rrd.exists(), server.text()
-        for pid in viewers:  # the view only takes CPU time the physics does not want
-            threads = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-            assert len(threads) > 1  # its own, zenoh's and Rerun's threads
-            assert {os.sched_getscheduler(t) for t in threads} == {os.SCHED_IDLE}
-        d0 = probe.diagnostics()
-        for pid in viewers:
-            os.kill(pid, signal.SIGKILL)
-        first = probe.fresh_state()
-        probe.drive(2.0, throttle=0.3)
-        last = probe.fresh_state()
-        d1 = probe.diagnostics()
-        assert server.alive()
-        assert state_is_finite(last) and last["throttle"] > 0.29
-        assert int(last["tick"]) > int(first["tick"]) + 1000
-        d = diag_delta(d0, d1, "tick", "late_ticks", "skipped_ticks")
-        print(f"\n[viewer killed] server ticked {d['tick']} times in "
-              f"{float(d1['uptime_s'] - d0['uptime_s']):.1f} s after the kill, late "
-              f"{d['late_ticks']}, skipped {d['skipped_ticks']}; .rrd left at "
-              f"{rrd.stat().st_size} bytes")
-    assert server.returncode == 0 and server.final_stats() is not None
-
-
-def test_router_restart_between_client_and_server():
-    """Server and client both connect to a router process; kill it and start it again."""
-    router_ep = loopback_endpoint()
-    router = RoleProcess("router", ["--listen", router_ep])
-    server = probe = None
-    try:
-        server = ServerProcess(extra_args=["--connect", router_ep])
-        probe = Client(router_ep)  # client mode, through the router only
-        # the server's declarations reach the client through the router
-        assert probe.wait_controls(15.0)["ok"]
-        st = probe.drive_until(lambda s: s["throttle"] > 0.29, throttle=0.3, what="driving")
-        assert st is not None and st["throttle"] > 0.29
-        router.kill()
-        killed = time.monotonic()
-        probe.drive(1.0, throttle=0.3)  # into the void
-        probe.drain_states()
-        router = RoleProcess("router", ["--listen", router_ep])
-        restarted = time.monotonic()
-        recovered = None
-        while time.monotonic() - restarted < 30:
-            received = probe.received
-            st = probe.drive(0.3, throttle=0.3)
-            if probe.received > received and st["throttle"] > 0.29 \
-                    and not st["flags"] & proto.StateFlag.WATCHDOG:
-                recovered = time.monotonic() - restarted
-                break
-        assert recovered is not None, "the client's commands never reached the server again"
-        assert server.alive()
-        d = probe.diagnostics()
-        print(f"\n[router restart] router down {restarted - killed:.1f} s; commands reach "
-              f"the server again {recovered:.1f} s after the restart; server watchdog trips "
-              f"{int(d['watchdog_trips'])}, cmd_received {int(d['cmd_received'])}")
-    finally:
-        if probe is not None:
-            probe.close()
-        if server is not None:
-            server.stop()
-        router.kill()
-    assert server.returncode == 0
-
-
 # ============================================================================ broken reloads
 
 
@@ -484,6 +408,84 @@ def test_a_good_load_still_works_after_the_broken_ones(slot):
         assert probe.request("get_config")["config"]["vehicle"]["name"] == "mf_hatchback"
         sedan = CONFIGS / "vehicles" / "paper_sedan" / "vehicle.yaml"
         assert probe.request("load", {"vehicle": str(sedan)}, timeout_s=30.0)["ok"]
+
+
+# ============================================================================ process faults
+# (after the tests of the module's server, which ends with the last of them: tests/
+# conftest.py; these tests' servers of their own do not run beside it)
+
+
+def test_vanishing_viewer_leaves_the_server_unaffected(tmp_path):
+    rrd = tmp_path / "view.rrd"
+    with ServerProcess(viewer=f"save:{rrd}") as server, Client(server) as probe:
+        end = time.monotonic() + 60
+        viewers: list[int] = []
+        while time.monotonic() < end and not (viewers and rrd.exists()
+                                               and rrd.stat().st_size > 0):
+            viewers = server.viewer_pids()  # not the load worker
+            probe.drive(0.2, throttle=0.2)
+        assert viewers and rrd.exists(), server.text()
+        for pid in viewers:  # the view only takes CPU time the physics does not want
+            threads = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+            assert len(threads) > 1  # its own, zenoh's and Rerun's threads
+            assert {os.sched_getscheduler(t) for t in threads} == {os.SCHED_IDLE}
+        d0 = probe.diagnostics()
+        for pid in viewers:
+            os.kill(pid, signal.SIGKILL)
+        first = probe.fresh_state()
+        probe.drive(2.0, throttle=0.3)
+        last = probe.fresh_state()
+        d1 = probe.diagnostics()
+        assert server.alive()
+        assert state_is_finite(last) and last["throttle"] > 0.29
+        assert int(last["tick"]) > int(first["tick"]) + 1000
+        d = diag_delta(d0, d1, "tick", "late_ticks", "skipped_ticks")
+        print(f"\n[viewer killed] server ticked {d['tick']} times in "
+              f"{float(d1['uptime_s'] - d0['uptime_s']):.1f} s after the kill, late "
+              f"{d['late_ticks']}, skipped {d['skipped_ticks']}; .rrd left at "
+              f"{rrd.stat().st_size} bytes")
+    assert server.returncode == 0 and server.final_stats() is not None
+
+
+def test_router_restart_between_client_and_server():
+    """Server and client both connect to a router process; kill it and start it again."""
+    router_ep = loopback_endpoint()
+    router = RoleProcess("router", ["--listen", router_ep])
+    server = probe = None
+    try:
+        server = ServerProcess(extra_args=["--connect", router_ep])
+        probe = Client(router_ep)  # client mode, through the router only
+        # the server's declarations reach the client through the router
+        assert probe.wait_controls(15.0)["ok"]
+        st = probe.drive_until(lambda s: s["throttle"] > 0.29, throttle=0.3, what="driving")
+        assert st is not None and st["throttle"] > 0.29
+        router.kill()
+        killed = time.monotonic()
+        probe.drive(1.0, throttle=0.3)  # into the void
+        probe.drain_states()
+        router = RoleProcess("router", ["--listen", router_ep])
+        restarted = time.monotonic()
+        recovered = None
+        while time.monotonic() - restarted < 30:
+            received = probe.received
+            st = probe.drive(0.3, throttle=0.3)
+            if probe.received > received and st["throttle"] > 0.29 \
+                    and not st["flags"] & proto.StateFlag.WATCHDOG:
+                recovered = time.monotonic() - restarted
+                break
+        assert recovered is not None, "the client's commands never reached the server again"
+        assert server.alive()
+        d = probe.diagnostics()
+        print(f"\n[router restart] router down {restarted - killed:.1f} s; commands reach "
+              f"the server again {recovered:.1f} s after the restart; server watchdog trips "
+              f"{int(d['watchdog_trips'])}, cmd_received {int(d['cmd_received'])}")
+    finally:
+        if probe is not None:
+            probe.close()
+        if server is not None:
+            server.stop()
+        router.kill()
+    assert server.returncode == 0
 
 
 # ============================================================================ SIGTERM

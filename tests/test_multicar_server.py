@@ -75,6 +75,29 @@ def test_discovery_the_world_message_and_a_single_car_client(two_cars):
 ON_ROAD = "{road: '1', s: 20, lane: -1}"
 
 
+def test_the_keyboard_driver_shows_the_car_ahead(two_cars):
+    """The keyboard driver of car0 in a pseudo-terminal names car1 ahead, with the
+    distance and closing speed, from the world message. (With the other tests of the
+    module's ``two_cars``: it ends with the last of them, tests/conftest.py.)"""
+    from test_clients import PtyProcess
+
+    from simserver.testing import client_command
+
+    drv = PtyProcess(client_command("driver", "--rate", "200", "--connect",
+                                    two_cars.endpoint, "--vehicle-id", "car0"))
+    try:
+        drv.wait_for("health", 30)
+        drv.wait_for("traffic ahead car1 ", 20)
+        screen = drv.text()
+        drv.send(b"q")
+        assert drv.wait(15) == 0, drv.text()
+    finally:
+        drv.close()
+    line = screen[screen.rindex("traffic ahead car1 "):].splitlines()[0]
+    distance = float(line.split("traffic ahead car1 ")[1].split(" m")[0])
+    assert 15.0 < distance < 60.0 and "behind -" in line, line
+
+
 @pytest.mark.parametrize(("scene", "cars", "error"), [
     ("flat_paper_sedan", "[{id: a}, {id: a, pose: {x_m: 30, y_m: 0}}]",
      "cars[1] (a): key 'id'"),
@@ -138,28 +161,6 @@ def test_a_car_added_and_removed_over_zenoh_while_the_world_runs(tmp_path):
     for car in ("car0", "car1", "car2"):  # the removed car's log ends where it left
         replay = replay_command_log(tmp_path / f"run.{car}.jsonl")
         assert replay.final_state_matches, car
-
-
-def test_the_keyboard_driver_shows_the_car_ahead(two_cars):
-    """The keyboard driver of car0 in a pseudo-terminal names car1 ahead, with the
-    distance and closing speed, from the world message."""
-    from test_clients import PtyProcess
-
-    from simserver.testing import client_command
-
-    drv = PtyProcess(client_command("driver", "--rate", "200", "--connect",
-                                    two_cars.endpoint, "--vehicle-id", "car0"))
-    try:
-        drv.wait_for("health", 30)
-        drv.wait_for("traffic ahead car1 ", 20)
-        screen = drv.text()
-        drv.send(b"q")
-        assert drv.wait(15) == 0, drv.text()
-    finally:
-        drv.close()
-    line = screen[screen.rindex("traffic ahead car1 "):].splitlines()[0]
-    distance = float(line.split("traffic ahead car1 ")[1].split(" m")[0])
-    assert 15.0 < distance < 60.0 and "behind -" in line, line
 
 
 def test_a_single_car_list_driven_by_the_driver_drives(tmp_path):

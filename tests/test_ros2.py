@@ -548,121 +548,6 @@ def test_sim_time_stamps_and_clock(server, router, ros_node, watcher) -> None:
     assert code == 0, proc.text()
 
 
-# ---------------------------------------------------------------- serve starts it
-
-def ros2_children(server: ServerProcess) -> list[int]:
-    """Process ids of the server's ``simserver ros2`` children."""
-    return [pid for pid in server.children()
-            if process_argv(pid)[1:4] == ["-m", "simserver", "ros2"]]
-
-
-def test_serve_starts_the_adapter_when_configured_and_stops_it(router, ros_node,
-                                                               tmp_path) -> None:
-    """A server config's ``ros2:`` section: the ROS graph shows the car's node and topics
-    once the server is ready; stopping the server stops the adapter (no orphan)."""
-    domain = DOMAIN + 2
-    config = tmp_path / "server.yaml"
-    config.write_text(f"scene: {FLAT_SCENE}\n"
-                      f"ros2:\n  router: {router[1]}\n  domain_id: {domain}\n"
-                      "  normal_priority: true\n", encoding="utf-8")
-    endpoints = len(PUBLISHED) + len(SUBSCRIBED)
-    with ServerProcess(scene=None, config=config) as server:
-        server.wait_for_line("simserver ros2: node", timeout_s=120)
-        tokens = wait_until(lambda: liveliness_tokens_of(ros_node, domain),
-                            lambda ts: len(ts) == 1 + endpoints, timeout_s=30,
-                            what="the adapter's node and endpoint tokens")
-        assert [t.split("/")[8] for t in tokens if "/NN/" in t] == [NODE]
-        (adapter_pid,) = ros2_children(server)
-    assert server.returncode == 0, server.text()
-    orphan = Path(f"/proc/{adapter_pid}").exists()
-    if orphan:  # leave no process behind, then fail
-        os.kill(adapter_pid, signal.SIGKILL)
-    assert not orphan, "the adapter outlived the server"
-    assert "ros2: " in server.text(), "the adapter did not end cleanly (no summary line)"
-    wait_until(lambda: liveliness_tokens_of(ros_node, domain), lambda ts: not ts,
-               timeout_s=10, what="the adapter's tokens gone from the graph")
-
-
-def test_serve_ros2_flag_and_a_killed_adapter_is_restarted_within_2_s() -> None:
-    """``serve --ros2`` starts it with the defaults, at normal priority; killed with -9
-    (issue 34: it stayed gone, ROS users lost the car without a word), the server says so,
-    starts it again within 2 s, and ``get_config`` tells its state; the server serves on."""
-    with ServerProcess(scene="flat_paper_sedan", extra_args=["--ros2"]) as server, \
-            Client(server) as client:
-        line = server.wait_for_line("simserver ros2: node", timeout_s=120)
-        assert "/simserver_car0 on domain" in line
-        (adapter_pid,) = ros2_children(server)
-        # normal priority, below the server's real-time tick: at idle priority a flood on
-        # its own receive threads starved it (tests/test_ros2_floods.py)
-        assert os.sched_getscheduler(adapter_pid) == os.SCHED_OTHER
-        status = client.request("get_config", timeout_s=5.0)["config"]["ros2"]
-        assert status == {"state": "running", "restarts": 0, "last_exit_code": None,
-                          "pid": adapter_pid}
-        os.kill(adapter_pid, signal.SIGKILL)
-        killed = time.monotonic()
-
-        def new_adapter() -> list[int]:
-            return [pid for pid in ros2_children(server) if pid != adapter_pid]
-
-        (restarted,) = wait_until(new_adapter, timeout_s=2.0, interval_s=0.01,
-                                  what="the adapter restarted within 2 s of its kill -9")
-        restart_s = time.monotonic() - killed
-        server.wait_for_line(f"the ROS 2 adapter (pid {adapter_pid}) ended with exit code "
-                             f"{-signal.SIGKILL}", timeout_s=10)
-        server.wait_for_line(f"the ROS 2 adapter restarted (pid {restarted}, restart 1)",
-                             timeout_s=10)
-        status = client.request("get_config", timeout_s=5.0)["config"]["ros2"]
-        assert status == {"state": "running", "restarts": 1,
-                          "last_exit_code": -signal.SIGKILL, "pid": restarted}
-        # the new one comes up as a node again (its ready line, a second time)
-        server.wait_for_line("simserver ros2: node", timeout_s=120,
-                             start=server.output.index(line) + 1)
-        tick = int(client.fresh_state()["tick"])
-        client.wait_state(lambda s: int(s["tick"]) > tick + 100, what="the server serving on")
-        assert server.alive()
-    assert server.returncode == 0, server.text()
-    orphan = Path(f"/proc/{restarted}").exists()
-    if orphan:  # leave no process behind, then fail
-        os.kill(restarted, signal.SIGKILL)
-    assert not orphan, "the restarted adapter outlived the server"
-    print(f"adapter restarted {restart_s:.2f} s after its kill -9")
-
-
-@pytest.mark.parametrize(("section", "message"), [
-    ("ros2: {domain_id: 300}", "ros2: domain_id: 300 is not an integer in [0, 232]"),
-    ("ros2: {domain: 1}", "ros2: unknown key 'domain'"),
-    ("ros2: {rate_hz: fast}", "ros2.rate_hz: expected a float"),
-    ("ros2: {topics: {speed: /x}}", "ros2: topic: 'speed' is not one of"),
-    ("ros2: 5", "ros2: expected off, on or a mapping"),
-])
-def test_a_bad_ros2_section_is_refused_at_load_naming_file_and_key(section, message,
-                                                                   tmp_path) -> None:
-    from simserver.adapters.config import ConfigError
-    from simserver.server.config import load_server_config
-
-    config = tmp_path / "server.yaml"
-    config.write_text(f"scene: {FLAT_SCENE}\n{section}\n", encoding="utf-8")
-    with pytest.raises(ConfigError) as err:
-        load_server_config(config)
-    assert str(err.value).startswith(f"{config}: ") and message in str(err.value)
-
-
-def test_ros2_section_and_flags_decide_together(tmp_path) -> None:
-    from simserver.server.config import load_server_config
-
-    config = tmp_path / "server.yaml"
-    config.write_text(f"scene: {FLAT_SCENE}\nros2: {{domain_id: 3}}\n", encoding="utf-8")
-    assert load_server_config(config).ros2 == {"domain_id": 3}
-    assert load_server_config(config, ros2=True).ros2 == {"domain_id": 3}
-    assert load_server_config(config, ros2=False).ros2 is None
-    config.write_text(f"scene: {FLAT_SCENE}\nros2: off\n", encoding="utf-8")
-    assert load_server_config(config).ros2 is None
-    assert load_server_config(config, ros2=True).ros2 == {}
-    config.write_text(f"scene: {FLAT_SCENE}\n", encoding="utf-8")
-    assert load_server_config(config).ros2 is None
-    assert load_server_config(CONFIGS / "server" / "default.yaml").ros2 is None
-
-
 # ---------------------------------------------------------------- driving
 
 @pytest.fixture
@@ -786,3 +671,120 @@ def test_steering_maps_road_wheel_angle_through_the_ratio() -> None:
     assert C.steer_command(1.0, limits) == 1.0  # beyond the lock: clipped
     assert C.twist_steer_angle(4.0, 0.2, limits) == pytest.approx(math.atan(2.9 * 0.2 / 4.0))
     assert C.twist_steer_angle(0.0, 0.5, limits) == 0.0  # no turning on the spot
+
+
+# ------------------------------------------------- serve starts it (servers of their own)
+# After the tests of the module's server, which ends with its last test (tests/conftest.py):
+# these servers do not run beside it.
+
+def ros2_children(server: ServerProcess) -> list[int]:
+    """Process ids of the server's ``simserver ros2`` children."""
+    return [pid for pid in server.children()
+            if process_argv(pid)[1:4] == ["-m", "simserver", "ros2"]]
+
+
+def test_serve_starts_the_adapter_when_configured_and_stops_it(router, ros_node,
+                                                               tmp_path) -> None:
+    """A server config's ``ros2:`` section: the ROS graph shows the car's node and topics
+    once the server is ready; stopping the server stops the adapter (no orphan)."""
+    domain = DOMAIN + 2
+    config = tmp_path / "server.yaml"
+    config.write_text(f"scene: {FLAT_SCENE}\n"
+                      f"ros2:\n  router: {router[1]}\n  domain_id: {domain}\n"
+                      "  normal_priority: true\n", encoding="utf-8")
+    endpoints = len(PUBLISHED) + len(SUBSCRIBED)
+    with ServerProcess(scene=None, config=config) as server:
+        server.wait_for_line("simserver ros2: node", timeout_s=120)
+        tokens = wait_until(lambda: liveliness_tokens_of(ros_node, domain),
+                            lambda ts: len(ts) == 1 + endpoints, timeout_s=30,
+                            what="the adapter's node and endpoint tokens")
+        assert [t.split("/")[8] for t in tokens if "/NN/" in t] == [NODE]
+        (adapter_pid,) = ros2_children(server)
+    assert server.returncode == 0, server.text()
+    orphan = Path(f"/proc/{adapter_pid}").exists()
+    if orphan:  # leave no process behind, then fail
+        os.kill(adapter_pid, signal.SIGKILL)
+    assert not orphan, "the adapter outlived the server"
+    assert "ros2: " in server.text(), "the adapter did not end cleanly (no summary line)"
+    wait_until(lambda: liveliness_tokens_of(ros_node, domain), lambda ts: not ts,
+               timeout_s=10, what="the adapter's tokens gone from the graph")
+
+
+def test_serve_ros2_flag_and_a_killed_adapter_is_restarted_within_2_s() -> None:
+    """``serve --ros2`` starts it with the defaults, at normal priority; killed with -9
+    (issue 34: it stayed gone, ROS users lost the car without a word), the server says so,
+    starts it again within 2 s, and ``get_config`` tells its state; the server serves on."""
+    with ServerProcess(scene="flat_paper_sedan", extra_args=["--ros2"]) as server, \
+            Client(server) as client:
+        line = server.wait_for_line("simserver ros2: node", timeout_s=120)
+        assert "/simserver_car0 on domain" in line
+        (adapter_pid,) = ros2_children(server)
+        # normal priority, below the server's real-time tick: at idle priority a flood on
+        # its own receive threads starved it (tests/test_ros2_floods.py)
+        assert os.sched_getscheduler(adapter_pid) == os.SCHED_OTHER
+        status = client.request("get_config", timeout_s=5.0)["config"]["ros2"]
+        assert status == {"state": "running", "restarts": 0, "last_exit_code": None,
+                          "pid": adapter_pid}
+        os.kill(adapter_pid, signal.SIGKILL)
+        killed = time.monotonic()
+
+        def new_adapter() -> list[int]:
+            return [pid for pid in ros2_children(server) if pid != adapter_pid]
+
+        (restarted,) = wait_until(new_adapter, timeout_s=2.0, interval_s=0.01,
+                                  what="the adapter restarted within 2 s of its kill -9")
+        restart_s = time.monotonic() - killed
+        server.wait_for_line(f"the ROS 2 adapter (pid {adapter_pid}) ended with exit code "
+                             f"{-signal.SIGKILL}", timeout_s=10)
+        server.wait_for_line(f"the ROS 2 adapter restarted (pid {restarted}, restart 1)",
+                             timeout_s=10)
+        status = client.request("get_config", timeout_s=5.0)["config"]["ros2"]
+        assert status == {"state": "running", "restarts": 1,
+                          "last_exit_code": -signal.SIGKILL, "pid": restarted}
+        # the new one comes up as a node again (its ready line, a second time)
+        server.wait_for_line("simserver ros2: node", timeout_s=120,
+                             start=server.output.index(line) + 1)
+        tick = int(client.fresh_state()["tick"])
+        client.wait_state(lambda s: int(s["tick"]) > tick + 100, what="the server serving on")
+        assert server.alive()
+    assert server.returncode == 0, server.text()
+    orphan = Path(f"/proc/{restarted}").exists()
+    if orphan:  # leave no process behind, then fail
+        os.kill(restarted, signal.SIGKILL)
+    assert not orphan, "the restarted adapter outlived the server"
+    print(f"adapter restarted {restart_s:.2f} s after its kill -9")
+
+
+@pytest.mark.parametrize(("section", "message"), [
+    ("ros2: {domain_id: 300}", "ros2: domain_id: 300 is not an integer in [0, 232]"),
+    ("ros2: {domain: 1}", "ros2: unknown key 'domain'"),
+    ("ros2: {rate_hz: fast}", "ros2.rate_hz: expected a float"),
+    ("ros2: {topics: {speed: /x}}", "ros2: topic: 'speed' is not one of"),
+    ("ros2: 5", "ros2: expected off, on or a mapping"),
+])
+def test_a_bad_ros2_section_is_refused_at_load_naming_file_and_key(section, message,
+                                                                   tmp_path) -> None:
+    from simserver.adapters.config import ConfigError
+    from simserver.server.config import load_server_config
+
+    config = tmp_path / "server.yaml"
+    config.write_text(f"scene: {FLAT_SCENE}\n{section}\n", encoding="utf-8")
+    with pytest.raises(ConfigError) as err:
+        load_server_config(config)
+    assert str(err.value).startswith(f"{config}: ") and message in str(err.value)
+
+
+def test_ros2_section_and_flags_decide_together(tmp_path) -> None:
+    from simserver.server.config import load_server_config
+
+    config = tmp_path / "server.yaml"
+    config.write_text(f"scene: {FLAT_SCENE}\nros2: {{domain_id: 3}}\n", encoding="utf-8")
+    assert load_server_config(config).ros2 == {"domain_id": 3}
+    assert load_server_config(config, ros2=True).ros2 == {"domain_id": 3}
+    assert load_server_config(config, ros2=False).ros2 is None
+    config.write_text(f"scene: {FLAT_SCENE}\nros2: off\n", encoding="utf-8")
+    assert load_server_config(config).ros2 is None
+    assert load_server_config(config, ros2=True).ros2 == {}
+    config.write_text(f"scene: {FLAT_SCENE}\n", encoding="utf-8")
+    assert load_server_config(config).ros2 is None
+    assert load_server_config(CONFIGS / "server" / "default.yaml").ros2 is None

@@ -284,6 +284,115 @@ def test_view_with_the_tls_client_config_uses_its_endpoints_and_draws(pki, tmp_p
                for c in RrdReader(rrd).stream()), viewer.text()
 
 
+# ============================================================================ mutual TLS
+
+
+def test_mutual_tls_rights_follow_the_certificate_name(pki):
+    server_cfg = materialize("server_mtls_acl.json5", pki)
+    clients = {
+        name: materialize("client_mtls.json5", pki, f"client_mtls_{name}.json5", replace={
+            PLACEHOLDER_CLIENT_KEY: f"{pki}/tls/{name}.key",
+            PLACEHOLDER_CLIENT_CERT: f"{pki}/tls/{name}.pem"})
+        for name in ("driver", "viewer", "rogue")
+    }
+    no_cert = materialize("client_tls.json5", pki)
+    endpoint = loopback_endpoint("tls")
+    with ServerProcess(listen=[endpoint], extra_args=["--zenoh-config", str(server_cfg)]) as srv:
+        # through the TLS front, which does not end TLS: client certificates reach zenoh
+        assert len(front_pids(srv)) == 1
+        with pytest.raises(ZenohOpenError):  # no client certificate
+            Client(endpoint, zenoh_config=no_cert)
+        with pytest.raises(ZenohOpenError):  # CN "driver", but signed by another CA
+            Client(endpoint, zenoh_config=clients["rogue"])
+        with driver_and_viewer(endpoint, clients["driver"], clients["viewer"]) as (driver,
+                                                                                   viewer):
+            # the viewer's declarations (its command publisher first) reached the server
+            viewer.fresh_state()
+            before = driver.diagnostics()
+            viewer.drive(0.5, throttle=1.0)
+            assert no_reply(viewer, "reset")
+            after = driver.diagnostics()
+            assert after["cmd_received"] == before["cmd_received"]
+            state = driver.drive_until(lambda s: s["u_mps"] > 1.0 and s["throttle"] > 0.49,
+                                       throttle=0.5, what="driving")
+            assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
+            assert driver.request("reset")["ok"]
+        assert srv.alive()
+    assert srv.returncode == 0
+
+
+# ============================================================================ through a router
+
+
+def test_router_access_control_separates_servers_drivers_and_viewers(pki, tmp_path):
+    """router_auth_acl.json5 + server_via_router.json5: the lab topology of several hosts.
+
+    The server is a zenoh client of the router (no listening socket of its own) and
+    authenticates as "simserver"; drivers and viewers connect to the router only.
+    """
+    pw = dict(passwords(pki), simserver="srv-" + secrets.token_urlsafe(12))
+    users = tmp_path / "router_users.txt"
+    users.write_text("".join(f"{u}:{p}\n" for u, p in pw.items()), encoding="ascii")
+    router_cfg = materialize("router_auth_acl.json5", pki, "router.json5",
+                             replace={"/etc/simserver/users.txt": str(users)})
+    server_zenoh = materialize("server_via_router.json5", pki, replace={
+        "REPLACE-WITH-THE-SERVER-PASSWORD": pw["simserver"]})
+    impostor_zenoh = materialize("server_via_router.json5", pki, "impostor.json5", replace={
+        'user: "simserver"': 'user: "driver"', "REPLACE-WITH-THE-SERVER-PASSWORD":
+        pw["driver"]})
+    driver_cfg = materialize("client_driver.json5", pki, "router_driver.json5", replace={
+        "REPLACE-WITH-THE-DRIVER-PASSWORD": pw["driver"]})
+    viewer_cfg = materialize("client_viewer.json5", pki, "router_viewer.json5", replace={
+        "REPLACE-WITH-THE-VIEWER-PASSWORD": pw["viewer"]})
+    router_ep = loopback_endpoint("tls")
+
+    def server_yaml(name: str, zenoh_file: Path, vehicle: str) -> Path:
+        # listen: null, so the zenoh file decides (no listener: the server is a client)
+        path = tmp_path / name
+        path.write_text(f"scene: {CONFIGS / 'scenes' / 'flat_paper_sedan.yaml'}\n"
+                        f"vehicle_id: {vehicle}\nzenoh_config: {zenoh_file}\n"
+                        "listen: null\nviewer: 'off'\n", encoding="utf-8")
+        return path
+
+    router = RoleProcess("router", ["--listen", router_ep, "--zenoh-config", str(router_cfg)])
+    server = impostor = None
+    try:
+        server = ServerProcess(listen=[], config=server_yaml("server.yaml", server_zenoh, "car0"),
+                            extra_args=["--connect", router_ep])
+        assert not [s for s in process_sockets(server.pid) if s.listening]
+        with driver_and_viewer(router_ep, driver_cfg, viewer_cfg) as (driver, viewer):
+            state = driver.drive_until(lambda s: s["u_mps"] > 1.0 and s["throttle"] > 0.49,
+                                       throttle=0.5, what="driving")
+            assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
+            assert driver.request("reset")["ok"]
+            driver.wait_state(lambda s: s["flags"] & proto.StateFlag.WATCHDOG,
+                              what="the watchdog holding the car")  # the driver is silent
+            before = driver.diagnostics()
+            viewer.drive(0.5, throttle=1.0)
+            assert no_reply(viewer, "reset") and no_reply(viewer, "pause")
+            after = driver.diagnostics()
+            assert after["cmd_received"] == before["cmd_received"]
+            assert state_is_finite(viewer.fresh_state())
+            # a client cannot impersonate a server: a "car1" served by the driver's
+            # credentials never gets a command or a query through
+            impostor = ServerProcess(listen=[], vehicle_id="car1", config=server_yaml(
+                "impostor.yaml", impostor_zenoh, "car1"), extra_args=["--connect", router_ep])
+            with Client(router_ep, vehicle_id="car1", zenoh_config=driver_cfg) as victim:
+                assert no_reply(victim, "get_config")
+                victim.drive(0.5, throttle=0.5)
+                assert victim.received == 0  # and its states reach nobody
+        # and without credentials, no session with the router
+        with pytest.raises(ZenohOpenError):
+            Client(router_ep, zenoh_config=materialize("client_tls.json5", pki))
+        assert server.alive()
+    finally:
+        if impostor is not None:
+            impostor.stop()
+        if server is not None:
+            server.stop()
+        router.stop()
+
+
 # ============================================================================ user/password + ACL
 
 
@@ -434,115 +543,6 @@ def test_nobody_but_the_server_can_publish_the_state(acl_server):
         assert len(seen_by_driver) > 50 and len(seen_by_viewer) > 50  # the real ones flow
         fake_v.undeclare()
         fake_d.undeclare()
-
-
-# ============================================================================ mutual TLS
-
-
-def test_mutual_tls_rights_follow_the_certificate_name(pki):
-    server_cfg = materialize("server_mtls_acl.json5", pki)
-    clients = {
-        name: materialize("client_mtls.json5", pki, f"client_mtls_{name}.json5", replace={
-            PLACEHOLDER_CLIENT_KEY: f"{pki}/tls/{name}.key",
-            PLACEHOLDER_CLIENT_CERT: f"{pki}/tls/{name}.pem"})
-        for name in ("driver", "viewer", "rogue")
-    }
-    no_cert = materialize("client_tls.json5", pki)
-    endpoint = loopback_endpoint("tls")
-    with ServerProcess(listen=[endpoint], extra_args=["--zenoh-config", str(server_cfg)]) as srv:
-        # through the TLS front, which does not end TLS: client certificates reach zenoh
-        assert len(front_pids(srv)) == 1
-        with pytest.raises(ZenohOpenError):  # no client certificate
-            Client(endpoint, zenoh_config=no_cert)
-        with pytest.raises(ZenohOpenError):  # CN "driver", but signed by another CA
-            Client(endpoint, zenoh_config=clients["rogue"])
-        with driver_and_viewer(endpoint, clients["driver"], clients["viewer"]) as (driver,
-                                                                                   viewer):
-            # the viewer's declarations (its command publisher first) reached the server
-            viewer.fresh_state()
-            before = driver.diagnostics()
-            viewer.drive(0.5, throttle=1.0)
-            assert no_reply(viewer, "reset")
-            after = driver.diagnostics()
-            assert after["cmd_received"] == before["cmd_received"]
-            state = driver.drive_until(lambda s: s["u_mps"] > 1.0 and s["throttle"] > 0.49,
-                                       throttle=0.5, what="driving")
-            assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
-            assert driver.request("reset")["ok"]
-        assert srv.alive()
-    assert srv.returncode == 0
-
-
-# ============================================================================ through a router
-
-
-def test_router_access_control_separates_servers_drivers_and_viewers(pki, tmp_path):
-    """router_auth_acl.json5 + server_via_router.json5: the lab topology of several hosts.
-
-    The server is a zenoh client of the router (no listening socket of its own) and
-    authenticates as "simserver"; drivers and viewers connect to the router only.
-    """
-    pw = dict(passwords(pki), simserver="srv-" + secrets.token_urlsafe(12))
-    users = tmp_path / "router_users.txt"
-    users.write_text("".join(f"{u}:{p}\n" for u, p in pw.items()), encoding="ascii")
-    router_cfg = materialize("router_auth_acl.json5", pki, "router.json5",
-                             replace={"/etc/simserver/users.txt": str(users)})
-    server_zenoh = materialize("server_via_router.json5", pki, replace={
-        "REPLACE-WITH-THE-SERVER-PASSWORD": pw["simserver"]})
-    impostor_zenoh = materialize("server_via_router.json5", pki, "impostor.json5", replace={
-        'user: "simserver"': 'user: "driver"', "REPLACE-WITH-THE-SERVER-PASSWORD":
-        pw["driver"]})
-    driver_cfg = materialize("client_driver.json5", pki, "router_driver.json5", replace={
-        "REPLACE-WITH-THE-DRIVER-PASSWORD": pw["driver"]})
-    viewer_cfg = materialize("client_viewer.json5", pki, "router_viewer.json5", replace={
-        "REPLACE-WITH-THE-VIEWER-PASSWORD": pw["viewer"]})
-    router_ep = loopback_endpoint("tls")
-
-    def server_yaml(name: str, zenoh_file: Path, vehicle: str) -> Path:
-        # listen: null, so the zenoh file decides (no listener: the server is a client)
-        path = tmp_path / name
-        path.write_text(f"scene: {CONFIGS / 'scenes' / 'flat_paper_sedan.yaml'}\n"
-                        f"vehicle_id: {vehicle}\nzenoh_config: {zenoh_file}\n"
-                        "listen: null\nviewer: 'off'\n", encoding="utf-8")
-        return path
-
-    router = RoleProcess("router", ["--listen", router_ep, "--zenoh-config", str(router_cfg)])
-    server = impostor = None
-    try:
-        server = ServerProcess(listen=[], config=server_yaml("server.yaml", server_zenoh, "car0"),
-                            extra_args=["--connect", router_ep])
-        assert not [s for s in process_sockets(server.pid) if s.listening]
-        with driver_and_viewer(router_ep, driver_cfg, viewer_cfg) as (driver, viewer):
-            state = driver.drive_until(lambda s: s["u_mps"] > 1.0 and s["throttle"] > 0.49,
-                                       throttle=0.5, what="driving")
-            assert state["throttle"] > 0.49 and state["u_mps"] > 1.0
-            assert driver.request("reset")["ok"]
-            driver.wait_state(lambda s: s["flags"] & proto.StateFlag.WATCHDOG,
-                              what="the watchdog holding the car")  # the driver is silent
-            before = driver.diagnostics()
-            viewer.drive(0.5, throttle=1.0)
-            assert no_reply(viewer, "reset") and no_reply(viewer, "pause")
-            after = driver.diagnostics()
-            assert after["cmd_received"] == before["cmd_received"]
-            assert state_is_finite(viewer.fresh_state())
-            # a client cannot impersonate a server: a "car1" served by the driver's
-            # credentials never gets a command or a query through
-            impostor = ServerProcess(listen=[], vehicle_id="car1", config=server_yaml(
-                "impostor.yaml", impostor_zenoh, "car1"), extra_args=["--connect", router_ep])
-            with Client(router_ep, vehicle_id="car1", zenoh_config=driver_cfg) as victim:
-                assert no_reply(victim, "get_config")
-                victim.drive(0.5, throttle=0.5)
-                assert victim.received == 0  # and its states reach nobody
-        # and without credentials, no session with the router
-        with pytest.raises(ZenohOpenError):
-            Client(router_ep, zenoh_config=materialize("client_tls.json5", pki))
-        assert server.alive()
-    finally:
-        if impostor is not None:
-            impostor.stop()
-        if server is not None:
-            server.stop()
-        router.stop()
 
 
 # ============================================================================ floods
@@ -1049,16 +1049,6 @@ def _reset_replies(impostor: Client, victim: Client, seconds: float) -> list[dic
     return bodies
 
 
-def test_on_the_loopback_default_a_local_process_can_answer_the_controls():
-    """docs/security.md 1.1, as stated: without access control any local peer session
-    can serve ``ctl/*``, and its answer reaches a client beside the server's."""
-    with ServerProcess(listen=[loopback_endpoint()]) as server, \
-            Client(server, mode="peer") as impostor, Client(server) as victim:
-        victim.wait_controls()
-        bodies = _reset_replies(impostor, victim, seconds=10.0)
-    assert any(b.get("hijacked") for b in bodies), bodies
-
-
 def test_the_secured_config_lets_nobody_but_the_server_answer_the_controls(acl_server):
     """With ``server_auth_acl.json5``, a driver's session serving ``ctl/reset`` reaches
     no other client: the other driver gets the server's reply only."""
@@ -1068,3 +1058,14 @@ def test_the_secured_config_lets_nobody_but_the_server_answer_the_controls(acl_s
         victim.wait_controls()
         bodies = _reset_replies(impostor, victim, seconds=2.0)
     assert len(bodies) >= 10 and not any(b.get("hijacked") for b in bodies), bodies
+
+
+# (after the last test of the module's ACL server, which ends with it: tests/conftest.py)
+def test_on_the_loopback_default_a_local_process_can_answer_the_controls():
+    """docs/security.md 1.1, as stated: without access control any local peer session
+    can serve ``ctl/*``, and its answer reaches a client beside the server's."""
+    with ServerProcess(listen=[loopback_endpoint()]) as server, \
+            Client(server, mode="peer") as impostor, Client(server) as victim:
+        victim.wait_controls()
+        bodies = _reset_replies(impostor, victim, seconds=10.0)
+    assert any(b.get("hijacked") for b in bodies), bodies

@@ -36,6 +36,14 @@ def test_whole_default_suite_is_recorded_and_a_selection_is_not(tmp_path: Path) 
     run = runs[0]
     assert run["counts"] == {"passed": 2} and run["exitstatus"] == 0
     assert 0 < run["wall_s"] < 120 and run["cpu_s"] >= 0 and isinstance(run["cold"], bool)
+    # its slowest tests, slowest first, each with its setup + call + teardown seconds
+    assert sorted(nodeid for nodeid, _ in run["slowest"]) == ["t/test_a.py::test_one",
+                                                              "t/test_a.py::test_two"]
+    seconds = [s for _, s in run["slowest"]]
+    assert seconds == sorted(seconds, reverse=True) and all(s >= 0 for s in seconds)
+    assert sorted(nodeid for nodeid, _ in run["most_cpu"]) == ["t/test_a.py::test_one",
+                                                               "t/test_a.py::test_two"]
+    assert all(s >= 0 for _, s in run["most_cpu"])
 
     for selection in (["-k", "one"], ["t/test_a.py"], ["-x"], ["-m", "not slow"]):
         proc = _pytest(tmp_path, record, *selection)
@@ -49,3 +57,27 @@ def test_whole_default_suite_is_recorded_and_a_selection_is_not(tmp_path: Path) 
     runs = json.loads(record.read_text())
     assert [r["exitstatus"] for r in runs] == [0, 1]
     assert runs[-1]["counts"] == {"passed": 2, "failed": 1}
+
+
+def test_slowest_keeps_the_longest_tests_and_the_printout_lists_them(tmp_path: Path) -> None:
+    from tests import suite_record
+
+    durations = {f"t/test_x.py::test_{i}": float(i) for i in range(40)}
+    top = suite_record.slowest(durations)
+    assert len(top) == suite_record.SLOWEST == 30
+    assert top[0] == ["t/test_x.py::test_39", 39.0] and top[-1] == ["t/test_x.py::test_10", 10.0]
+
+    record = tmp_path / "record.json"
+    cpu = {f"t/test_x.py::test_{i}": 0.5 * i for i in range(40)}
+    suite_record.append(suite_record.entry(12.0, 10.0, 0, {"passed": 40}, 5, 1.0, durations,
+                                           cpu), record)
+    proc = subprocess.run([sys.executable, "-m", "tests.suite_record", str(record)], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert "12 s wall" in lines[0] and "slowest 30 tests" in lines[1], proc.stdout
+    assert lines[2].split() == ["39.00", "s", "t/test_x.py::test_39"], lines[2]
+    assert "test_10" in lines[31], proc.stdout
+    assert "most CPU: 30 tests" in lines[32] and lines[33].split() == [
+        "19.50", "s", "t/test_x.py::test_39"], proc.stdout
+    assert len(lines) == 63 and "test_10" in lines[-1], proc.stdout
