@@ -90,6 +90,43 @@ class WorldRig:
     def state(self, car: str) -> np.void:
         return self.ports[car].publisher.states[-1]
 
+    def world_desk(self, cfg=None, closed: list | None = None, on_added=None):
+        """The world's controls on list ports, as the server wires them (``WorldDesk``):
+        a car added gets list ports (kept in ``ports``); a car removed is noted in
+        ``closed``. Returns the desk (``close()`` it) and its control inbox; :meth:`ask`
+        sends to it."""
+        from simserver.server.world_desk import WorldDesk
+
+        self.world_controls = ListControls()
+
+        def make_ports(car_cfg):
+            ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
+            self.ports[car_cfg.vehicle_id] = ports
+            return ports
+
+        def removed(slot, ports):
+            if closed is not None:
+                closed.append(slot.keys.vehicle)
+
+        desk = WorldDesk(self.loop, cfg or self.cfg, self.world_controls, make_ports,
+                         removed, **({} if on_added is None else {"on_added": on_added}))
+        self.loop.world_desk = desk
+        return desk
+
+    def answer(self, req: LocalRequest, ticks: int = 3000) -> dict:
+        """Tick until ``req`` is answered (within ``ticks``); its answer."""
+        for _ in range(ticks):
+            self.loop.tick()
+            if req.body is not None:
+                return req.answer
+        raise AssertionError(f"{req.name} not answered in {ticks} ticks")
+
+    def ask(self, name: str, args: dict | None = None, ticks: int = 3000) -> dict:
+        """A world control (:meth:`world_desk`), answered."""
+        req = LocalRequest(name, json.dumps(args).encode() if args is not None else b"")
+        self.world_controls.pending.append(req)
+        return self.answer(req, ticks)
+
     def control(self, car: str, name: str, args: dict | None = None) -> dict:
         req = LocalRequest(name, json.dumps(args).encode() if args is not None else b"")
         self.ports[car].controls.pending.append(req)
@@ -361,32 +398,12 @@ def test_a_car_added_and_one_removed_while_the_world_runs(flat_scene):
 
 
 def test_world_controls_add_and_remove_cars_between_ticks(flat_scene):
-    from simserver.server.world_desk import WorldDesk
-
     rig = WorldRig(flat_scene, [{"id": "a"}, {"id": "b", "pose": {"x_m": 15.0, "y_m": 0.0}}])
     rig.loop.world_message = fleet.WorldMessage(["a", "b"], ["client", "client"], every=10,
                                                 capacity=4)
-    controls = ListControls()
-    made, closed = [], []
-
-    def make_ports(cfg):
-        made.append(cfg.vehicle_id)
-        ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
-        rig.ports[cfg.vehicle_id] = ports
-        return ports
-
-    desk = WorldDesk(rig.loop, dataclasses.replace(rig.cfg, max_cars=3), controls,
-                     make_ports, lambda slot, ports: closed.append(slot.keys.vehicle))
-    rig.loop.world_desk = desk
-
-    def ask(name, args=None, ticks=200):
-        req = LocalRequest(name, json.dumps(args).encode() if args is not None else b"")
-        controls.pending.append(req)
-        for _ in range(ticks):
-            rig.loop.tick()
-            if req.body is not None:
-                break
-        return req.answer
+    closed = []
+    desk = rig.world_desk(dataclasses.replace(rig.cfg, max_cars=3), closed)
+    ask = rig.ask
 
     try:
         bad = ask("add_car", {"id": "c", "pose": {"x_m": 15.5, "y_m": 0.0, "yaw_rad": 0.0}})
@@ -420,11 +437,12 @@ def test_world_controls_add_and_remove_cars_between_ticks(flat_scene):
         flat = ask("add_car", {"id": "c", "start": lane})  # a start by lane: OpenDRIVE only
         assert flat["field"] == "start" and flat["error"].startswith(
             "add_car (c): key 'start': a start by road, s and lane needs an OpenDRIVE"), flat
-        assert rig.loop.world.ids == ["a", "b"] and made == []  # nothing changed
+        # nothing changed: no car, no ports made
+        assert rig.loop.world.ids == ["a", "b"] and set(rig.ports) == {"a", "b"}
         ok = ask("add_car", {"id": "c", "vehicle": str(HATCH),
                              "pose": {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}})
         assert ok == {"ok": True, "car": "c", "cars": ["a", "b", "c"]}, ok
-        assert made == ["c"] and rig.loop.world.ids == ["a", "b", "c"]
+        assert set(rig.ports) == {"a", "b", "c"} and rig.loop.world.ids == ["a", "b", "c"]
         full = ask("add_car", {"id": "d", "pose": {"x_m": 80.0, "y_m": 0.0, "yaw_rad": 0.0}})
         assert full["field"] == "id" and "max_cars (3)" in full["error"]
         for _ in range(300):
@@ -472,35 +490,16 @@ def test_a_car_added_after_a_live_load_is_made_on_the_loaded_scene(flat_scene, s
     Before, the new car was made on the server config's scene: the flat road's scene on
     the 15 % grade, a start by lane refused ("needs an OpenDRIVE" terrain), the paper sedan
     where the world's scene drives the hatchback."""
-    from simserver.server.world_desk import WorldDesk
-
     loaded = Path(FLAT).parent / f"{scene_name}.yaml"
     rig = WorldRig(flat_scene, [{"id": "a"}])
     rig.loop.world_message = fleet.WorldMessage(["a"], ["client"], every=10, capacity=2)
-    controls = ListControls()
-
-    def make_ports(cfg):
-        ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
-        rig.ports[cfg.vehicle_id] = ports
-        return ports
-
-    desk = WorldDesk(rig.loop, rig.cfg, controls, make_ports, lambda slot, ports: None)
-    rig.loop.world_desk = desk
-
-    def answer(req, ticks=3000):
-        for _ in range(ticks):
-            rig.loop.tick()
-            if req.body is not None:
-                return req.answer
-        raise AssertionError(f"{req.name} not answered")
-
+    desk = rig.world_desk()
     try:
         load = LocalRequest("load", json.dumps({"scene": str(loaded)}).encode())
         rig.ports["a"].controls.pending.append(load)
-        assert answer(load)["ok"], load.answer
-        add = LocalRequest("add_car", json.dumps({"id": "c", **where}).encode())
-        controls.pending.append(add)
-        assert answer(add) == {"ok": True, "car": "c", "cars": ["a", "c"]}, add.answer
+        assert rig.answer(load)["ok"], load.answer
+        added = rig.ask("add_car", {"id": "c", **where})
+        assert added == {"ok": True, "car": "c", "cars": ["a", "c"]}, added
         slot = next(s for s, _ in rig.loop.slots if s.keys.vehicle == "c")
         scene = load_scene(loaded)
         spec, = cars_config.parse_cars(loaded, [{"id": "c", **where}])
@@ -529,17 +528,10 @@ def test_a_car_added_after_a_live_set_road_replays_on_the_worlds_road(flat_scene
     its start (``fleet.log_start``): the replay of its log alone, and the world's replay
     of every log, give its live bits. Before, its log named only the scene (its file's
     road, 0 %): its replay alone drove up a flat road the live car climbed at 8 %."""
-    from simserver.server.world_desk import WorldDesk
     from simserver.server.world_replay import replay_world
 
     rig = WorldRig(flat_scene, [{"id": "a"}], tmp_path)
     rig.loop.world_message = fleet.WorldMessage(["a"], ["client"], every=10, capacity=2)
-    controls = ListControls()
-
-    def make_ports(cfg):
-        ports = SlotPorts(ListInbox(), ListControls(), RecordingPublisher())
-        rig.ports[cfg.vehicle_id] = ports
-        return ports
 
     def added(slot):  # as the server's (SimServer._added): its log, then its start lines
         slot.command_log = CommandLog(tmp_path / f"{slot.keys.vehicle}.jsonl", {
@@ -547,21 +539,13 @@ def test_a_car_added_after_a_live_set_road_replays_on_the_worlds_road(flat_scene
         fleet.log_start(slot, cars_config.CarSpec(id=slot.keys.vehicle, where="",
                                                   vehicle=slot.sim.scene.vehicle.path))
 
-    desk = WorldDesk(rig.loop, rig.cfg, controls, make_ports, lambda slot, ports: None,
-                     on_added=added)
-    rig.loop.world_desk = desk
+    desk = rig.world_desk(on_added=added)
     try:
         rig.run(50)
         assert rig.control("a", "set_road", {"grade_pct": 8.0})["road"]["grade_pct"] == 8.0
         rig.run(50)
-        add = LocalRequest("add_car", json.dumps({"id": "c", "pose": {
-            "x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}}).encode())
-        controls.pending.append(add)
-        for _ in range(3000):
-            rig.loop.tick()
-            if add.body is not None:
-                break
-        assert add.answer == {"ok": True, "car": "c", "cars": ["a", "c"]}, add.answer
+        add = rig.ask("add_car", {"id": "c", "pose": {"x_m": 40.0, "y_m": 0.0, "yaw_rad": 0.0}})
+        assert add == {"ok": True, "car": "c", "cars": ["a", "c"]}, add
         c = next(s for s, _ in rig.loop.slots if s.keys.vehicle == "c")
         assert c.sim.road["grade_pct"] == 8.0  # the world's road, live
         for k in range(400):
