@@ -393,10 +393,6 @@ class ServerLoop:
         self._message_noted: Any = None  # the world message the published states are noted in
         self._plan: list = [()]  # what each car does at each tick of the cycle (_make_plan)
         self._plan_rows: list[np.ndarray] = [np.zeros(0, dtype=np.int64)]
-        # the same in a catch-up tick: the clients' cars only publish (_make_plan)
-        self._catchup_plan: list = [()]
-        self._catchup_rows: list[np.ndarray] = [np.zeros(0, dtype=np.int64)]
-        self._world_owed = False  # a world message put off by catch-up ticks
         self._input_slots: list[VehicleSlot] = []
         # the built-in driver's cars (simserver.server.live_drivers): prepared off the
         # tick, their arrays assembled when the world's cars change, driven each tick
@@ -563,17 +559,14 @@ class ServerLoop:
         for hook in self.tick_hooks:  # e.g. a served scenario's posted driver targets
             hook()
         message = self.world_message
-        if message is not None and (message.due(count) or self._world_owed):
-            # a catch-up tick puts it off to the first tick back on its deadline
-            self._world_owed = catching_up
-            if not catching_up:
-                uptime_s = (now - self.t0_ns) / NS_PER_S
-                if self._message_noted is message:  # every car's newest state noted
-                    self.publish_world(message.payload_noted(count, uptime_s))
-                else:  # a new message, or the cars changed: every car's newest state once
-                    self.publish_world(message.payload(
-                        [s.last_published for s, _ in self.slots], count, uptime_s))
-                    self._message_noted = message
+        if message is not None and message.due(count):
+            uptime_s = (now - self.t0_ns) / NS_PER_S
+            if self._message_noted is message:  # every car's newest state noted as published
+                self.publish_world(message.payload_noted(count, uptime_s))
+            else:  # a new message, or the cars changed: every car's newest state once
+                self.publish_world(message.payload(
+                    [s.last_published for s, _ in self.slots], count, uptime_s))
+                self._message_noted = message
         if count % self.second_every == self.second_every // 2:  # between diagnostics
             for job in self.every_second:
                 job()
@@ -630,9 +623,7 @@ class ServerLoop:
         count, its command log)."""
         slots = self.slots
         count = self.loop_count
-        plans, rows = ((self._catchup_plan, self._catchup_rows) if catching_up
-                       else (self._plan, self._plan_rows))
-        plan = plans[count % len(plans)]
+        plan = self._plan[count % len(self._plan)]
         if skipped:
             for slot, _ in slots:
                 slot.skipped_before = True
@@ -673,7 +664,7 @@ class ServerLoop:
         poses = None
         noted = self._message_noted  # the world message, noting each new state
         if publish_state and frame is not None:  # the publishing cars' fields in one go
-            frame.fill(self.world, rows[count % len(rows)])
+            frame.fill(self.world, self._plan_rows[count % len(self._plan_rows)])
             poses = frame.poses
         for index, slot, ports, diag_due, commands, serve in plan:
             if all_finite:
@@ -718,32 +709,19 @@ class ServerLoop:
         cycle = every * diag_every // math.gcd(every, diag_every)
         cars = [(index, slot, ports, slot.driven_by == "client")
                 for index, (slot, ports) in enumerate(self.slots)]
-        plan, catchup = [], []
+        plan = []
         for tick in range(cycle):
-            entries, shed = [], []
+            entries = []
             for index, slot, ports, client in cars:
                 phase = (tick + index) % every == 0
                 diag_due = (tick + index) % diag_every == 0
                 if client or phase or diag_due:
                     entries.append((index, slot, ports, diag_due, client or phase,
                                     client or phase))
-                    # a catch-up tick (the loop behind its deadlines after a stall):
-                    # a client's car as ever; the others' state and diagnostics of this
-                    # phase are shed (their next come at their next phase; the world
-                    # message carries every car), their controls still served. The
-                    # back-to-back ticks then cost little more than the world's step,
-                    # so the loop is back on its deadlines after fewer late ticks
-                    # (benchmarks.bench_multicar: 32 cars)
-                    if client or phase:
-                        shed.append((index, slot, ports, diag_due and client, client,
-                                     client or phase))
             plan.append(tuple(entries))
-            catchup.append(tuple(shed))
-        self._plan, self._catchup_plan = plan, catchup
-        # the cars that publish: the frame's rows
-        self._plan_rows, self._catchup_rows = (
-            [np.array([e[0] for e in entries if e[4]], dtype=np.int64) for entries in p]
-            for p in (plan, catchup))
+        self._plan = plan
+        self._plan_rows = [np.array([e[0] for e in entries if e[4]], dtype=np.int64)
+                           for entries in plan]  # the cars that publish: the frame's rows
         self._input_slots = [slot for slot, _ in self.slots if slot.driven_by != "driver"]
 
     def _with_pending(self, plan: tuple, pending: dict[int, PendingJob]) -> list:
