@@ -813,14 +813,10 @@ def test_keyboard_driver_rearms_its_hold_and_names_the_new_car_after_a_load_by_a
         hold_until(drv, b"w", watcher, lambda s: float(s["u_mps"]) > 1.0, 15.0)  # released
         drv.wait_for("auto hold on: a stop with the brake is held", 10)
         shown = len(drv.text())
-        # the hatchback brings the MF 6.1 tire model the brush server's step lacks: its
-        # step is compiled off the tick in the load worker before the load is answered
-        # (docs/model.md section 14), on a fresh clone's empty cache about a minute or more
-        # on a busy 2-core machine (the CI emulation's first such load went past 60 s)
         reply = watcher.ep.request(
             "load", {"scene": str(CONFIGS / "scenes" / "hill_10pct_paper_sedan.yaml"),
                      "vehicle": str(CONFIGS / "vehicles" / "mf_hatchback" / "vehicle.yaml")},
-            timeout_s=300.0)
+            timeout_s=60.0)
         assert reply["ok"], reply
         wait_until(lambda: "vehicle mf_hatchback  scene scenes/hill_10pct_paper_sedan.yaml"
                    in drv.text()[shown:], timeout_s=20, what="the header names the new car")

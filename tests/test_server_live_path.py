@@ -252,7 +252,7 @@ def test_a_long_compile_says_so_with_its_progress():
                    what="a progress line")
     text = out.getvalue()
     assert progress.announced
-    assert "compiling the vehicle kernels (first start only, about 30-60 s" in text
+    assert "compiling the vehicle kernels (first start only, about 45-90 s" in text
     assert text.rstrip().splitlines()[-1].startswith("simserver: compiled in ")
     quiet = io.StringIO()
     with CompileProgress(quiet_s=0.01, every_s=0.01, out=quiet) as silent:

@@ -26,7 +26,6 @@ from simserver.server.config import load_server_config as _load_server_config
 from simserver.server.loop import CONTROLS, ServerLoop, SlotPorts
 from simserver.server.slot import VehicleSlot
 from simserver.sim.scene import Scene, load_scene
-from simserver.testing import wait_until
 from simserver.wire import protocol as proto
 
 pytestmark = pytest.mark.timeout(120)
@@ -558,100 +557,6 @@ def test_load_is_prepared_off_the_tick_and_applied_between_two_ticks(flat_scene)
     assert rig.run()["tick"] == 1
     rig.run(int(1 / (rig.cfg.diag_hz * rig.cfg.period_s)))
     assert int(rig.out.diags[-1]["ctl_busy"]) == 1
-
-
-class CompilesInTicks:
-    """Counts the kernels compiled or loaded from the cache inside ``loop.tick``, on the
-    tick's thread: every call of a compiled function with argument types it has no code for
-    yet goes through numba's ``Dispatcher._compile_for_args`` (a compile, or a cache load
-    that fires no compile event); a helper thread's meanwhile is not the tick's."""
-
-    def __init__(self, loop: ServerLoop) -> None:
-        import threading
-
-        from numba.core.dispatcher import Dispatcher
-
-        self.in_tick = False
-        self.count = 0
-        tick_thread = threading.get_ident()
-        self._original = original = Dispatcher._compile_for_args
-
-        def counted_compile(dispatcher, *args, **kwargs):
-            if self.in_tick and threading.get_ident() == tick_thread:
-                self.count += 1
-            return original(dispatcher, *args, **kwargs)
-
-        Dispatcher._compile_for_args = counted_compile
-        tick = loop.tick
-
-        def counted_tick(*args, **kwargs):
-            self.in_tick = True
-            try:
-                return tick(*args, **kwargs)
-            finally:
-                self.in_tick = False
-
-        loop.tick = counted_tick
-
-    def close(self) -> None:
-        from numba.core.dispatcher import Dispatcher
-
-        Dispatcher._compile_for_args = self._original
-
-
-@pytest.mark.timeout(600)  # compiles the step for MF 6.1 alone and for both models
-def test_a_load_of_a_tire_model_the_step_lacks_compiles_off_the_tick(flat_scene):
-    """Issue 33: the server's step is compiled with the tire models of its scene only (the
-    brush tire of flat_paper_sedan: no MF 6.1 code). A load of an MF 6.1 scene compiles
-    the step for both in the load worker (a real one: another process), the server then
-    loads it from the cache in a thread while the tick runs on: no compile ever starts
-    inside a tick, and the car runs on the MF 6.1 tires after the load (bit for bit as a
-    step of MF 6.1 alone)."""
-    from simserver.core.tire_layout import TIRE_MODEL_MF61, TIRE_MODEL_SIMPLE
-    from simserver.sim.simulation import Simulation
-    from simserver.tires.registry import tire_models_of
-
-    rig = Rig(flat_scene)
-    assert rig.slot.sim.world.tire_models == {TIRE_MODEL_SIMPLE}
-    assert rig.slot.sim.model.tires.builtin == (True, None)  # MF 6.1 not compiled in
-    from simserver.server.load_worker import ProcessPreparer
-
-    worker = rig.loop.preparer = ProcessPreparer()
-    rig.slot.warm_up()  # as the server does before its first tick
-    rig.run(5)
-    compiles = CompilesInTicks(rig.loop)
-    try:
-        rig.run(5)
-        req = LocalRequest("load", json.dumps({"scene": str(MF_SCENE)}).encode())
-        rig.controls.pending.append(req)
-        rig.run()
-        assert req.body is None  # handed to the worker, which compiles the step for both
-        wait_until(lambda: rig.run() is not None and req.body is not None, timeout_s=300,
-                   what="the load of the MF 6.1 scene answered")
-        assert req.answer["ok"] is True, req.answer
-        assert rig.slot.sim.world.tire_models == {TIRE_MODEL_SIMPLE, TIRE_MODEL_MF61}
-        assert tire_models_of(rig.slot.sim.tp) == {TIRE_MODEL_MF61}
-        for _ in range(300):  # commands each tick: the watchdog holds a car without
-            rig.send(throttle=0.6, gear=proto.Gear.D)
-            rig.run()
-        assert compiles.count == 0, f"{compiles.count} kernels compiled or loaded in a tick"
-    finally:
-        compiles.close()
-        worker.close()
-    assert float(rig.slot.sim.x[L.U_MPS]) > 0.1  # it drove on the MF 6.1 tires
-    assert np.isfinite(rig.slot.sim.x).all()
-    # a step compiled with both models runs an MF 6.1 car bit for bit as one of MF 6.1 only
-    runs = []
-    for extra in (frozenset(), frozenset({TIRE_MODEL_SIMPLE})):
-        sim = Simulation(load_scene(MF_SCENE), rig.cfg.period_s, tire_models=extra)
-        sim.inputs[L.IN_THROTTLE] = 0.6
-        sim.inputs[L.IN_GEAR] = L.GEAR_D
-        for _ in range(300):
-            sim.step()
-        runs.append((sim.world.tire_models, sim.x.copy()))
-    assert runs[0][0] == {TIRE_MODEL_MF61} and runs[1][0] == rig.slot.sim.world.tire_models
-    assert runs[0][1].tobytes() == runs[1][1].tobytes()
-    assert runs[0][1][L.U_MPS] > 0.1
 
 
 def test_a_load_that_never_finishes_is_answered_and_its_worker_restarted(flat_scene):

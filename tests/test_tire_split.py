@@ -440,18 +440,15 @@ def test_dispatchers_neither_allocate_nor_count_references() -> None:
     from ``tp[TP_MODEL]``), so one compile per dispatcher, run with each tire, is checked
     for all of them (``_main_function_ir`` asserts they share the specialisation)."""
     out = np.zeros(N_TIRE_OUT)
-    # the dispatchers' compiled bodies (the public functions are inlined wrappers handing
-    # them which built-in models are compiled in: both here)
-    both = (True, True, BUILTIN_KERNELS)
-    calls: dict = {tire._tire_prepare: [], tire._tire_evaluate: [], tire._tire_forces: []}
+    calls: dict = {tire.tire_prepare: [], tire.tire_evaluate: [], tire.tire_forces: []}
     for name in ("mf61", "simple"):
         tp, coef = TIRES[name], np.zeros(N_TIRE_COEF)
         tire_prepare(BUILTIN_KERNELS, tp, 0.0, 4000.0, 1.0, coef)
-        calls[tire._tire_prepare].append((*both, tp, 0.0, 4000.0, 1.0, coef))
-        calls[tire._tire_evaluate].append(
-            (*both, tp, coef, 0.01, 0.02, 4000.0, 10.0, out))
-        calls[tire._tire_forces].append(
-            (*both, tp, 0.01, 0.02, 0.0, 4000.0, 1.0, 10.0, out))
+        calls[tire.tire_prepare].append((BUILTIN_KERNELS, tp, 0.0, 4000.0, 1.0, coef))
+        calls[tire.tire_evaluate].append(
+            (BUILTIN_KERNELS, tp, coef, 0.01, 0.02, 4000.0, 10.0, out))
+        calls[tire.tire_forces].append(
+            (BUILTIN_KERNELS, tp, 0.01, 0.02, 0.0, 4000.0, 1.0, 10.0, out))
     for fn, args in calls.items():
         body = _main_function_ir(fn, *args)
         called = set(re.findall(r"call [^@]*@\"?([A-Za-z_][\w.]*)", body))

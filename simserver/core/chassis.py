@@ -207,10 +207,10 @@ from simserver.core.terrain import (
     terrain_road,
 )
 from simserver.core.tire import (
-    evaluate_mf61_wheels_if,
-    evaluate_simple_wheels_if,
     every_tire_is,
     tire_evaluate,
+    tire_evaluate_mf61_wheels,
+    tire_evaluate_simple_wheels,
 )
 from simserver.core.tire_layout import (
     OUT_C_ALPHA,
@@ -694,14 +694,11 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
                       wheel[3, W_TAN_ALPHA])
         fz4 = (wheel[0, W_FZ], wheel[1, W_FZ], wheel[2, W_FZ], wheel[3, W_FZ])
         hub_u4 = (wheel[0, W_HUB_U], wheel[1, W_HUB_U], wheel[2, W_HUB_U], wheel[3, W_HUB_U])
-        # with whether the step is compiled with the model (core.tire: if not, its body
-        # is not compiled either)
         if mf61:
-            evaluate_mf61_wheels_if(tires.builtin[TIRE_MODEL_MF61], tp, tire_coef, kappa4,
-                                    tan_alpha4, fz4, hub_u4, tire_out)
+            tire_evaluate_mf61_wheels(tp, tire_coef, kappa4, tan_alpha4, fz4, hub_u4, tire_out)
         else:
-            evaluate_simple_wheels_if(tires.builtin[TIRE_MODEL_SIMPLE], tp, tire_coef, kappa4,
-                                      tan_alpha4, fz4, hub_u4, tire_out)
+            tire_evaluate_simple_wheels(tp, tire_coef, kappa4, tan_alpha4, fz4, hub_u4,
+                                        tire_out)
     else:
         for i in range(N_WHEELS):
             tire_evaluate(tires, tp[i], tire_coef[i], wheel[i, W_KAPPA], wheel[i, W_TAN_ALPHA],

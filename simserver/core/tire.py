@@ -86,19 +86,9 @@ from simserver.core.tire_simple import N_SIMPLE_PARAM, _simple_evaluate, _simple
 
 N_TIRE_PARAM = TP_MODEL_BASE + max(N_SIMPLE_PARAM, N_MF61_PARAM)
 
-BUILTIN_KERNELS = TireKernels((), (), (True, True))
+BUILTIN_KERNELS = TireKernels((), ())
 """The ``kernels`` argument when only the built-in models are used (they are called
-directly), both compiled in; ``simserver.tires.registry.tire_kernels()`` adds every other
-registered model's and leaves out the built-in ones a simulation does not use."""
-
-# The built-in models a step is compiled with (``TireKernels.builtin``). Each dispatcher
-# below is a thin inlined wrapper handing ``kernels.builtin[TIRE_MODEL_*]`` (typed ``bool``
-# or ``none``) to its compiled body as arguments; there ``if mf61 is None`` is decided
-# by numba's dead-branch pruning on the argument's type before anything is inlined, so the
-# body of a model left out is never inlined, typed nor lowered (a tire of it yields NaN,
-# as an unregistered id's). Compiled in, the body is the same code as before: the same
-# bits. (Not an ``overload`` resolved on the kernels' type: numba compiles an inlined
-# overload's implementation once more on its own, which doubled MF 6.1's compile.)
+directly); ``simserver.tires.registry.tire_kernels()`` adds every other registered model's."""
 
 
 # Mirroring (``tp[TP_MIRRORED] = 1``): a tire used on the side opposite to the one its file
@@ -121,20 +111,6 @@ def _no_load(out: np.ndarray) -> None:
     out[OUT_C_ALPHA] = 1.0
     out[OUT_KAPPA_SLIDE] = 1.0
     out[OUT_TAN_ALPHA_SLIDE] = 1.0
-
-
-@nb.njit(inline="always", **TIRE_JIT_OPTIONS)
-def _nan_fill(a: np.ndarray) -> None:
-    """Every slot NaN: the outputs of a model the step is not compiled with."""
-    for k in range(a.size):
-        a[k] = np.nan
-
-
-@nb.njit(inline="always", **TIRE_JIT_OPTIONS)
-def _nan_fill_rows(a: np.ndarray) -> None:
-    for w in range(a.shape[0]):
-        for k in range(a.shape[1]):
-            a[w, k] = np.nan
 
 
 # The built-in models are called directly, their bodies inlined (a call through a function
@@ -193,7 +169,7 @@ def _registered_evaluate_compiled(kernels, model, tp, coef, kappa, tan_alpha, fz
     return impl
 
 
-@nb.njit(inline="always", **TIRE_DISPATCH_JIT_OPTIONS)
+@nb.njit(**TIRE_DISPATCH_JIT_OPTIONS)
 def tire_prepare(
     kernels: TireKernels,
     tp: np.ndarray,
@@ -219,32 +195,18 @@ def tire_prepare(
     coef : float64[N_TIRE_COEF]
         Written (every slot the model uses).
     """
-    _tire_prepare(kernels.builtin[TIRE_MODEL_MF61], kernels.builtin[TIRE_MODEL_SIMPLE],
-                  kernels, tp, gamma_rad, fz_n, mu_scale, coef)
-
-
-@nb.njit(**TIRE_DISPATCH_JIT_OPTIONS)
-def _tire_prepare(mf61, simple, kernels, tp, gamma_rad, fz_n, mu_scale, coef):  # noqa: ANN001, ANN202
-    """:func:`tire_prepare`'s body; ``mf61``, ``simple``: ``kernels.builtin``'s entries
-    (None: that model is not compiled in)."""
     model = int(tp[TP_MODEL])
     # a mirrored tire sees the mirrored camber
     gamma_rad = gamma_rad * (1.0 - 2.0 * tp[TP_MIRRORED])
     if model == TIRE_MODEL_MF61:
-        if mf61 is None:
-            _nan_fill(coef)
-        else:
-            _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+        _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
     elif model == TIRE_MODEL_SIMPLE:
-        if simple is None:
-            _nan_fill(coef)
-        else:
-            _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+        _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
     else:
         _registered_prepare(kernels, model, tp, gamma_rad, fz_n, mu_scale, coef)
 
 
-@nb.njit(inline="always", **TIRE_DISPATCH_JIT_OPTIONS)
+@nb.njit(**TIRE_DISPATCH_JIT_OPTIONS)
 def tire_evaluate(
     kernels: TireKernels,
     tp: np.ndarray,
@@ -275,28 +237,15 @@ def tire_evaluate(
     out : float64[N_TIRE_OUT]
         Written in place, every ``OUT_*`` slot.
     """
-    _tire_evaluate(kernels.builtin[TIRE_MODEL_MF61], kernels.builtin[TIRE_MODEL_SIMPLE],
-                   kernels, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
-
-
-@nb.njit(**TIRE_DISPATCH_JIT_OPTIONS)
-def _tire_evaluate(mf61, simple, kernels, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN202
-    """:func:`tire_evaluate`'s body; ``mf61``, ``simple`` as :func:`_tire_prepare`'s."""
     model = int(tp[TP_MODEL])
     side = 1.0 - 2.0 * tp[TP_MIRRORED]
     tan_alpha = tan_alpha * side
     if not fz_n > 0.0:
         _no_load(out)
     elif model == TIRE_MODEL_MF61:
-        if mf61 is None:
-            _nan_fill(out)
-        else:
-            _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+        _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
     elif model == TIRE_MODEL_SIMPLE:
-        if simple is None:
-            _nan_fill(out)
-        else:
-            _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+        _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
     else:
         _registered_evaluate(kernels, model, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
     out[OUT_FY] *= side
@@ -349,12 +298,6 @@ def tire_evaluate_simple_wheels(
     Arguments as :func:`tire_evaluate_mf61_wheels`'s, every ``tp[w, TP_MODEL] ==
     TIRE_MODEL_SIMPLE`` (the caller checks: :func:`every_tire_is`).
     """
-    _simple_evaluate_wheels(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
-
-
-@nb.njit(inline="always", **TIRE_DISPATCH_JIT_OPTIONS)
-def _simple_evaluate_wheels(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN202
-    """:func:`tire_evaluate_simple_wheels`'s body (also :func:`evaluate_simple_wheels_if`'s)."""
     for w in range(N_WHEEL_TIRES):
         out_w = out[w]
         side = 1.0 - 2.0 * tp[w, TP_MIRRORED]
@@ -367,26 +310,6 @@ def _simple_evaluate_wheels(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # n
         out_w[OUT_MZ] *= side
 
 
-@nb.njit(**TIRE_DISPATCH_JIT_OPTIONS)
-def evaluate_mf61_wheels_if(mf61, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN201
-    """:func:`tire_evaluate_mf61_wheels` in a step compiled with MF 6.1 (``mf61``:
-    ``kernels.builtin[TIRE_MODEL_MF61]``); NaN, its body not compiled, in one without."""
-    if mf61 is None:
-        _nan_fill_rows(out)
-    else:
-        _mf61_evaluate_wheels(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
-
-
-@nb.njit(**TIRE_DISPATCH_JIT_OPTIONS)
-def evaluate_simple_wheels_if(simple, tp, coef, kappa, tan_alpha, fz_n, vx_mps, out):  # noqa: ANN001, ANN201
-    """:func:`tire_evaluate_simple_wheels` in a step compiled with the brush model
-    (``simple``: ``kernels.builtin[TIRE_MODEL_SIMPLE]``); NaN in one without."""
-    if simple is None:
-        _nan_fill_rows(out)
-    else:
-        _simple_evaluate_wheels(tp, coef, kappa, tan_alpha, fz_n, vx_mps, out)
-
-
 @nb.njit(inline="always", **TIRE_JIT_OPTIONS)
 def every_tire_is(tp: np.ndarray, model: int) -> bool:
     """Whether ``tp`` holds ``N_WHEEL_TIRES`` packed tires, every one of model ``model``."""
@@ -396,7 +319,7 @@ def every_tire_is(tp: np.ndarray, model: int) -> bool:
     return every
 
 
-@nb.njit(inline="always", **TIRE_JIT_OPTIONS)
+@nb.njit(**TIRE_JIT_OPTIONS)
 def tire_forces(
     kernels: TireKernels,
     tp: np.ndarray,
@@ -426,14 +349,6 @@ def tire_forces(
     out : float64[N_TIRE_OUT]
         Written in place.
     """
-    _tire_forces(kernels.builtin[TIRE_MODEL_MF61], kernels.builtin[TIRE_MODEL_SIMPLE],
-                 kernels, tp, kappa, tan_alpha, gamma_rad, fz_n, mu_scale, vx_mps, out)
-
-
-@nb.njit(**TIRE_JIT_OPTIONS)
-def _tire_forces(mf61, simple, kernels, tp, kappa, tan_alpha, gamma_rad, fz_n, mu_scale,  # noqa: ANN001, ANN202
-                 vx_mps, out):
-    """:func:`tire_forces`'s body; ``mf61``, ``simple`` as :func:`_tire_prepare`'s."""
     if not fz_n > 0.0:
         _no_load(out)
         return
@@ -447,19 +362,13 @@ def _tire_forces(mf61, simple, kernels, tp, kappa, tan_alpha, gamma_rad, fz_n, m
     tan_alpha = tan_alpha * side
     gamma_rad = gamma_rad * side
     if model == TIRE_MODEL_MF61:
-        if mf61 is None:
-            _nan_fill(out)
-        else:
-            _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
-            _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+        _mf61_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+        _mf61_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
         out[OUT_FY] *= side
         out[OUT_MZ] *= side
     elif model == TIRE_MODEL_SIMPLE:
-        if simple is None:
-            _nan_fill(out)
-        else:
-            _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
-            _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
+        _simple_prepare(tp[TP_MODEL_BASE:], gamma_rad, fz_n, mu_scale, coef)
+        _simple_evaluate(tp[TP_MODEL_BASE:], coef, kappa, tan_alpha, fz_n, vx_mps, out)
         out[OUT_FY] *= side
         out[OUT_MZ] *= side
     else:

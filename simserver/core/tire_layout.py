@@ -91,21 +91,10 @@ EVALUATE_SIGNATURE = types.void(_VEC, _VEC, _F64, _F64, _F64, _F64, _VEC)
 
 
 class TireKernels(NamedTuple):
-    """The registered models' compiled functions, indexed by model id (``tp[TP_MODEL]``),
-    and which built-in models the step is compiled with.
-
-    ``builtin`` holds one entry per built-in model id: ``True`` when its body is compiled
-    into the step, ``None`` when not. The entries' *types* (``bool`` or ``none``) are part
-    of the step's signature, so a step compiled for the paper's brush tire alone carries no
-    MF 6.1 code (about 13 s of CPU of a cold compile, ``python -m
-    benchmarks.bench_compile --by-function``); a tire of a model left out evaluates to NaN
-    (``core.tire``), which the simulation never lets happen: it hands the step the kernels
-    of the models its cars use (``simserver.tires.registry.tire_kernels``).
-    """
+    """The registered models' compiled functions, indexed by model id (``tp[TP_MODEL]``)."""
 
     prepare: tuple  # of PREPARE_SIGNATURE functions
     evaluate: tuple  # of EVALUATE_SIGNATURE functions
-    builtin: tuple  # per built-in model id: True (compiled in) or None (left out)
 
 
 # --- input ranges shared by the models (outputs stay finite for any finite input) ----

@@ -62,11 +62,9 @@ class DuplicateVehicleError(RuntimeError):
     """Another server already serves this vehicle id on the zenoh network."""
 
 
-COLD_COMPILE_S = (30, 60)
-"""A cold start's compile time on the development machine (2 vCPUs: 46 s quiet before the
-step was compiled with its scene's tire models only, issue 33, which took about 12 s of CPU
-off its critical path; more when busy: ``python -m benchmarks --only startup``), for the
-log line."""
+COLD_COMPILE_S = (45, 90)
+"""A cold start's compile time on the development machine (2 vCPUs; 61 s quiet, more when busy:
+``python -m benchmarks.bench_compile``), for the log line."""
 
 
 class CompileProgress:
@@ -76,7 +74,7 @@ class CompileProgress:
     machine (a cache load fires no ``numba:compile`` event; a start once said "compiling"
     and "compiled in 1.7 s" loading from the cache); otherwise, once a compile has begun
     and ``quiet_s`` passed, one line ``simserver: compiling ... (first start only, about
-    30-60 s)``, one line every ``every_s`` with the time so far, and one when done. A
+    45-90 s)``, one line every ``every_s`` with the time so far, and one when done. A
     daemon thread prints them: the compiling thread is busy.
     """
 

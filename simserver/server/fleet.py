@@ -202,9 +202,7 @@ def join_world(slot_cfg: Any, scene: Scene, table: np.ndarray | None, world: Any
     from simserver.server.slot import VehicleSlot
     from simserver.sim.simulation import Simulation
 
-    # made with the world's tire models: its kernels are those of the world's step
-    sim = Simulation(scene, slot_cfg.period_s, car_id=slot_cfg.vehicle_id,
-                     tire_models=world.tire_models)
+    sim = Simulation(scene, slot_cfg.period_s, car_id=slot_cfg.vehicle_id)
     sim.move_to(world)
     slot = VehicleSlot(slot_cfg, sim)
     if table is not None:

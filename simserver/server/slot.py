@@ -21,7 +21,6 @@ import dataclasses
 import logging
 import math
 import os
-import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -36,7 +35,7 @@ from simserver.core.terrain import TERRAIN_KINDS, TERRAIN_PLANE
 from simserver.server.load_worker import release_later
 from simserver.server.logfile import RateLimitedLog
 from simserver.sim.scene import Scene
-from simserver.sim.scene_files import load_scene, warm_up_tire_models
+from simserver.sim.scene_files import load_scene
 from simserver.wire import protocol as proto
 from simserver.wire.state_schema import SERVER_FIELDS, fill_record
 
@@ -89,7 +88,6 @@ class SimulationAPI(Protocol):
     def prepare_load(self, scene: Scene) -> PreparedStart: ...
     def commit(self, prepared: PreparedStart) -> Any: ...
     def warm_up(self, live: bool = False) -> None: ...
-    def needs_compile_for(self, scene: Scene) -> frozenset[int] | None: ...
     def update_pose(self) -> np.ndarray: ...
     def contact_output(self) -> np.ndarray: ...
 
@@ -616,8 +614,7 @@ class VehicleSlot:
                                       "load changes its vehicle only (the scene is the "
                                       "world's)")
         return prepare_load, (args.get("scene"), args.get("vehicle"), self.scene_path,
-                              tuple(self.cfg.config_dirs), os.getcwd(), self.cfg.path.parent,
-                              self.sim.world.tire_models, self.sim.dt_s)
+                              tuple(self.cfg.config_dirs), os.getcwd(), self.cfg.path.parent)
 
     def prepare_load(self, args: dict[str, Any]) -> tuple[Scene, Path, Path | None]:
         """The scene a ``load`` asks for, read and validated: (scene, its path, vehicle path)."""
@@ -631,15 +628,6 @@ class VehicleSlot:
         worker's shared block, ``simserver.server.load_worker``), a relaxed start's settling left
         to :meth:`StagedStart.advance`; :meth:`StagedStart.commit` swaps it in (tick 0,
         logged) and gives the reply."""
-        scene, scene_path, vehicle_path = prepared
-        models = self.sim.needs_compile_for(scene)
-        if models is not None:  # a tire model the step was not compiled with: its kernels
-            # come from the cache (the worker compiled them) in a thread, not in the tick
-            return WarmingStart(self.sim.dt_s, scene, models,
-                                lambda: self._staged_load(prepared))
-        return self._staged_load(prepared)
-
-    def _staged_load(self, prepared: tuple[Scene, Path, Path | None]) -> StagedStart:
         scene, scene_path, vehicle_path = prepared
         start = None
         if self.shared_world:  # another vehicle for this car, from its own start, on the
@@ -713,51 +701,6 @@ class StagedStart:
         return self.prepared.advance(max_steps)
 
 
-class WarmingStart:
-    """A ``load`` whose scene needs a tire model the world's step was not compiled with
-    (``Simulation.needs_compile_for``): its kernels are loaded from the cache (compiled
-    there by the load worker, ``prepare_load``) in a thread while the loop ticks on; then it
-    is staged (``make``) and settles as any :class:`StagedStart`."""
-
-    def __init__(self, dt_s: float, scene: Scene, models: frozenset[int],
-                 make: Callable[[], StagedStart]) -> None:
-        self._make = make
-        self._staged: StagedStart | None = None
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._warm, args=(scene, dt_s, models),
-                                        name="tire-kernels", daemon=True)
-        self._thread.start()
-
-    def _warm(self, scene: Scene, dt_s: float, models: frozenset[int]) -> None:
-        try:
-            warm_up_tire_models(scene, dt_s, models)
-        except BaseException as exc:  # noqa: BLE001 - raised in the loop's advance
-            self._error = exc
-
-    def _ready(self, wait: bool) -> StagedStart | None:
-        if self._staged is None:
-            if wait:
-                self._thread.join()
-            if self._thread.is_alive():
-                return None
-            if self._error is not None:
-                raise self._error
-            self._staged = self._make()
-        return self._staged
-
-    @property
-    def prepared(self) -> PreparedStart:
-        return self._ready(wait=True).prepared
-
-    def commit(self) -> dict[str, Any]:
-        return self._ready(wait=True).commit()
-
-    def advance(self, max_steps: int) -> bool:
-        """False while the kernels load; then as :meth:`StagedStart.advance`."""
-        staged = self._ready(wait=False)
-        return staged is not None and staged.advance(max_steps)
-
-
 def resolve_config_path(field: str, value: str, config_dirs: tuple[Path, ...],
                         cwd: str | Path, config_folder: Path | None = None) -> Path:
     """The file a ``load`` names: absolute, or relative to the server's working directory
@@ -792,12 +735,8 @@ def resolve_config_path(field: str, value: str, config_dirs: tuple[Path, ...],
 
 def prepare_load(scene: str | None, vehicle: str | None, current_scene: Path,
                  config_dirs: tuple[Path, ...], cwd: str,
-                 config_folder: Path | None = None,
-                 world_tire_models: frozenset[int] | None = None,
-                 dt_s: float = 0.0) -> tuple[str, Any]:
-    """Read and validate the files of a ``load`` (run in the load worker); if its tires
-    include a model the world's step (compiled with ``world_tire_models``) lacks, compile
-    the live kernels for both into the cache (``sim.scene_files.warm_up_tire_models``).
+                 config_folder: Path | None = None) -> tuple[str, Any]:
+    """Read and validate the files of a ``load`` (run in the load worker).
 
     Returns ``("ok", (scene, scene path, vehicle path))`` or ``("error", field, message)``
     (errors as data: they cross a process boundary).
@@ -827,12 +766,6 @@ def prepare_load(scene: str | None, vehicle: str | None, current_scene: Path,
             return "error", field, (f"{field}: {files}: not loaded: {type(exc).__name__} "
                                     "while reading it or a file it names (a loader's bug: "
                                     "the server's log has the details); nothing changed")
-    if world_tire_models is not None:
-        from simserver.tires.registry import tire_models_of
-
-        needed = tire_models_of(loaded.vehicle.tp)
-        if not needed <= world_tire_models:
-            warm_up_tire_models(loaded, dt_s, world_tire_models | needed)
     return "ok", (loaded, scene_path, vehicle_path)
 
 

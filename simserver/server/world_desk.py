@@ -52,16 +52,13 @@ def prepare_added_car(car_id: str, vehicle: str | None, pose: dict[str, float] |
                       config_folder: Path, dt_s: float,
                       others: dict[str, Any],
                       driver: dict[str, Any] | None = None,
-                      start: dict[str, Any] | None = None,
-                      world_tire_models: frozenset[int] | None = None) -> tuple[str, Any]:
+                      start: dict[str, Any] | None = None) -> tuple[str, Any]:
     """Read and check a car to add (run in the load worker): ``("ok", (scene, table,
     vehicle path, driven))`` or ``("error", field, message)`` (errors as data: they cross
     a process boundary). ``driver``: the ``driver`` block of a car ``driven_by: driver``
     (as JSON gave it); ``driven`` is then its ``DriverSpec`` and its path's rows sampled
     over the scene's terrain, else None. ``start``: road, s and lane instead of
-    ``pose``. A car whose tires include a model the world's step (compiled with
-    ``world_tire_models``) lacks: the live kernels for both are compiled into the cache
-    here (``sim.scene_files.warm_up_tire_models``)."""
+    ``pose``."""
     from simserver.server.live_drivers import sample_path
     from simserver.server.slot import redacted, resolve_config_path
     from simserver.sim.scene_files import load_scene
@@ -91,13 +88,6 @@ def prepare_added_car(car_id: str, vehicle: str | None, pose: dict[str, float] |
                 message = redacted(str(exc), config_dirs, cwd)
                 return "error", driver_field(message), message
             driven = (block, sample_path(block, scene.terrain))
-    if world_tire_models is not None:
-        from simserver.sim.scene_files import warm_up_tire_models
-        from simserver.tires.registry import tire_models_of
-
-        needed = tire_models_of(scene.vehicle.tp)
-        if not needed <= world_tire_models:
-            warm_up_tire_models(scene, dt_s, world_tire_models | needed)
     return "ok", (scene, table, vehicle_path, driven)
 
 
@@ -117,7 +107,6 @@ class _Adding:
     job: Future | None = None
     prepared: tuple[Any, Any, Path | None, Any] | None = None
     ports: Future | None = None
-    warm: Future | None = None  # its tire model's kernels loaded from the cache, or None
 
 
 class WorldDesk:
@@ -256,7 +245,7 @@ class WorldDesk:
         job = self.loop.preparer.submit(
             prepare_added_car, car_id, args.get("vehicle"), args.get("pose"), self._scene(),
             tuple(cfg.config_dirs), os.getcwd(), cfg.path.parent, cfg.period_s, others,
-            driver, args.get("start"), self.loop.slots[0][0].sim.world.tire_models)
+            driver, args.get("start"))
         self._adding = _Adding(request, car_id, job=job)
         self._advance(self._adding)  # an inline preparer (tests) is done already
         return None
@@ -280,28 +269,9 @@ class WorldDesk:
             adding.prepared = result[1]
             slot_cfg = self._slot_cfg(adding.car_id)
             adding.ports = self._threads.submit(self.make_ports, slot_cfg)
-            scene = adding.prepared[0]
-            sim = self.loop.slots[0][0].sim
-            models = sim.needs_compile_for(scene)
-            if models is not None:  # a tire model the world's step lacks: its kernels
-                # from the cache (the worker compiled them) off the tick, not in join_world
-                from simserver.sim.scene_files import warm_up_tire_models
-
-                adding.warm = self._threads.submit(warm_up_tire_models, scene, sim.dt_s,
-                                                   models)
             return
         if adding.ports is None or not adding.ports.done():
             return
-        if adding.warm is not None:
-            if not adding.warm.done():
-                return
-            try:
-                adding.warm.result()
-            except Exception as exc:
-                self._fail(adding, "add_car", f"add_car: its tire model's kernels could not "
-                                              f"be compiled ({type(exc).__name__}: {exc}); "
-                                              "nothing changed")
-                return
         try:
             ports = adding.ports.result()
         except Exception as exc:

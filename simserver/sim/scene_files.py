@@ -43,14 +43,3 @@ def warm_up_in_helper(scene_path: str, dt_s: float,
     for name, call in sim.warm_up_calls(live=True):
         if name in names:
             call()
-
-
-def warm_up_tire_models(scene: Scene, dt_s: float, tire_models: frozenset[int]) -> None:
-    """Compile (or load) the live warm-up's entry points for a car of ``scene`` in a world
-    whose step takes tires of ``tire_models`` (ids; ``Simulation.needs_compile_for``): what
-    a live server's load of a scene with a tire model its step was not compiled with needs,
-    done off the tick (in the load worker, then from the cache in a thread of the server,
-    ``simserver.server.slot.VehicleSlot.apply_load``)."""
-    from simserver.sim.simulation import Simulation
-
-    Simulation(scene, dt_s, tire_models=tire_models).warm_up(live=True)

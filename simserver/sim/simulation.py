@@ -53,12 +53,7 @@ from simserver.core.tire_layout import TP_RADIUS_M
 from simserver.core.world import WorldData, WorldModel, car_views, stack_data
 from simserver.core.world import simulate as world_simulate
 from simserver.core.world import step as world_step
-from simserver.tires.registry import (
-    check_tire_vectors,
-    kernel_models,
-    tire_kernels,
-    tire_models_of,
-)
+from simserver.tires.registry import check_tire_vectors, tire_kernels
 
 if TYPE_CHECKING:
     from simserver.sim.scene import Scene
@@ -175,7 +170,7 @@ class World:
         self.ids: list[str] = []
         self.model = WorldModel(vp=np.zeros((0, P.N_VEHICLE_PARAM)),
                                 tp=np.zeros((0, L.N_WHEELS, N_TIRE_PARAM)), dt_s=float(dt_s),
-                                tires=tire_kernels(()), terrain=terrain,
+                                tires=tire_kernels(), terrain=terrain,
                                 derived=np.zeros((0, N_DERIVED)))
         self.data: WorldData = stack_data([])
         self.generation = 0
@@ -213,7 +208,6 @@ class World:
         if g is not None and model.vp[P.VP_GRAVITY_MPS2] != g:
             raise ValueError(f"car {car_id!r}: gravity_mps2 {model.vp[P.VP_GRAVITY_MPS2]} "
                              f"differs from the world's {g}")
-        self.use_tire_models(tire_models_of(model.tp) | kernel_models(model.tires))
         m = self.model
         self.model = m._replace(vp=np.concatenate([m.vp, model.vp[None]]),
                                 tp=np.concatenate([m.tp, model.tp[None]]),
@@ -227,23 +221,6 @@ class World:
         self.ids.append(car_id)
         self.generation += 1
         return len(self.ids) - 1
-
-    @property
-    def tire_models(self) -> frozenset[int]:
-        """The tire model ids the world's step is compiled with (``tires.registry``)."""
-        return kernel_models(self.model.tires)
-
-    def use_tire_models(self, models: frozenset[int] | set[int]) -> bool:
-        """Make the world's step take tires of ``models`` (ids) too, from the next step;
-        True if that is a step of another type (compiled, or loaded from the cache, at its
-        next call: a live server makes it ready off the tick first, ``ready_for``). The
-        set only grows: a car that leaves does not make the step compile again."""
-        have = self.tire_models
-        if set(models) <= have:
-            return False
-        self.model = self.model._replace(tires=tire_kernels(have | set(models)))
-        self.generation += 1
-        return True
 
     def remove_car(self, car_id: str) -> None:
         """Take a car out; the others keep their order (and their bits)."""
@@ -337,13 +314,9 @@ class Simulation:
     ``out``) works on the world's arrays, and :meth:`step` and :meth:`run` are the world's
     (every car of the world)."""
 
-    def __init__(self, scene: Scene, dt_s: float, car_id: str = "car0",
-                 tire_models: frozenset[int] = frozenset()) -> None:
+    def __init__(self, scene: Scene, dt_s: float, car_id: str = "car0") -> None:
         self.dt_s = float(dt_s)
         self.car_id = car_id
-        # tire models the step is compiled with besides those of the cars (ids): the
-        # world's of a live server warming a load's kernels (``ready_for``)
-        self.tire_models = frozenset(tire_models)
         self.world: World | None = None
         self._views: tuple[Model, Data] | None = None
         self._views_generation = -1
@@ -403,10 +376,7 @@ class Simulation:
         tp = np.ascontiguousarray(scene.vehicle.tp, dtype=np.float64).copy()
         check_model(vp, tp)
         # the terrain with a road of its own: set_road writes it, never the scene's
-        # the step of the world the car goes into: its tire models and the car's
-        models = tire_models_of(tp) | self.tire_models | (
-            self.world.tire_models if self.world is not None else frozenset())
-        model = Model(vp=vp, tp=tp, dt_s=self.dt_s, tires=tire_kernels(models),
+        model = Model(vp=vp, tp=tp, dt_s=self.dt_s, tires=tire_kernels(),
                       terrain=with_own_road(scene.terrain),
                       derived=derive_constants(vp, tp, self.dt_s))
         road = {key: scene.road[key] for key in ("grade_pct", "cross_slope_pct",
@@ -550,7 +520,6 @@ class Simulation:
                 model.vp[:] = new.vp
                 model.tp[:] = new.tp
                 model.derived[:] = new.derived
-                self.world.use_tire_models(kernel_models(new.tires))
                 self.world.set_terrain(new.terrain)
             self.scene = prepared.scene
         data = self.data
@@ -600,13 +569,6 @@ class Simulation:
         pose_of(self.data.x, self.model.terrain.kind == TERRAIN_PLANE, self.axes,
                 self.model.vp[VP_CG_HEIGHT_M], self._reference_axes, self.pose)
         return self.pose
-
-    def needs_compile_for(self, scene: Scene) -> frozenset[int] | None:
-        """The tire models (ids) the world's step would be compiled with for a load of
-        ``scene``, if that is a step of another type than the running one; else None."""
-        have = self.world.tire_models if self.world is not None else self.tire_models
-        needed = tire_models_of(scene.vehicle.tp)
-        return None if needed <= have else have | needed
 
     def warm_up(self, live: bool = False) -> None:
         """Compile (or load from cache) every kernel the runners use, before the clock starts;

@@ -55,7 +55,7 @@ skipped (the ids of the others would shift).
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -228,35 +228,15 @@ def tire_models() -> tuple[TireModel, ...]:
     return tuple(_REGISTRY)
 
 
-def tire_kernels(models: Iterable[int] | None = None) -> TireKernels:
+def tire_kernels() -> TireKernels:
     """The compiled step's ``kernels`` argument: the kernels of every registered model
-    beyond the built-in ones (which ``core.tire`` calls directly), in id order, and which
-    built-in models the step is compiled with (``TireKernels.builtin``): those in
-    ``models`` (ids), every one when ``models`` is None.
+    beyond the built-in ones (which ``core.tire`` calls directly), in id order.
 
-    The built-in models given are part of the step's type: a simulation passes the models
-    its cars use (:func:`tire_models_of`), so a step of brush tires alone compiles no
-    MF 6.1 code, and one that adds a model is compiled once more (cached like any other
-    specialisation). Registering a model changes the tuples' length: the same.
+    Registering a model changes the tuples' length: the step is then compiled once more
+    for the new length (and cached like any other specialisation).
     """
     extra = _REGISTRY[N_BUILTIN_TIRE_MODELS:]
-    wanted = None if models is None else {int(m) for m in models}
-    builtin = tuple(True if wanted is None or m in wanted else None
-                    for m in range(N_BUILTIN_TIRE_MODELS))
-    return TireKernels(tuple(m.prepare for m in extra), tuple(m.evaluate for m in extra),
-                       builtin)
-
-
-def tire_models_of(tp: np.ndarray) -> frozenset[int]:
-    """The model ids of the packed tire vectors ``tp`` (any shape, ``TP_MODEL`` last)."""
-    return frozenset(int(m) for m in np.asarray(tp)[..., TP_MODEL].ravel())
-
-
-def kernel_models(kernels: TireKernels) -> frozenset[int]:
-    """The built-in model ids ``kernels`` compiles in (its ``builtin`` entries that are
-    True), with every registered model beyond them (always called through its kernels)."""
-    return frozenset([m for m, used in enumerate(kernels.builtin) if used]
-                     + list(range(N_BUILTIN_TIRE_MODELS, len(_REGISTRY))))
+    return TireKernels(tuple(m.prepare for m in extra), tuple(m.evaluate for m in extra))
 
 
 def check_tire_vectors(tp: np.ndarray) -> None:
