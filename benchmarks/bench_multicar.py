@@ -187,11 +187,14 @@ def _client_result(proc: OutputProcess) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------ one server run
-def run_once(n_cars: int, seconds: float, cmd_hz: float, folder: Path) -> dict[str, Any]:
+def run_once(n_cars: int, seconds: float, cmd_hz: float, folder: Path,
+             transport: str = "tcp") -> dict[str, Any]:
     """One server of ``n_cars`` for ``seconds`` with its client processes: the tick
-    figures and, per driven car, the command-to-state latency."""
+    figures and, per driven car, the command-to-state latency. ``transport``: the
+    server's zenoh endpoint, TCP on loopback or a Unix socket in ``folder``."""
     config = write_config(folder, n_cars)
-    server = ServerProcess(scene=None, config=config, ready_timeout_s=300.0)
+    listen = None if transport == "tcp" else [f"unixsock-stream/{folder}/zenoh-{n_cars}.sock"]
+    server = ServerProcess(scene=None, config=config, ready_timeout_s=300.0, listen=listen)
     clients: list[OutputProcess] = []
     try:
         for k, car in enumerate(DRIVEN[:min(n_cars, len(DRIVEN))]):
@@ -288,6 +291,9 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--cmd-hz", type=float, default=200.0, help="per driven car")
     parser.add_argument("--hogs", type=int, default=2,
                         help="CPU-bound processes at normal priority during the --cars runs")
+    parser.add_argument("--transport", choices=("tcp", "unixsock"), default="tcp",
+                        help="the server's zenoh endpoint: TCP on loopback (default) or a "
+                        "Unix socket (zenoh's unixsock-stream)")
     parser.add_argument("--json", action="store_true", help="one JSON line per run")
     # the client process (run by this benchmark, one per driven car)
     parser.add_argument("--client", action="store_true", help=argparse.SUPPRESS)
@@ -310,8 +316,8 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
                     continue
                 with cpu_hogs(hogs):
                     for n in counts:
-                        res = run_once(n, args.seconds, args.cmd_hz, Path(tmp)) | {
-                            "round": r, "hogs": hogs}
+                        res = run_once(n, args.seconds, args.cmd_hz, Path(tmp), args.transport) | {
+                            "round": r, "hogs": hogs, "transport": args.transport}
                         results.append(res)
                         print(json.dumps(res) if args.json else line(res), flush=True)
     for text in verdicts(results, loaded, quiet):

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from simserver.core import layout as L
+from simserver.core.contact import CC_ACTIVE, CC_FORCE_X_N, CC_FORCE_Y_N
 from simserver.server import fleet
 from simserver.server.config import REPO_CONFIGS, load_server_config
 from simserver.server.state_frame import GROUPS, StateFrame
@@ -71,12 +72,17 @@ def test_frame_bytes_are_each_cars_own_fill(tmp_path, scene):
     frame.bind(slots)
     own = [proto.new_state_record() for _ in slots]
     compared = 0
-    for k in range(1500):
+    contacts = world.data.contacts.car
+    seen_flags, not_finite, touched, held_patterns = 0, 0, 0, set()
+    for k in range(2200):
         for j, slot in enumerate(slots[:2]):  # the clients' inputs
             inputs = slot.sim.inputs
-            inputs[L.IN_GEAR] = L.GEAR_D
+            # driven, then braked to rest, then held by the parking brake alone (car0)
+            # or by gear P's park lock (car1)
+            inputs[L.IN_GEAR] = L.GEAR_P if j == 1 and k >= 1800 else L.GEAR_D
             inputs[L.IN_THROTTLE] = 0.5 if k < 1000 else 0.0
-            inputs[L.IN_BRAKE] = 0.0 if k < 1000 else 0.7
+            inputs[L.IN_BRAKE] = 0.0 if k < 1000 or k >= 1800 else 0.7
+            inputs[L.IN_PARKING_BRAKE] = 1.0 if j == 0 and k >= 1700 else 0.0
             inputs[L.IN_STEER] = 0.2 * math.sin(k * 0.004 + j)
         drive(world.model, world.data, drivers)
         for slot in slots:
@@ -86,20 +92,46 @@ def test_frame_bytes_are_each_cars_own_fill(tmp_path, scene):
             continue
         rows = np.arange(len(slots), dtype=np.int64)[k % 2::2] if k % 3 else \
             np.arange(len(slots), dtype=np.int64)  # some cars publish, or all
+        # the rules' other inputs, set on the rows the fill reads and put back after:
+        # a car-to-car contact (the step's contact output), the hill-hold assist's
+        # state, and a contact force that is not finite (the state is then not published)
+        saved = contacts.copy(), world.data.x.copy()
+        c_touch = k // 7 % len(slots)
+        if k % 5 == 0:
+            contacts[c_touch, CC_ACTIVE] = 1.0
+            contacts[c_touch, CC_FORCE_X_N] = 812.5 + k
+            contacts[c_touch, CC_FORCE_Y_N] = -97.25
+        if k % 11 == 0:
+            world.data.x[c_touch, L.HILL_HOLD_ACTIVE] = 1.0
+        if k % 13 == 0:
+            contacts[c_touch, CC_FORCE_Y_N] = math.inf
         frame.fill(world, rows)
         for c in rows:
             slot = slots[c]
             view = slot.record
-            got = slot.fill_state(1_000_000 * k, k % 3 == 0, frame.poses[c])
+            got = slot.fill_state(1_000_000 * k, k % 3 == 0, frame, c)
             slot.record = own[c]  # the car's own record, filled field by field
             want = slot.fill_state(1_000_000 * k, k % 3 == 0)
+            assert bool(frame.pose_ok[c]) is slot._pose_finite(), (scene, k, c)
             slot.record = view
             assert got == want, (scene, k, slot.keys.vehicle, [
                 name for name in proto.STATE_DTYPE.names
                 if np.frombuffer(got, proto.STATE_DTYPE)[name].tobytes()
                 != np.frombuffer(want, proto.STATE_DTYPE)[name].tobytes()])
+            rec = np.frombuffer(got, proto.STATE_DTYPE)[0]
+            seen_flags |= int(rec["flags"])
+            not_finite += not frame.pose_ok[c]
+            touched += int(rec["car_contact"])
+            held_patterns.add(tuple(int(v) for v in rec["brake_held"]))
             compared += 1
-    assert compared > 2 * len(range(0, 1500, 7))
+        contacts[:], world.data.x[:] = saved
+    assert compared >= 2 * len(range(0, 2200, 7))
+    # the comparison saw every rule at work: wheels held by the pedal and by the parking
+    # brake alone (the rear ones), the hill-hold flag, a contact, and a state whose
+    # contact force is not finite
+    assert {(1, 1, 1, 1), (0, 0, 1, 1)} <= held_patterns, held_patterns
+    assert seen_flags & proto.StateFlag.BRAKE_HOLD and seen_flags & proto.StateFlag.HILL_HOLD
+    assert touched > 0 and not_finite > 0
     speeds = np.frombuffer(got, proto.STATE_DTYPE)["u_mps"]
     assert speeds[0] > 1.0  # the last car moved: the comparison saw a driven world
 

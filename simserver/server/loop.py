@@ -58,6 +58,7 @@ from simserver.server.realtime import (
 )
 from simserver.server.slot import StagedStart, VehicleSlot, unwrap_prepared
 from simserver.server.state_frame import StateFrame
+from simserver.server.state_frame import all_finite as all_finite_rows
 from simserver.wire import protocol as proto
 
 if TYPE_CHECKING:
@@ -610,9 +611,10 @@ class ServerLoop:
         and what can be done for every car at once is (issue 30: 32 cars in the 1 ms
         budget): the states are checked for finite values once for the whole world (a car
         is looked at alone only when something is not finite); the copied fields of the state
-        records of the cars that publish this tick are filled together by a fixed number
-        of numpy calls (:class:`simserver.server.state_frame.StateFrame`), then each of
-        those cars writes its own fields; a car not driven by a client (keyframes,
+        records of the cars that publish this tick, and their server fields that follow
+        from the physics, are filled together by a fixed number of compiled calls
+        (:class:`simserver.server.state_frame.StateFrame`), then each of those cars writes
+        its own fields; a car not driven by a client (keyframes,
         the built-in driver) publishes its state at :attr:`traffic_every` ticks, car ``k``
         at its own phase (its clients want the traffic, not its every tick: the world
         message carries every car), and its command inbox and control requests are looked
@@ -652,7 +654,7 @@ class ServerLoop:
         data = self.world.data
         if data.contacts.count[K_EVENTS] != self.contact_events_seen:  # rare: a contact
             self._contact_events(count)
-        all_finite = bool(np.isfinite(data.x).all() and np.isfinite(data.out).all())
+        all_finite = all_finite_rows(data.x, data.out)
         if not all_finite:  # each car looked at alone (a non-finite one is stopped: reset)
             for slot, _ in slots:
                 slot.check_finite()  # before publishing: nothing non-finite leaves
@@ -661,17 +663,14 @@ class ServerLoop:
         if pending:  # a job's car is served every tick until it is answered
             plan = self._with_pending(plan, pending)
         frame = self.state_frame
-        poses = None
         noted = self._message_noted  # the world message, noting each new state
         if publish_state and frame is not None:  # the publishing cars' fields in one go
             frame.fill(self.world, self._plan_rows[count % len(self._plan_rows)])
-            poses = frame.poses
         for index, slot, ports, diag_due, commands, serve in plan:
             if all_finite:
                 slot.state_finite = True  # check_finite's verdict, without its own look
             if publish_state and commands:  # a client's car, or another at its phase
-                payload = slot.state_payload(now, catching_up,
-                                             None if poses is None else poses[index])
+                payload = slot.state_payload(now, catching_up, frame, index)
                 if payload is not None:
                     ports.publisher.publish_state(payload)
                     if noted is not None and slot.last_published is payload:

@@ -42,6 +42,7 @@ from simserver.wire.state_schema import SERVER_FIELDS, fill_record
 if TYPE_CHECKING:
     from simserver.server.command_log import CommandLog
     from simserver.server.config import ServerConfig
+    from simserver.server.state_frame import StateFrame
     from simserver.sim.simulation import PreparedStart
 
 log = logging.getLogger("simserver.server")
@@ -342,16 +343,17 @@ class VehicleSlot:
         return True
 
     def state_payload(self, now_ns: int, catching_up: bool,
-                      pose: np.ndarray | None = None) -> bytes | None:
+                      frame: StateFrame | None = None, row: int = -1) -> bytes | None:
         """The VehicleState of this tick (docs/protocol.md 2.2), counted as published.
 
         Never a non-finite one: a state whose simulation (``check_finite``) or world pose
         and ground slopes are not finite is replaced by the newest finite state published,
         with this tick's flags (``FAULT`` among them), tick and command fields; None (no
-        state to publish) if there was none yet (docs/reliability.md). ``pose``: see
-        :meth:`fill_state`."""
-        payload = self.fill_state(now_ns, catching_up, pose)
-        if not (self.state_finite and self._pose_finite()):
+        state to publish) if there was none yet (docs/reliability.md). ``frame``, ``row``:
+        see :meth:`fill_state`."""
+        payload = self.fill_state(now_ns, catching_up, frame, row)
+        pose_ok = self._pose_finite() if frame is None else bool(frame.pose_ok[row])
+        if not (self.state_finite and pose_ok):
             if self.state_finite:  # the pose went bad under a finite state: stop the car
                 self._stop("non-finite world pose")
             payload = self._last_finite_state()
@@ -384,24 +386,49 @@ class VehicleSlot:
         return out.tobytes()
 
     def fill_state(self, now_ns: int, catching_up: bool,
-                   pose: np.ndarray | None = None) -> bytes:
+                   frame: StateFrame | None = None, row: int = -1) -> bytes:
         """Write the state record from the simulation and return its bytes.
 
-        ``pose``: the car's world pose of this tick, its record's copied fields already
-        filled (``simserver.server.state_frame.StateFrame``, the whole world's in one go:
-        ``record`` is a view of its row); only this slot's own fields are written then."""
+        ``frame``: the world's records, this car's (``row``, its ``record`` a view of that
+        row) filled this tick with its copied fields and the fields that follow from the
+        physics (``simserver.server.state_frame.StateFrame.fill``, the whole world's in one
+        go, by the rules below); only this slot's own fields are written then."""
         p = self.sim
-        data = p.data  # the car's rows of the world (one lookup, not one a field)
-        x, out, inputs, rec = data.x, data.out, data.inputs, self.record
-        if pose is None:
-            p.update_pose()  # world axes; on a terrain from the reference plane of the step
-        else:
-            p.pose[:] = pose
+        rec = self.record
         flags = 0
         if self.watchdog.engaged:
             flags |= _FLAG_WATCHDOG
         if self.paused:
             flags |= _FLAG_PAUSED
+        if catching_up:
+            flags |= _FLAG_CATCHUP
+        if self.fault:
+            flags |= _FLAG_FAULT
+        if self.skipped_before:
+            flags |= _FLAG_SKIPPED
+            self.skipped_before = False
+        if frame is None:
+            flags |= self._fill_physics_fields(p, rec)
+        else:
+            p.pose[:] = frame.poses[row]
+            flags |= int(frame.flag_bits[row])
+        arbiter = self.arbiter
+        rec["flags"] = flags
+        rec["tick"] = self.tick
+        rec["sim_time_s"] = self.tick * p.dt_s
+        rec["last_cmd_seq"] = arbiter.last_applied_seq
+        rec["last_cmd_sender_time_ns"] = arbiter.last_sender_ns
+        rec["cmd_age_s"] = arbiter.cmd_age_s(now_ns)
+        return rec.tobytes()
+
+    def _fill_physics_fields(self, p: SimulationAPI, rec: np.ndarray) -> int:
+        """The record's copied fields and the server's fields that follow from the physics,
+        field by field (a car outside a state frame; ``state_frame.physics_fields`` is the
+        same rules for a world's cars at once); returns their flag bits."""
+        data = p.data  # the car's rows of the world (one lookup, not one a field)
+        x, out, inputs = data.x, data.out, data.inputs
+        p.update_pose()  # world axes; on a terrain from the reference plane of the step
+        flags = 0
         # The core holds a wheel at zero spin whenever the torques on it balance, rolling
         # resistance included (at rest on the flat with no brake); the flag and the
         # per-wheel field say "a brake holds it": only while a brake acts (pedal, parking
@@ -416,24 +443,9 @@ class VehicleSlot:
             flags |= _FLAG_BRAKE_HOLD
         if x[L.HILL_HOLD_ACTIVE] > 0.5:
             flags |= _FLAG_HILL_HOLD
-        if catching_up:
-            flags |= _FLAG_CATCHUP
-        if self.fault:
-            flags |= _FLAG_FAULT
-        if self.skipped_before:
-            flags |= _FLAG_SKIPPED
-            self.skipped_before = False
-        arbiter = self.arbiter
         # the fields copied from the simulation come from the state table (state_schema);
-        # these are this slot's own (state_schema.SERVER_FIELDS, checked on import)
-        if pose is None:
-            fill_record(rec, x, out, inputs, p.pose)
-        rec["flags"] = flags
-        rec["tick"] = self.tick
-        rec["sim_time_s"] = self.tick * p.dt_s
-        rec["last_cmd_seq"] = arbiter.last_applied_seq
-        rec["last_cmd_sender_time_ns"] = arbiter.last_sender_ns
-        rec["cmd_age_s"] = arbiter.cmd_age_s(now_ns)
+        # the rest are the server's (state_schema.SERVER_FIELDS, checked on import)
+        fill_record(rec, x, out, inputs, p.pose)
         rec["brake_held"] = held
         rec["ground_grade_pct"], rec["ground_cross_slope_pct"] = ground_slopes_pct(
             p, p.pose[L.POSE_YAW_RAD])
@@ -442,7 +454,7 @@ class VehicleSlot:
         cc = p.contact_output()
         rec["contact_force_n"] = math.hypot(cc[CC_FORCE_X_N], cc[CC_FORCE_Y_N])
         rec["car_contact"] = cc[CC_ACTIVE] > 0.5
-        return rec.tobytes()
+        return flags
 
     def check_finite(self) -> bool:
         """Stop the car in a defined safe state if its state is no longer finite.
