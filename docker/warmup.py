@@ -14,7 +14,8 @@ under ``--configs``, i.e. the simple brush tire and the MF 6.1 tire) it runs:
 2. the ``serve`` path: the server config ``server/default.yaml`` loaded with the scene,
    ``simserver.server.app.SimServer`` constructed (no network is opened) and its
    ``Simulation.warm_up()`` called, exactly what ``simserver serve`` does before its clock
-   starts (``step``, ``world_pose``, ``set_road``);
+   starts (``step``, ``world_pose``, ``set_road``), and the live loop's state-record
+   kernels (``simserver.server.state_frame``);
 3. the ``tire-curves`` path: ``core.tire.tire_forces`` called from Python with the
    registered kernels;
 4. the ``view`` path (``simserver view``, or ``serve --viewer save:FILE.rrd``): one state
@@ -81,15 +82,21 @@ class KernelCount:
     names_not_compiled: list[str]
 
 
+SERVER_KERNEL_MODULES = ("simserver.server.state_frame",)
+"""Modules outside ``simserver.core`` with kernels of their own (the live loop's)."""
+
+
 def core_dispatchers() -> dict[str, object]:
-    """Every numba dispatcher defined in the ``simserver.core`` modules, by qualified name."""
+    """Every numba dispatcher defined in the ``simserver.core`` modules and in
+    :data:`SERVER_KERNEL_MODULES`, by qualified name."""
     import numba.core.registry
 
     import simserver.core as core
 
     found: dict[str, object] = {}
-    for info in pkgutil.iter_modules(core.__path__):
-        module = importlib.import_module(f"simserver.core.{info.name}")
+    names = [f"simserver.core.{info.name}" for info in pkgutil.iter_modules(core.__path__)]
+    for name in names + list(SERVER_KERNEL_MODULES):
+        module = importlib.import_module(name)
         for name, obj in vars(module).items():
             if (isinstance(obj, numba.core.registry.CPUDispatcher)
                     and obj.py_func.__module__ == module.__name__):
@@ -128,6 +135,7 @@ def warm_scene(configs: Path, scene: Path) -> None:
     from simserver.core.params import VP_CG_HEIGHT_M
     from simserver.server.app import SimServer
     from simserver.server.config import load_server_config
+    from simserver.server.state_frame import compile_kernels as compile_state_frame
     from simserver.wire import protocol as proto
 
     # 1. headless: the soak command as a user runs it (its JSON summary is not wanted here).
@@ -142,6 +150,7 @@ def warm_scene(configs: Path, scene: Path) -> None:
     physics = SimServer(cfg).physics
     physics.warm_up()
     physics.step()
+    compile_state_frame(physics.world)  # the live loop's state records (its first bind)
     # 3. tire-curves: tire_forces called from Python with scalars.
     for tp in physics.tp:
         cli.tire_curve_data(tp, [cli.nominal_load_n(tp)], n_points=3,

@@ -495,6 +495,8 @@ class ServerLoop:
         own, as a single car does."""
         world = self.world
         slots = [s for s, _ in self.slots]
+        if world is not None:  # the tick's finite check compiled or loaded here, not in it
+            all_finite_rows(world.data.x, world.data.out)
         if world is None or [s.keys.vehicle for s in slots] != list(world.ids):
             if self.state_frame is not None:  # each record its own again (a copy)
                 for slot in slots:

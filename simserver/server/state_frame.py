@@ -218,7 +218,13 @@ class StateFrame:
     def bind(self, slots: list[Any]) -> None:
         """Rows for ``slots`` (the loop's cars, the world's order); each slot's ``record``
         becomes a view of its row, its server fields carried over."""
-        n = len(slots)
+        self._allocate(len(slots))
+        for k, slot in enumerate(slots):
+            self.records[k] = slot.record
+            slot.record = self.records[k:k + 1].reshape(())  # a 0-d view of row k
+        self.records["version"] = proto.PROTOCOL_VERSION
+
+    def _allocate(self, n: int) -> None:
         self.n = n
         self.records = np.zeros(n, dtype=proto.STATE_DTYPE)
         self.raw = self.records.view(np.uint8).reshape(n, proto.STATE_SIZE)
@@ -228,10 +234,6 @@ class StateFrame:
         self.u8 = self.raw
         self.flag_bits = np.zeros(n, dtype=np.int64)  # physics_fields' flag bits, per car
         self.pose_ok = np.zeros(n, dtype=np.bool_)  # and its verdict on the pose
-        for k, slot in enumerate(slots):
-            self.records[k] = slot.record
-            slot.record = self.records[k:k + 1].reshape(())  # a 0-d view of row k
-        self.records["version"] = proto.PROTOCOL_VERSION
 
     def fill(self, world: Any, rows: np.ndarray) -> None:
         """The copied fields (``state_schema.FILL``) and the physics' server fields
@@ -255,3 +257,14 @@ class StateFrame:
                        model.terrain.kind == TERRAIN_PLANE, road["grade_pct"],
                        road["cross_slope_pct"], self.f32, self.u8, self.flag_bits,
                        self.pose_ok)
+
+
+def compile_kernels(world: Any) -> None:
+    """Compile (or load from the kernel cache) the frame's kernels for ``world``'s arrays,
+    as a live world's first :meth:`StateFrame.bind` does (``docker/warmup.py`` calls this
+    so that an image's first server start finds them cached); ``world`` is left as it
+    was."""
+    frame = StateFrame()
+    frame._allocate(len(world.ids))
+    frame.fill(world, np.arange(len(world.ids), dtype=np.int64))
+    all_finite(world.data.x, world.data.out)
