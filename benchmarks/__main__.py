@@ -101,7 +101,7 @@ HEADLESS_SCENARIO = "configs/scenarios/e2_stop_downslope_paper_damping.yaml"
 """The README's headless example, run for the headless memory figure."""
 
 SECTIONS = ("step", "commonroad", "server", "busy", "load", "hostile", "viewer", "ros2",
-            "tls_front", "startup", "memory", "image", "suite")
+            "tls_front", "multicar", "startup", "memory", "image", "suite")
 """Benchmarks in the order they run (``--only`` takes these names)."""
 
 
@@ -118,6 +118,7 @@ class Settings:
     viewer_rounds: int
     hostile_rounds: int
     ros2_args: tuple[str, ...]
+    multicar_args: tuple[str, ...]
     startup_cold: int
     startup_warm: int
     suite_runs: int
@@ -127,6 +128,7 @@ class Settings:
 FULL = Settings(step_args=(), commonroad_args=(), server_seconds=60.0, busy_runs=3,
                 load_seconds=30.0, viewer_seconds=60.0, viewer_rounds=2, hostile_rounds=3,
                 ros2_args=("--seconds", "12", "--rounds", "8"),
+                multicar_args=("--seconds", "20", "--rounds", "2"),
                 startup_cold=3, startup_warm=5, suite_runs=0)
 QUICK = Settings(step_args=("--seconds", "5", "--repeats", "5"),
                  commonroad_args=("--rounds", "1", "--seconds", "2", "--steps", "300"),
@@ -134,6 +136,7 @@ QUICK = Settings(step_args=("--seconds", "5", "--repeats", "5"),
                  busy_runs=1, load_seconds=8.0, viewer_seconds=6.0, viewer_rounds=1,
                  hostile_rounds=1,
                  ros2_args=("--seconds", "6", "--rounds", "2", "--floor-seconds", "3"),
+                 multicar_args=("--seconds", "5"),
                  startup_cold=1, startup_warm=3, suite_runs=0)
 """Short runs: long enough for the server's 4096-tick statistics window, no longer."""
 
@@ -777,6 +780,30 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
                             "ping-pong)", f"{h['added_p50_us']:+.0f} / {h['added_p99_us']:+.0f}"
                             " us", cmd))
 
+    if "multicar" in sections:  # issue 30: several cars in one live world
+        print("== bench_multicar", flush=True)
+        from benchmarks import bench_multicar
+
+        argv = list(settings.multicar_args)
+        cmd = " ".join(["python -m benchmarks.bench_multicar", *argv])
+        raw["multicar"] = results = bench_multicar.main(argv)
+        for n, hogs in ((8, True), (1, True), (32, False), (1, False)):
+            w = bench_multicar.worst(results, n, hogs)
+            if w is None:
+                continue
+            clients = min(n, len(bench_multicar.DRIVEN))
+            where = (f"{n} car{'s' if n > 1 else ''}, {clients} driven by client process"
+                     f"{'es' if clients > 1 else ''}" + (
+                         f", beside {w['hogs']} CPU hogs" if hogs else ", quiet")
+                     + f"; worst of {w['rounds']}")
+            p99 = " / ".join("n/a" if w[f"{c}_p99_us"] is None else f"{w[f'{c}_p99_us']:.0f}"
+                             for c in bench_multicar.DRIVEN[:min(n, 2)])
+            baseline = n == 1
+            rows.append(Row(f"live world: ticks > 1 ms late; command-to-state p99 "
+                            f"({'the baseline: ' if baseline else ''}{where})",
+                            f"{w['late_percent']:.2f} %; {p99} us", cmd,
+                            "" if baseline else "<= 0.5 %" + ("; <= 1500 us" if hogs else "")))
+
     if "startup" in sections:
         print("== start-up", flush=True)
         raw["startup"] = s = startup(settings.startup_cold, settings.startup_warm)
@@ -924,6 +951,12 @@ def render(report: Report, sections: list[str]) -> str:
         "- Clock floor of the server rows: `benchmarks.bench_server` runs the bare pacer, "
         "scheduled as the tick thread and beside the same hogs, 10 s just before and after "
         "the server (`--floor-seconds`): the VM's own lateness in the same minutes.",
+        "- Live world (issue 30): `benchmarks.bench_multicar`: `simserver serve` with n cars on "
+        "the crest-curve road, `car0` and `car1` driven by client processes (their own zenoh "
+        "sessions, commands at 200 Hz each at a random instant of its slot), the others by "
+        "the built-in driver; late ticks over the whole run from the server's `stopped` "
+        "line, each driven car's command-to-state p99 as the server rows'; the worst of the "
+        "rounds; 1-car runs of the same command beside them are the machine's baseline.",
         "- Start-up: launch of `python -m simserver serve --viewer off` to its `ready` line "
         "(kernels compiled or loaded, zenoh open, before the first tick), and the server's "
         "CPU seconds at that line (`/proc/PID/stat`; on a shared machine the steadier "

@@ -14,8 +14,9 @@ along x, no cross-slope: x is the distance along the road):
 - ``creep``: each car's travel over the queue's hold, 22 s to 25 s (``np.ptp`` of x);
 - ``rollback``: each car's largest travel down the grade after the drive-off (from its
   position at 25 s to its lowest after);
-- ``min gap``: the smallest bumper-to-bumper gap over the run (the bodies: CG to axle
-  plus 0.85 m overhangs, the driver's and the viewer's boxes).
+- ``min gap``: the smallest bumper-to-bumper gap over the run (the bodies: the contact
+  stage's boxes, ``core.contact.body_box``, which the built-in driver's gap keeping uses
+  too).
 
 ``tests/test_driver.py`` asserts on these very figures (:func:`hill_queue_figures`) and
 prints them. Figures are simulated, not timed: the same on any machine (docs/model.md
@@ -31,12 +32,11 @@ import numpy as np
 
 from simserver.adapters.validate import read_yaml
 from simserver.core import layout as L
-from simserver.core.params import VP_CG_TO_FRONT_AXLE_M, VP_CG_TO_REAR_AXLE_M
+from simserver.core.contact import body_box
 from simserver.sim.scenario import WorldResult, load_world_scenario, run_world_scenario
 from simserver.testing import REPO
 
 HILL = REPO / "configs" / "scenarios" / "hill_queue_15pct.yaml"
-OVERHANG_M = 0.85  # the driver's default overhangs (the viewer's body boxes)
 HOLD_S = (22.0, 25.0)  # the queue's hold: from a second after the traffic car's stop
 GO_S = 25.0  # the driven car's drive-off (the scenario's keyframes)
 VARIANTS = {"lagged": None, "kinematic": "kinematic"}
@@ -45,10 +45,11 @@ VARIANTS = {"lagged": None, "kinematic": "kinematic"}
 
 def bumper_gap(result_lead: Any, result_follow: Any, vp: np.ndarray) -> np.ndarray:
     """Bumper-to-bumper gap along road-plane x (cars driving along x, no cross-slope: the
-    road-plane x is the distance along the road, on the flat and on a grade)."""
-    a, b = vp[VP_CG_TO_FRONT_AXLE_M], vp[VP_CG_TO_REAR_AXLE_M]
-    return ((result_lead.states[:, L.X_M] - b - OVERHANG_M)
-            - (result_follow.states[:, L.X_M] + a + OVERHANG_M))
+    road-plane x is the distance along the road, on the flat and on a grade), between
+    the bodies' boxes (``core.contact.body_box``; both cars the same vehicle ``vp``)."""
+    front_m, rear_m, _ = body_box(vp)
+    return ((result_lead.states[:, L.X_M] - rear_m)
+            - (result_follow.states[:, L.X_M] + front_m))
 
 
 def run_hill_queue(slip_model: str | None = None) -> WorldResult:

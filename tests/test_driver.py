@@ -19,13 +19,19 @@ import sys
 import numpy as np
 import pytest
 
-from benchmarks.hill_queue_rollback import figures_line, hill_queue_figures, run_hill_queue
+from benchmarks.hill_queue_rollback import (
+    bumper_gap,
+    figures_line,
+    hill_queue_figures,
+    run_hill_queue,
+)
 from simserver.adapters.config import ConfigError, load_vehicle, read_yaml
 from simserver.adapters.history import CAR_ID_COLUMN, read_history
 from simserver.adapters.opendrive import lane_start, load_opendrive
 from simserver.core import driver as D
 from simserver.core import layout as L
 from simserver.core import params as P
+from simserver.core.contact import body_box
 from simserver.core.param_table import slot_constants_source
 from simserver.core.params import VP_CG_HEIGHT_M, VP_CG_TO_FRONT_AXLE_M, VP_CG_TO_REAR_AXLE_M
 from simserver.core.pose import world_pose
@@ -45,15 +51,6 @@ FOLLOW = SCENARIOS / "driver_follow_brake_to_stop.yaml"
 HILL = SCENARIOS / "hill_queue_15pct.yaml"
 XODR = REPO / "configs" / "roads" / "curves_elevation.xodr"
 VEHICLE = REPO / "configs" / "vehicles" / "paper_sedan" / "vehicle.yaml"
-OVERHANG_M = 0.85  # the driver's default overhangs (the viewer's body boxes)
-
-
-def bumper_gap(result_lead, result_follow, vp) -> np.ndarray:
-    """Bumper-to-bumper gap along road-plane x (cars driving along x, no cross-slope: the
-    road-plane x is the distance along the road, on the flat and on a grade)."""
-    a, b = vp[VP_CG_TO_FRONT_AXLE_M], vp[VP_CG_TO_REAR_AXLE_M]
-    return ((result_lead.states[:, L.X_M] - b - OVERHANG_M)
-            - (result_follow.states[:, L.X_M] + a + OVERHANG_M))
 
 
 # ---------------------------------------------------------------- the lane of curves_elevation
@@ -248,7 +245,7 @@ def test_stop_point_hold_with_the_parking_brake_and_go_on_15pct(tmp_path):
     row = result.states[np.argmax(held)]
     lift = vp[VP_CG_HEIGHT_M] + row[L.HEAVE_M]
     world_x = row[L.X_M] * axes[0, 0] + lift * axes[2, 0]
-    front = (world_x + 10.0) * math.hypot(1.0, 0.15) + vp[VP_CG_TO_FRONT_AXLE_M] + OVERHANG_M
+    front = (world_x + 10.0) * math.hypot(1.0, 0.15) + body_box(vp)[0]
     assert 59.97 <= front <= 60.01, front
     after = t >= 22.0
     assert x[after][0] - x[after].min() < 1e-3
@@ -390,7 +387,7 @@ def test_an_oncoming_or_crossing_car_in_the_lane_is_an_obstacle_at_rest(tmp_path
     ``oncoming_stop: 0`` (a car overtaking in the oncoming lane) the oncoming car is no
     obstacle at all, while a car going its way still is."""
     vp = load_vehicle(VEHICLE).vp
-    front, rear = vp[VP_CG_TO_FRONT_AXLE_M] + OVERHANG_M, vp[VP_CG_TO_REAR_AXLE_M] + OVERHANG_M
+    front, rear, _ = body_box(vp)  # the contact stage's box, the driver's too
     bumper_x = 40.0  # the facing bumper of the car ahead, on the path's axis
     standing = _first_drive(tmp_path, {"x_m": bumper_x + rear, "yaw_rad": 0.0, "u_mps": 0.0})
     assert standing[D.DS_LEADER] == 1.0

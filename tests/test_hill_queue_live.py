@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simserver.core.params import VP_CG_TO_FRONT_AXLE_M, VP_CG_TO_REAR_AXLE_M
 from simserver.testing import Client, ServerProcess, wait_until
 from simserver.wire import protocol as proto
 
@@ -27,15 +26,17 @@ REPO = Path(__file__).resolve().parents[1]
 HILL_QUEUE = REPO / "configs" / "server" / "hill_queue_15pct.yaml"
 GRADE = 0.15
 ALONG_SLOPE = math.sqrt(1.0 + GRADE**2)  # world x -> distance along the road plane
-OVERHANG_M = 0.85  # the driver's default overhangs (core.driver CONTROL table)
 
 
 def _lengths() -> tuple[float, float]:
-    """CG to front and to rear bumper of the paper sedan (both cars)."""
+    """CG to front and to rear bumper of the paper sedan (both cars): its body's box, the
+    contact stage's and the built-in driver's (``core.contact.body_box``)."""
     from simserver.adapters.config import load_vehicle
+    from simserver.core.contact import body_box
 
     vp = load_vehicle(REPO / "configs" / "vehicles" / "paper_sedan" / "vehicle.yaml").vp
-    return (vp[VP_CG_TO_FRONT_AXLE_M] + OVERHANG_M, vp[VP_CG_TO_REAR_AXLE_M] + OVERHANG_M)
+    front_m, rear_m, _ = body_box(vp)
+    return front_m, rear_m
 
 
 class Queue:
