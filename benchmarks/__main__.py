@@ -355,6 +355,18 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def startup_env(numba_cache_dir: Path) -> dict[str, str]:
+    """The environment of a timed start: the kernel caches in ``numba_cache_dir``
+    (``cache_env``) and Python's bytecode cache on, as a user's checkout or install has it
+    (pip byte-compiles an install; Python writes a checkout's ``__pycache__`` on first
+    import). A ``PYTHONDONTWRITEBYTECODE`` of the shell running the benchmarks is dropped:
+    with it every start would compile simserver's own sources again (about 0.2 s of CPU
+    for run-scenario's 54 modules on this VM), a cost no warm start of a user has."""
+    env = cache_env(numba_cache_dir)
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    return env
+
+
 def time_to_ready(numba_cache_dir: Path, timeout_s: float = 300.0,
                   cpu: list[float] | None = None) -> float:
     """Launch ``simserver serve`` (viewer off, free loopback port), return the seconds to its
@@ -362,7 +374,7 @@ def time_to_ready(numba_cache_dir: Path, timeout_s: float = 300.0,
     its ready line are appended to it (on a shared machine the steadier figure: the compile
     is single-threaded)."""
     server = ServerProcess(scene=None, log_level="WARNING", ready_timeout_s=timeout_s,
-                           env=cache_env(numba_cache_dir))
+                           env=startup_env(numba_cache_dir))
     if cpu is not None:
         cpu.append(_cpu_s(server.pid))
     server.stop()
@@ -406,7 +418,7 @@ def time_command(args: tuple[str, ...], numba_cache_dir: Path,
         cpu0 = _children_cpu_s()
         t0 = time.perf_counter()
         proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=600,
-                              env=cache_env(numba_cache_dir))
+                              env=startup_env(numba_cache_dir))
         wall_s = time.perf_counter() - t0
         cpu_s = _children_cpu_s() - cpu0
     finally:
@@ -951,12 +963,19 @@ def render(report: Report, sections: list[str]) -> str:
         "(kernels compiled or loaded, zenoh open, before the first tick), and the server's "
         "CPU seconds at that line (`/proc/PID/stat`; on a shared machine the steadier "
         "figure). Cold: `NUMBA_CACHE_DIR` and `SIMSERVER_CACHE_DIR` an empty directory "
-        "(Python bytecode already compiled); warm: the same directory again (the image's "
+        "(Python's bytecode cache on, as a user has it: a `PYTHONDONTWRITEBYTECODE` of the "
+        "benchmark's shell is not passed on, so only the first cold start compiles "
+        "simserver's sources); warm: the same directory again (the image's "
         "start: every kernel from the cache). Where a cold compile goes: "
         "`python -m benchmarks.bench_compile --warm 0 --by-function 25`. Headless commands: "
         "`python -m simserver run-scenario` (E2, "
         "with and without `--no-plots`) and `tire-curves` from launch to exit with that warm "
-        "cache (one unmeasured run first), interleaved, median of the repeats.",
+        "cache (one unmeasured run first), interleaved, median of the repeats, with their "
+        "CPU seconds (the process and its children); interleaved with them numba's floor, "
+        "`python -c` importing numba and initialising the CPU target that numba's cache "
+        "initialises before it loads a first kernel (scipy.linalg included, through "
+        "numba's BLAS check): every warm path that runs a kernel pays it before "
+        "simserver's own imports and work.",
         "- Test suite: the README's test command. The row reads the last three recorded "
         "runs of it (each run of the whole default suite appends its wall and CPU time, "
         "whether the kernel cache was empty at its start, the commit and the load: "
