@@ -358,6 +358,18 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def startup_env(numba_cache_dir: Path) -> dict[str, str]:
+    """The environment of a timed start: the kernel caches in ``numba_cache_dir``
+    (``cache_env``) and Python's bytecode cache on, as a user's checkout or install has it
+    (pip byte-compiles an install; Python writes a checkout's ``__pycache__`` on first
+    import). A ``PYTHONDONTWRITEBYTECODE`` of the shell running the benchmarks is dropped:
+    with it every start would compile simserver's own sources again (about 0.2 s of CPU
+    for run-scenario's 54 modules on this VM), a cost no warm start of a user has."""
+    env = cache_env(numba_cache_dir)
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    return env
+
+
 def time_to_ready(numba_cache_dir: Path, timeout_s: float = 300.0,
                   cpu: list[float] | None = None) -> float:
     """Launch ``simserver serve`` (viewer off, free loopback port), return the seconds to its
@@ -365,7 +377,7 @@ def time_to_ready(numba_cache_dir: Path, timeout_s: float = 300.0,
     its ready line are appended to it (on a shared machine the steadier figure: the compile
     is single-threaded)."""
     server = ServerProcess(scene=None, log_level="WARNING", ready_timeout_s=timeout_s,
-                           env=cache_env(numba_cache_dir))
+                           env=startup_env(numba_cache_dir))
     if cpu is not None:
         cpu.append(_cpu_s(server.pid))
     server.stop()
@@ -385,25 +397,39 @@ arguments; ``{out}`` is a scratch directory): the README's E2 example with and w
 PNG plots, and the README's ``tire-curves`` (issue 33's targets 1.2, 0.6 and 2 s)."""
 HEADLESS_TARGETS = {"run-scenario E2, with plots": "<= 1.2 s",
                     "run-scenario E2, --no-plots": "<= 0.6 s", "tire-curves": "<= 2 s"}
+NUMBA_FLOOR_CODE = ("import numba\n"
+                    "from numba.core.registry import cpu_target\n"
+                    "cpu_target.target_context.refresh()\n")
+"""What every warm path that runs a kernel pays before any of simserver's code: Python,
+numpy, numba and numba's CPU target, which numba's cache initialises before it loads the
+first cached kernel (``numba.core.caching.Cache.load_overload`` refreshes the target
+context: every lowering registry, and through ``numba.np.arraymath``'s BLAS check all of
+``scipy.linalg``). Timed beside the warm commands, it shows which part of their time is
+numba's own."""
+NUMBA_FLOOR = "floor: python -c 'import numba' and numba's CPU target"
 
 
-def time_command(args: tuple[str, ...], numba_cache_dir: Path) -> float:
-    """Wall seconds from launch to exit of ``python -m simserver ARGS`` (``{out}`` in ARGS a
-    fresh scratch directory) with the kernel caches in ``numba_cache_dir``; raises if it
-    fails."""
+def time_command(args: tuple[str, ...], numba_cache_dir: Path,
+                 python_args: tuple[str, ...] = ("-m", "simserver")) -> tuple[float, float]:
+    """Wall and CPU seconds (user + system, the process and its children) from launch to
+    exit of ``python -m simserver ARGS`` (``{out}`` in ARGS a fresh scratch directory; or
+    ``python PYTHON_ARGS ARGS``) with the kernel caches in ``numba_cache_dir``; raises if
+    it fails. On a shared machine the CPU seconds are the steadier figure."""
     out = Path(tempfile.mkdtemp(prefix="simserver_startup_"))
-    argv = [sys.executable, "-m", "simserver", *(a.format(out=out) for a in args)]
+    argv = [sys.executable, *python_args, *(a.format(out=out) for a in args)]
     try:
+        cpu0 = _children_cpu_s()
         t0 = time.perf_counter()
         proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=600,
-                              env=cache_env(numba_cache_dir))
+                              env=startup_env(numba_cache_dir))
         wall_s = time.perf_counter() - t0
+        cpu_s = _children_cpu_s() - cpu0
     finally:
         shutil.rmtree(out, ignore_errors=True)
     if proc.returncode != 0:
-        raise RuntimeError(f"{' '.join(argv[3:])} exited {proc.returncode}:\n"
+        raise RuntimeError(f"{' '.join(argv[1:])} exited {proc.returncode}:\n"
                            f"{proc.stdout}{proc.stderr}")
-    return wall_s
+    return wall_s, cpu_s
 
 
 def startup(cold: int, warm: int) -> dict[str, Any]:
@@ -414,7 +440,8 @@ def startup(cold: int, warm: int) -> dict[str, Any]:
     warm_s: list[float] = []
     cold_cpu_s: list[float] = []
     warm_cpu_s: list[float] = []
-    headless: dict[str, list[float]] = {name: [] for name in HEADLESS_COMMANDS}
+    headless: dict[str, list[float]] = {name: [] for name in (*HEADLESS_COMMANDS, NUMBA_FLOOR)}
+    headless_cpu: dict[str, list[float]] = {name: [] for name in headless}
     dirs = [Path(tempfile.mkdtemp(prefix="simserver_numba_")) for _ in range(cold)]
     try:
         for d in dirs:
@@ -427,10 +454,16 @@ def startup(cold: int, warm: int) -> dict[str, Any]:
                   flush=True)
         for args in HEADLESS_COMMANDS.values():
             time_command(args, dirs[-1])  # compiles what it needs beyond the server's kernels
-        for _ in range(warm):  # interleaved: a slow minute of the VM spreads over all three
-            for name, args in HEADLESS_COMMANDS.items():
-                headless[name].append(time_command(args, dirs[-1]))
-                print(f"warm {name}: {headless[name][-1]:.2f} s", flush=True)
+        commands = {**{name: (args, ("-m", "simserver"))
+                       for name, args in HEADLESS_COMMANDS.items()},
+                    NUMBA_FLOOR: ((), ("-c", NUMBA_FLOOR_CODE))}
+        for _ in range(warm):  # interleaved: a slow minute of the VM spreads over all four
+            for name, (args, python_args) in commands.items():
+                wall_s, cpu_s = time_command(args, dirs[-1], python_args)
+                headless[name].append(wall_s)
+                headless_cpu[name].append(cpu_s)
+                print(f"warm {name}: {wall_s:.2f} s ({cpu_s:.2f} s CPU; load average "
+                      f"{os.getloadavg()[0]:.1f})", flush=True)
     finally:
         for d in dirs:
             shutil.rmtree(d, ignore_errors=True)
@@ -440,8 +473,9 @@ def startup(cold: int, warm: int) -> dict[str, Any]:
             "warm_median_s": statistics.median(warm_s),
             "cold_median_cpu_s": statistics.median(cold_cpu_s),
             "warm_median_cpu_s": statistics.median(warm_cpu_s),
-            "headless_s": headless,
-            "headless_median_s": {k: statistics.median(v) for k, v in headless.items()}}
+            "headless_s": headless, "headless_cpu_s": headless_cpu,
+            "headless_median_s": {k: statistics.median(v) for k, v in headless.items()},
+            "headless_median_cpu_s": {k: statistics.median(v) for k, v in headless_cpu.items()}}
 
 
 # --------------------------------------------------------------------- the test suite
@@ -816,7 +850,8 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
                         cmd, "<= 0.6 s"))
         for name, runs in s["headless_s"].items():
             rows.append(Row(f"warm {name}, launch to exit (median of {len(runs)})",
-                            f"{s['headless_median_s'][name]:.2f} s (runs: "
+                            f"{s['headless_median_s'][name]:.2f} s "
+                            f"({s['headless_median_cpu_s'][name]:.2f} s CPU; runs: "
                             + ", ".join(f"{x:.2f}" for x in runs) + ")", cmd,
                             HEADLESS_TARGETS.get(name, "")))
         from benchmarks import bench_compile
@@ -961,12 +996,19 @@ def render(report: Report, sections: list[str]) -> str:
         "(kernels compiled or loaded, zenoh open, before the first tick), and the server's "
         "CPU seconds at that line (`/proc/PID/stat`; on a shared machine the steadier "
         "figure). Cold: `NUMBA_CACHE_DIR` and `SIMSERVER_CACHE_DIR` an empty directory "
-        "(Python bytecode already compiled); warm: the same directory again (the image's "
+        "(Python's bytecode cache on, as a user has it: a `PYTHONDONTWRITEBYTECODE` of the "
+        "benchmark's shell is not passed on, so only the first cold start compiles "
+        "simserver's sources); warm: the same directory again (the image's "
         "start: every kernel from the cache). Where a cold compile goes: "
         "`python -m benchmarks.bench_compile --warm 0 --by-function 25`. Headless commands: "
         "`python -m simserver run-scenario` (E2, "
         "with and without `--no-plots`) and `tire-curves` from launch to exit with that warm "
-        "cache (one unmeasured run first), interleaved, median of the repeats.",
+        "cache (one unmeasured run first), interleaved, median of the repeats, with their "
+        "CPU seconds (the process and its children); interleaved with them numba's floor, "
+        "`python -c` importing numba and initialising the CPU target that numba's cache "
+        "initialises before it loads a first kernel (scipy.linalg included, through "
+        "numba's BLAS check): every warm path that runs a kernel pays it before "
+        "simserver's own imports and work.",
         "- Test suite: the README's test command. The row reads the last three recorded "
         "runs of it (each run of the whole default suite appends its wall and CPU time, "
         "whether the kernel cache was empty at its start, the commit and the load: "

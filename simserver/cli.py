@@ -14,13 +14,14 @@ functions, so ``simserver --help`` answers at once.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import math
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -102,6 +103,20 @@ def _with_dt(scenario: Scenario, dt_s: float | None) -> Scenario:
     return scenario
 
 
+@contextlib.contextmanager
+def _progress_bar(show: bool, **bar_options: Any) -> Iterator[Callable[[Any, Any], None] | None]:
+    """A ``progress(done, total)`` callback that draws a tqdm bar on stderr when ``show``
+    (a terminal, no ``--quiet``), else None; tqdm is imported only for a bar someone sees
+    (issue 33 item 2: a scripted run pays for no bar)."""
+    if not show:
+        yield None
+        return
+    from tqdm import tqdm
+
+    with tqdm(file=sys.stderr, leave=False, **bar_options) as bar:
+        yield lambda done, total: bar.update(done - bar.n)
+
+
 def run_scenario_command(args: argparse.Namespace) -> int:
     """``simserver run-scenario``: run headless, write history, summary and plots.
 
@@ -115,8 +130,6 @@ def run_scenario_command(args: argparse.Namespace) -> int:
     int
         0, or 1 if the run went non-finite (the files are still written).
     """
-    from tqdm import tqdm
-
     from simserver.adapters.config import read_yaml
     from simserver.adapters.history import (
         HISTORY_FILE,
@@ -140,10 +153,9 @@ def run_scenario_command(args: argparse.Namespace) -> int:
     # clock starts, so that the reported real-time factor is the simulation's own.
     run_scenario(dataclasses.replace(scenario, duration_s=scenario.dt_s, record_every=1))
 
-    show = not args.quiet and sys.stderr.isatty()
-    with tqdm(total=scenario.n_steps, desc=scenario.name, unit="step", unit_scale=True,
-              file=sys.stderr, disable=not show, leave=False) as bar:
-        result = run_scenario(scenario, progress=lambda done, total: bar.update(done - bar.n))
+    with _progress_bar(not args.quiet and sys.stderr.isatty(), total=scenario.n_steps,
+                       desc=scenario.name, unit="step", unit_scale=True) as progress:
+        result = run_scenario(scenario, progress=progress)
 
     summary = summarize(result)
     try:
@@ -697,16 +709,13 @@ def _multi_soak(args: argparse.Namespace, scene: Scene) -> int:
     """``simserver soak --cars N``: the multi-car soak, its summary and violations."""
     import json
 
-    from tqdm import tqdm
-
     from simserver.sim.multisoak import run_multi_soak
 
     run_multi_soak(scene, args.cars, 0.01, seed=args.seed)  # compile before the clock
-    show = not args.quiet and sys.stderr.isatty()
-    with tqdm(total=args.duration, desc=f"soak {args.cars} cars", unit="sim s",
-              file=sys.stderr, disable=not show, leave=False) as bar:
+    with _progress_bar(not args.quiet and sys.stderr.isatty(), total=args.duration,
+                       desc=f"soak {args.cars} cars", unit="sim s") as progress:
         report = run_multi_soak(scene, args.cars, args.duration, seed=args.seed,
-                                progress=lambda done, total: bar.update(done - bar.n))
+                                progress=progress)
     summary = report.as_dict()
     _write_soak_summary(args.out, summary)
     brief = {k: v for k, v in summary.items() if k != "contact_events"}
@@ -719,9 +728,6 @@ def _multi_soak(args: argparse.Namespace, scene: Scene) -> int:
 
 def soak_command(args: argparse.Namespace) -> int:
     """``simserver soak``: seeded random driving, invariants checked every tick."""
-
-    from tqdm import tqdm
-
     from simserver.sim.scene_files import load_scene
     from simserver.sim.soak import run_soak
 
@@ -739,11 +745,9 @@ def soak_command(args: argparse.Namespace) -> int:
     if args.cars > 1:
         return _multi_soak(args, scene)
     run_soak(scene, 0.01, seed=args.seed)  # compile before the clock starts
-    show = not args.quiet and sys.stderr.isatty()
-    with tqdm(total=args.duration, desc="soak", unit="sim s", file=sys.stderr,
-              disable=not show, leave=False) as bar:
-        report = run_soak(scene, args.duration, seed=args.seed,
-                          progress=lambda done, total: bar.update(done - bar.n))
+    with _progress_bar(not args.quiet and sys.stderr.isatty(), total=args.duration,
+                       desc="soak", unit="sim s") as progress:
+        report = run_soak(scene, args.duration, seed=args.seed, progress=progress)
     summary = report.as_dict()
     text = _write_soak_summary(args.out, summary)
     print(text)
@@ -966,9 +970,18 @@ SUBCOMMANDS: dict[str, Subcommand] = {
 """Every subcommand, by name, in ``--help`` order."""
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser with every subcommand of ``SUBCOMMANDS``."""
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The argument parser with every subcommand of ``SUBCOMMANDS``.
+
+    Given the command line ``argv``, only the subcommand it names gets its arguments (the
+    others are listed, for ``--help`` and the error on a wrong name): a subcommand's
+    arguments may import its module (``tls-front``, ``router``), and a warm command pays
+    for no other's imports (issue 33 item 2). Without ``argv``, or when no subcommand is
+    named, every subcommand gets its arguments.
+    """
     from simserver import __version__
+
+    named = _named_subcommand(argv)
 
     parser = argparse.ArgumentParser(
         prog="simserver",
@@ -980,9 +993,19 @@ def build_parser() -> argparse.ArgumentParser:
     for name, command in SUBCOMMANDS.items():
         p = sub.add_parser(name, help=command.help,
                            description=command.description or command.help)
-        command.add_arguments(p)
+        if named is None or name == named:
+            command.add_arguments(p)
         p.set_defaults(handler=command.run)
     return parser
+
+
+def _named_subcommand(argv: Sequence[str] | None) -> str | None:
+    """The subcommand ``argv`` names (its first word not an option, as argparse takes it:
+    the top-level parser has only flags), or None."""
+    if argv is None:
+        return None
+    first = next((a for a in argv if not a.startswith("-")), None)
+    return first if first in SUBCOMMANDS else None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -998,7 +1021,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     int
         The exit code (see the module docstring).
     """
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(argv).parse_args(argv)
     from simserver.adapters.config import ConfigError
 
     try:
