@@ -70,6 +70,7 @@ from simserver.core.layout import (
     REF_HEIGHT_M,
     ROLL_RAD,
     ROLL_RATE_RADPS,
+    STEP_JIT_OPTIONS,
     TAN_ALPHA0,
     U_MPS,
     V_MPS,
@@ -325,7 +326,7 @@ def hub_velocity(
     return cos_steer * u_c + sin_steer * v_c, -sin_steer * u_c + cos_steer * v_c
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
     """Stage 1b: the reference plane of the step (docs/model.md section 11) into
     ``ws.ground``: its axes, gravity resolved into them, the friction under each wheel.
@@ -513,7 +514,7 @@ def terrain_gaps(model: Model, ws: Workspace, x: np.ndarray) -> None:
         wheel[i, W_GAP_RATE_MPS] = d_gap_1 * (u_c * c - v_c * s) + d_gap_2 * (u_c * s + v_c * c)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def corner_loads(model: Model, ws: Workspace, x: np.ndarray) -> None:
     """Stage 1: the normal load of each corner (N) into ``ws.wheel[i, W_FZ]`` (and what it
     adds to the static share into ``W_FZ_DYN``).

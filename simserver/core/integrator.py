@@ -77,6 +77,7 @@ from simserver.core.layout import (
     O_KAPPA0,
     O_TAN_ALPHA0,
     OMEGA0,
+    STEP_JIT_OPTIONS,
     TAN_ALPHA0,
     TIME_S,
     WHEEL_HELD0,
@@ -179,7 +180,7 @@ def road_wheel_angles(vp: np.ndarray, steer_input: float, wheel_in: np.ndarray) 
         wheel_in[WI_STEER_RAD, i] = angle
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def freeze_inputs(model: Model, data: Data) -> None:
     """Stage 1: the inputs held over the step (``ws.wheel_in``): road-wheel angles, drive
     torques, brake capacities; the brakes start released and no wheel held."""
@@ -205,7 +206,7 @@ def freeze_inputs(model: Model, data: Data) -> None:
         wheel_in[WI_BRAKE_NM, i] = 0.0
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def prepare_tires(model: Model, data: Data) -> None:
     """Stage 2: the tires' load-dependent coefficients, once per step and wheel.
 
@@ -291,7 +292,7 @@ def freeze_decay_rates(model: Model, data: Data) -> None:
                 rk[RK_E_HALF, j] = np.exp(-0.5 * h * rk[RK_DECAY, j])
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def rates_and_rk4(model: Model, data: Data) -> None:
     """Stages 3-5: ``k1`` at the start state (its loads are stage 2's), the outputs and
     contacts recorded from it, the brakes resolved on it and the decay rates frozen
@@ -379,7 +380,7 @@ def catch_stopped_wheels(data: Data) -> None:
         out[O_BRAKE_TORQUE0 + i] = wheel_in[WI_BRAKE_NM, i]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def update_discrete_states(model: Model, data: Data) -> None:
     """Stage 7: per wheel, on the new hub velocities: the slip variant's projection
     (``core.slip``), the paper's damping trigger and release (``core.damping``), and the

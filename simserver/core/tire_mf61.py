@@ -386,6 +386,13 @@ _TINY = 1e-9  # floor of C*D (N), |K_ya| (N/rad), G0: never reached with a sane 
 # Compilation: tire_layout.TIRE_JIT_OPTIONS (FMA, division by zero gives inf; every
 # division here has a non-zero denominator anyway).
 _JIT_OPTIONS = TIRE_JIT_OPTIONS
+# The scalar helpers (atan, sin, the peak search's steps, ...) are inlined by LLVM, not by
+# numba (``core.layout.STEP_JIT_OPTIONS`` says why): called at about 60 places in the
+# kernels, each numba-inlined copy was translated and typed again (the tire dispatchers'
+# ``inline_inlinables`` pass: about 13 of 20 s of their cold compile). The same options,
+# so the same arithmetic and the same bits; the lane functions that take stack scratch
+# (``_mf_lanes``, ``_atan_sin_lanes``) stay numba-inlined: their scratch is the caller's.
+_LEAF_JIT_OPTIONS = dict(TIRE_JIT_OPTIONS, forceinline=True)
 
 # --- elementary functions ----------------------------------------------------------------
 # libm calls are not inlined, clobber every vector register and cost 10-20 ns each, and
@@ -432,7 +439,7 @@ _INV_TWO_PI = 0.15915494309189535
 _ROUND_MAGIC = 6755399441055744.0  # 1.5 * 2^52: (x + M) - M rounds x to an integer
 
 
-@nb.njit(inline="always", **_JIT_OPTIONS)
+@nb.njit(**_LEAF_JIT_OPTIONS)
 def _atan(x: float) -> float:
     """``atan(x)`` to about 1 ulp, branch-free (see the constants above)."""
     ax = abs(x)
@@ -456,7 +463,7 @@ def _atan(x: float) -> float:
     return math.copysign(base + (u + u * z * poly), x)
 
 
-@nb.njit(inline="always", **_JIT_OPTIONS)
+@nb.njit(**_LEAF_JIT_OPTIONS)
 def _atan_flat(x: float) -> float:
     """:func:`_atan` without a conditional expression (the same value for ``|x| <= 1e300``).
 
@@ -484,7 +491,7 @@ def _atan_flat(x: float) -> float:
     return math.copysign(base + (u + u * z * poly), x)
 
 
-@nb.njit(inline="always", **_JIT_OPTIONS)
+@nb.njit(**_LEAF_JIT_OPTIONS)
 def _sin_core(y: float) -> float:
     """``sin(y)`` for ``|y| <= pi/2``."""
     z = y * y
@@ -496,7 +503,7 @@ def _sin_core(y: float) -> float:
     return y + y * z * poly
 
 
-@nb.njit(inline="always", **_JIT_OPTIONS)
+@nb.njit(**_LEAF_JIT_OPTIONS)
 def _sin_branch_free(x: float) -> float:
     """``sin(x)`` to about 1 ulp (absolute) for ``|x| < 2^20``, without a branch."""
     n = (x * _INV_TWO_PI + _ROUND_MAGIC) - _ROUND_MAGIC  # nearest integer
@@ -505,7 +512,7 @@ def _sin_branch_free(x: float) -> float:
     return math.copysign(_sin_core(min(ar, (_PI_HI - ar) + _PI_LO)), r)  # sin(pi - a) = sin a
 
 
-@nb.njit(inline="always", **_JIT_OPTIONS)
+@nb.njit(**_LEAF_JIT_OPTIONS)
 def _sin(x: float) -> float:
     """``sin(x)`` to about 1 ulp (absolute) for ``|x| < 2^20``; libm beyond (never here)."""
     if not abs(x) < 1048576.0:
@@ -624,7 +631,7 @@ def _atan_sin_lanes(
 # --- peak of a Magic Formula curve ------------------------------------------------------------
 
 
-@nb.njit(inline="always", **_JIT_OPTIONS)
+@nb.njit(**_LEAF_JIT_OPTIONS)
 def _peak_target(c: float) -> float:
     """``T``: the curve ``D sin[C atan{u - E (u - atan u)}]`` peaks where ``atan{.} = T``.
 
@@ -641,7 +648,7 @@ def _peak_target(c: float) -> float:
     return _sin_core(a) / _sin_core((_PI_2 - a) + _PI_2_LO)  # 0 < a < pi/2
 
 
-@nb.njit(inline="always", **_JIT_OPTIONS)
+@nb.njit(**_LEAF_JIT_OPTIONS)
 def _peak_start(target: float, e: float) -> float:
     """Start of the search for the root of ``g(u) = (1 - E) u + E atan(u) - T``.
 
@@ -653,7 +660,7 @@ def _peak_start(target: float, e: float) -> float:
     return min(max(u0, 1e-12), SLIDE_MAX)
 
 
-@nb.njit(inline="always", **_JIT_OPTIONS)
+@nb.njit(**_LEAF_JIT_OPTIONS)
 def _peak_step(u: float, atan_u: float, e: float, target: float) -> float:
     """One Halley step on ``g(u) = (1 - E) u + E atan(u) - T`` (``atan_u = atan(u)``).
 
@@ -670,7 +677,7 @@ def _peak_step(u: float, atan_u: float, e: float, target: float) -> float:
     return min(max(u - g * n * den / max(n * n + e * g * u, _TINY), 0.5 * u), SLIDE_MAX)
 
 
-@nb.njit(inline="always", **_JIT_OPTIONS)
+@nb.njit(**_LEAF_JIT_OPTIONS)
 def _mf_curve(y: float, e: float, c: float) -> float:
     """One Magic Formula ``sin[C atan{y - E (y - atan y)}]``, scalar; as a lane of _mf_lanes.
 
@@ -911,7 +918,7 @@ def _mf61_prepare(
     coef[C_TAN_ALPHA_SLIDE_NEG] = min(max(abs(-uy_neg * inv_by - shy), _TINY), SLIDE_MAX)
 
 
-@nb.njit(inline="always", **_JIT_OPTIONS)
+@nb.njit(**_LEAF_JIT_OPTIONS)
 def _low_speed_factor(vx_mps: float, vxlow_mps: float) -> float:
     """The factor on the Magic Formula shifts SHx, SVx, SHy, SVy at hub speed ``vx_mps``.
 
