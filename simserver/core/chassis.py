@@ -634,7 +634,7 @@ def auxiliary_damping(
     raise ValueError("unknown damping model id (core.damping.DAMPING_MODELS)")
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
     """Stage 2: per wheel, the slip, the tire forces with the auxiliary damping and the
     spin; writes ``dx``'s spin and slip slots and ``ws.wheel`` (``W_*``).
@@ -747,7 +747,7 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
         wheel[i, W_DAMPING_FY] = damp_y
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
     """Stage 3: the sprung body on the corner loads and the tire forces; writes ``dx``'s
     body slots and ``ws.body`` (``B_*``).

@@ -690,7 +690,7 @@ def _mf_curve(y: float, e: float, c: float) -> float:
     return _sin_branch_free(c * _atan_flat((1.0 - e) * y + e * _atan_flat(y)))
 
 
-@nb.njit(inline="always", **_JIT_OPTIONS)
+@nb.njit(**_LEAF_JIT_OPTIONS)
 def _mf61_prepare(
     p: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
 ) -> None:
@@ -936,7 +936,7 @@ def _low_speed_factor(vx_mps: float, vxlow_mps: float) -> float:
     return s * s * (3.0 - 2.0 * s)
 
 
-@nb.njit(inline="always", **_JIT_OPTIONS)
+@nb.njit(**_LEAF_JIT_OPTIONS)
 def _mf61_evaluate(
     p: np.ndarray,
     coef: np.ndarray,
