@@ -648,7 +648,8 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
     any other set of tires is evaluated wheel by wheel.
 
     The per-wheel parts are written here once, not as inlined helpers and not once per
-    branch: this function is inlined four times into the step, and each extra inlined
+    branch: this function is inlined four times into the step (then by numba; now one
+    loop of ``rates_and_rk4`` calls it, inlined by LLVM), and each extra inlined
     copy or helper grew the cold compile (measured, ``run-scenario`` from an empty cache:
     the MF-only copy of every part +47 % CPU, helpers +22 %, this form +4 %).
     """

@@ -50,7 +50,8 @@ evaluation, one round of :func:`_mf_lanes` holds the eight slip-dependent curves
 trail, ``S_Vyk``), after one scalar ``atan`` for ``E_t``; a non-zero camber adds the
 camber-free ``Fy0`` of (4.E74) as a scalar curve. Per preparation, two rounds of
 :func:`_atan_sin_lanes` hold ``Kya``'s ``sin(atan)`` and the four peak searches. The
-bodies are inlined (numba IR) into their callers; the dispatchers of
+bodies are inlined into their callers (by LLVM: ``_LEAF_JIT_OPTIONS``; the lane
+functions by numba); the dispatchers of
 :mod:`simserver.core.tire` are compiled with the same options
 (``tire_layout.TIRE_JIT_OPTIONS``).
 
