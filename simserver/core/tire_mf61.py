@@ -50,8 +50,7 @@ evaluation, one round of :func:`_mf_lanes` holds the eight slip-dependent curves
 trail, ``S_Vyk``), after one scalar ``atan`` for ``E_t``; a non-zero camber adds the
 camber-free ``Fy0`` of (4.E74) as a scalar curve. Per preparation, two rounds of
 :func:`_atan_sin_lanes` hold ``Kya``'s ``sin(atan)`` and the four peak searches. The
-bodies are inlined into their callers (by LLVM: ``_LEAF_JIT_OPTIONS``; the lane
-functions by numba); the dispatchers of
+bodies are inlined (numba IR) into their callers; the dispatchers of
 :mod:`simserver.core.tire` are compiled with the same options
 (``tire_layout.TIRE_JIT_OPTIONS``).
 
@@ -67,6 +66,7 @@ SAE 950311 provide.
 from __future__ import annotations
 
 import math
+from types import FunctionType
 
 import numba as nb
 import numpy as np
@@ -90,6 +90,7 @@ from simserver.core.tire_layout import (
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
     SLIP_INPUT_MAX,
+    TIRE_DISPATCH_JIT_OPTIONS,
     TIRE_JIT_OPTIONS,
     TP_MIRRORED,
     TP_MODEL_BASE,
@@ -387,13 +388,6 @@ _TINY = 1e-9  # floor of C*D (N), |K_ya| (N/rad), G0: never reached with a sane 
 # Compilation: tire_layout.TIRE_JIT_OPTIONS (FMA, division by zero gives inf; every
 # division here has a non-zero denominator anyway).
 _JIT_OPTIONS = TIRE_JIT_OPTIONS
-# The scalar helpers (atan, sin, the peak search's steps, ...) are inlined by LLVM, not by
-# numba (``core.layout.STEP_JIT_OPTIONS`` says why): called at about 60 places in the
-# kernels, each numba-inlined copy was translated and typed again (the tire dispatchers'
-# ``inline_inlinables`` pass: about 13 of 20 s of their cold compile). The same options,
-# so the same arithmetic and the same bits; the lane functions that take stack scratch
-# (``_mf_lanes``, ``_atan_sin_lanes``) stay numba-inlined: their scratch is the caller's.
-_LEAF_JIT_OPTIONS = dict(TIRE_JIT_OPTIONS, forceinline=True)
 
 # --- elementary functions ----------------------------------------------------------------
 # libm calls are not inlined, clobber every vector register and cost 10-20 ns each, and
@@ -440,7 +434,7 @@ _INV_TWO_PI = 0.15915494309189535
 _ROUND_MAGIC = 6755399441055744.0  # 1.5 * 2^52: (x + M) - M rounds x to an integer
 
 
-@nb.njit(**_LEAF_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _atan(x: float) -> float:
     """``atan(x)`` to about 1 ulp, branch-free (see the constants above)."""
     ax = abs(x)
@@ -464,7 +458,7 @@ def _atan(x: float) -> float:
     return math.copysign(base + (u + u * z * poly), x)
 
 
-@nb.njit(**_LEAF_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _atan_flat(x: float) -> float:
     """:func:`_atan` without a conditional expression (the same value for ``|x| <= 1e300``).
 
@@ -492,7 +486,7 @@ def _atan_flat(x: float) -> float:
     return math.copysign(base + (u + u * z * poly), x)
 
 
-@nb.njit(**_LEAF_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _sin_core(y: float) -> float:
     """``sin(y)`` for ``|y| <= pi/2``."""
     z = y * y
@@ -504,7 +498,7 @@ def _sin_core(y: float) -> float:
     return y + y * z * poly
 
 
-@nb.njit(**_LEAF_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _sin_branch_free(x: float) -> float:
     """``sin(x)`` to about 1 ulp (absolute) for ``|x| < 2^20``, without a branch."""
     n = (x * _INV_TWO_PI + _ROUND_MAGIC) - _ROUND_MAGIC  # nearest integer
@@ -513,7 +507,7 @@ def _sin_branch_free(x: float) -> float:
     return math.copysign(_sin_core(min(ar, (_PI_HI - ar) + _PI_LO)), r)  # sin(pi - a) = sin a
 
 
-@nb.njit(**_LEAF_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _sin(x: float) -> float:
     """``sin(x)`` to about 1 ulp (absolute) for ``|x| < 2^20``; libm beyond (never here)."""
     if not abs(x) < 1048576.0:
@@ -632,7 +626,7 @@ def _atan_sin_lanes(
 # --- peak of a Magic Formula curve ------------------------------------------------------------
 
 
-@nb.njit(**_LEAF_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _peak_target(c: float) -> float:
     """``T``: the curve ``D sin[C atan{u - E (u - atan u)}]`` peaks where ``atan{.} = T``.
 
@@ -649,7 +643,7 @@ def _peak_target(c: float) -> float:
     return _sin_core(a) / _sin_core((_PI_2 - a) + _PI_2_LO)  # 0 < a < pi/2
 
 
-@nb.njit(**_LEAF_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _peak_start(target: float, e: float) -> float:
     """Start of the search for the root of ``g(u) = (1 - E) u + E atan(u) - T``.
 
@@ -661,7 +655,7 @@ def _peak_start(target: float, e: float) -> float:
     return min(max(u0, 1e-12), SLIDE_MAX)
 
 
-@nb.njit(**_LEAF_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _peak_step(u: float, atan_u: float, e: float, target: float) -> float:
     """One Halley step on ``g(u) = (1 - E) u + E atan(u) - T`` (``atan_u = atan(u)``).
 
@@ -678,7 +672,7 @@ def _peak_step(u: float, atan_u: float, e: float, target: float) -> float:
     return min(max(u - g * n * den / max(n * n + e * g * u, _TINY), 0.5 * u), SLIDE_MAX)
 
 
-@nb.njit(**_LEAF_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _mf_curve(y: float, e: float, c: float) -> float:
     """One Magic Formula ``sin[C atan{y - E (y - atan y)}]``, scalar; as a lane of _mf_lanes.
 
@@ -691,7 +685,7 @@ def _mf_curve(y: float, e: float, c: float) -> float:
     return _sin_branch_free(c * _atan_flat((1.0 - e) * y + e * _atan_flat(y)))
 
 
-@nb.njit(**_LEAF_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _mf61_prepare(
     p: np.ndarray, gamma_rad: float, fz_n: float, mu_scale: float, coef: np.ndarray
 ) -> None:
@@ -919,7 +913,7 @@ def _mf61_prepare(
     coef[C_TAN_ALPHA_SLIDE_NEG] = min(max(abs(-uy_neg * inv_by - shy), _TINY), SLIDE_MAX)
 
 
-@nb.njit(**_LEAF_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _low_speed_factor(vx_mps: float, vxlow_mps: float) -> float:
     """The factor on the Magic Formula shifts SHx, SVx, SHy, SVy at hub speed ``vx_mps``.
 
@@ -937,7 +931,7 @@ def _low_speed_factor(vx_mps: float, vxlow_mps: float) -> float:
     return s * s * (3.0 - 2.0 * s)
 
 
-@nb.njit(**_LEAF_JIT_OPTIONS)
+@nb.njit(inline="always", **_JIT_OPTIONS)
 def _mf61_evaluate(
     p: np.ndarray,
     coef: np.ndarray,
@@ -1100,6 +1094,33 @@ _stack_wheel_tires = _stack_scratch(N_WHEEL_TIRES)
 _stack_wheel_outs = _stack_scratch(N_TIRE_OUT * N_WHEEL_TIRES)
 
 
+# The four-tire evaluation's scalar helpers, inlined by LLVM, not by numba
+# (``core.layout.STEP_JIT_OPTIONS`` says why): numba re-translated and re-typed each inlined
+# copy (about two thirds of ``tire_evaluate_mf61_wheels``'s cold compile). Compiled with the
+# dispatchers' options, so the same arithmetic and the same bits. Only here: in the
+# single-tire bodies, which ``tire.tire_forces`` inlines with reference counting on, a
+# call (even one LLVM inlines) kept numba from pruning the counts of its views of ``tp``
+# (tests/test_tire_split.py).
+_LEAF_JIT_OPTIONS = dict(TIRE_DISPATCH_JIT_OPTIONS, forceinline=True)
+
+
+def _llvm_inlined(helper: object) -> object:
+    """``helper``'s Python function compiled with ``_LEAF_JIT_OPTIONS``, under a name of
+    its own (numba's cache files are named by the function's qualified name: the two
+    compiled forms must not share one)."""
+    py = helper.py_func
+    twin = FunctionType(py.__code__, py.__globals__, py.__name__ + "_llvm", py.__defaults__,
+                        py.__closure__)
+    twin.__qualname__ = py.__qualname__ + "_llvm"
+    twin.__doc__ = py.__doc__
+    return nb.njit(**_LEAF_JIT_OPTIONS)(twin)
+
+
+_atan_llvm = _llvm_inlined(_atan)
+_low_speed_factor_llvm = _llvm_inlined(_low_speed_factor)
+_sin_branch_free_llvm = _llvm_inlined(_sin_branch_free)
+
+
 @nb.njit(inline="always", **_JIT_OPTIONS)
 def _mf61_evaluate_wheels(
     tp: np.ndarray,
@@ -1185,7 +1206,7 @@ def _mf61_evaluate_wheels(
         shyk = c[C_SHYK]  # (4.E61)
         rvy4a = p[P_RVY4] * tan_alpha
         dvyk_b[w] = c[C_DVYK0] / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)
-        low = _low_speed_factor(vx_b[w], p[P_VXLOW])
+        low = _low_speed_factor_llvm(vx_b[w], p[P_VXLOW])
         low_b[w] = low
         kappa_x = kappa + c[C_SHX] * low  # (4.E10)
         ex = c[C_EX_POS] if kappa_x >= 0.0 else c[C_EX_NEG]  # (4.E14)
@@ -1193,7 +1214,7 @@ def _mf61_evaluate_wheels(
         alpha_y = tan_alpha + shy  # (4.E20)
         ey = c[C_EY_POS] if alpha_y >= 0.0 else c[C_EY_NEG]  # (4.E24)
         alpha_t = tan_alpha + c[C_SHT]  # (4.E34)
-        et = min(c[C_ET_LOAD] * (1.0 + c[C_ET_GAMMA] * _atan(c[C_BT_CT] * alpha_t)), 1.0)
+        et = min(c[C_ET_LOAD] * (1.0 + c[C_ET_GAMMA] * _atan_llvm(c[C_BT_CT] * alpha_t)), 1.0)
         alpha_r = tan_alpha + shy + c[C_SVY_KYA] * low  # (4.E37), (4.E38)
         kk = c[C_KXK_KYA] * kappa  # (4.E77), (4.E78)
         alpha_t_eq = math.sqrt(alpha_t * alpha_t + kk * kk)
@@ -1226,11 +1247,11 @@ def _mf61_evaluate_wheels(
     for i in range(N_WHEEL_E_LANES):
         yi = yb[i]
         ei = eb[i]
-        yb[i] = (1.0 - ei) * yi + ei * _atan(yi)
+        yb[i] = (1.0 - ei) * yi + ei * _atan_llvm(yi)
     for i in range(N_WHEEL_LANES_PADDED):
-        xb[i] = cb[i] * _atan(yb[i]) + kb[i]
+        xb[i] = cb[i] * _atan_llvm(yb[i]) + kb[i]
     for i in range(N_WHEEL_LANES_PADDED):
-        sb[i] = _sin_branch_free(xb[i])
+        sb[i] = _sin_branch_free_llvm(xb[i])
 
     # --- after the curves: as _mf61_evaluate, the tires side by side -------------------
     # Branch-free, writing only the stack lanes ob (force or moment k of tire w at k
