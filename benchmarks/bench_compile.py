@@ -19,7 +19,8 @@ function and specialisation (numba's ``numba:compile`` events; exclusive: the ti
 callees it compiled meanwhile is theirs), wall and CPU, the largest first, and how much of
 the whole was LLVM (``numba:llvm_lock`` events; the rest is numba's type inference and
 lowering). ``inline="always"`` functions never appear: they are compiled inside their
-callers.
+callers; the step's stages and helpers that LLVM inlines (``core.layout.STEP_JIT_OPTIONS``,
+``forceinline``) appear as functions of their own.
 
     python -m benchmarks.bench_compile --warm 0 --by-function 25
 

@@ -70,6 +70,7 @@ from simserver.core.layout import (
     REF_HEIGHT_M,
     ROLL_RAD,
     ROLL_RATE_RADPS,
+    STEP_JIT_OPTIONS,
     TAN_ALPHA0,
     U_MPS,
     V_MPS,
@@ -325,7 +326,7 @@ def hub_velocity(
     return cos_steer * u_c + sin_steer * v_c, -sin_steer * u_c + cos_steer * v_c
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def follow_terrain(model: Model, ws: Workspace, x: np.ndarray) -> None:
     """Stage 1b: the reference plane of the step (docs/model.md section 11) into
     ``ws.ground``: its axes, gravity resolved into them, the friction under each wheel.
@@ -513,7 +514,7 @@ def terrain_gaps(model: Model, ws: Workspace, x: np.ndarray) -> None:
         wheel[i, W_GAP_RATE_MPS] = d_gap_1 * (u_c * c - v_c * s) + d_gap_2 * (u_c * s + v_c * c)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def corner_loads(model: Model, ws: Workspace, x: np.ndarray) -> None:
     """Stage 1: the normal load of each corner (N) into ``ws.wheel[i, W_FZ]`` (and what it
     adds to the static share into ``W_FZ_DYN``).
@@ -633,7 +634,7 @@ def auxiliary_damping(
     raise ValueError("unknown damping model id (core.damping.DAMPING_MODELS)")
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
     """Stage 2: per wheel, the slip, the tire forces with the auxiliary damping and the
     spin; writes ``dx``'s spin and slip slots and ``ws.wheel`` (``W_*``).
@@ -647,7 +648,8 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
     any other set of tires is evaluated wheel by wheel.
 
     The per-wheel parts are written here once, not as inlined helpers and not once per
-    branch: this function is inlined four times into the step, and each extra inlined
+    branch: this function is inlined four times into the step (then by numba; now one
+    loop of ``rates_and_rk4`` calls it, inlined by LLVM), and each extra inlined
     copy or helper grew the cold compile (measured, ``run-scenario`` from an empty cache:
     the MF-only copy of every part +47 % CPU, helpers +22 %, this form +4 %).
     """
@@ -746,7 +748,7 @@ def wheel_forces(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> 
         wheel[i, W_DAMPING_FY] = damp_y
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def body_rates(model: Model, ws: Workspace, x: np.ndarray, dx: np.ndarray) -> None:
     """Stage 3: the sprung body on the corner loads and the tire forces; writes ``dx``'s
     body slots and ``ws.body`` (``B_*``).

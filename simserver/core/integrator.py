@@ -77,6 +77,7 @@ from simserver.core.layout import (
     O_KAPPA0,
     O_TAN_ALPHA0,
     OMEGA0,
+    STEP_JIT_OPTIONS,
     TAN_ALPHA0,
     TIME_S,
     WHEEL_HELD0,
@@ -179,7 +180,7 @@ def road_wheel_angles(vp: np.ndarray, steer_input: float, wheel_in: np.ndarray) 
         wheel_in[WI_STEER_RAD, i] = angle
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def freeze_inputs(model: Model, data: Data) -> None:
     """Stage 1: the inputs held over the step (``ws.wheel_in``): road-wheel angles, drive
     torques, brake capacities; the brakes start released and no wheel held."""
@@ -205,7 +206,7 @@ def freeze_inputs(model: Model, data: Data) -> None:
         wheel_in[WI_BRAKE_NM, i] = 0.0
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def prepare_tires(model: Model, data: Data) -> None:
     """Stage 2: the tires' load-dependent coefficients, once per step and wheel.
 
@@ -291,7 +292,7 @@ def freeze_decay_rates(model: Model, data: Data) -> None:
                 rk[RK_E_HALF, j] = np.exp(-0.5 * h * rk[RK_DECAY, j])
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def rates_and_rk4(model: Model, data: Data) -> None:
     """Stages 3-5: ``k1`` at the start state (its loads are stage 2's), the outputs and
     contacts recorded from it, the brakes resolved on it and the decay rates frozen
@@ -299,10 +300,10 @@ def rates_and_rk4(model: Model, data: Data) -> None:
 
     The four derivative evaluations are one loop over the stages with one inlined copy of
     ``forces_and_rates`` (``k1`` at ``x``, then ``k2``, ``k3``, ``k4`` at the stage states,
-    after their ``corner_loads``): each inlined copy of it was typed, lowered and
-    optimised again, the bulk of a cold compile of the step (``python -m
-    benchmarks.bench_compile --by-function``). The same operations in the same order as
-    four copies: the same bits.
+    after their ``corner_loads``): each inlined copy of it was optimised again by LLVM
+    (and, while numba inlined it, typed and lowered again), the bulk of a cold compile of
+    the step (``python -m benchmarks.bench_compile --by-function``). The same operations
+    in the same order as four copies: the same bits.
 
     The stage states 2, 3 and 4 take turns in one row (``RK_Y``): each is read for the
     last time, slot by slot, just before the next one overwrites that slot, and the
@@ -379,7 +380,7 @@ def catch_stopped_wheels(data: Data) -> None:
         out[O_BRAKE_TORQUE0 + i] = wheel_in[WI_BRAKE_NM, i]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def update_discrete_states(model: Model, data: Data) -> None:
     """Stage 7: per wheel, on the new hub velocities: the slip variant's projection
     (``core.slip``), the paper's damping trigger and release (``core.damping``), and the
@@ -424,13 +425,15 @@ def update_discrete_states(model: Model, data: Data) -> None:
 
 
 # Compiled without numba's reference counting (``_nrt=False``). The stages are inlined into
-# ``step`` (``inline="always"``: a call that passes the model and data tuples costs about
-# 80 ns), and each takes its arrays out of the tuples; numba counts a reference for every
-# array so taken and cannot prune the counts across the stages' loops: 150 atomic
-# operations a step, +18 % step cost (measured against the first release's step). The step
-# allocates nothing and holds only the caller's arrays and views of them, which the caller
-# keeps alive, so the counts protect nothing. (Non-inlined callees are compiled with their
-# own, default options.)
+# ``step`` (by LLVM, ``core.layout.STEP_JIT_OPTIONS``, or by numba, ``inline="always"``: a
+# call that passes the model and data tuples costs about 80 ns, +19 % on the brush step
+# with six such calls), and each takes its arrays out of the tuples; numba counts a
+# reference for every array so taken and cannot prune the counts across the stages'
+# loops: 150 atomic operations a step, +18 % step cost (measured against the first
+# release's step). The step allocates nothing and holds only the caller's arrays and views
+# of them, which the caller keeps alive, so the counts protect nothing. (The stages that
+# LLVM inlines are compiled with the same options, STEP_JIT_OPTIONS; other callees with
+# their own.)
 # Compiled with numpy's error model, as the tire kernels are (core.tire_layout): a float
 # division by zero gives inf or NaN instead of raising ZeroDivisionError, so no division
 # carries a test and branch of its divisor (about 20 a stage; -3 % of the brush step's

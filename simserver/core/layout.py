@@ -192,3 +192,19 @@ N_POSE = 6
 assert len(STATE_NAMES) == N_STATE
 assert len(OUTPUT_NAMES) == N_OUT
 assert len(INPUT_NAMES) == N_INPUT
+
+
+# ---- how the step's stages and their helpers are compiled
+STEP_JIT_OPTIONS = {"cache": True, "_nrt": False, "error_model": "numpy", "forceinline": True}
+"""Compile options of the step's stages and helpers (``core.integrator.step`` and what it
+calls, ``core.chassis``, ``core.terrain``, ...): the step's own options (no reference
+counting, numpy's error model: ``core.integrator.step``), and inlined by LLVM
+(``forceinline``: LLVM's ``alwaysinline``) instead of by numba (``inline="always"``).
+numba's inlining copies, re-translates and re-types a callee's body at every call site,
+nested ones again inside each copy: about half of a cold compile of the step went to its
+``inline_inlinables`` pass (``python -m benchmarks.bench_compile --by-function``). Typed
+once as a function of its own, the body is compiled once, and LLVM inlines the compiled
+code at each call, with the same arithmetic (no fast-math flags here, nor in the step):
+the same bits and the same step cost. Functions that return an array keep numba's
+inlining (an array returned without reference counting to a caller that counts them
+would lose a reference)."""

@@ -58,6 +58,7 @@ from simserver.core.layout import (
     STEERING_WHEEL_ANGLE_RAD,
     STEERING_WHEEL_RATE_RADPS,
     STEERING_WHEEL_TORQUE_NM,
+    STEP_JIT_OPTIONS,
     WHEELS_PER_AXLE,
 )
 from simserver.core.model import (
@@ -158,7 +159,7 @@ def dahl_friction(friction_nm: float, d_angle_rad: float, limit_nm: float,
         -stiffness_nm_per_rad * abs(d_angle_rad) / limit_nm)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def steering_system(model: Model, data: Data) -> None:
     """Stage 8: the steering-wheel torque from the forces of the step (``data.out``, the
     state at the step's start) and the driver's steering-wheel position; writes the

@@ -43,6 +43,7 @@ from simserver.core.layout import (
     REF_GRADE_PCT,
     REF_HEIGHT_M,
     ROLL_RAD,
+    STEP_JIT_OPTIONS,
     U_MPS,
     V_MPS,
     X_M,
@@ -260,7 +261,7 @@ def _row(h: np.ndarray, jj: int, i0: int, i: int, i3: int, wx0: float, wx1: floa
             dwx0 * h0 + dwx1 * h1 + dwx2 * h2 + dwx3 * h3)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def surface_at(terrain: Terrain, wx: float, wy: float) -> tuple[float, float, float, float]:
     """Height (m), gradient ``(dh/dx, dh/dy)`` and friction scale of a height map at the
     world point ``(wx, wy)``. Catmull-Rom in each axis (C1); the samples beyond the edge
@@ -306,7 +307,7 @@ def _spline_coefficients(h0: float, h1: float, h2: float, h3: float
             0.5 * (3.0 * (h1 - h2) + h3 - h0))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def _fill_cell(terrain: Terrain, memo: np.ndarray, i: int, j: int) -> None:
     """Write the memo of cell ``(i, j)`` (``CELL_*``): the bicubic's 16 power-basis
     coefficients (the same Catmull-Rom surface as ``surface_at``, clamped samples beyond
@@ -339,7 +340,7 @@ def _fill_cell(terrain: Terrain, memo: np.ndarray, i: int, j: int) -> None:
     memo[CELL_KEY] = terrain.grid[GRID_KEY]
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def surface_under_wheel(terrain: Terrain, memo: np.ndarray, wx: float, wy: float
                         ) -> tuple[float, float, float, float]:
     """``surface_at`` for a wheel, through its cell memo ``memo`` (float64[N_CELL],
@@ -416,7 +417,7 @@ def fit_plane(px: np.ndarray, py: np.ndarray, pz: np.ndarray) -> tuple[float, fl
     return a, b, mz - a * mx - b * my
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(**STEP_JIT_OPTIONS)
 def rebase_reference_plane(x: np.ndarray, grade_pct: float, cross_slope_pct: float,
                            height_m: float, cg_height_m: float, axes_old: np.ndarray,
                            axes_new: np.ndarray, c: float, s: float) -> tuple[float, float]:

@@ -67,7 +67,7 @@ N_TIRE_COEF = max(N_SIMPLE_COEF, N_MF61_COEF)
 # kernels that allocate a stack scratch as an array (``coef_scratch`` in tire_forces)
 # need it.
 TIRE_JIT_OPTIONS = {"cache": True, "fastmath": {"contract"}, "error_model": "numpy",
-                    "_nrt": True}
+                    "_nrt": True, "forceinline": False}
 # The dispatchers the step calls (core.tire.tire_prepare, tire_evaluate) are compiled
 # without reference counting: they allocate nothing and hold only their caller's arrays
 # and views of them, which the caller keeps alive, so the counts protect nothing. numba

@@ -66,6 +66,7 @@ SAE 950311 provide.
 from __future__ import annotations
 
 import math
+from types import FunctionType
 
 import numba as nb
 import numpy as np
@@ -89,6 +90,7 @@ from simserver.core.tire_layout import (
     OUT_MZ,
     OUT_TAN_ALPHA_SLIDE,
     SLIP_INPUT_MAX,
+    TIRE_DISPATCH_JIT_OPTIONS,
     TIRE_JIT_OPTIONS,
     TP_MIRRORED,
     TP_MODEL_BASE,
@@ -1092,6 +1094,33 @@ _stack_wheel_tires = _stack_scratch(N_WHEEL_TIRES)
 _stack_wheel_outs = _stack_scratch(N_TIRE_OUT * N_WHEEL_TIRES)
 
 
+# The four-tire evaluation's scalar helpers, inlined by LLVM, not by numba
+# (``core.layout.STEP_JIT_OPTIONS`` says why): numba re-translated and re-typed each inlined
+# copy (about two thirds of ``tire_evaluate_mf61_wheels``'s cold compile). Compiled with the
+# dispatchers' options, so the same arithmetic and the same bits. Only here: in the
+# single-tire bodies, which ``tire.tire_forces`` inlines with reference counting on, a
+# call (even one LLVM inlines) kept numba from pruning the counts of its views of ``tp``
+# (tests/test_tire_split.py).
+_LEAF_JIT_OPTIONS = dict(TIRE_DISPATCH_JIT_OPTIONS, forceinline=True)
+
+
+def _llvm_inlined(helper: object) -> object:
+    """``helper``'s Python function compiled with ``_LEAF_JIT_OPTIONS``, under a name of
+    its own (numba's cache files are named by the function's qualified name: the two
+    compiled forms must not share one)."""
+    py = helper.py_func
+    twin = FunctionType(py.__code__, py.__globals__, py.__name__ + "_llvm", py.__defaults__,
+                        py.__closure__)
+    twin.__qualname__ = py.__qualname__ + "_llvm"
+    twin.__doc__ = py.__doc__
+    return nb.njit(**_LEAF_JIT_OPTIONS)(twin)
+
+
+_atan_llvm = _llvm_inlined(_atan)
+_low_speed_factor_llvm = _llvm_inlined(_low_speed_factor)
+_sin_branch_free_llvm = _llvm_inlined(_sin_branch_free)
+
+
 @nb.njit(inline="always", **_JIT_OPTIONS)
 def _mf61_evaluate_wheels(
     tp: np.ndarray,
@@ -1177,7 +1206,7 @@ def _mf61_evaluate_wheels(
         shyk = c[C_SHYK]  # (4.E61)
         rvy4a = p[P_RVY4] * tan_alpha
         dvyk_b[w] = c[C_DVYK0] / math.sqrt(1.0 + rvy4a * rvy4a)  # (4.E67)
-        low = _low_speed_factor(vx_b[w], p[P_VXLOW])
+        low = _low_speed_factor_llvm(vx_b[w], p[P_VXLOW])
         low_b[w] = low
         kappa_x = kappa + c[C_SHX] * low  # (4.E10)
         ex = c[C_EX_POS] if kappa_x >= 0.0 else c[C_EX_NEG]  # (4.E14)
@@ -1185,7 +1214,7 @@ def _mf61_evaluate_wheels(
         alpha_y = tan_alpha + shy  # (4.E20)
         ey = c[C_EY_POS] if alpha_y >= 0.0 else c[C_EY_NEG]  # (4.E24)
         alpha_t = tan_alpha + c[C_SHT]  # (4.E34)
-        et = min(c[C_ET_LOAD] * (1.0 + c[C_ET_GAMMA] * _atan(c[C_BT_CT] * alpha_t)), 1.0)
+        et = min(c[C_ET_LOAD] * (1.0 + c[C_ET_GAMMA] * _atan_llvm(c[C_BT_CT] * alpha_t)), 1.0)
         alpha_r = tan_alpha + shy + c[C_SVY_KYA] * low  # (4.E37), (4.E38)
         kk = c[C_KXK_KYA] * kappa  # (4.E77), (4.E78)
         alpha_t_eq = math.sqrt(alpha_t * alpha_t + kk * kk)
@@ -1218,11 +1247,11 @@ def _mf61_evaluate_wheels(
     for i in range(N_WHEEL_E_LANES):
         yi = yb[i]
         ei = eb[i]
-        yb[i] = (1.0 - ei) * yi + ei * _atan(yi)
+        yb[i] = (1.0 - ei) * yi + ei * _atan_llvm(yi)
     for i in range(N_WHEEL_LANES_PADDED):
-        xb[i] = cb[i] * _atan(yb[i]) + kb[i]
+        xb[i] = cb[i] * _atan_llvm(yb[i]) + kb[i]
     for i in range(N_WHEEL_LANES_PADDED):
-        sb[i] = _sin_branch_free(xb[i])
+        sb[i] = _sin_branch_free_llvm(xb[i])
 
     # --- after the curves: as _mf61_evaluate, the tires side by side -------------------
     # Branch-free, writing only the stack lanes ob (force or moment k of tire w at k
