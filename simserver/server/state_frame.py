@@ -56,9 +56,10 @@ _FIRST = dict(zip(ARRAYS, np.cumsum([0, *(_WIDTHS[a] for a in ARRAYS)])[:-1].tol
 
 
 class Group(NamedTuple):
-    """The copied fields of one destination type: where their values come from (columns
-    of the side-by-side table of state, outputs, inputs and pose; each column's array, an
-    index into ``ARRAYS``, and its slot there) and which bytes of a record they go to."""
+    """The copied fields of one destination type: where their values come from (each
+    column's array, an index into ``ARRAYS``, and its slot there; ``columns`` numbers them
+    as if state, outputs, inputs and pose stood side by side) and which bytes of a record
+    they go to."""
 
     dtype: np.dtype
     columns: np.ndarray  # int64[k]
