@@ -62,11 +62,10 @@ class DuplicateVehicleError(RuntimeError):
     """Another server already serves this vehicle id on the zenoh network."""
 
 
-COLD_COMPILE_S = (30, 80)
-"""A cold start's compile time on the development machine, for the log line (2 vCPUs: about
-30 s quiet, estimated from a same-run cold start of the commit before the step's stages were
-inlined by LLVM, 121.9 s against 80.6 s to ready at load 4.3, and its 46 s quiet; 80 s busy:
-``python -m benchmarks --only startup``)."""
+COLD_COMPILE_S = (40, 90)
+"""A cold start's compile time on the development machine, for the log line (2 vCPUs: 46 s
+to ready quiet, median of 3, 2026-12-07, ``python -m benchmarks --only startup``; 80 s at
+load 4.3, where the commit before the step's stages were inlined by LLVM took 122 s)."""
 
 
 class CompileProgress:
@@ -76,7 +75,7 @@ class CompileProgress:
     machine (a cache load fires no ``numba:compile`` event; a start once said "compiling"
     and "compiled in 1.7 s" loading from the cache); otherwise, once a compile has begun
     and ``quiet_s`` passed, one line ``simserver: compiling ... (first start only, about
-    30-80 s)``, one line every ``every_s`` with the time so far, and one when done. A
+    40-90 s)``, one line every ``every_s`` with the time so far, and one when done. A
     daemon thread prints them: the compiling thread is busy.
     """
 
