@@ -5,6 +5,7 @@ Run from the repository root::
 
     python -m benchmarks.bench_multicar [--cars 1,8] [--hogs 2] [--quiet-cars 1,32]
                                         [--seconds 20] [--rounds 1]
+                                        [--transport tcp|unixsock]
 
 Each run writes a server config of ``n`` cars on the crest-curve road
 (``configs/scenes/crest_curve_paper_sedan.yaml``, ``configs/roads/crest-curve.xodr``;
