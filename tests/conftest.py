@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from simserver.testing import CONFIGS, REPO, OutputProcess, ServerProcess, free_port
-from tests import suite_record
+from tests import long_form, suite_record
 
 SAMPLE_TIR = CONFIGS / "tires" / "data" / "mf61_225_50R17_sample.tir"
 """The MF 6.1 sample property file, as shipped with the repository (the one the
@@ -55,6 +55,13 @@ def pytest_configure(config: pytest.Config) -> None:
     if _selects_slow(config.getoption("markexpr")):
         os.environ["SIMSERVER_SLOW"] = "1"
     suite_record.pytest_configure(config)  # the suite's clocks (end of this file)
+
+
+@pytest.hookimpl(tryfirst=True)  # before ``-m`` and ``-k`` select: they see the marks
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The long form (tests/long_form.py): its tests are marked ``long``, and the README's
+    test command (the per-commit run) leaves them out; CI runs them with ``-m long``."""
+    long_form.mark(config, items)
 
 
 @pytest.fixture(scope="session")
