@@ -57,6 +57,10 @@ RUN_ELSEWHERE = {
         "test_compare.py::test_readme_command_as_written (beside runs of E2 and E1)",
     "python -m pytest tests/test_scenarios.py -s": "the default suite runs that file",
     "python -m tests.suite_record": "test_suite_record.py runs it on a record of its own",
+    ".venv/bin/python -m pytest -q -m long": "CI: .ci/run runs it after the test command "
+                                             "(test_readme.py)",
+    "python -m tests.long_form": "test_long_form.py checks the listing it prints "
+                                 "(long_form.describe)",
     ".venv/bin/simserver run-scenario configs/scenarios/iso7401_step_steer.yaml --out "
     "out/iso7401": "test_manoeuvres.py::test_one_command_writes_the_figures_and_the_report "
                    "(into a temporary folder)",
