@@ -89,7 +89,7 @@ from typing import Any
 
 from benchmarks.bench_compile import cache_env
 from benchmarks.interleaved import CLOCK_FLOOR
-from simserver.testing import ServerProcess
+from simserver.testing import ServerProcess, free_port, serve_args
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "docs" / "performance.md"
@@ -123,6 +123,8 @@ class Settings:
     startup_warm: int
     suite_runs: int
     """Runs of the README's test command now (``--run-suite N``); 0: read the record."""
+    startup_python: str | None = None
+    """The interpreter of the start-up section's commands (``--python``); None: this one."""
 
 
 FULL = Settings(step_args=(), commonroad_args=(), server_seconds=60.0, busy_runs=3,
@@ -371,13 +373,16 @@ def startup_env(numba_cache_dir: Path) -> dict[str, str]:
 
 
 def time_to_ready(numba_cache_dir: Path, timeout_s: float = 300.0,
-                  cpu: list[float] | None = None) -> float:
+                  cpu: list[float] | None = None, python: str = sys.executable) -> float:
     """Launch ``simserver serve`` (viewer off, free loopback port), return the seconds to its
     ``ready`` line, then stop it with SIGTERM. With ``cpu``, the server's CPU seconds at
     its ready line are appended to it (on a shared machine the steadier figure: the compile
     is single-threaded)."""
-    server = ServerProcess(scene=None, log_level="WARNING", ready_timeout_s=timeout_s,
-                           env=startup_env(numba_cache_dir))
+    listen = [f"tcp/127.0.0.1:{free_port()}"]
+    argv = serve_args(vehicle_id="car0", scene=None, listen=listen, viewer="off",
+                      log_level="WARNING", command_log=None, config=None, extra_args=())
+    server = ServerProcess(argv=[python, *argv[1:]], listen=listen,
+                           ready_timeout_s=timeout_s, env=startup_env(numba_cache_dir))
     if cpu is not None:
         cpu.append(_cpu_s(server.pid))
     server.stop()
@@ -410,13 +415,14 @@ NUMBA_FLOOR = "floor: python -c 'import numba' and numba's CPU target"
 
 
 def time_command(args: tuple[str, ...], numba_cache_dir: Path,
-                 python_args: tuple[str, ...] = ("-m", "simserver")) -> tuple[float, float]:
+                 python_args: tuple[str, ...] = ("-m", "simserver"),
+                 python: str = sys.executable) -> tuple[float, float]:
     """Wall and CPU seconds (user + system, the process and its children) from launch to
     exit of ``python -m simserver ARGS`` (``{out}`` in ARGS a fresh scratch directory; or
     ``python PYTHON_ARGS ARGS``) with the kernel caches in ``numba_cache_dir``; raises if
     it fails. On a shared machine the CPU seconds are the steadier figure."""
     out = Path(tempfile.mkdtemp(prefix="simserver_startup_"))
-    argv = [sys.executable, *python_args, *(a.format(out=out) for a in args)]
+    argv = [python, *python_args, *(a.format(out=out) for a in args)]
     try:
         cpu0 = _children_cpu_s()
         t0 = time.perf_counter()
@@ -432,10 +438,11 @@ def time_command(args: tuple[str, ...], numba_cache_dir: Path,
     return wall_s, cpu_s
 
 
-def startup(cold: int, warm: int) -> dict[str, Any]:
+def startup(cold: int, warm: int, python: str = sys.executable) -> dict[str, Any]:
     """Median launch-to-ready time of the server with an empty and with a warm numba cache,
     then the median wall time of each warm headless command (``HEADLESS_COMMANDS``; one
-    unmeasured run first, which compiles what the server's warm-up did not)."""
+    unmeasured run first, which compiles what the server's warm-up did not); each command
+    run by the interpreter ``python``."""
     cold_s: list[float] = []
     warm_s: list[float] = []
     cold_cpu_s: list[float] = []
@@ -445,21 +452,21 @@ def startup(cold: int, warm: int) -> dict[str, Any]:
     dirs = [Path(tempfile.mkdtemp(prefix="simserver_numba_")) for _ in range(cold)]
     try:
         for d in dirs:
-            cold_s.append(time_to_ready(d, cpu=cold_cpu_s))
+            cold_s.append(time_to_ready(d, cpu=cold_cpu_s, python=python))
             print(f"start-up, cold numba cache: {cold_s[-1]:.2f} s ({cold_cpu_s[-1]:.1f} s CPU; "
                   f"load average {os.getloadavg()[0]:.1f})", flush=True)
         for _ in range(warm):
-            warm_s.append(time_to_ready(dirs[-1], cpu=warm_cpu_s))
+            warm_s.append(time_to_ready(dirs[-1], cpu=warm_cpu_s, python=python))
             print(f"start-up, warm numba cache: {warm_s[-1]:.2f} s ({warm_cpu_s[-1]:.2f} s CPU)",
                   flush=True)
         for args in HEADLESS_COMMANDS.values():
-            time_command(args, dirs[-1])  # compiles what it needs beyond the server's kernels
+            time_command(args, dirs[-1], python=python)  # compiles what the server's did not
         commands = {**{name: (args, ("-m", "simserver"))
                        for name, args in HEADLESS_COMMANDS.items()},
                     NUMBA_FLOOR: ((), ("-c", NUMBA_FLOOR_CODE))}
         for _ in range(warm):  # interleaved: a slow minute of the VM spreads over all four
             for name, (args, python_args) in commands.items():
-                wall_s, cpu_s = time_command(args, dirs[-1], python_args)
+                wall_s, cpu_s = time_command(args, dirs[-1], python_args, python)
                 headless[name].append(wall_s)
                 headless_cpu[name].append(cpu_s)
                 print(f"warm {name}: {wall_s:.2f} s ({cpu_s:.2f} s CPU; load average "
@@ -840,16 +847,23 @@ def run_all(settings: Settings, sections: list[str], quick: bool) -> Report:
 
     if "startup" in sections:
         print("== start-up", flush=True)
-        raw["startup"] = s = startup(settings.startup_cold, settings.startup_warm)
+        python = settings.startup_python or sys.executable
+        raw["startup"] = s = startup(settings.startup_cold, settings.startup_warm, python)
         cmd = "python -m benchmarks --only startup" + suffix
-        rows.append(Row(f"start-up to ready, cold numba cache (median of {len(s['cold_s'])})",
+        where = ""
+        if settings.startup_python:
+            cmd += f" --python {settings.startup_python}"
+            where = f", run by {settings.startup_python}"
+        rows.append(Row(f"start-up to ready, cold numba cache (median of {len(s['cold_s'])}"
+                        f"{where})",
                         f"{s['cold_median_s']:.2f} s ({s['cold_median_cpu_s']:.1f} s CPU)",
                         cmd, "<= 15 s"))
-        rows.append(Row(f"start-up to ready, warm numba cache (median of {len(s['warm_s'])})",
+        rows.append(Row(f"start-up to ready, warm numba cache (median of {len(s['warm_s'])}"
+                        f"{where})",
                         f"{s['warm_median_s']:.2f} s ({s['warm_median_cpu_s']:.2f} s CPU)",
                         cmd, "<= 0.6 s"))
         for name, runs in s["headless_s"].items():
-            rows.append(Row(f"warm {name}, launch to exit (median of {len(runs)})",
+            rows.append(Row(f"warm {name}, launch to exit (median of {len(runs)}{where})",
                             f"{s['headless_median_s'][name]:.2f} s "
                             f"({s['headless_median_cpu_s'][name]:.2f} s CPU; runs: "
                             + ", ".join(f"{x:.2f}" for x in runs) + ")", cmd,
@@ -1092,9 +1106,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="run the README's test command N times now, each from an empty "
                              "kernel cache (default: the suite row reads the last recorded "
                              "runs of that command, tests/suite_record.py)")
+    parser.add_argument("--python", default=None, metavar="PATH",
+                        help="run the start-up section's commands with this interpreter, "
+                             "for example the README's .venv/bin/python (an environment with "
+                             "the project's dependencies only; this one may hold more, such "
+                             "as scipy, which numba imports at start when it is there); its "
+                             "rows say so (default: this interpreter)")
     args = parser.parse_args(argv)
     sections = [s for s in SECTIONS if args.only is None or s in args.only]
-    settings = dataclasses.replace(QUICK if args.quick else FULL, suite_runs=args.run_suite)
+    settings = dataclasses.replace(QUICK if args.quick else FULL, suite_runs=args.run_suite,
+                                   startup_python=args.python)
     t0 = time.monotonic()
     report = run_all(settings, sections, args.quick)
     text = render(report, sections)
