@@ -340,15 +340,18 @@ def per_commit_run(config: Any) -> bool:
 
 def mark(config: Any, items: list[Any]) -> None:
     """Mark the ``LONG`` tests among ``items`` ``long``; in the per-commit run, deselect
-    them. Raises ``pytest.UsageError`` for a name of ``LONG`` or ``PER_COMMIT`` whose file
-    is collected but which names no test there."""
+    them. When the whole suite is collected (pytest's ``testpaths``; before ``-k`` and
+    ``--deselect`` select), raises ``pytest.UsageError`` for a name of ``LONG`` or
+    ``PER_COMMIT`` whose file is collected but which names no test there (a file left out
+    with ``--ignore`` is not checked; nor is a run of named files or tests, which may
+    collect a part of a file)."""
     import pytest
 
     collected = {item.nodeid for item in items}
     files = {nodeid.split("::", 1)[0] for nodeid in collected}
     stale = sorted(nodeid for nodeid in LONG_NODEIDS | set(PER_COMMIT)
                    if nodeid.split("::", 1)[0] in files and nodeid not in collected)
-    if stale:
+    if stale and config.args_source == pytest.Config.ArgsSource.TESTPATHS:
         raise pytest.UsageError("tests/long_form.py names tests the suite does not have "
                                 "(renamed or removed?): " + ", ".join(stale))
     long_items = []

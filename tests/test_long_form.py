@@ -73,7 +73,9 @@ def test_a_name_its_collected_file_lacks_is_an_error():
     with pytest.raises(pytest.UsageError, match=A_LONG.replace("[", r"\[")):
         long_form.mark(_config(pytest.Config.ArgsSource.TESTPATHS), items)
     # a file not collected at all (another file named on the command line) is no error
-    long_form.mark(_config(pytest.Config.ArgsSource.ARGS), [_Item("tests/x.py::test_y")])
+    long_form.mark(_config(pytest.Config.ArgsSource.TESTPATHS), [_Item("tests/x.py::test_y")])
+    # nor is one test of the file named on the command line (the others are not collected)
+    long_form.mark(_config(pytest.Config.ArgsSource.ARGS), items[:1])
 
 
 def test_this_session_follows_the_rule(request):

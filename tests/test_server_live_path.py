@@ -395,7 +395,11 @@ def test_states_go_inline_while_cheap_and_a_reader_that_stops_never_stalls_the_c
 
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    payload = bytearray(4096)  # 4 MB/s at 1 kHz: the stopped reader's socket fills in s
+    # 1 MB/s at 1 kHz: the stopped reader's backlog passes BACKLOG_BYTES (16 kB, seen twice
+    # 20 ms apart) in tens of ms but reaches WEDGE_MAX_BYTES (1 MB, closed at first sight)
+    # only after a second, so the hand-off is seen even when the watch thread is held up a
+    # few hundred ms (4 kB states once reached 2 MB unsent in one such stall)
+    payload = bytearray(1024)
     with ZenohEndpoint(make_zenoh_config(listen=endpoint)) as srv, \
             ZenohEndpoint(make_zenoh_config(listen=[], connect=endpoint)) as cli:
         pub = srv.declare_vehicle_publisher(states_per_s=1000.0, sender_thread=True,
