@@ -21,7 +21,7 @@ def test_exactly_two_commands_and_ci_runs_the_test_one():
     ci = (REPO / ".ci" / "run").read_text()
     assert cmds[1] in ci.splitlines()
     assert "pytest" in cmds[1] and "pytest" not in cmds[0]
-    # and the long form the test command leaves out (tests/long_form.py), right after it
+    # and, after it, the long form the test command leaves out (tests/long_form.py)
     lines = ci.splitlines()
     assert lines[lines.index(cmds[1]) + 1:].count(".venv/bin/python -m pytest -q -m long") == 1
 
