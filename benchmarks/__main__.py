@@ -1021,8 +1021,11 @@ def render(report: Report, sections: list[str]) -> str:
         "CPU seconds (the process and its children); interleaved with them numba's floor, "
         "`python -c` importing numba and initialising the CPU target that numba's cache "
         "initialises before it loads a first kernel (scipy.linalg included, through "
-        "numba's BLAS check): every warm path that runs a kernel pays it before "
-        "simserver's own imports and work.",
+        "numba's BLAS check, where scipy is installed): every warm path that runs a "
+        "kernel pays it before simserver's own imports and work. Rows \"run by PATH\" "
+        "(`--python PATH`) ran every command with that interpreter: the README's "
+        "`.venv` holds the project's dependencies only, while this machine's shared "
+        "interpreter also has scipy, which numba imports at start when it is there.",
         "- Test suite: the README's test command. The row reads the last three recorded "
         "runs of it (each run of the whole default suite appends its wall and CPU time, "
         "whether the kernel cache was empty at its start, the commit and the load: "
