@@ -10,8 +10,8 @@ Why (issue 33 item 3, a suite a contributor runs before every commit, 5 minutes 
 2-core machine): the whole suite took 1110 s of wall time and 1087 s of CPU (recorded run
 at 84e0b9f, 2026-12-07, warm kernel cache, load 0.6-2.1), so it is CPU-bound: two pytest
 workers (pytest-xdist ``-n 2 --dist loadfile``) took it only to 839 s in the same session,
-and broke seven tests (bit-identity checks between worlds compiled in different worker
-processes, and timing-tolerant live tests beside the other worker's servers). The time
+and broke seven tests (two bit-identity checks between a world of one and its single car,
+for a reason not found, and live tests beside the other worker's servers). The time
 goes to real processes: a live server costs a quarter to 0.4 of a core while it runs
 (its 1 kHz loop), and each server, client or command line a test starts pays Python's and
 numba's start-up (about 1 s of CPU warm).
@@ -20,13 +20,13 @@ So a test is here when, in that recorded run, its setup + call + teardown took 2
 more (the figure beside its name: seconds of wall time then), because of what its file's
 entry says it runs, or when it shares a module fixture with such a test whose setup took
 that time (left in the per-commit run, it would pay that setup), unless it is in
-``PER_COMMIT``: the tests kept in the per-commit run
-despite their cost, each because it is the per-commit run's one end-to-end check of a
-path. The per-commit run keeps every test of every file under 2 s, the tire kernels'
-tests, the headless physics, the protocol, the configs and the docs checks.
+``PER_COMMIT``: the tests kept in the per-commit run despite their cost, each because it
+is the per-commit run's one end-to-end check of a path. The per-commit run keeps every
+test under 2 s, the tire kernels' tests, the headless physics, the protocol, the configs
+and the docs checks.
 
-A name here that the suite does not have is an error when its file is collected (a test
-renamed or removed must be renamed or removed here too). ``python -m tests.long_form``
+A name here that the suite does not have is an error when the whole suite is collected
+(a test renamed or removed must be renamed or removed here too). ``python -m tests.long_form``
 prints the list with the reasons, and the totals.
 """
 
@@ -322,8 +322,9 @@ PER_COMMIT: dict[str, str] = {
 }
 """Tests of 2 s or more kept in the per-commit run (nodeid -> the path it is the one
 end-to-end check of). Four tire-kernel tests took 8-14 s in the recorded run and are kept
-too: a run of mine beside it rewrote their kernels' cache index, so that run compiled them
-again; in the same session's other full runs they took under 0.6 s."""
+too: I ran those four tests alone beside it, in the same checkout, and the recorded run
+compiled their kernels again (most likely their cache files were rewritten meanwhile); in
+the same session's other full runs they took under 0.6 s."""
 
 LONG_NODEIDS: frozenset[str] = frozenset(
     f"{path}::{name}" for path, (_, tests) in LONG.items() for name in tests)
