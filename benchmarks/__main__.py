@@ -409,8 +409,8 @@ NUMBA_FLOOR_CODE = ("import numba\n"
 numpy, numba and numba's CPU target, which numba's cache initialises before it loads the
 first cached kernel (``numba.core.caching.Cache.load_overload`` refreshes the target
 context: every lowering registry, and through ``numba.np.arraymath``'s BLAS check all of
-``scipy.linalg``). Timed beside the warm commands, it shows which part of their time is
-numba's own."""
+``scipy.linalg`` where scipy is installed). Timed beside the warm commands, it shows which
+part of their time is numba's own."""
 NUMBA_FLOOR = "floor: python -c 'import numba' and numba's CPU target"
 
 

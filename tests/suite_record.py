@@ -40,15 +40,15 @@ after)."""
 
 
 def is_readme_command(config: Any) -> bool:
-    """Whether the pytest session of ``config`` is the README's whole default suite."""
-    import pytest
+    """Whether the pytest session of ``config`` is the README's whole default suite: the
+    per-commit run (``tests.long_form.per_commit_run``: the whole suite, no ``-m``,
+    ``SIMSERVER_SLOW`` unset) with nothing left out or stopping it early."""
+    from tests.long_form import per_commit_run
 
     opt = config.option
-    return (config.args_source == pytest.Config.ArgsSource.TESTPATHS
-            and not opt.keyword and not opt.markexpr and not getattr(opt, "deselect", None)
-            and not opt.maxfail and not getattr(opt, "lf", False)
-            and not getattr(opt, "stepwise", False)
-            and os.environ.get("SIMSERVER_SLOW") != "1")
+    return (per_commit_run(config) and not opt.keyword
+            and not getattr(opt, "deselect", None) and not opt.maxfail
+            and not getattr(opt, "lf", False) and not getattr(opt, "stepwise", False))
 
 
 def kernel_cache_files() -> int:
