@@ -9,6 +9,7 @@ import signal
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -54,6 +55,7 @@ def pytest_configure(config: pytest.Config) -> None:
     length) is the long one under ``-m slow`` too, not only under ``SIMSERVER_SLOW=1``."""
     if _selects_slow(config.getoption("markexpr")):
         os.environ["SIMSERVER_SLOW"] = "1"
+    long_form.configure_worker(config)  # under -n: the beside half's own kernel cache
     suite_record.pytest_configure(config)  # the suite's clocks (end of this file)
 
 
@@ -62,6 +64,13 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     """The long form (tests/long_form.py): its tests are marked ``long``, and the README's
     test command (the per-commit run) leaves them out; CI runs them with ``-m long``."""
     long_form.mark(config, items)
+
+
+@pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook: only with ``-n``
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """With ``-n`` (the README's test command: ``-n 2``), the two halves of
+    ``tests/long_form.py`` (``BESIDE``), each whole on one worker."""
+    return long_form.halves_scheduler(config, log)
 
 
 @pytest.fixture(scope="session")
@@ -210,9 +219,10 @@ def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> 
 # On this shared 2-core machine a test's wall time says more about the other users than
 # about the test (a server start took 15 s of wall for 1 s of CPU at load 15), so the
 # suite's cost is compared in CPU seconds (issue 33 item 3): ``--cpu-report N`` prints the
-# N tests that used the most CPU, this process's and its reaped children's (servers,
-# clients and CLIs a test starts and stops; a module fixture's server is counted on the
-# test whose setup or teardown started or stopped it).
+# N tests that used the most CPU: the process's that ran the test (this one, or the
+# pytest-xdist worker of its half under ``-n``) and its reaped children's (servers, clients
+# and CLIs a test starts and stops; a module fixture's server is counted on the test whose
+# setup or teardown started or stopped it). ``tests/suite_record.py`` measures it.
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--cpu-report", type=int, default=0, metavar="N",
@@ -220,40 +230,17 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                           "the subprocesses it reaped), and the total")
 
 
-def _cpu_s() -> float:
-    import resource
-
-    total = 0.0
-    for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN):
-        r = resource.getrusage(who)
-        total += r.ru_utime + r.ru_stime
-    return total
-
-
-_CPU_BY_TEST: dict[str, float] = {}
-
-
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
-    if not item.config.getoption("cpu_report"):
-        yield
-        return
-    start = _cpu_s()
-    yield
-    _CPU_BY_TEST[item.nodeid] = _cpu_s() - start
-
-
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter,
                             config: pytest.Config) -> None:
     n = config.getoption("cpu_report")
-    if not n or not _CPU_BY_TEST:
+    cpu_by_test = suite_record.CPU  # every test's teardown report carries its CPU seconds
+    if not n or not cpu_by_test:
         return
     tr = terminalreporter
     tr.write_sep("=", f"most CPU: {n} tests (this process and reaped subprocesses)")
-    for nodeid, cpu in sorted(_CPU_BY_TEST.items(), key=lambda kv: -kv[1])[:n]:
+    for nodeid, cpu in sorted(cpu_by_test.items(), key=lambda kv: -kv[1])[:n]:
         tr.write_line(f"{cpu:8.2f} s  {nodeid}")
-    tr.write_line(f"{sum(_CPU_BY_TEST.values()):8.2f} s  CPU of all {len(_CPU_BY_TEST)} tests")
-
+    tr.write_line(f"{sum(cpu_by_test.values()):8.2f} s  CPU of all {len(cpu_by_test)} tests")
 
 
 # ------------------------------------------------------- the record of the suite's time
@@ -261,4 +248,8 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter,
 # and CPU time: `python -m benchmarks --only suite` reports the recorded runs instead of
 # running the suite again (issue 33 item 4). The hooks are tests/suite_record.py's
 # (its pytest_configure is called from this file's).
-from tests.suite_record import pytest_runtest_logreport, pytest_sessionfinish  # noqa: E402,F401
+from tests.suite_record import (  # noqa: E402,F401
+    pytest_runtest_logreport,
+    pytest_runtest_makereport,
+    pytest_sessionfinish,
+)

@@ -2,15 +2,17 @@
 took, kept so that ``python -m benchmarks`` can report the suite's time without running it.
 
 ``tests/conftest.py`` appends one entry when a session was the README's command
-(``python -m pytest -q``: the ``testpaths`` default, no ``-k``, ``-m``, ``--deselect``,
-``-x``, ``--lf`` or ``--sw``, ``SIMSERVER_SLOW`` unset) and ran to its end: the wall and CPU
-seconds from pytest's start to its end (this process and its reaped subprocesses), the
+(``python -m pytest -q -n 2``: the ``testpaths`` default, no ``-k``, ``-m``, ``--deselect``,
+``-x``, ``--lf`` or ``--sw``, ``SIMSERVER_SLOW`` unset; with or without ``-n``) and ran to
+its end: the wall and CPU seconds from pytest's start to its end (this process and its
+reaped subprocesses: under ``-n``, pytest-xdist's workers and everything they started), the
 outcome counts, the exit status, whether the kernel cache held any compiled kernel at the
 start (``cold``: a fresh clone's compile was paid in the run), the load average, the
 commit, the date, and the ``SLOWEST`` slowest tests (``slowest``: ``[nodeid, seconds]``, a
 test's setup + call + teardown, slowest first) and the ``SLOWEST`` that used the most CPU
-(``most_cpu``, the same form: this process and its reaped subprocesses, from the end of one
-test's teardown to the end of the next's; on a shared machine the steadier figure).
+(``most_cpu``, the same form: the process that ran the test, this one or a worker, and its
+reaped subprocesses, from the end of one test's teardown there to the end of the next's; on
+a shared machine the steadier figure).
 ``RECORD`` (below ``.pytest_cache/``,
 ignored by git) keeps the last ``KEEP`` entries; ``python -m benchmarks --only suite`` reads
 them (``--run-suite N`` runs the command N times instead) and prints the last run's slowest
@@ -25,6 +27,7 @@ import json
 import os
 import subprocess
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -105,9 +108,25 @@ _START: dict[str, float] = {}
 _DURATIONS: dict[str, float] = {}
 """Seconds per test of the recorded session so far: setup + call + teardown (a module or
 session fixture's set-up counts on the test that started it, as in ``--durations``)."""
-_CPU: dict[str, float] = {}
-"""CPU seconds per test of the recorded session so far (``_cpu_s`` at the end of each
-test's teardown, less its value at the end of the previous one)."""
+CPU: dict[str, float] = {}
+"""CPU seconds per test of this session so far (every session: ``--cpu-report`` prints
+them), from the ``CPU_PROPERTY`` of each test's teardown report."""
+CPU_PROPERTY = "cpu_s"
+"""The user property (``report.user_properties``) a test's teardown report carries its CPU
+seconds in: those of the process that ran it (this one, or a pytest-xdist worker, whose
+reports reach this process with their properties) and of the subprocesses it reaped, from
+the end of the previous test's teardown there to the end of this one's."""
+_CPU_MARK: dict[str, float] = {}
+
+
+def _hookimpl(**options: bool) -> Any:
+    """``pytest.hookimpl(**options)``; without pytest (``python -m benchmarks`` reads the
+    record in an environment without the test extra) the hooks are plain functions."""
+    try:
+        import pytest
+    except ImportError:
+        return lambda hook: hook
+    return pytest.hookimpl(**options)
 
 
 def _cpu_s() -> float:
@@ -119,22 +138,36 @@ def _cpu_s() -> float:
 
 
 def pytest_configure(config: Any) -> None:
-    """Start the clocks when the session is the README's command."""
-    if is_readme_command(config):
+    """Start the per-test CPU clock; start the run's clocks when the session is the
+    README's command (in the process that reports it: not in a pytest-xdist worker)."""
+    _CPU_MARK["cpu"] = _cpu_s()
+    if is_readme_command(config) and not hasattr(config, "workerinput"):
         _START.update(wall=time.perf_counter(), cpu=_cpu_s(), load=os.getloadavg()[0],
                       kernels=kernel_cache_files())
 
 
+@_hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: Any, call: Any) -> Iterator[None]:
+    """Give each test's teardown report its CPU seconds (``CPU_PROPERTY``), measured in
+    the process that ran it."""
+    outcome = yield
+    if call.when == "teardown":
+        now = _cpu_s()
+        outcome.get_result().user_properties.append((CPU_PROPERTY, now - _CPU_MARK["cpu"]))
+        _CPU_MARK["cpu"] = now
+
+
 def pytest_runtest_logreport(report: Any) -> None:
-    """Add each phase (setup, call, teardown) of a test to its time."""
-    if _START:
-        _DURATIONS[report.nodeid] = _DURATIONS.get(report.nodeid, 0.0) + report.duration
-        if report.when == "teardown":
-            now = _cpu_s()
-            _CPU[report.nodeid] = now - _START.get("cpu_mark", _START["cpu"])
-            _START["cpu_mark"] = now
+    """Add each phase (setup, call, teardown) of a test to its time, and its teardown's CPU
+    seconds to ``CPU``."""
+    _DURATIONS[report.nodeid] = _DURATIONS.get(report.nodeid, 0.0) + report.duration
+    if report.when == "teardown":
+        cpu = dict(report.user_properties).get(CPU_PROPERTY)
+        if cpu is not None:
+            CPU[report.nodeid] = cpu
 
 
+@_hookimpl(trylast=True)  # after pytest-xdist's: its workers have exited, been reaped
 def pytest_sessionfinish(session: Any, exitstatus: int) -> None:
     """Record the README's command's run unless it was interrupted."""
     import pytest
@@ -146,7 +179,7 @@ def pytest_sessionfinish(session: Any, exitstatus: int) -> None:
               if k in ("passed", "failed", "error", "skipped", "xfailed", "xpassed")}
     append(entry(time.perf_counter() - _START["wall"], _cpu_s() - _START["cpu"],
                  int(exitstatus), counts, int(_START["kernels"]), _START["load"], _DURATIONS,
-                 _CPU))
+                 CPU))
 
 
 def read(path: Path = RECORD) -> list[dict[str, Any]]:

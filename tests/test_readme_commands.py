@@ -50,7 +50,7 @@ RUN_ELSEWHERE = {
     "simserver serve": "readme_server, the server of this module",
     "simserver ros2": "test_ros2.py runs the adapter against a live server",
     'python3 -m venv .venv && .venv/bin/pip install -q -e ".[test]" && '
-    '.venv/bin/python -m pytest -q': "CI: .ci/run runs it verbatim (test_readme.py)",
+    '.venv/bin/python -m pytest -q -n 2': "CI: .ci/run runs it verbatim (test_readme.py)",
     ".venv/bin/simserver run-scenario configs/scenarios/e2_stop_downslope_paper_damping.yaml"
     " --out out/e2": "test_readme.py::test_scenario_command_runs",
     ".venv/bin/simserver compare out/e2 out/e1 --out out/e2_vs_e1":
