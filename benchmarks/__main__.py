@@ -49,12 +49,13 @@ In order:
    fresh venv, the warm-up pre-compiling every kernel into its ``SIMSERVER_CACHE_DIR``), then
    its ``ENTRYPOINT`` + ``CMD`` started to ``ready`` as many times as the cold start-ups, the
    median; a start that compiles is an error (not in ``--quick``: the build takes minutes);
-9. ``suite``: the README's test command (``python -m pytest -q``). By default the row reads
+9. ``suite``: the README's test command (``python -m pytest -q -n 2``). By default the row reads
    the last three recorded runs of that command (every run of the whole default suite
    records its wall and CPU time and whether the kernel cache was empty at its start,
    ``tests/suite_record.py``), so the row costs nothing and says when and at which commit
-   each run was; with ``--run-suite N`` it runs the command N times now, each from an empty
-   kernel cache (a fresh clone's cold compile included), and reports their median.
+   each run was; with ``--run-suite N`` it runs the command N times now, each from empty
+   kernel caches (the main half's and the beside half's: a fresh clone's cold compile
+   included), and reports their median.
 
 Then it prints a markdown table (figure, value, the target the issues set, the command that
 reproduces it) with the machine's description, and writes it to ``--out`` (default
@@ -493,9 +494,12 @@ def _children_cpu_s() -> float:
 
 
 def suite_time(runs: int) -> dict[str, Any]:
-    """Wall time of the README's test command (``python -m pytest -q`` as the README writes
-    it), each run from an empty numba cache as a fresh clone has (the cold compile
-    included); its closing line and exit code per run."""
+    """Wall time of the README's test command (``python -m pytest -q -n 2`` as the README
+    writes it), each run from empty kernel caches as a fresh clone has (the cold compile
+    included: the beside half's own cache, ``tests.long_form.beside_kernel_cache``, is
+    emptied too); its closing line and exit code per run."""
+    from tests.long_form import beside_kernel_cache
+
     command = next(ln.strip() for ln in README.read_text(encoding="utf-8").splitlines()
                    if ln.startswith("    python3 -m venv .venv") and "pytest" in ln)
     job = shlex.split(command.split("&&")[-1])  # .venv/bin/python -m pytest ...
@@ -503,6 +507,7 @@ def suite_time(runs: int) -> dict[str, Any]:
     results = []
     for _ in range(runs):
         cache = Path(tempfile.mkdtemp(prefix="simserver_numba_suite_"))
+        shutil.rmtree(beside_kernel_cache(), ignore_errors=True)
         load = os.getloadavg()[0]
         try:
             cpu0 = _children_cpu_s()
@@ -543,7 +548,7 @@ def recorded_suite_runs(n: int = SUITE_RECORDED) -> dict[str, Any]:
 def suite_record_row(r: dict[str, Any]) -> Row:
     """The suite row from the recorded runs (``recorded_suite_runs``)."""
     figure = "the README's test command (recorded runs"
-    cmd = "python -m pytest -q (recorded); python -m benchmarks --only suite"
+    cmd = "python -m pytest -q -n 2 (recorded); python -m benchmarks --only suite"
     runs = r["runs"]
     if not runs:
         return Row(figure + ")", "no recorded run: run the README's test command, or "

@@ -57,11 +57,14 @@ def is_readme_command(config: Any) -> bool:
 def kernel_cache_files() -> int:
     """How many compiled-kernel indexes (``*.nbi``) simserver's kernels have where this
     process would load them: ``SIMSERVER_CACHE_DIR`` if set, else the package's
-    ``__pycache__`` directories (and ``NUMBA_CACHE_DIR`` if set)."""
+    ``__pycache__`` directories (and ``NUMBA_CACHE_DIR`` if set); and where the beside
+    half's worker of ``-n 2`` would (``tests.long_form.beside_kernel_cache``)."""
     from simserver.core import CACHE_DIR_ENV
+    from tests.long_form import beside_kernel_cache
 
     roots = [os.environ.get(CACHE_DIR_ENV)] if os.environ.get(CACHE_DIR_ENV) else [
         REPO / "simserver", os.environ.get("NUMBA_CACHE_DIR")]
+    roots.append(beside_kernel_cache())
     return sum(1 for root in roots if root for _ in Path(root).rglob("*.nbi"))
 
 
