@@ -52,7 +52,8 @@ def _selects_slow(markexpr: str | None) -> bool:
 def pytest_configure(config: pytest.Config) -> None:
     """``-m slow`` sets ``SIMSERVER_SLOW=1`` before the test modules are imported, so a size
     chosen at import (``slow_enabled(None)``: hypothesis' example counts, a module's soak
-    length) is the long one under ``-m slow`` too, not only under ``SIMSERVER_SLOW=1``."""
+    length) is the long one under ``-m slow`` too, not only under ``SIMSERVER_SLOW=1``;
+    in the beside half's pytest-xdist worker, its own kernel cache (``tests/long_form.py``)."""
     if _selects_slow(config.getoption("markexpr")):
         os.environ["SIMSERVER_SLOW"] = "1"
     long_form.configure_worker(config)  # under -n: the beside half's own kernel cache
@@ -226,8 +227,9 @@ def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--cpu-report", type=int, default=0, metavar="N",
-                     help="print the N tests that used the most CPU (this process and "
-                          "the subprocesses it reaped), and the total")
+                     help="print the N tests that used the most CPU (the process that ran "
+                          "each, this one or a worker, and the subprocesses it reaped), and "
+                          "the total")
 
 
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter,
@@ -237,7 +239,8 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter,
     if not n or not cpu_by_test:
         return
     tr = terminalreporter
-    tr.write_sep("=", f"most CPU: {n} tests (this process and reaped subprocesses)")
+    tr.write_sep("=", f"most CPU: {n} tests (the process that ran each, its reaped "
+                      "subprocesses)")
     for nodeid, cpu in sorted(cpu_by_test.items(), key=lambda kv: -kv[1])[:n]:
         tr.write_line(f"{cpu:8.2f} s  {nodeid}")
     tr.write_line(f"{sum(cpu_by_test.values()):8.2f} s  CPU of all {len(cpu_by_test)} tests")
