@@ -401,12 +401,14 @@ BESIDE: dict[str, tuple[str, ...]] = {
 }
 """The per-commit run in two halves (``-n 2``: pytest-xdist's two workers, one half each,
 :func:`half_of`): (what its files test -> the files) of the half that runs beside the
-other. Its files start no server, open no zenoh session and listen on no port: they compute
-in the worker's own process or run headless command lines, so they cannot disturb the other
-half's live servers, whose 1 kHz loops and real-time checks run in the main half exactly as
-in one process (only their CPU is shared). ``tests/test_long_form.py`` checks that no file
-here starts a server or a zenoh session. Chosen so that the two halves take about the same
-time on this machine (issue 33 item 3: measured in the README's command's record)."""
+other. Its files start no simserver server and open no zenoh session: they compute in the
+worker's own process or run headless command lines (and Dask's scheduler and workers, on
+free loopback ports), so they cannot disturb the other half's live servers, whose 1 kHz
+loops and real-time checks run in the main half as in one process (only the CPU is shared).
+``tests/test_long_form.py`` checks that no file here starts a server or a zenoh session.
+Chosen so that the two halves take about the same time on this machine: in a cold run of
+the README's command (2026-12-08, with a plugin timing each worker's tests) the main half's
+tests took 241 s, these 248 s."""
 
 BESIDE_FILES: frozenset[str] = frozenset(f for files in BESIDE.values() for f in files)
 
@@ -460,11 +462,20 @@ def halves_scheduler(config: Any, log: Any) -> Any:
 
 def configure_worker(config: Any) -> None:
     """In the beside half's worker, before any kernel module is imported: its own kernel
-    cache (:func:`beside_kernel_cache`), for its tests and the processes they start."""
+    cache (:func:`beside_kernel_cache`), for its tests and the processes they start; the
+    kernels of other source states there are deleted (about 9 MB each; ``SIMSERVER_CACHE_DIR``
+    keeps one directory per state of ``simserver/core``'s sources)."""
     workerinput = getattr(config, "workerinput", None)
     if workerinput and workerinput.get("workerid") == BESIDE_WORKER:
-        os.environ["SIMSERVER_CACHE_DIR"] = beside_kernel_cache()
+        import shutil
 
+        from simserver.core import CACHE_DIR_ENV, shared_cache_dir
+
+        root = beside_kernel_cache()
+        os.environ[CACHE_DIR_ENV] = root
+        for other in Path(root).glob("simserver-*"):
+            if other != shared_cache_dir(root):
+                shutil.rmtree(other, ignore_errors=True)
 
 
 def describe() -> str:

@@ -7,6 +7,7 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -118,8 +119,9 @@ def test_the_beside_half_starts_no_server_and_opens_no_zenoh_session():
 
 def test_two_workers_run_each_half_whole_on_its_worker_with_its_own_kernel_cache(tmp_path):
     """A real ``pytest -n 2`` of a scratch suite with this conftest's hooks: the tests of the
-    beside half's files all run on ``BESIDE_WORKER`` with its own kernel cache, the others
-    on the other worker with the cache of the environment (here none)."""
+    beside half's files all run on ``BESIDE_WORKER`` with its own kernel cache (from which
+    it drops another source state's kernels), the others on the other worker with the cache
+    of the environment (here none)."""
     (tmp_path / "t").mkdir()
     for name in ("a", "b", "c", "d"):
         cache = long_form.beside_kernel_cache() if name in "bd" else None
@@ -137,12 +139,15 @@ def test_two_workers_run_each_half_whole_on_its_worker_with_its_own_kernel_cache
         "@pytest.hookimpl(optionalhook=True)\n"
         "def pytest_xdist_make_scheduler(config, log):\n"
         "    return long_form.halves_scheduler(config, log)\n")
+    stale = Path(long_form.beside_kernel_cache()) / "simserver-0000another0state00"
+    (stale / "simserver" / "core").mkdir(parents=True, exist_ok=True)  # another commit's
     env = {k: v for k, v in os.environ.items() if k != "SIMSERVER_CACHE_DIR"}
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])
     proc = subprocess.run([sys.executable, "-m", "pytest", "-n", "2", "-v", "-p",
                            "no:cacheprovider"], cwd=tmp_path, env=env, capture_output=True,
                           text=True, timeout=120)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert not stale.exists()  # the beside worker dropped the other source state's kernels
     worker = {}  # file -> the workers its tests ran on
     for line in proc.stdout.splitlines():
         found = re.match(r"\[(gw\d)\] .*PASSED (t/test_\w\.py)::", line)
