@@ -407,8 +407,8 @@ free loopback ports), so they cannot disturb the other half's live servers, whos
 loops and real-time checks run in the main half as in one process (only the CPU is shared).
 ``tests/test_long_form.py`` checks that no file here starts a server or a zenoh session.
 Chosen so that the two halves take about the same time on this machine: in a cold run of
-the README's command (2026-12-08, with a plugin timing each worker's tests) the main half's
-tests took 241 s, these 248 s."""
+this split (2026-12-08, one kernel cache for both workers then, with a plugin timing each
+worker's tests) the main half's tests took 241 s, these 248 s."""
 
 BESIDE_FILES: frozenset[str] = frozenset(f for files in BESIDE.values() for f in files)
 
