@@ -109,8 +109,9 @@ def append(record: dict[str, Any], path: Path = RECORD) -> None:
 
 _START: dict[str, float] = {}
 _DURATIONS: dict[str, float] = {}
-"""Seconds per test of the recorded session so far: setup + call + teardown (a module or
-session fixture's set-up counts on the test that started it, as in ``--durations``)."""
+"""Seconds per test of this session so far (kept in every session, recorded only for the
+README's command): setup + call + teardown (a module or session fixture's set-up counts on
+the test that started it, as in ``--durations``)."""
 CPU: dict[str, float] = {}
 """CPU seconds per test of this session so far (every session: ``--cpu-report`` prints
 them), from the ``CPU_PROPERTY`` of each test's teardown report."""
